@@ -1,0 +1,22 @@
+"""``indoor-loc bench {imu,wifi}``: benchmarks print tables, side by side with peers in one run."""
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+
+BENCHES = {
+    "imu": "indoor_loc.bench.imu",
+    "wifi": "indoor_loc.bench.wifi",
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("which", choices=sorted(BENCHES), help="which benchmark")
+    parser.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
+    parser.add_argument("--quick", action="store_true", help="smaller run (fewer repetitions / grid points)")
+    parser.add_argument("--json", type=Path, help="also write the figures as JSON here")
+
+
+def main(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(BENCHES[args.which]).run(args) or 0)

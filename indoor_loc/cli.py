@@ -1,0 +1,62 @@
+"""``indoor-loc``: the package's command line (offline replay, bring-up, bags, import, eval, bench).
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``main(args) -> int``;
+modules are imported only when their command runs (``--help`` lists them all without importing).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from indoor_loc.errors import IndoorLocError
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("indoor_loc.demo", "replay a PUTMC walk through the pipeline, score it and plot it"),
+    "run": ("indoor_loc.pipeline.offline", "run bags through the nodes offline, as fast as the CPU allows"),
+    "up": ("indoor_loc.nodes.bringup", "start a set of nodes from a bring-up YAML (like a launch file)"),
+    "record": ("indoor_loc.bag.record_cli", "record DDS topics to an MCAP bag"),
+    "play": ("indoor_loc.bag.play_cli", "publish an MCAP bag onto DDS (rate, loop, /clock)"),
+    "bag": ("indoor_loc.bag.bag_cli", "bag tools: info, recover"),
+    "import": ("indoor_loc.datasets.import_cli", "import a dataset into MCAP bags + params.yaml"),
+    "eval": ("indoor_loc.eval.cli", "score trajectories against ground truth"),
+    "radiomap": ("indoor_loc.wifi.radiomap_cli", "build / inspect WiFi radio maps"),
+    "wifi": ("indoor_loc.wifi.wifi_cli", "WiFi tools: scan the local interface, parse captured output"),
+    "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
+    "contract": ("indoor_loc.contract_cli", "print the message contract as a Markdown table"),
+}
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="indoor-loc", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        if name == selected:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    selected = next((a for a in argv if not a.startswith("-")), None)
+    if selected not in COMMANDS:
+        selected = None
+    parser = build_parser(selected)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 1
+    module = importlib.import_module(COMMANDS[args.command][0])
+    try:
+        return int(module.main(args) or 0)
+    except IndoorLocError as err:
+        print(f"indoor-loc {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

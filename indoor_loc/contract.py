@@ -1,0 +1,98 @@
+"""The message contract: every topic the package reads or writes, with type, QoS and frame.
+
+Topic names are relative, so one user's nodes live under a namespace (``/alice/imu/data``).
+The README's table is generated from ``TOPICS`` (``indoor-loc contract``). Message types are given
+as ``"pkg/msg/Name"`` strings so this module stays importable without any ROS package.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from enum import Enum
+
+
+class Qos(str, Enum):
+    """QoS profiles by role (see nodes/base.py for the rclpy profiles)."""
+    SENSOR = "sensor"        # best effort, keep last 200: raw high-rate input (also matches reliable pubs)
+    RELIABLE = "reliable"    # reliable, volatile, keep last 50: estimates and scans
+    LATCHED = "latched"      # reliable, transient_local, keep last 1: maps, last pose (like amcl_pose)
+    BEST_EFFORT = "best_effort"  # best effort, keep last 5: heavy visualisation (particles)
+
+
+@dataclass(frozen=True)
+class Topic:
+    name: str          # relative name (no leading slash) unless absolute (/diagnostics, /clock)
+    type: str          # "sensor_msgs/msg/Imu"
+    qos: Qos
+    frame: str         # header.frame_id convention
+    doc: str
+
+
+SCHEMA_WIFI_SCAN = "wifi_scan.v1"
+
+TOPICS: dict[str, Topic] = {t.name: t for t in [
+    Topic("imu/data_raw", "sensor_msgs/msg/Imu", Qos.SENSOR, "<user>/imu_link",
+          "Raw IMU (REP 145): linear_acceleration m/s^2 incl. gravity, angular_velocity rad/s; "
+          "orientation_covariance[0] = -1"),
+    Topic("imu/mag", "sensor_msgs/msg/MagneticField", Qos.SENSOR, "<user>/imu_link",
+          "Magnetometer, tesla, sensor frame"),
+    Topic("imu/data", "sensor_msgs/msg/Imu", Qos.SENSOR, "<user>/imu_link",
+          "Orientation device->ENU (map-aligned) with covariance (roll, pitch, yaw rad^2), plus the "
+          "raw acceleration/rate. Output of the heading filter; also accepted as input (phones that "
+          "log an OS orientation, e.g. PUTMC)"),
+    Topic("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, "<user>/wifi_link",
+          "WiFi scan, schema wifi_scan.v1: status[0] name='scan' (schema, ap_count, source); then one "
+          "status per AP: name=BSSID (lower-case, colon-separated), message=SSID, values rssi_dbm, "
+          "frequency_mhz[, age_ms]. header.stamp = scan time"),
+    Topic("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, "<user>/odom -> <user>/base_link",
+          "Integrated PDR pose in <user>/odom; twist.linear.x = walking speed m/s, twist.angular.z = "
+          "yaw rate rad/s. pose.covariance[0] carries the cumulative step count... see README"),
+    Topic("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
+          "WiFi-only position of one scan; covariance x/y in m^2, yaw variance set huge (unknown)"),
+    Topic("pf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.LATCHED, "map",
+          "Particle-filter pose estimate (transient_local like amcl_pose)"),
+    Topic("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT, "map", "Particle cloud"),
+    Topic("ground_truth", "nav_msgs/msg/Path", Qos.LATCHED, "map",
+          "Ground-truth route or time-stamped trajectory of the user, when known"),
+    Topic("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map", "Building link graph"),
+    Topic("backend/wifi_map", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map",
+          "WiFi map scan positions (fixed survey + grown from users)"),
+    Topic("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, "",
+          "Per-node health about once a second: input rates, last stamps, rejected messages by reason"),
+    Topic("/clock", "rosgraph_msgs/msg/Clock", Qos.RELIABLE, "", "Bag time from the player (use_sim_time)"),
+]}
+
+# Back-end per-user topics are parameterised by the user name.
+BACKEND_PATH = "backend/{user}/path"    # nav_msgs/msg/Path
+BACKEND_POSE = "backend/{user}/pose"    # geometry_msgs/msg/PoseWithCovarianceStamped
+
+
+def msg_class(type_name: str) -> type:
+    """Import a message class from ``"pkg/msg/Name"``."""
+    pkg, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+
+
+def type_name_of(msg_or_cls: object) -> str:
+    cls = msg_or_cls if isinstance(msg_or_cls, type) else type(msg_or_cls)
+    pkg = cls.__module__.split(".")[0]
+    return f"{pkg}/msg/{cls.__name__}"
+
+
+def join_ns(namespace: str, topic: str) -> str:
+    """Resolve a relative topic under a namespace: ``join_ns('/walk07', 'imu/data') == '/walk07/imu/data'``."""
+    if topic.startswith("/"):
+        return topic
+    ns = namespace.strip("/")
+    return f"/{ns}/{topic}" if ns else f"/{topic}"
+
+
+def split_ns(full: str, relative_names: set[str] | None = None) -> tuple[str, str]:
+    """Split ``/walk07/imu/data`` into (``/walk07``, ``imu/data``) by matching known relative names."""
+    names = relative_names or {t for t in TOPICS if not t.startswith("/")}
+    for rel in sorted(names, key=len, reverse=True):
+        if full == "/" + rel:
+            return "", rel
+        if full.endswith("/" + rel):
+            return full[: -len(rel) - 1], rel
+    return "", full

@@ -1,0 +1,36 @@
+"""One exception hierarchy for the package (messages built first, chained with ``from err``)."""
+from __future__ import annotations
+
+
+class IndoorLocError(Exception):
+    """Base class of every error the package raises on purpose."""
+
+
+class ConfigError(IndoorLocError, ValueError):
+    """Invalid parameters or configuration (unknown key, out-of-range value)."""
+
+
+class InvalidMessageError(IndoorLocError, ValueError):
+    """A message that violates the message contract. ``reason`` is a short stable slug counted
+    in diagnostics (e.g. ``"nan"``, ``"schema_version"``, ``"rssi_range"``)."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        self.reason = reason
+        self.detail = detail
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+
+
+class MapError(IndoorLocError):
+    """A radio map or building graph that cannot be read or used."""
+
+
+class BagError(IndoorLocError):
+    """An MCAP bag that cannot be read or written."""
+
+
+class DatasetError(IndoorLocError):
+    """A dataset directory that does not look like what the importer expects."""
+
+
+class ParseError(IndoorLocError, ValueError):
+    """Text (command output, JSON) that cannot be parsed into a scan."""

@@ -1,0 +1,117 @@
+"""Helpers for the ``XParams`` dataclasses every algorithm and stage declares.
+
+Each Params class is a (frozen) dataclass whose fields carry a ``doc`` in their metadata (units!)
+and whose ``validate()`` raises :class:`ConfigError`. Defaults live in one place: nodes declare
+their ROS parameters from the fields, offline runs read the same YAML files.
+"""
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+from pathlib import Path
+from typing import Any, Mapping, TypeVar
+
+import yaml
+
+from indoor_loc.errors import ConfigError
+
+P = TypeVar("P")
+
+
+def field(default: Any, doc: str, **kw: Any) -> Any:
+    """A dataclass field with a documentation string (shown as the ROS parameter description)."""
+    if isinstance(default, (list, dict)):
+        return dataclasses.field(default_factory=lambda d=default: type(d)(d), metadata={"doc": doc}, **kw)
+    return dataclasses.field(default=default, metadata={"doc": doc}, **kw)
+
+
+def params_from_dict(cls: type[P], values: Mapping[str, Any] | None = None) -> P:
+    """Build ``cls(**values)``: unknown keys and ill-typed values raise ConfigError; then validate()."""
+    values = dict(values or {})
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"{cls.__name__}: unknown parameter(s) {unknown}; expected some of {sorted(names)}")
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if f.name in values:
+            values[f.name] = _coerce(cls.__name__, f, values[f.name])
+    try:
+        obj = cls(**values)
+    except TypeError as err:
+        raise ConfigError(f"{cls.__name__}: {err}") from err
+    validate = getattr(obj, "validate", None)
+    if validate is not None:
+        validate()
+    return obj
+
+
+def _coerce(owner: str, f: dataclasses.Field, value: Any) -> Any:
+    default = f.default if f.default is not dataclasses.MISSING else (
+        f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
+    if default is None or value is None:
+        return value
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{owner}.{f.name}: expected a bool, got {value!r}")
+        return value
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(default, int) and isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(default, (list, tuple)) and isinstance(value, (list, tuple)):
+        return type(default)(value)
+    if type(default) is not type(value) and not (isinstance(default, (int, float)) and isinstance(value, (int, float))):
+        raise ConfigError(f"{owner}.{f.name}: expected {type(default).__name__}, got {value!r}")
+    return value
+
+
+def params_to_dict(obj: Any) -> dict[str, Any]:
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+
+def param_docs(cls: type) -> dict[str, str]:
+    return {f.name: f.metadata.get("doc", "") for f in dataclasses.fields(cls)}
+
+
+def require(cond: bool, owner: str, name: str, expected: str, got: Any) -> None:
+    """``validate()`` helper: raise ConfigError("Owner.name: expected ..., got ...")."""
+    if not cond:
+        raise ConfigError(f"{owner}.{name}: expected {expected}, got {got!r}")
+
+
+# ----------------------------------------------------------------------------------------------
+# ROS-style parameter files:  {node_name_or_pattern: {"ros__parameters": {...}}}
+# ----------------------------------------------------------------------------------------------
+def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Read a ROS 2 params YAML file. Returns {key: parameters} for every top-level key."""
+    try:
+        data = yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"cannot read params file {path}: {err}") from err
+    if not isinstance(data, dict):
+        raise ConfigError(f"params file {path}: expected a mapping of node names, got {type(data).__name__}")
+    out: dict[str, dict[str, Any]] = {}
+    for key, body in data.items():
+        if not isinstance(body, dict) or "ros__parameters" not in body:
+            raise ConfigError(f"params file {path}: entry {key!r} has no 'ros__parameters' mapping")
+        out[str(key)] = dict(body["ros__parameters"] or {})
+    return out
+
+
+def params_for_node(files: Mapping[str, Mapping[str, Any]], node_name: str, namespace: str = "") -> dict[str, Any]:
+    """Merge the entries of a params file that apply to ``namespace/node_name``, as rcl does:
+    wildcard entries first (``/**``), then plain ``node_name``, then fully qualified matches."""
+    fq = f"{namespace.rstrip('/')}/{node_name}" if namespace else f"/{node_name}"
+    merged: dict[str, Any] = {}
+    ranked: list[tuple[int, str]] = []
+    for key in files:
+        k = key if key.startswith("/") else None
+        if key in ("/**", "**"):
+            ranked.append((0, key))
+        elif key == node_name:
+            ranked.append((1, key))
+        elif k is not None and (k == fq or fnmatch.fnmatchcase(fq, k.replace("/**/", "/*/"))):
+            ranked.append((2 if "*" in k else 3, key))
+    for _, key in sorted(ranked):
+        merged.update(files[key])
+    return merged

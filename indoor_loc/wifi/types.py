@@ -1,0 +1,116 @@
+"""Core WiFi types shared by ingestion, radio maps and every positioning method (pure numpy)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class WifiScan:
+    """One scan. ``bssid`` lower-case colon-separated, unique; arrays have one entry per AP.
+
+    rssi_dbm: received signal strength, dBm, shape (n,); freq_mhz: channel centre frequency, MHz,
+    shape (n,); age_ms: how old each reading was at ``stamp_ns`` (None when unknown).
+    """
+    stamp_ns: int
+    bssid: tuple[str, ...]
+    rssi_dbm: np.ndarray
+    freq_mhz: np.ndarray
+    ssid: tuple[str, ...] = ()
+    age_ms: np.ndarray | None = None
+    frame_id: str = ""
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.bssid)
+
+    def as_dict(self) -> dict[str, float]:
+        return {b: float(r) for b, r in zip(self.bssid, self.rssi_dbm)}
+
+
+@dataclass(frozen=True)
+class Fix:
+    """A position estimate from one scan: ``xy`` (2,) metres in the map frame, ``cov`` (2, 2) m^2.
+
+    ``ok`` is False when the method declined (too few shared APs, outlier rejection...), with
+    ``reason`` saying why; ``info`` holds method-specific extras (matched map scans, weights...).
+    """
+    stamp_ns: int
+    xy: np.ndarray
+    cov: np.ndarray
+    ok: bool = True
+    reason: str = ""
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class RadioMap:
+    """Fingerprints: M scans at known positions over A access points.
+
+    positions: (M, 2) metres, map frame (ENU, x east/right, y north/up).
+    bssids: list of A lower-case BSSIDs (column order); ssids: same length.
+    rssi_dbm: (M, A) float, NaN where the AP was not heard in that scan.
+    freq_mhz: (A,) per-AP frequency (0 if unknown).
+    scan_ids: (M,) int identifiers; stamps_ns: (M,) int (0 for a pre-surveyed map);
+    source: (M,) str label, e.g. "survey" or the user/walk a fingerprint was learnt from.
+    """
+    positions: np.ndarray
+    bssids: list[str]
+    rssi_dbm: np.ndarray
+    freq_mhz: np.ndarray
+    ssids: list[str] = field(default_factory=list)
+    scan_ids: np.ndarray | None = None
+    stamps_ns: np.ndarray | None = None
+    source: list[str] = field(default_factory=list)
+    frame_id: str = "map"
+
+    def __post_init__(self) -> None:
+        m = len(self.positions)
+        if self.scan_ids is None:
+            self.scan_ids = np.arange(m)
+        if self.stamps_ns is None:
+            self.stamps_ns = np.zeros(m, dtype=np.int64)
+        if not self.source:
+            self.source = ["survey"] * m
+        if not self.ssids:
+            self.ssids = [""] * len(self.bssids)
+
+    @property
+    def n_scans(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def n_aps(self) -> int:
+        return len(self.bssids)
+
+    def column_of(self) -> dict[str, int]:
+        return {b: i for i, b in enumerate(self.bssids)}
+
+    def scan_vector(self, scan: WifiScan) -> np.ndarray:
+        """The scan as an (A,) vector in this map's AP order, NaN for APs not heard or unknown."""
+        cols = self.column_of()
+        v = np.full(self.n_aps, np.nan)
+        for b, r in zip(scan.bssid, scan.rssi_dbm):
+            j = cols.get(b)
+            if j is not None:
+                v[j] = r
+        return v
+
+
+class Positioner:
+    """Interface of every WiFi positioning method (WKNN, path loss, coverage area).
+
+    ``fit(radio_map)`` once (and again when the map grows); ``locate(scan)`` per scan returns a
+    :class:`Fix` with an honest covariance, or ``ok=False`` with a reason.
+    """
+    name: str = "positioner"
+
+    def fit(self, radio_map: RadioMap) -> "Positioner":
+        raise NotImplementedError
+
+    def locate(self, scan: WifiScan) -> Fix:
+        raise NotImplementedError
+
+    def locate_many(self, scans: list[WifiScan]) -> list[Fix]:
+        return [self.locate(s) for s in scans]

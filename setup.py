@@ -1,0 +1,39 @@
+"""ament_python package `indoor_loc`; also installs with plain pip (see README)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "indoor_loc"
+
+# `ros2 run indoor_loc <exe>` executables (installed to lib/indoor_loc by setup.cfg under colcon,
+# and to the venv's bin/ under pip).
+NODES = {
+    "imu_node": "indoor_loc.nodes.imu_node:main",
+    "wifi_scan_node": "indoor_loc.nodes.wifi_scan_node:main",
+    "wifi_fix_node": "indoor_loc.nodes.wifi_fix_node:main",
+    "recorder": "indoor_loc.nodes.recorder_node:main",
+    "player": "indoor_loc.nodes.player_node:main",
+}
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    package_data={PACKAGE: ["data/*"]},
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="indoor_loc maintainers",
+    description="Indoor localisation from WiFi RSS and IMU on a building graph (ROS 2 Jazzy)",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    python_requires=">=3.11",
+    entry_points={
+        "console_scripts": [f"{exe} = {target}" for exe, target in NODES.items()]
+        + ["indoor-loc = indoor_loc.cli:main"],
+    },
+)

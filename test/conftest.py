@@ -1,0 +1,41 @@
+"""Shared fixtures: dataset location, per-test ROS domain, seeded RNG."""
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATASETS = Path(os.environ.get("INDOOR_LOC_DATASETS", ROOT.parent / "shared" / "datasets"))
+
+# DDS traffic stays on this machine.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+
+
+def dataset(name: str) -> Path:
+    """Path of a shared dataset, or skip the test with a clear reason when it is absent."""
+    p = DATASETS / name
+    if not p.exists():
+        pytest.skip(f"dataset {name!r} not found at {p} (set INDOOR_LOC_DATASETS or put ../shared beside the repo)")
+    return p
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def ros_domain(monkeypatch) -> int:
+    """A ROS_DOMAIN_ID of its own for a test that talks DDS, so parallel runs don't cross-talk.
+    Child processes inherit it through the environment."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    base = 1 + (int(worker[2:]) if worker[2:].isdigit() else 0) * 40
+    domain = base + random.Random(os.getpid() ^ id(monkeypatch)).randrange(40)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    return domain

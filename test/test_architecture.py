@@ -1,0 +1,63 @@
+"""Keep the layer directions honest by walking every module's imports (AST)."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "indoor_loc"
+CORE = ("imu", "wifi", "eval", "graph")       # pure numpy/scipy: no ROS at all
+ROS_MSG_SUFFIX = "_msgs"
+
+
+def _imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def _modules(sub: str) -> list[Path]:
+    return sorted((PKG / sub).rglob("*.py")) if (PKG / sub).is_dir() else []
+
+
+def _is_cli(p: Path) -> bool:
+    # command-line front ends are plumbing (they may read bags); the algorithms are not
+    return p.name == "cli.py" or p.name.endswith("_cli.py")
+
+
+@pytest.mark.parametrize("sub", CORE)
+def test_core_is_free_of_ros(sub: str) -> None:
+    bad = []
+    for p in _modules(sub):
+        if _is_cli(p):
+            continue
+        for name in _imports(p):
+            top = name.split(".")[0]
+            if (top in ("rclpy", "builtin_interfaces", "rosgraph_msgs") or top.endswith(ROS_MSG_SUFFIX)
+                    or name.startswith(("indoor_loc.msg_adapters", "indoor_loc.pipeline", "indoor_loc.nodes",
+                                        "indoor_loc.bag"))):
+                bad.append(f"{p.relative_to(PKG)} imports {name}")
+    assert not bad, "core modules must stay pure:\n" + "\n".join(bad)
+
+
+def test_only_nodes_and_bag_io_import_rclpy() -> None:
+    bad = []
+    for p in PKG.rglob("*.py"):
+        rel = p.relative_to(PKG).parts
+        if rel[0] in ("nodes", "bag", "bench") or p.name in ("demo.py",):
+            continue
+        if any(n.split(".")[0] == "rclpy" for n in _imports(p)):
+            bad.append(str(p.relative_to(PKG)))
+    assert not bad, "only nodes (and the bag I/O's serialiser) may import rclpy:\n" + "\n".join(bad)
+
+
+def test_adapters_do_not_import_stages_or_nodes() -> None:
+    bad = [f"{p.name}: {n}" for p in _modules("msg_adapters") for n in _imports(p)
+           if n.startswith(("indoor_loc.pipeline", "indoor_loc.nodes"))]
+    assert not bad, bad
