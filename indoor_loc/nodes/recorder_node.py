@@ -1,0 +1,239 @@
+"""Recorder: DDS topics -> MCAP bag (rosbag2 layout), like ``ros2 bag record -s mcap``.
+
+``ros2 run indoor_loc recorder -t imu/data wifi/scan -o walk.mcap --ros-args -r __ns:=/walk01``
+``ros2 run indoor_loc recorder -a -o all.mcap``
+
+- Serialised messages go straight into the bag (``raw=True`` subscriptions: no deserialisation).
+- QoS of each subscription matches the publishers found: best effort if any publisher is best
+  effort, transient_local if every publisher is (latched topics: their last message is received
+  even when it was published before the recorder started).
+- ``-a`` polls the ROS graph every ``--poll`` seconds and adds new topics as they appear; every
+  topic added or left out is logged with the reason.
+- Log time = the node clock at reception (``use_sim_time`` gives bag time); publish time = the
+  publisher's source timestamp.
+- SIGINT / SIGTERM close the bag cleanly (summary and rosbag2 metadata written). The open chunk is
+  closed every ``--flush-interval`` seconds, so SIGKILL loses at most that much; ``indoor-loc bag
+  recover`` turns such a file into a valid one.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from indoor_loc.bag import BagWriter
+from indoor_loc.bag.mcap_io import DEFAULT_CHUNK_SIZE
+from indoor_loc.bag.schemas import qos_dict
+from indoor_loc.contract import msg_class
+from indoor_loc.errors import BagError, ConfigError
+
+NODE_NAME = "recorder"
+SUB_DEPTH = 1000       # queue per subscription: a slow disk must not drop messages at 200 Hz
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by ``indoor-loc record`` and the ``recorder`` executable."""
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("-t", "--topics", nargs="+", metavar="TOPIC",
+                      help="topics to record; relative names resolve in the node namespace (--namespace)")
+    what.add_argument("-a", "--all", action="store_true", help="record every topic, adding new ones as they appear")
+    parser.add_argument("-o", "--output", type=Path, default=None,
+                        help="output .mcap file (default rosbag2_YYYY_MM_DD-HH_MM_SS.mcap)")
+    parser.add_argument("--namespace", default="", help="node namespace, e.g. /walk01 (default: from --ros-args)")
+    parser.add_argument("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE,
+                        help=f"chunk size in bytes before compression (default {DEFAULT_CHUNK_SIZE})")
+    parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
+                        help="chunk compression (default zstd)")
+    parser.add_argument("--flush-interval", type=float, default=1.0,
+                        help="close the open chunk at least this often, in s; bounds what SIGKILL loses "
+                             "(0 = only when full; default 1.0)")
+    parser.add_argument("--poll", type=float, default=1.0, help="graph polling period in s (default 1.0)")
+    parser.add_argument("--exclude", default="", help="regex of topics not to record with -a")
+    parser.add_argument("--include-hidden", action="store_true",
+                        help="with -a, also record hidden topics (a path element starting with '_')")
+
+
+def default_output() -> Path:
+    return Path(time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S.mcap"))
+
+
+def _policy_name(value: Any) -> str:
+    return str(getattr(value, "name", value)).lower()
+
+
+def _duration_ns(d: Any) -> int:
+    return int(getattr(d, "nanoseconds", 0))
+
+
+def offered_qos(profile: QoSProfile) -> dict[str, Any]:
+    """An rclpy QoS profile in rosbag2's metadata layout (version 9)."""
+    return qos_dict(reliability=_policy_name(profile.reliability), durability=_policy_name(profile.durability),
+                    history=_policy_name(profile.history), depth=int(profile.depth),
+                    deadline_ns=_duration_ns(profile.deadline), lifespan_ns=_duration_ns(profile.lifespan),
+                    liveliness=_policy_name(profile.liveliness),
+                    liveliness_lease_ns=_duration_ns(profile.liveliness_lease_duration),
+                    avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+def subscription_qos(publisher_profiles: list[QoSProfile]) -> QoSProfile:
+    """QoS that receives from every publisher: best effort if any publisher is best effort,
+    transient_local only if all publishers are (a transient_local subscription matches no
+    volatile publisher)."""
+    best_effort = any(p.reliability == ReliabilityPolicy.BEST_EFFORT for p in publisher_profiles)
+    latched = bool(publisher_profiles) and all(p.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                               for p in publisher_profiles)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SUB_DEPTH,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def is_hidden(topic: str) -> bool:
+    return any(part.startswith("_") for part in topic.split("/") if part)
+
+
+class RecorderNode(Node):
+    """Subscribes (raw) to the selected topics and appends every message to a :class:`BagWriter`."""
+
+    def __init__(self, writer: BagWriter, *, topics: list[str] | None, poll_s: float = 1.0,
+                 flush_interval_s: float = 1.0, exclude: str = "", include_hidden: bool = False,
+                 **node_kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **node_kwargs)
+        self.writer = writer
+        self._wanted = None if topics is None else [self.resolve_topic_name(t) for t in topics]
+        self._exclude = re.compile(exclude) if exclude else None
+        self._include_hidden = include_hidden
+        self._subs: dict[str, Any] = {}
+        self._reported: set[tuple[str, str]] = set()
+        self.received = 0
+        self._poll()
+        self.create_timer(poll_s, self._poll)
+        if flush_interval_s > 0:
+            self.create_timer(flush_interval_s, self.writer.flush)
+        what = "all topics" if self._wanted is None else ", ".join(self._wanted)
+        self.get_logger().info(f"recording {what} to {writer.path}")
+
+    def _report(self, topic: str, text: str, *, warn: bool = False) -> None:
+        """Log once per (topic, text): what is recorded and what is not, and why."""
+        if (topic, text) in self._reported:
+            return
+        self._reported.add((topic, text))
+        (self.get_logger().warning if warn else self.get_logger().info)(f"{topic}: {text}")
+
+    def _poll(self) -> None:
+        types = dict(self.get_topic_names_and_types())
+        candidates = self._wanted if self._wanted is not None else sorted(types)
+        for topic in candidates:
+            if topic in self._subs:
+                continue
+            if self._wanted is None:
+                if is_hidden(topic) and not self._include_hidden:
+                    self._report(topic, "hidden topic, not recorded (use --include-hidden)")
+                    continue
+                if self._exclude is not None and self._exclude.search(topic):
+                    self._report(topic, "matches --exclude, not recorded")
+                    continue
+            names = types.get(topic)
+            if not names:
+                self._report(topic, "waiting for a publisher")
+                continue
+            if len(names) > 1:
+                self._report(topic, f"published with several types {names}; not recorded", warn=True)
+                continue
+            self._subscribe(topic, names[0])
+
+    def _subscribe(self, topic: str, type_name: str) -> None:
+        try:
+            cls = msg_class(type_name)
+        except (ImportError, AttributeError, ValueError):
+            self._report(topic, f"type {type_name} is not installed here; not recorded", warn=True)
+            return
+        infos = self.get_publishers_info_by_topic(topic)
+        profiles = [i.qos_profile for i in infos]
+        if not profiles:
+            self._report(topic, "waiting for a publisher")
+            return
+        type_hash = ""
+        for i in infos:
+            h = getattr(i, "topic_type_hash", None)
+            if h is not None and str(h).startswith("RIHS"):
+                type_hash = str(h)
+                break
+        try:
+            self.writer.add_topic(topic, type_name, qos_profiles=[offered_qos(p) for p in profiles],
+                                  topic_type_hash=type_hash or None)
+        except BagError as err:
+            self._report(topic, f"cannot be recorded: {err}", warn=True)
+            return
+        qos = subscription_qos(profiles)
+        self._subs[topic] = self.create_subscription(cls, topic, self._callback(topic), qos, raw=True)
+        self._report(topic, f"recording [{type_name}] ({_policy_name(qos.reliability)}, "
+                            f"{_policy_name(qos.durability)}, {len(profiles)} publisher(s))")
+
+    def _callback(self, topic: str) -> Callable[[bytes, Any], None]:
+        def cb(data: bytes, info: Any) -> None:
+            now = self.get_clock().now().nanoseconds
+            src = info.get("source_timestamp") if isinstance(info, dict) else None
+            self.writer.write_raw(topic, data, now, publish_ns=src if src else now)
+            self.received += 1
+        return cb
+
+
+def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
+    """Record until SIGINT/SIGTERM; returns the exit code."""
+    if options.chunk_size <= 0:
+        raise ConfigError(f"record.chunk_size: expected > 0 bytes, got {options.chunk_size}")
+    if options.poll <= 0:
+        raise ConfigError(f"record.poll: expected > 0 s, got {options.poll}")
+    if options.flush_interval < 0:
+        raise ConfigError(f"record.flush_interval: expected >= 0 s, got {options.flush_interval}")
+    output = options.output or default_output()
+    if output.suffix != ".mcap":
+        output = output.with_suffix(output.suffix + ".mcap") if output.suffix else output.with_suffix(".mcap")
+    rclpy.init(args=ros_args)
+    node = None
+    writer = BagWriter(output, chunk_size=options.chunk_size, compression=options.compression)
+    try:
+        writer.open()
+        kwargs = {"namespace": options.namespace} if options.namespace else {}
+        node = RecorderNode(writer, topics=None if options.all else list(options.topics),
+                            poll_s=options.poll, flush_interval_s=options.flush_interval,
+                            exclude=options.exclude, include_hidden=options.include_hidden, **kwargs)
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        writer.close()
+        rclpy.try_shutdown()
+    counts = writer.topic_counts()
+    print(f"recorded {sum(counts.values())} messages on {len(counts)} topics to {output}", file=sys.stderr)
+    for topic, n in sorted(counts.items()):
+        print(f"  {topic}: {n}", file=sys.stderr)
+    return 0
+
+
+def main(args: list[str] | None = None) -> int:
+    """``recorder`` executable: same options as ``indoor-loc record``, plus ``--ros-args ...``."""
+    from rclpy.utilities import remove_ros_args
+    argv = sys.argv if args is None else args
+    parser = argparse.ArgumentParser(prog="recorder", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    options = parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        return run(options, argv)
+    except (ConfigError, BagError) as err:
+        print(f"recorder: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
