@@ -1,0 +1,214 @@
+"""Player: MCAP bag(s) -> DDS in log-time order, like ``ros2 bag play``.
+
+``ros2 run indoor_loc player walk01.mcap --rate 2 --clock --loop``
+
+- Messages are published as stored (serialised bytes, no deserialisation) at their log time
+  scaled by ``--rate``; several bags are merged in time order.
+- ``--clock [HZ]`` publishes ``rosgraph_msgs/Clock`` on ``/clock`` (default 100 Hz) in bag time,
+  for nodes started with ``use_sim_time:=true``.
+- Publishers are reliable (they serve reliable and best-effort subscribers alike);
+  transient_local for the contract's latched topics (``ground_truth``, ``map/graph``,
+  ``backend/wifi_map``, ``pf/pose``, under any namespace) and for topics whose recorded
+  publishers were all transient_local, so late subscribers still get the last message.
+- ``--topics`` keeps only some topics, ``--remap OLD:=NEW`` renames them, ``--start-offset S``
+  skips the first S seconds of the bag, ``--wait-for-subscribers`` holds playback until every
+  topic has a subscriber, ``--loop`` repeats.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+from indoor_loc.bag import bag_info, read_raw
+from indoor_loc.bag.schemas import parse_qos_yaml
+from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
+from indoor_loc.errors import BagError, ConfigError
+
+NODE_NAME = "player"
+PUB_DEPTH = 1000
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by ``indoor-loc play`` and the ``player`` executable."""
+    parser.add_argument("bags", nargs="+", type=Path, help="MCAP bag(s), merged in time order")
+    parser.add_argument("-r", "--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
+    parser.add_argument("-l", "--loop", action="store_true", help="play again from the start when done")
+    parser.add_argument("--clock", type=float, nargs="?", const=100.0, default=0.0, metavar="HZ",
+                        help="publish /clock in bag time at HZ (default 100 when given)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these topics (full names)")
+    parser.add_argument("--remap", nargs="+", default=[], metavar="OLD:=NEW", help="rename topics")
+    parser.add_argument("--start-offset", type=float, default=0.0, metavar="S",
+                        help="skip the first S seconds of the bag (default 0)")
+    parser.add_argument("--delay", type=float, default=0.0, metavar="S",
+                        help="wait S seconds after creating publishers before playing (discovery)")
+    parser.add_argument("--wait-for-subscribers", type=float, nargs="?", const=30.0, default=0.0, metavar="S",
+                        help="before playing, wait up to S s (default 30) until every topic has a subscriber")
+
+
+def parse_remaps(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        old, sep, new = item.partition(":=")
+        if not sep or not old or not new:
+            raise ConfigError(f"play.remap: expected OLD:=NEW, got {item!r}")
+        out["/" + old.lstrip("/")] = "/" + new.lstrip("/")
+    return out
+
+
+def latched(topic: str, recorded_qos: str) -> bool:
+    """Whether ``topic`` is played transient_local: a latched contract topic, or recorded so."""
+    _, rel = split_ns(topic, set(TOPICS))
+    spec = TOPICS.get(rel)
+    if spec is not None:
+        return spec.qos == Qos.LATCHED
+    profiles = parse_qos_yaml(recorded_qos)
+    return bool(profiles) and all(p.get("durability") == "transient_local" for p in profiles)
+
+
+class PlayerNode(Node):
+    """Publishes the messages of bags at bag-time pace (see module docstring)."""
+
+    def __init__(self, bags: list[Path], *, rate: float = 1.0, loop: bool = False, clock_hz: float = 0.0,
+                 topics: list[str] | None = None, remap: dict[str, str] | None = None,
+                 start_offset_s: float = 0.0, **node_kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **node_kwargs)
+        if not rate > 0:
+            raise ConfigError(f"play.rate: expected > 0, got {rate}")
+        if clock_hz < 0:
+            raise ConfigError(f"play.clock: expected >= 0 Hz, got {clock_hz}")
+        if start_offset_s < 0:
+            raise ConfigError(f"play.start_offset: expected >= 0 s, got {start_offset_s}")
+        self.bags, self.rate, self.loop, self.clock_hz = list(bags), float(rate), loop, float(clock_hz)
+        self.start_offset_ns = int(round(start_offset_s * 1e9))
+        self.remap = dict(remap or {})
+        info = bag_info(self.bags)
+        if topics is not None:
+            missing = sorted(set(topics) - set(info))
+            if missing:
+                self.get_logger().warning(f"topics not in the bag(s): {missing}")
+            info = {k: v for k, v in info.items() if k in set(topics)}
+        if not info:
+            raise BagError(f"nothing to play in {[str(b) for b in self.bags]}")
+        self.topics = sorted(info)
+        self._pubs: dict[str, Any] = {}
+        for name in self.topics:
+            t = info[name]
+            out = self.remap.get(name, name)
+            keep = latched(out, t.qos_yaml) or latched(name, t.qos_yaml)
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1 if keep else PUB_DEPTH,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL if keep else DurabilityPolicy.VOLATILE)
+            self._pubs[name] = self.create_publisher(msg_class(t.type), out, qos)
+            self.get_logger().info(f"{name}{' -> ' + out if out != name else ''} [{t.type}] {t.count} msgs"
+                                   f"{' (transient_local)' if keep else ''}")
+        self._clock_pub = (self.create_publisher(Clock, "/clock", QoSProfile(depth=10)) if self.clock_hz > 0
+                           else None)
+        self.published = 0
+
+    def wait_for_subscribers(self, timeout_s: float) -> bool:
+        """Block until every played topic has at least one subscriber (or the timeout)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and rclpy.ok(context=self.context):
+            if all(p.get_subscription_count() > 0 for p in self._pubs.values()):
+                return True
+            time.sleep(0.02)
+        waiting = [t for t, p in self._pubs.items() if p.get_subscription_count() == 0]
+        if waiting:
+            self.get_logger().warning(f"playing without subscribers on {waiting}")
+        return not waiting
+
+    def _publish_clock(self, bag_ns: int) -> None:
+        if self._clock_pub is not None:
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = divmod(int(bag_ns), 1_000_000_000)
+            self._clock_pub.publish(msg)
+
+    def play_once(self) -> bool:
+        """Play the bags once; False if interrupted (context shut down)."""
+        first: int | None = None
+        wall0 = 0.0
+        clock_period = 1.0 / self.clock_hz if self.clock_hz > 0 else 0.0
+        next_clock = 0.0
+        for m in read_raw(self.bags, self.topics):
+            if first is None:
+                first = m.stamp_ns + self.start_offset_ns
+                wall0 = time.monotonic()
+                next_clock = wall0
+            if m.stamp_ns < first:
+                continue
+            target = wall0 + (m.stamp_ns - first) * 1e-9 / self.rate
+            while True:
+                if not rclpy.ok(context=self.context):
+                    return False
+                now = time.monotonic()
+                if clock_period and now >= next_clock:
+                    self._publish_clock(first + int((now - wall0) * self.rate * 1e9))
+                    next_clock += clock_period
+                    if next_clock < now:          # fell behind (slow machine): don't burst
+                        next_clock = now + clock_period
+                if now >= target:
+                    break
+                wake = min(target, next_clock) if clock_period else target
+                time.sleep(max(0.0, min(wake - now, 0.05)))
+            self._pubs[m.topic].publish(m.data)
+            self.published += 1
+        if first is None:
+            self.get_logger().warning("no message at or after the start offset")
+        return True
+
+    def play(self) -> None:
+        while self.play_once() and self.loop:
+            self.get_logger().info("looping")
+        for pub in list(self._pubs.values()) + ([self._clock_pub] if self._clock_pub else []):
+            if rclpy.ok(context=self.context):
+                pub.wait_for_all_acked(Duration(seconds=2.0))
+
+
+def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
+    remap = parse_remaps(options.remap)
+    rclpy.init(args=ros_args)
+    node = None
+    try:
+        node = PlayerNode(list(options.bags), rate=options.rate, loop=options.loop, clock_hz=options.clock,
+                          topics=options.topics, remap=remap, start_offset_s=options.start_offset)
+        if options.wait_for_subscribers > 0:
+            node.wait_for_subscribers(options.wait_for_subscribers)
+        if options.delay > 0:
+            time.sleep(options.delay)
+        node.play()
+        print(f"played {node.published} messages", file=sys.stderr)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def main(args: list[str] | None = None) -> int:
+    """``player`` executable: same options as ``indoor-loc play``, plus ``--ros-args ...``."""
+    from rclpy.utilities import remove_ros_args
+    argv = sys.argv if args is None else args
+    parser = argparse.ArgumentParser(prog="player", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    options = parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        return run(options, argv)
+    except (ConfigError, BagError) as err:
+        print(f"player: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
