@@ -176,7 +176,8 @@ class PlayerNode(Node):
 
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     remap = parse_remaps(options.remap)
-    rclpy.init(args=ros_args)
+    # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps)
+    rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
     node = None
     try:
         node = PlayerNode(list(options.bags), rate=options.rate, loop=options.loop, clock_hz=options.clock,
@@ -198,13 +199,15 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
 
 def main(args: list[str] | None = None) -> int:
     """``player`` executable: same options as ``indoor-loc play``, plus ``--ros-args ...``."""
-    from rclpy.utilities import remove_ros_args
     argv = sys.argv if args is None else args
+    # Our options come before --ros-args; only what follows goes to rcl (OLD:=NEW of --remap must
+    # not be read by rcl as a deprecated remapping rule).
+    cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
     parser = argparse.ArgumentParser(prog="player", description=__doc__.splitlines()[0])
     add_arguments(parser)
-    options = parser.parse_args(remove_ros_args(argv)[1:])
+    options = parser.parse_args(argv[1:cut])
     try:
-        return run(options, argv)
+        return run(options, argv[:1] + argv[cut:])
     except (ConfigError, BagError) as err:
         print(f"player: error: {err}", file=sys.stderr)
         return 2

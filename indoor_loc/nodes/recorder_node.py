@@ -197,7 +197,8 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     output = options.output or default_output()
     if output.suffix != ".mcap":
         output = output.with_suffix(output.suffix + ".mcap") if output.suffix else output.with_suffix(".mcap")
-    rclpy.init(args=ros_args)
+    # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps)
+    rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
     node = None
     writer = BagWriter(output, chunk_size=options.chunk_size, compression=options.compression)
     try:
@@ -223,13 +224,15 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
 
 def main(args: list[str] | None = None) -> int:
     """``recorder`` executable: same options as ``indoor-loc record``, plus ``--ros-args ...``."""
-    from rclpy.utilities import remove_ros_args
     argv = sys.argv if args is None else args
+    # Our options come before --ros-args; only what follows goes to rcl (OLD:=NEW of --remap must
+    # not be read by rcl as a deprecated remapping rule).
+    cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
     parser = argparse.ArgumentParser(prog="recorder", description=__doc__.splitlines()[0])
     add_arguments(parser)
-    options = parser.parse_args(remove_ros_args(argv)[1:])
+    options = parser.parse_args(argv[1:cut])
     try:
-        return run(options, argv)
+        return run(options, argv[:1] + argv[cut:])
     except (ConfigError, BagError) as err:
         print(f"recorder: error: {err}", file=sys.stderr)
         return 2

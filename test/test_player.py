@@ -1,0 +1,109 @@
+"""Player as a real process: a use_sim_time subscriber process receives every message in stamp
+order, the latched topic, and /clock in bag time; remap, topic filter and start offset apply."""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as PathMsg
+from sensor_msgs.msg import Imu
+
+from indoor_loc.bag import BagWriter
+from indoor_loc.errors import ConfigError
+from indoor_loc.nodes.player_node import add_arguments, latched, parse_remaps
+
+PEERS = Path(__file__).resolve().parent / "bag_peers"
+T0 = 1_700_000_000_000_000_000
+DT = 10_000_000                  # 100 Hz
+
+
+def _make_bag(path: Path, ns: str, n: int) -> None:
+    with BagWriter(path, chunk_size=4000) as w:
+        gt = PathMsg()
+        gt.header.frame_id = "map"
+        gt.poses = [PoseStamped(), PoseStamped(), PoseStamped()]
+        w.write(f"{ns}/ground_truth", gt, T0)
+        for i in range(n):
+            m = Imu()
+            m.header.frame_id = str(i)
+            m.header.stamp.sec, m.header.stamp.nanosec = divmod(T0 + i * DT, 10**9)
+            w.write(f"{ns}/imu/data_raw", m, T0 + i * DT)
+
+
+def _play_and_listen(bag: Path, listen_ns: str, expected: int, *player_args: str) -> tuple[list[str], str]:
+    env = os.environ.copy()
+    sub = subprocess.Popen([sys.executable, str(PEERS / "subscriber.py"), listen_ns, str(expected), "25"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    assert sub.stdout.readline().strip() == "ready"
+    player = subprocess.run([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag),
+                             "--wait-for-subscribers", "20", *player_args],
+                            capture_output=True, text=True, env=env, timeout=40)
+    out, _ = sub.communicate(timeout=30)
+    assert player.returncode == 0, player.stdout + player.stderr
+    return out.splitlines(), player.stderr
+
+
+@pytest.mark.timeout(60)
+def test_player_publishes_in_order_with_clock(ros_domain: int, tmp_path: Path) -> None:
+    bag = tmp_path / "walk.mcap"
+    n = 80
+    _make_bag(bag, "/walk05", n)
+    lines, log = _play_and_listen(bag, "/walk05", n, "--clock", "--rate", "2")
+    imu = [ln.split() for ln in lines if ln.startswith("imu ")]
+    assert [int(f[1]) for f in imu] == list(range(n)), lines[-5:]
+    assert [int(f[2]) for f in imu] == [T0 + i * DT for i in range(n)]
+    assert "gt 3" in lines                                           # latched topic delivered
+    clocks = [int(ln.split()[1]) for ln in lines if ln.startswith("clock ")]
+    assert clocks and all(T0 <= c <= T0 + n * DT for c in clocks)  # /clock runs in bag time
+    assert clocks == sorted(clocks)
+    # the subscriber's clock (use_sim_time) follows /clock: bag time, never wall time
+    sim_now = [int(f[3]) for f in imu]
+    assert all(T0 <= t <= T0 + (n + 10) * DT for t in sim_now[5:])
+    done = [ln for ln in lines if ln.startswith("done")][0]
+    n_clock = int(done.split()[3])
+    # 0.4 s of wall time at 100 Hz: a few tens of /clock messages
+    assert 15 <= n_clock <= 80, done
+    assert f"played {n + 1} messages" in log
+
+
+@pytest.mark.timeout(60)
+def test_player_remap_topics_and_start_offset(ros_domain: int, tmp_path: Path) -> None:
+    bag = tmp_path / "walk.mcap"
+    n = 50
+    _make_bag(bag, "/walk06", n)
+    # skip the first 0.2 s (20 messages), play only IMU, renamed into another namespace
+    lines, log = _play_and_listen(bag, "/other", n - 20, "--rate", "4", "--start-offset", "0.2",
+                                  "--topics", "/walk06/imu/data_raw",
+                                  "--remap", "/walk06/imu/data_raw:=/other/imu/data_raw")
+    ids = [int(ln.split()[1]) for ln in lines if ln.startswith("imu ")]
+    assert ids == list(range(20, n))
+    assert not any(ln.startswith("gt ") for ln in lines)
+    assert f"played {n - 20} messages" in log
+
+
+def test_player_options_and_latched_topics() -> None:
+    assert parse_remaps(["/a:=/b", "c:=d"]) == {"/a": "/b", "/c": "/d"}
+    with pytest.raises(ConfigError, match="OLD:=NEW"):
+        parse_remaps(["/a=/b"])
+    for topic in ("/walk01/ground_truth", "/u/map/graph", "/backend/wifi_map", "/x/pf/pose"):
+        assert latched(topic, "")
+    assert not latched("/walk01/imu/data", "- durability: transient_local\n")   # contract wins
+    assert latched("/foo", "- durability: transient_local\n")
+    assert not latched("/foo", "- durability: transient_local\n- durability: volatile\n")
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    a = p.parse_args(["x.mcap", "--clock"])
+    assert a.clock == 100.0 and a.rate == 1.0 and not a.loop
+
+
+def test_player_rejects_bad_rate(ros_domain: int, tmp_path: Path) -> None:
+    bag = tmp_path / "b.mcap"
+    _make_bag(bag, "/w", 2)
+    r = subprocess.run([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--rate", "0"],
+                       capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2 and "play.rate: expected > 0" in r.stderr
