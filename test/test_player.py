@@ -107,3 +107,27 @@ def test_player_rejects_bad_rate(ros_domain: int, tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--rate", "0"],
                        capture_output=True, text=True, timeout=30)
     assert r.returncode == 2 and "play.rate: expected > 0" in r.stderr
+
+
+@pytest.mark.timeout(60)
+def test_player_loops_until_sigint(ros_domain: int, tmp_path: Path) -> None:
+    import signal
+    bag = tmp_path / "walk.mcap"
+    n = 20
+    _make_bag(bag, "/walk07", n)
+    env = os.environ.copy()
+    sub = subprocess.Popen([sys.executable, str(PEERS / "subscriber.py"), "/walk07", str(2 * n), "25"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    assert sub.stdout.readline().strip() == "ready"
+    player = subprocess.Popen([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--loop",
+                               "--rate", "5", "--wait-for-subscribers", "20"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        out, _ = sub.communicate(timeout=30)
+    finally:
+        player.send_signal(signal.SIGINT)
+        log, _ = player.communicate(timeout=15)
+    assert player.returncode == 0, log
+    ids = [int(ln.split()[1]) for ln in out.splitlines() if ln.startswith("imu ")]
+    assert ids[: 2 * n] == list(range(n)) * 2, ids
+    assert "looping" in log
