@@ -1,13 +1,28 @@
-"""Stage health -> diagnostic_msgs/DiagnosticArray for ``/diagnostics`` (live and offline)."""
+"""Stage health -> diagnostic_msgs/DiagnosticArray for ``/diagnostics`` (live and offline), and the
+reverse lookups tools and tests use."""
 from __future__ import annotations
+
+from typing import NamedTuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from indoor_loc.msg_adapters.time import stamp_from_ns
 
 
+class StatusSummary(NamedTuple):
+    """One DiagnosticStatus as plain values: level (0 OK, 1 WARN, 2 ERROR, 3 STALE)."""
+    name: str
+    level: int
+    message: str
+    hardware_id: str
+    values: dict[str, str]
+
+
 def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
-    """One DiagnosticStatus for a stage: input counts/rates/last stamps, outputs, rejections."""
+    """One DiagnosticStatus for a stage: input counts/rates/last stamps, outputs, rejections.
+
+    Level: ERROR when a message raised an internal error, WARN when any was rejected, else OK.
+    """
     arr = DiagnosticArray()
     arr.header.stamp = stamp_from_ns(now_ns)
     st = DiagnosticStatus()
@@ -22,3 +37,13 @@ def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
     st.values = [KeyValue(key=str(k), value=str(v)) for k, v in kv.items()]
     arr.status = [st]
     return arr
+
+
+def diagnostics_from_msg(arr: DiagnosticArray) -> dict[str, StatusSummary]:
+    """{status name: StatusSummary} of a DiagnosticArray (a later duplicate name wins)."""
+    out: dict[str, StatusSummary] = {}
+    for st in arr.status:
+        level = st.level if isinstance(st.level, int) else int.from_bytes(st.level, "little")
+        out[st.name] = StatusSummary(st.name, level, st.message, st.hardware_id,
+                                     {kv.key: kv.value for kv in st.values})
+    return out

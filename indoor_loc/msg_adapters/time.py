@@ -1,19 +1,38 @@
-"""builtin_interfaces/Time <-> int nanoseconds."""
+"""builtin_interfaces/Time <-> int nanoseconds, plus the small checks every adapter shares."""
 from __future__ import annotations
 
+import math
+from typing import Iterable
+
+import numpy as np
 from builtin_interfaces.msg import Time
 
 from indoor_loc.errors import InvalidMessageError
 
+NS_PER_S = 1_000_000_000
+
 
 def stamp_to_ns(stamp: Time) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    """``builtin_interfaces/Time`` -> int ns since the epoch.
+
+    Raises InvalidMessageError ``"negative_stamp"`` for a stamp before the epoch and
+    ``"bad_stamp"`` for ``nanosec`` outside [0, 1e9).
+    """
+    sec, nsec = int(stamp.sec), int(stamp.nanosec)
+    if not 0 <= nsec < NS_PER_S:
+        raise InvalidMessageError("bad_stamp", f"nanosec {nsec} outside [0, 1e9)")
+    ns = sec * NS_PER_S + nsec
+    if ns < 0:
+        raise InvalidMessageError("negative_stamp", f"stamp {sec}.{nsec:09d} s is before the epoch")
+    return ns
 
 
 def stamp_from_ns(ns: int) -> Time:
+    """int ns since the epoch -> ``builtin_interfaces/Time`` (exact; negative -> ``"negative_stamp"``)."""
+    ns = int(ns)
     if ns < 0:
         raise InvalidMessageError("negative_stamp", f"stamp {ns} ns is before the epoch")
-    sec, nsec = divmod(int(ns), 1_000_000_000)
+    sec, nsec = divmod(ns, NS_PER_S)
     return Time(sec=sec, nanosec=nsec)
 
 
@@ -21,3 +40,40 @@ def header_ns(msg) -> int | None:
     """The header stamp of a message in ns, or None when it has no header."""
     header = getattr(msg, "header", None)
     return None if header is None else stamp_to_ns(header.stamp)
+
+
+def require_finite(what: str, values: Iterable[float] | float) -> None:
+    """Raise InvalidMessageError ``"nan"`` when any value is NaN or +-inf (``what`` names the field)."""
+    if isinstance(values, (int, float)):
+        if not math.isfinite(values):
+            raise InvalidMessageError("nan", f"{what} is {values}")
+        return
+    arr = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise InvalidMessageError("nan", f"{what} has non-finite values {arr.ravel().tolist()}")
+
+
+def as_vector(what: str, values, n: int) -> np.ndarray:
+    """``values`` as a finite float64 array of shape (n,) (``"shape"`` / ``"nan"`` otherwise)."""
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise InvalidMessageError("shape", f"{what}: expected {n} numbers, got {values!r}") from err
+    if arr.shape != (n,):
+        raise InvalidMessageError("shape", f"{what}: expected shape ({n},), got {arr.shape}")
+    require_finite(what, arr)
+    return arr
+
+
+def as_matrix(what: str, values, n: int) -> np.ndarray:
+    """``values`` as a finite float64 (n, n) array (a flat n*n sequence is reshaped row-major)."""
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise InvalidMessageError("shape", f"{what}: expected a {n}x{n} matrix, got {values!r}") from err
+    if arr.shape == (n * n,):
+        arr = arr.reshape(n, n)
+    if arr.shape != (n, n):
+        raise InvalidMessageError("shape", f"{what}: expected shape ({n}, {n}), got {arr.shape}")
+    require_finite(what, arr)
+    return arr
