@@ -297,3 +297,28 @@ def test_node_process_publishes_interface_scans(ros_domain, tmp_path):
     values = {kv.key: kv.value for kv in diags[-1].status[0].values}
     assert diags[-1].status[0].name == "/bob/wifi_scan_node"
     assert values["source"] == "iw" and values["dropped.duplicate"] != "0"
+
+
+# ------------------------------------------------------------------------------------------------
+# indoor-loc wifi scan | parse
+# ------------------------------------------------------------------------------------------------
+def test_cli_parse_and_scan(tmp_path, capsys):
+    from indoor_loc.cli import main
+    assert main(["wifi", "parse", str(DATA / "iw_scan_truncated.txt"), "--format", "iw"]) == 0
+    out, err = capsys.readouterr()
+    assert out.splitlines()[1].split()[:3] == ["3c:37:86:5e:a1:10", "-48.0", "2412.0"]
+    assert "3 access points kept of 3 read" in err and "truncated" in err
+    assert main(["wifi", "parse", str(DATA / "nmcli_terse.txt"), "--format", "iw"]) == 2      # ParseError
+    assert "no 'BSS" in capsys.readouterr().err
+    fake = _script(tmp_path, "iw", f'cat "{DATA / "iw_scan_office.txt"}"\n')
+    assert main(["wifi", "scan", "--iface", "wlan9", "--command", f"{fake} dev {{interface}} scan",
+                 "--keep-random-macs", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert len(parse_json_text(out).bssid) == 6 and "6 access points kept of 6" in err
+    assert main(["wifi", "scan", "--command", str(tmp_path / "missing")]) == 3
+    assert "not_found" in capsys.readouterr().err
+
+
+def parse_json_text(text: str) -> WifiScan:
+    from indoor_loc.wifi.parsers import parse_json
+    return parse_json(text).scan

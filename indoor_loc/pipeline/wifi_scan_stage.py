@@ -30,7 +30,7 @@ from indoor_loc.msg_adapters.wifi_json import parse_json_msg
 from indoor_loc.msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import require
 from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, build_command
+from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, ScanCommandError, build_command
 from indoor_loc.wifi.normalize import NormalizeParams, normalize_report
 from indoor_loc.wifi.parsers import SIGNAL_MAPPINGS, ParseResult
 from indoor_loc.wifi.types import WifiScan
@@ -139,7 +139,11 @@ class WifiScanStage(Stage):
         counters, so a background thread may call it while the executor runs :meth:`process`."""
         if self.scanner is None:
             raise RuntimeError("acquire() needs source 'iw' or 'nmcli'")
-        return self.scanner.scan(clock_ns)
+        try:
+            return self.scanner.scan(clock_ns)
+        except Exception as err:  # noqa: BLE001 - the scan thread must outlive any bug; reported as a rejection
+            return ScanAttempt(clock_ns(), self.scanner.tool, tuple(self.scanner.active_command()), 0.0,
+                               error=ScanCommandError("internal", f"{type(err).__name__}: {err}"))
 
     def _on_attempt(self, attempt: ScanAttempt, recv_ns: int) -> list[Output]:
         self.last_attempt = attempt

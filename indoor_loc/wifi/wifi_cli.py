@@ -9,12 +9,11 @@ Both print the normalised scan (strongest first) and what normalisation dropped 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
-from indoor_loc.errors import ConfigError, ParseError
+from indoor_loc.errors import ConfigError
 from indoor_loc.params import params_from_dict
 from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, build_command
 from indoor_loc.wifi.normalize import BANDS, NormalizeParams, NormalizeReport, band_of, normalize_report
@@ -105,12 +104,3 @@ def main(args: argparse.Namespace) -> int:
     print(f"scan took {attempt.duration_s:.2f} s", file=sys.stderr)
     return 0
 
-
-if __name__ == "__main__":  # pragma: no cover
-    try:
-        ns = argparse.ArgumentParser()
-        add_arguments(ns)
-        sys.exit(main(ns.parse_args()))
-    except ParseError as e:
-        print(e, file=sys.stderr)
-        sys.exit(2)
