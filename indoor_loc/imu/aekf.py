@@ -1,0 +1,540 @@
+"""Adaptive error-state EKF for orientation (device→ENU) and gyroscope bias.
+
+Method (SPEC §1.2; seed 001 ref. [45]): the state is a unit quaternion ``q`` (device→ENU,
+``v_enu = R(q) v_dev``) and the gyroscope bias ``b`` (rad/s, device frame). The filter is
+multiplicative: its 6-D error state is ``δx = [δθ, δb]`` with ``q_true = exp(δθ) ⊗ q`` — δθ is a
+small rotation about the **ENU** axes, so ``P[0:3, 0:3]`` is directly the orientation covariance
+about east/north/up (≈ roll/pitch/yaw for a near-level device; ``P[2, 2]`` is the heading
+variance) as ``sensor_msgs/Imu.orientation_covariance`` wants it (fixed axes).
+
+- Prediction: ``q ← q ⊗ exp((ω − b) dt)``; ``δθ' = δθ − R(q) δb dt``, so
+  ``F = [[I, −R dt], [0, I]]``, ``Q = diag(σ_g² dt I, σ_bw² dt I)``.
+- Accelerometer (gravity direction): ``a_e = R(q) a/|a|`` ≈ ``e_z + e_z × δθ``, hence
+  ``(a_e,y, −a_e,x)`` measures ``(δθ_x, δθ_y)``. Tilt only: the accelerometer never touches heading.
+  Adaptation to the motion type: the noise is ``σ_a² + (|a|−g)² + s²`` (m/s²)², with ``s`` the
+  short-term standard deviation of |a| (≈ 0.2 s window), divided by g² to give rad². Smooth motion
+  keeps a small noise; high acceleration (|a|−g or s above ``acc_reject_m_s2``) skips the update.
+- Magnetometer (heading only): ``m_e = R(q) m``; the heading of its horizontal projection
+  ``atan2(m_e,x, m_e,y) − declination`` measures ``δθ_z`` (H = e_z). The inclination of the field
+  is projected out and the gain on ``δθ_x, δθ_y`` is forced to zero (Joseph-form covariance, still
+  exact for this sub-optimal gain), so a magnetic disturbance can never tilt the estimate. The
+  noise is inflated by the field's norm and dip-angle anomalies relative to a reference learnt online
+  (a slow moving average while the field agrees with it); beyond the tolerances the update is
+  skipped, and a disturbance that persists ``mag_relearn_s`` is accepted as the new environment.
+  Innovations beyond the ``mag_gate_nis`` gate inflate the noise (robust, no lock-out).
+- Rest: when the gyroscope and accelerometer are still for ``rest_min_s``, the measured rate is a
+  direct measurement of the bias (zero-rate update), as in VQF's rest bias estimation.
+- 6-D mode (no magnetometer): heading starts from the shortest-arc tilt (same convention as VQF's
+  6-D output) with variance ``π²/3`` (unknown), then grows with gyro noise and bias uncertainty.
+
+Per-sample Python with plain floats (no 6×6 numpy temporaries): ``aekf_batch`` and
+``Aekf.update`` run the very same loop (:func:`_run`), so online and batch agree to the last bit.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from indoor_loc.params import field, require
+
+_DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True)
+class AekfParams:
+    """Noise densities and adaptation thresholds of :class:`Aekf` (SI units, angles in rad)."""
+
+    gyro_noise: float = field(0.002, "gyroscope angle random walk incl. model errors, rad/s/√Hz")
+    gyro_scale_error: float = field(0.0, "relative gyro scale/misalignment error added to the angle "
+                                         "noise as (k·|ω|)²·dt, 1")
+    bias_init_std: float = field(0.5 * _DEG, "initial gyroscope bias standard deviation, rad/s")
+    bias_walk: float = field(2e-5, "gyroscope bias random walk, rad/s/√s")
+    gravity: float = field(9.81, "local gravity magnitude, m/s²")
+    acc_noise: float = field(1.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
+                                  "per sample")
+    acc_stat_tau_s: float = field(0.2, "time constant of the running mean/variance of |a|, s")
+    acc_reject_m_s2: float = field(2.0, "skip the tilt update when ||a|−g| or the short-term std of |a| "
+                                        "exceeds this (high-acceleration motion), m/s²")
+    mag_noise: float = field(0.3, "magnetometer heading noise per sample in an undisturbed field, rad")
+    mag_norm_tol: float = field(0.1, "tolerated relative field-norm anomaly |‖m‖/ref − 1|; beyond, "
+                                     "the magnetometer update is skipped, 1")
+    mag_dip_tol: float = field(8.0 * _DEG, "tolerated dip-angle anomaly; beyond, the update is skipped, rad")
+    mag_ref_tau_s: float = field(30.0, "time constant of the online field-norm/dip reference, s")
+    mag_relearn_s: float = field(30.0, "a disturbance lasting longer than this becomes the new "
+                                       "reference (changed environment), s")
+    mag_gate_nis: float = field(9.0, "normalised innovation squared above which the magnetometer noise "
+                                     "is inflated, 1")
+    mag_declination: float = field(0.0, "magnetic declination (east of true north positive); 0 keeps "
+                                         "ENU aligned with magnetic north, rad")
+    rest_gyro: float = field(2.0 * _DEG, "rest detection: max |ω−b| and deviation from its low-pass, rad/s")
+    rest_acc_m_s2: float = field(0.5, "rest detection: max deviation of a from its low-pass, m/s²")
+    rest_min_s: float = field(1.5, "rest detection: minimum still duration before bias updates, s")
+    rest_gyro_noise: float = field(0.01, "gyroscope white noise per sample for the zero-rate update, rad/s")
+    max_dt_s: float = field(0.5, "larger sample gaps are not integrated (covariance still grows), s")
+
+    def validate(self) -> None:
+        owner = type(self).__name__
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            require(isinstance(v, (int, float)) and math.isfinite(v), owner, f.name, "a finite number", v)
+        positive = ("gyro_noise", "bias_init_std", "gravity", "acc_noise", "acc_stat_tau_s",
+                    "acc_reject_m_s2", "mag_noise", "mag_norm_tol", "mag_dip_tol", "mag_ref_tau_s",
+                    "mag_relearn_s", "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
+                    "max_dt_s")
+        for name in positive:
+            v = getattr(self, name)
+            require(v > 0, owner, name, "> 0", v)
+        for name in ("bias_walk", "gyro_scale_error", "rest_min_s"):
+            v = getattr(self, name)
+            require(v >= 0, owner, name, ">= 0", v)
+        require(abs(self.mag_declination) <= math.pi, owner, "mag_declination", "within [-π, π]",
+                self.mag_declination)
+
+
+@dataclass
+class AekfState:
+    """Everything :class:`Aekf` needs to resume (plain floats/lists; copy-safe via ``state()``).
+
+    ``q`` (w, x, y, z) device→ENU; ``bias`` rad/s; ``P`` 6×6 row-major error covariance
+    ([δθ_enu rad, δb rad/s]); the remaining fields are the adaptation memories."""
+
+    initialised: bool = False
+    stamp_ns: int = 0
+    q: list = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
+    bias: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    P: list = dataclasses.field(default_factory=lambda: [0.0] * 36)
+    acc_mean: float = 0.0            # running mean of |a|, m/s²
+    acc_var: float = 0.0             # running variance of |a|, (m/s²)²
+    gyro_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    acc_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rest_s: float = 0.0              # how long the device has been still, s
+    mag_ref_ok: bool = False
+    mag_norm_ref: float = 0.0        # reference field norm (input unit)
+    mag_dip_ref: float = 0.0         # reference dip angle, rad (positive = field points up)
+    mag_dist_s: float = 0.0          # how long the field has been disturbed, s
+    n_acc_skipped: int = 0
+    n_mag_skipped: int = 0
+
+    def copy(self) -> "AekfState":
+        return dataclasses.replace(self, q=list(self.q), bias=list(self.bias), P=list(self.P),
+                                   gyro_lp=list(self.gyro_lp), acc_lp=list(self.acc_lp))
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
+    """Tilt from the accelerometer (shortest arc a → e_z), heading from the magnetometer if any."""
+    ax, ay, az = a
+    n = math.sqrt(ax * ax + ay * ay + az * az)
+    if n < 1e-6:
+        raise ValueError("cannot initialise the orientation from a zero accelerometer reading")
+    ax, ay, az = ax / n, ay / n, az / n
+    # shortest arc from (ax, ay, az) to (0, 0, 1): q = [1 + az, a × e_z] normalised
+    w, x, y, z = 1.0 + az, ay, -ax, 0.0
+    if w < 1e-9:  # upside down: 180° about x
+        w, x, y, z = 0.0, 1.0, 0.0, 0.0
+    qn = math.sqrt(w * w + x * x + y * y + z * z)
+    q = [w / qn, x / qn, y / qn, z / qn]
+    tilt_var = (p.acc_noise / p.gravity) ** 2
+    yaw_var = math.pi ** 2 / 3.0  # uniform heading: unknown
+    if m is not None:
+        mx, my, mz = _rot(q, m)
+        if math.hypot(mx, my) > 1e-9 * (abs(mz) + 1e-12):
+            yaw = _wrap(math.atan2(mx, my) - p.mag_declination)  # field heading east of north
+            # rotate about ENU z by +yaw so the field points north (+ declination)
+            c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+            q = [c * q[0] - s * q[3], c * q[1] - s * q[2], c * q[2] + s * q[1], c * q[3] + s * q[0]]
+            yaw_var = p.mag_noise ** 2
+            me = _rot(q, m)
+            nm = math.sqrt(me[0] ** 2 + me[1] ** 2 + me[2] ** 2)
+            st.mag_ref_ok = True
+            st.mag_norm_ref = nm
+            st.mag_dip_ref = math.asin(max(-1.0, min(1.0, me[2] / nm)))
+    st.q = q
+    st.bias = [0.0, 0.0, 0.0]
+    P = [0.0] * 36
+    P[0] = P[7] = tilt_var
+    P[14] = yaw_var
+    P[21] = P[28] = P[35] = p.bias_init_std ** 2
+    st.P = P
+    st.acc_mean = n
+    st.acc_var = 0.0
+    st.acc_lp = list(a)
+    st.initialised = True
+
+
+def _rot(q: list, v: list) -> tuple[float, float, float]:
+    w, x, y, z = q
+    vx, vy, vz = v
+    return ((1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
+            2 * (x * y + w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z - w * x) * vz,
+            2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz)
+
+
+def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None,
+         out_q: list | None, out_cov: list | None) -> None:
+    """Process samples ``t[k]`` (int ns), ``g[k]``, ``a[k]``, ``m[k]`` (lists of 3 floats; ``m`` None
+    or an entry None for no magnetometer) in place on ``st``. Appends (w,x,y,z) to ``out_q`` and
+    the 9 entries of P[0:3,0:3] to ``out_cov`` per sample when given."""
+    # ---- coefficients (derived once per call) ----
+    sg2 = p.gyro_noise ** 2
+    ksf2 = p.gyro_scale_error ** 2
+    sb2 = p.bias_walk ** 2
+    grav = p.gravity
+    inv_g2 = 1.0 / (grav * grav)
+    sa2 = p.acc_noise ** 2
+    acc_rej = p.acc_reject_m_s2
+    acc_rej2 = acc_rej * acc_rej
+    tau_a = p.acc_stat_tau_s
+    sm2 = p.mag_noise ** 2
+    ntol = p.mag_norm_tol
+    dtol = p.mag_dip_tol
+    tau_m = p.mag_ref_tau_s
+    relearn = p.mag_relearn_s
+    gate = p.mag_gate_nis
+    decl = p.mag_declination
+    rest_g2 = p.rest_gyro ** 2
+    rest_a2 = p.rest_acc_m_s2 ** 2
+    rest_min = p.rest_min_s
+    r_rest = p.rest_gyro_noise ** 2
+    max_dt = p.max_dt_s
+    isfinite = math.isfinite
+    sqrt = math.sqrt
+    # ---- state into locals ----
+    qw, qx, qy, qz = st.q
+    bx, by, bz = st.bias
+    P = list(st.P)
+    acc_mean, acc_var = st.acc_mean, st.acc_var
+    glx, gly, glz = st.gyro_lp
+    alx, aly, alz = st.acc_lp
+    rest_s = st.rest_s
+    t_prev = st.stamp_ns
+    n_acc_skip, n_mag_skip = st.n_acc_skipped, st.n_mag_skipped
+    rng6 = range(6)
+
+    for k in range(len(t)):
+        tk = t[k]
+        gx, gy, gz = g[k]
+        ax, ay, az = a[k]
+        mk = None if m is None else m[k]
+        if not (isfinite(gx) and isfinite(gy) and isfinite(gz) and isfinite(ax) and isfinite(ay)
+                and isfinite(az)):
+            raise ValueError(f"non-finite gyroscope/accelerometer sample at stamp {tk} ns")
+        if mk is not None and not (isfinite(mk[0]) and isfinite(mk[1]) and isfinite(mk[2])):
+            raise ValueError(f"non-finite magnetometer sample at stamp {tk} ns")
+        if not st.initialised:
+            _initialise(st, p, [ax, ay, az], mk)
+            qw, qx, qy, qz = st.q
+            bx, by, bz = st.bias
+            P = list(st.P)
+            acc_mean, acc_var = st.acc_mean, st.acc_var
+            alx, aly, alz = st.acc_lp
+            glx, gly, glz = gx, gy, gz
+            t_prev = tk
+            if out_q is not None:
+                out_q.append((qw, qx, qy, qz))
+            if out_cov is not None:
+                out_cov.append((P[0], P[1], P[2], P[6], P[7], P[8], P[12], P[13], P[14]))
+            continue
+        if tk <= t_prev:
+            raise ValueError(f"stamps must increase: {tk} ns after {t_prev} ns")
+        dt = (tk - t_prev) * 1e-9
+        t_prev = tk
+
+        # ---------------- prediction ----------------
+        wx, wy, wz = gx - bx, gy - by, gz - bz
+        wn2 = wx * wx + wy * wy + wz * wz
+        if dt <= max_dt:
+            ang = sqrt(wn2) * dt
+            if ang > 1e-12:
+                h = 0.5 * ang
+                s = math.sin(h) * dt / ang
+                dw, dx_, dy_, dz_ = math.cos(h), wx * s, wy * s, wz * s
+            else:
+                dw, dx_, dy_, dz_ = 1.0, 0.5 * wx * dt, 0.5 * wy * dt, 0.5 * wz * dt
+            qw, qx, qy, qz = (qw * dw - qx * dx_ - qy * dy_ - qz * dz_,
+                              qw * dx_ + qx * dw + qy * dz_ - qz * dy_,
+                              qw * dy_ - qx * dz_ + qy * dw + qz * dx_,
+                              qw * dz_ + qx * dy_ - qy * dx_ + qz * dw)
+            qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+        # rotation matrix R(q), device → ENU
+        r00 = 1 - 2 * (qy * qy + qz * qz); r01 = 2 * (qx * qy - qw * qz); r02 = 2 * (qx * qz + qw * qy)
+        r10 = 2 * (qx * qy + qw * qz); r11 = 1 - 2 * (qx * qx + qz * qz); r12 = 2 * (qy * qz - qw * qx)
+        r20 = 2 * (qx * qz - qw * qy); r21 = 2 * (qy * qz + qw * qx); r22 = 1 - 2 * (qx * qx + qy * qy)
+        # P ← F P Fᵀ + Q with F = [[I, M], [0, I]], M = −R dt
+        m00, m01, m02 = -r00 * dt, -r01 * dt, -r02 * dt
+        m10, m11, m12 = -r10 * dt, -r11 * dt, -r12 * dt
+        m20, m21, m22 = -r20 * dt, -r21 * dt, -r22 * dt
+        for j in rng6:  # rows 0..2 += M · rows 3..5
+            p3, p4, p5 = P[18 + j], P[24 + j], P[30 + j]
+            P[j] += m00 * p3 + m01 * p4 + m02 * p5
+            P[6 + j] += m10 * p3 + m11 * p4 + m12 * p5
+            P[12 + j] += m20 * p3 + m21 * p4 + m22 * p5
+        for i in rng6:  # cols 0..2 += cols 3..5 · Mᵀ
+            o = 6 * i
+            p3, p4, p5 = P[o + 3], P[o + 4], P[o + 5]
+            P[o] += p3 * m00 + p4 * m01 + p5 * m02
+            P[o + 1] += p3 * m10 + p4 * m11 + p5 * m12
+            P[o + 2] += p3 * m20 + p4 * m21 + p5 * m22
+        qa = (sg2 + ksf2 * wn2) * dt
+        qb = sb2 * dt
+        P[0] += qa; P[7] += qa; P[14] += qa
+        P[21] += qb; P[28] += qb; P[35] += qb
+
+        # ---------------- motion statistics ----------------
+        an = sqrt(ax * ax + ay * ay + az * az)
+        alpha = dt / (tau_a + dt)
+        d = an - acc_mean
+        acc_mean += alpha * d
+        acc_var += alpha * (d * d - acc_var)
+        # rest detection (low-passes with the same time constant)
+        glx += alpha * (gx - glx); gly += alpha * (gy - gly); glz += alpha * (gz - glz)
+        alx += alpha * (ax - alx); aly += alpha * (ay - aly); alz += alpha * (az - alz)
+        still = (wn2 < rest_g2
+                 and (gx - glx) ** 2 + (gy - gly) ** 2 + (gz - glz) ** 2 < rest_g2
+                 and (ax - alx) ** 2 + (ay - aly) ** 2 + (az - alz) ** 2 < rest_a2)
+        rest_s = rest_s + dt if still else 0.0
+
+        # ---------------- accelerometer: tilt ----------------
+        dev = an - grav
+        if an > 1e-6 and dev * dev <= acc_rej2 and acc_var <= acc_rej2:
+            ra = (sa2 + dev * dev + acc_var) * inv_g2
+            inv_an = 1.0 / an
+            aex = (r00 * ax + r01 * ay + r02 * az) * inv_an
+            aey = (r10 * ax + r11 * ay + r12 * az) * inv_an
+            z0, z1 = aey, -aex                      # measures (δθx, δθy)
+            s00, s01, s11 = P[0] + ra, P[1], P[7] + ra
+            det = s00 * s11 - s01 * s01
+            i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+            u0 = [P[6 * i] for i in rng6]
+            u1 = [P[6 * i + 1] for i in rng6]
+            v0 = [u0[i] * i00 + u1[i] * i01 for i in rng6]
+            v1 = [u0[i] * i01 + u1[i] * i11 for i in rng6]
+            for i in rng6:
+                o = 6 * i
+                a0, a1 = v0[i], v1[i]
+                for j in rng6:
+                    P[o + j] -= a0 * u0[j] + a1 * u1[j]
+            ex = v0[0] * z0 + v1[0] * z1
+            ey = v0[1] * z0 + v1[1] * z1
+            ez = v0[2] * z0 + v1[2] * z1
+            bx += v0[3] * z0 + v1[3] * z1
+            by += v0[4] * z0 + v1[4] * z1
+            bz += v0[5] * z0 + v1[5] * z1
+            # q ← exp(δθ) ⊗ q (first order, then normalise)
+            hx, hy, hz = 0.5 * ex, 0.5 * ey, 0.5 * ez
+            qw, qx, qy, qz = (qw - hx * qx - hy * qy - hz * qz,
+                              qx + hx * qw + hy * qz - hz * qy,
+                              qy - hx * qz + hy * qw + hz * qx,
+                              qz + hx * qy - hy * qx + hz * qw)
+            qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+        else:
+            n_acc_skip += 1
+
+        # ---------------- rest: zero-rate bias update ----------------
+        if rest_s >= rest_min and rest_min >= 0.0 and rest_s > 0.0:
+            c00 = P[21] + r_rest; c01 = P[22]; c02 = P[23]
+            c11 = P[28] + r_rest; c12 = P[29]; c22 = P[35] + r_rest
+            k00 = c11 * c22 - c12 * c12; k01 = c02 * c12 - c01 * c22; k02 = c01 * c12 - c02 * c11
+            k11 = c00 * c22 - c02 * c02; k12 = c01 * c02 - c00 * c12; k22 = c00 * c11 - c01 * c01
+            det = c00 * k00 + c01 * k01 + c02 * k02
+            k00 /= det; k01 /= det; k02 /= det; k11 /= det; k12 /= det; k22 /= det
+            z0, z1, z2 = wx, wy, wz                  # ω_m − b measures δb
+            U = [(P[6 * i + 3], P[6 * i + 4], P[6 * i + 5]) for i in rng6]
+            V = [(u[0] * k00 + u[1] * k01 + u[2] * k02,
+                  u[0] * k01 + u[1] * k11 + u[2] * k12,
+                  u[0] * k02 + u[1] * k12 + u[2] * k22) for u in U]
+            for i in rng6:
+                o = 6 * i
+                va, vb, vc = V[i]
+                for j in rng6:
+                    uj = U[j]
+                    P[o + j] -= va * uj[0] + vb * uj[1] + vc * uj[2]
+            ex = V[0][0] * z0 + V[0][1] * z1 + V[0][2] * z2
+            ey = V[1][0] * z0 + V[1][1] * z1 + V[1][2] * z2
+            ez = V[2][0] * z0 + V[2][1] * z1 + V[2][2] * z2
+            bx += V[3][0] * z0 + V[3][1] * z1 + V[3][2] * z2
+            by += V[4][0] * z0 + V[4][1] * z1 + V[4][2] * z2
+            bz += V[5][0] * z0 + V[5][1] * z1 + V[5][2] * z2
+            hx, hy, hz = 0.5 * ex, 0.5 * ey, 0.5 * ez
+            qw, qx, qy, qz = (qw - hx * qx - hy * qy - hz * qz,
+                              qx + hx * qw + hy * qz - hz * qy,
+                              qy - hx * qz + hy * qw + hz * qx,
+                              qz + hx * qy - hy * qx + hz * qw)
+            qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+
+        # ---------------- magnetometer: heading only ----------------
+        if mk is not None:
+            mx, my, mz = mk
+            mn = sqrt(mx * mx + my * my + mz * mz)
+            r00 = 1 - 2 * (qy * qy + qz * qz); r01 = 2 * (qx * qy - qw * qz); r02 = 2 * (qx * qz + qw * qy)
+            r10 = 2 * (qx * qy + qw * qz); r11 = 1 - 2 * (qx * qx + qz * qz); r12 = 2 * (qy * qz - qw * qx)
+            r20 = 2 * (qx * qz - qw * qy); r21 = 2 * (qy * qz + qw * qx); r22 = 1 - 2 * (qx * qx + qy * qy)
+            mex = r00 * mx + r01 * my + r02 * mz
+            mey = r10 * mx + r11 * my + r12 * mz
+            mez = r20 * mx + r21 * my + r22 * mz
+            mh = sqrt(mex * mex + mey * mey)
+            use = mn > 0.0 and mh > 1e-3 * mn
+            if use:
+                dip = math.asin(max(-1.0, min(1.0, mez / mn)))
+                if not st.mag_ref_ok:
+                    st.mag_ref_ok = True
+                    st.mag_norm_ref, st.mag_dip_ref = mn, dip
+                en = mn / st.mag_norm_ref - 1.0
+                ed = dip - st.mag_dip_ref
+                rn, rd = en / ntol, ed / dtol
+                anomaly = rn * rn + rd * rd
+                if rn * rn <= 1.0 and rd * rd <= 1.0:
+                    beta = dt / (tau_m + dt)
+                    st.mag_norm_ref += beta * (mn - st.mag_norm_ref)
+                    st.mag_dip_ref += beta * ed
+                    st.mag_dist_s = 0.0
+                else:
+                    use = False
+                    st.mag_dist_s += dt
+                    if st.mag_dist_s > relearn:  # persistent: a new environment, not a disturbance
+                        st.mag_norm_ref, st.mag_dip_ref = mn, dip
+                        st.mag_dist_s = 0.0
+            if use:
+                rm = sm2 * (1.0 + 4.0 * anomaly)
+                zy = (math.atan2(mex, mey) - decl + math.pi) % (2.0 * math.pi) - math.pi
+                s = P[14] + rm
+                nis = zy * zy / s
+                if nis > gate:
+                    rm += s * (nis / gate - 1.0)
+                    s = P[14] + rm
+                p2 = P[12:18]
+                kk = [0.0, 0.0, p2[2] / s, p2[3] / s, p2[4] / s, p2[5] / s]  # no tilt gain
+                # Joseph form: P − K p2ᵀ − p2 Kᵀ + (P22 + R) K Kᵀ (valid for any gain)
+                for i in rng6:
+                    o = 6 * i
+                    ki, pi = kk[i], p2[i]
+                    ks = ki * s
+                    for j in rng6:
+                        P[o + j] += -ki * p2[j] - pi * kk[j] + ks * kk[j]
+                ez = kk[2] * zy
+                bx += kk[3] * zy
+                by += kk[4] * zy
+                bz += kk[5] * zy
+                hz = 0.5 * ez
+                qw, qx, qy, qz = qw - hz * qz, qx - hz * qy, qy + hz * qx, qz + hz * qw
+                qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+            else:
+                n_mag_skip += 1
+
+        if out_q is not None:
+            out_q.append((qw, qx, qy, qz))
+        if out_cov is not None:
+            out_cov.append((P[0], P[1], P[2], P[6], P[7], P[8], P[12], P[13], P[14]))
+
+    # ---- locals back into the state ----
+    st.q = [qw, qx, qy, qz]
+    st.bias = [bx, by, bz]
+    st.P = P
+    st.acc_mean, st.acc_var = acc_mean, acc_var
+    st.gyro_lp = [glx, gly, glz]
+    st.acc_lp = [alx, aly, alz]
+    st.rest_s = rest_s
+    st.stamp_ns = t_prev
+    st.n_acc_skipped, st.n_mag_skipped = n_acc_skip, n_mag_skip
+
+
+class Aekf:
+    """Online adaptive EKF. ``update()`` one sample at a time; ``state()``/``set_state()`` to save
+    and resume (100 + 100 samples == 200 samples)."""
+
+    def __init__(self, params: AekfParams | None = None) -> None:
+        self.params = params if params is not None else AekfParams()
+        self.params.validate()
+        self._st = AekfState()
+
+    def update(self, stamp_ns: int, gyro, acc, mag=None) -> None:
+        """One sample: ``gyro`` (3,) rad/s, ``acc`` (3,) m/s² (specific force, +g up at rest),
+        ``mag`` (3,) any unit or None. dt comes from the stamps (irregular is fine); the first call
+        initialises from acc [+ mag]. Raises ValueError on non-finite input or stamps that do not
+        increase (the state is then unchanged)."""
+        g = [float(v) for v in gyro]
+        a = [float(v) for v in acc]
+        mm = None if mag is None else [[float(v) for v in mag]]
+        if len(g) != 3 or len(a) != 3 or (mm is not None and len(mm[0]) != 3):
+            raise ValueError("gyro, acc and mag must have 3 components")
+        st = self._st.copy()
+        _run(st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
+        self._st = st
+
+    @property
+    def initialised(self) -> bool:
+        return self._st.initialised
+
+    @property
+    def quat_wxyz(self) -> np.ndarray:
+        """Unit quaternion (w, x, y, z), device→ENU, shape (4,)."""
+        return np.array(self._st.q)
+
+    @property
+    def orientation_cov(self) -> np.ndarray:
+        """(3, 3) rad²: covariance of the rotation error about ENU x, y, z (≈ roll, pitch, yaw for a
+        near-level device; [2, 2] is the heading variance, which grows without a magnetometer)."""
+        return np.array(self._st.P).reshape(6, 6)[:3, :3].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Full (6, 6) error covariance [δθ_enu rad, δb rad/s]."""
+        return np.array(self._st.P).reshape(6, 6)
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        """Estimated gyroscope bias, rad/s, device frame, shape (3,)."""
+        return np.array(self._st.bias)
+
+    @property
+    def heading(self) -> float:
+        """Yaw (rad, counter-clockwise from east) of the device x axis."""
+        qw, qx, qy, qz = self._st.q
+        return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+    def state(self) -> AekfState:
+        return self._st.copy()
+
+    def set_state(self, state: AekfState) -> None:
+        self._st = state.copy()
+
+
+def aekf_batch(t_ns, gyro, acc, mag=None, params: AekfParams | None = None,
+               state: AekfState | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Run the filter over whole arrays: ``t_ns`` (N,) int ns, ``gyro`` (N, 3) rad/s, ``acc`` (N, 3)
+    m/s², ``mag`` (N, 3) or None (rows of NaN = no magnetometer sample). Returns ``quat`` (N, 4)
+    w x y z device→ENU and ``cov`` (N, 3, 3) rad² (see :attr:`Aekf.orientation_cov`). ``state``
+    (optional) is resumed and advanced in place."""
+    params = params if params is not None else AekfParams()
+    params.validate()
+    t = np.asarray(t_ns).astype(np.int64)
+    g = np.asarray(gyro, dtype=float)
+    a = np.asarray(acc, dtype=float)
+    n = len(t)
+    if g.shape != (n, 3) or a.shape != (n, 3):
+        raise ValueError(f"expected gyro/acc of shape ({n}, 3), got {g.shape} and {a.shape}")
+    mlist = None
+    if mag is not None:
+        mg = np.asarray(mag, dtype=float)
+        if mg.shape != (n, 3):
+            raise ValueError(f"expected mag of shape ({n}, 3), got {mg.shape}")
+        ok = np.isfinite(mg).all(axis=1)
+        mlist = mg.tolist()
+        if not ok.all():
+            for i in np.flatnonzero(~ok):
+                mlist[i] = None
+    st = state if state is not None else AekfState()
+    out_q: list = []
+    out_c: list = []
+    _run(st, params, t.tolist(), g.tolist(), a.tolist(), mlist, out_q, out_c)
+    return np.array(out_q).reshape(n, 4), np.array(out_c).reshape(n, 3, 3)
