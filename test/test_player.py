@@ -61,13 +61,14 @@ def test_player_publishes_in_order_with_clock(ros_domain: int, tmp_path: Path) -
     clocks = [int(ln.split()[1]) for ln in lines if ln.startswith("clock ")]
     assert clocks and all(T0 <= c <= T0 + n * DT for c in clocks)  # /clock runs in bag time
     assert clocks == sorted(clocks)
-    # the subscriber's clock (use_sim_time) follows /clock: bag time, never wall time
+    # the subscriber's clock (use_sim_time) follows /clock: bag time, never wall time (0 = no
+    # /clock received yet, possible for the first messages on a loaded machine)
     sim_now = [int(f[3]) for f in imu]
-    assert all(T0 <= t <= T0 + (n + 10) * DT for t in sim_now[5:])
+    assert sim_now[-1] > 0 and all(t == 0 or T0 <= t <= T0 + (n + 10) * DT for t in sim_now)
     done = [ln for ln in lines if ln.startswith("done")][0]
     n_clock = int(done.split()[3])
-    # 0.4 s of wall time at 100 Hz: a few tens of /clock messages
-    assert 15 <= n_clock <= 80, done
+    # 0.4 s of wall time at 100 Hz: about 40 /clock messages (fewer if the machine is slow)
+    assert 5 <= n_clock <= 80, done
     assert f"played {n + 1} messages" in log
 
 

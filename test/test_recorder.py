@@ -55,6 +55,19 @@ def _stop(proc: subprocess.Popen, sig: int, timeout: float = 10.0) -> str:
     return out
 
 
+def _wait_recorded(path: Path, at_least: int, timeout: float) -> int:
+    """Wait until the bag being written holds ``at_least`` messages in closed chunks (the recorder
+    closes a chunk every second), so a signal is sent only once everything arrived."""
+    end = time.monotonic() + timeout
+    n = 0
+    while time.monotonic() < end:
+        n = scan_records(path).messages if path.exists() else 0
+        if n >= at_least:
+            break
+        time.sleep(0.2)
+    return n
+
+
 def _read_imu_ids(path: Path, topic: str) -> tuple[list[int], dict]:
     with AnyReader([path]) as r:
         conns = {c.topic: c for c in r.connections}
@@ -70,7 +83,7 @@ def test_sigint_gives_complete_bag_with_matched_qos(ros_domain: int, tmp_path: P
     rec = _recorder(out, "-t", "imu/data_raw", "ground_truth", "--namespace", "/walk01", "--chunk-size", "4000")
     try:
         _wait_line(pub, "published 60", 30)
-        time.sleep(0.5)                    # let the last reliable messages arrive
+        _wait_recorded(out, 61, 15)
         log = _stop(rec, signal.SIGINT)
     finally:
         pub.terminate()
@@ -93,7 +106,7 @@ def test_sigterm_with_all_topics_discovers_late_best_effort_publisher(ros_domain
     pub = _start([str(PEERS / "publisher.py"), "/walk02", "40", "100", "--best-effort"])
     try:
         _wait_line(pub, "published 40", 30)
-        time.sleep(0.5)
+        _wait_recorded(out, 41, 5)        # best effort may drop a few: then wait the 5 s out
         log = _stop(rec, signal.SIGTERM)
     finally:
         pub.terminate()
@@ -118,7 +131,7 @@ def test_sigkill_then_recover_keeps_complete_chunks(ros_domain: int, tmp_path: P
     rec = _recorder(out, "-t", "/walk03/imu/data_raw", "--chunk-size", str(chunk), "--flush-interval", "0")
     try:
         _wait_line(pub, f"published {n}", 30)
-        time.sleep(0.5)
+        time.sleep(1.0)                              # let the reliable stream arrive
         rec.kill()                                   # SIGKILL: no summary, last chunk in memory
         rec.communicate(timeout=10)
     finally:
