@@ -260,3 +260,18 @@ def test_bag_cli_info_and_recover(tmp_path: Path, capsys) -> None:
     assert main(["bag", "recover", str(tmp_path / "cut.mcap"), str(tmp_path / "ok.mcap")]) == 0
     n = bag_topics(tmp_path / "ok.mcap")["/u/imu/data"][1]
     assert 0 < n < 30 and f"kept {n} messages" in capsys.readouterr().out
+
+
+def test_foxglove_decoder_reads_the_same_values(contract_bag) -> None:
+    """mcap-ros2-support parses the concatenated ros2msg schemas independently of rosbags."""
+    from mcap_ros2.decoder import DecoderFactory
+    path, written = contract_bag
+    got: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
+        for _, channel, _, decoded in reader.iter_decoded_messages(log_time_order=True):
+            got.setdefault(channel.topic, []).append(decoded)
+    assert {t: len(v) for t, v in got.items()} == {t: len(v) for t, v in written.items()}
+    for topic, msgs in written.items():
+        for ours, theirs in zip(msgs, got[topic]):
+            _assert_same(ours, theirs)

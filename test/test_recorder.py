@@ -55,15 +55,17 @@ def _stop(proc: subprocess.Popen, sig: int, timeout: float = 10.0) -> str:
     return out
 
 
-def _wait_recorded(path: Path, at_least: int, timeout: float) -> int:
-    """Wait until the bag being written holds ``at_least`` messages in closed chunks (the recorder
-    closes a chunk every second), so a signal is sent only once everything arrived."""
+def _wait_recorded(path: Path, topic: str, at_least: int, timeout: float) -> int:
+    """Wait until the bag being written holds ``at_least`` messages of ``topic`` in closed chunks
+    (the recorder closes a chunk every second), so a signal is sent only once everything arrived."""
     end = time.monotonic() + timeout
     n = 0
     while time.monotonic() < end:
-        n = scan_records(path).messages if path.exists() else 0
-        if n >= at_least:
-            break
+        if path.exists():
+            scan = scan_records(path)
+            n = sum(scan.counts.get(cid, 0) for cid, ch in scan.channels.items() if ch.topic == topic)
+            if n >= at_least:
+                break
         time.sleep(0.2)
     return n
 
@@ -83,7 +85,7 @@ def test_sigint_gives_complete_bag_with_matched_qos(ros_domain: int, tmp_path: P
     rec = _recorder(out, "-t", "imu/data_raw", "ground_truth", "--namespace", "/walk01", "--chunk-size", "4000")
     try:
         _wait_line(pub, "published 60", 30)
-        _wait_recorded(out, 61, 15)
+        _wait_recorded(out, "/walk01/imu/data_raw", 60, 15)
         log = _stop(rec, signal.SIGINT)
     finally:
         pub.terminate()
@@ -106,7 +108,7 @@ def test_sigterm_with_all_topics_discovers_late_best_effort_publisher(ros_domain
     pub = _start([str(PEERS / "publisher.py"), "/walk02", "40", "100", "--best-effort"])
     try:
         _wait_line(pub, "published 40", 30)
-        _wait_recorded(out, 41, 5)        # best effort may drop a few: then wait the 5 s out
+        _wait_recorded(out, "/walk02/imu/data_raw", 40, 5)   # best effort may drop a few: then 5 s
         log = _stop(rec, signal.SIGTERM)
     finally:
         pub.terminate()

@@ -99,18 +99,25 @@ class PlayerNode(Node):
             info = {k: v for k, v in info.items() if k in set(topics)}
         if not info:
             raise BagError(f"nothing to play in {[str(b) for b in self.bags]}")
-        self.topics = sorted(info)
         self._pubs: dict[str, Any] = {}
-        for name in self.topics:
+        for name in sorted(info):
             t = info[name]
             out = self.remap.get(name, name)
             keep = latched(out, t.qos_yaml) or latched(name, t.qos_yaml)
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1 if keep else PUB_DEPTH,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL if keep else DurabilityPolicy.VOLATILE)
-            self._pubs[name] = self.create_publisher(msg_class(t.type), out, qos)
+            try:
+                cls = msg_class(t.type)
+            except (ImportError, AttributeError, ValueError):
+                self.get_logger().warning(f"{name}: type {t.type} is not installed here; not played")
+                continue
+            self._pubs[name] = self.create_publisher(cls, out, qos)
             self.get_logger().info(f"{name}{' -> ' + out if out != name else ''} [{t.type}] {t.count} msgs"
                                    f"{' (transient_local)' if keep else ''}")
+        self.topics = sorted(self._pubs)
+        if not self.topics:
+            raise BagError("none of the bag's message types is installed here")
         self._clock_pub = (self.create_publisher(Clock, "/clock", QoSProfile(depth=10)) if self.clock_hz > 0
                            else None)
         self.published = 0

@@ -132,6 +132,7 @@ class RecorderNode(Node):
         candidates = self._wanted if self._wanted is not None else sorted(types)
         for topic in candidates:
             if topic in self._subs:
+                self._check_late_publishers(topic)
                 continue
             if self._wanted is None:
                 if is_hidden(topic) and not self._include_hidden:
@@ -148,6 +149,18 @@ class RecorderNode(Node):
                 self._report(topic, f"published with several types {names}; not recorded", warn=True)
                 continue
             self._subscribe(topic, names[0])
+
+    def _check_late_publishers(self, topic: str) -> None:
+        # QoS is chosen when subscribing; a best-effort publisher that appears later does not
+        # match a reliable subscription -- say so instead of silently missing its messages.
+        sub = self._subs[topic]
+        if sub.qos_profile.reliability != ReliabilityPolicy.RELIABLE:
+            return
+        for info in self.get_publishers_info_by_topic(topic):
+            if info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT:
+                self._report(topic, f"best-effort publisher {info.node_namespace.rstrip('/')}/{info.node_name} "
+                                    "appeared after the subscription was made reliable: its messages are NOT "
+                                    "recorded (restart the recorder)", warn=True)
 
     def _subscribe(self, topic: str, type_name: str) -> None:
         try:
