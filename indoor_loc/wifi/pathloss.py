@@ -121,10 +121,11 @@ class PathLoss(Positioner):
         self.bbox = np.array([pos.min(0) - p.clip_margin_m, pos.max(0) + p.clip_margin_m])
         Z = rss.T  # (A, M)
         mask = np.isfinite(Z) & (np.nan_to_num(Z, nan=-999.0) >= p.min_signal_dbm)
-        Zf = np.where(mask, Z, 0.0)
-        W = mask.astype(float)
         A, M = Z.shape
         self.n_obs = mask.sum(axis=1)
+        # observed (AP, fingerprint) pairs only: the cost is proportional to the readings, not A * M
+        ai, mi = np.nonzero(mask)
+        zo, po = Z[ai, mi], pos[mi]
         # initial AP position: mean of its k strongest fingerprints
         k = min(p.init_top_k, M)
         order = np.argsort(np.where(mask, -Z, np.inf), axis=1)[:, :k]  # strongest first
@@ -134,47 +135,68 @@ class PathLoss(Positioner):
         theta = np.zeros((A, 4))
         theta[:, 1] = p.prior_n
         theta[:, 2:4] = p0
-        _, J0, _ = model(theta[:, None, :], pos[None, :, :], p.d0_m)
+        _, J0, _ = model(theta[ai], po, p.d0_m)
         # least-squares A given n and position, shrunk to the prior
         wA = 1.0 / p.sigma_db ** 2
-        num = wA * (W * (Zf - J0[..., 1] * p.prior_n)).sum(1) + p.prior_A_dbm / p.prior_A_std_db ** 2
-        theta[:, 0] = num / (wA * W.sum(1) + 1.0 / p.prior_A_std_db ** 2)
+        num = wA * np.bincount(ai, zo - J0[:, 1] * p.prior_n, A) + p.prior_A_dbm / p.prior_A_std_db ** 2
+        theta[:, 0] = num / (wA * self.n_obs + 1.0 / p.prior_A_std_db ** 2)
         prior_mean = np.c_[np.full(A, p.prior_A_dbm), np.full(A, p.prior_n), p0]
         prior_info = np.diag([p.prior_A_std_db ** -2, p.prior_n_std ** -2, p.prior_pos_std_m ** -2,
                               p.prior_pos_std_m ** -2])
         sig2 = np.full(A, p.sigma_db ** 2)
 
-        def cost(th: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            h, J, _ = model(th[:, None, :], pos[None, :, :], p.d0_m)
-            res = W * (Zf - h)
+        # np.nonzero is row-major, so each AP's readings are one contiguous run of the arrays; APs
+        # that have converged are frozen and their readings dropped from later iterations
+        def per_ap(v: np.ndarray, sel: np.ndarray) -> np.ndarray:
+            """Sum rows of v (n_sel, ...) — the readings ``sel`` (nnz,) bool — per AP -> (A, ...)."""
+            counts = np.bincount(ai[sel], minlength=A)
+            has = counts > 0
+            out = np.zeros((A,) + v.shape[1:])
+            if has.any():
+                out[has] = np.add.reduceat(v, np.r_[0, np.cumsum(counts)[:-1]][has], axis=0)
+            return out
+
+        def cost(th: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            h, J, _ = model(th[ai[sel]], po[sel], p.d0_m)
+            res = zo[sel] - h
             dp = th - prior_mean
-            c = (res ** 2).sum(1) / sig2 + np.einsum("ai,ij,aj->a", dp, prior_info, dp)
+            c = per_ap(res ** 2, sel) / sig2 + np.einsum("ai,ij,aj->a", dp, prior_info, dp)
             return c, res, J
 
+        def normal_eq(res: np.ndarray, J: np.ndarray, th: np.ndarray, sel: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+            H = per_ap(J[:, :, None] * J[:, None, :], sel) / sig2[:, None, None] + prior_info
+            g = per_ap(J * res[:, None], sel) / sig2[:, None] - (th - prior_mean) @ prior_info
+            return H, g
+
+        everything = np.ones(len(ai), bool)
         lam = np.full(A, 1e-3)
-        c, res, J = cost(theta)
+        c, res, J = cost(theta, everything)
+        active = np.ones(A, bool)
         eye4 = np.eye(4)
         for _ in range(p.fit_iters):
-            JW = J * W[..., None]
-            H = np.einsum("ami,amj->aij", JW, JW) / sig2[:, None, None] + prior_info
-            g = np.einsum("ami,am->ai", JW, res) / sig2[:, None] - (theta - prior_mean) @ prior_info
+            sel = active[ai]
+            H, g = normal_eq(res[sel], J[sel], theta, sel)
             Hd = H + lam[:, None, None] * (np.einsum("aii->ai", H)[:, :, None] * eye4)
-            step = np.linalg.solve(Hd, g[..., None])[..., 0]
-            cand = theta + step
+            cand = theta + np.linalg.solve(Hd, g[..., None])[..., 0]
             cand[:, 1] = np.clip(cand[:, 1], *p.n_bounds)
-            c2, res2, J2 = cost(cand)
-            better = c2 < c
+            cand[~active] = theta[~active]
+            c2, res2, J2 = cost(cand, sel)
+            better = (c2 < c) & active
+            moved = np.abs(cand - theta).max(axis=1)
             theta = np.where(better[:, None], cand, theta)
             c = np.where(better, c2, c)
-            res = np.where(better[:, None], res2, res)
-            J = np.where(better[:, None, None], J2, J)
-            lam = np.where(better, lam * 0.3, lam * 10.0)
-            lam = np.clip(lam, 1e-9, 1e9)
+            keep = better[ai[sel]]
+            res[sel] = np.where(keep, res2, res[sel])
+            J[sel] = np.where(keep[:, None], J2, J[sel])
+            lam = np.clip(np.where(better, lam * 0.1, lam * 10.0), 1e-9, 1e9)
+            active &= moved >= 1e-3  # mdB and mm (after the bounds): converged
+            if not active.any():
+                break
         # per-AP noise variance (shrinkage to sigma0) and parameter covariance
         dof = np.maximum(self.n_obs - 4, 0) + p.sigma_nu0
-        sig2 = ((res ** 2).sum(1) + p.sigma_nu0 * p.sigma_db ** 2) / dof
-        JW = J * W[..., None]
-        H = np.einsum("ami,amj->aij", JW, JW) / sig2[:, None, None] + prior_info
+        sig2 = (per_ap(res ** 2, everything) + p.sigma_nu0 * p.sigma_db ** 2) / dof
+        H, _ = normal_eq(res, J, theta, everything)
         self.theta = theta
         self.theta_cov = np.linalg.inv(H)
         self.sigma2 = sig2
@@ -234,7 +256,7 @@ class PathLoss(Positioner):
             res = np.where(better[:, None], res2, res)
             Jr = np.where(better[:, None, None], Jr2, Jr)
             var = np.where(better[:, None], var2, var)
-            lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-9, 1e9)
+            lam = np.clip(np.where(better, lam * 0.1, lam * 10.0), 1e-9, 1e9)
         b = int(np.argmin(c))
         H = (Jr[b] / var[b][:, None]).T @ Jr[b]
         cov = np.linalg.inv(H + 1e-9 * np.eye(2))
