@@ -18,6 +18,8 @@ from indoor_loc.errors import ConfigError
 from indoor_loc.nodes.player_node import add_arguments, latched, parse_remaps
 
 PEERS = Path(__file__).resolve().parent / "bag_peers"
+# namespaces of our own: other DDS tests on this machine may share the domain and use /walkNN
+U = f"bagtest{os.getpid()}"
 T0 = 1_700_000_000_000_000_000
 DT = 10_000_000                  # 100 Hz
 
@@ -52,8 +54,8 @@ def _play_and_listen(bag: Path, listen_ns: str, expected: int, *player_args: str
 def test_player_publishes_in_order_with_clock(ros_domain: int, tmp_path: Path) -> None:
     bag = tmp_path / "walk.mcap"
     n = 80
-    _make_bag(bag, "/walk05", n)
-    lines, log = _play_and_listen(bag, "/walk05", n, "--clock", "--rate", "2")
+    _make_bag(bag, f"/{U}_5", n)
+    lines, log = _play_and_listen(bag, f"/{U}_5", n, "--clock", "--rate", "2")
     imu = [ln.split() for ln in lines if ln.startswith("imu ")]
     assert [int(f[1]) for f in imu] == list(range(n)), lines[-5:]
     assert [int(f[2]) for f in imu] == [T0 + i * DT for i in range(n)]
@@ -76,11 +78,11 @@ def test_player_publishes_in_order_with_clock(ros_domain: int, tmp_path: Path) -
 def test_player_remap_topics_and_start_offset(ros_domain: int, tmp_path: Path) -> None:
     bag = tmp_path / "walk.mcap"
     n = 50
-    _make_bag(bag, "/walk06", n)
+    _make_bag(bag, f"/{U}_6", n)
     # skip the first 0.2 s (20 messages), play only IMU, renamed into another namespace
-    lines, log = _play_and_listen(bag, "/other", n - 20, "--rate", "4", "--start-offset", "0.2",
-                                  "--topics", "/walk06/imu/data_raw",
-                                  "--remap", "/walk06/imu/data_raw:=/other/imu/data_raw")
+    lines, log = _play_and_listen(bag, f"/{U}_other", n - 20, "--rate", "4", "--start-offset", "0.2",
+                                  "--topics", f"/{U}_6/imu/data_raw",
+                                  "--remap", f"/{U}_6/imu/data_raw:=/{U}_other/imu/data_raw")
     ids = [int(ln.split()[1]) for ln in lines if ln.startswith("imu ")]
     assert ids == list(range(20, n))
     assert not any(ln.startswith("gt ") for ln in lines)
@@ -115,9 +117,9 @@ def test_player_loops_until_sigint(ros_domain: int, tmp_path: Path) -> None:
     import signal
     bag = tmp_path / "walk.mcap"
     n = 20
-    _make_bag(bag, "/walk07", n)
+    _make_bag(bag, f"/{U}_7", n)
     env = os.environ.copy()
-    sub = subprocess.Popen([sys.executable, str(PEERS / "subscriber.py"), "/walk07", str(2 * n), "25"],
+    sub = subprocess.Popen([sys.executable, str(PEERS / "subscriber.py"), f"/{U}_7", str(2 * n), "25"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     assert sub.stdout.readline().strip() == "ready"
     player = subprocess.Popen([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--loop",

@@ -17,6 +17,8 @@ from rosbags.interfaces import QosDurability, QosReliability
 from indoor_loc.bag import bag_topics, recover, scan_records
 
 PEERS = Path(__file__).resolve().parent / "bag_peers"
+# namespaces of our own: other DDS tests on this machine may share the domain and use /walkNN
+U = f"bagtest{os.getpid()}"
 
 
 def _start(args: list[str]) -> subprocess.Popen:
@@ -81,23 +83,23 @@ def _read_imu_ids(path: Path, topic: str) -> tuple[list[int], dict]:
 @pytest.mark.timeout(60)
 def test_sigint_gives_complete_bag_with_matched_qos(ros_domain: int, tmp_path: Path) -> None:
     out = tmp_path / "rec.mcap"
-    pub = _start([str(PEERS / "publisher.py"), "/walk01", "60", "100"])
-    rec = _recorder(out, "-t", "imu/data_raw", "ground_truth", "--namespace", "/walk01", "--chunk-size", "4000")
+    pub = _start([str(PEERS / "publisher.py"), f"/{U}_1", "60", "100"])
+    rec = _recorder(out, "-t", "imu/data_raw", "ground_truth", "--namespace", f"/{U}_1", "--chunk-size", "4000")
     try:
         _wait_line(pub, "published 60", 30)
-        _wait_recorded(out, "/walk01/imu/data_raw", 60, 15)
+        _wait_recorded(out, f"/{U}_1/imu/data_raw", 60, 15)
         log = _stop(rec, signal.SIGINT)
     finally:
         pub.terminate()
         pub.communicate(timeout=10)
     assert rec.returncode == 0, log
     assert "recorded 61 messages" in log, log
-    ids, conns = _read_imu_ids(out, "/walk01/imu/data_raw")
+    ids, conns = _read_imu_ids(out, f"/{U}_1/imu/data_raw")
     assert ids == list(range(60))
-    assert conns["/walk01/ground_truth"].msgcount == 1          # latched, published before we subscribed
-    assert conns["/walk01/ground_truth"].ext.offered_qos_profiles[0].durability == QosDurability.TRANSIENT_LOCAL
-    assert conns["/walk01/imu/data_raw"].ext.offered_qos_profiles[0].reliability == QosReliability.RELIABLE
-    assert bag_topics(out)["/walk01/imu/data_raw"] == ("sensor_msgs/msg/Imu", 60)
+    assert conns[f"/{U}_1/ground_truth"].msgcount == 1          # latched, published before we subscribed
+    assert conns[f"/{U}_1/ground_truth"].ext.offered_qos_profiles[0].durability == QosDurability.TRANSIENT_LOCAL
+    assert conns[f"/{U}_1/imu/data_raw"].ext.offered_qos_profiles[0].reliability == QosReliability.RELIABLE
+    assert bag_topics(out)[f"/{U}_1/imu/data_raw"] == ("sensor_msgs/msg/Imu", 60)
 
 
 @pytest.mark.timeout(60)
@@ -105,21 +107,21 @@ def test_sigterm_with_all_topics_discovers_late_best_effort_publisher(ros_domain
     out = tmp_path / "all.mcap"
     rec = _recorder(out, "-a", "--poll", "0.3")
     time.sleep(1.0)                        # recorder up before the publisher exists: found by polling
-    pub = _start([str(PEERS / "publisher.py"), "/walk02", "40", "100", "--best-effort"])
+    pub = _start([str(PEERS / "publisher.py"), f"/{U}_2", "40", "100", "--best-effort"])
     try:
         _wait_line(pub, "published 40", 30)
-        _wait_recorded(out, "/walk02/imu/data_raw", 40, 5)   # best effort may drop a few: then 5 s
+        _wait_recorded(out, f"/{U}_2/imu/data_raw", 40, 5)   # best effort may drop a few: then 5 s
         log = _stop(rec, signal.SIGTERM)
     finally:
         pub.terminate()
         pub.communicate(timeout=10)
     assert rec.returncode == 0, log
-    assert "/walk02/imu/data_raw: recording [sensor_msgs/msg/Imu] (best_effort, volatile" in log, log
-    ids, conns = _read_imu_ids(out, "/walk02/imu/data_raw")
+    assert f"/{U}_2/imu/data_raw: recording [sensor_msgs/msg/Imu] (best_effort, volatile" in log, log
+    ids, conns = _read_imu_ids(out, f"/{U}_2/imu/data_raw")
     # best effort over loopback: in order, no duplicates, (nearly) all there
     assert ids == sorted(set(ids)) and len(ids) >= 36, ids
-    assert conns["/walk02/imu/data_raw"].ext.offered_qos_profiles[0].reliability == QosReliability.BEST_EFFORT
-    assert "/walk02/ground_truth" in conns
+    assert conns[f"/{U}_2/imu/data_raw"].ext.offered_qos_profiles[0].reliability == QosReliability.BEST_EFFORT
+    assert f"/{U}_2/ground_truth" in conns
 
 
 @pytest.mark.timeout(60)
@@ -129,8 +131,8 @@ def test_sigkill_then_recover_keeps_complete_chunks(ros_domain: int, tmp_path: P
     out, fixed = tmp_path / "killed.mcap", tmp_path / "fixed.mcap"
     chunk = 3000
     n = 150
-    pub = _start([str(PEERS / "publisher.py"), "/walk03", str(n), "200"])
-    rec = _recorder(out, "-t", "/walk03/imu/data_raw", "--chunk-size", str(chunk), "--flush-interval", "0")
+    pub = _start([str(PEERS / "publisher.py"), f"/{U}_3", str(n), "200"])
+    rec = _recorder(out, "-t", f"/{U}_3/imu/data_raw", "--chunk-size", str(chunk), "--flush-interval", "0")
     try:
         _wait_line(pub, f"published {n}", 30)
         time.sleep(1.0)                              # let the reliable stream arrive
@@ -145,7 +147,7 @@ def test_sigkill_then_recover_keeps_complete_chunks(ros_domain: int, tmp_path: P
     complete = scan_records(out).messages
     res = recover(out, fixed)
     assert res.messages == complete and not res.bad_chunks
-    ids, _ = _read_imu_ids(fixed, "/walk03/imu/data_raw")
+    ids, _ = _read_imu_ids(fixed, f"/{U}_3/imu/data_raw")
     assert ids == list(range(len(ids)))              # every message of the complete chunks, in order
     per_chunk = chunk // len(serialize_message(Imu())) + 2
     assert n - per_chunk <= len(ids) <= n, (len(ids), per_chunk)   # lost at most the open chunk
