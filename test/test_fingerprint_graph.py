@@ -31,12 +31,16 @@ def slow_log_likelihood(fg: FingerprintGraph, link: int, pos: float, scan: WifiS
     xi, xj = fg.node_xy[i], fg.node_xy[j]
     x = xi + pos * (xj - xi)
     L = np.linalg.norm(xi - xj)
+    wi, wj = np.linalg.norm(x - xj) / L, np.linalg.norm(x - xi) / L
     ll = 0.0
+    if p.use_non_detections:  # log(1 - pdet) interpolated, over the map's APs not heard
+        for a, b in enumerate(fg.bssids):
+            if b not in scan.bssid:
+                ll += wi * np.log(1 - fg.pdet[i, a]) + wj * np.log(1 - fg.pdet[j, a])
     for b, z in zip(scan.bssid, scan.rssi_dbm):
         if b not in fg.bssids:
             continue
         a = fg.bssids.index(b)
-        wi, wj = np.linalg.norm(x - xj) / L, np.linalg.norm(x - xi) / L
         mu = wi * fg.mu[i, a] + wj * fg.mu[j, a]
         var = wi * fg.var[i, a] + wj * fg.var[j, a]
         pd = wi * fg.pdet[i, a] + wj * fg.pdet[j, a]
@@ -51,15 +55,18 @@ def field():
     return synthetic_field(rng, n_test=40)
 
 
-def test_vectorised_matches_the_equation(field):
+@pytest.mark.parametrize("non_det", [False, True])
+def test_vectorised_matches_the_equation(field, non_det):
     rm, _, scans, _ = field
     node_xy, links = grid_graph()
-    fg = FingerprintGraph().fit(rm, node_xy, links)
+    fg = FingerprintGraph(FingerprintGraphParams(use_non_detections=non_det)).fit(rm, node_xy, links)
     rng = np.random.default_rng(1)
     link = rng.integers(0, len(links), 50)
     pos = rng.uniform(0, 1, 50)
-    ll = fg.log_likelihood(link, pos, scans[0])
-    slow = [slow_log_likelihood(fg, l, t, scans[0]) for l, t in zip(link, pos)]
+    s = scans[0]
+    s = WifiScan(s.stamp_ns, s.bssid[2:], s.rssi_dbm[2:], s.freq_mhz[2:])  # two map APs not heard
+    ll = fg.log_likelihood(link, pos, s)
+    slow = [slow_log_likelihood(fg, l, t, s) for l, t in zip(link, pos)]
     np.testing.assert_allclose(ll, slow, rtol=1e-10)
     # at the ends of an edge the interpolation returns the vertex values
     mu, var, pd = fg.interpolate(np.array([3, 3]), np.array([0.0, 1.0]))
@@ -90,7 +97,7 @@ def test_vertices_without_data_and_missing_aps(field):
     far = len(node_xy)
     node_xy = np.vstack([node_xy, [[80.0, 10.0]]])  # a vertex 40 m from every fingerprint
     links = np.vstack([links, [[far - 1, far]]])
-    fg = FingerprintGraph().fit(rm, node_xy, links)
+    fg = FingerprintGraph(FingerprintGraphParams(use_non_detections=False)).fit(rm, node_xy, links)
     assert np.all(np.isfinite(fg.mu)) and np.all(fg.var > 0)
     assert np.all(fg.var[far] > 30.0 ** 2)  # extrapolated 40 m: very uncertain
     np.testing.assert_allclose(fg.pdet[far], 0.5, atol=1e-6)  # detection falls back to the prior
