@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc import params as P
-from indoor_loc.errors import ConfigError
+from indoor_loc.errors import ConfigError, InvalidMessageError
 from indoor_loc.wifi.types import Fix
 
 H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement matrix
@@ -123,7 +123,7 @@ def _check_fix(fix: Fix) -> tuple[np.ndarray, np.ndarray]:
     z = np.asarray(fix.xy, float).reshape(2)
     R = np.asarray(fix.cov, float).reshape(2, 2)
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
-        raise ConfigError(f"fix: expected finite xy and cov, got xy={z}, cov={R.tolist()}")
+        raise InvalidMessageError("nan", f"fix: expected finite xy and cov, got xy={z}, cov={R.tolist()}")
     return z, R
 
 
@@ -161,7 +161,8 @@ class LinearPdrKf:
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         """Propagate ``steps`` footsteps (may be fractional, >= 0) with heading change ``dtheta`` rad."""
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise ConfigError(f"LinearPdrKf.predict: expected finite steps >= 0 and dtheta, got {steps}, {dtheta}")
+            raise InvalidMessageError("bad_pdr", f"LinearPdrKf.predict: expected finite steps >= 0 and dtheta, "
+                                                  f"got {steps}, {dtheta}")
         F = transition_matrix(steps, dtheta)
         self.last_F = F
         st = self.state

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc import params as P
-from indoor_loc.errors import ConfigError
+from indoor_loc.errors import InvalidMessageError
 from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, _check_fix, joseph_update,
                                           mahalanobis_sq)
 from indoor_loc.wifi.types import Fix
@@ -116,8 +116,8 @@ class _NonlinearPdrFilter:
 
     def _check(self, steps: float, dtheta: float) -> None:
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise ConfigError(f"{type(self).__name__}.predict: expected finite steps >= 0 and dtheta, "
-                              f"got {steps}, {dtheta}")
+            raise InvalidMessageError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
+                                      f"and dtheta, got {steps}, {dtheta}")
 
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         raise NotImplementedError

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from indoor_loc import params as P
-from indoor_loc.errors import ConfigError, MapError
+from indoor_loc.errors import InvalidMessageError, MapError
 from indoor_loc.wifi.types import Fix, Positioner, RadioMap, WifiScan
 
 
@@ -173,7 +173,7 @@ class CoverageArea(Positioner):
         every AP heard (new BSSIDs get new CAs)."""
         xy = np.asarray(xy, float).reshape(2)
         if not np.all(np.isfinite(xy)):
-            raise ConfigError(f"coverage.add_fingerprint: expected a finite position, got {xy}")
+            raise InvalidMessageError("nan", f"coverage.add_fingerprint: expected a finite position, got {xy}")
         for b in scan.bssid:
             if b not in self._col:
                 self._col[b] = len(self.bssids)
