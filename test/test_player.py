@@ -15,7 +15,7 @@ from sensor_msgs.msg import Imu
 
 from indoor_loc.bag import BagWriter
 from indoor_loc.errors import ConfigError
-from indoor_loc.nodes.player_node import add_arguments, latched, parse_remaps
+from indoor_loc.nodes.player_node import add_arguments, latched, parse_remaps, run
 
 PEERS = Path(__file__).resolve().parent / "bag_peers"
 # namespaces of our own: other DDS tests on this machine may share the domain and use /walkNN
@@ -104,12 +104,18 @@ def test_player_options_and_latched_topics() -> None:
     assert a.clock == 100.0 and a.rate == 1.0 and not a.loop
 
 
-def test_player_rejects_bad_rate(ros_domain: int, tmp_path: Path) -> None:
+def test_player_rejects_bad_options(tmp_path: Path, capsys) -> None:
+    from indoor_loc.cli import main
     bag = tmp_path / "b.mcap"
     _make_bag(bag, "/w", 2)
-    r = subprocess.run([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--rate", "0"],
-                       capture_output=True, text=True, timeout=30)
-    assert r.returncode == 2 and "play.rate: expected > 0" in r.stderr
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    for args, match in ([["--rate", "0"], "play.rate: expected > 0"], [["--clock", "-5"], "play.clock"],
+                        [["--start-offset", "-1"], "play.start_offset"], [["--remap", "a"], "OLD:=NEW"]):
+        with pytest.raises(ConfigError, match=match):
+            run(p.parse_args([str(bag), *args]))
+    assert main(["play", str(tmp_path / "missing.mcap")]) == 2         # BagError, before any DDS
+    assert "does not exist" in capsys.readouterr().err
 
 
 @pytest.mark.timeout(60)

@@ -151,3 +151,19 @@ def test_sigkill_then_recover_keeps_complete_chunks(ros_domain: int, tmp_path: P
     assert ids == list(range(len(ids)))              # every message of the complete chunks, in order
     per_chunk = chunk // len(serialize_message(Imu())) + 2
     assert n - per_chunk <= len(ids) <= n, (len(ids), per_chunk)   # lost at most the open chunk
+
+
+def test_recorder_rejects_bad_options(tmp_path: Path) -> None:
+    import argparse
+
+    from indoor_loc.errors import ConfigError
+    from indoor_loc.nodes.recorder_node import add_arguments, is_hidden, run
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    for args, match in ([["--chunk-size", "0"], "chunk_size"], [["--poll", "0"], "poll"],
+                        [["--flush-interval", "-1"], "flush_interval"]):
+        with pytest.raises(ConfigError, match=match):
+            run(p.parse_args(["-t", "/x", "-o", str(tmp_path / "x.mcap"), *args]))
+    with pytest.raises(SystemExit):                   # -t and -a are exclusive, one is required
+        p.parse_args(["-t", "/x", "-a"])
+    assert is_hidden("/a/_action/status") and not is_hidden("/walk01/imu/data")

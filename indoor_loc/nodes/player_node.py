@@ -181,7 +181,22 @@ class PlayerNode(Node):
                 pub.wait_for_all_acked(Duration(seconds=2.0))
 
 
+def check_options(options: argparse.Namespace) -> None:
+    """Reject bad options before touching DDS."""
+    if not options.rate > 0:
+        raise ConfigError(f"play.rate: expected > 0, got {options.rate}")
+    if options.clock < 0:
+        raise ConfigError(f"play.clock: expected >= 0 Hz, got {options.clock}")
+    if options.start_offset < 0:
+        raise ConfigError(f"play.start_offset: expected >= 0 s, got {options.start_offset}")
+    for bag in options.bags:
+        if not Path(bag).is_file():
+            raise BagError(f"bag {bag} does not exist")
+    parse_remaps(options.remap)
+
+
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
+    check_options(options)
     remap = parse_remaps(options.remap)
     # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps)
     rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
