@@ -206,6 +206,9 @@ def test_nonlinear_filters_on_the_synthetic_walk(cls):
     assert _err(trk.x_filt, truth, has) < _err(z, truth, has)
     assert _err(xs, truth, has) < _err(trk.x_filt, truth, has)
     assert np.all(np.linalg.eigvalsh(Ps).min(axis=1) > -1e-9)
+    f = cls(p, xy0=np.zeros(2), pos_cov0=np.eye(2))
+    assert f.nis(Fix(0, np.array([1.0, 0.0]), np.eye(2))) == pytest.approx(0.5)
+    assert f.mahalanobis(np.array([[0.0, 2.0]]))[0] == pytest.approx(4.0)
     # the linear model wraps the same interface: run_filter == filter_batch
     lp = LinearPdrParams()
     a = run_filter(LinearPdrKf(lp, xy0=z[0], pos_cov0=R[0]), steps, dth, z, R)

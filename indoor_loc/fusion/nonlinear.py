@@ -107,6 +107,14 @@ class _NonlinearPdrFilter:
         self.last_F = np.eye(4)
 
     @property
+    def x(self) -> np.ndarray:
+        return self.state.x
+
+    @property
+    def P(self) -> np.ndarray:
+        return self.state.P
+
+    @property
     def position(self) -> np.ndarray:
         return self.state.x[:2].copy()
 
@@ -132,6 +140,11 @@ class _NonlinearPdrFilter:
         st.n_updates += int(ok)
         st.n_rejected += int(not ok)
         return ok
+
+    def nis(self, fix: Fix) -> float:
+        """Normalised innovation squared of a fix against the current prediction (no update)."""
+        z, R = _check_fix(fix)
+        return float(mahalanobis_sq(z[None], self.state.x[:2], self.state.P[:2, :2] + R)[0])
 
     def mahalanobis(self, points: np.ndarray) -> np.ndarray:
         """Squared Mahalanobis distances of positions (N, 2) from the position estimate -> (N,)."""
