@@ -188,6 +188,8 @@ def test_read_bag_merges_files_in_stamp_order(tmp_path: Path) -> None:
             (wa if i % 3 else wb).write("/u1/imu/data_raw" if i % 3 else "/u2/imu/data_raw", m, T0 + i * 1000)
     msgs = list(read_bag([a, b]))
     assert [int(m.msg.header.frame_id) for m in msgs] == list(range(50))
+    # a directory (as `ros2 bag record` writes) stands for its .mcap files
+    assert [m.msg for m in read_bag(tmp_path)] == [m.msg for m in msgs]
     assert bag_topics([a, b]) == {"/u1/imu/data_raw": ("sensor_msgs/msg/Imu", 33),
                                   "/u2/imu/data_raw": ("sensor_msgs/msg/Imu", 17)}
 

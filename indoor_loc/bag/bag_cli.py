@@ -12,7 +12,7 @@ from indoor_loc.errors import BagError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="bag_command", metavar="ACTION", required=True)
     info = sub.add_parser("info", help="topics, types, message counts, duration, start/end of bags")
-    info.add_argument("bags", nargs="+", type=Path, help="MCAP bag(s)")
+    info.add_argument("bags", nargs="+", type=Path, help="MCAP bag file(s) or bag directories")
     rec = sub.add_parser("recover", help="rewrite a bag whose writer was killed into a valid one")
     rec.add_argument("src", type=Path, help="damaged MCAP bag")
     rec.add_argument("dst", type=Path, help="output MCAP bag (must differ from the input)")
@@ -49,7 +49,8 @@ def _file_summary(path: Path) -> tuple[int, int, int, int, str]:
 def info(paths: list[Path]) -> int:
     from indoor_loc.bag.mcap_io import scan_records
     from indoor_loc.bag.mcap_io import bag_info as topics_of
-    for path in paths:
+    from indoor_loc.bag.mcap_io import bag_files
+    for path in bag_files(paths):
         if not path.is_file():
             raise BagError(f"bag {path} does not exist")
         start, end, count, chunks, note = _file_summary(path)

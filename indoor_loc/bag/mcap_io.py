@@ -295,10 +295,19 @@ class BagWriter:
 
 
 # -- reading ---------------------------------------------------------------------------------------
-def _as_paths(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
-    if isinstance(paths, (str, os.PathLike)):
-        return [Path(paths)]
-    return [Path(p) for p in paths]
+def bag_files(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
+    """Bag files; a directory (``ros2 bag record`` writes one) stands for the ``.mcap`` files in it."""
+    items = [Path(paths)] if isinstance(paths, (str, os.PathLike)) else [Path(p) for p in paths]
+    out: list[Path] = []
+    for p in items:
+        if p.is_dir():
+            files = sorted(p.glob("*.mcap"))
+            if not files:
+                raise BagError(f"bag directory {p} holds no .mcap file")
+            out += files
+        else:
+            out.append(p)
+    return out
 
 
 def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, RawMessage]]:
@@ -321,7 +330,7 @@ def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
              topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
     """Stored messages of one or more bags merged in log-time order (ties: file order, then sequence)."""
     wanted = set(topics) if topics is not None else None
-    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(_as_paths(paths))]
+    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(bag_files(paths))]
     for _, _, _, m in heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2])):
         yield m
 
@@ -349,7 +358,7 @@ def read_bag(paths: str | os.PathLike | Iterable[str | os.PathLike],
 def bag_info(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> dict[str, TopicInfo]:
     """Topics of the bags with type, message count and recorded QoS (summary, or a scan without one)."""
     out: dict[str, TopicInfo] = {}
-    for path in _as_paths(paths):
+    for path in bag_files(paths):
         for name, info in _file_topics(path).items():
             prev = out.get(name)
             if prev is not None and prev.type != info.type:

@@ -30,6 +30,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosgraph_msgs.msg import Clock
 
 from indoor_loc.bag import bag_info, read_raw
+from indoor_loc.bag.mcap_io import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError
@@ -189,8 +190,8 @@ def check_options(options: argparse.Namespace) -> None:
         raise ConfigError(f"play.clock: expected >= 0 Hz, got {options.clock}")
     if options.start_offset < 0:
         raise ConfigError(f"play.start_offset: expected >= 0 s, got {options.start_offset}")
-    for bag in options.bags:
-        if not Path(bag).is_file():
+    for bag in bag_files(options.bags):
+        if not bag.is_file():
             raise BagError(f"bag {bag} does not exist")
     parse_remaps(options.remap)
 
