@@ -451,8 +451,8 @@ def _iter_records(path: Path, result: ScanResult) -> Iterator[Schema | Channel |
                     records = [Channel.read(ReadDataStream(io.BytesIO(body)))]
                 elif opcode == _OP_MESSAGE:
                     records = [Message.read(ReadDataStream(io.BytesIO(body)), length)]
-            except (McapError, ValueError, struct.error, EOFError, RuntimeError) as err:
-                del err
+            except (McapError, ValueError, struct.error, EOFError, RuntimeError):
+                # a damaged record (CRC mismatch, bad compression): skip it, keep what follows
                 if opcode == _OP_CHUNK:
                     result.bad_chunks += 1
                 continue
