@@ -13,6 +13,7 @@ NODES = {
     "wifi_fix_node": "indoor_loc.nodes.wifi_fix_node:main",
     "recorder": "indoor_loc.nodes.recorder_node:main",
     "player": "indoor_loc.nodes.player_node:main",
+    "pdr_kf_node": "indoor_loc.nodes.pdr_kf_node:main",
 }
 
 setup(

@@ -13,6 +13,7 @@ STAGES: dict[str, str] = {
     "imu": "indoor_loc.pipeline.imu_stage:ImuStage",
     "wifi": "indoor_loc.pipeline.wifi_fix_stage:WifiFixStage",
     "wifi_scan": "indoor_loc.pipeline.wifi_scan_stage:WifiScanStage",
+    "pdr_kf": "indoor_loc.pipeline.pdr_kf_stage:PdrKfStage",
 }
 
 

@@ -1,0 +1,13 @@
+"""``ros2 run indoor_loc pdr_kf_node``: seed-004 linear PDR Kalman filter + RTS smoother."""
+from __future__ import annotations
+
+from indoor_loc.nodes.base import run_stage_node
+from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_stage_node(PdrKfStage, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,156 @@
+"""PdrKfStage: the seed-004 linear PDR Kalman filter fusing ``pdr/odom`` with ``wifi/fix``.
+
+Per ``pdr/odom`` message the filter predicts with the interval's step count and heading change
+(recovered as the contract documents: ``steps = |p_i - p_(i-1)| / step_length_m``,
+``dtheta = wrap(yaw_i - yaw_(i-1))``) and publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a
+gated linear position update. ``pdr_kf/path`` is the RTS-smoothed history (seed 004's offline
+smoother), republished at most every ``smooth_period_s`` of stamp time and at the end of input.
+The filter starts at the first accepted WiFi fix (position and covariance from the fix; step
+vector 0 with no heading needed). Later waves use it to initialise and monitor the particle filter.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from indoor_loc import params as P
+from indoor_loc.contract import Qos
+from indoor_loc.errors import InvalidMessageError
+from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
+                                          rts_smooth)
+from indoor_loc.msg_adapters.odom import odom_from_msg
+from indoor_loc.msg_adapters.path import path_to_msg
+from indoor_loc.msg_adapters.pose import fix_from_msg, fix_to_msg
+from indoor_loc.pipeline.stage import Output, Port, Stage
+from indoor_loc.wifi.types import Fix
+
+
+@dataclass(frozen=True)
+class PdrKfStageParams:
+    """Parameters of ``pdr_kf_node``."""
+    step_length_m: float = P.field(0.65, "nominal step length the PDR node used (m): steps = distance / this")
+    kf_step_length_m: float = P.field(0.7, "footstep length s in the heading-noise model (m)")
+    sigma_dtheta_rad: float = P.field(0.1, "heading-change noise per footstep (rad)")
+    sigma_ds_m: float = P.field(0.07, "step-vector length change noise per footstep (m)")
+    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
+    smooth_period_s: float = P.field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
+    frame_id: str = P.field("map", "frame of the estimates")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        P.require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
+        P.require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
+        self.kf_params().validate()
+
+    def kf_params(self) -> LinearPdrParams:
+        gate = self.gate_prob < 1.0
+        return LinearPdrParams(step_length_m=self.kf_step_length_m, sigma_dtheta_rad=self.sigma_dtheta_rad,
+                               sigma_ds_m=self.sigma_ds_m, gate=gate, gate_prob=self.gate_prob if gate else 0.5)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class PdrKfStage(Stage):
+    """Linear PDR Kalman filter + RTS smoother (seed 004): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
+    NODE_NAME = "pdr_kf_node"
+    PARAMS = PdrKfStageParams
+
+    def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
+        super().__init__(params, namespace=namespace)
+        self.kf: LinearPdrKf | None = None
+        self._last_odom: tuple[float, float, float, int] | None = None  # x, y, yaw, stamp
+        # epochs since initialisation, for the smoother: (stamp, steps, dtheta, fix or None)
+        self._epochs: list[list] = []
+        self._init_fix: Fix | None = None
+        self._last_smooth_ns: int | None = None
+        self.on("pdr/odom", self._on_odom)
+        self.on("wifi/fix", self._on_fix)
+
+    def inputs(self) -> list[Port]:
+        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
+                Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
+
+    def outputs(self) -> list[Port]:
+        return [Port("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
+                Port("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED)]
+
+    # ------------------------------------------------------------------------------------------
+    def _on_odom(self, msg, recv_ns: int) -> list[Output]:
+        od = odom_from_msg(msg)
+        if self._last_odom is not None and od.stamp_ns <= self._last_odom[3]:
+            raise InvalidMessageError("non_monotonic_stamp",
+                                      f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom[3]}")
+        prev, self._last_odom = self._last_odom, (od.x, od.y, od.yaw, od.stamp_ns)
+        if prev is None or self.kf is None:
+            return []
+        steps = math.hypot(od.x - prev[0], od.y - prev[1]) / self.params.step_length_m
+        dtheta = _wrap(od.yaw - prev[2])
+        self.kf.predict(steps, dtheta, stamp_ns=od.stamp_ns)
+        self._epochs.append([od.stamp_ns, steps, dtheta, None])
+        outs: list[Output] = [("pdr_kf/pose", self._pose_msg(od.stamp_ns))]
+        return outs + self._maybe_smooth(od.stamp_ns)
+
+    def _on_fix(self, msg, recv_ns: int) -> list[Output]:
+        fix = fix_from_msg(msg)
+        if self.kf is None:
+            self.kf = LinearPdrKf(self.params.kf_params(), xy0=fix.xy, pos_cov0=fix.cov, stamp_ns=fix.stamp_ns)
+            self._init_fix = fix
+            self._epochs = [[fix.stamp_ns, 0.0, 0.0, None]]
+            return [("pdr_kf/pose", self._pose_msg(fix.stamp_ns))]
+        if self._epochs[-1][3] is not None:   # second fix in one PDR interval: a zero-step epoch
+            self.kf.predict(0.0, 0.0, stamp_ns=fix.stamp_ns)
+            self._epochs.append([fix.stamp_ns, 0.0, 0.0, None])
+        self.kf.update(fix)
+        self._epochs[-1][3] = fix
+        return [("pdr_kf/pose", self._pose_msg(fix.stamp_ns))]
+
+    def _pose_msg(self, stamp_ns: int):
+        assert self.kf is not None
+        return fix_to_msg(Fix(stamp_ns=stamp_ns, xy=self.kf.position, cov=self.kf.position_cov),
+                          frame_id=self.params.frame_id)
+
+    def _maybe_smooth(self, now_ns: int) -> list[Output]:
+        period = self.params.smooth_period_s
+        if period <= 0:
+            return []
+        if self._last_smooth_ns is not None and now_ns - self._last_smooth_ns < period * 1e9:
+            return []
+        self._last_smooth_ns = now_ns
+        return self._smoothed()
+
+    def smoothed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """RTS-smoothed history: stamps (T,), xy (T, 2), heading (T,) rad (from the step vector)."""
+        if self.kf is None or not self._epochs:
+            return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
+        stamps = np.array([e[0] for e in self._epochs], np.int64)
+        steps = np.array([e[1] for e in self._epochs], float)
+        dtheta = np.array([e[2] for e in self._epochs], float)
+        z, R = fixes_to_arrays([e[3] for e in self._epochs])
+        init = self._init_fix
+        assert init is not None
+        track = filter_batch(self.kf.params, steps, dtheta, z, R, xy0=init.xy, pos_cov0=init.cov)
+        xs, _ = rts_smooth(track)
+        return stamps, xs[:, :2], np.arctan2(xs[:, 3], xs[:, 2])
+
+    def _smoothed(self) -> list[Output]:
+        stamps, xy, yaw = self.smoothed()
+        if len(stamps) == 0:
+            return []
+        return [("pdr_kf/path", path_to_msg(stamps, xy, yaw, frame_id=self.params.frame_id,
+                                            stamp_ns=int(stamps[-1])))]
+
+    def finish(self) -> list[Output]:
+        return self._smoothed()
+
+    def extra_diagnostics(self) -> dict[str, str]:
+        if self.kf is None:
+            return {"initialised": "false (waiting for the first wifi/fix)"}
+        st = self.kf.state
+        return {"initialised": "true", "epochs": str(len(self._epochs)), "fixes_used": str(st.n_updates),
+                "fixes_gated_out": str(st.n_rejected),
+                "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}"}
