@@ -277,3 +277,28 @@ def test_foxglove_decoder_reads_the_same_values(contract_bag) -> None:
     for topic, msgs in written.items():
         for ours, theirs in zip(msgs, got[topic]):
             _assert_same(ours, theirs)
+
+
+def test_recover_skips_a_damaged_chunk_and_keeps_the_rest(tmp_path: Path) -> None:
+    from sensor_msgs.msg import Imu
+    src = tmp_path / "full.mcap"
+    with BagWriter(src, chunk_size=1500) as w:
+        for i in range(60):
+            m = Imu()
+            m.header.frame_id = str(i)
+            w.write("/u/imu/data_raw", m, T0 + i * 10_000_000)
+    with open(src, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    bad = chunks[2]
+    data = bytearray(src.read_bytes())
+    data[bad.chunk_start_offset + bad.chunk_length - 3] ^= 0xFF      # inside the compressed records
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    res = recover(damaged, tmp_path / "fixed.mcap")
+    assert res.bad_chunks == 1 and not res.truncated
+    ids = [int(m.msg.header.frame_id) for m in read_bag(tmp_path / "fixed.mcap")]
+    lost = [int(m.msg.header.frame_id) for m in read_bag(src)
+            if bad.message_start_time <= m.stamp_ns <= bad.message_end_time]
+    assert lost and ids == [i for i in range(60) if i not in lost]
+    with pytest.raises(BagError, match="cannot be read"):      # an ordinary read stops there
+        list(read_bag(damaged))

@@ -28,6 +28,11 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+try:
+    from zstandard import ZstdError
+except ImportError:                      # without zstandard the mcap library reads no zstd chunk anyway
+    ZstdError = McapError                # type: ignore[misc,assignment]
+
 from indoor_loc.bag.schemas import message_definition, qos_dict, qos_yaml, type_hash
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns, type_name_of
 from indoor_loc.errors import BagError
@@ -321,7 +326,7 @@ def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, 
                                   message.data, message.publish_time))
     except FileNotFoundError as err:
         raise BagError(f"bag {path} does not exist") from err
-    except (McapError, struct.error, ValueError, EOFError) as err:
+    except (McapError, ZstdError, struct.error, ValueError, EOFError) as err:
         raise BagError(f"bag {path} cannot be read ({type(err).__name__}: {err}); if its writer was "
                        f"killed, run `indoor-loc bag recover {path} FIXED.mcap`") from err
 
@@ -451,7 +456,7 @@ def _iter_records(path: Path, result: ScanResult) -> Iterator[Schema | Channel |
                     records = [Channel.read(ReadDataStream(io.BytesIO(body)))]
                 elif opcode == _OP_MESSAGE:
                     records = [Message.read(ReadDataStream(io.BytesIO(body)), length)]
-            except (McapError, ValueError, struct.error, EOFError, RuntimeError):
+            except (McapError, ZstdError, ValueError, struct.error, EOFError, RuntimeError):
                 # a damaged record (CRC mismatch, bad compression): skip it, keep what follows
                 if opcode == _OP_CHUNK:
                     result.bad_chunks += 1
