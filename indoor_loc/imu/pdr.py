@@ -1,0 +1,194 @@
+"""Pedestrian dead reckoning: stepometer hops × step length along the heading (SPEC §1.1, §6).
+
+Per stepometer hop ``i`` (``[t_start, t_end)``, ``n_i`` steps) and the heading ``ψ_i`` at the hop's
+end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading of the interval**
+``ψ̄_i = ψ_(i-1) + wrap(ψ_i − ψ_(i-1))/2`` (the paper's PDR edge, seed 001 eq. for ``e_p``):
+``x_i = x_(i-1) + d_i cos ψ̄_i``, ``y_i = y_(i-1) + d_i sin ψ̄_i``.
+
+``pdr/odom`` contract (one nav_msgs/Odometry per stepometer hop, stamped at the hop's end, frame
+``<user>/odom`` → ``<user>/base_link``): a consumer recovers per interval
+
+- the step count ``n_i = |p_i − p_(i-1)| / step_length_m`` (each segment is laid straight along the
+  mean heading, so the chord is exactly the walked distance), and
+- the heading change ``Δψ_i = wrap(ψ_i − ψ_(i-1))`` from the pose yaws;
+- ``twist.linear.x`` = walking speed ``d_i / (t_end − t_start)`` m/s, ``twist.angular.z`` = yaw rate
+  ``Δψ_i / (t_end − t_start)`` rad/s;
+- the (x, y, yaw) covariance: yaw variance = the heading source's variance at the hop's end
+  (``unknown_yaw_var`` = 1e6 rad² when there is no heading: accelerometer only); the position block
+  accumulates, per hop, an along-track variance ``(step_length_rel_std · d_i)²`` and a cross-track
+  variance ``d_i² · min(σ_ψ², 1)`` rotated into x, y (hops treated as independent), so it grows with
+  the distance walked and with the heading uncertainty.
+
+Without a heading the yaw is held at its last value (0 at the start) and the track is a straight
+line whose length is still the walked distance.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+from dataclasses import dataclass, field as dc_field
+from typing import NamedTuple
+
+import numpy as np
+
+from indoor_loc.params import field, require
+
+#: Yaw variance meaning "heading unknown", rad².
+UNKNOWN_YAW_VAR = 1e6
+
+
+def wrap_angle(a: float) -> float:
+    """Angle wrapped to [-π, π)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass(frozen=True)
+class PdrParams:
+    """Parameters of :class:`Pdr`."""
+    step_length_m: float = field(0.65, "nominal step length l_s, m (paper default 0.65)")
+    step_length_rel_std: float = field(0.1, "relative standard deviation of the walked distance per hop "
+                                            "(step length x count), 1")
+    unknown_yaw_var: float = field(UNKNOWN_YAW_VAR, "yaw variance published when the heading is unknown, rad²")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        require(self.step_length_rel_std >= 0, n, "step_length_rel_std", ">= 0", self.step_length_rel_std)
+        require(self.unknown_yaw_var > 0, n, "unknown_yaw_var", "> 0", self.unknown_yaw_var)
+
+
+class PdrPose(NamedTuple):
+    """One PDR output: stamp_ns (hop end); x, y m and yaw rad in the odom frame; cov (3, 3) of
+    (x, y, yaw); speed m/s; yaw_rate rad/s; steps in this hop; distance m in this hop."""
+    stamp_ns: int
+    x: float
+    y: float
+    yaw: float
+    cov: np.ndarray
+    speed: float
+    yaw_rate: float
+    steps: float
+    distance_m: float
+
+
+@dataclass
+class PdrState:
+    stamp_ns: int | None = None
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+    cov: np.ndarray = dc_field(default_factory=lambda: np.zeros((3, 3)))
+    total_steps: float = 0.0
+    distance_m: float = 0.0
+
+    def copy(self) -> "PdrState":
+        return dataclasses.replace(self, cov=self.cov.copy())
+
+
+class Pdr:
+    """Online PDR integrator (see the module docstring for the ``pdr/odom`` contract)."""
+
+    def __init__(self, params: PdrParams | None = None) -> None:
+        self.params = params if params is not None else PdrParams()
+        self.params.validate()
+        self._st = PdrState()
+        self._st.cov[2, 2] = self.params.unknown_yaw_var
+
+    def state(self) -> PdrState:
+        return self._st.copy()
+
+    def set_state(self, state: PdrState) -> None:
+        self._st = state.copy()
+
+    def update(self, t_start_ns: int, t_end_ns: int, steps: float, yaw: float | None,
+               yaw_var: float | None = None) -> PdrPose:
+        """Integrate one hop. ``yaw`` rad at the hop's end (None = unknown: the last yaw is held),
+        ``yaw_var`` rad² (None with a known yaw = 0)."""
+        st = self._st
+        p = self.params
+        if yaw is None or not math.isfinite(yaw):
+            yaw_new, var = st.yaw, p.unknown_yaw_var
+        else:
+            yaw_new = wrap_angle(float(yaw))
+            var = 0.0 if yaw_var is None else min(float(yaw_var), p.unknown_yaw_var)
+        dpsi = wrap_angle(yaw_new - st.yaw) if st.stamp_ns is not None else 0.0
+        mean = st.yaw + 0.5 * dpsi if st.stamp_ns is not None else yaw_new
+        d = max(0.0, float(steps)) * p.step_length_m
+        c, s = math.cos(mean), math.sin(mean)
+        st.x += d * c
+        st.y += d * s
+        # heading uncertainty of the segment: the larger of the two ends' variances
+        seg_var = max(var, float(st.cov[2, 2]) if st.stamp_ns is not None else var)
+        q_along = (p.step_length_rel_std * d) ** 2
+        q_cross = d * d * min(seg_var, 1.0)
+        rot = np.array([[c, -s], [s, c]])
+        st.cov[:2, :2] += rot @ np.diag([q_along, q_cross]) @ rot.T
+        st.cov[2, 2] = var
+        dt = max(1e-9, (int(t_end_ns) - int(t_start_ns)) * 1e-9)
+        st.yaw = yaw_new
+        st.stamp_ns = int(t_end_ns)
+        st.total_steps += max(0.0, float(steps))
+        st.distance_m += d
+        return PdrPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
+                       max(0.0, float(steps)), d)
+
+
+def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[PdrPose]:
+    """Integrate whole arrays of hops (N,) (``yaw`` NaN = unknown). Same as :meth:`Pdr.update` in a loop."""
+    pdr = Pdr(params)
+    yv = np.zeros(len(steps)) if yaw_var is None else np.asarray(yaw_var, float)
+    return [pdr.update(int(a), int(b), float(n), None if not np.isfinite(y) else float(y), float(v))
+            for a, b, n, y, v in zip(t_start_ns, t_end_ns, steps, np.asarray(yaw, float), yv)]
+
+
+def recover_intervals(xy: np.ndarray, yaw: np.ndarray, step_length_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Consumer side of the contract: per consecutive pair of poses, (steps (N-1,), Δψ (N-1,) rad)."""
+    xy = np.asarray(xy, float)
+    yaw = np.asarray(yaw, float)
+    steps = np.hypot(*np.diff(xy, axis=0).T) / step_length_m
+    dpsi = (np.diff(yaw) + math.pi) % (2 * math.pi) - math.pi
+    return steps, dpsi
+
+
+class HeadingHistory:
+    """Recent headings ``(stamp_ns, yaw rad, var rad²)`` for looking up the heading at a hop's end,
+    which lags the newest sample by the stepometer latency. Linear interpolation of the unwrapped
+    yaw; outside the stored span the nearest sample is used. Keeps ``horizon_s`` of history."""
+
+    def __init__(self, horizon_s: float = 10.0) -> None:
+        self.horizon_ns = int(horizon_s * 1e9)
+        self._t: deque = deque()
+        self._yaw: deque = deque()      # unwrapped
+        self._var: deque = deque()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, stamp_ns: int, yaw: float, var: float) -> None:
+        if self._t and stamp_ns <= self._t[-1]:
+            return
+        y = float(yaw)
+        if self._yaw:
+            y = self._yaw[-1] + wrap_angle(y - self._yaw[-1])
+        self._t.append(int(stamp_ns))
+        self._yaw.append(y)
+        self._var.append(float(var))
+        while len(self._t) > 2 and self._t[0] < stamp_ns - self.horizon_ns:
+            self._t.popleft()
+            self._yaw.popleft()
+            self._var.popleft()
+
+    def at(self, stamp_ns: int) -> tuple[float, float] | None:
+        """(yaw wrapped, var) at ``stamp_ns`` or None when empty."""
+        if not self._t:
+            return None
+        t = np.fromiter(self._t, np.int64, len(self._t))
+        i = int(np.searchsorted(t, stamp_ns))
+        if i <= 0:
+            return wrap_angle(self._yaw[0]), self._var[0]
+        if i >= len(t):
+            return wrap_angle(self._yaw[-1]), self._var[-1]
+        w = (stamp_ns - t[i - 1]) / float(t[i] - t[i - 1])
+        y = self._yaw[i - 1] + w * (self._yaw[i] - self._yaw[i - 1])
+        return wrap_angle(y), max(self._var[i - 1], self._var[i])

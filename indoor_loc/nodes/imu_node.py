@@ -1,0 +1,13 @@
+"""``ros2 run indoor_loc imu_node``: FFT stepometer + AEKF/orientation heading -> pdr/odom, imu/data."""
+from __future__ import annotations
+
+from indoor_loc.nodes.base import run_stage_node
+from indoor_loc.pipeline.imu_stage import ImuStage
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_stage_node(ImuStage, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
