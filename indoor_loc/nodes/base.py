@@ -1,27 +1,36 @@
 """StageNode: runs a :class:`~indoor_loc.pipeline.stage.Stage` as an rclpy node.
 
 - ROS parameters are declared from the stage's Params dataclass (defaults and docs in one place);
-  invalid values stop start-up with a clear error, and later ``ros2 param set`` calls that would
-  make the Params invalid are refused.
+  invalid values, ill-typed values and unknown names (a typo in a params file) stop start-up with
+  a clear error and exit status 2; later ``ros2 param set`` calls on them are refused (parameters
+  are read at start-up).
 - Subscriptions/publishers come from the stage's ports with the contract's QoS.
 - A bad message is logged (throttled), counted and dropped; the node keeps running.
-- ``/diagnostics`` gets one DiagnosticStatus about once a second.
+- ``/diagnostics`` gets one DiagnosticStatus about once a second (on the node's clock, so in bag
+  time under ``use_sim_time``).
+- SIGINT and SIGTERM end the node cleanly: the stage's ``finish()`` outputs are published before
+  the context shuts down.
 """
 from __future__ import annotations
 
+import array
 import dataclasses
+import signal
 import sys
+import threading
 from typing import Any, Callable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from indoor_loc.contract import Qos, msg_class
-from indoor_loc.errors import IndoorLocError
+from indoor_loc.errors import ConfigError, IndoorLocError
 from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.stage import Stage
@@ -37,15 +46,38 @@ QOS_PROFILES: dict[Qos, QoSProfile] = {
                                 reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE),
 }
 
+DIAGNOSTICS_PERIOD_S = 1.0
+#: Parameters every rclpy node may carry besides the stage's own (not "unknown").
+_BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
+#: How often the spin loop returns to Python so SIGINT/SIGTERM are handled promptly (s).
+_SPIN_PERIOD_S = 0.1
+
 
 def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
 
 
+def _default_of(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        return f.default_factory()  # type: ignore[misc]
+    return None
+
+
 def _ros_value(value: Any) -> Any:
-    # rclpy cannot declare an empty list without a type; represent it as an empty string array.
+    """A Params default as a ROS parameter value (tuples -> lists; empty lists -> unset)."""
     if isinstance(value, tuple):
         value = list(value)
+    if isinstance(value, list) and not value:
+        return None
+    return value
+
+
+def _py_value(value: Any) -> Any:
+    """A ROS parameter value as plain Python (arrays -> lists)."""
+    if isinstance(value, (list, tuple, array.array)):
+        return list(value)
     return value
 
 
@@ -63,31 +95,49 @@ class StageNode(Node):
                       for p in self.stage.outputs()}
         self._subs = [self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic),
                                                qos_profile(p.qos)) for p in self.stage.inputs()]
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
-        self.create_timer(1.0, self._on_timer)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
         self.get_logger().info(
             f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
             f"out {[p.topic for p in self.stage.outputs()]}")
 
     # -- parameters ------------------------------------------------------------------------------
     def _declare_params(self, params_cls: type) -> dict[str, Any]:
+        """Declare one ROS parameter per Params field and return the values in force.
+
+        Parameters are dynamically typed so ``step_length_m: 1`` in a YAML file (an int for a
+        float) is coerced by :func:`params_from_dict` instead of failing inside rclpy; type errors
+        are reported there as ConfigError. Overrides naming no field are a ConfigError too.
+        """
         values: dict[str, Any] = {}
         for f in dataclasses.fields(params_cls):
-            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-            desc = ParameterDescriptor(description=f.metadata.get("doc", ""))
-            if isinstance(default, (list, tuple)) and len(default) == 0:
-                from rclpy.parameter import Parameter
-                p = self.declare_parameter(f.name, Parameter.Type.STRING_ARRAY, desc)
-                values[f.name] = list(p.value) if p.value is not None else []
-                continue
+            default = _default_of(f)
+            if isinstance(default, dict):
+                continue   # not expressible as a ROS parameter: stays at its default
+            desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True)
             p = self.declare_parameter(f.name, _ros_value(default), desc)
-            values[f.name] = list(p.value) if isinstance(p.value, (list, tuple)) else p.value
+            value = _py_value(p.value)
+            if value is None and isinstance(default, (list, tuple)):
+                value = type(default)()
+            if value is not None or default is None:
+                values[f.name] = value
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        unknown = sorted(n for n in overrides if not self.has_parameter(n)
+                         and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
+        if unknown:
+            names = sorted(f.name for f in dataclasses.fields(params_cls))
+            raise ConfigError(f"{params_cls.__name__}: unknown parameter(s) {unknown} for "
+                              f"{self.get_fully_qualified_name()}; expected some of {names}")
         return values
 
     def _on_set_params(self, changes: list) -> SetParametersResult:
+        fields = {f.name for f in dataclasses.fields(self._stage_cls.PARAMS)}
+        ours = [p for p in changes if p.name in fields]
+        if not ours:
+            return SetParametersResult(successful=True)   # use_sim_time and friends
         current = dataclasses.asdict(self.stage.params)
-        current.update({p.name: p.value for p in changes})
+        current.update({p.name: _py_value(p.value) for p in ours})
         try:
             params_from_dict(self._stage_cls.PARAMS, current)
         except IndoorLocError as err:
@@ -107,9 +157,14 @@ class StageNode(Node):
         for topic, msg in outs:
             pub = self._pubs.get(topic)
             if pub is None:
+                self.stage._reject("internal_error", f"stage returned undeclared output topic {topic!r}")
                 self.get_logger().error(f"stage returned undeclared output topic {topic!r}", throttle_duration_sec=5.0)
                 continue
-            pub.publish(msg)
+            try:
+                pub.publish(msg)
+            except TypeError as err:     # wrong message class for the port: a stage bug, not fatal
+                self.stage._reject("internal_error", f"publish on {topic!r}: {err}")
+                self.get_logger().error(f"cannot publish on {topic!r}: {err}", throttle_duration_sec=5.0)
 
     def _log_rejections(self) -> None:
         total = sum(self.stage.diag.rejected.values())
@@ -129,43 +184,86 @@ class StageNode(Node):
         return stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)
 
     def shutdown(self) -> None:
+        """Publish the stage's end-of-input outputs (call while the context is still valid)."""
         self._publish(self.stage.finish())
 
 
-def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None) -> int:
-    """``main()`` of every stage node, in the Jazzy form."""
-    argv = sys.argv if args is None else args
-    if any(a in ("-h", "--help") for a in argv[1:]) and "--ros-args" not in argv:
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def spin_node(node: Node) -> None:
+    """Spin until SIGINT/SIGTERM (raised here as KeyboardInterrupt) or an external shutdown.
+
+    rclpy's own signal handlers are off (see :func:`run_stage_node`), so the executor wakes up every
+    ``_SPIN_PERIOD_S`` to let Python deliver the signal; the context stays valid afterwards.
+    """
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        while node.context.ok():
+            executor.spin_once(timeout_sec=_SPIN_PERIOD_S)
+    finally:
+        executor.remove_node(node)
+        executor.shutdown(timeout_sec=0.0)
+
+
+def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
+                   node_factory: Callable[[], StageNode] | None = None) -> int:
+    """``main()`` of every stage node: ``-h``/``--help`` prints :func:`node_usage`; otherwise
+    ``rclpy.init(args)`` (``--ros-args -r __ns:=/alice --params-file F -p k:=v`` as usual), build
+    the node (``node_factory()`` or ``StageNode(stage_cls)``) and spin until SIGINT/SIGTERM.
+
+    Returns 0 on a clean stop, 2 on invalid parameters/arguments (message on stderr).
+    """
+    argv = list(sys.argv if args is None else args)
+    user_args = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if any(a in ("-h", "--help") for a in user_args):
         print(node_usage(stage_cls))
         return 0
-    rclpy.init(args=argv)
-    node = None
+    name = stage_cls.NODE_NAME
     try:
-        node = StageNode(stage_cls)
-        rclpy.spin(node)
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except (RuntimeError, ValueError) as err:     # rclpy's RCLError is a RuntimeError
+        print(f"[{name}] invalid arguments: {err}", file=sys.stderr)
+        return 2
+    # Both signals end the spin as KeyboardInterrupt (SIGINT explicitly too: a child started from a
+    # non-interactive shell in the background inherits SIGINT ignored).
+    old = ({sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+           if threading.current_thread() is threading.main_thread() else {})
+    node: StageNode | None = None
+    status = 0
+    try:
+        node = node_factory() if node_factory is not None else StageNode(stage_cls)
+        spin_node(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except IndoorLocError as err:
-        print(f"[{stage_cls.NODE_NAME}] configuration error: {err}", file=sys.stderr)
-        return 2
+    except (IndoorLocError, ParameterException) as err:
+        print(f"[{name}] configuration error: {err}", file=sys.stderr)
+        status = 2
     finally:
+        for sig in old:                       # a second signal must not cut the clean-up short
+            signal.signal(sig, signal.SIG_IGN)
         if node is not None:
-            try:
+            if node.context.ok():
                 node.shutdown()
-            except Exception:  # noqa: BLE001 - context may already be shut down
-                pass
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    return status
 
 
 def node_usage(stage_cls: type[Stage]) -> str:
     lines = [f"usage: ros2 run indoor_loc {stage_cls.NODE_NAME} [--ros-args -r __ns:=/USER "
              f"--params-file FILE -p NAME:=VALUE ...]", "", (stage_cls.__doc__ or "").strip(), "", "parameters:"]
     for f in dataclasses.fields(stage_cls.PARAMS):
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        lines.append(f"  {f.name} (default {default!r}): {f.metadata.get('doc', '')}")
-    stage = stage_cls(stage_cls.PARAMS(), namespace="")
+        lines.append(f"  {f.name} (default {_default_of(f)!r}): {f.metadata.get('doc', '')}")
+    try:
+        stage = stage_cls(stage_cls.PARAMS(), namespace="")
+    except IndoorLocError as err:     # a stage that needs files to start still gets its help printed
+        lines += ["", f"(topics unavailable with default parameters: {err})"]
+        return "\n".join(lines)
     lines.append("")
     lines.append("subscribes: " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.inputs()))
     lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs()) + ", /diagnostics")

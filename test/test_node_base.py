@@ -1,0 +1,163 @@
+"""nodes/base.py: StageNode parameters, QoS table, and a dummy stage run as a real node process
+(bad messages counted and dropped, /diagnostics once a second, bad parameters -> exit 2)."""
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from sensor_msgs.msg import Imu
+
+from helpers_dds import PEERS, python_peer, ros_node, spin_until
+from indoor_loc.contract import TOPICS, Qos
+from indoor_loc.errors import ConfigError
+from indoor_loc.msg_adapters.diagnostics import diagnostics_from_msg
+from indoor_loc.msg_adapters.imu import imu_to_msg
+from indoor_loc.msg_adapters.pose import pose_from_msg
+from indoor_loc.nodes.base import QOS_PROFILES, StageNode, node_usage, qos_profile, run_stage_node
+
+sys.path.insert(0, str(PEERS))
+from dummy_node import DummyStage  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def test_qos_table_covers_every_contract_role():
+    assert set(QOS_PROFILES) == set(Qos)
+    assert {t.qos for t in TOPICS.values()} <= set(QOS_PROFILES)
+    latched = qos_profile(Qos.LATCHED)
+    assert latched.durability == DurabilityPolicy.TRANSIENT_LOCAL and latched.reliability == ReliabilityPolicy.RELIABLE
+    assert qos_profile(Qos.SENSOR).reliability == ReliabilityPolicy.BEST_EFFORT
+    assert qos_profile(Qos.BEST_EFFORT).reliability == ReliabilityPolicy.BEST_EFFORT
+    assert qos_profile(Qos.RELIABLE).durability == DurabilityPolicy.VOLATILE
+
+
+def test_help_prints_usage(capsys):
+    assert run_stage_node(DummyStage, ["dummy_node", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.strip() == node_usage(DummyStage)
+    assert "gain (default 1.0)" in out and "imu/data_raw [sensor_msgs/msg/Imu]" in out and "/diagnostics" in out
+
+
+def test_parameters_from_command_line(ros_domain):
+    with ros_node("probe") as (probe, _):
+        node = StageNode(DummyStage, context=probe.context, namespace="/alice",
+                         cli_args=["--ros-args", "-p", "gain:=3", "-p", "weights:=[1.0, 2.5]", "-p", "label:=x"])
+        try:
+            p = node.stage.params
+            assert p.gain == 3.0 and isinstance(p.gain, float)      # int in YAML/CLI -> float field
+            assert p.weights == [1.0, 2.5] and p.label == "x" and p.enabled is True
+            assert node.stage.namespace == "/alice"
+            # live changes: refused (read at start-up), with the validation message when invalid
+            res = node.set_parameters([Parameter("gain", value=5.0)])[0]
+            assert not res.successful and "read-only" in res.reason
+            res = node.set_parameters([Parameter("gain", value=-1.0)])[0]
+            assert not res.successful and "gain: expected > 0" in res.reason
+            assert node.set_parameters([Parameter("use_sim_time", value=True)])[0].successful
+            assert node.stage.params.gain == 3.0
+        finally:
+            node.destroy_node()
+
+
+@pytest.mark.parametrize("overrides,match", [
+    ([Parameter("gian", value=1.0)], r"unknown parameter\(s\) \['gian'\]"),
+    ([Parameter("gain", value=0.0)], r"gain: expected > 0"),
+    ([Parameter("gain", value="fast")], r"gain: expected float"),
+    ([Parameter("enabled", value=1)], r"enabled: expected a bool"),
+])
+def test_invalid_parameters_raise_config_error(ros_domain, overrides, match):
+    with ros_node("probe") as (probe, _):
+        with pytest.raises(ConfigError, match=match):
+            StageNode(DummyStage, context=probe.context, parameter_overrides=overrides)
+
+
+def test_invalid_parameters_stop_the_process(tmp_path):
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("/**:\n  ros__parameters:\n    gain: 2.0\n    step_lenght: 0.7\n")
+    cases = {
+        "range": (["-p", "gain:=-1.0"], "gain: expected > 0, got -1.0"),
+        "type": (["-p", "label:=3"], "label: expected str, got 3"),
+        "typo": (["--params-file", str(typo)], "unknown parameter(s) ['step_lenght']"),
+        "args": (["--params-file", str(tmp_path / "missing.yaml")], "invalid arguments"),
+    }
+    peers = {k: python_peer("dummy_node.py", "--ros-args", *a) for k, (a, _) in cases.items()}
+    for k, peer in peers.items():
+        try:
+            rc = peer.wait(timeout=30)
+        finally:
+            peer.stop()
+        assert rc == 2, f"{k}: rc {rc}\n{peer.output()}"
+        assert cases[k][1] in peer.output(), f"{k}: {peer.output()}"
+
+
+def _bad(kind: str, stamp_ns: int) -> Imu:
+    msg = imu_to_msg(stamp_ns, "alice/imu_link", [1.0, 2.0, 9.8], [0.0, 0.0, 0.1])
+    if kind == "nan_acc":
+        msg.linear_acceleration.x = math.nan
+    elif kind == "inf_gyro":
+        msg.angular_velocity.z = math.inf
+    elif kind == "negative_stamp":
+        msg.header.stamp.sec = -1
+    return msg
+
+
+def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_path):
+    params = tmp_path / "params.yaml"
+    params.write_text("/alice/dummy_node:\n  ros__parameters:\n    gain: 2.5\n    label: live\n")
+    peer = python_peer("dummy_node.py", "--ros-args", "-r", "__ns:=/alice", "--params-file", str(params))
+    try:
+        with ros_node("probe") as (node, ex):
+            poses: list[PoseWithCovarianceStamped] = []
+            diags: list[tuple[float, dict]] = []
+
+            def on_diag(msg: DiagnosticArray) -> None:
+                d = diagnostics_from_msg(msg)
+                if "/alice/dummy_node" in d:
+                    diags.append((time.monotonic(), d["/alice/dummy_node"]))
+
+            pub = node.create_publisher(Imu, "/alice/imu/data_raw", qos_profile(Qos.RELIABLE))
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/dummy/pose", poses.append,
+                                     qos_profile(Qos.RELIABLE))
+            node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0
+                              and node.count_publishers("/alice/dummy/pose") > 0 and len(diags) > 0, 20), \
+                peer.output()
+
+            good = [(1_000_000_000 + i, np.array([0.5 * i, -1.0 - i, 9.8])) for i in range(3)]
+            sequence = [imu_to_msg(good[0][0], "f", good[0][1]), _bad("nan_acc", 5), _bad("inf_gyro", 6),
+                        imu_to_msg(good[1][0], "f", good[1][1]), _bad("negative_stamp", 0),
+                        imu_to_msg(good[2][0], "f", good[2][1])]
+            for msg in sequence:
+                pub.publish(msg)
+            assert spin_until(ex, lambda: len(poses) == 3, 10), peer.output()
+            for (stamp, acc), msg in zip(good, poses):
+                p = pose_from_msg(msg)
+                assert p.stamp_ns == stamp and np.array_equal(p.xy, 2.5 * acc[:2])
+
+            def counted() -> bool:
+                return bool(diags) and diags[-1][1].values.get("rejected.total") == "3"
+            assert spin_until(ex, counted, 5)
+            n0 = len(diags)
+            assert spin_until(ex, lambda: len(diags) >= n0 + 3, 8)
+            gaps = np.diff([t for t, _ in diags[n0 - 1:]])
+            assert np.all((gaps > 0.4) & (gaps < 2.0)), gaps
+            d = diags[-1][1]
+            assert d.level == 1 and "3 messages rejected" in d.message
+            assert d.values["rejected.nan"] == "2" and d.values["rejected.negative_stamp"] == "1"
+            assert d.values["in.imu/data_raw.count"] == "6" and d.values["out.dummy/pose.count"] == "3"
+            assert d.values["gain"] == "2.5" and d.values["label"] == "live"
+            assert peer.proc.poll() is None, "node died on a bad message"
+
+        peer.signal(signal.SIGINT)
+        assert peer.wait(timeout=15) == 0, peer.output()
+        assert "dropped message (nan" in peer.output()
+        assert "Traceback" not in peer.output()
+    finally:
+        peer.stop()
