@@ -183,3 +183,21 @@ def test_config_file_holds_every_parameter_with_defaults():
     for line in path.read_text().splitlines():
         if line.startswith("    ") and ":" in line and not line.strip().startswith("#"):
             assert "#" in line, line
+
+
+def test_offline_run_writes_pdr_odom(tmp_path, rng):
+    """`indoor-loc run BAG --nodes imu`: the same stage replays a bag into pdr/odom under the user's namespace."""
+    from indoor_loc.bag import BagWriter, read_bag
+    from indoor_loc.pipeline.offline import run_offline
+    stamps, acc, gyro, t = walk(rng, duration_s=15.0)
+    bag = tmp_path / "walk01.mcap"
+    with BagWriter(bag) as w:
+        for i, ns in enumerate(stamps):
+            w.write("/walk01/imu/data_raw", imu_to_msg(int(ns), "walk01/imu_link", acc[i], gyro[i]), int(ns))
+    out = tmp_path / "out.mcap"
+    run_offline([bag], out, nodes=["imu"], progress=False)
+    od = [odom_from_msg(m.msg) for m in read_bag([out], topics=["/walk01/pdr/odom"])]
+    assert od and od[-1].frame_id == "walk01/odom"
+    dist = sum(math.hypot(b.x - a.x, b.y - a.y) for a, b in zip(od, od[1:])) + math.hypot(od[0].x, od[0].y)
+    assert dist == pytest.approx(0.65 * CADENCE * t[-1], rel=0.02)
+    assert [m for m in read_bag([out], topics=["/walk01/imu/data"])]
