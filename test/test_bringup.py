@@ -1,0 +1,172 @@
+"""``indoor-loc up``: config validation, command lines, and real runs (two dummy nodes in two
+namespaces stopped by SIGINT; a dying child stops the rest; respawn; required)."""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from helpers_dds import PEERS, Peer, child_env, ros_node, spin_until
+from indoor_loc.errors import ConfigError
+from indoor_loc.nodes.bringup import load_config, package_executables, param_text, parse_config
+
+ROOT = Path(__file__).resolve().parents[1]
+DUMMY = str(PEERS / "dummy_node.py")
+EXIT = str(PEERS / "exit_peer.py")
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def write(tmp_path: Path, data) -> Path:
+    p = tmp_path / "up.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def bringup(cfg: Path, **env: str) -> Peer:
+    return Peer([sys.executable, "-m", "indoor_loc.cli", "up", str(cfg)], env=child_env(**env), cwd=str(ROOT))
+
+
+def test_example_config_is_valid():
+    cfg = load_config(ROOT / "config" / "bringup_example.yaml")
+    names = [n.name for n in cfg.nodes]
+    assert names == ["player", "imu_walk01", "wifi_walk01", "recorder"]
+    imu = cfg.nodes[1]
+    cmd = imu.command()
+    assert cmd[cmd.index("--ros-args"):][:3] == ["--ros-args", "-r", "__ns:=/walk01"]
+    assert "--params-file" in cmd and str(ROOT / "config" / "imu_node.yaml") in cmd
+    assert cmd[-4:] == ["-p", "step_length_m:=0.7", "-p", "heading_source:=auto"]
+    assert "use_sim_time:=true" in cmd and "use_sim_time:=false" in cfg.nodes[0].command()
+    assert imu.respawn and cfg.nodes[0].required and cfg.env["ROS_DOMAIN_ID"] == "42"
+
+
+def test_command_line_layout(tmp_path):
+    pf = tmp_path / "p.yaml"
+    pf.write_text("/**:\n  ros__parameters:\n    gain: 2.0\n")
+    cfg = parse_config({"params_files": [str(pf)], "nodes": [{
+        "name": "a", "script": DUMMY, "namespace": "/alice/", "args": ["x", 3], "params": {"label": "0.5", "gain": 2,
+                                                                                             "weights": [1.0, 2.0]},
+        "remap": {"imu/data_raw": "imu/raw2"}, "ros_args": ["--log-level", "debug"]}]}, tmp_path)
+    assert cfg.nodes[0].command() == [
+        sys.executable, DUMMY, "x", "3", "--ros-args", "-r", "__ns:=/alice", "-r", "imu/data_raw:=imu/raw2",
+        "--params-file", str(pf.resolve()), "-p", "label:='0.5'", "-p", "gain:=2", "-p", "weights:=[1.0, 2.0]",
+        "--log-level", "debug"]
+    assert param_text(True) == "true" and param_text("auto") == "auto" and param_text(0.65) == "0.65"
+    exe = package_executables()
+    assert {"player", "recorder"} <= set(exe) and all(v.startswith("indoor_loc.nodes.") for v in exe.values())
+
+
+@pytest.mark.parametrize("data,match", [
+    ([1, 2], r"bringup: expected a mapping"),
+    ({"nodes": []}, r"bringup.nodes: expected a non-empty list"),
+    ({"nodes": [{"name": "a", "script": DUMMY}], "extra": 1}, r"unknown key\(s\) \['extra'\]"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "respwan": True}]}, r"nodes\[0\]: unknown key\(s\) \['respwan'\]"),
+    ({"nodes": [{"name": "a", "script": DUMMY}, {"name": "a", "script": DUMMY}]}, r"nodes\[1\].name: duplicate"),
+    ({"nodes": [{"name": "a b", "script": DUMMY}]}, r"nodes\[0\].name: expected a label"),
+    ({"nodes": [{"name": "a"}]}, r"exactly one of executable / module / script"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "module": "x"}]}, r"exactly one of"),
+    ({"nodes": [{"name": "a", "executable": "imu_nod"}]}, r"unknown executable 'imu_nod'; expected one of \[.*'imu_node'"),
+    ({"nodes": [{"name": "a", "module": "no_such_pkg.mod"}]}, r"cannot import"),
+    ({"nodes": [{"name": "a", "script": "missing.py"}]}, r"missing.py does not exist"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "namespace": "alice"}]}, r"namespace: expected '' or an absolute"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "namespace": "/al ice"}]}, r"namespace"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "params_files": ["nope.yaml"]}]}, r"nope.yaml does not exist"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "params": {"gain": {"x": 1}}}]}, r"params.gain: expected a scalar"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "params": [1]}]}, r"params: expected a mapping"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "respawn": "yes"}]}, r"respawn: expected true or false"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "respawn_delay_s": -1}]}, r"respawn_delay_s: expected a number >= 0"),
+    ({"nodes": [{"name": "a", "script": DUMMY}], "env": {"ROS_DOMAIN_ID": 300}}, r"ROS_DOMAIN_ID: expected an integer"),
+    ({"nodes": [{"name": "a", "script": DUMMY}], "use_sim_time": "true"}, r"use_sim_time: expected true or false"),
+    ({"nodes": [{"name": "a", "script": DUMMY}], "stop_timeout_s": 0}, r"stop_timeout_s: expected a number > 0"),
+    ({"nodes": [{"name": "a", "script": DUMMY, "remap": ["a:=b"]}]}, r"remap: expected a mapping"),
+])
+def test_config_errors(tmp_path, data, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_config(data, tmp_path)
+
+
+def test_bad_params_file_and_cli_error(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("gain: 2.0\n")
+    with pytest.raises(ConfigError, match="no 'ros__parameters'"):
+        parse_config({"nodes": [{"name": "a", "script": DUMMY, "params_files": [str(bad)]}]}, tmp_path)
+    from indoor_loc.cli import main
+    cfg = write(tmp_path, {"nodes": [{"name": "a", "script": "missing.py"}]})
+    assert main(["up", str(cfg)]) == 2
+    assert main(["up", str(tmp_path / "absent.yaml")]) == 2
+
+
+def test_two_nodes_in_namespaces_stop_cleanly_on_sigint(ros_domain, tmp_path):
+    pf = tmp_path / "gain.yaml"
+    pf.write_text("/bob/dummy_node:\n  ros__parameters:\n    gain: 3.0\n")
+    cfg = write(tmp_path, {"env": {"ROS_DOMAIN_ID": ros_domain}, "nodes": [
+        {"name": "alice", "script": DUMMY, "namespace": "/alice", "params": {"label": "A"}},
+        {"name": "bob", "script": DUMMY, "namespace": "/bob", "params_files": [str(pf)]}]})
+    # The bring-up itself runs in another domain: the probe only sees the nodes if `env` is applied.
+    up = bringup(cfg, ROS_DOMAIN_ID=str(ros_domain + 100))
+    try:
+        assert up.wait_line(r"^\[(alice|bob)\] .*dummy_node up", 30), up.output()
+        assert up.wait_line(r"^\[(alice|bob)\] .*dummy_node up", 30), up.output()
+        with ros_node("probe") as (node, ex):
+            want = {("dummy_node", "/alice"), ("dummy_node", "/bob")}
+            assert spin_until(ex, lambda: want <= set(node.get_node_names_and_namespaces()), 15), \
+                node.get_node_names_and_namespaces()
+        pids = [int(line.split("(pid ")[1].split(")")[0]) for line in up.lines if "started" in line]
+        assert len(pids) == 2
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=20) == 0, up.output()
+        out = up.output()
+        assert "[up] alice stopped (exit status 0)" in out and "[up] bob stopped (exit status 0)" in out
+        assert "Traceback" not in out and "[up] all nodes stopped" in out
+        for pid in pids:
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)
+    finally:
+        up.stop()
+
+
+def test_dying_node_stops_the_others(tmp_path):
+    cfg = write(tmp_path, {"stop_timeout_s": 5, "nodes": [
+        {"name": "steady", "script": EXIT},
+        {"name": "crash", "script": EXIT, "args": ["--after", "0.5", "--code", "3"]}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait(timeout=30) == 1, up.output()
+        out = up.output()
+        assert "[crash] exit_peer exiting with 3" in out and "[up] crash died: stopping the others" in out
+        assert "[steady] exit_peer stopped by signal 2" in out and "[up] steady stopped (exit status 0)" in out
+    finally:
+        up.stop()
+
+
+def test_respawn_and_required(tmp_path):
+    cfg = write(tmp_path, {"nodes": [
+        {"name": "flaky", "script": EXIT, "args": ["--after", "0.1", "--code", "1"], "respawn": True,
+         "respawn_delay_s": 0.2},
+        {"name": "main", "script": EXIT, "args": ["--after", "2.5"], "required": True}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait(timeout=30) == 0, up.output()
+        out = up.output()
+        starts = out.count("[up] started flaky")
+        assert starts >= 3, out                      # respawned while `main` ran
+        assert "[up] main is required and exited: stopping the others" in out
+        assert out.count("[up] started main") == 1
+    finally:
+        up.stop()
+
+
+def test_all_children_exiting_ends_the_bringup(tmp_path):
+    cfg = write(tmp_path, {"nodes": [{"name": f"n{i}", "script": EXIT, "args": ["--after", "0.2", "x y"]}
+                                     for i in range(2)]})
+    up = bringup(cfg)
+    try:
+        assert up.wait(timeout=30) == 0, up.output()
+        assert "[n0] exit_peer start argv=['--after', '0.2', 'x y', '--ros-args']" in up.output()
+        assert up.output().count("exited with status 0") == 2
+    finally:
+        up.stop()
