@@ -202,8 +202,10 @@ class ImuStage(Stage):
                 self.headings.add(s.stamp_ns, _yaw_of_xyzw(q_xyzw) + self.params.heading_offset_rad,
                                   float(cov[2, 2]))
                 outs.append(("imu/data", imu_to_msg(s.stamp_ns, s.frame_id, s.acc, s.gyro, q_xyzw, cov)))
+                if len(self._published_stamps) == self._published_stamps.maxlen:
+                    self._published_set.discard(self._published_stamps[0])
                 self._published_stamps.append(s.stamp_ns)
-                self._published_set = set(self._published_stamps)
+                self._published_set.add(s.stamp_ns)
         self._last_raw_ns = s.stamp_ns
         if self._acc_topic is None:
             self._acc_topic = "imu/data_raw"
@@ -229,6 +231,8 @@ class ImuStage(Stage):
             hops = []
         self._last_orient_ns = s.stamp_ns
         if s.quat_xyzw is not None:
+            if not self._external_orientation:     # auto: drop AEKF headings (another world frame)
+                self.headings = HeadingHistory(horizon_s=self.headings.horizon_ns * 1e-9)
             self._external_orientation = True
             var = float(s.orientation_cov[2, 2]) if s.orientation_cov is not None else 0.0
             if not math.isfinite(var) or var <= 0.0:
