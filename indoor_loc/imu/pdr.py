@@ -9,7 +9,8 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
 ``<user>/odom`` → ``<user>/base_link``): a consumer recovers per interval
 
 - the step count ``n_i = |p_i − p_(i-1)| / step_length_m`` (each segment is laid straight along the
-  mean heading, so the chord is exactly the walked distance), and
+  mean heading, so the chord is exactly the walked distance; the odom origin (0, 0) is the start
+  of the first hop, so the first message's steps are ``|p_0| / step_length_m``), and
 - the heading change ``Δψ_i = wrap(ψ_i − ψ_(i-1))`` from the pose yaws;
 - ``twist.linear.x`` = walking speed ``d_i / (t_end − t_start)`` m/s, ``twist.angular.z`` = yaw rate
   ``Δψ_i / (t_end − t_start)`` rad/s;
