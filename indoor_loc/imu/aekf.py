@@ -51,17 +51,25 @@ class AekfParams:
     gyro_scale_error: float = field(0.0, "relative gyro scale/misalignment error added to the angle "
                                          "noise as (k·|ω|)²·dt, 1")
     bias_init_std: float = field(0.5 * _DEG, "initial gyroscope bias standard deviation, rad/s")
-    bias_walk: float = field(2e-5, "gyroscope bias random walk, rad/s/√s")
+    bias_walk: float = field(5e-5, "gyroscope bias random walk, rad/s/√s")
     gravity: float = field(9.81, "local gravity magnitude, m/s²")
     acc_noise: float = field(1.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
                                   "per sample")
+    acc_lp_tau_s: float = field(3.0, "time constant of the 2nd-order Butterworth low-pass applied to the "
+                                     "accelerometer in the ENU frame before the tilt update (0 = raw), s")
     acc_stat_tau_s: float = field(0.2, "time constant of the running mean/variance of |a|, s")
+    acc_adapt_gain: float = field(0.05, "weight c of the motion terms in the tilt noise "
+                                      "σ_a² + c·((|a|−g)² + var|a|), 1")
     acc_reject_m_s2: float = field(2.0, "skip the tilt update when ||a|−g| or the short-term std of |a| "
                                         "exceeds this (high-acceleration motion), m/s²")
     mag_noise: float = field(0.3, "magnetometer heading noise per sample in an undisturbed field, rad")
+    mag_rate_noise_s: float = field(0.05, "heading noise growing with the rotation rate, rad per rad/s "
+                                         "(≈ magnetometer/gyroscope timing mismatch), s")
+    mag_anomaly_tau_s: float = field(0.0, "time constant smoothing the norm/dip anomalies before the "
+                                          "tolerance test (0 = per sample), s")
     mag_norm_tol: float = field(0.1, "tolerated relative field-norm anomaly |‖m‖/ref − 1|; beyond, "
                                      "the magnetometer update is skipped, 1")
-    mag_dip_tol: float = field(8.0 * _DEG, "tolerated dip-angle anomaly; beyond, the update is skipped, rad")
+    mag_dip_tol: float = field(3.0 * _DEG, "tolerated dip-angle anomaly; beyond, the update is skipped, rad")
     mag_ref_tau_s: float = field(30.0, "time constant of the online field-norm/dip reference, s")
     mag_relearn_s: float = field(30.0, "a disturbance lasting longer than this becomes the new "
                                        "reference (changed environment), s")
@@ -70,7 +78,7 @@ class AekfParams:
     mag_declination: float = field(0.0, "magnetic declination (east of true north positive); 0 keeps "
                                          "ENU aligned with magnetic north, rad")
     rest_gyro: float = field(2.0 * _DEG, "rest detection: max |ω−b| and deviation from its low-pass, rad/s")
-    rest_acc_m_s2: float = field(0.5, "rest detection: max deviation of a from its low-pass, m/s²")
+    rest_acc_m_s2: float = field(0.2, "rest detection: max deviation of a from its low-pass, m/s²")
     rest_min_s: float = field(1.5, "rest detection: minimum still duration before bias updates, s")
     rest_gyro_noise: float = field(0.01, "gyroscope white noise per sample for the zero-rate update, rad/s")
     max_dt_s: float = field(0.5, "larger sample gaps are not integrated (covariance still grows), s")
@@ -87,7 +95,9 @@ class AekfParams:
         for name in positive:
             v = getattr(self, name)
             require(v > 0, owner, name, "> 0", v)
-        for name in ("bias_walk", "gyro_scale_error", "rest_min_s"):
+        for name in ("bias_walk", "gyro_scale_error", "rest_min_s", "acc_lp_tau_s", "mag_rate_noise_s",
+                     "mag_anomaly_tau_s",
+                     "acc_adapt_gain"):
             v = getattr(self, name)
             require(v >= 0, owner, name, ">= 0", v)
         require(abs(self.mag_declination) <= math.pi, owner, "mag_declination", "within [-π, π]",
@@ -110,17 +120,22 @@ class AekfState:
     acc_var: float = 0.0             # running variance of |a|, (m/s²)²
     gyro_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
     acc_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    enu_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])       # m/s², ENU
+    enu_lp_rate: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s³, ENU
     rest_s: float = 0.0              # how long the device has been still, s
     mag_ref_ok: bool = False
     mag_norm_ref: float = 0.0        # reference field norm (input unit)
     mag_dip_ref: float = 0.0         # reference dip angle, rad (positive = field points up)
     mag_dist_s: float = 0.0          # how long the field has been disturbed, s
+    mag_norm_anomaly: float = 0.0    # smoothed ‖m‖/ref − 1
+    mag_dip_anomaly: float = 0.0     # smoothed dip − ref, rad
     n_acc_skipped: int = 0
     n_mag_skipped: int = 0
 
     def copy(self) -> "AekfState":
         return dataclasses.replace(self, q=list(self.q), bias=list(self.bias), P=list(self.P),
-                                   gyro_lp=list(self.gyro_lp), acc_lp=list(self.acc_lp))
+                                   gyro_lp=list(self.gyro_lp), acc_lp=list(self.acc_lp),
+                                   enu_lp=list(self.enu_lp), enu_lp_rate=list(self.enu_lp_rate))
 
 
 def _wrap(a: float) -> float:
@@ -165,6 +180,8 @@ def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
     st.acc_mean = n
     st.acc_var = 0.0
     st.acc_lp = list(a)
+    st.enu_lp = list(_rot(q, a))
+    st.enu_lp_rate = [0.0, 0.0, 0.0]
     st.initialised = True
 
 
@@ -188,10 +205,13 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
     grav = p.gravity
     inv_g2 = 1.0 / (grav * grav)
     sa2 = p.acc_noise ** 2
+    c_ad = p.acc_adapt_gain
     acc_rej = p.acc_reject_m_s2
     acc_rej2 = acc_rej * acc_rej
     tau_a = p.acc_stat_tau_s
     sm2 = p.mag_noise ** 2
+    k_mw2 = p.mag_rate_noise_s ** 2
+    tau_an = p.mag_anomaly_tau_s
     ntol = p.mag_norm_tol
     dtol = p.mag_dip_tol
     tau_m = p.mag_ref_tau_s
@@ -203,6 +223,9 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
     rest_min = p.rest_min_s
     r_rest = p.rest_gyro_noise ** 2
     max_dt = p.max_dt_s
+    use_lp = p.acc_lp_tau_s > 0.0
+    w_lp = math.sqrt(2.0) / p.acc_lp_tau_s if use_lp else 0.0  # Butterworth: ω = 2π f_c = √2/τ
+    w_lp2, d_lp = w_lp * w_lp, math.sqrt(2.0) * w_lp            # ω², 2ζω with ζ = 1/√2
     isfinite = math.isfinite
     sqrt = math.sqrt
     # ---- state into locals ----
@@ -212,7 +235,10 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
     acc_mean, acc_var = st.acc_mean, st.acc_var
     glx, gly, glz = st.gyro_lp
     alx, aly, alz = st.acc_lp
+    ylx, yly, ylz = st.enu_lp
+    vlx, vly, vlz = st.enu_lp_rate
     rest_s = st.rest_s
+    en_lp, ed_lp = st.mag_norm_anomaly, st.mag_dip_anomaly
     t_prev = st.stamp_ns
     n_acc_skip, n_mag_skip = st.n_acc_skipped, st.n_mag_skipped
     rng6 = range(6)
@@ -234,6 +260,8 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
             P = list(st.P)
             acc_mean, acc_var = st.acc_mean, st.acc_var
             alx, aly, alz = st.acc_lp
+            ylx, yly, ylz = st.enu_lp
+            vlx, vly, vlz = st.enu_lp_rate
             glx, gly, glz = gx, gy, gz
             t_prev = tk
             if out_q is not None:
@@ -302,13 +330,24 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
         rest_s = rest_s + dt if still else 0.0
 
         # ---------------- accelerometer: tilt ----------------
+        # specific force in ENU, low-passed there (linear accelerations average out, gravity stays)
+        uex = r00 * ax + r01 * ay + r02 * az
+        uey = r10 * ax + r11 * ay + r12 * az
+        uez = r20 * ax + r21 * ay + r22 * az
+        if use_lp:
+            hdt = min(dt, max_dt)
+            vlx += hdt * (w_lp2 * (uex - ylx) - d_lp * vlx); ylx += hdt * vlx
+            vly += hdt * (w_lp2 * (uey - yly) - d_lp * vly); yly += hdt * vly
+            vlz += hdt * (w_lp2 * (uez - ylz) - d_lp * vlz); ylz += hdt * vlz
+        else:
+            ylx, yly, ylz = uex, uey, uez
+        yn = sqrt(ylx * ylx + yly * yly + ylz * ylz)
         dev = an - grav
-        if an > 1e-6 and dev * dev <= acc_rej2 and acc_var <= acc_rej2:
-            ra = (sa2 + dev * dev + acc_var) * inv_g2
-            inv_an = 1.0 / an
-            aex = (r00 * ax + r01 * ay + r02 * az) * inv_an
-            aey = (r10 * ax + r11 * ay + r12 * az) * inv_an
-            z0, z1 = aey, -aex                      # measures (δθx, δθy)
+        dlp = yn - grav
+        if yn > 1e-6 and dlp * dlp <= acc_rej2 and (use_lp or (dev * dev <= acc_rej2 and acc_var <= acc_rej2)):
+            ra = (sa2 + c_ad * (dev * dev + acc_var)) * inv_g2
+            inv_yn = 1.0 / yn
+            z0, z1 = yly * inv_yn, -ylx * inv_yn    # measures (δθx, δθy)
             s00, s01, s11 = P[0] + ra, P[1], P[7] + ra
             det = s00 * s11 - s01 * s01
             i00, i01, i11 = s11 / det, -s01 / det, s00 / det
@@ -335,6 +374,9 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                               qz + hx * qy - hy * qx + hz * qw)
             qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+            # the buffered ENU vectors follow the corrected frame: y ← exp(δθ) y
+            ylx, yly, ylz = (ylx + ey * ylz - ez * yly, yly + ez * ylx - ex * ylz, ylz + ex * yly - ey * ylx)
+            vlx, vly, vlz = (vlx + ey * vlz - ez * vly, vly + ez * vlx - ex * vlz, vlz + ex * vly - ey * vlx)
         else:
             n_acc_skip += 1
 
@@ -370,6 +412,9 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                               qz + hx * qy - hy * qx + hz * qw)
             qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+            # the buffered ENU vectors follow the corrected frame: y ← exp(δθ) y
+            ylx, yly, ylz = (ylx + ey * ylz - ez * yly, yly + ez * ylx - ex * ylz, ylz + ex * yly - ey * ylx)
+            vlx, vly, vlz = (vlx + ey * vlz - ez * vly, vly + ez * vlx - ex * vlz, vlz + ex * vly - ey * vlx)
 
         # ---------------- magnetometer: heading only ----------------
         if mk is not None:
@@ -388,9 +433,12 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                 if not st.mag_ref_ok:
                     st.mag_ref_ok = True
                     st.mag_norm_ref, st.mag_dip_ref = mn, dip
-                en = mn / st.mag_norm_ref - 1.0
+                # anomalies, smoothed over mag_anomaly_tau_s (sensor noise alone should not trip them)
+                gam = dt / (tau_an + dt)
+                en_lp += gam * (mn / st.mag_norm_ref - 1.0 - en_lp)
+                ed_lp += gam * (dip - st.mag_dip_ref - ed_lp)
                 ed = dip - st.mag_dip_ref
-                rn, rd = en / ntol, ed / dtol
+                rn, rd = en_lp / ntol, ed_lp / dtol
                 anomaly = rn * rn + rd * rd
                 if rn * rn <= 1.0 and rd * rd <= 1.0:
                     beta = dt / (tau_m + dt)
@@ -403,8 +451,9 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                     if st.mag_dist_s > relearn:  # persistent: a new environment, not a disturbance
                         st.mag_norm_ref, st.mag_dip_ref = mn, dip
                         st.mag_dist_s = 0.0
+                        en_lp = ed_lp = 0.0
             if use:
-                rm = sm2 * (1.0 + 4.0 * anomaly)
+                rm = sm2 * (1.0 + 4.0 * anomaly) + k_mw2 * wn2
                 zy = (math.atan2(mex, mey) - decl + math.pi) % (2.0 * math.pi) - math.pi
                 s = P[14] + rm
                 nis = zy * zy / s
@@ -428,6 +477,8 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                 qw, qx, qy, qz = qw - hz * qz, qx - hz * qy, qy + hz * qx, qz + hz * qw
                 qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
                 qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+                ylx, yly = ylx - ez * yly, yly + ez * ylx
+                vlx, vly = vlx - ez * vly, vly + ez * vlx
             else:
                 n_mag_skip += 1
 
@@ -443,7 +494,10 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
     st.acc_mean, st.acc_var = acc_mean, acc_var
     st.gyro_lp = [glx, gly, glz]
     st.acc_lp = [alx, aly, alz]
+    st.enu_lp = [ylx, yly, ylz]
+    st.enu_lp_rate = [vlx, vly, vlz]
     st.rest_s = rest_s
+    st.mag_norm_anomaly, st.mag_dip_anomaly = en_lp, ed_lp
     st.stamp_ns = t_prev
     st.n_acc_skipped, st.n_mag_skipped = n_acc_skip, n_mag_skip
 
