@@ -170,3 +170,19 @@ def test_all_children_exiting_ends_the_bringup(tmp_path):
         assert up.output().count("exited with status 0") == 2
     finally:
         up.stop()
+
+
+def test_stubborn_child_is_terminated(tmp_path):
+    """A child that ignores SIGINT gets SIGTERM after stop_timeout_s."""
+    stubborn = tmp_path / "stubborn.py"
+    stubborn.write_text("import signal, sys, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                        "print('ready', flush=True)\ntime.sleep(60)\n")
+    cfg = write(tmp_path, {"stop_timeout_s": 0.5, "nodes": [{"name": "stubborn", "script": str(stubborn)}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait_line(r"^\[stubborn\] ready", 20), up.output()
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=20) == 0, up.output()   # SIGTERM is a clean stop for a stubborn child
+        assert "still running 0.5 s after SIGINT: SIGTERM" in up.output()
+    finally:
+        up.stop()

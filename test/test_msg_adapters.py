@@ -9,6 +9,8 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from rclpy.serialization import deserialize_message, serialize_message
+from nav_msgs.msg import Path
 from visualization_msgs.msg import Marker
 
 from indoor_loc.errors import InvalidMessageError
@@ -19,7 +21,7 @@ from indoor_loc.msg_adapters.odom import odom_from_msg, odom_to_msg
 from indoor_loc.msg_adapters.path import path_from_msg, path_to_msg
 from indoor_loc.msg_adapters.pose import (YAW_VAR_UNKNOWN, fix_from_msg, fix_to_msg, pose_array_from_msg,
                                           pose_array_to_msg, pose_from_msg, pose_to_msg)
-from indoor_loc.msg_adapters.time import header_ns, stamp_from_ns, stamp_to_ns
+from indoor_loc.msg_adapters.time import MAX_STAMP_NS, header_ns, stamp_from_ns, stamp_to_ns
 from indoor_loc.msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.wifi.types import Fix, WifiScan
 
@@ -35,9 +37,10 @@ def wrap(a: float) -> float:
 
 
 # ---------------------------------------------------------------------------------------- time
-@given(st.integers(min_value=0, max_value=2**31 * 10**9 - 1))
+@given(st.integers(min_value=0, max_value=MAX_STAMP_NS))
 def test_stamp_round_trip(ns):
     assert stamp_to_ns(stamp_from_ns(ns)) == ns
+    assert stamp_to_ns(deserialize_message(serialize_message(stamp_from_ns(ns)), Time)) == ns
 
 
 def test_negative_and_bad_stamps():
@@ -51,6 +54,9 @@ def test_negative_and_bad_stamps():
         stamp_to_ns(Time(sec=1, nanosec=1_000_000_000))
     assert reason(e) == "bad_stamp"
     assert header_ns(Time()) is None
+    with pytest.raises(InvalidMessageError) as e:
+        stamp_from_ns(MAX_STAMP_NS + 1)
+    assert reason(e) == "stamp_range"
 
 
 # ----------------------------------------------------------------------------------------- imu
@@ -174,12 +180,12 @@ def scans(draw) -> WifiScan:
     fl = st.floats(min_value=-120.0, max_value=0.0, allow_nan=False)
     rssi = np.array(draw(st.lists(fl, min_size=n, max_size=n)))
     freq = np.array(draw(st.lists(st.floats(min_value=0.0, max_value=7200.0), min_size=n, max_size=n)))
-    ssid = tuple(draw(st.lists(st.text(max_size=32), min_size=n, max_size=n)))
+    ssid = tuple(draw(st.lists(st.text(st.characters(blacklist_characters="\0"), max_size=32), min_size=n, max_size=n)))
     age = draw(st.one_of(st.none(), st.lists(st.one_of(st.just(math.nan), st.floats(min_value=0, max_value=1e7)),
                                              min_size=n, max_size=n)))
     if age is not None and all(math.isnan(a) for a in age):
         age = None   # "all unknown" is written as no age at all -> reads back as None
-    return WifiScan(stamp_ns=draw(st.integers(min_value=0, max_value=2**62)), bssid=b, rssi_dbm=rssi,
+    return WifiScan(stamp_ns=draw(st.integers(min_value=0, max_value=MAX_STAMP_NS)), bssid=b, rssi_dbm=rssi,
                     freq_mhz=freq, ssid=ssid, age_ms=None if age is None else np.array(age),
                     frame_id=draw(st.sampled_from(["", "wifi_link", "bob/wifi_link"])),
                     source=draw(st.sampled_from(["", "iw", "nmcli", "esp32"])))
@@ -188,7 +194,16 @@ def scans(draw) -> WifiScan:
 @settings(max_examples=60, deadline=None)
 @given(scans())
 def test_scan_round_trip_property(scan):
-    assert_scans_equal(scan, scan_from_msg(scan_to_msg(scan)))
+    msg = scan_to_msg(scan)
+    assert_scans_equal(scan, scan_from_msg(msg))
+    wire = deserialize_message(serialize_message(msg), DiagnosticArray)     # through CDR too
+    assert_scans_equal(scan, scan_from_msg(wire))
+
+
+def test_scan_ssid_nul_removed():
+    scan = make_scan(ssid=("\0\0\0", "a\0b", "ok"))
+    wire = deserialize_message(serialize_message(scan_to_msg(scan)), DiagnosticArray)
+    assert scan_from_msg(wire).ssid == ("", "ab", "ok")
 
 
 def test_scan_normalises_bssid_case():
@@ -315,12 +330,12 @@ def test_pose_array_round_trip(rng):
 # --------------------------------------------------------------------------------------- path
 @settings(max_examples=40, deadline=None)
 @given(st.integers(min_value=0, max_value=60).flatmap(lambda n: st.tuples(
-    st.lists(st.integers(min_value=0, max_value=2**62), min_size=n, max_size=n),
+    st.lists(st.integers(min_value=0, max_value=MAX_STAMP_NS), min_size=n, max_size=n),
     st.lists(st.tuples(st.floats(-1e5, 1e5), st.floats(-1e5, 1e5)), min_size=n, max_size=n),
     st.lists(st.floats(-3.14159, 3.14159), min_size=n, max_size=n))))
 def test_path_round_trip_property(data):
     stamps, xy, yaw = np.array(data[0], dtype=np.int64), np.array(data[1]).reshape(-1, 2), np.array(data[2])
-    s2, xy2, yaw2 = path_from_msg(path_to_msg(stamps, xy, yaw))
+    s2, xy2, yaw2 = path_from_msg(deserialize_message(serialize_message(path_to_msg(stamps, xy, yaw)), Path))
     assert np.array_equal(s2, stamps) and np.array_equal(xy2, xy)
     assert np.allclose(yaw2, yaw, atol=1e-12)
 

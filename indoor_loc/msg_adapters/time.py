@@ -10,6 +10,8 @@ from builtin_interfaces.msg import Time
 from indoor_loc.errors import InvalidMessageError
 
 NS_PER_S = 1_000_000_000
+#: builtin_interfaces/Time.sec is an int32: the last representable stamp (2038-01-19).
+MAX_STAMP_NS = (2**31 - 1) * NS_PER_S + NS_PER_S - 1
 
 
 def stamp_to_ns(stamp: Time) -> int:
@@ -28,10 +30,13 @@ def stamp_to_ns(stamp: Time) -> int:
 
 
 def stamp_from_ns(ns: int) -> Time:
-    """int ns since the epoch -> ``builtin_interfaces/Time`` (exact; negative -> ``"negative_stamp"``)."""
+    """int ns since the epoch -> ``builtin_interfaces/Time`` (exact; negative -> ``"negative_stamp"``,
+    beyond the int32 seconds of the message -> ``"stamp_range"``)."""
     ns = int(ns)
     if ns < 0:
         raise InvalidMessageError("negative_stamp", f"stamp {ns} ns is before the epoch")
+    if ns > MAX_STAMP_NS:
+        raise InvalidMessageError("stamp_range", f"stamp {ns} ns does not fit builtin_interfaces/Time (int32 s)")
     sec, nsec = divmod(ns, NS_PER_S)
     return Time(sec=sec, nanosec=nsec)
 

@@ -4,7 +4,8 @@ Layout: ``header.stamp`` = scan time, ``header.frame_id`` = receiver frame; ``st
 scan summary (name ``"scan"``, values ``schema``, ``ap_count``, ``source``); then one
 DiagnosticStatus per access point: name = BSSID (lower-case, colon-separated), message = SSID,
 values ``rssi_dbm``, ``frequency_mhz`` and optionally ``age_ms``. Floats are written with
-``repr`` so a scan built from core values round-trips bit-exactly.
+``repr`` so a scan built from core values round-trips bit-exactly. SSIDs lose any NUL character
+(hidden networks are sometimes reported as ``"\\x00\\x00..."``): a CDR string ends at the first NUL.
 """
 from __future__ import annotations
 
@@ -144,7 +145,7 @@ def scan_to_msg(scan: WifiScan) -> DiagnosticArray:
                   KeyValue(key="frequency_mhz", value=repr(float(freq[i])))]
         if age is not None and np.isfinite(age[i]):
             values.append(KeyValue(key="age_ms", value=repr(float(age[i]))))
-        statuses.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=bssid[i], message=str(ssid[i]),
+        statuses.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=bssid[i], message=str(ssid[i]).replace("\0", ""),
                                          hardware_id=scan.frame_id, values=values))
     arr.status = statuses
     return arr

@@ -42,6 +42,9 @@ _NODE_KEYS = {"name", "executable", "module", "script", "namespace", "args", "pa
               "remap", "ros_args", "env", "use_sim_time", "respawn", "respawn_delay_s", "required"}
 #: Exit statuses of a child that was asked to stop and did so (0, or killed by the signal sent).
 _CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
+#: A child stopped within this many seconds of its start may not have installed its signal
+#: handlers yet (Python then exits 1 with a KeyboardInterrupt traceback): not counted as a failure.
+STARTUP_GRACE_S = 2.0
 # Runs a console-script target "module:function" with argv[0] = the executable's name.
 _STUB = ("import importlib, sys; mod, fn = sys.argv[1].split(':'); sys.argv = sys.argv[2:]; "
          "sys.exit(getattr(importlib.import_module(mod), fn)())")
@@ -269,6 +272,7 @@ class _Child:
         self.proc: subprocess.Popen | None = None
         self.reader: threading.Thread | None = None
         self.starts = 0
+        self.started_at = 0.0
         self.signalled = False
         self.restart_at: float | None = None
         self.last_rc: int | None = None
@@ -303,6 +307,7 @@ class Bringup:
                                       stdin=subprocess.DEVNULL, env=self._env(child.spec), text=True,
                                       bufsize=1, errors="replace", process_group=0)
         child.starts += 1
+        child.started_at = time.monotonic()
         child.restart_at = None
         child.signalled = False
         self.log(PREFIX, f"started {child.spec.name} (pid {child.proc.pid}): {child.spec.display()}")
@@ -315,12 +320,16 @@ class Bringup:
             self.log(name, line.rstrip("\n"))
 
     def request_stop(self, signum: int = signal.SIGINT) -> None:
-        """Ask every child to stop (safe from a signal handler: the loop sends the signals)."""
-        if self._stop_requested is None:
-            self._stop_requested = signum
-            self._stop_deadline = time.monotonic() + self.config.stop_timeout_s
-            self._term_sent = False
-            self._kill_sent = False
+        """Ask every child to stop (safe from a signal handler: the loop sends the signals).
+        Asked again while stopping (a second Ctrl-C): escalate to SIGTERM/SIGKILL at once."""
+        if self._stop_requested is not None:
+            self._stop_deadline = time.monotonic()
+            return
+        self._stop_requested = signum
+        self._stop_at = time.monotonic()
+        self._stop_deadline = self._stop_at + self.config.stop_timeout_s
+        self._term_sent = False
+        self._kill_sent = False
 
     def _escalate(self) -> None:
         now = time.monotonic()
@@ -354,8 +363,10 @@ class Bringup:
         child.proc = None
         spec = child.spec
         if self._stop_requested is not None:
-            clean = rc in _CLEAN_STOP
-            self.log(PREFIX, f"{spec.name} stopped (exit status {rc})")
+            starting = self._stop_at - child.started_at < STARTUP_GRACE_S
+            clean = rc in _CLEAN_STOP or (starting and rc > 0)
+            self.log(PREFIX, f"{spec.name} stopped (exit status {rc}"
+                             f"{', interrupted while starting' if starting and rc not in _CLEAN_STOP else ''})")
             self._failed |= not clean
             return
         self.log(PREFIX, f"{spec.name} exited with status {rc}")
