@@ -78,7 +78,7 @@ class AekfParams:
     mag_declination: float = field(0.0, "magnetic declination (east of true north positive); 0 keeps "
                                          "ENU aligned with magnetic north, rad")
     rest_gyro: float = field(2.0 * _DEG, "rest detection: max |ω−b| and deviation from its low-pass, rad/s")
-    rest_acc_m_s2: float = field(0.2, "rest detection: max deviation of a from its low-pass, m/s²")
+    rest_acc_m_s2: float = field(0.3, "rest detection: max deviation of a from its low-pass, m/s²")
     rest_min_s: float = field(1.5, "rest detection: minimum still duration before bias updates, s")
     rest_gyro_noise: float = field(0.01, "gyroscope white noise per sample for the zero-rate update, rad/s")
     max_dt_s: float = field(0.5, "larger sample gaps are not integrated (covariance still grows), s")
@@ -351,21 +351,42 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
             s00, s01, s11 = P[0] + ra, P[1], P[7] + ra
             det = s00 * s11 - s01 * s01
             i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-            u0 = [P[6 * i] for i in rng6]
-            u1 = [P[6 * i + 1] for i in rng6]
-            v0 = [u0[i] * i00 + u1[i] * i01 for i in rng6]
-            v1 = [u0[i] * i01 + u1[i] * i11 for i in rng6]
-            for i in rng6:
-                o = 6 * i
-                a0, a1 = v0[i], v1[i]
-                for j in rng6:
-                    P[o + j] -= a0 * u0[j] + a1 * u1[j]
-            ex = v0[0] * z0 + v1[0] * z1
-            ey = v0[1] * z0 + v1[1] * z1
-            ez = v0[2] * z0 + v1[2] * z1
-            bx += v0[3] * z0 + v1[3] * z1
-            by += v0[4] * z0 + v1[4] * z1
-            bz += v0[5] * z0 + v1[5] * z1
+            # unrolled: U = P Hᵀ (columns 0, 1), V = U S⁻¹, P ← P − V Uᵀ (upper triangle, mirrored)
+            u00, u01, u02, u03, u04, u05 = P[0], P[6], P[12], P[18], P[24], P[30]
+            u10, u11, u12, u13, u14, u15 = P[1], P[7], P[13], P[19], P[25], P[31]
+            v00 = u00 * i00 + u10 * i01; v10 = u00 * i01 + u10 * i11
+            v01 = u01 * i00 + u11 * i01; v11 = u01 * i01 + u11 * i11
+            v02 = u02 * i00 + u12 * i01; v12 = u02 * i01 + u12 * i11
+            v03 = u03 * i00 + u13 * i01; v13 = u03 * i01 + u13 * i11
+            v04 = u04 * i00 + u14 * i01; v14 = u04 * i01 + u14 * i11
+            v05 = u05 * i00 + u15 * i01; v15 = u05 * i01 + u15 * i11
+            P[0] -= v00 * u00 + v10 * u10
+            P[1] = P[6] = P[1] - (v00 * u01 + v10 * u11)
+            P[2] = P[12] = P[2] - (v00 * u02 + v10 * u12)
+            P[3] = P[18] = P[3] - (v00 * u03 + v10 * u13)
+            P[4] = P[24] = P[4] - (v00 * u04 + v10 * u14)
+            P[5] = P[30] = P[5] - (v00 * u05 + v10 * u15)
+            P[7] -= v01 * u01 + v11 * u11
+            P[8] = P[13] = P[8] - (v01 * u02 + v11 * u12)
+            P[9] = P[19] = P[9] - (v01 * u03 + v11 * u13)
+            P[10] = P[25] = P[10] - (v01 * u04 + v11 * u14)
+            P[11] = P[31] = P[11] - (v01 * u05 + v11 * u15)
+            P[14] -= v02 * u02 + v12 * u12
+            P[15] = P[20] = P[15] - (v02 * u03 + v12 * u13)
+            P[16] = P[26] = P[16] - (v02 * u04 + v12 * u14)
+            P[17] = P[32] = P[17] - (v02 * u05 + v12 * u15)
+            P[21] -= v03 * u03 + v13 * u13
+            P[22] = P[27] = P[22] - (v03 * u04 + v13 * u14)
+            P[23] = P[33] = P[23] - (v03 * u05 + v13 * u15)
+            P[28] -= v04 * u04 + v14 * u14
+            P[29] = P[34] = P[29] - (v04 * u05 + v14 * u15)
+            P[35] -= v05 * u05 + v15 * u15
+            ex = v00 * z0 + v10 * z1
+            ey = v01 * z0 + v11 * z1
+            ez = v02 * z0 + v12 * z1
+            bx += v03 * z0 + v13 * z1
+            by += v04 * z0 + v14 * z1
+            bz += v05 * z0 + v15 * z1
             # q ← exp(δθ) ⊗ q (first order, then normalise)
             hx, hy, hz = 0.5 * ex, 0.5 * ey, 0.5 * ez
             qw, qx, qy, qz = (qw - hx * qx - hy * qy - hz * qz,
@@ -389,22 +410,58 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
             det = c00 * k00 + c01 * k01 + c02 * k02
             k00 /= det; k01 /= det; k02 /= det; k11 /= det; k12 /= det; k22 /= det
             z0, z1, z2 = wx, wy, wz                  # ω_m − b measures δb
-            U = [(P[6 * i + 3], P[6 * i + 4], P[6 * i + 5]) for i in rng6]
-            V = [(u[0] * k00 + u[1] * k01 + u[2] * k02,
-                  u[0] * k01 + u[1] * k11 + u[2] * k12,
-                  u[0] * k02 + u[1] * k12 + u[2] * k22) for u in U]
-            for i in rng6:
-                o = 6 * i
-                va, vb, vc = V[i]
-                for j in rng6:
-                    uj = U[j]
-                    P[o + j] -= va * uj[0] + vb * uj[1] + vc * uj[2]
-            ex = V[0][0] * z0 + V[0][1] * z1 + V[0][2] * z2
-            ey = V[1][0] * z0 + V[1][1] * z1 + V[1][2] * z2
-            ez = V[2][0] * z0 + V[2][1] * z1 + V[2][2] * z2
-            bx += V[3][0] * z0 + V[3][1] * z1 + V[3][2] * z2
-            by += V[4][0] * z0 + V[4][1] * z1 + V[4][2] * z2
-            bz += V[5][0] * z0 + V[5][1] * z1 + V[5][2] * z2
+            # unrolled: U = P Hᵀ (columns 3..5), V = U S⁻¹, P ← P − V Uᵀ (upper triangle, mirrored)
+            u30, u40, u50 = P[3], P[4], P[5]
+            u31, u41, u51 = P[9], P[10], P[11]
+            u32, u42, u52 = P[15], P[16], P[17]
+            u33, u43, u53 = P[21], P[22], P[23]
+            u34, u44, u54 = P[27], P[28], P[29]
+            u35, u45, u55 = P[33], P[34], P[35]
+            va0 = u30 * k00 + u40 * k01 + u50 * k02
+            vb0 = u30 * k01 + u40 * k11 + u50 * k12
+            vc0 = u30 * k02 + u40 * k12 + u50 * k22
+            va1 = u31 * k00 + u41 * k01 + u51 * k02
+            vb1 = u31 * k01 + u41 * k11 + u51 * k12
+            vc1 = u31 * k02 + u41 * k12 + u51 * k22
+            va2 = u32 * k00 + u42 * k01 + u52 * k02
+            vb2 = u32 * k01 + u42 * k11 + u52 * k12
+            vc2 = u32 * k02 + u42 * k12 + u52 * k22
+            va3 = u33 * k00 + u43 * k01 + u53 * k02
+            vb3 = u33 * k01 + u43 * k11 + u53 * k12
+            vc3 = u33 * k02 + u43 * k12 + u53 * k22
+            va4 = u34 * k00 + u44 * k01 + u54 * k02
+            vb4 = u34 * k01 + u44 * k11 + u54 * k12
+            vc4 = u34 * k02 + u44 * k12 + u54 * k22
+            va5 = u35 * k00 + u45 * k01 + u55 * k02
+            vb5 = u35 * k01 + u45 * k11 + u55 * k12
+            vc5 = u35 * k02 + u45 * k12 + u55 * k22
+            P[0] -= va0 * u30 + vb0 * u40 + vc0 * u50
+            P[1] = P[6] = P[1] - (va0 * u31 + vb0 * u41 + vc0 * u51)
+            P[2] = P[12] = P[2] - (va0 * u32 + vb0 * u42 + vc0 * u52)
+            P[3] = P[18] = P[3] - (va0 * u33 + vb0 * u43 + vc0 * u53)
+            P[4] = P[24] = P[4] - (va0 * u34 + vb0 * u44 + vc0 * u54)
+            P[5] = P[30] = P[5] - (va0 * u35 + vb0 * u45 + vc0 * u55)
+            P[7] -= va1 * u31 + vb1 * u41 + vc1 * u51
+            P[8] = P[13] = P[8] - (va1 * u32 + vb1 * u42 + vc1 * u52)
+            P[9] = P[19] = P[9] - (va1 * u33 + vb1 * u43 + vc1 * u53)
+            P[10] = P[25] = P[10] - (va1 * u34 + vb1 * u44 + vc1 * u54)
+            P[11] = P[31] = P[11] - (va1 * u35 + vb1 * u45 + vc1 * u55)
+            P[14] -= va2 * u32 + vb2 * u42 + vc2 * u52
+            P[15] = P[20] = P[15] - (va2 * u33 + vb2 * u43 + vc2 * u53)
+            P[16] = P[26] = P[16] - (va2 * u34 + vb2 * u44 + vc2 * u54)
+            P[17] = P[32] = P[17] - (va2 * u35 + vb2 * u45 + vc2 * u55)
+            P[21] -= va3 * u33 + vb3 * u43 + vc3 * u53
+            P[22] = P[27] = P[22] - (va3 * u34 + vb3 * u44 + vc3 * u54)
+            P[23] = P[33] = P[23] - (va3 * u35 + vb3 * u45 + vc3 * u55)
+            P[28] -= va4 * u34 + vb4 * u44 + vc4 * u54
+            P[29] = P[34] = P[29] - (va4 * u35 + vb4 * u45 + vc4 * u55)
+            P[35] -= va5 * u35 + vb5 * u45 + vc5 * u55
+            ex = va0 * z0 + vb0 * z1 + vc0 * z2
+            ey = va1 * z0 + vb1 * z1 + vc1 * z2
+            ez = va2 * z0 + vb2 * z1 + vc2 * z2
+            bx += va3 * z0 + vb3 * z1 + vc3 * z2
+            by += va4 * z0 + vb4 * z1 + vc4 * z2
+            bz += va5 * z0 + vb5 * z1 + vc5 * z2
             hx, hy, hz = 0.5 * ex, 0.5 * ey, 0.5 * ez
             qw, qx, qy, qz = (qw - hx * qx - hy * qy - hz * qz,
                               qx + hx * qw + hy * qz - hz * qy,
@@ -460,19 +517,33 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                 if nis > gate:
                     rm += s * (nis / gate - 1.0)
                     s = P[14] + rm
-                p2 = P[12:18]
-                kk = [0.0, 0.0, p2[2] / s, p2[3] / s, p2[4] / s, p2[5] / s]  # no tilt gain
-                # Joseph form: P − K p2ᵀ − p2 Kᵀ + (P22 + R) K Kᵀ (valid for any gain)
-                for i in rng6:
-                    o = 6 * i
-                    ki, pi = kk[i], p2[i]
-                    ks = ki * s
-                    for j in rng6:
-                        P[o + j] += -ki * p2[j] - pi * kk[j] + ks * kk[j]
-                ez = kk[2] * zy
-                bx += kk[3] * zy
-                by += kk[4] * zy
-                bz += kk[5] * zy
+                # gain only on heading and bias (no tilt gain): k0 = k1 = 0
+                p20, p21, p22, p23, p24, p25 = P[12], P[13], P[14], P[15], P[16], P[17]
+                is_ = 1.0 / s
+                k2, k3, k4, k5 = p22 * is_, p23 * is_, p24 * is_, p25 * is_
+                # Joseph form P − K p2ᵀ − p2 Kᵀ + (P22 + R) K Kᵀ (valid for any gain), unrolled
+                P[2] = P[12] = P[2] - (p20 * k2)
+                P[3] = P[18] = P[3] - (p20 * k3)
+                P[4] = P[24] = P[4] - (p20 * k4)
+                P[5] = P[30] = P[5] - (p20 * k5)
+                P[8] = P[13] = P[8] - (p21 * k2)
+                P[9] = P[19] = P[9] - (p21 * k3)
+                P[10] = P[25] = P[10] - (p21 * k4)
+                P[11] = P[31] = P[11] - (p21 * k5)
+                P[14] -= k2 * p22 + p22 * k2 - s * k2 * k2
+                P[15] = P[20] = P[15] - (k2 * p23 + p22 * k3 - s * k2 * k3)
+                P[16] = P[26] = P[16] - (k2 * p24 + p22 * k4 - s * k2 * k4)
+                P[17] = P[32] = P[17] - (k2 * p25 + p22 * k5 - s * k2 * k5)
+                P[21] -= k3 * p23 + p23 * k3 - s * k3 * k3
+                P[22] = P[27] = P[22] - (k3 * p24 + p23 * k4 - s * k3 * k4)
+                P[23] = P[33] = P[23] - (k3 * p25 + p23 * k5 - s * k3 * k5)
+                P[28] -= k4 * p24 + p24 * k4 - s * k4 * k4
+                P[29] = P[34] = P[29] - (k4 * p25 + p24 * k5 - s * k4 * k5)
+                P[35] -= k5 * p25 + p25 * k5 - s * k5 * k5
+                ez = k2 * zy
+                bx += k3 * zy
+                by += k4 * zy
+                bz += k5 * zy
                 hz = 0.5 * ez
                 qw, qx, qy, qz = qw - hz * qz, qx - hz * qy, qy + hz * qx, qz + hz * qw
                 qn = 1.0 / sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
