@@ -1,0 +1,138 @@
+"""Evaluation metrics on hand-made cases with known answers, CSV round trip, bad input, PUTMC truth."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import dataset
+
+from indoor_loc.errors import DatasetError
+from indoor_loc.eval.metrics import (EvalError, interpolate_xy, paper_score, point_segment_distance, pool, score,
+                                     scan_time_errors, stats, walk_errors)
+from indoor_loc.eval.trajectory import Trajectory, read_csv, read_csv_dir, truth_from_putmc, write_csv
+
+# an L-shaped route: (0,0)-(10,0) and (10,0)-(10,10)
+L_ROUTE = np.array([[[0.0, 0.0], [10.0, 0.0]], [[10.0, 0.0], [10.0, 10.0]]])
+
+
+def _slow_distance(p, segs):
+    """Obviously-correct oracle: sample every segment densely."""
+    t = np.linspace(0, 1, 20001)[:, None]
+    return min(float(np.min(np.hypot(*(p - (a + t * (b - a))).T))) for a, b in segs)
+
+
+def test_point_segment_distance_known_points():
+    pts = np.array([[5.0, 3.0],     # above the first segment: 3
+                    [-3.0, 4.0],    # beyond its start: distance to (0,0) = 5
+                    [13.0, 5.0],    # right of the second segment: 3
+                    [12.0, 14.0],   # beyond the end (10,10): hypot(2,4)
+                    [10.0, 0.0],    # on the corner: 0
+                    [7.0, 2.0]])    # inside the L: min(2 to first, 3 to second) = 2
+    d = point_segment_distance(pts, L_ROUTE)
+    np.testing.assert_allclose(d, [3.0, 5.0, 3.0, math.hypot(2, 4), 0.0, 2.0], atol=1e-12)
+
+
+def test_point_segment_distance_matches_oracle(rng):
+    segs = rng.uniform(0, 20, size=(4, 2, 2))
+    segs[3, 1] = segs[3, 0]                         # a zero-length segment is a point
+    pts = rng.uniform(-5, 25, size=(15, 2))
+    d = point_segment_distance(pts, segs)
+    oracle = np.array([_slow_distance(p, segs) for p in pts])
+    np.testing.assert_allclose(d, oracle, atol=2e-3)
+
+
+def test_paper_score_squared_convention_and_cut():
+    d = np.array([1.0, 2.0, 3.0, 11.0])             # 11 m -> e = 121 >= 100: cut
+    p = paper_score(d)
+    e = np.array([1.0, 4.0, 9.0])
+    assert p.n == 3 and p.n_cut == 1
+    assert p.mean == pytest.approx(e.mean())        # mean(d²) = 14/3
+    assert p.rmse == pytest.approx(math.sqrt(np.mean(e ** 2)))   # sqrt(mean d⁴) = sqrt(98/3)
+    # exactly 10 m is cut too (e < 100 is strict)
+    assert paper_score([10.0]).n == 0 and math.isnan(paper_score([10.0]).rmse)
+    assert paper_score([9.999]).n == 1
+
+
+def test_stats_known_values():
+    s = stats([3.0, 4.0])
+    assert s.n == 2 and s.mean == 3.5 and s.median == 3.5 and s.max == 4.0
+    assert s.rmse == pytest.approx(math.sqrt(12.5))
+    assert s.p95 == pytest.approx(3.95)
+    assert stats([]).n == 0 and math.isnan(stats([]).mean)
+
+
+def test_interpolation_at_stamps():
+    t = np.array([1_000_000_000_000, 1_000_000_002_000, 1_000_000_004_000], dtype=np.int64)
+    xy = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 4.0]])
+    at = np.array([t[0] + 1000, t[1], t[1] + 500, t[0] - 7, t[2] + 9], dtype=np.int64)
+    p, inside = interpolate_xy(t, xy, at)
+    np.testing.assert_allclose(p, [[1.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 0.0], [2.0, 4.0]], atol=1e-12)
+    assert inside.tolist() == [True, True, True, False, False]
+    d, ins = scan_time_errors(t, xy, at[:3], np.array([[1.0, 3.0], [2.0, 0.0], [5.0, 5.0]]))
+    np.testing.assert_allclose(d, [3.0, 0.0, 5.0])
+    assert ins.all()
+
+
+def test_walk_score_and_pooling():
+    # poses at known distances from L_ROUTE: 1, 2 (first walk), 3 (second walk)
+    e1 = walk_errors("a", [0, 10], [[5.0, 1.0], [12.0, 5.0]], L_ROUTE, [5], [[5.0, 0.0]])
+    e2 = walk_errors("b", [0], [[5.0, -3.0]], L_ROUTE)
+    s1 = score(e1)
+    assert s1.paper.mean == pytest.approx((1 + 4) / 2)
+    assert s1.route_m.mean == pytest.approx(1.5)
+    # at t=5 the trajectory is halfway: (8.5, 3.0); truth (5, 0)
+    assert s1.scan_m.mean == pytest.approx(math.hypot(3.5, 3.0))
+    pooled = score(pool([e1, e2]))
+    assert pooled.n_poses == 3
+    assert pooled.paper.mean == pytest.approx((1 + 4 + 9) / 3)     # pooled over poses, not walks
+    assert pooled.paper.rmse == pytest.approx(math.sqrt((1 + 16 + 81) / 3))
+    assert pooled.scan_m.n == 1
+
+
+def test_csv_round_trip(tmp_path, rng):
+    t = np.cumsum(rng.integers(1, 10**9, size=20)).astype(np.int64) + 10**12
+    xy = rng.normal(size=(20, 2)) * 30
+    h = rng.uniform(-math.pi, math.pi, size=20)
+    h[3] = np.nan
+    tr = Trajectory.make("walk05", t, xy, h)
+    write_csv(tmp_path / "walk05.csv", tr)
+    back = read_csv(tmp_path / "walk05.csv")
+    assert back.name == "walk05"
+    np.testing.assert_array_equal(back.stamps_ns, t)
+    np.testing.assert_array_equal(back.xy, xy)
+    np.testing.assert_array_equal(np.isnan(back.heading), np.isnan(h))
+    np.testing.assert_array_equal(back.heading[~np.isnan(h)], h[~np.isnan(h)])
+    assert set(read_csv_dir(tmp_path)) == {"walk05"}
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(EvalError, match="shape"):
+        point_segment_distance([[0.0, 0.0]], np.zeros((2, 2)))
+    with pytest.raises(EvalError, match="non-finite"):
+        point_segment_distance([[np.nan, 0.0]], L_ROUTE)
+    with pytest.raises(EvalError, match="empty"):
+        interpolate_xy([], np.zeros((0, 2)), [1])
+    with pytest.raises(EvalError, match="non-decreasing"):
+        interpolate_xy([2, 1], [[0, 0], [1, 1]], [1])
+    with pytest.raises(EvalError, match="stamps"):
+        Trajectory.make("x", [1, 2], [[0.0, 0.0]])
+    (tmp_path / "bad.csv").write_text("t,x,y\n1,2,3\n")
+    with pytest.raises(DatasetError, match="header"):
+        read_csv(tmp_path / "bad.csv")
+    (tmp_path / "bad2.csv").write_text("stamp_ns,x,y,heading\n1,abc,3,\n")
+    with pytest.raises(DatasetError, match="line 2"):
+        read_csv(tmp_path / "bad2.csv")
+
+
+def test_putmc_truth_scores_itself_zero():
+    """The true scan positions as a trajectory: zero scan-time error; their route distance is the
+    dataset's 0.09-0.64 m per-walk mean."""
+    root = dataset("putmc")
+    truths = truth_from_putmc(root, [5, 16])
+    for name, gt in truths.items():
+        e = walk_errors(name, gt.scan_ns, gt.scan_xy, gt.segments, gt.scan_ns, gt.scan_xy)
+        s = score(e)
+        assert s.scan_m.max == pytest.approx(0.0, abs=1e-9)
+        assert 0.05 < s.route_m.mean < 0.7
+        assert s.paper.n_cut == 0
