@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from sensor_msgs.msg import Imu
@@ -122,11 +123,14 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
                 if "/alice/dummy_node" in d:
                     diags.append((time.monotonic(), d["/alice/dummy_node"]))
 
-            pub = node.create_publisher(Imu, "/alice/imu/data_raw", qos_profile(Qos.RELIABLE))
+            matched: list[int] = []     # the writer has matched the node's reader (not just the graph)
+            pub = node.create_publisher(Imu, "/alice/imu/data_raw", qos_profile(Qos.RELIABLE),
+                                        event_callbacks=PublisherEventCallbacks(
+                                            matched=lambda st: matched.append(st.current_count)))
             node.create_subscription(PoseWithCovarianceStamped, "/alice/dummy/pose", poses.append,
                                      qos_profile(Qos.RELIABLE))
             node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
-            assert spin_until(ex, lambda: pub.get_subscription_count() > 0
+            assert spin_until(ex, lambda: bool(matched) and matched[-1] > 0
                               and node.count_publishers("/alice/dummy/pose") > 0 and len(diags) > 0, 20), \
                 peer.output()
 
@@ -155,7 +159,10 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
             assert d.values["gain"] == "2.5" and d.values["label"] == "live"
             assert peer.proc.poll() is None, "node died on a bad message"
 
-        peer.signal(signal.SIGINT)
+            # SIGINT: the node publishes the stage's finish() outputs before it goes
+            peer.signal(signal.SIGINT)
+            assert spin_until(ex, lambda: len(poses) == 4, 10), peer.output()
+            assert pose_from_msg(poses[-1]).stamp_ns == 3          # DummyStage.finish(): accepted count
         assert peer.wait(timeout=15) == 0, peer.output()
         assert "dropped message (nan" in peer.output()
         assert "Traceback" not in peer.output()
