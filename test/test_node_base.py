@@ -20,7 +20,7 @@ from helpers_dds import PEERS, python_peer, ros_node, spin_until
 from indoor_loc.contract import TOPICS, Qos
 from indoor_loc.errors import ConfigError
 from indoor_loc.msg_adapters.diagnostics import diagnostics_from_msg
-from indoor_loc.msg_adapters.imu import imu_to_msg
+from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg
 from indoor_loc.msg_adapters.pose import pose_from_msg
 from indoor_loc.nodes.base import QOS_PROFILES, StageNode, node_usage, qos_profile, run_stage_node
 
@@ -168,3 +168,26 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
         assert "Traceback" not in peer.output()
     finally:
         peer.stop()
+
+
+class _BuggyStage(DummyStage):
+    """Returns an undeclared topic, then a wrong message class for a declared one."""
+    NODE_NAME = "buggy_node"
+
+    def _on_imu(self, msg, recv_ns):
+        imu_from_msg(msg)
+        return [("nope", msg), ("dummy/pose", msg)]
+
+
+def test_stage_bugs_are_counted_not_fatal(ros_domain):
+    with ros_node("probe") as (probe, _):
+        node = StageNode(_BuggyStage, context=probe.context)
+        try:
+            cb = node._callback("imu/data_raw")
+            cb(imu_to_msg(5, "f", [0.0, 0.0, 9.8]))
+            cb(_bad("nan_acc", 6))
+            assert node.stage.diag.rejected == {"internal_error": 2, "nan": 1}
+            d = diagnostics_from_msg(node.diagnostics_msg(7))["/buggy_node"]
+            assert d.level == 2 and d.values["rejected.internal_error"] == "2"
+        finally:
+            node.destroy_node()
