@@ -137,7 +137,8 @@ def test_mag_round_trip_and_nan(rng):
 # --------------------------------------------------------------------------------------- wifi
 def make_scan(n=3, **kw) -> WifiScan:
     base = dict(stamp_ns=STAMP, bssid=tuple(f"aa:bb:cc:00:00:{i:02x}" for i in range(n)),
-                rssi_dbm=np.linspace(-40.5, -90.25, n), freq_mhz=np.array([2412.0, 5180.0, 5955.0][:n] + [2437.0] * max(0, n - 3)),
+                rssi_dbm=np.linspace(-40.5, -90.25, n),
+                freq_mhz=np.array([2412.0, 5180.0, 5955.0][:n] + [2437.0] * max(0, n - 3)),
                 ssid=tuple(f"net{i}" for i in range(n)), age_ms=None, frame_id="alice/wifi_link", source="iw")
     base.update(kw)
     return WifiScan(**base)

@@ -86,7 +86,8 @@ def imu_to_msg(stamp_ns: int, frame_id: str, acc, gyro=None, quat_xyzw=None, ori
         if orientation_cov is not None:
             c = as_matrix("orientation_cov", orientation_cov, 3)
             if c[0, 0] == -1.0:
-                raise InvalidMessageError("bad_covariance", "orientation_cov[0, 0] = -1 would mark the orientation absent")
+                raise InvalidMessageError("bad_covariance",
+                                          "orientation_cov[0, 0] = -1 would mark the orientation absent")
             msg.orientation_covariance = c.ravel().tolist()
     return msg
 

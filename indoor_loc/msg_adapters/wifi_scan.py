@@ -145,7 +145,8 @@ def scan_to_msg(scan: WifiScan) -> DiagnosticArray:
                   KeyValue(key="frequency_mhz", value=repr(float(freq[i])))]
         if age is not None and np.isfinite(age[i]):
             values.append(KeyValue(key="age_ms", value=repr(float(age[i]))))
-        statuses.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=bssid[i], message=str(ssid[i]).replace("\0", ""),
+        statuses.append(DiagnosticStatus(level=DiagnosticStatus.OK, name=bssid[i],
+                                         message=str(ssid[i]).replace("\0", ""),
                                          hardware_id=scan.frame_id, values=values))
     arr.status = statuses
     return arr
