@@ -187,3 +187,24 @@ def test_stubborn_child_is_terminated(tmp_path):
         assert "still running 0.5 s after SIGINT: SIGTERM" in up.output()
     finally:
         up.stop()
+
+
+def test_dry_run_prints_commands(capsys):
+    from indoor_loc.cli import main
+    assert main(["up", str(ROOT / "config" / "bringup_example.yaml"), "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["player", "imu_walk01", "wifi_walk01", "recorder"]
+    assert "ROS_DOMAIN_ID=42" in lines[1] and "-r __ns:=/walk01" in lines[1] and "imu_node" in lines[1]
+
+
+def test_program_that_cannot_start(tmp_path):
+    import dataclasses
+    import io
+
+    from indoor_loc.nodes.bringup import Bringup
+    cfg = parse_config({"nodes": [{"name": "ok", "script": EXIT}]}, tmp_path)
+    broken = dataclasses.replace(cfg.nodes[0], name="broken", program=(str(tmp_path / "not_there"),))
+    out = io.StringIO()
+    assert Bringup(dataclasses.replace(cfg, nodes=(cfg.nodes[0], broken)), out=out).run() == 1
+    text = out.getvalue()
+    assert "[up] cannot start broken" in text and "[up] ok stopped (exit status" in text

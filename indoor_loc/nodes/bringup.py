@@ -303,9 +303,16 @@ class Bringup:
 
     def _start(self, child: _Child) -> None:
         cmd = child.spec.command()
-        child.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                      stdin=subprocess.DEVNULL, env=self._env(child.spec), text=True,
-                                      bufsize=1, errors="replace", process_group=0)
+        try:
+            child.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                          stdin=subprocess.DEVNULL, env=self._env(child.spec), text=True,
+                                          bufsize=1, errors="replace", process_group=0)
+        except OSError as err:       # not executable, vanished...: like a node that died at once
+            self.log(PREFIX, f"cannot start {child.spec.name}: {err}")
+            child.restart_at = None
+            self._failed = True
+            self.request_stop(signal.SIGINT)
+            return
         child.starts += 1
         child.started_at = time.monotonic()
         child.restart_at = None
