@@ -246,7 +246,11 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
             signal.signal(sig, signal.SIG_IGN)
         if node is not None:
             if node.context.ok():
-                node.shutdown()
+                try:
+                    node.shutdown()
+                except Exception as err:  # noqa: BLE001 - a stage bug in finish() must not skip clean-up
+                    print(f"[{name}] finish() failed: {type(err).__name__}: {err}", file=sys.stderr)
+                    status = status or 1
             node.destroy_node()
         rclpy.try_shutdown()
         for sig, handler in old.items():
