@@ -55,6 +55,7 @@ PUTMC_Y0 = 1049 / 28.50518                 #: m; y_enu = PUTMC_Y0 - y_img
 PUTMC_MAP_YAW_RAD = math.radians(7.8)
 START_GAP_S = 5.0          #: a gap longer than this, s, ends the stale samples at a recording's start
 DROPOUT_S = 0.05           #: a gap longer than this, s (~10 nominal periods), inside a walk is reported
+OFF_ROUTE_M = 1.5          #: a true scan position farther than this from the GT route, m, is reported
 HEADING_UNRELIABLE_RAD = 1.0   #: headingAcc at or above this, rad, is reported (Android gives π)
 
 TRAJ_DIR = "PUTMC_Floor3_Xperia_trajs"
@@ -545,9 +546,20 @@ class Putmc:
         return read_survey_map(self.root, self.oddities)
 
     def walk(self, n: int, *, keep_stale: bool = False) -> Walk:
+        """Walk ``n`` (see :func:`read_walk`), plus a check of its true scan positions against its route."""
+        from indoor_loc.eval.metrics import point_segment_distance
+
         if n not in self.folders:
             raise DatasetError(f"PUTMC has no walk {n}; walks are {self.walk_numbers}")
-        return read_walk(self.folders[n], n, keep_stale=keep_stale)
+        w = read_walk(self.folders[n], n, keep_stale=keep_stale)
+        if len(w.scan_xy):
+            d = point_segment_distance(w.scan_xy, self.routes[n].segments)
+            far = np.flatnonzero(d > OFF_ROUTE_M)
+            if far.size:
+                w.oddities.append(Oddity(n, "scan_off_route", f"positions.map: scan(s) {w.scan_idx[far].tolist()} lie "
+                                                              f"{', '.join(f'{v:.2f}' for v in d[far])} m from the GT "
+                                                              "route", int(far.size)))
+        return w
 
     def map_png(self) -> Path:
         return self.root / "map.png"

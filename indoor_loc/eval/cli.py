@@ -105,9 +105,11 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
     bags = sorted(Path(import_dir).glob("*.mcap"))
     if not bags:
         raise DatasetError(f"{import_dir}: no .mcap bags (run `indoor-loc import` first)")
+    from indoor_loc.bag import bag_topics
+    wanted = [t for t in bag_topics(bags) if t.endswith(("/" + ROUTE_TOPIC, "/ground_truth"))]
     gt: dict[str, tuple] = {}
     segs: dict[str, np.ndarray] = {}
-    for m in read_bag(bags, topics=None):
+    for m in read_bag(bags, topics=wanted):
         if m.topic.endswith("/" + ROUTE_TOPIC):
             user = _user_of(m.topic, ROUTE_TOPIC, "")
             pts = [marker_points(mk)[:, :2] for mk in m.msg.markers if mk.type == LINE_LIST and mk.points]
@@ -206,7 +208,8 @@ def _plots(args, trajs, truths, scores) -> None:
     by_name = {s.name: s for s in scores}
     for u in sorted(set(trajs) & set(truths)):
         s = by_name.get(u)
-        title = u if s is None else (f"{u}: {args.topic}  scan-time mean {s.scan_m.mean:.2f} m, "
+        src = args.topic if args.bags else "csv"
+        title = u if s is None else (f"{u}: {src}  scan-time mean {s.scan_m.mean:.2f} m, "
                                      f"route mean {s.route_m.mean:.2f} m, paper RMSE {s.paper.rmse:.2f}")
         out = plot_walk(Path(args.plot) / f"{u}.png", truths[u], trajs[u], floor_plan=floor_plan,
                         extent=map_extent(), title=title)
