@@ -136,3 +136,63 @@ def test_putmc_truth_scores_itself_zero():
         assert s.scan_m.max == pytest.approx(0.0, abs=1e-9)
         assert 0.05 < s.route_m.mean < 0.7
         assert s.paper.n_cut == 0
+
+
+def _synthetic_walk(n: int = 5):
+    """A tiny PUTMC-like walk (no dataset needed): 3 s of IMU at 100 Hz, 3 scans along y = 2."""
+    from indoor_loc.datasets.putmc import Route, Walk
+    from indoor_loc.wifi.types import WifiScan
+
+    t0 = 50 * 10**9
+    acc_t = t0 + np.arange(300, dtype=np.int64) * 10**7
+    ori_t = acc_t[5::2] + 1000
+    scan_t = t0 + np.array([5, 15, 25], dtype=np.int64) * 10**8
+    scans = [WifiScan(int(t), ("aa:bb:cc:dd:ee:0%d" % i,), np.array([-60.0 - i]), np.array([2412.0]), ("x",),
+                      frame_id=f"walk{n:02d}/wifi_link", source="putmc") for i, t in enumerate(scan_t)]
+    walk = Walk(walk=n, folder="synthetic", acc_t=acc_t, acc=np.tile([0.1, 0.2, 9.8], (300, 1)), ori_t=ori_t,
+                quat_xyzw=np.tile([0.0, 0.0, 0.0, 1.0], (len(ori_t), 1)), heading_acc=np.full(len(ori_t), 0.1745),
+                scans=scans, scan_xy=np.array([[1.0, 2.0], [3.0, 2.0], [5.0, 2.0]]), scan_idx=np.arange(3))
+    route = Route(n, np.array([[0.0, 2.0], [6.0, 2.0], [6.0, 8.0]]), np.array([[0, 1], [1, 2]]))
+    return walk, route
+
+
+def test_bags_truth_and_trajectories_through_cli(tmp_path):
+    pytest.importorskip("rclpy")
+    import json
+
+    from indoor_loc.bag import BagWriter
+    from indoor_loc.cli import main as cli_main
+    from indoor_loc.datasets.putmc_bags import write_walk_bag
+    from indoor_loc.eval.cli import trajectories_from_bags, truth_from_import
+    from indoor_loc.msg_adapters.path import path_to_msg
+    from indoor_loc.msg_adapters.pose import fix_to_msg
+    from indoor_loc.wifi.types import Fix
+
+    walk, route = _synthetic_walk()
+    counts = write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)
+    assert counts["/walk05/imu/data"] == 300 and counts["/walk05/wifi/scan"] == 3
+    truth = truth_from_import(tmp_path / "imp")["walk05"]
+    np.testing.assert_array_equal(truth.scan_ns, walk.scan_t)
+    np.testing.assert_allclose(truth.scan_xy, walk.scan_xy)
+    np.testing.assert_allclose(truth.segments, route.segments)
+
+    run = tmp_path / "run.mcap"
+    with BagWriter(run) as bag:
+        for t, xy in zip(walk.scan_t, walk.scan_xy + [[0.0, 3.0], [0.0, 0.0], [4.0, 0.0]]):
+            bag.write("/walk05/wifi/fix", fix_to_msg(Fix(int(t), xy, np.eye(2))), int(t))
+        bag.write("/walk05/pdr_kf/path", path_to_msg(walk.scan_t[:1], walk.scan_xy[:1]), int(walk.scan_t[0]))
+        bag.write("/walk05/pdr_kf/path", path_to_msg(walk.scan_t, walk.scan_xy), int(walk.scan_t[-1]))
+    fixes = trajectories_from_bags([run], "wifi/fix")["walk05"]
+    assert len(fixes) == 3 and np.all(np.isnan(fixes.heading))
+    path = trajectories_from_bags([run], "pdr_kf/path")["walk05"]     # the last Path wins
+    np.testing.assert_allclose(path.xy, walk.scan_xy)
+
+    out = tmp_path / "scores.json"
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    # fixes (1, 5), (3, 2), (9, 2): errors 3, 0, 4 m at the scans; route distances 3, 0, 3 m
+    assert res["pooled"]["scan_m"]["mean"] == pytest.approx(7 / 3)
+    assert res["pooled"]["scan_m"]["max"] == pytest.approx(4.0)
+    assert res["pooled"]["paper"]["mean"] == pytest.approx((9 + 0 + 9) / 3)
+    assert res["pooled"]["route_m"]["max"] == pytest.approx(3.0)
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/path"]) == 0
