@@ -1,24 +1,44 @@
-"""Radio map files: a versioned, documented, human-readable directory format (pure; no ROS).
+"""Radio map files (save/load), online growth and a few summaries (pure Python/numpy).
 
-Layout of a radio map directory ``DIR/``::
+On-disk format ``indoor_loc.radiomap`` version 1: a directory holding
 
-    DIR/radiomap.yaml      manifest: format "indoor_loc.radiomap", version 1, frame_id, units,
-                           counts (scans, aps), created_by, free-form notes
-    DIR/fingerprints.csv   one row per (scan, AP) reading, long format:
-                           scan_id,stamp_ns,x,y,source,bssid,ssid,rssi_dbm,freq_mhz
+``radiomap.yaml`` — the manifest, small and human-readable::
 
-- ``x``, ``y``: metres in ``frame_id`` (ENU map frame). ``stamp_ns``: 0 for a pre-surveyed map,
-  else when the fingerprint was taken. ``source``: "survey" or the user/bag it was learnt from.
-- A scan with no AP above threshold still has one row with empty bssid (its position is kept).
-- CSV rather than a binary array file: maps are small (10 000 scans x 30 APs = 300 000 rows, a
-  few MB), users edit and inspect them with any tool, and diffs stay readable.
-Reading rejects unknown formats/versions with :class:`MapError` and says which version it read.
+    format: indoor_loc.radiomap
+    version: 1
+    frame_id: map                  # positions are in this frame (ENU, metres)
+    units: {position: m, rssi: dBm, frequency: MHz, stamp: ns}
+    counts: {scans: M, aps: A, readings: R}
+    bounds_m: {x: [min, max], y: [min, max]}
+    sources: {survey: 114, walk07: 12}
+    files: {aps: aps.csv, fingerprints: fingerprints.csv}
+    created: {utc: ..., by: ..., inputs: [...]}
+
+``aps.csv`` — one row per AP column of the map, in column order: ``column, bssid, ssid, freq_mhz``
+(kept separately so the column order and APs never heard at all survive a round trip).
+
+``fingerprints.csv`` — long format, one row per reading, rows of one scan consecutive, scans in map
+row order: ``scan_id, stamp_ns, x, y, source, bssid, ssid, rssi_dbm, freq_mhz``. A scan without any
+reading is one row with empty ``bssid``/``rssi_dbm`` so it is not lost.
+
+Why CSV and not ``.npz``: the map is sparse (PUTMC: 114 scans x 119 APs, ~20 readings per scan), so
+the long format is small (~25 bytes a reading; 10 000 scans of 25 APs is ~7 MB and loads in about a
+second); it is diffable, appendable by hand or by other tools (pandas, a spreadsheet, a phone
+survey app exporting CSV), carries SSIDs and free-text sources without pickling, and stays readable
+when the package is not installed. The manifest's counts are checked on load, so a truncated file
+is reported instead of silently giving a smaller map.
+
+A manifest with another ``format`` or a ``version`` this code does not know raises
+:class:`~indoor_loc.errors.MapError`; readers of newer versions must bump ``FORMAT_VERSION``.
 """
 from __future__ import annotations
 
 import csv
+import datetime as _dt
+import math
+from collections import Counter
 from pathlib import Path
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 import yaml
@@ -26,115 +46,294 @@ import yaml
 from indoor_loc.errors import MapError
 from indoor_loc.wifi.types import RadioMap, WifiScan
 
-FORMAT = "indoor_loc.radiomap"
-VERSION = 1
+FORMAT_NAME = "indoor_loc.radiomap"
+FORMAT_VERSION = 1
 MANIFEST = "radiomap.yaml"
-FINGERPRINTS = "fingerprints.csv"
-COLUMNS = ("scan_id", "stamp_ns", "x", "y", "source", "bssid", "ssid", "rssi_dbm", "freq_mhz")
+APS_FILE = "aps.csv"
+FINGERPRINTS_FILE = "fingerprints.csv"
+FP_COLUMNS = ("scan_id", "stamp_ns", "x", "y", "source", "bssid", "ssid", "rssi_dbm", "freq_mhz")
+AP_COLUMNS = ("column", "bssid", "ssid", "freq_mhz")
 
 
-def save_radiomap(rm: RadioMap, directory: str | Path, *, notes: str = "", created_by: str = "indoor_loc") -> Path:
-    """Write ``rm`` into ``directory`` (created if needed). Returns the directory path."""
+# ----------------------------------------------------------------------------------------------
+# checks and summaries
+# ----------------------------------------------------------------------------------------------
+def check_radiomap(rm: RadioMap) -> None:
+    """Raise MapError unless ``rm`` is consistent: positions (M, 2) finite, rssi (M, A) with NaN or
+    finite values in [-120, 0] dBm, A unique BSSIDs, per-row arrays of length M, unique scan ids."""
+    pos = np.asarray(rm.positions, float)
+    m = len(pos)
+    if pos.shape != (m, 2):
+        raise MapError(f"radio map: positions must have shape (M, 2), got {pos.shape}")
+    if not np.all(np.isfinite(pos)):
+        raise MapError("radio map: positions contain NaN/inf")
+    rss = np.asarray(rm.rssi_dbm, float)
+    a = len(rm.bssids)
+    if rss.shape != (m, a):
+        raise MapError(f"radio map: rssi_dbm must have shape (M, A) = ({m}, {a}), got {rss.shape}")
+    heard = ~np.isnan(rss)
+    if np.any(np.isinf(rss)) or np.any((rss[heard] < -120.0) | (rss[heard] > 0.0)):
+        raise MapError("radio map: rssi_dbm values must be NaN (not heard) or in [-120, 0] dBm")
+    if len(set(rm.bssids)) != a:
+        dup = [b for b, c in Counter(rm.bssids).items() if c > 1]
+        raise MapError(f"radio map: duplicate BSSID columns {dup[:5]}")
+    if len(np.asarray(rm.freq_mhz)) != a or len(rm.ssids) != a:
+        raise MapError(f"radio map: freq_mhz and ssids need one entry per AP ({a})")
+    for name, arr in (("scan_ids", rm.scan_ids), ("stamps_ns", rm.stamps_ns), ("source", rm.source)):
+        if len(arr) != m:
+            raise MapError(f"radio map: {name} needs one entry per scan ({m}), got {len(arr)}")
+    if len(set(int(i) for i in rm.scan_ids)) != m:
+        raise MapError("radio map: scan_ids must be unique")
+
+
+def radiomap_summary(rm: RadioMap) -> dict:
+    """Counts, bounds and per-source scan counts (the manifest's descriptive part)."""
+    heard = ~np.isnan(np.asarray(rm.rssi_dbm, float))
+    pos = np.asarray(rm.positions, float)
+    bounds = ({"x": [float(pos[:, 0].min()), float(pos[:, 0].max())],
+               "y": [float(pos[:, 1].min()), float(pos[:, 1].max())]} if len(pos) else {"x": [], "y": []})
+    per_scan = heard.sum(axis=1)
+    return {
+        "counts": {"scans": rm.n_scans, "aps": rm.n_aps, "readings": int(heard.sum())},
+        "bounds_m": bounds,
+        "aps_per_scan": ({"min": int(per_scan.min()), "mean": round(float(per_scan.mean()), 2),
+                          "max": int(per_scan.max())} if len(per_scan) else {}),
+        "sources": dict(sorted(Counter(rm.source).items())),
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# save / load
+# ----------------------------------------------------------------------------------------------
+def _num(v: float) -> str:
+    return repr(float(v)) if float(v) != int(v) or abs(v) >= 1e15 else str(int(v))
+
+
+def save_radiomap(rm: RadioMap, directory: str | Path, *, created_by: str = "indoor_loc",
+                  inputs: Sequence[str] = ()) -> Path:
+    """Write ``rm`` to ``directory`` (created; existing map files are replaced). Returns the
+    directory. ``created_by`` and ``inputs`` go to the manifest's ``created`` block."""
+    check_radiomap(rm)
     d = Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
-    manifest = {"format": FORMAT, "version": VERSION, "frame_id": rm.frame_id,
-                "units": {"x": "m", "y": "m", "rssi_dbm": "dBm", "freq_mhz": "MHz", "stamp_ns": "ns"},
-                "scans": rm.n_scans, "aps": rm.n_aps, "created_by": created_by, "notes": notes}
-    with open(d / FINGERPRINTS, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(COLUMNS)
-        for i in range(rm.n_scans):
-            heard = np.flatnonzero(np.isfinite(rm.rssi_dbm[i]))
-            sid, st, (x, y), src = int(rm.scan_ids[i]), int(rm.stamps_ns[i]), rm.positions[i], rm.source[i]
-            if len(heard) == 0:
-                w.writerow([sid, st, repr(float(x)), repr(float(y)), src, "", "", "", ""])
-            for j in heard:
-                w.writerow([sid, st, repr(float(x)), repr(float(y)), src, rm.bssids[j], rm.ssids[j],
-                            repr(float(rm.rssi_dbm[i, j])), repr(float(rm.freq_mhz[j]))])
-    (d / MANIFEST).write_text(yaml.safe_dump(manifest, sort_keys=False))
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        rss = np.asarray(rm.rssi_dbm, float)
+        freq = np.asarray(rm.freq_mhz, float)
+        with open(d / APS_FILE, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(AP_COLUMNS)
+            for j, (b, s, f) in enumerate(zip(rm.bssids, rm.ssids, freq)):
+                w.writerow([j, b, s, _num(f)])
+        with open(d / FINGERPRINTS_FILE, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(FP_COLUMNS)
+            for i in range(rm.n_scans):
+                head = [int(rm.scan_ids[i]), int(rm.stamps_ns[i]), repr(float(rm.positions[i, 0])),
+                        repr(float(rm.positions[i, 1])), rm.source[i]]
+                cols = np.flatnonzero(~np.isnan(rss[i]))
+                if len(cols) == 0:
+                    w.writerow(head + ["", "", "", ""])
+                for j in cols:
+                    w.writerow(head + [rm.bssids[j], rm.ssids[j], _num(rss[i, j]), _num(freq[j])])
+        manifest = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "frame_id": rm.frame_id,
+            "units": {"position": "m", "rssi": "dBm", "frequency": "MHz", "stamp": "ns"},
+            **radiomap_summary(rm),
+            "files": {"aps": APS_FILE, "fingerprints": FINGERPRINTS_FILE},
+            "created": {"utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                        "by": created_by, "inputs": [str(x) for x in inputs]},
+        }
+        (d / MANIFEST).write_text("# WiFi radio map (see indoor_loc/wifi/radiomap.py for the format)\n"
+                                  + yaml.safe_dump(manifest, sort_keys=False), encoding="utf-8")
+    except OSError as err:
+        raise MapError(f"cannot write radio map to {d}: {err}") from err
     return d
 
 
-def load_radiomap(directory: str | Path) -> RadioMap:
-    """Read a radio map directory written by :func:`save_radiomap`."""
+def read_manifest(directory: str | Path) -> dict:
+    """The checked manifest of a radio map directory (MapError if missing, foreign or too new)."""
     d = Path(directory)
+    path = d / MANIFEST
+    if not d.is_dir():
+        raise MapError(f"radio map directory {d} does not exist")
     try:
-        manifest = yaml.safe_load((d / MANIFEST).read_text()) or {}
+        man = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError) as err:
-        raise MapError(f"cannot read radio map manifest {d / MANIFEST}: {err}") from err
-    if manifest.get("format") != FORMAT:
-        raise MapError(f"{d / MANIFEST}: expected format {FORMAT!r}, got {manifest.get('format')!r}")
-    if manifest.get("version") != VERSION:
-        raise MapError(f"{d / MANIFEST}: radio map version {manifest.get('version')!r} is not supported "
-                       f"(this indoor_loc reads version {VERSION})")
-    scans: dict[int, dict] = {}
-    ap_index: dict[str, int] = {}
-    ssids: list[str] = []
-    freqs: list[float] = []
+        raise MapError(f"cannot read radio map manifest {path}: {err}") from err
+    if not isinstance(man, dict) or man.get("format") != FORMAT_NAME:
+        got = man.get("format") if isinstance(man, dict) else type(man).__name__
+        raise MapError(f"{path}: not a radio map manifest (format {got!r}, expected {FORMAT_NAME!r})")
+    if man.get("version") != FORMAT_VERSION:
+        raise MapError(f"{path}: radio map format version {man.get('version')!r} is not supported "
+                       f"(this code reads version {FORMAT_VERSION})")
+    return man
+
+
+def load_radiomap(directory: str | Path) -> RadioMap:
+    """Read a radio map directory written by :func:`save_radiomap` (MapError on any problem)."""
+    d = Path(directory)
+    man = read_manifest(d)
+    files = man.get("files") or {}
     try:
-        with open(d / FINGERPRINTS, newline="") as fh:
-            r = csv.reader(fh)
-            header = next(r)
-            if tuple(header) != COLUMNS:
-                raise MapError(f"{d / FINGERPRINTS}: expected columns {COLUMNS}, got {tuple(header)}")
-            for lineno, row in enumerate(r, start=2):
-                if len(row) != len(COLUMNS):
-                    raise MapError(f"{d / FINGERPRINTS}:{lineno}: expected {len(COLUMNS)} fields, got {len(row)}")
-                sid = int(row[0])
-                s = scans.setdefault(sid, {"stamp": int(row[1]), "xy": (float(row[2]), float(row[3])),
-                                           "source": row[4], "readings": {}})
-                if row[5]:
-                    j = ap_index.get(row[5])
-                    if j is None:
-                        j = ap_index[row[5]] = len(ssids)
-                        ssids.append(row[6])
-                        freqs.append(float(row[8]) if row[8] else 0.0)
-                    s["readings"][j] = float(row[7])
+        aps_path = d / files.get("aps", APS_FILE)
+        ap_rows: list[dict] = []
+        if aps_path.exists():   # maps written before aps.csv existed derive columns from the readings
+            with open(aps_path, newline="", encoding="utf-8") as fh:
+                ap_rows = list(csv.DictReader(fh))
+        with open(d / files.get("fingerprints", FINGERPRINTS_FILE), newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            if tuple(reader.fieldnames or ()) != FP_COLUMNS:
+                raise MapError(f"{d}: fingerprints columns {reader.fieldnames}, expected {list(FP_COLUMNS)}")
+            fp_rows = list(reader)
     except OSError as err:
-        raise MapError(f"cannot read {d / FINGERPRINTS}: {err}") from err
-    except ValueError as err:
-        raise MapError(f"{d / FINGERPRINTS}: malformed value: {err}") from err
-    ids = sorted(scans)
-    rssi = np.full((len(ids), len(ssids)), np.nan)
-    for i, sid in enumerate(ids):
-        for j, v in scans[sid]["readings"].items():
-            rssi[i, j] = v
-    positions = np.array([scans[s]["xy"] for s in ids], float).reshape(-1, 2)
-    if not np.all(np.isfinite(positions)):
-        raise MapError(f"{d}: non-finite fingerprint position")
-    return RadioMap(positions=positions, bssids=list(ap_index), rssi_dbm=rssi, freq_mhz=np.array(freqs),
-                    ssids=ssids, scan_ids=np.array(ids, np.int64),
-                    stamps_ns=np.array([scans[s]["stamp"] for s in ids], np.int64),
-                    source=[scans[s]["source"] for s in ids], frame_id=str(manifest.get("frame_id", "map")))
+        raise MapError(f"cannot read radio map {d}: {err}") from err
+    try:
+        if not ap_rows:
+            seen: dict[str, dict] = {}
+            for r in fp_rows:
+                if r["bssid"] and r["bssid"] not in seen:
+                    seen[r["bssid"]] = {"bssid": r["bssid"], "ssid": r["ssid"], "freq_mhz": r["freq_mhz"] or 0}
+            ap_rows = list(seen.values())
+        bssids = [r["bssid"] for r in ap_rows]
+        ssids = [r["ssid"] for r in ap_rows]
+        freq = np.array([float(r["freq_mhz"]) for r in ap_rows], float)
+        col = {b: j for j, b in enumerate(bssids)}
+        ids: list[int] = []
+        stamps: list[int] = []
+        pos: list[tuple[float, float]] = []
+        src: list[str] = []
+        cells: list[tuple[int, int, float]] = []
+        for r in fp_rows:
+            sid = int(r["scan_id"])
+            if not ids or ids[-1] != sid:
+                ids.append(sid)
+                stamps.append(int(r["stamp_ns"]))
+                pos.append((float(r["x"]), float(r["y"])))
+                src.append(r["source"])
+            if r["bssid"]:
+                j = col.get(r["bssid"])
+                if j is None:
+                    raise MapError(f"{d}: reading of {r['bssid']!r} (scan {sid}) has no column in {APS_FILE}")
+                cells.append((len(ids) - 1, j, float(r["rssi_dbm"])))
+    except (KeyError, ValueError, TypeError) as err:
+        raise MapError(f"{d}: malformed radio map row: {err}") from err
+    rss = np.full((len(ids), len(bssids)), np.nan)
+    if cells:
+        ii, jj, vv = (np.array(c) for c in zip(*cells))
+        rss[ii.astype(int), jj.astype(int)] = vv
+    rm = RadioMap(positions=np.array(pos, float).reshape(-1, 2), bssids=bssids, rssi_dbm=rss, freq_mhz=freq,
+                  ssids=ssids, scan_ids=np.array(ids, np.int64), stamps_ns=np.array(stamps, np.int64),
+                  source=src, frame_id=str(man.get("frame_id", "map")))
+    counts = man.get("counts") or {k: man[k] for k in ("scans", "aps") if k in man}
+    got = {"scans": rm.n_scans, "aps": rm.n_aps, "readings": len(cells)}
+    for key, n in got.items():
+        if key in counts and int(counts[key]) != n:
+            raise MapError(f"{d}: manifest says {counts[key]} {key}, files hold {n} (truncated or edited?)")
+    check_radiomap(rm)
+    return rm
 
 
-def add_fingerprints(rm: RadioMap, positions: np.ndarray, scans: Sequence[WifiScan], *,
-                     source: str | Sequence[str] = "learnt") -> RadioMap:
-    """A new map with the scans added as fingerprints at ``positions`` (K, 2) m (the back-end grows
-    the map from users' optimised trajectories). New BSSIDs become new columns."""
-    positions = np.asarray(positions, float).reshape(-1, 2)
-    if len(positions) != len(scans):
-        raise MapError(f"add_fingerprints: {len(positions)} positions for {len(scans)} scans")
-    if not np.all(np.isfinite(positions)):
-        raise MapError("add_fingerprints: non-finite position")
-    bssids, ssids, freqs = list(rm.bssids), list(rm.ssids), list(rm.freq_mhz)
-    cols = {b: j for j, b in enumerate(bssids)}
-    for s in scans:
-        for k, b in enumerate(s.bssid):
-            if b not in cols:
-                cols[b] = len(bssids)
-                bssids.append(b)
-                ssids.append(s.ssid[k] if k < len(s.ssid) else "")
-                freqs.append(float(s.freq_mhz[k]))
-    rssi = np.full((rm.n_scans + len(scans), len(bssids)), np.nan)
-    rssi[: rm.n_scans, : rm.n_aps] = rm.rssi_dbm
-    for i, s in enumerate(scans):
-        for b, r in zip(s.bssid, s.rssi_dbm):
-            rssi[rm.n_scans + i, cols[b]] = r
+# ----------------------------------------------------------------------------------------------
+# building and growing
+# ----------------------------------------------------------------------------------------------
+def empty_radiomap(frame_id: str = "map") -> RadioMap:
+    """A map with no scans and no APs (grow it with :func:`add_fingerprints`)."""
+    return RadioMap(positions=np.zeros((0, 2)), bssids=[], rssi_dbm=np.zeros((0, 0)), freq_mhz=np.zeros(0),
+                    ssids=[], scan_ids=np.zeros(0, np.int64), stamps_ns=np.zeros(0, np.int64), source=[],
+                    frame_id=frame_id)
+
+
+def add_fingerprints(rm: RadioMap, positions, scans: Sequence[WifiScan], source: str | Iterable[str] = "online",
+                     *, scan_ids: Iterable[int] | None = None) -> RadioMap:
+    """A new map: ``rm`` plus one fingerprint per scan at ``positions`` (N, 2) m (map frame).
+
+    New BSSIDs become new columns (NaN in the old rows). ``source`` is one label for all or one per
+    scan; stamps come from the scans; ``scan_ids`` default to ``max(existing) + 1 ...``. ``rm`` is
+    not modified (positioners re-``fit`` on the returned map).
+    """
+    pos = np.asarray(positions, float).reshape(-1, 2)
+    scans = list(scans)
+    if len(pos) != len(scans):
+        raise MapError(f"add_fingerprints: {len(pos)} positions for {len(scans)} scans")
+    if not np.all(np.isfinite(pos)):
+        raise MapError("add_fingerprints: positions contain NaN/inf")
     srcs = [source] * len(scans) if isinstance(source, str) else list(source)
-    next_id = int(rm.scan_ids.max()) + 1 if rm.n_scans else 0
-    return RadioMap(positions=np.vstack([rm.positions, positions]), bssids=bssids, rssi_dbm=rssi,
-                    freq_mhz=np.array(freqs), ssids=ssids,
-                    scan_ids=np.concatenate([rm.scan_ids, np.arange(next_id, next_id + len(scans))]),
-                    stamps_ns=np.concatenate([rm.stamps_ns, np.array([s.stamp_ns for s in scans], np.int64)]),
-                    source=list(rm.source) + srcs, frame_id=rm.frame_id)
+    if len(srcs) != len(scans):
+        raise MapError(f"add_fingerprints: {len(srcs)} source labels for {len(scans)} scans")
+    bssids, ssids = list(rm.bssids), list(rm.ssids)
+    freq = list(np.asarray(rm.freq_mhz, float))
+    col = {b: j for j, b in enumerate(bssids)}
+    for sc in scans:
+        for b, s, f in zip(sc.bssid, sc.ssid or [""] * len(sc), sc.freq_mhz):
+            if b not in col:
+                col[b] = len(bssids)
+                bssids.append(b)
+                ssids.append(s)
+                freq.append(float(f))
+    m0, n = rm.n_scans, len(scans)
+    rss = np.full((m0 + n, len(bssids)), np.nan)
+    rss[:m0, :rm.n_aps] = rm.rssi_dbm
+    for i, sc in enumerate(scans):
+        for b, r in zip(sc.bssid, sc.rssi_dbm):
+            rss[m0 + i, col[b]] = r
+    if scan_ids is None:
+        start = int(np.max(rm.scan_ids)) + 1 if m0 else 0
+        new_ids = np.arange(start, start + n, dtype=np.int64)
+    else:
+        new_ids = np.asarray(list(scan_ids), np.int64)
+    out = RadioMap(positions=np.vstack([np.asarray(rm.positions, float).reshape(-1, 2), pos]), bssids=bssids,
+                   rssi_dbm=rss, freq_mhz=np.array(freq, float), ssids=ssids,
+                   scan_ids=np.concatenate([np.asarray(rm.scan_ids, np.int64), new_ids]),
+                   stamps_ns=np.concatenate([np.asarray(rm.stamps_ns, np.int64),
+                                             np.array([s.stamp_ns for s in scans], np.int64)]),
+                   source=list(rm.source) + srcs, frame_id=rm.frame_id)
+    check_radiomap(out)
+    return out
+
+
+def map_scans(rm: RadioMap) -> list[WifiScan]:
+    """The map's fingerprints as WifiScan objects (stamps from the map; source from the map)."""
+    out = []
+    rss = np.asarray(rm.rssi_dbm, float)
+    for i in range(rm.n_scans):
+        cols = np.flatnonzero(~np.isnan(rss[i]))
+        out.append(WifiScan(stamp_ns=int(rm.stamps_ns[i]), bssid=tuple(rm.bssids[j] for j in cols),
+                            rssi_dbm=rss[i, cols].copy(), freq_mhz=np.asarray(rm.freq_mhz, float)[cols],
+                            ssid=tuple(rm.ssids[j] for j in cols), frame_id=rm.frame_id, source=rm.source[i]))
+    return out
+
+
+def interpolate_positions(stamps_ns, path_stamps_ns, path_xy) -> tuple[np.ndarray, np.ndarray]:
+    """Positions at ``stamps_ns`` (N,) linearly interpolated along a time-stamped path
+    (T,) ns / (T, 2) m. Returns (xy (N, 2), inside (N,) bool); stamps outside the path's time span
+    (or any stamp when T == 0) are not inside and get NaN. Path stamps need not be sorted."""
+    t = np.asarray(stamps_ns, np.int64)
+    pt = np.asarray(path_stamps_ns, np.int64)
+    pxy = np.asarray(path_xy, float).reshape(-1, 2)
+    out = np.full((len(t), 2), np.nan)
+    if len(pt) == 0:
+        return out, np.zeros(len(t), bool)
+    order = np.argsort(pt, kind="stable")
+    pt, pxy = pt[order], pxy[order]
+    inside = (t >= pt[0]) & (t <= pt[-1])
+    # relative seconds keep float64 exact enough for boot-clock stamps
+    tr = (t - pt[0]).astype(float) * 1e-9
+    ptr = (pt - pt[0]).astype(float) * 1e-9
+    for k in range(2):
+        out[inside, k] = np.interp(tr[inside], ptr, pxy[:, k])
+    return out, inside
+
+
+def nominal_spacing_m(rm: RadioMap) -> float:
+    """Median distance from a map scan to its nearest other map scan, m (NaN with < 2 scans)."""
+    p = np.asarray(rm.positions, float)
+    if len(p) < 2:
+        return math.nan
+    best = np.full(len(p), np.inf)
+    for s in range(0, len(p), 512):
+        d = np.linalg.norm(p[s:s + 512, None, :] - p[None, :, :], axis=2)
+        d[np.arange(len(d)), np.arange(s, s + len(d))] = np.inf
+        best[s:s + 512] = d.min(axis=1)
+    return float(np.median(best))
