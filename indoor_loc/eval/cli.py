@@ -187,12 +187,24 @@ def main(args: argparse.Namespace) -> int:
             write_csv(Path(args.write_csv) / f"{u}.csv", tr)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"topic": args.topic, "walks": [s.as_dict() for s in scores[:-1]],
-                                               "pooled": scores[-1].as_dict()}, indent=2, allow_nan=True))
+        doc = {"topic": args.topic if args.bags else None, "walks": [s.as_dict() for s in scores[:-1]],
+               "pooled": scores[-1].as_dict()}
+        Path(args.json).write_text(json.dumps(_nan_to_none(doc), indent=2, allow_nan=False))
         print(f"scores: {args.json}")
     if args.plot:
         _plots(args, trajs, truths, scores)
     return 0
+
+
+def _nan_to_none(obj):
+    """NaN (no value, e.g. no scans scored) -> null, so the JSON file is standard JSON."""
+    if isinstance(obj, float) and math.isnan(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _nan_to_none(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_nan_to_none(v) for v in obj]
+    return obj
 
 
 def _plots(args, trajs, truths, scores) -> None:
