@@ -184,7 +184,10 @@ def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     assert params["wifi_fix_node"]["ros__parameters"] == {"radiomap": str((out / "radiomap").resolve()),
                                                           "method": "wknn"}
     from indoor_loc.wifi.radiomap import load_radiomap
-    assert load_radiomap(out / "radiomap").n_scans == 114
+    rm, survey = load_radiomap(out / "radiomap"), ds.survey_map()
+    assert rm.n_scans == 114 and rm.bssids == survey.bssids
+    np.testing.assert_allclose(rm.positions, survey.positions)
+    np.testing.assert_array_equal(rm.rssi_dbm, survey.rssi_dbm)
     report = (out / "import_report.md").read_text()
     assert "stale_samples" in report and "20 acc, 12 orient" in report and "stale_samples" in printed
 
