@@ -1,0 +1,123 @@
+"""WifiFixStage: ``wifi/scan`` -> ``wifi/fix`` against a radio map (WKNN, path loss or coverage area).
+
+Parameters (``wifi_fix_node``): ``radiomap`` (a radio map directory, see
+:mod:`indoor_loc.wifi.radiomap`; "" = none), ``method`` ("wknn" | "pathloss" | "coverage"),
+``frame_id`` and the method's own parameters under a prefix named after the method — in a params
+file a nested mapping, which ROS 2 flattens to dotted parameter names::
+
+    wifi_fix_node:
+      ros__parameters:
+        radiomap: /data/putmc/radiomap
+        method: wknn
+        wknn: {k: 4, shared_threshold: 0.6}     # ROS parameters wknn.k, wknn.shared_threshold
+
+An unreadable radio map is a configuration error at start-up. With ``radiomap: ""`` the stage
+starts, drops every scan with reason ``no_map`` and says so under ``error`` in its diagnostics.
+A scan the method declines (too few shared APs, outlier conflict...) publishes nothing and is
+counted under ``declined.<reason>``; invalid scans are counted by the adapters' reasons.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from indoor_loc import params as P
+from indoor_loc.contract import Qos
+from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.msg_adapters.pose import fix_to_msg
+from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+from indoor_loc.pipeline.stage import Output, Port, Stage
+from indoor_loc.wifi.methods import METHODS, make_params, make_positioner
+from indoor_loc.wifi.radiomap import load_radiomap
+from indoor_loc.wifi.types import Positioner, RadioMap
+
+NODE_NAME = "wifi_fix_node"
+
+
+@dataclass(frozen=True)
+class WifiFixParams:
+    """Parameters of ``wifi_fix_node`` (see config/wifi_fix_node.yaml)."""
+    radiomap: str = P.field("", "radio map directory (indoor-loc radiomap build / import); '' = none: "
+                                "scans are dropped (reason no_map) and diagnostics report the error")
+    method: str = P.field("wknn", "positioning method: 'wknn', 'pathloss' or 'coverage'")
+    frame_id: str = P.field("map", "frame_id of the published fixes (the radio map's frame)")
+    wknn: dict = P.field({}, "WKNN parameters (wknn.k, wknn.shared_threshold, ...; see WknnParams)")
+    pathloss: dict = P.field({}, "path-loss parameters (pathloss.sigma_db, ...; see PathLossParams)")
+    coverage: dict = P.field({}, "coverage-area parameters (coverage.two_level, ...; see CoverageParams)")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        P.require(self.method in METHODS, n, "method", f"one of {sorted(METHODS)}", self.method)
+        P.require(bool(self.frame_id), n, "frame_id", "a non-empty frame name", self.frame_id)
+        # the selected method's parameters must be valid (other methods' blocks are checked lazily)
+        try:
+            make_params(self.method, getattr(self, self.method))
+        except ConfigError as err:
+            raise ConfigError(f"{n}.{self.method}: {err}") from err
+
+    def method_params(self) -> dict:
+        return dict(getattr(self, self.method))
+
+
+class WifiFixStage(Stage):
+    """WiFi positioning: wifi/scan -> wifi/fix (PoseWithCovarianceStamped, covariance in m^2)."""
+    NODE_NAME = NODE_NAME
+    PARAMS = WifiFixParams
+
+    def __init__(self, params: WifiFixParams, *, namespace: str = "",
+                 radio_map: RadioMap | None = None) -> None:
+        super().__init__(params, namespace=namespace)
+        self.params: WifiFixParams = params
+        self.declined: Counter = Counter()
+        self.fixes = 0
+        self.last_sigma_m = math.nan
+        self.radio_map: RadioMap | None = radio_map
+        self.positioner: Positioner | None = None
+        if self.radio_map is None and params.radiomap:
+            self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
+        if self.radio_map is not None:
+            self.positioner = make_positioner(params.method, params.method_params()).fit(self.radio_map)
+        self.on("wifi/scan", self._on_scan)
+
+    def inputs(self) -> list[Port]:
+        return [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)]
+
+    def outputs(self) -> list[Port]:
+        return [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
+
+    def set_radio_map(self, rm: RadioMap) -> None:
+        """Replace the map (e.g. grown by the back-end) and refit the positioner."""
+        self.radio_map = rm
+        self.positioner = make_positioner(self.params.method, self.params.method_params()).fit(rm)
+
+    def _on_scan(self, msg, recv_ns: int) -> list[Output]:
+        scan = scan_from_msg(msg)          # InvalidMessageError -> counted by reason
+        if self.positioner is None:
+            raise InvalidMessageError("no_map", "no radio map configured (parameter radiomap is '')")
+        fix = self.positioner.locate(scan)
+        if not fix.ok:
+            self.declined[fix.reason or "declined"] += 1
+            return []
+        if not (np.all(np.isfinite(fix.xy)) and np.all(np.isfinite(fix.cov))):
+            self.declined["non_finite"] += 1
+            return []
+        self.fixes += 1
+        self.last_sigma_m = math.sqrt(max(float(np.max(np.linalg.eigvalsh(fix.cov))), 0.0))
+        return [("wifi/fix", fix_to_msg(fix, frame_id=self.params.frame_id))]
+
+    def extra_diagnostics(self) -> dict[str, str]:
+        out = {"method": self.params.method, "radiomap": self.params.radiomap or "(none)",
+               "fixes": str(self.fixes), "declined.total": str(sum(self.declined.values()))}
+        out.update({f"declined.{k}": str(v) for k, v in sorted(self.declined.items())})
+        if self.radio_map is None:
+            out["error"] = "no radio map configured (parameter radiomap is ''): scans are dropped"
+        else:
+            out["map.scans"] = str(self.radio_map.n_scans)
+            out["map.aps"] = str(self.radio_map.n_aps)
+        if self.fixes:
+            out["last_fix_sigma_m"] = f"{self.last_sigma_m:.2f}"
+        return out
