@@ -138,7 +138,8 @@ def format_table(scores: list[WalkScore]) -> str:
     head = (f"{'walk':8s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
             f"{'rmed':>5s} {'rp95':>5s} {'rmax':>5s} | {'scans':>5s} {'smean':>6s} {'smed':>5s} {'sp95':>5s} "
             f"{'smax':>5s} {'sRMSE':>6s}")
-    sub = ("paper: e=d² (m²), e<100 | route distance (m) | scan-time error (m)")
+    sub = ("paper: e=d² (m²) over poses with e<100 ('cut' = poses dropped) | route distance (m), same poses | "
+           "scan-time error (m): trajectory interpolated at every true scan (held before/after its ends)")
     lines = [sub, head, "-" * len(head)]
     for s in scores:
         r, c, p = s.route_m, s.scan_m, s.paper
