@@ -12,7 +12,7 @@ from geometry_msgs.msg import Quaternion, Vector3
 from sensor_msgs.msg import Imu, MagneticField
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.time import as_matrix, as_vector, stamp_from_ns, stamp_to_ns
+from indoor_loc.msg_adapters.time import as_matrix, as_vector, require_len, stamp_from_ns, stamp_to_ns
 
 #: |‖q‖ - 1| above this rejects an orientation as ``"bad_quaternion"``.
 QUAT_NORM_TOL = 1e-3
@@ -47,11 +47,11 @@ def imu_from_msg(msg: Imu) -> ImuSample:
     """Validate and unpack an Imu message (``"nan"``, ``"negative_stamp"``, ``"bad_quaternion"``)."""
     stamp = stamp_to_ns(msg.header.stamp)
     acc = as_vector("linear_acceleration", _vec3(msg.linear_acceleration), 3)
-    as_vector("linear_acceleration_covariance", msg.linear_acceleration_covariance, 9)
+    require_len("linear_acceleration_covariance", msg.linear_acceleration_covariance, 9)
     gyro = None
     if msg.angular_velocity_covariance[0] != -1.0:
         gyro = as_vector("angular_velocity", _vec3(msg.angular_velocity), 3)
-        as_vector("angular_velocity_covariance", msg.angular_velocity_covariance, 9)
+        require_len("angular_velocity_covariance", msg.angular_velocity_covariance, 9)
     quat = cov = None
     if msg.orientation_covariance[0] != -1.0:
         o = msg.orientation
@@ -96,7 +96,7 @@ def mag_from_msg(msg: MagneticField) -> tuple[int, np.ndarray]:
     """(stamp_ns, magnetic field in tesla (3,), sensor frame)."""
     stamp = stamp_to_ns(msg.header.stamp)
     field_t = as_vector("magnetic_field", _vec3(msg.magnetic_field), 3)
-    as_vector("magnetic_field_covariance", msg.magnetic_field_covariance, 9)
+    require_len("magnetic_field_covariance", msg.magnetic_field_covariance, 9)
     return stamp, field_t
 
 

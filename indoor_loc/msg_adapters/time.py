@@ -53,9 +53,24 @@ def require_finite(what: str, values: Iterable[float] | float) -> None:
         if not math.isfinite(values):
             raise InvalidMessageError("nan", f"{what} is {values}")
         return
+    # Hot path (every IMU sample): a finite sum proves every element finite (NaN and inf propagate);
+    # only a non-finite sum (or an overflow of huge finite values) needs the element-wise look.
+    try:
+        total = float(values.sum()) if isinstance(values, np.ndarray) else float(sum(values))
+    except (TypeError, ValueError):
+        total = math.nan
+    if math.isfinite(total):
+        return
     arr = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(arr)):
         raise InvalidMessageError("nan", f"{what} has non-finite values {arr.ravel().tolist()}")
+
+
+def require_len(what: str, values, n: int) -> None:
+    """A fixed-size message array of ``n`` finite numbers (``"shape"`` / ``"nan"`` otherwise)."""
+    if len(values) != n:
+        raise InvalidMessageError("shape", f"{what}: expected {n} numbers, got {len(values)}")
+    require_finite(what, values)
 
 
 def as_vector(what: str, values, n: int) -> np.ndarray:
