@@ -57,7 +57,7 @@ def parse_walks(text: str, available: list[int]) -> list[int]:
 def import_putmc(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Putmc
+    from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Putmc, estimate_map_yaw
     from indoor_loc.datasets.putmc_bags import walk_bag_counts, write_walk_bag
 
     ds = Putmc(args.dataset_dir)
@@ -92,7 +92,15 @@ def import_putmc(args: argparse.Namespace) -> int:
         f"# map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
         + yaml.safe_dump(params, sort_keys=False))
     oddities = ds.oddities + [o for w in parsed for o in w.oddities]
-    report = _report(args, rows, oddities, survey, map_yaw, rm_note)
+    try:
+        yaw_est, yaw_per = estimate_map_yaw(parsed)
+        yaw_note = (f"Heading check: walking direction − phone yaw (Android ENU) over these walks = "
+                    f"{math.degrees(yaw_est):.1f}° pooled, per walk "
+                    f"{min(map(math.degrees, yaw_per.values())):.0f}…{max(map(math.degrees, yaw_per.values())):.0f}° "
+                    f"(applied: {math.degrees(map_yaw):.2f}°; indoor magnetic disturbance makes it wander)")
+    except DatasetError as err:
+        yaw_note = f"Heading check: {err}."
+    report = _report(args, rows, oddities, survey, map_yaw, rm_note, yaw_note)
     (out / "import_report.md").write_text(report)
     print(_table(rows))
     print(f"\nradio map: {rm_dir} ({survey.n_scans} scans, {survey.n_aps} APs){rm_note}")
@@ -129,8 +137,8 @@ def _row(w, gt_len_m: float, counts: dict[str, int]) -> dict:
 
 
 _COLS = [("walk", "walk", "{}"), ("folder", "folder", "{}"), ("acc_raw", "acc lines", "{}"),
-         ("acc_dropped", "acc stale", "{}"), ("orient_raw", "orient lines", "{}"),
-         ("orient_dropped", "orient stale", "{}"), ("scans", "scans", "{}"), ("aps_per_scan", "AP/scan", "{:.1f}"),
+         ("acc_dropped", "acc dropped (stale)", "{}"), ("orient_raw", "orient lines", "{}"),
+         ("orient_dropped", "orient dropped (stale)", "{}"), ("scans", "scans", "{}"), ("aps_per_scan", "AP/scan", "{:.1f}"),
          ("imu_msgs", "imu/data msgs", "{}"), ("scan_msgs", "wifi/scan msgs", "{}"),
          ("duration_s", "duration s", "{:.1f}"), ("wifi_span_s", "1st→last scan s", "{:.1f}"),
          ("gt_len_m", "GT length m", "{:.1f}"), ("n_oddities", "oddities", "{}")]
@@ -149,7 +157,7 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _report(args, rows, oddities, survey, map_yaw, rm_note) -> str:
+def _report(args, rows, oddities, survey, map_yaw, rm_note, yaw_note) -> str:
     from indoor_loc.datasets.putmc import PUTMC_Y0
     lines = [
         "# PUTMC import report", "",
@@ -161,9 +169,9 @@ def _report(args, rows, oddities, survey, map_yaw, rm_note) -> str:
         "about z into the map frame; yaw variance = headingAcc²; no gyroscope (angular_velocity_covariance[0] = "
         "−1). ground_truth = time-stamped true scan positions (nav_msgs/Path); ground_truth/route = GT route "
         "LINE_LIST (MarkerArray); both latched, written once at the walk's first stamp.", "",
-        f"Radio map: `radiomap/`, {survey.n_scans} survey scans, {survey.n_aps} APs{rm_note}.", "",
+        f"Radio map: `radiomap/`, {survey.n_scans} survey scans, {survey.n_aps} APs{rm_note}.", "", yaw_note, "",
         "## Walks", "", _table(rows), "",
-        "Counts: `acc lines`/`orient lines` are the raw file lines; `imu/data msgs` = acc lines − acc stale "
+        "Counts: `acc lines`/`orient lines` are the raw file lines; `imu/data msgs` = acc lines − acc dropped "
         "(one message per accelerometer sample).", "",
         f"## Oddities ({len(oddities)})", "",
     ]
