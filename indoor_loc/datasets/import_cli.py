@@ -96,7 +96,7 @@ def import_putmc(args: argparse.Namespace) -> int:
         yaw_est, yaw_per = estimate_map_yaw(parsed)
         yaw_note = (f"Heading check: walking direction − phone yaw (Android ENU) over these walks = "
                     f"{math.degrees(yaw_est):.1f}° pooled, per walk "
-                    f"{min(map(math.degrees, yaw_per.values())):.0f}…{max(map(math.degrees, yaw_per.values())):.0f}° "
+                    f"{math.degrees(min(yaw_per.values())):.0f}…{math.degrees(max(yaw_per.values())):.0f}° "
                     f"(applied: {math.degrees(map_yaw):.2f}°; indoor magnetic disturbance makes it wander)")
     except DatasetError as err:
         yaw_note = f"Heading check: {err}."
@@ -138,7 +138,8 @@ def _row(w, gt_len_m: float, counts: dict[str, int]) -> dict:
 
 _COLS = [("walk", "walk", "{}"), ("folder", "folder", "{}"), ("acc_raw", "acc lines", "{}"),
          ("acc_dropped", "acc dropped (stale)", "{}"), ("orient_raw", "orient lines", "{}"),
-         ("orient_dropped", "orient dropped (stale)", "{}"), ("scans", "scans", "{}"), ("aps_per_scan", "AP/scan", "{:.1f}"),
+         ("orient_dropped", "orient dropped (stale)", "{}"), ("scans", "scans", "{}"),
+         ("aps_per_scan", "AP/scan", "{:.1f}"),
          ("imu_msgs", "imu/data msgs", "{}"), ("scan_msgs", "wifi/scan msgs", "{}"),
          ("duration_s", "duration s", "{:.1f}"), ("wifi_span_s", "1st→last scan s", "{:.1f}"),
          ("gt_len_m", "GT length m", "{:.1f}"), ("n_oddities", "oddities", "{}")]
