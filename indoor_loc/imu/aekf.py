@@ -603,9 +603,8 @@ class Aekf:
         mm = None if mag is None else [[float(v) for v in mag]]
         if len(g) != 3 or len(a) != 3 or (mm is not None and len(mm[0]) != 3):
             raise ValueError("gyro, acc and mag must have 3 components")
-        st = self._st.copy()
-        _run(st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
-        self._st = st
+        # _run checks a sample before touching the state, so a rejected sample leaves it unchanged
+        _run(self._st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
 
     @property
     def initialised(self) -> bool:
