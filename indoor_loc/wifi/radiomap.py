@@ -23,8 +23,9 @@ reading is one row with empty ``bssid``/``rssi_dbm`` so it is not lost.
 
 Why CSV and not ``.npz``: the map is sparse (PUTMC: 114 scans x 119 APs, ~22 readings per scan), so
 the long format stays modest (~85 bytes a reading with full-precision positions and SSIDs: PUTMC's
-2498 readings are 209 kB; 10 000 scans of 25 APs would be ~20 MB and load in a few seconds); it is diffable, appendable by hand or by other tools (pandas, a spreadsheet, a phone
-survey app exporting CSV), carries SSIDs and free-text sources without pickling, and stays readable
+2498 readings are 209 kB; 10 000 scans of 25 APs would be ~20 MB and load in a few seconds); it is
+diffable, appendable by hand or by other tools (pandas, a spreadsheet, a phone survey app exporting
+CSV), carries SSIDs and free-text sources without pickling, and stays readable
 when the package is not installed. The manifest's counts are checked on load, so a truncated file
 is reported instead of silently giving a smaller map.
 
