@@ -260,6 +260,17 @@ def run(args) -> int:
         print("   declined: " + "; ".join(f"{k}: " + ", ".join(f"{r} {c}" for r, c in v.items())
                                           for k, v in decl.items()))
 
+    # --- covariance calibration (paper setting) ---------------------------------------------------
+    print("\n   WKNN covariance = cov_scale * weighted spread of the k neighbours + cov_floor_m^2 I "
+          "(paper setting; nominal 50 / 95):")
+    calib = []
+    for scale, floor in ((1.0, 0.01), (1.0, 1.0), (0.5, 0.75), (0.35, 1.0), (0.25, 1.25), (0.0, 2.5)):
+        s = run_method("wknn", {**PAPER, "cov_scale": scale, "cov_floor_m": floor}, rm, scans, truth)
+        calib.append({"cov_scale": scale, "cov_floor_m": floor, "cons50": s["cons50"], "cons95": s["cons95"]})
+    print("   " + "  ".join(f"{c['cov_scale']:g}/{c['cov_floor_m']:g} m: {100 * c['cons50']:.0f}/"
+                          f"{100 * c['cons95']:.0f}" for c in calib) + "   (default 0.35/1 m)")
+    report["wknn_cov_calibration"] = calib
+
     # --- grid tables ---------------------------------------------------------------------------
     print(f"\n2. WKNN grid ({'quick' if quick else 'paper'} grid, {len(paper_rows)} settings; ranked by mean "
           f"among settings locating >= {min_loc}/{n} scans)")
