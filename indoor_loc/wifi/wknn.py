@@ -15,12 +15,12 @@ candidates the scan is declined (``reason="few_candidates"``; the authors' code 
 
 Covariance (the paper gives none): the similarity-weighted spread of the k neighbour positions
 about p, scaled by ``cov_scale``, plus an isotropic floor ``cov_floor_m**2`` — the neighbours'
-spread says how ambiguous the match is, the floor covers the error common to all neighbours
-(a map scan's own distance from the truth, the map's spacing). Defaults (0.35, 1 m) were calibrated on PUTMC
-(paper setting): the 50 % / 95 % ellipses hold 53 % / 91 % of the true scan positions (``indoor-loc
-bench wifi``). The raw spread (scale 1, no floor) gives 64 % / 91 %, scale 1 with the 1 m floor 74 % / 99 %;
-the 95 % figure stays short of nominal because WKNN errors are heavy-tailed (a few fixes matched to
-the wrong corridor lie outside any ellipse a good fix should have).
+spread says how ambiguous the match is, the floor covers the error common to all neighbours (a map
+scan's own distance from the truth, the map's spacing). Defaults (0.35, 1 m) were calibrated on
+PUTMC (paper setting): the 50 % / 95 % ellipses hold 53 % / 91 % of the true scan positions
+(``indoor-loc bench wifi``). The raw spread (scale 1, no floor) gives 64 % / 91 %, scale 1 with the
+1 m floor 74 % / 99 %; the 95 % figure stays short of nominal because WKNN errors are heavy-tailed
+(a few fixes matched to the wrong corridor lie outside any ellipse a good fix should have).
 
 Index. :meth:`Wknn.fit` builds an inverted index AP -> map readings (CSR by AP column: the map
 rows that heard the AP above the threshold and their RSS) plus per-scan network counts. A query
