@@ -309,17 +309,34 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
         m00, m01, m02 = -r00 * dt, -r01 * dt, -r02 * dt
         m10, m11, m12 = -r10 * dt, -r11 * dt, -r12 * dt
         m20, m21, m22 = -r20 * dt, -r21 * dt, -r22 * dt
-        for j in rng6:  # rows 0..2 += M · rows 3..5
-            p3, p4, p5 = P[18 + j], P[24 + j], P[30 + j]
-            P[j] += m00 * p3 + m01 * p4 + m02 * p5
-            P[6 + j] += m10 * p3 + m11 * p4 + m12 * p5
-            P[12 + j] += m20 * p3 + m21 * p4 + m22 * p5
-        for i in rng6:  # cols 0..2 += cols 3..5 · Mᵀ
-            o = 6 * i
-            p3, p4, p5 = P[o + 3], P[o + 4], P[o + 5]
-            P[o] += p3 * m00 + p4 * m01 + p5 * m02
-            P[o + 1] += p3 * m10 + p4 * m11 + p5 * m12
-            P[o + 2] += p3 * m20 + p4 * m21 + p5 * m22
+        # unrolled; rows 0..2 += M · rows 3..5, then cols 0..2 += cols 3..5 · Mᵀ (P stays symmetric:
+        # only the upper triangle of the angle block is computed, the lower-left block is mirrored)
+        P[0] += m00 * P[18] + m01 * P[24] + m02 * P[30]
+        P[1] += m00 * P[19] + m01 * P[25] + m02 * P[31]
+        P[2] += m00 * P[20] + m01 * P[26] + m02 * P[32]
+        P[3] += m00 * P[21] + m01 * P[27] + m02 * P[33]
+        P[4] += m00 * P[22] + m01 * P[28] + m02 * P[34]
+        P[5] += m00 * P[23] + m01 * P[29] + m02 * P[35]
+        P[6] += m10 * P[18] + m11 * P[24] + m12 * P[30]
+        P[7] += m10 * P[19] + m11 * P[25] + m12 * P[31]
+        P[8] += m10 * P[20] + m11 * P[26] + m12 * P[32]
+        P[9] += m10 * P[21] + m11 * P[27] + m12 * P[33]
+        P[10] += m10 * P[22] + m11 * P[28] + m12 * P[34]
+        P[11] += m10 * P[23] + m11 * P[29] + m12 * P[35]
+        P[12] += m20 * P[18] + m21 * P[24] + m22 * P[30]
+        P[13] += m20 * P[19] + m21 * P[25] + m22 * P[31]
+        P[14] += m20 * P[20] + m21 * P[26] + m22 * P[32]
+        P[15] += m20 * P[21] + m21 * P[27] + m22 * P[33]
+        P[16] += m20 * P[22] + m21 * P[28] + m22 * P[34]
+        P[17] += m20 * P[23] + m21 * P[29] + m22 * P[35]
+        P[0] += P[3] * m00 + P[4] * m01 + P[5] * m02
+        P[1] = P[6] = P[1] + P[3] * m10 + P[4] * m11 + P[5] * m12
+        P[2] = P[12] = P[2] + P[3] * m20 + P[4] * m21 + P[5] * m22
+        P[7] += P[9] * m10 + P[10] * m11 + P[11] * m12
+        P[8] = P[13] = P[8] + P[9] * m20 + P[10] * m21 + P[11] * m22
+        P[14] += P[15] * m20 + P[16] * m21 + P[17] * m22
+        P[18], P[19], P[20], P[24], P[25] = P[3], P[9], P[15], P[4], P[10]
+        P[26], P[30], P[31], P[32] = P[16], P[5], P[11], P[17]
         qa = (sg2 + ksf2 * wn2) * dt
         qb = sb2 * dt
         P[0] += qa; P[7] += qa; P[14] += qa
