@@ -45,8 +45,10 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "status per AP: name=BSSID (lower-case, colon-separated), message=SSID, values rssi_dbm, "
           "frequency_mhz[, age_ms]. header.stamp = scan time"),
     Topic("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, "<user>/odom -> <user>/base_link",
-          "Integrated PDR pose in <user>/odom; twist.linear.x = walking speed m/s, twist.angular.z = "
-          "yaw rate rad/s. pose.covariance[0] carries the cumulative step count... see README"),
+          "Integrated PDR pose, one message per stepometer hop (stamped at the hop's end). Per interval: "
+          "steps = |p_i - p_(i-1)| / step_length_m (each hop is laid straight along its mean heading), "
+          "heading change = wrap(yaw_i - yaw_(i-1)); twist.linear.x = walking speed m/s, twist.angular.z "
+          "= yaw rate rad/s; yaw variance 1e6 rad^2 = heading unknown"),
     Topic("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
           "WiFi-only position of one scan; covariance x/y in m^2, yaw variance set huge (unknown)"),
     Topic("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
