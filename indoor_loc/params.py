@@ -94,7 +94,31 @@ def load_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
     for key, body in data.items():
         if not isinstance(body, dict) or "ros__parameters" not in body:
             raise ConfigError(f"params file {path}: entry {key!r} has no 'ros__parameters' mapping")
-        out[str(key)] = dict(body["ros__parameters"] or {})
+        out[str(key)] = nest_dotted(dict(body["ros__parameters"] or {}), f"params file {path}: {key}")
+    return out
+
+
+def nest_dotted(values: Mapping[str, Any], where: str = "parameters") -> dict[str, Any]:
+    """``{"wknn.k": 5}`` -> ``{"wknn": {"k": 5}}``, merged with nested mappings already there.
+    ROS 2 treats the two spellings as the same parameter; offline runs accept both too."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            value = nest_dotted(value, where)
+        parts = str(key).split(".")
+        node = out
+        for part in parts[:-1]:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ConfigError(f"{where}: {key!r} nests under {part!r}, which is a plain value")
+            node = child
+        leaf = parts[-1]
+        if isinstance(value, dict) and isinstance(node.get(leaf), dict):
+            node[leaf].update(value)
+        elif leaf in node and isinstance(node[leaf], dict) != isinstance(value, dict):
+            raise ConfigError(f"{where}: {key!r} is given both as a value and as a group")
+        else:
+            node[leaf] = value
     return out
 
 
@@ -113,5 +137,14 @@ def params_for_node(files: Mapping[str, Mapping[str, Any]], node_name: str, name
         elif k is not None and (k == fq or fnmatch.fnmatchcase(fq, k.replace("/**/", "/*/"))):
             ranked.append((2 if "*" in k else 3, key))
     for _, key in sorted(ranked):
-        merged.update(files[key])
+        _deep_update(merged, files[key])
     return merged
+
+
+def _deep_update(into: dict[str, Any], new: Mapping[str, Any]) -> None:
+    # parameter groups merge per leaf, as rcl's flat dotted names would
+    for k, v in new.items():
+        if isinstance(v, Mapping) and isinstance(into.get(k), dict):
+            _deep_update(into[k], v)
+        else:
+            into[k] = dict(v) if isinstance(v, Mapping) else v

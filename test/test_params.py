@@ -1,0 +1,61 @@
+"""Params helpers: strict construction, ROS-style params files, dotted/nested keys."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+
+from indoor_loc.errors import ConfigError
+from indoor_loc.params import field, load_params_file, params_for_node, params_from_dict, require
+
+
+@dataclass(frozen=True)
+class DemoParams:
+    gain: float = field(1.0, "gain, 1")
+    count: int = field(3, "count")
+    name: str = field("a", "name")
+    flag: bool = field(False, "flag")
+
+    def validate(self) -> None:
+        require(self.gain > 0, "DemoParams", "gain", "> 0", self.gain)
+
+
+def test_unknown_keys_and_bad_types_fail_loudly():
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        params_from_dict(DemoParams, {"gian": 2.0})
+    with pytest.raises(ConfigError, match="expected a bool"):
+        params_from_dict(DemoParams, {"flag": 1})
+    with pytest.raises(ConfigError, match=r"DemoParams.gain: expected > 0, got -1.0"):
+        params_from_dict(DemoParams, {"gain": -1})
+    p = params_from_dict(DemoParams, {"gain": 2, "count": 4.0})
+    assert p.gain == 2.0 and isinstance(p.gain, float) and p.count == 4 and isinstance(p.count, int)
+
+
+def test_params_file_precedence_and_dotted_keys(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("""
+/**:
+  ros__parameters: {gain: 1.5, wknn.k: 3}
+my_node:
+  ros__parameters: {count: 7, wknn: {shared_threshold: 0.6}}
+/walk07/my_node:
+  ros__parameters: {name: w7, wknn.k: 5}
+""")
+    files = load_params_file(f)
+    assert params_for_node(files, "my_node", "/walk07") == {
+        "gain": 1.5, "count": 7, "name": "w7", "wknn": {"k": 5, "shared_threshold": 0.6}}
+    assert params_for_node(files, "my_node", "/walk08")["wknn"] == {"k": 3, "shared_threshold": 0.6}
+    assert params_for_node(files, "other_node") == {"gain": 1.5, "wknn": {"k": 3}}
+
+
+def test_params_file_errors(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("my_node: {gain: 1}\n")
+    with pytest.raises(ConfigError, match="ros__parameters"):
+        load_params_file(bad)
+    clash = tmp_path / "clash.yaml"
+    clash.write_text("n:\n  ros__parameters: {wknn: 3, wknn.k: 4}\n")
+    with pytest.raises(ConfigError, match="wknn"):
+        load_params_file(clash)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_params_file(tmp_path / "missing.yaml")
