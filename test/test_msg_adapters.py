@@ -408,3 +408,16 @@ def test_stage_diagnostics_round_trip():
     assert d.level == 1 and d.hardware_id == "/alice"
     assert d.values["rejected.nan"] == "1" and d.values["in.in.count"] == "2"
     assert isinstance(DiagnosticArray(), type(arr))
+
+
+def test_standing_stage_error_makes_diagnostics_level_error():
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
+    from indoor_loc.params import params_from_dict
+    from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
+
+    stage = WifiFixStage(params_from_dict(WifiFixParams, {}), namespace="/alice")   # no radio map
+    st = stage_diagnostics("/alice/wifi_fix_node", stage, 1_000_000_000).status[0]
+    assert st.level == DiagnosticStatus.ERROR
+    assert "no radio map" in st.message

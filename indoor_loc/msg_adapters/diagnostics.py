@@ -21,7 +21,8 @@ class StatusSummary(NamedTuple):
 def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
     """One DiagnosticStatus for a stage: input counts/rates/last stamps, outputs, rejections.
 
-    Level: ERROR when a message raised an internal error, WARN when any was rejected, else OK.
+    Level: ERROR when a message raised an internal error or the stage reports a standing ``error``
+    (e.g. no radio map), WARN when any message was rejected, else OK.
     """
     arr = DiagnosticArray()
     arr.header.stamp = stamp_from_ns(now_ns)
@@ -33,7 +34,11 @@ def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
     st.level = DiagnosticStatus.ERROR if errors else (DiagnosticStatus.WARN if rejected else DiagnosticStatus.OK)
     st.message = f"{rejected} messages rejected (last: {stage.diag.last_error_reason})" if rejected else "ok"
     kv = dict(stage.diag.summary())
-    kv.update(stage.extra_diagnostics())
+    extra = stage.extra_diagnostics()
+    kv.update(extra)
+    if extra.get("error"):
+        st.level = DiagnosticStatus.ERROR
+        st.message = str(extra["error"]) + (f"; {st.message}" if rejected else "")
     st.values = [KeyValue(key=str(k), value=str(v)) for k, v in kv.items()]
     arr.status = [st]
     return arr
