@@ -84,3 +84,30 @@ def test_no_output_before_first_fix(rng):
     assert all(stage.process("pdr/odom", m, 0) == [] for m in odoms)
     assert stage.finish() == []
     assert "waiting" in stage.extra_diagnostics()["initialised"]
+
+
+def test_wrong_pdr_turn_restarts_the_filter_at_a_fix(rng):
+    """PDR turns left where the walker turned right. A filter confident in its heading model
+    (sigma_dtheta 0.05 rad) then gates out the fixes that follow; after ``max_rejected_fixes`` of
+    them it restarts at a fix instead of drifting away for tens of metres."""
+    n = 90
+    t = np.arange(n) * 1_000_000_000
+    true_xy = np.array([[2.0 + 2 * STEP * i, 5.0] if i < 30 else [2.0 + 2 * STEP * 29, 5.0 - 2 * STEP * (i - 29)]
+                        for i in range(n)])
+    odom_yaw = np.where(np.arange(n) < 30, 0.0, math.pi / 2)         # wrong way: left instead of right
+    pos = np.cumsum(2 * STEP * np.c_[np.cos(odom_yaw), np.sin(odom_yaw)], axis=0)
+    odoms = [odom_to_msg(int(t[i]), "u/odom", "u/base_link", pos[i, 0], pos[i, 1], odom_yaw[i], np.eye(3) * 0.1,
+                         1.3, 0.0) for i in range(n)]
+    fixes = {i: fix_to_msg(Fix(int(t[i]) + 1000, true_xy[i] + rng.normal(0, 1.0, 2), np.eye(2) * 1.0))
+             for i in range(0, n, 3)}
+    worst, restarts = {}, {}
+    for limit in (0, 2):
+        stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"max_rejected_fixes": limit, "smooth_period_s": 0.0,
+                                                               "sigma_dtheta_rad": 0.05}))
+        poses, _ = _run(stage, odoms, fixes)
+        est = [fix_from_msg(m) for m in poses]
+        idx = np.minimum(np.array([f.stamp_ns for f in est]) // 1_000_000_000, n - 1)
+        worst[limit] = float(np.max(np.linalg.norm(np.array([f.xy for f in est]) - true_xy[idx], axis=1)))
+        restarts[limit] = stage.restarts
+    assert restarts == {0: 0, 2: 1}
+    assert worst[2] < 20.0 and worst[0] > 2 * worst[2], worst
