@@ -13,11 +13,8 @@ import threading
 import time
 from typing import Any
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 
-from indoor_loc.errors import IndoorLocError
-from indoor_loc.nodes.base import StageNode, node_usage
+from indoor_loc.nodes.base import StageNode, run_stage_node
 from indoor_loc.pipeline.wifi_scan_stage import IFACE_INPUT, WifiScanStage
 from indoor_loc.wifi.iface import ScanAttempt
 
@@ -73,25 +70,7 @@ class WifiScanNode(StageNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    argv = sys.argv if args is None else args
-    if any(a in ("-h", "--help") for a in argv[1:]) and "--ros-args" not in argv:
-        print(node_usage(WifiScanStage))
-        return 0
-    rclpy.init(args=argv)
-    node = None
-    try:
-        node = WifiScanNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except IndoorLocError as err:
-        print(f"[{WifiScanStage.NODE_NAME}] configuration error: {err}", file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_stage_node(WifiScanStage, args, node_factory=WifiScanNode)
 
 
 if __name__ == "__main__":
