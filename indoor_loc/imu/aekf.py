@@ -250,7 +250,6 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
     en_lp, ed_lp = st.mag_norm_anomaly, st.mag_dip_anomaly
     t_prev = st.stamp_ns
     n_acc_skip, n_mag_skip = st.n_acc_skipped, st.n_mag_skipped
-    rng6 = range(6)
 
     for k in range(len(t)):
         tk = t[k]
