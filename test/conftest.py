@@ -7,6 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# Property tests are derandomised (a fixed seed per test) so a run does not depend on luck;
+# HYPOTHESIS_PROFILE=explore searches afresh when hunting for new counterexamples.
+settings.register_profile("default", derandomize=True, deadline=None, print_blob=True)
+settings.register_profile("explore", deadline=None, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("INDOOR_LOC_DATASETS", ROOT.parent / "shared" / "datasets"))

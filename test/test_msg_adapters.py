@@ -181,7 +181,7 @@ def scans(draw) -> WifiScan:
     fl = st.floats(min_value=-120.0, max_value=0.0, allow_nan=False)
     rssi = np.array(draw(st.lists(fl, min_size=n, max_size=n)))
     freq = np.array(draw(st.lists(st.floats(min_value=0.0, max_value=7200.0), min_size=n, max_size=n)))
-    ssid = tuple(draw(st.lists(st.text(st.characters(blacklist_characters="\0"), max_size=32), min_size=n, max_size=n)))
+    ssid = tuple(draw(st.lists(st.text(st.characters(blacklist_characters="\0", blacklist_categories=("Cs",)), max_size=32), min_size=n, max_size=n)))
     age = draw(st.one_of(st.none(), st.lists(st.one_of(st.just(math.nan), st.floats(min_value=0, max_value=1e7)),
                                              min_size=n, max_size=n)))
     if age is not None and all(math.isnan(a) for a in age):
@@ -199,6 +199,11 @@ def test_scan_round_trip_property(scan):
     assert_scans_equal(scan, scan_from_msg(msg))
     wire = deserialize_message(serialize_message(msg), DiagnosticArray)     # through CDR too
     assert_scans_equal(scan, scan_from_msg(wire))
+
+
+def test_scan_ssid_that_is_not_utf8_text_is_rejected():
+    with pytest.raises(InvalidMessageError, match="bad_ssid"):
+        scan_to_msg(make_scan(ssid=("\ud800", "ok", "ok2")))
 
 
 def test_scan_ssid_nul_removed():

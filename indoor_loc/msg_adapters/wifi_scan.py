@@ -131,6 +131,11 @@ def scan_to_msg(scan: WifiScan) -> DiagnosticArray:
     if age is not None and np.any(np.isinf(age)):
         raise InvalidMessageError("nan", "age_ms must be finite (NaN = unknown)")
     _check_arrays(bssid, rssi, freq, None if age is None else age[np.isfinite(age)])
+    for i, name in enumerate(ssid):
+        try:
+            str(name).encode("utf-8")
+        except UnicodeEncodeError as err:     # lone surrogates cannot go into a ROS string
+            raise InvalidMessageError("bad_ssid", f"AP {bssid[i]}: SSID {name!r} is not valid UTF-8 text") from err
 
     arr = DiagnosticArray()
     arr.header.stamp = stamp_from_ns(scan.stamp_ns)
