@@ -130,18 +130,10 @@ def _check_fix(fix: Fix) -> tuple[np.ndarray, np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 # Online filter
 # ----------------------------------------------------------------------------------------------
-class LinearPdrKf:
-    """Online seed-004 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
-    ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
+class StateAccessors:
+    """Read access shared by the PDR filters: ``x``, ``P``, ``position`` (2,), ``position_cov`` (2, 2)."""
+    state: KfState
 
-    def __init__(self, params: LinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
-                 pos_cov0: np.ndarray | None = None, stamp_ns: int = 0) -> None:
-        self.params = params or LinearPdrParams()
-        self.params.validate()
-        self.state = initial_state(self.params, xy0=xy0, pos_cov0=pos_cov0, stamp_ns=stamp_ns)
-        self.last_F = np.eye(4)
-
-    # -- accessors
     @property
     def x(self) -> np.ndarray:
         return self.state.x
@@ -157,6 +149,19 @@ class LinearPdrKf:
     @property
     def position_cov(self) -> np.ndarray:
         return self.state.P[:2, :2].copy()
+
+
+class LinearPdrKf(StateAccessors):
+    """Online seed-004 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
+    ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
+
+    def __init__(self, params: LinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
+                 pos_cov0: np.ndarray | None = None, stamp_ns: int = 0) -> None:
+        self.params = params or LinearPdrParams()
+        self.params.validate()
+        self.state = initial_state(self.params, xy0=xy0, pos_cov0=pos_cov0, stamp_ns=stamp_ns)
+        self.last_F = np.eye(4)
+
 
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         """Propagate ``steps`` footsteps (may be fractional, >= 0) with heading change ``dtheta`` rad."""

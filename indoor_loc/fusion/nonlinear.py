@@ -23,8 +23,8 @@ from scipy.stats import chi2
 
 from indoor_loc import params as P
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, _check_fix, joseph_update,
-                                          mahalanobis_sq)
+from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, StateAccessors, _check_fix,
+                                          joseph_update, mahalanobis_sq)
 from indoor_loc.wifi.types import Fix
 
 H_POS4 = H_POS  # the position is also the first two components of [r1, r2, theta, s]
@@ -89,7 +89,7 @@ def process_noise(p: NonlinearPdrParams, steps: float) -> np.ndarray:
     return np.diag([0.0, 0.0, n * p.sigma_dtheta_rad ** 2 + p.q_floor, n * p.sigma_ds_m ** 2 + p.q_floor])
 
 
-class _NonlinearPdrFilter:
+class _NonlinearPdrFilter(StateAccessors):
     """Shared state handling of the EKF and the UKF (the update is linear for both)."""
 
     def __init__(self, params: NonlinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
@@ -105,22 +105,6 @@ class _NonlinearPdrFilter:
             Pm[:2, :2] = np.asarray(pos_cov0, float).reshape(2, 2)
         self.state = KfState(x=x, P=Pm, stamp_ns=int(stamp_ns))
         self.last_F = np.eye(4)
-
-    @property
-    def x(self) -> np.ndarray:
-        return self.state.x
-
-    @property
-    def P(self) -> np.ndarray:
-        return self.state.P
-
-    @property
-    def position(self) -> np.ndarray:
-        return self.state.x[:2].copy()
-
-    @property
-    def position_cov(self) -> np.ndarray:
-        return self.state.P[:2, :2].copy()
 
     def _check(self, steps: float, dtheta: float) -> None:
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
