@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import array
+import argparse
 import dataclasses
 import signal
 import sys
@@ -30,7 +31,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from indoor_loc.contract import Qos, msg_class
-from indoor_loc.errors import ConfigError, IndoorLocError
+from indoor_loc.errors import BagError, ConfigError, IndoorLocError
 from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.stage import Stage
@@ -272,3 +273,20 @@ def node_usage(stage_cls: type[Stage]) -> str:
     lines.append("subscribes: " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.inputs()))
     lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs()) + ", /diagnostics")
     return "\n".join(lines)
+
+
+def run_option_node(prog: str, description: str, add_arguments: Callable[[argparse.ArgumentParser], None],
+                    run: Callable[[argparse.Namespace, list[str]], int], args: list[str] | None = None) -> int:
+    """``main()`` of a node with its own command-line options (recorder, player): the options come
+    before ``--ros-args`` and only what follows goes to rcl (so ``--remap OLD:=NEW`` is not read by
+    rcl as a deprecated remapping rule). ``run(options, rcl_args)``; ConfigError/BagError -> exit 2."""
+    argv = sys.argv if args is None else args
+    cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    add_arguments(parser)
+    options = parser.parse_args(argv[1:cut])
+    try:
+        return run(options, argv[:1] + argv[cut:])
+    except (ConfigError, BagError) as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        return 2

@@ -34,6 +34,7 @@ from indoor_loc.bag.mcap_io import DEFAULT_CHUNK_SIZE
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import msg_class
 from indoor_loc.errors import BagError, ConfigError
+from indoor_loc.nodes.base import run_option_node
 
 NODE_NAME = "recorder"
 SUB_DEPTH = 1000       # queue per subscription: a slow disk must not drop messages at 200 Hz
@@ -237,18 +238,7 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
 
 def main(args: list[str] | None = None) -> int:
     """``recorder`` executable: same options as ``indoor-loc record``, plus ``--ros-args ...``."""
-    argv = sys.argv if args is None else args
-    # Our options come before --ros-args; only what follows goes to rcl (OLD:=NEW of --remap must
-    # not be read by rcl as a deprecated remapping rule).
-    cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
-    parser = argparse.ArgumentParser(prog="recorder", description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    options = parser.parse_args(argv[1:cut])
-    try:
-        return run(options, argv[:1] + argv[cut:])
-    except (ConfigError, BagError) as err:
-        print(f"recorder: error: {err}", file=sys.stderr)
-        return 2
+    return run_option_node("recorder", __doc__.splitlines()[0], add_arguments, run, args)
 
 
 if __name__ == "__main__":
