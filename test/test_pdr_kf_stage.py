@@ -111,3 +111,29 @@ def test_wrong_pdr_turn_restarts_the_filter_at_a_fix(rng):
         restarts[limit] = stage.restarts
     assert restarts == {0: 0, 2: 1}
     assert worst[2] < 20.0 and worst[0] > 2 * worst[2], worst
+
+
+def test_pdr_arriving_late_gives_the_same_track_as_in_order(rng):
+    """The stepometer publishes each hop about half a window after its stamp: fixes must wait for
+    PDR to reach their stamp, so a 2 s delay of pdr/odom changes nothing."""
+    _, _, odoms, fixes = _walk(rng, 60)
+    smoothed = []
+    for lag in (0, 2):
+        stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+        for i in range(len(odoms) + lag):
+            if i in fixes:
+                stage.process("wifi/fix", fixes[i], 0)           # fix i arrives on time ...
+            if 0 <= i - lag < len(odoms):
+                stage.process("pdr/odom", odoms[i - lag], 0)     # ... PDR for hop i - lag only now
+        (_, path), = stage.finish()
+        smoothed.append(path_from_msg(path))
+    np.testing.assert_array_equal(smoothed[0][0], smoothed[1][0])
+    np.testing.assert_allclose(smoothed[0][1], smoothed[1][1], atol=1e-9)
+
+
+def test_fix_waits_at_most_max_fix_delay(rng):
+    _, _, _, fixes = _walk(rng, 30)
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"max_fix_delay_s": 5.0}))
+    outs = [stage.process("wifi/fix", fixes[i], 0) for i in (0, 3, 6)]    # no PDR at all: stamps 0, 3, 6 s
+    assert [len(o) for o in outs] == [0, 0, 1]                             # the 0 s fix goes once 6 s arrive
+    assert stage.kf is not None

@@ -13,6 +13,7 @@ concatenation of the segments. Later waves use it to initialise and monitor the 
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, replace
 
@@ -39,6 +40,7 @@ class PdrKfStageParams:
     sigma_ds_m: float = P.field(0.07, "step-vector length change noise per footstep (m)")
     gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
     max_rejected_fixes: int = P.field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
+    max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
     smooth_period_s: float = P.field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
     frame_id: str = P.field("map", "frame of the estimates")
 
@@ -46,6 +48,7 @@ class PdrKfStageParams:
         n = type(self).__name__
         P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         P.require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
+        P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
         P.require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
         P.require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         self.kf_params().validate()
@@ -74,6 +77,8 @@ class PdrKfStage(Stage):
         self._epochs: list[list] = []
         self._rejected_in_row = 0
         self.restarts = 0
+        self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
+        self._seq = 0
         self._last_smooth_ns: int | None = None
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
@@ -92,21 +97,38 @@ class PdrKfStage(Stage):
         if self._last_odom is not None and od.stamp_ns <= self._last_odom[3]:
             raise InvalidMessageError("non_monotonic_stamp",
                                       f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom[3]}")
+        outs = self._apply_pending(lambda s: s < od.stamp_ns)   # fixes inside the interval just closed
         prev, self._last_odom = self._last_odom, (od.x, od.y, od.yaw, od.stamp_ns)
         if prev is None or self.kf is None:
-            return []
+            return outs
         steps = math.hypot(od.x - prev[0], od.y - prev[1]) / self.params.step_length_m
         dtheta = _wrap(od.yaw - prev[2])
         self.kf.predict(steps, dtheta, stamp_ns=od.stamp_ns)
         self._epochs.append([od.stamp_ns, steps, dtheta, None])
-        outs: list[Output] = [("pdr_kf/pose", self._pose_msg(od.stamp_ns))]
+        outs.append(("pdr_kf/pose", self._pose_msg(od.stamp_ns)))
         return outs + self._maybe_smooth(od.stamp_ns)
 
     def _on_fix(self, msg, recv_ns: int) -> list[Output]:
+        """Fixes wait until PDR has caught up with their stamp (the stepometer publishes each hop
+        about half a window late), so each is applied at its place in stamp order; one older than
+        the newest odom, or waiting longer than ``max_fix_delay_s``, is applied at once."""
         fix = fix_from_msg(msg)
+        self._seq += 1
+        bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
+        last_odom = self._last_odom[3] if self._last_odom is not None else None
+        horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
+        return self._apply_pending(lambda s: s <= horizon or (last_odom is not None and s < last_odom))
+
+    def _apply_pending(self, due) -> list[Output]:
+        outs: list[Output] = []
+        while self._pending and due(self._pending[0][0]):
+            outs.append(self._apply_fix(self._pending.pop(0)[2]))
+        return outs
+
+    def _apply_fix(self, fix: Fix) -> Output:
         if self.kf is None:
             self._start(fix)
-            return [("pdr_kf/pose", self._pose_msg(fix.stamp_ns))]
+            return ("pdr_kf/pose", self._pose_msg(fix.stamp_ns))
         if self._epochs[-1][3] is not None:   # second fix in one PDR interval: a zero-step epoch
             self.kf.predict(0.0, 0.0, stamp_ns=fix.stamp_ns)
             self._epochs.append([fix.stamp_ns, 0.0, 0.0, None])
@@ -119,7 +141,7 @@ class PdrKfStage(Stage):
             if limit and self._rejected_in_row >= limit:
                 self.restarts += 1
                 self._start(fix)
-        return [("pdr_kf/pose", self._pose_msg(fix.stamp_ns))]
+        return ("pdr_kf/pose", self._pose_msg(fix.stamp_ns))
 
     def _start(self, fix: Fix) -> None:
         """(Re)start the filter at a fix: a new smoother segment."""
@@ -168,7 +190,7 @@ class PdrKfStage(Stage):
                                             stamp_ns=int(stamps[-1])))]
 
     def finish(self) -> list[Output]:
-        return self._smoothed()
+        return self._apply_pending(lambda s: True) + self._smoothed()
 
     def extra_diagnostics(self) -> dict[str, str]:
         if self.kf is None:
