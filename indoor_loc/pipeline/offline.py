@@ -158,8 +158,10 @@ def main(args: argparse.Namespace) -> int:
                     copy=[c for c in args.copy.split(",") if c], progress=not args.no_progress)
     print(f"{s.messages_in} messages in, {s.messages_out} out; {s.bag_span_s:.1f} s of bag time in "
           f"{s.wall_s:.2f} s wall ({s.bag_span_s / max(s.wall_s, 1e-9):.0f}x real time) -> {args.out}")
+    clean = [n for n, kv in s.per_stage.items() if kv.get("rejected.total", "0") == "0"]
+    print(f"  {len(s.per_stage)} node instances; {len(clean)} rejected nothing")
     for name, kv in s.per_stage.items():
-        rej = kv.get("rejected.total", "0")
-        print(f"  {name}: rejected {rej}" + ("" if rej == "0" else
-              " (" + ", ".join(f"{k[9:]}={v}" for k, v in kv.items() if k.startswith("rejected.") and k != "rejected.total") + ")"))
+        if name not in clean:
+            print(f"  {name}: rejected {kv['rejected.total']} (" + ", ".join(
+                f"{k[9:]}={v}" for k, v in kv.items() if k.startswith("rejected.") and k != "rejected.total") + ")")
     return 0
