@@ -8,10 +8,10 @@ OUT    ?= out
 
 .PHONY: demo test bench venv clean
 
-$(STAMP): requirements.txt setup.py setup.cfg
+$(STAMP): requirements.txt constraints.txt setup.py setup.cfg
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -r requirements.txt
+	$(PY) -m pip install -q -r requirements.txt -c constraints.txt
 	$(PY) -m pip install -q --no-deps -e .
 	touch $(STAMP)
 
