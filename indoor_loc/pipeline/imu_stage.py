@@ -38,18 +38,14 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import InvalidMessageError
+from indoor_loc.imu.aekf import Aekf, AekfParams
 from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
 from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
 from indoor_loc.msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
-try:  # the AEKF is optional at import time: heading_source=orientation works without it
-    from indoor_loc.imu.aekf import Aekf, AekfParams
-except ImportError:  # pragma: no cover - only while the module is absent
-    Aekf = None  # type: ignore[assignment,misc]
-    AekfParams = None  # type: ignore[assignment,misc]
 
 HEADING_SOURCES = ("auto", "aekf", "orientation")
 AEKF_PREFIX = "aekf_"
@@ -83,10 +79,7 @@ def _validate(self) -> None:
     P.require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
     self.stepometer_params().validate()
     self.pdr_params().validate()
-    if self.heading_source == "aekf" and Aekf is None:
-        raise ConfigError(f"{n}.heading_source: 'aekf' needs indoor_loc.imu.aekf, which is not available")
-    if AekfParams is not None:
-        self.aekf_params().validate()
+    self.aekf_params().validate()
 
 
 def _stepometer_params(self) -> StepometerParams:
@@ -97,15 +90,12 @@ def _pdr_params(self) -> PdrParams:
     return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
 
 
-def _aekf_params(self):
-    if AekfParams is None:
-        return None
+def _aekf_params(self) -> AekfParams:
     return AekfParams(**{f.name: getattr(self, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)})
 
 
-_fields = list(_OWN_FIELDS) + [_copy_field(f) for f in dataclasses.fields(StepometerParams)]
-if AekfParams is not None:
-    _fields += [_copy_field(f, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)]
+_fields = (list(_OWN_FIELDS) + [_copy_field(f) for f in dataclasses.fields(StepometerParams)]
+           + [_copy_field(f, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)])
 
 #: Parameters of ``imu_node``: its own, every :class:`StepometerParams` field under the same name and
 #: every ``AekfParams`` field prefixed ``aekf_`` (defaults and docs live in those classes).
@@ -134,7 +124,7 @@ class ImuStage(Stage):
         self.stepometer = Stepometer(params.stepometer_params())
         self.pdr = Pdr(params.pdr_params())
         self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.window_s))
-        self.aekf = Aekf(params.aekf_params()) if Aekf is not None else None
+        self.aekf = Aekf(params.aekf_params())
         self._acc_topic: str | None = None          # which input feeds the stepometer
         self._last_raw_ns: int | None = None
         self._last_orient_ns: int | None = None
@@ -164,7 +154,7 @@ class ImuStage(Stage):
         """The heading source in use now: 'orientation', 'aekf' or 'none'."""
         if self._external_orientation:
             return "orientation" if len(self.headings) else "none"
-        if self.params.heading_source in ("aekf", "auto") and self.aekf is not None and self.aekf.initialised:
+        if self.params.heading_source in ("aekf", "auto") and self.aekf.initialised:
             return "aekf"
         return "none"
 
@@ -180,8 +170,7 @@ class ImuStage(Stage):
             raise InvalidMessageError("non_monotonic_stamp",
                                       f"imu/data_raw stamp {s.stamp_ns} <= previous {self._last_raw_ns}")
         outs: list[Output] = []
-        run_aekf = (not self._external_orientation and self.params.heading_source in ("aekf", "auto")
-                    and self.aekf is not None)
+        run_aekf = not self._external_orientation and self.params.heading_source in ("aekf", "auto")
         if run_aekf:
             if s.gyro is None:
                 self.counts["no_gyro"] += 1
