@@ -13,7 +13,6 @@ Sections (one table each):
 """
 from __future__ import annotations
 
-import importlib
 import json
 import re
 import time
@@ -22,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from indoor_loc.bench import broad
 from indoor_loc.bench.steps_baseline import peak_steps
 from indoor_loc.imu.stepometer import Stepometer, StepometerParams, stepometer_batch, total_steps
 
@@ -214,10 +214,8 @@ def run(args) -> int:
         print(_putmc_table(prow))
     else:
         print(f"PUTMC not found under {data}/putmc: skipped\n")
-    try:
-        broad = importlib.import_module("indoor_loc.bench.broad")
-    except ImportError:
-        print("BROAD / AEKF throughput: indoor_loc.bench.broad not available: skipped\n")
+    if not broad.broad_files(data):
+        print(f"BROAD trials not found under {data}/broad: skipped\n")
     else:
         brows = broad.broad_rows(data, quick)
         report["broad"] = brows

@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.wifi.radiomap import save_radiomap
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,7 +69,7 @@ def import_putmc(args: argparse.Namespace) -> int:
 
     survey = ds.survey_map()
     rm_dir = out / "radiomap"
-    rm_note = _save_radiomap(survey, rm_dir)
+    save_radiomap(survey, rm_dir)
 
     parsed = []
     for n in walks:
@@ -100,25 +101,15 @@ def import_putmc(args: argparse.Namespace) -> int:
                     f"(applied: {math.degrees(map_yaw):.2f}°; indoor magnetic disturbance makes it wander)")
     except DatasetError as err:
         yaw_note = f"Heading check: {err}."
-    report = _report(args, rows, oddities, survey, map_yaw, rm_note, yaw_note)
+    report = _report(args, rows, oddities, survey, map_yaw, yaw_note)
     (out / "import_report.md").write_text(report)
     print(_table(rows))
-    print(f"\nradio map: {rm_dir} ({survey.n_scans} scans, {survey.n_aps} APs){rm_note}")
+    print(f"\nradio map: {rm_dir} ({survey.n_scans} scans, {survey.n_aps} APs)")
     print(f"params:    {out / 'params.yaml'}\nreport:    {out / 'import_report.md'}")
     print(f"\noddities ({len(oddities)}):")
     for o in oddities:
         print(f"  walk {o.walk:2d}  {o.kind:24s} {o.detail}")
     return 0
-
-
-def _save_radiomap(rm, directory: Path) -> str:
-    try:
-        from indoor_loc.wifi.radiomap import save_radiomap
-    except ImportError as err:
-        raise DatasetError(f"cannot write the radio map: indoor_loc.wifi.radiomap.save_radiomap is "
-                           f"unavailable ({err})") from err
-    save_radiomap(rm, directory)
-    return ""
 
 
 def _row(w, gt_len_m: float, counts: dict[str, int]) -> dict:
@@ -158,7 +149,7 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _report(args, rows, oddities, survey, map_yaw, rm_note, yaw_note) -> str:
+def _report(args, rows, oddities, survey, map_yaw, yaw_note) -> str:
     from indoor_loc.datasets.putmc import PUTMC_Y0
     lines = [
         "# PUTMC import report", "",
@@ -170,7 +161,7 @@ def _report(args, rows, oddities, survey, map_yaw, rm_note, yaw_note) -> str:
         "about z into the map frame; yaw variance = headingAcc²; no gyroscope (angular_velocity_covariance[0] = "
         "−1). ground_truth = time-stamped true scan positions (nav_msgs/Path); ground_truth/route = GT route "
         "LINE_LIST (MarkerArray); both latched, written once at the walk's first stamp.", "",
-        f"Radio map: `radiomap/`, {survey.n_scans} survey scans, {survey.n_aps} APs{rm_note}.", "", yaw_note, "",
+        f"Radio map: `radiomap/`, {survey.n_scans} survey scans, {survey.n_aps} APs.", "", yaw_note, "",
         "## Walks", "", _table(rows), "",
         "Counts: `acc lines`/`orient lines` are the raw file lines; `imu/data msgs` = acc lines − acc dropped "
         "(one message per accelerometer sample).", "",
