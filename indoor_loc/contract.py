@@ -60,6 +60,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT, "map", "Particle cloud"),
     Topic("ground_truth", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "Ground-truth route or time-stamped trajectory of the user, when known"),
+    Topic("ground_truth/route", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map",
+          "Ground-truth route of the user as LINE_LIST markers, when known (PUTMC: the GT route graph)"),
     Topic("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map", "Building link graph"),
     Topic("backend/wifi_map", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map",
           "WiFi map scan positions (fixed survey + grown from users)"),
