@@ -44,6 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from indoor_loc.errors import DatasetError
+from indoor_loc.imu import quaternion
 from indoor_loc.wifi.types import RadioMap, WifiScan
 
 PUTMC_SCALE_PX_PER_M = 28.50518            #: ``scale.map`` at the dataset root, px per metre
@@ -476,8 +477,7 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
 def quat_yaw(q_xyzw: np.ndarray) -> np.ndarray:
     """Yaw (ZYX Euler, CCW from world x), rad, of (N, 4) quaternions x, y, z, w."""
     q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
-    x, y, z, w = q.T
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return quaternion.quat_yaw(q[:, [3, 0, 1, 2]])
 
 
 def to_map_quat(q_xyzw: np.ndarray, map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> np.ndarray:

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from indoor_loc.imu.quaternion import wrap_angle
 from indoor_loc.params import field, require
 
 _DEG = math.pi / 180.0
@@ -146,10 +147,6 @@ class AekfState:
                                    enu_lp=list(self.enu_lp), enu_lp_rate=list(self.enu_lp_rate))
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
     """Tilt from the accelerometer (shortest arc a → e_z), heading from the magnetometer if any."""
     ax, ay, az = a
@@ -168,7 +165,7 @@ def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
     if m is not None:
         mx, my, mz = _rot(q, m)
         if math.hypot(mx, my) > 1e-9 * (abs(mz) + 1e-12):
-            yaw = _wrap(math.atan2(mx, my) - p.mag_declination)  # field heading east of north
+            yaw = wrap_angle(math.atan2(mx, my) - p.mag_declination)  # field heading east of north
             # rotate about ENU z by +yaw so the field points north (+ declination)
             c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
             q = [c * q[0] - s * q[3], c * q[1] - s * q[2], c * q[2] + s * q[1], c * q[3] + s * q[0]]

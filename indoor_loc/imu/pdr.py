@@ -33,15 +33,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from indoor_loc.imu.quaternion import wrap_angle
 from indoor_loc.params import field, require
 
 #: Yaw variance meaning "heading unknown", rad².
 UNKNOWN_YAW_VAR = 1e6
-
-
-def wrap_angle(a: float) -> float:
-    """Angle wrapped to [-π, π)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,12 @@
-"""Small quaternion helpers, scalar-first (w, x, y, z), Hamilton product.
+"""Small quaternion and angle helpers; quaternions scalar-first (w, x, y, z), Hamilton product.
 
 A quaternion ``q`` "device→ENU" rotates device-frame vectors into the ENU frame:
 ``v_enu = R(q) v_dev`` with ``R(q) = quat_to_rotmat(q)``. Functions accept one quaternion, shape
 (4,), or a stack, shape (N, 4), and return the same leading shape.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -60,6 +62,18 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
 def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate vector(s) ``v`` (…, 3) by ``q`` (…, 4): ``R(q) v``."""
     return np.einsum("...ij,...j->...i", quat_to_rotmat(q), np.asarray(v, dtype=float))
+
+
+def wrap_angle(a: float) -> float:
+    """Angle wrapped to [-π, π), rad."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def yaw_xyzw(q) -> float:
+    """Yaw (ZYX Euler, CCW from world x), rad, of one quaternion in ROS order x, y, z, w.
+    Plain floats: this runs once per IMU sample, where numpy's per-call overhead is 5x the math."""
+    x, y, z, w = (float(v) for v in q)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 def quat_yaw(q: np.ndarray) -> np.ndarray:

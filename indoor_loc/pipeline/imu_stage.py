@@ -41,6 +41,7 @@ from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidMessageError
 from indoor_loc.imu.aekf import Aekf, AekfParams
 from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
+from indoor_loc.imu.quaternion import yaw_xyzw
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
 from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
 from indoor_loc.msg_adapters.odom import odom_to_msg
@@ -104,11 +105,6 @@ ImuStageParams = dataclasses.make_dataclass(
     namespace={"validate": _validate, "stepometer_params": _stepometer_params, "pdr_params": _pdr_params,
                "aekf_params": _aekf_params,
                "__doc__": "Parameters of imu_node (see config/imu_node.yaml)."})
-
-
-def _yaw_of_xyzw(q: np.ndarray) -> float:
-    x, y, z, w = (float(v) for v in q)
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 class ImuStage(Stage):
@@ -188,7 +184,7 @@ class ImuStage(Stage):
                 q = self.aekf.quat_wxyz
                 cov = self.aekf.orientation_cov
                 q_xyzw = np.array([q[1], q[2], q[3], q[0]])
-                self.headings.add(s.stamp_ns, _yaw_of_xyzw(q_xyzw) + self.params.heading_offset_rad,
+                self.headings.add(s.stamp_ns, yaw_xyzw(q_xyzw) + self.params.heading_offset_rad,
                                   float(cov[2, 2]))
                 outs.append(("imu/data", imu_to_msg(s.stamp_ns, s.frame_id, s.acc, s.gyro, q_xyzw, cov)))
                 if len(self._published_stamps) == self._published_stamps.maxlen:
@@ -226,7 +222,7 @@ class ImuStage(Stage):
             var = float(s.orientation_cov[2, 2]) if s.orientation_cov is not None else 0.0
             if not math.isfinite(var) or var <= 0.0:
                 var = self.params.default_yaw_std_rad ** 2
-            self.headings.add(s.stamp_ns, _yaw_of_xyzw(s.quat_xyzw) + self.params.heading_offset_rad, var)
+            self.headings.add(s.stamp_ns, yaw_xyzw(s.quat_xyzw) + self.params.heading_offset_rad, var)
         return outs + self._hops(hops)
 
     def _hops(self, hops: list[StepHop]) -> list[Output]:

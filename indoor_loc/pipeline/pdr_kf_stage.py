@@ -24,6 +24,7 @@ from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidMessageError
 from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           rts_smooth)
+from indoor_loc.imu.quaternion import wrap_angle
 from indoor_loc.msg_adapters.odom import odom_from_msg
 from indoor_loc.msg_adapters.path import path_to_msg
 from indoor_loc.msg_adapters.pose import fix_from_msg, fix_to_msg
@@ -57,10 +58,6 @@ class PdrKfStageParams:
         gate = self.gate_prob < 1.0
         return LinearPdrParams(step_length_m=self.kf_step_length_m, sigma_dtheta_rad=self.sigma_dtheta_rad,
                                sigma_ds_m=self.sigma_ds_m, gate=gate, gate_prob=self.gate_prob if gate else 0.5)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class PdrKfStage(Stage):
@@ -102,7 +99,7 @@ class PdrKfStage(Stage):
         if prev is None or self.kf is None:
             return outs
         steps = math.hypot(od.x - prev[0], od.y - prev[1]) / self.params.step_length_m
-        dtheta = _wrap(od.yaw - prev[2])
+        dtheta = wrap_angle(od.yaw - prev[2])
         self.kf.predict(steps, dtheta, stamp_ns=od.stamp_ns)
         self._epochs.append([od.stamp_ns, steps, dtheta, None])
         outs.append(("pdr_kf/pose", self._pose_msg(od.stamp_ns)))
