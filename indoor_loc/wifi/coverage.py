@@ -33,7 +33,7 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.errors import InvalidMessageError, MapError
-from indoor_loc.wifi.types import Fix, Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, Fix, Positioner, RadioMap, WifiScan
 
 
 @dataclass(frozen=True)
@@ -137,8 +137,7 @@ class CoverageArea(Positioner):
     def __init__(self, params: CoverageParams | None = None) -> None:
         self.params = params or CoverageParams()
         self.params.validate()
-        self.bssids: list[str] = []
-        self._col: dict[str, int] = {}
+        self.aps = ApIndex()
         self.weak = CaLevel.empty(0, self.params.prior_weak_m2)
         self.strong = CaLevel.empty(0, self.params.prior_strong_m2)
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -146,14 +145,18 @@ class CoverageArea(Positioner):
     # ------------------------------------------------------------------------------------------
     # Radio map
     # ------------------------------------------------------------------------------------------
+    @property
+    def bssids(self) -> list[str]:
+        """The APs (column order) this method knows."""
+        return self.aps.bssids
+
     def fit(self, radio_map: RadioMap) -> "CoverageArea":
         """Build both CA levels from a radio map (eqs. 26–27, vectorised over APs)."""
         pos = np.asarray(radio_map.positions, float)
         rss = np.asarray(radio_map.rssi_dbm, float)
         if pos.ndim != 2 or pos.shape[1] != 2 or rss.shape != (len(pos), len(radio_map.bssids)):
             raise MapError(f"coverage: radio map expected positions (M, 2) and rssi (M, A), got {pos.shape}, {rss.shape}")
-        self.bssids = list(radio_map.bssids)
-        self._col = {b: i for i, b in enumerate(self.bssids)}
+        self.aps = ApIndex(radio_map.bssids)
         A = len(self.bssids)
         self.weak = CaLevel.empty(A, self.params.prior_weak_m2)
         self.strong = CaLevel.empty(A, self.params.prior_strong_m2)
@@ -174,15 +177,11 @@ class CoverageArea(Positioner):
         xy = np.asarray(xy, float).reshape(2)
         if not np.all(np.isfinite(xy)):
             raise InvalidMessageError("nan", f"coverage.add_fingerprint: expected a finite position, got {xy}")
-        for b in scan.bssid:
-            if b not in self._col:
-                self._col[b] = len(self.bssids)
-                self.bssids.append(b)
+        idx = np.array([self.aps.add(b) for b in scan.bssid], dtype=np.int64)
         A = len(self.bssids)
         self.weak.grow(A)
         self.strong.grow(A)
         r = np.asarray(scan.rssi_dbm, float)
-        idx = np.array([self._col[b] for b in scan.bssid], dtype=np.int64)
         ok = np.isfinite(r) & (r >= self.params.min_signal_dbm)
         for lev, sel in ((self.weak, ok), (self.strong, ok & (r >= self.params.strong_rssi_dbm))):
             j = idx[sel]
@@ -205,7 +204,7 @@ class CoverageArea(Positioner):
         after the minimum-size step when enabled."""
         p = self.params
         r = np.asarray(scan.rssi_dbm, float)
-        idx = np.array([self._col.get(b, -1) for b in scan.bssid], dtype=np.int64)
+        idx = self.aps.columns(scan.bssid)
         keep = (idx >= 0) & np.isfinite(r) & (r >= p.min_signal_dbm)
         idx, r = idx[keep], r[keep]
         keep = self.weak.n[idx] > 0

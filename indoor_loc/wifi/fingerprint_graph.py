@@ -38,7 +38,7 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.errors import ConfigError, MapError
-from indoor_loc.wifi.types import RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, RadioMap, WifiScan
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 
@@ -81,8 +81,7 @@ class FingerprintGraph:
     def __init__(self, params: FingerprintGraphParams | None = None) -> None:
         self.params = params or FingerprintGraphParams()
         self.params.validate()
-        self.bssids: list[str] = []
-        self._col: dict[str, int] = {}
+        self.aps = ApIndex()
         self.node_xy = np.zeros((0, 2))
         self.link_nodes = np.zeros((0, 2), np.int64)
         self.mu = np.zeros((0, 0))
@@ -90,6 +89,11 @@ class FingerprintGraph:
         self.pdet = np.zeros((0, 0))
         self._log_miss = np.zeros((0, 0))
         self._log_miss_sum = np.zeros(0)
+
+    @property
+    def bssids(self) -> list[str]:
+        """The APs (column order) this method knows."""
+        return self.aps.bssids
 
     def fit(self, radio_map: RadioMap, node_xy: np.ndarray, link_nodes: np.ndarray) -> "FingerprintGraph":
         """Build the vertex models. node_xy (V, 2) or (V, 3) m (only x, y are used: one floor);
@@ -110,8 +114,7 @@ class FingerprintGraph:
                            f"{pos.shape}, {rss.shape}")
         self.node_xy = node_xy[:, :2].copy()
         self.link_nodes = link_nodes.astype(np.int64)
-        self.bssids = list(radio_map.bssids)
-        self._col = {b: i for i, b in enumerate(self.bssids)}
+        self.aps = ApIndex(radio_map.bssids)
         V, (M, A) = len(node_xy), rss.shape
         heard = np.isfinite(rss) & (np.nan_to_num(rss, nan=-999.0) >= p.min_signal_dbm)
         z = np.where(heard, rss, 0.0)
@@ -174,7 +177,7 @@ class FingerprintGraph:
     def scan_columns(self, scan: WifiScan) -> tuple[np.ndarray, np.ndarray]:
         """(map column index (K,), rssi (K,)) of the scan's readings the map knows."""
         r = np.asarray(scan.rssi_dbm, float)
-        idx = np.array([self._col.get(b, -1) for b in scan.bssid], dtype=np.int64)
+        idx = self.aps.columns(scan.bssid)
         keep = (idx >= 0) & np.isfinite(r) & (r >= self.params.min_signal_dbm)
         return idx[keep], r[keep]
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.errors import MapError
-from indoor_loc.wifi.types import Fix, Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, Fix, Positioner, RadioMap, WifiScan
 
 LN10 = np.log(10.0)
 
@@ -99,8 +99,7 @@ class PathLoss(Positioner):
     def __init__(self, params: PathLossParams | None = None) -> None:
         self.params = params or PathLossParams()
         self.params.validate()
-        self.bssids: list[str] = []
-        self._col: dict[str, int] = {}
+        self.aps = ApIndex()
         self.theta = np.zeros((0, 4))
         self.theta_cov = np.zeros((0, 4, 4))
         self.sigma2 = np.zeros(0)
@@ -108,6 +107,11 @@ class PathLoss(Positioner):
         self.bbox = np.array([[-np.inf, -np.inf], [np.inf, np.inf]])
 
     # ------------------------------------------------------------------------------------------
+    @property
+    def bssids(self) -> list[str]:
+        """The APs (column order) this method knows."""
+        return self.aps.bssids
+
     def fit(self, radio_map: RadioMap) -> "PathLoss":
         """Fit every AP's [A, n, px, py] and its covariance from the radio map (vectorised)."""
         p = self.params
@@ -116,8 +120,7 @@ class PathLoss(Positioner):
         if pos.ndim != 2 or pos.shape[1] != 2 or rss.shape != (len(pos), len(radio_map.bssids)) or len(pos) == 0:
             raise MapError(f"pathloss: radio map expected positions (M, 2), M > 0, and rssi (M, A), got "
                            f"{pos.shape}, {rss.shape}")
-        self.bssids = list(radio_map.bssids)
-        self._col = {b: i for i, b in enumerate(self.bssids)}
+        self.aps = ApIndex(radio_map.bssids)
         self.bbox = np.array([pos.min(0) - p.clip_margin_m, pos.max(0) + p.clip_margin_m])
         Z = rss.T  # (A, M)
         mask = np.isfinite(Z) & (np.nan_to_num(Z, nan=-999.0) >= p.min_signal_dbm)
@@ -217,7 +220,7 @@ class PathLoss(Positioner):
         if not self.bssids:
             return Fix(scan.stamp_ns, nan2, big, ok=False, reason="no_map")
         r = np.asarray(scan.rssi_dbm, float)
-        idx = np.array([self._col.get(b, -1) for b in scan.bssid], dtype=np.int64)
+        idx = self.aps.columns(scan.bssid)
         keep = (idx >= 0) & np.isfinite(r) & (r >= p.min_signal_dbm)
         keep[keep] &= self.usable[idx[keep]]
         idx, z = idx[keep], r[keep]

@@ -84,18 +84,42 @@ class RadioMap:
     def n_aps(self) -> int:
         return len(self.bssids)
 
-    def column_of(self) -> dict[str, int]:
-        return {b: i for i, b in enumerate(self.bssids)}
+    def ap_index(self) -> "ApIndex":
+        """BSSID -> column of this map (a new index; it does not follow later edits of the map)."""
+        return ApIndex(self.bssids)
 
     def scan_vector(self, scan: WifiScan) -> np.ndarray:
         """The scan as an (A,) vector in this map's AP order, NaN for APs not heard or unknown."""
-        cols = self.column_of()
+        cols = self.ap_index().columns(scan.bssid)
         v = np.full(self.n_aps, np.nan)
-        for b, r in zip(scan.bssid, scan.rssi_dbm):
-            j = cols.get(b)
-            if j is not None:
-                v[j] = r
+        known = cols >= 0
+        v[cols[known]] = np.asarray(scan.rssi_dbm, float)[known]
         return v
+
+
+class ApIndex:
+    """BSSID -> column in a radio map's AP order, shared by the positioning methods; grows when a
+    method learns new APs (``add``)."""
+
+    def __init__(self, bssids=()) -> None:
+        self.bssids: list[str] = list(bssids)
+        self._col = {b: i for i, b in enumerate(self.bssids)}
+
+    def __len__(self) -> int:
+        return len(self.bssids)
+
+    def columns(self, bssids) -> np.ndarray:
+        """Columns (K,) int64 of the given BSSIDs, -1 for APs not in the index."""
+        get = self._col.get
+        return np.fromiter((get(b, -1) for b in bssids), dtype=np.int64, count=len(bssids))
+
+    def add(self, bssid: str) -> int:
+        """The column of ``bssid``, appended as a new column if unknown."""
+        j = self._col.get(bssid)
+        if j is None:
+            j = self._col[bssid] = len(self.bssids)
+            self.bssids.append(bssid)
+        return j
 
 
 class Positioner:

@@ -40,7 +40,7 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.errors import MapError
-from indoor_loc.wifi.types import Fix, Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, Fix, Positioner, RadioMap, WifiScan
 
 ERROR_TYPES = ("l2", "l1", "rms", "mae")
 
@@ -84,7 +84,7 @@ class Wknn(Positioner):
         self.params = params or WknnParams()
         self.params.validate()
         self.radio_map: RadioMap | None = None
-        self._col: dict[str, int] = {}
+        self.aps = ApIndex()
         self._n_map = np.zeros(0)                    # (M,) usable networks per map scan
         self._pos = np.zeros((0, 2))                 # (M, 2) map positions, m
         self._inv_ptr = np.zeros(1, np.int64)        # (A + 1,) CSR column pointers
@@ -102,7 +102,7 @@ class Wknn(Positioner):
             raise MapError("wknn: the radio map has no scans")
         usable = ~np.isnan(rss) & (np.nan_to_num(rss, nan=-np.inf) >= self.params.min_signal_dbm)
         self.radio_map = radio_map
-        self._col = {b: j for j, b in enumerate(radio_map.bssids)}
+        self.aps = ApIndex(radio_map.bssids)
         self._n_map = usable.sum(axis=1).astype(float)
         self._pos = pos
         # inverted index AP -> map scans (CSR by column): rows and RSS of each column's readings
@@ -123,14 +123,9 @@ class Wknn(Positioner):
         thr = self.params.min_signal_dbm
         r = np.asarray(scan.rssi_dbm, float)
         ok = np.isfinite(r) & (r >= thr)
-        cols, vals = [], []
-        for b, v, good in zip(scan.bssid, r, ok):
-            if good:
-                j = self._col.get(b)
-                if j is not None:
-                    cols.append(j)
-                    vals.append(v)
-        return np.array(cols, np.int64), np.array(vals, float), int(ok.sum())
+        cols = self.aps.columns(scan.bssid)
+        keep = ok & (cols >= 0)
+        return cols[keep], r[keep], int(ok.sum())
 
     def _distances_inverted(self, cols: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One query through the inverted index: cols (q,), vals (q,). Touches only the readings of
