@@ -108,7 +108,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                 writer.write(join_ns(ns, rel), msg, stamp if stamp else now_ns)
                 summary.messages_out += 1
                 for s in stages.get(ns, []):
-                    if s is not producer and rel in s._handlers:
+                    if s is not producer and s.handles(rel):
                         emit(ns, s, s.process(rel, msg, now_ns), now_ns)
 
         def tick(now_ns: int) -> None:
@@ -133,7 +133,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
             if rel in copy:
                 writer.write(m.topic, m.msg, now)
             for s in stages.get(ns, []):
-                if rel in s._handlers:
+                if s.handles(rel):
                     emit(ns, s, s.process(rel, m.msg, now), now)
         end = last_ns or 0
         for ns, lst in stages.items():

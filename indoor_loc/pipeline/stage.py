@@ -83,6 +83,10 @@ class Stage:
         """Register ``handler(msg, recv_ns) -> outputs`` for an input topic (call in __init__)."""
         self._handlers[topic] = handler
 
+    def handles(self, topic: str) -> bool:
+        """True if the stage takes messages on this (relative) input topic."""
+        return topic in self._handlers
+
     def tick(self, now_ns: int) -> list[Output]:
         """Periodic work (timers); called about once a second live and in bag time offline."""
         return []
