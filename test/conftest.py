@@ -40,9 +40,12 @@ def rng() -> np.random.Generator:
 def ros_domain(monkeypatch) -> int:
     """A ROS_DOMAIN_ID of its own for a test that talks DDS, so parallel runs don't cross-talk.
     Child processes inherit it through the environment."""
+    # INDOOR_LOC_DOMAIN_BASE moves the whole range, so suites run side by side on one machine
+    # (e.g. two checkouts) do not share domains; each xdist worker takes its own 13 ids.
+    first = int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1"))
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-    base = 1 + (int(worker[2:]) if worker[2:].isdigit() else 0) * 40
-    domain = base + random.Random(os.getpid() ^ id(monkeypatch)).randrange(40)
+    base = first + (int(worker[2:]) if worker[2:].isdigit() else 0) * 13
+    domain = base + random.Random(os.getpid() ^ id(monkeypatch)).randrange(13)
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return domain
