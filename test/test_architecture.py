@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "indoor_loc"
-CORE = ("imu", "wifi", "eval", "graph", "fusion")       # pure numpy/scipy: no ROS at all
+CORE = ("imu", "wifi", "eval", "graph", "fusion", "pf")       # pure numpy/scipy: no ROS at all
 ROS_MSG_SUFFIX = "_msgs"
 
 
