@@ -68,6 +68,7 @@ class PfParams:
     init_sigma_extra_m: float = P.field(2.0, "initial cloud: fix covariance inflated by this std per axis (m)")
     reinit_mahalanobis2: float = P.field(40.0, "re-initialise around a fix when every particle's squared Mahalanobis distance exceeds this")
     reinit_fraction: float = P.field(0.5, "fraction of particles redrawn at a re-initialisation")
+    inject_fraction: float = P.field(0.15, "at every WiFi fix this fraction of the lowest-weight particles is redrawn around the fix (sensor resetting)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -78,7 +79,8 @@ class PfParams:
                      "fix_sigma_extra_m", "init_sigma_extra_m", "yaw_offset_sigma_rad"):
             P.require(getattr(self, name) >= 0, n, name, ">= 0", getattr(self, name))
         P.require(self.heading_sigma_rad > 0, n, "heading_sigma_rad", "> 0", self.heading_sigma_rad)
-        for name in ("p_stop", "p_start", "heading_floor", "u_turn_prob", "fix_outlier_prob", "reinit_fraction"):
+        for name in ("p_stop", "p_start", "heading_floor", "u_turn_prob", "fix_outlier_prob", "reinit_fraction",
+                     "inject_fraction"):
             P.require(0 <= getattr(self, name) <= 1, n, name, "in [0, 1]", getattr(self, name))
         P.require(self.reinit_mahalanobis2 > 0, n, "reinit_mahalanobis2", "> 0", self.reinit_mahalanobis2)
 
@@ -347,6 +349,26 @@ class GraphParticleFilter:
             p.log_w = np.full(n, -np.log(n))
             d = particle_xy(self.g, p) - np.asarray(mean, float)
             m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+        elif pp.inject_fraction > 0:
+            # sensor resetting (Lenser & Veloso 2000; the augmented MCL of Thrun et al.,
+            # Probabilistic Robotics §8.3.5): the least likely particles are redrawn around the fix
+            # with an average weight, so a filter that started from an outlier fix or fell behind
+            # the walker can jump to where the WiFi says it is; the likelihood below weighs them.
+            n = len(p)
+            k = int(round(pp.inject_fraction * n))
+            if k:
+                idx = np.argpartition(p.log_w, k - 1)[:k]
+                link, t = self.sample_gaussian(mean, cov, k, rng)
+                donors = rng.integers(0, n, k)
+                p.link[idx] = link
+                p.pos[idx] = t * self.g.link_len[link]
+                p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
+                p.scale[idx] = p.scale[donors]
+                p.yaw_offset[idx] = p.yaw_offset[donors]
+                p.log_w[idx] = -np.log(n)
+                p.log_w = normalise_log(p.log_w)
+                d = particle_xy(self.g, p) - np.asarray(mean, float)
+                m2 = np.einsum("ni,ij,nj->n", d, Si, d)
         log_g = -0.5 * m2 - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
         # outlier: uniform over a 50 m x 50 m area
         log_l = np.logaddexp(np.log1p(-pp.fix_outlier_prob) + log_g, np.log(pp.fix_outlier_prob / 2500.0))
