@@ -15,7 +15,8 @@ wait, :func:`merge_events` is the batch equivalent, and both give the same order
 - a magnetometer sample whose stamp lies before an IMU sample already released is *late*: it is
   dropped and counted (``n_late``), never applied out of order.
 
-So online = batch whenever no magnetometer sample is later than ``max_delay_s`` (in IMU stamp time).
+So online = batch whenever no magnetometer sample is later than ``max_delay_s`` (in IMU stamp time)
+and the first one is not late (before it, IMU samples are not held).
 Times are int nanoseconds.
 """
 from __future__ import annotations
