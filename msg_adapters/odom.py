@@ -14,7 +14,7 @@ from geometry_msgs.msg import Quaternion
 from nav_msgs.msg import Odometry
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
+from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
 
 PLANAR_IDX = (0, 1, 5)          # x, y, yaw in a 6x6 ROS covariance
 

@@ -8,8 +8,8 @@ import pytest
 
 from indoor_loc.errors import ConfigError
 from indoor_loc.imu.pdr import recover_intervals
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
-from indoor_loc.msg_adapters.odom import odom_from_msg
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
+from msg_adapters.odom import odom_from_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.imu_stage import ImuStage, ImuStageParams
 

@@ -25,9 +25,9 @@ from indoor_loc.errors import InvalidMessageError
 from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           rts_smooth)
 from indoor_loc.imu.quaternion import wrap_angle
-from indoor_loc.msg_adapters.odom import odom_from_msg
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import fix_from_msg, fix_to_msg
+from msg_adapters.odom import odom_from_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import fix_from_msg, fix_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.wifi.types import Fix
 
