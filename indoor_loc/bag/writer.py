@@ -1,4 +1,4 @@
-"""MCAP bags as rosbag2 writes them: write, read (merged over files), list topics, recover.
+"""Write MCAP bags as rosbag2 writes them (:class:`BagWriter`).
 
 A file written here is what ``ros2 bag record -s mcap`` (Jazzy) would write for the same messages:
 profile ``ros2``; one schema per type (encoding ``ros2msg``, the full concatenated ``.msg`` text, see
@@ -8,33 +8,20 @@ profile ``ros2``; one schema per type (encoding ``ros2msg``, the full concatenat
 bag's ``metadata.yaml`` content (version 9); chunked (zstd or lz4) with message indexes and a summary.
 
 Every record reaches the file when its chunk closes (the stream is flushed after each write), so a
-writer killed with SIGKILL loses at most the chunk in progress; :func:`recover` rewrites such a
-file into a valid one.
+writer killed with SIGKILL loses at most the chunk in progress; :func:`indoor_loc.bag.recover.recover`
+rewrites such a file into a valid one.
 """
 from __future__ import annotations
 
-import heapq
-import io
 import os
-import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator, NamedTuple, Sequence
+from typing import Any, Sequence
 
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Message, Schema
-from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-try:
-    from zstandard import ZstdError
-except ImportError:                      # without zstandard the mcap library reads no zstd chunk anyway
-    ZstdError = McapError                # type: ignore[misc,assignment]
-
 from indoor_loc.bag.schemas import message_definition, qos_dict, qos_yaml, type_hash
-from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns, type_name_of
+from indoor_loc.contract import TOPICS, Qos, split_ns, type_name_of
 from indoor_loc.errors import BagError
 
 PROFILE = "ros2"
@@ -44,8 +31,6 @@ METADATA_NAME = "rosbag2"
 BAG_VERSION = 9                      # rosbag2 metadata version of Jazzy
 DEFAULT_CHUNK_SIZE = 1 << 20         # bytes of uncompressed records per chunk
 LIBRARY = "indoor_loc"
-_MAGIC = b"\x89MCAP0\r\n"
-_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_DATA_END = 1, 2, 3, 4, 5, 6, 15
 
 # Offered QoS written for topics whose publisher QoS is not known (offline outputs): the QoS the
 # live node would offer for that contract topic.
@@ -55,33 +40,6 @@ _CONTRACT_QOS = {
     Qos.LATCHED: dict(reliability="reliable", durability="transient_local", depth=1),
     Qos.BEST_EFFORT: dict(reliability="best_effort", depth=5),
 }
-
-
-class BagMessage(NamedTuple):
-    """One deserialised message: full topic name, ``pkg/msg/Name``, log time in ns, rclpy message."""
-    topic: str
-    type: str
-    stamp_ns: int
-    msg: Any
-
-
-class RawMessage(NamedTuple):
-    """One message as stored: CDR bytes, log and publish time in ns."""
-    topic: str
-    type: str
-    stamp_ns: int
-    data: bytes
-    publish_ns: int
-
-
-@dataclass(frozen=True)
-class TopicInfo:
-    """A channel of a bag: type, message count and the offered QoS text as recorded."""
-    topic: str
-    type: str
-    count: int
-    qos_yaml: str = ""
-    type_hash: str = ""
 
 
 def contract_qos_profiles(topic: str) -> list[dict[str, Any]]:
@@ -297,242 +255,3 @@ class BagWriter:
             "ros_distro": self._ros_distro,
         }
         return yaml.safe_dump(meta, sort_keys=False, default_flow_style=False)
-
-
-# -- reading ---------------------------------------------------------------------------------------
-def bag_files(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
-    """Bag files; a directory (``ros2 bag record`` writes one) stands for the ``.mcap`` files in it."""
-    items = [Path(paths)] if isinstance(paths, (str, os.PathLike)) else [Path(p) for p in paths]
-    out: list[Path] = []
-    for p in items:
-        if p.is_dir():
-            files = sorted(p.glob("*.mcap"))
-            if not files:
-                raise BagError(f"bag directory {p} holds no .mcap file")
-            out += files
-        else:
-            out.append(p)
-    return out
-
-
-def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, RawMessage]]:
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            for schema, channel, message in reader.iter_messages(
-                    topics=sorted(topics) if topics is not None else None, log_time_order=True):
-                yield (message.log_time, message.sequence,
-                       RawMessage(channel.topic, schema.name if schema else "", message.log_time,
-                                  message.data, message.publish_time))
-    except FileNotFoundError as err:
-        raise BagError(f"bag {path} does not exist") from err
-    except (McapError, ZstdError, struct.error, ValueError, EOFError) as err:
-        raise BagError(f"bag {path} cannot be read ({type(err).__name__}: {err}); if its writer was "
-                       f"killed, run `indoor-loc bag recover {path} FIXED.mcap`") from err
-
-
-def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
-             topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
-    """Stored messages of one or more bags merged in log-time order (ties: file order, then sequence)."""
-    wanted = set(topics) if topics is not None else None
-    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(bag_files(paths))]
-    for _, _, _, m in heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2])):
-        yield m
-
-
-def read_bag(paths: str | os.PathLike | Iterable[str | os.PathLike],
-             topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
-    """Messages of one or more bags in log-time order, deserialised to rclpy message classes.
-
-    Args:
-        paths: one bag or several (merged, e.g. one per user).
-        topics: full topic names to keep (default all).
-    """
-    from rclpy.serialization import deserialize_message
-    classes: dict[str, type] = {}
-    for m in read_raw(paths, topics):
-        cls = classes.get(m.type)
-        if cls is None:
-            try:
-                cls = classes[m.type] = msg_class(m.type)
-            except (ImportError, AttributeError, ValueError) as err:
-                raise BagError(f"topic {m.topic}: message type {m.type!r} is not importable") from err
-        yield BagMessage(m.topic, m.type, m.stamp_ns, deserialize_message(m.data, cls))
-
-
-def bag_info(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> dict[str, TopicInfo]:
-    """Topics of the bags with type, message count and recorded QoS (summary, or a scan without one)."""
-    out: dict[str, TopicInfo] = {}
-    for path in bag_files(paths):
-        for name, info in _file_topics(path).items():
-            prev = out.get(name)
-            if prev is not None and prev.type != info.type:
-                raise BagError(f"topic {name} is {prev.type} in one bag and {info.type} in {path}")
-            out[name] = info if prev is None else TopicInfo(name, info.type, prev.count + info.count,
-                                                            prev.qos_yaml or info.qos_yaml,
-                                                            prev.type_hash or info.type_hash)
-    return out
-
-
-def bag_topics(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> dict[str, tuple[str, int]]:
-    """``{topic: (type, message count)}`` over one or more bags."""
-    return {name: (i.type, i.count) for name, i in bag_info(paths).items()}
-
-
-def _file_topics(path: Path) -> dict[str, TopicInfo]:
-    try:
-        with open(path, "rb") as f:
-            summary = None
-            try:
-                summary = make_reader(f).get_summary()
-            except (McapError, struct.error, ValueError, OSError):
-                summary = None
-            if summary is not None and summary.statistics is not None:
-                counts = summary.statistics.channel_message_counts
-                return {c.topic: TopicInfo(c.topic, summary.schemas[c.schema_id].name if c.schema_id else "",
-                                           counts.get(cid, 0), c.metadata.get("offered_qos_profiles", ""),
-                                           c.metadata.get("topic_type_hash", ""))
-                        for cid, c in summary.channels.items()}
-    except FileNotFoundError as err:
-        raise BagError(f"bag {path} does not exist") from err
-    scan = scan_records(path)
-    if scan.truncated:
-        raise BagError(f"bag {path} has no summary and ends in a partial record (writer killed?); run "
-                       f"`indoor-loc bag recover {path} FIXED.mcap`")
-    return {c.topic: TopicInfo(c.topic, scan.schemas[c.schema_id].name if c.schema_id in scan.schemas else "",
-                               scan.counts.get(cid, 0), c.metadata.get("offered_qos_profiles", ""),
-                               c.metadata.get("topic_type_hash", ""))
-            for cid, c in scan.channels.items()}
-
-
-# -- recovery --------------------------------------------------------------------------------------
-@dataclass
-class ScanResult:
-    """What a linear scan of a (possibly truncated) MCAP file found."""
-    schemas: dict[int, Schema] = field(default_factory=dict)
-    channels: dict[int, Channel] = field(default_factory=dict)
-    counts: dict[int, int] = field(default_factory=dict)
-    messages: int = 0
-    chunks: int = 0
-    bad_chunks: int = 0
-    complete: bool = False           # reached the footer
-    truncated: bool = False          # ended inside a record
-    valid_bytes: int = 0             # offset after the last whole record read
-
-
-def _iter_records(path: Path, result: ScanResult) -> Iterator[Schema | Channel | Message]:
-    """Schemas, channels and messages of ``path`` in file order, stopping cleanly at a truncated
-    record or a chunk that fails its CRC / decompression (which is counted and skipped)."""
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        if f.read(len(_MAGIC)) != _MAGIC:
-            raise BagError(f"{path} is not an MCAP file (bad magic)")
-        pos = len(_MAGIC)
-        result.valid_bytes = pos
-        while True:
-            head = f.read(9)
-            if len(head) < 9:
-                result.truncated = pos < size
-                return
-            opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
-            if pos + 9 + length > size:
-                result.truncated = True
-                return
-            body = f.read(length)
-            pos += 9 + length
-            if opcode == _OP_FOOTER:
-                result.valid_bytes = pos
-                result.complete = True
-                return
-            records: list[Any] = []
-            try:
-                if opcode == _OP_CHUNK:
-                    chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
-                    records = breakup_chunk(chunk, validate_crc=True)
-                    result.chunks += 1
-                elif opcode == _OP_SCHEMA:
-                    records = [Schema.read(ReadDataStream(io.BytesIO(body)))]
-                elif opcode == _OP_CHANNEL:
-                    records = [Channel.read(ReadDataStream(io.BytesIO(body)))]
-                elif opcode == _OP_MESSAGE:
-                    records = [Message.read(ReadDataStream(io.BytesIO(body)), length)]
-            except (McapError, ZstdError, ValueError, struct.error, EOFError, RuntimeError):
-                # a damaged record (CRC mismatch, bad compression): skip it, keep what follows
-                if opcode == _OP_CHUNK:
-                    result.bad_chunks += 1
-                continue
-            result.valid_bytes = pos
-            for r in records:
-                if isinstance(r, Schema):
-                    result.schemas[r.id] = r
-                elif isinstance(r, Channel):
-                    result.channels[r.id] = r
-                elif isinstance(r, Message):
-                    result.messages += 1
-                    result.counts[r.channel_id] = result.counts.get(r.channel_id, 0) + 1
-                else:
-                    continue
-                yield r
-
-
-def scan_records(path: str | os.PathLike) -> ScanResult:
-    """Scan a bag linearly (no summary needed) and count what is readable."""
-    result = ScanResult()
-    for _ in _iter_records(Path(path), result):
-        pass
-    return result
-
-
-@dataclass(frozen=True)
-class RecoverResult:
-    """Counts of a :func:`recover` run."""
-    messages: int
-    topics: int
-    chunks: int
-    bad_chunks: int
-    truncated: bool
-    lost_bytes: int
-    messages_without_channel: int
-
-
-def recover(src: str | os.PathLike, dst: str | os.PathLike, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
-            compression: str = "zstd") -> RecoverResult:
-    """Rewrite a bag whose writer died (no summary, maybe a partial last chunk) into a valid bag
-    holding every message of every complete chunk, with schemas, channels and QoS kept.
-
-    Returns counts; raises BagError if ``src`` is not an MCAP file at all."""
-    src, dst = Path(src), Path(dst)
-    if not src.is_file():
-        raise BagError(f"bag {src} does not exist")
-    if src.resolve() == dst.resolve():
-        raise BagError("recover: output must be a different file from the input")
-    scan = ScanResult()
-    orphans = 0
-    with BagWriter(dst, chunk_size=chunk_size, compression=compression) as out:
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        for rec in _iter_records(src, scan):
-            if isinstance(rec, Schema):
-                schemas[rec.id] = rec
-            elif isinstance(rec, Channel):
-                channels[rec.id] = rec
-            else:
-                ch = channels.get(rec.channel_id)
-                schema = schemas.get(ch.schema_id) if ch is not None else None
-                if ch is None or schema is None:
-                    orphans += 1
-                    continue
-                if ch.topic not in out.topic_counts():
-                    # keep the stored definition: it may come from another ROS install than this one
-                    out.add_topic(ch.topic, schema.name, qos_profiles=ch.metadata.get("offered_qos_profiles", ""),
-                                  topic_type_hash=ch.metadata.get("topic_type_hash", ""),
-                                  definition=(schema.encoding, schema.data))
-                out.write_raw(ch.topic, rec.data, rec.log_time, publish_ns=rec.publish_time)
-        out.set_custom_data("recovered_from", src.name)
-        written = out.message_count
-        n_topics = len(out.topic_counts())
-    size = src.stat().st_size
-    return RecoverResult(messages=written, topics=n_topics, chunks=scan.chunks, bad_chunks=scan.bad_chunks,
-                         truncated=scan.truncated, lost_bytes=0 if scan.complete else size - scan.valid_bytes,
-                         messages_without_channel=orphans)
-
