@@ -15,7 +15,7 @@ from indoor_loc.errors import IndoorLocError
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("indoor_loc.demo", "replay a PUTMC walk through the pipeline, score it and plot it"),
     "run": ("indoor_loc.pipeline.offline", "run bags through the nodes offline, as fast as the CPU allows"),
-    "up": ("indoor_loc.supervisor", "start a set of nodes from a bring-up YAML (like a launch file)"),
+    "up": ("indoor_loc.commands.up", "start a set of nodes from a bring-up YAML (like a launch file)"),
     "record": ("indoor_loc.commands.record", "record DDS topics to an MCAP bag"),
     "play": ("indoor_loc.commands.play", "publish an MCAP bag onto DDS (rate, loop, /clock)"),
     "bag": ("indoor_loc.commands.bag", "bag tools: info, recover"),
