@@ -23,7 +23,8 @@ from msg_adapters.pose import (YAW_VAR_UNKNOWN, fix_from_msg, fix_to_msg, pose_a
                                           pose_array_to_msg, pose_from_msg, pose_to_msg)
 from msg_adapters.time import MAX_STAMP_NS, header_ns, stamp_from_ns, stamp_to_ns
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
-from indoor_loc.wifi.types import Fix, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import WifiScan
 
 STAMP = 1_700_000_123_456_789_012
 

@@ -2,8 +2,8 @@
 
 Subclasses declare ``NODE_NAME``, ``PARAMS`` (a Params dataclass), ``inputs()`` and ``outputs()``
 and implement one handler per input topic returning ``[(relative_topic, message), ...]``.
-``Stage.process`` never raises on a message: an :class:`InvalidMessageError` is counted under its
-reason and dropped; any other exception is counted as ``internal_error`` and reported in
+``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
+the contract, or input the core refuses) is counted under its reason and dropped; any other exception is counted as ``internal_error`` and reported in
 ``last_error`` (the node logs it, throttled). Nothing else is lost: the stage state is unchanged
 by a rejected message because handlers validate (via msg_adapters) before touching state.
 """
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 
 Output = tuple[str, Any]  # (relative topic, message)
 
@@ -112,7 +112,7 @@ class Stage:
         stats.last_ns = recv_ns
         try:
             outs = handler(msg, recv_ns)
-        except InvalidMessageError as err:
+        except InvalidInputError as err:
             self._reject(err.reason, f"{topic}: {err}")
             return []
         except Exception as err:  # noqa: BLE001 - a node never dies on a message

@@ -15,7 +15,8 @@ from msg_adapters.path import path_from_msg, path_to_msg
 from msg_adapters.pose import fix_to_msg, pose_array_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from msg_adapters.time import stamp_from_ns, stamp_to_ns
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
-from indoor_loc.wifi.types import Fix, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import WifiScan
 
 NAMESPACE = "/alice"
 T0 = 1_712_345_678_123_456_789
