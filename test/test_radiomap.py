@@ -51,9 +51,9 @@ def test_round_trip(tmp_path):
 def test_version_and_format_checks(tmp_path):
     d = save_radiomap(small_map(), tmp_path / "m")
     man = yaml.safe_load((d / MANIFEST).read_text())
-    man["version"] = 2
+    man["version"] = 3
     (d / MANIFEST).write_text(yaml.safe_dump(man))
-    with pytest.raises(MapError, match="version 2 is not supported"):
+    with pytest.raises(MapError, match="version 3 is not supported"):
         load_radiomap(d)
     man["version"], man["format"] = 1, "something.else"
     (d / MANIFEST).write_text(yaml.safe_dump(man))
