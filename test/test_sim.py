@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from indoor_loc.errors import MapError
 from indoor_loc.imu.stepometer import stepometer_batch, total_steps
-from indoor_loc.sim.building import (building_from_geojson, building_to_geojson, make_sample_building,
+from indoor_loc.sim.building import (building_from_geojson, building_graph, building_to_geojson, make_sample_building,
                                      sample_building, sample_building_path, validate_building)
 from indoor_loc.sim.rf import RfParams, RssField, count_crossings
 from indoor_loc.sim.scenario import SimConfig, simulate
@@ -32,8 +32,12 @@ def test_shipped_building_is_the_generated_one_and_small(building):
     assert {"corridor", "junction", "door", "room", "stairs"} <= set(building.node_kind)
 
 
-def test_sample_graph_passes_map_validation_and_reaches_both_floors(building):
+def test_sample_graph_passes_map_validation_and_reaches_both_floors(building, tmp_path):
     validate_building(building)
+    from indoor_loc.graph import load_graph, save_graph
+    g = load_graph(save_graph(building_graph(building), tmp_path / "graph.yaml"))   # the map tools' checks
+    assert g.n_nodes == len(building.node_xyz) and g.n_links == len(building.link_nodes)
+    assert int(g.link_vertical.sum()) == 1 and len(g.floors) == 2 and len(g.rooms) == 20
     stairs = [i for i, k in enumerate(building.node_kind) if k == "stairs"]
     path = building.shortest_path(0, int(np.flatnonzero(building.node_floor == 1)[0]))
     assert any(n in stairs for n in path)

@@ -105,6 +105,34 @@ class Building:
         return [b for ap in self.aps for b in ap.bssids]
 
 
+#: The stairs' total-link-length weight relative to their walking length (see indoor_loc.graph.io:
+#: a longer TLL length keeps stairs from absorbing probability mass in the particle filter).
+STAIRS_TLL_FACTOR = 5.0
+
+
+def building_graph(b: Building):
+    """The building's link graph in the package's map format (:class:`indoor_loc.graph.BuildingGraph`,
+    validated by :func:`indoor_loc.graph.build_graph`): node ids = indices, floors with their
+    heights, stairs as vertical links, rooms -> their room nodes."""
+    from indoor_loc.graph import Floor, build_graph
+
+    floors = [Floor(i, f"floor {i}", float(z)) for i, z in enumerate(b.floor_z)]
+    vertical = {}
+    for k, (i, j) in enumerate(b.link_nodes.tolist()):
+        if b.node_floor[i] != b.node_floor[j]:
+            length = float(np.linalg.norm(b.node_xyz[j] - b.node_xyz[i]))
+            vertical[k] = (length, STAIRS_TLL_FACTOR * length)
+    rooms = {}
+    for f, name, poly in b.rooms:
+        inside = [i for i in range(len(b.node_xyz)) if b.node_floor[i] == f and b.node_kind[i] == "room"
+                  and poly[:, 0].min() < b.node_xyz[i, 0] < poly[:, 0].max()
+                  and poly[:, 1].min() < b.node_xyz[i, 1] < poly[:, 1].max()]
+        if inside:
+            rooms[name] = inside
+    return build_graph(np.arange(len(b.node_xyz)), b.node_xyz[:, :2], b.link_nodes.tolist(),
+                       node_floor=b.node_floor.tolist(), floors=floors, vertical=vertical, rooms=rooms)
+
+
 def validate_building(b: Building) -> None:
     """Raise MapError unless the building is usable: finite geometry, valid links (no self-loops,
     no duplicates, no zero length), node floors in range, a connected graph, unique BSSIDs."""
