@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
+    "sim": ("indoor_loc.sim.cli", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
 }
 
 
