@@ -15,9 +15,9 @@ import math
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import save_radiomap
 
 
@@ -84,14 +84,12 @@ def import_putmc(args: argparse.Namespace) -> int:
             bar.update(sum(counts.values()) - len(w.acc_t))   # IMU messages were counted as written
             rows.append(_row(w, ds.routes[w.walk].length_m, counts))
 
-    params = {
-        "imu_node": {"ros__parameters": {"heading_source": "orientation", "step_length_m": 0.65}},
-        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), "method": "wknn"}},
-    }
-    (out / "params.yaml").write_text(
-        "# Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
-        f"# map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
-        + yaml.safe_dump(params, sort_keys=False))
+    params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
+              "wifi_fix_node": {"radiomap": str(rm_dir), "method": "wknn"}}
+    (out / "params.yaml").write_text(params_file_text(params, header=(
+        "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
+        f"map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
+        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/walkNN --params-file).")))
     oddities = ds.oddities + [o for w in parsed for o in w.oddities]
     try:
         yaw_est, yaw_per = estimate_map_yaw(parsed)

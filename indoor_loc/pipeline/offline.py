@@ -18,7 +18,7 @@ from typing import Any, Iterable
 
 from indoor_loc.contract import join_ns, split_ns
 from indoor_loc.errors import ConfigError
-from indoor_loc.params import load_params_file, params_for_node, params_from_dict
+from indoor_loc.params import load_params_file, misplaced_keys, node_key, params_for_node, params_from_dict
 from indoor_loc.pipeline.registry import STAGES, stage_class
 from indoor_loc.pipeline.stage import Stage
 
@@ -52,6 +52,10 @@ def build_stages(nodes: Iterable[str], namespaces: Iterable[str], params_file: d
     for ns in sorted(namespaces):
         for name in nodes:
             cls = stage_class(name)
+            for key in misplaced_keys(params_file or {}, cls.NODE_NAME, ns):
+                print(f"indoor-loc run: warning: params key {key!r} does not apply to {join_ns(ns, cls.NODE_NAME)} "
+                      f"(a bare node name matches only the root namespace, as in rcl); key it "
+                      f"{node_key(cls.NODE_NAME)!r}", file=sys.stderr)
             values = params_for_node(params_file or {}, cls.NODE_NAME, ns)
             params = params_from_dict(cls.PARAMS, values)
             stage = cls(params, namespace=ns)
