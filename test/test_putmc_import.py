@@ -189,6 +189,12 @@ def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     np.testing.assert_array_equal(rm.rssi_dbm, survey.rssi_dbm)
     report = (out / "import_report.md").read_text()
     assert "stale_samples" in report and "20 acc, 12 orient" in report and "stale_samples" in printed
+    # importing again onto the same directory: refused (exit 2, files untouched) unless --overwrite
+    from indoor_loc.cli import main as cli_main
+    before = (out / "walk16.mcap").stat().st_mtime_ns
+    assert cli_main(["import", "putmc", str(ds.root), str(out), "--walks", "16", "--no-progress"]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert (out / "walk16.mcap").stat().st_mtime_ns == before
 
     for n, stale_acc in ((16, 0), (17, 20)):
         raw = ds.walk(n, keep_stale=True)

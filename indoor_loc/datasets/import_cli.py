@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.output_paths import check_outputs
 from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import save_radiomap
 
@@ -34,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="yaw added to the phone's ENU orientation to align it with the map frame, deg "
                         "(default: the dataset estimate, about 7.8; 0 = raw Android ENU)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace walk bags, radiomap/, params.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_putmc)
 
 
@@ -65,6 +68,11 @@ def import_putmc(args: argparse.Namespace) -> int:
     walks = parse_walks(args.walks, ds.walk_numbers)
     map_yaw = PUTMC_MAP_YAW_RAD if args.map_yaw_deg is None else math.radians(args.map_yaw_deg)
     out = Path(args.out_dir).resolve()
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"OUT_DIR {out} exists and is not a directory")
+    check_outputs([out / f"walk{n:02d}.mcap" for n in walks]
+                  + [out / "radiomap", out / "params.yaml", out / "import_report.md"],
+                  overwrite=args.overwrite, what=f"import into {out}")
     out.mkdir(parents=True, exist_ok=True)
 
     survey = ds.survey_map()

@@ -200,7 +200,8 @@ class StageNode(Node):
 
     def _on_timer(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
-        self._publish(self.stage.tick(now_ns))
+        self._publish(self.stage.run_tick(now_ns))
+        self._log_rejections()
         self._diag_pub.publish(self.diagnostics_msg(now_ns))
 
     def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
@@ -208,7 +209,7 @@ class StageNode(Node):
 
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
-        self._publish(self.stage.finish())
+        self._publish(self.stage.run_finish())
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
