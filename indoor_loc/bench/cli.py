@@ -1,4 +1,4 @@
-"""``indoor-loc bench {imu,wifi}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {imu,wifi,steps}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -8,6 +8,7 @@ from pathlib import Path
 BENCHES = {
     "imu": "indoor_loc.bench.imu",
     "wifi": "indoor_loc.bench.wifi",
+    "steps": "indoor_loc.bench.steps",
 }
 
 
