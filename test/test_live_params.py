@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from helpers_dds import ros_node
-from indoor_loc.msg_adapters.diagnostics import diagnostics_from_msg
+from msg_adapters.diagnostics import diagnostics_from_msg
 from indoor_loc.nodes.base import params_file_args
 from indoor_loc.nodes.wifi_fix_node import WifiFixNode
 from indoor_loc.params import params_file_text

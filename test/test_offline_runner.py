@@ -12,8 +12,8 @@ import pytest
 from helpers_dds import PEERS
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.cli import main as cli_main
-from indoor_loc.msg_adapters.imu import imu_to_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.imu import imu_to_msg
+from msg_adapters.wifi_scan import scan_to_msg
 from indoor_loc.pipeline import offline
 from indoor_loc.pipeline.offline import run_offline
 from indoor_loc.wifi.radiomap import save_radiomap

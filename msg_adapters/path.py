@@ -6,12 +6,14 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.odom import quat_to_yaw, yaw_to_quat
-from indoor_loc.msg_adapters.time import require_finite, stamp_from_ns, stamp_to_ns
+from msg_adapters.odom import quat_to_yaw, yaw_to_quat
+from msg_adapters.time import require_finite, stamp_from_ns, stamp_to_ns
 
 
-def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | None = None) -> Path:
-    """Path of N poses: stamps_ns (N,) int ns, xy (N, 2) m, yaw (N,) rad or None (identity).
+def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | None = None,
+                z: float = 0.0) -> Path:
+    """Path of N poses: stamps_ns (N,) int ns, xy (N, 2) m, yaw (N,) rad or None (identity);
+    ``z`` (m) for every pose (a floor's height on multi-storey maps).
 
     The Path header stamp is ``stamp_ns``, or the last pose stamp (0 for an empty path).
     """
@@ -42,6 +44,7 @@ def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | 
         ps.header.frame_id = frame_id
         ps.pose.position.x = float(pts[i, 0])
         ps.pose.position.y = float(pts[i, 1])
+        ps.pose.position.z = float(z)
         if yaws is not None:
             ps.pose.orientation = yaw_to_quat(float(yaws[i]))
         poses.append(ps)
