@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import save_radiomap
 
 
@@ -88,7 +89,7 @@ def import_putmc(args: argparse.Namespace) -> int:
 
     params = {
         "imu_node": {"ros__parameters": {"heading_source": "orientation", "step_length_m": 0.65}},
-        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), "method": "wknn"}},
+        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), **recommended_params(survey)}},
     }
     (out / "params.yaml").write_text(
         "# Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"

@@ -30,11 +30,8 @@ import numpy as np
 import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
-
-#: the WiFi fix settings the importer (and ``radiomap build``) configure; measured with
-#: ``indoor-loc bench wifi`` (see README)
-RECOMMENDED_WIFI = {"method": "wknn"}
 
 
 def add_arguments(sub) -> None:
@@ -142,7 +139,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                     + yaml.safe_dump(split, sort_keys=False))
     params = {
         "imu_node": {"ros__parameters": {"heading_source": "orientation"}},
-        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), **RECOMMENDED_WIFI}},
+        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), **recommended_params(rm)}},
     }
     (out / "params.yaml").write_text(
         "# Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
