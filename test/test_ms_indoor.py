@@ -80,10 +80,10 @@ def _args(out: Path, **kw) -> argparse.Namespace:
 
 def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     from indoor_loc.bag import read_bag
-    from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
-    from indoor_loc.msg_adapters.imu import imu_from_msg, mag_from_msg
-    from indoor_loc.msg_adapters.path import path_from_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    from msg_adapters.imu import imu_from_msg, mag_from_msg
+    from msg_adapters.path import path_from_msg
+    from msg_adapters.wifi_scan import scan_from_msg
     from indoor_loc.wifi.radiomap import load_radiomap
 
     out = tmp_path / "out"
@@ -141,7 +141,7 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
 
 
 def test_import_selection_errors(tmp_path):
-    from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     with pytest.raises(ConfigError, match="no floor"):
         import_ms_indoor(_args(tmp_path / "o", floors="F9"))
     with pytest.raises(ConfigError, match="matches 2"):

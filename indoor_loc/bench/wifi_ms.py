@@ -32,7 +32,8 @@ import numpy as np
 from indoor_loc.bench.wifi import CHI2_2_50, CHI2_2_95, _jsonable
 from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
-from indoor_loc.wifi.types import Fix, RadioMap, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import RadioMap, WifiScan
 
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
 TUNED_ON = ("B1", "F7")

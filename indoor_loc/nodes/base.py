@@ -10,6 +10,13 @@
   time under ``use_sim_time``).
 - SIGINT and SIGTERM end the node cleanly: the stage's ``finish()`` outputs are published before
   the context shuts down.
+- Multi-user stages (``Stage.MULTI_USER``): the node subscribes to the stage's inputs in every
+  user namespace — those of the stage's ``users`` parameter, or, when it is empty, every namespace
+  in which a publisher of one of the inputs appears (the ROS graph is polled every
+  ``DISCOVERY_PERIOD_S``). A user whose input publishers have all been gone for the stage's
+  ``user_timeout_s`` has left: ``finish_user`` runs (its outputs are published) and a discovered
+  user's subscriptions are destroyed; it is followed again if it comes back. Per-user output
+  publishers (``backend/<user>/path``) are created on first use.
 """
 from __future__ import annotations
 
@@ -19,6 +26,7 @@ import dataclasses
 import signal
 import sys
 import threading
+import time
 from typing import Any, Callable
 
 import rclpy
@@ -30,11 +38,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from indoor_loc.contract import Qos, msg_class
+from indoor_loc.contract import Qos, join_ns, msg_class
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
-from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
+from msg_adapters.diagnostics import stage_diagnostics
 from indoor_loc.params import params_from_dict
-from indoor_loc.pipeline.stage import Stage
+from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 
 QOS_PROFILES: dict[Qos, QoSProfile] = {
     Qos.SENSOR: QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
@@ -48,6 +56,8 @@ QOS_PROFILES: dict[Qos, QoSProfile] = {
 }
 
 DIAGNOSTICS_PERIOD_S = 1.0
+#: How often a multi-user node polls the ROS graph for users joining and leaving (s).
+DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
 _BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
 #: How often the spin loop returns to Python so SIGINT/SIGTERM are handled promptly (s).
@@ -94,8 +104,18 @@ class StageNode(Node):
         self.add_on_set_parameters_callback(self._on_set_params)
         self._pubs = {p.topic: self.create_publisher(msg_class(p.type), p.topic, qos_profile(p.qos))
                       for p in self.stage.outputs()}
-        self._subs = [self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic),
-                                               qos_profile(p.qos)) for p in self.stage.inputs()]
+        self._subs = [] if self.stage.MULTI_USER else [
+            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), qos_profile(p.qos))
+            for p in self.stage.inputs()]
+        # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
+        self.user_subs: dict[str, list] = {}
+        self._user_seen: dict[str, float] = {}
+        self._finished_users: set[str] = set()
+        self._fixed_users = tuple(getattr(self.stage.params, "users", ()) or ())
+        if self.stage.MULTI_USER:
+            for user in self._fixed_users:
+                self._follow(user_of_namespace(user))
+            self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
@@ -146,17 +166,69 @@ class StageNode(Node):
         # Parameters are read at start-up; changing them live needs a restart of the node.
         return SetParametersResult(successful=False, reason="parameters are read-only at run time; restart the node")
 
+    # -- users (multi-user stages) -------------------------------------------------------------------
+    def _follow(self, user: str) -> None:
+        if not user or user in self.user_subs:
+            return
+        ns = namespace_of_user(user)
+        self.user_subs[user] = [
+            self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
+                                     qos_profile(p.qos)) for p in self.stage.inputs()]
+        self._user_seen[user] = self._monotonic()
+        self._finished_users.discard(user)
+        self.get_logger().info(f"following user {user!r}")
+
+    @staticmethod
+    def _monotonic() -> float:
+        return time.monotonic()
+
+    def _discover_users(self) -> None:
+        """Follow new users (namespaces publishing one of the inputs) and notice users leaving."""
+        now = self._monotonic()
+        if not self._fixed_users:
+            rels = [p.topic for p in self.stage.inputs()]
+            for name, _types in self.get_topic_names_and_types():
+                for rel in rels:
+                    if name.endswith("/" + rel) and len(name) > len(rel) + 1:
+                        user = user_of_namespace(name[: -len(rel) - 1])
+                        if user and self.count_publishers(name) > 0:
+                            self._follow(user)
+        timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))
+        for user in list(self.user_subs):
+            ns = namespace_of_user(user)
+            if any(self.count_publishers(join_ns(ns, p.topic)) > 0 for p in self.stage.inputs()):
+                self._user_seen[user] = now
+                self._finished_users.discard(user)
+                continue
+            if user in self._finished_users or now - self._user_seen[user] < timeout:
+                continue
+            self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
+            self._finished_users.add(user)
+            self._publish(self.stage.finish_user(user))
+            if not self._fixed_users:
+                for sub in self.user_subs.pop(user):
+                    self.destroy_subscription(sub)
+                self._user_seen.pop(user, None)
+
     # -- messages ----------------------------------------------------------------------------------
-    def _callback(self, topic: str) -> Callable[[Any], None]:
+    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any], None]:
         def cb(msg: Any) -> None:
             now_ns = self.get_clock().now().nanoseconds
-            self._publish(self.stage.process(topic, msg, now_ns))
+            self._publish(self.stage.process(topic, msg, now_ns, user))
             self._log_rejections()
         return cb
 
+    def _publisher(self, topic: str):
+        pub = self._pubs.get(topic)
+        if pub is None and self.stage.MULTI_USER:
+            port = self.stage.output_port(topic)
+            if port is not None:
+                pub = self._pubs[topic] = self.create_publisher(msg_class(port.type), topic, qos_profile(port.qos))
+        return pub
+
     def _publish(self, outs: list) -> None:
         for topic, msg in outs:
-            pub = self._pubs.get(topic)
+            pub = self._publisher(topic)
             if pub is None:
                 self.stage._reject("internal_error", f"stage returned undeclared output topic {topic!r}")
                 self.get_logger().error(f"stage returned undeclared output topic {topic!r}", throttle_duration_sec=5.0)
@@ -270,8 +342,11 @@ def node_usage(stage_cls: type[Stage]) -> str:
         lines += ["", f"(topics unavailable with default parameters: {err})"]
         return "\n".join(lines)
     lines.append("")
-    lines.append("subscribes: " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.inputs()))
-    lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs()) + ", /diagnostics")
+    per_user = "/<user>/" if stage.MULTI_USER else ""
+    lines.append("subscribes: " + ", ".join(f"{per_user}{p.topic} [{p.type}]" for p in stage.inputs())
+                 + (" in every user namespace (parameter users, else discovered)" if per_user else ""))
+    lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs() + stage.user_outputs())
+                 + ", /diagnostics")
     return "\n".join(lines)
 
 

@@ -1,6 +1,6 @@
 """``indoor-loc import DATASET ...``: convert a dataset into MCAP bags + params.yaml.
 
-One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.datasets.ms_indoor_import`); each adds its own arguments and a ``func``.
+One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each adds its own arguments and a ``func``.
 
 ``indoor-loc import putmc DATASET_DIR OUT_DIR [--walks 1,2,7] [--keep-stale]`` writes
 ``OUT_DIR/walkNN.mcap`` (namespace ``/walkNN``; topics in :mod:`indoor_loc.datasets.putmc_bags`),
@@ -36,8 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: the dataset estimate, about 7.8; 0 = raw Android ENU)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=import_putmc)
-    from indoor_loc.datasets import ms_indoor_import
-    ms_indoor_import.add_arguments(sub)
+    from indoor_loc.commands import import_ms_indoor
+    import_ms_indoor.add_arguments(sub)
 
 
 def main(args: argparse.Namespace) -> int:
