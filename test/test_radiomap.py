@@ -177,7 +177,7 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
     assert back.rssi_dbm[1, back.bssids.index(B[0])] == -42.0
     params = yaml.safe_load((out / "params.yaml").read_text())
     # no reading ages, one floor: the best measured WKNN, with powed k-NN for the scans it declines
-    assert params == {"wifi_fix_node": {"ros__parameters": {
+    assert params == {"/**/wifi_fix_node": {"ros__parameters": {
         "radiomap": str(out.resolve()), "method": "wknn", "fallback": "powed",
         "wknn": {"k": 3, "shared_threshold": 0.6, "shared_strict": True, "error_type": "rms"}}}}
     assert any("scans 7" in ln for ln in info_lines(out))
@@ -205,5 +205,5 @@ def test_build_from_putmc_survey(tmp_path):
     back = load_radiomap(tmp_path / "rm")
     # ENU: y = 1049/28.50518 - y_img; location 0 of positions.map is in the image's upper half
     assert back.positions[:, 1].min() > 0 and back.positions[:, 1].max() < 1049 / 28.50518
-    assert yaml.safe_load((tmp_path / "rm" / "params.yaml").read_text())["wifi_fix_node"]["ros__parameters"][
+    assert yaml.safe_load((tmp_path / "rm" / "params.yaml").read_text())["/**/wifi_fix_node"]["ros__parameters"][
         "method"] == "coverage"
