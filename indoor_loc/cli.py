@@ -13,7 +13,7 @@ from indoor_loc.errors import IndoorLocError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("indoor_loc.demo", "replay a PUTMC walk through the pipeline, score it and plot it"),
+    "demo": ("indoor_loc.demo", "the main job: simulated walkers in the sample building, every node live over DDS, scored and plotted"),
     "run": ("indoor_loc.pipeline.offline", "run bags through the nodes offline, as fast as the CPU allows"),
     "up": ("indoor_loc.nodes.bringup", "start a set of nodes from a bring-up YAML (like a launch file)"),
     "record": ("indoor_loc.bag.record_cli", "record DDS topics to an MCAP bag"),
@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "wifi": ("indoor_loc.wifi.wifi_cli", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
     "contract": ("indoor_loc.contract_cli", "print the message contract as a Markdown table"),
+    "view": ("indoor_loc.nodes.view_cli", "live view of a running system over Foxglove WebSocket (foxglove-sdk)"),
     "sim": ("indoor_loc.sim.cli", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
 }
 
