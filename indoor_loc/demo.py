@@ -74,7 +74,7 @@ def main(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ simulation
 def _simulate(out: Path, args: argparse.Namespace) -> dict[str, Path]:
-    from indoor_loc.sim.cli import generate
+    from indoor_loc.commands.sim import generate
     from indoor_loc.sim.scenario import SimConfig
 
     try:
@@ -186,7 +186,7 @@ def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event,
 
 
 def run_sim_demo(args: argparse.Namespace) -> int:
-    from indoor_loc.nodes.bringup import Bringup, parse_config
+    from indoor_loc.supervisor import Bringup, parse_config
 
     if not args.rate > 0:
         raise ConfigError(f"--rate: expected > 0, got {args.rate}")
@@ -268,7 +268,7 @@ def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
     import numpy as np
 
     from indoor_loc.bag import bag_topics
-    from indoor_loc.eval.cli import trajectories_from_bags, truth_from_import
+    from indoor_loc.commands.eval import trajectories_from_bags, truth_from_import
     from indoor_loc.eval.metrics import point_segment_distance, scan_time_errors
 
     truths = truth_from_import(sim_dir)
@@ -321,7 +321,7 @@ def plot_run(png: Path, sim_dir: Path, trajs: dict, rows: list[ScoreRow]) -> Pat
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from indoor_loc.eval.cli import truth_from_import
+    from indoor_loc.commands.eval import truth_from_import
     from indoor_loc.sim.building import load_building
 
     b = load_building(sim_dir / "building.geojson")

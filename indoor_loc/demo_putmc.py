@@ -28,7 +28,7 @@ REFERENCE = [("reference C++: separate graph, no step-length est.", 6.24, 2.42, 
 
 def main(args: argparse.Namespace) -> int:
     from indoor_loc.cli import main as cli_main
-    from indoor_loc.eval.cli import evaluate, trajectories_from_bags, truth_from_import
+    from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
     from indoor_loc.eval.trajectory import write_csv
     from indoor_loc.pipeline.offline import run_offline
 

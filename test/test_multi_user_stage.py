@@ -12,8 +12,8 @@ from indoor_loc import params as P
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError
-from indoor_loc.msg_adapters.odom import odom_to_msg
-from indoor_loc.msg_adapters.path import path_to_msg
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_to_msg
 from indoor_loc.pipeline import offline, registry
 from indoor_loc.pipeline.stage import Port, Stage, namespace_of_user, user_of_namespace
 

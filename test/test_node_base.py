@@ -19,9 +19,9 @@ from sensor_msgs.msg import Imu
 from helpers_dds import PEERS, python_peer, ros_node, spin_until
 from indoor_loc.contract import TOPICS, Qos
 from indoor_loc.errors import ConfigError
-from indoor_loc.msg_adapters.diagnostics import diagnostics_from_msg
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg
-from indoor_loc.msg_adapters.pose import pose_from_msg
+from msg_adapters.diagnostics import diagnostics_from_msg
+from msg_adapters.imu import imu_from_msg, imu_to_msg
+from msg_adapters.pose import pose_from_msg
 from indoor_loc.nodes.base import QOS_PROFILES, StageNode, node_usage, qos_profile, run_stage_node
 
 sys.path.insert(0, str(PEERS))

@@ -8,9 +8,9 @@ import numpy as np
 
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.cli import main as cli_main
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import pose_from_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import pose_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
 from indoor_loc.wifi.radiomap import save_radiomap
 from indoor_loc.wifi.types import RadioMap, WifiScan
 

@@ -147,7 +147,7 @@ def test_bad_dataset_input(tmp_path):
     (tmp_path / "nodes.map").write_text("2\n0 0\n1\n5\n1 1\n1\n0\n")
     with pytest.raises(DatasetError, match="neighbour 5 outside"):
         P.read_route(tmp_path / "nodes.map")
-    from indoor_loc.datasets.import_cli import parse_walks
+    from indoor_loc.commands.import_data import parse_walks
     assert parse_walks("", [1, 2]) == [1, 2] and parse_walks("2, 1", [1, 2]) == [1, 2]
     with pytest.raises(ConfigError, match="no walk"):
         parse_walks("1,99", [1, 2])
@@ -169,7 +169,7 @@ def _read_back(bag: Path) -> dict[str, list]:
 
 def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     pytest.importorskip("indoor_loc.wifi.radiomap", reason="radio map I/O not available")
-    from indoor_loc.datasets import import_cli
+    from indoor_loc.commands import import_data as import_cli
 
     parser = argparse.ArgumentParser()
     import_cli.add_arguments(parser)

@@ -141,8 +141,8 @@ def test_interpolate_positions():
 # ----------------------------------------------------------------------------------------------
 def _write_bag(path: Path) -> None:
     bag = pytest.importorskip("indoor_loc.bag")
-    from indoor_loc.msg_adapters.path import path_to_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+    from msg_adapters.path import path_to_msg
+    from msg_adapters.wifi_scan import scan_to_msg
     s = 10**9
     with bag.BagWriter(path) as w:
         # truth: (0,0) at 1 s, (10,0) at 3 s, (10,10) at 5 s
@@ -160,7 +160,7 @@ def _write_bag(path: Path) -> None:
 
 
 def test_build_from_bag_and_run_with_its_params(tmp_path):
-    from indoor_loc.wifi.radiomap_cli import build, info_lines
+    from indoor_loc.commands.radiomap import build, info_lines
     bag_path = tmp_path / "walk.mcap"
     _write_bag(bag_path)
     out = tmp_path / "rm"
@@ -194,7 +194,7 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
 
 def test_build_from_putmc_survey(tmp_path):
     from conftest import dataset
-    from indoor_loc.wifi.radiomap_cli import build
+    from indoor_loc.commands.radiomap import build
     root = dataset("putmc")
     rm, report = build([], tmp_path / "rm", putmc=root, method="coverage")
     assert rm.n_scans == 114 and rm.n_aps == 119

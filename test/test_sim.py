@@ -209,7 +209,7 @@ def test_sim_core_is_free_of_ros():
             mods = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
             bad += [f"{name}: {m}" for m in mods if m.split(".")[0] == "rclpy" or m.split(".")[0].endswith("_msgs")
-                    or m.startswith(("indoor_loc.bag", "indoor_loc.msg_adapters", "indoor_loc.nodes"))]
+                    or m.startswith(("indoor_loc.bag", "msg_adapters", "indoor_loc.nodes"))]
     assert not bad
 
 
@@ -217,9 +217,9 @@ def test_written_run_replays_through_the_nodes_with_truth(tmp_path):
     """``indoor-loc sim`` output drives ``indoor-loc run`` unedited (params.yaml, radio map), and the
     WiFi fixes land near the truth (the survey is of the same building)."""
     from indoor_loc.bag import bag_topics
-    from indoor_loc.eval.cli import evaluate, trajectories_from_bags, truth_from_import
+    from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
     from indoor_loc.pipeline.offline import run_offline
-    from indoor_loc.sim.cli import generate
+    from indoor_loc.commands.sim import generate
     from indoor_loc.wifi.radiomap import load_radiomap
 
     paths = generate(tmp_path / "sim", SimConfig(walkers=2, duration_s=40.0, seed=2), quiet=True)

@@ -40,7 +40,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from indoor_loc.contract import Qos, join_ns, msg_class
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
-from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
+from msg_adapters.diagnostics import stage_diagnostics
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 

@@ -30,7 +30,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from indoor_loc.bag import BagWriter
-from indoor_loc.bag.mcap_io import DEFAULT_CHUNK_SIZE
+from indoor_loc.bag.writer import DEFAULT_CHUNK_SIZE
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import msg_class
 from indoor_loc.errors import BagError, ConfigError

@@ -108,8 +108,8 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     import time
 
     from indoor_loc.bag import BagWriter, bag_topics, read_bag
-    from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
-    from indoor_loc.msg_adapters.time import header_ns
+    from msg_adapters.diagnostics import stage_diagnostics
+    from msg_adapters.time import header_ns
 
     t0 = time.perf_counter()
     for b in bags:

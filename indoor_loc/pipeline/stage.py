@@ -13,8 +13,8 @@ bag ends in a sequential offline run; its publishers leave the ROS graph live). 
 instance serves all bags (``indoor-loc run --order merged|sequential``, see ``pipeline/offline.py``);
 live, ``StageNode`` subscribes to the users of its ``users`` parameter or discovers them from the
 graph and follows them as they come and go (``nodes/base.py``).
-``Stage.process`` never raises on a message: an :class:`InvalidMessageError` is counted under its
-reason and dropped; any other exception is counted as ``internal_error`` and reported in
+``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
+the contract, or input the core refuses) is counted under its reason and dropped; any other exception is counted as ``internal_error`` and reported in
 ``last_error`` (the node logs it, throttled). Nothing else is lost: the stage state is unchanged
 by a rejected message because handlers validate (via msg_adapters) before touching state.
 """
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 
 Output = tuple[str, Any]  # (relative topic, message)
 
@@ -171,7 +171,7 @@ class Stage:
         stats.last_ns = recv_ns
         try:
             outs = handler(msg, recv_ns)
-        except InvalidMessageError as err:
+        except InvalidInputError as err:
             self._reject(err.reason, f"{user + '/' if user else ''}{topic}: {err}")
             return []
         except Exception as err:  # noqa: BLE001 - a node never dies on a message

@@ -45,7 +45,7 @@ def building_markers(building: Building, stamp_ns: int):
     from geometry_msgs.msg import Point
     from visualization_msgs.msg import Marker
 
-    from indoor_loc.msg_adapters.markers import graph_markers
+    from msg_adapters.markers import graph_markers
 
     arr = graph_markers(building.node_xyz[:, :2], building.link_nodes, "map", stamp_ns, ns="map/graph")
     for mk in arr.markers:              # put links and nodes at their real heights
@@ -86,10 +86,10 @@ def route_segments(building: Building, w: SimWalker) -> np.ndarray:
 
 
 def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=None) -> dict[str, int]:
-    from indoor_loc.msg_adapters.imu import imu_to_msg, mag_to_msg
-    from indoor_loc.msg_adapters.markers import graph_markers
-    from indoor_loc.msg_adapters.path import path_to_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+    from msg_adapters.imu import imu_to_msg, mag_to_msg
+    from msg_adapters.markers import graph_markers
+    from msg_adapters.path import path_to_msg
+    from msg_adapters.wifi_scan import scan_to_msg
     from indoor_loc.wifi.types import WifiScan
 
     b = run.building

@@ -64,8 +64,8 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     counts: scans, used, outside_truth, invalid (by reason), no_truth.
     """
     from indoor_loc.bag import bag_topics, read_bag
-    from indoor_loc.msg_adapters.path import path_from_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+    from msg_adapters.path import path_from_msg
+    from msg_adapters.wifi_scan import scan_from_msg
 
     topics = bag_topics(bags)
     wanted = [t for t in topics if _namespace(t, topic_scan) is not None or _namespace(t, topic_truth) is not None]
