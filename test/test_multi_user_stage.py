@@ -121,7 +121,7 @@ def test_auto_order_follows_the_stage_params(tmp_path, echo_registered):
     params.write_text("echo_node:\n  ros__parameters:\n    offline_order: sequential\n")
     s = offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], params=params, progress=False)
     assert s.order == "sequential"
-    s = offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], progress=False)
+    s = offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], progress=False, overwrite=True)
     assert s.order == "merged"
     with pytest.raises(ConfigError, match="order"):
         offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], progress=False, order="random")

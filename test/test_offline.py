@@ -33,7 +33,7 @@ def _map(tmp_path) -> str:
 def test_run_chains_stages_per_user_and_writes_diagnostics(tmp_path):
     radiomap = _map(tmp_path)
     params = tmp_path / "params.yaml"
-    params.write_text(f"wifi_fix_node:\n  ros__parameters:\n    radiomap: {radiomap}\n    wknn: {{k: 3}}\n")
+    params.write_text(f"/**/wifi_fix_node:\n  ros__parameters:\n    radiomap: {radiomap}\n    wknn: {{k: 3}}\n")
     truth = {"/alice": np.array([10.0, 5.0]), "/bob": np.array([30.0, 10.0])}
     bag = tmp_path / "in.mcap"
     with BagWriter(bag) as w:

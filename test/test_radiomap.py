@@ -175,7 +175,7 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
     np.testing.assert_array_equal(back.stamps_ns[:2], [1_500_000_000, 2 * 10**9])
     assert back.rssi_dbm[1, back.bssids.index(B[0])] == -42.0
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert params == {"wifi_fix_node": {"ros__parameters": {"radiomap": str(out.resolve()), "method": "wknn"}}}
+    assert params == {"/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(out.resolve()), "method": "wknn"}}}
     assert any("scans 7" in ln for ln in info_lines(out))
 
     # the params file positions the same (or another) recording with no editing
@@ -201,5 +201,5 @@ def test_build_from_putmc_survey(tmp_path):
     back = load_radiomap(tmp_path / "rm")
     # ENU: y = 1049/28.50518 - y_img; location 0 of positions.map is in the image's upper half
     assert back.positions[:, 1].min() > 0 and back.positions[:, 1].max() < 1049 / 28.50518
-    assert yaml.safe_load((tmp_path / "rm" / "params.yaml").read_text())["wifi_fix_node"]["ros__parameters"][
+    assert yaml.safe_load((tmp_path / "rm" / "params.yaml").read_text())["/**/wifi_fix_node"]["ros__parameters"][
         "method"] == "coverage"

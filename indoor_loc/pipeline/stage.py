@@ -181,6 +181,25 @@ class Stage:
             self.diag.published[out_topic] += 1
         return outs
 
+    def run_tick(self, now_ns: int) -> list[Output]:
+        """:meth:`tick` for drivers: an exception is counted as ``internal_error`` (never escapes
+        the timer or aborts an offline run); what the stage published before is kept."""
+        return self._guarded("tick", lambda: self.tick(now_ns))
+
+    def run_finish(self) -> list[Output]:
+        """:meth:`finish` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("finish", self.finish)
+
+    def _guarded(self, what: str, fn: Callable[[], list[Output]]) -> list[Output]:
+        try:
+            outs = fn()
+        except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
+            self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+            return []
+        for out_topic, _ in outs:
+            self.diag.published[out_topic] += 1
+        return outs
+
     def _reject(self, reason: str, detail: str) -> None:
         self.diag.rejected[reason] += 1
         self.diag.last_error = detail
