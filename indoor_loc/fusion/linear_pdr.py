@@ -20,7 +20,7 @@ Joseph-form covariance update.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.stats import chi2
@@ -130,9 +130,12 @@ def _check_fix(fix: Fix) -> tuple[np.ndarray, np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 # Online filter
 # ----------------------------------------------------------------------------------------------
-class StateAccessors:
-    """Read access shared by the PDR filters: ``x``, ``P``, ``position`` (2,), ``position_cov`` (2, 2)."""
+class PositionFilter:
+    """What the PDR filters share: a state whose first two components are the position, read
+    access (``x``, ``P``, ``position`` (2,), ``position_cov`` (2, 2)), the gated linear WiFi
+    position update and the innovation / Mahalanobis tests on it."""
     state: KfState
+    params: Any    # a Params object with ``gate_threshold``
 
     @property
     def x(self) -> np.ndarray:
@@ -151,7 +154,32 @@ class StateAccessors:
         return self.state.P[:2, :2].copy()
 
 
-class LinearPdrKf(StateAccessors):
+    def update(self, fix: Fix) -> bool:
+        """Apply a WiFi fix as a linear position measurement (gated, Joseph form). Returns True if
+        it passed the gate (fixes with ``ok=False`` are ignored and return False)."""
+        if not fix.ok:
+            return False
+        z, R = _check_fix(fix)
+        st = self.state
+        st.x, st.P, st.last_nis, ok = joseph_update(st.x, st.P, z, R, H_POS, self.params.gate_threshold)
+        if ok:
+            st.n_updates += 1
+        else:
+            st.n_rejected += 1
+        return ok
+
+    def nis(self, fix: Fix) -> float:
+        """Normalised innovation squared of a fix against the current prediction (no update)."""
+        z, R = _check_fix(fix)
+        return float(mahalanobis_sq(z[None], self.state.x[:2], self.state.P[:2, :2] + R)[0])
+
+    def mahalanobis(self, points: np.ndarray) -> np.ndarray:
+        """Squared Mahalanobis distance of candidate positions (N, 2) from the position estimate
+        (seed 004 integrity monitoring of a particle filter: ``(c_i - x)^T P^-1 (c_i - x)``) -> (N,)."""
+        return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
+
+
+class LinearPdrKf(PositionFilter):
     """Online seed-004 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
     ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
 
@@ -176,31 +204,6 @@ class LinearPdrKf(StateAccessors):
         st.P = 0.5 * (Pn + Pn.T)
         if stamp_ns is not None:
             st.stamp_ns = int(stamp_ns)
-
-    def update(self, fix: Fix) -> bool:
-        """Apply a WiFi fix as a linear position measurement. Returns True if it passed the gate
-        (fixes with ``ok=False`` are ignored and return False)."""
-        if not fix.ok:
-            return False
-        z, R = _check_fix(fix)
-        st = self.state
-        st.x, st.P, st.last_nis, ok = joseph_update(st.x, st.P, z, R, H_POS, self.params.gate_threshold)
-        if ok:
-            st.n_updates += 1
-        else:
-            st.n_rejected += 1
-        return ok
-
-    def nis(self, fix: Fix) -> float:
-        """Normalised innovation squared of a fix against the current prediction (no update)."""
-        z, R = _check_fix(fix)
-        return float(mahalanobis_sq(z[None], self.state.x[:2], self.state.P[:2, :2] + R)[0])
-
-    def mahalanobis(self, points: np.ndarray) -> np.ndarray:
-        """Squared Mahalanobis distance of candidate positions (N, 2) from the position estimate
-        (seed 004 integrity monitoring of a particle filter: ``(c_i - x)^T P^-1 (c_i - x)``)."""
-        return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
-
 
 def initial_state(p: LinearPdrParams, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None,
                   stamp_ns: int = 0) -> KfState:

@@ -23,11 +23,9 @@ from scipy.stats import chi2
 
 from indoor_loc.params import field, require
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, StateAccessors, _check_fix,
-                                          joseph_update, mahalanobis_sq)
+from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, PositionFilter)
 from indoor_loc.measurements import Fix
 
-H_POS4 = H_POS  # the position is also the first two components of [r1, r2, theta, s]
 
 
 @dataclass(frozen=True)
@@ -89,7 +87,7 @@ def process_noise(p: NonlinearPdrParams, steps: float) -> np.ndarray:
     return np.diag([0.0, 0.0, n * p.sigma_dtheta_rad ** 2 + p.q_floor, n * p.sigma_ds_m ** 2 + p.q_floor])
 
 
-class _NonlinearPdrFilter(StateAccessors):
+class _NonlinearPdrFilter(PositionFilter):
     """Shared state handling of the EKF and the UKF (the update is linear for both)."""
 
     def __init__(self, params: NonlinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
@@ -113,26 +111,6 @@ class _NonlinearPdrFilter(StateAccessors):
 
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         raise NotImplementedError
-
-    def update(self, fix: Fix) -> bool:
-        """Linear WiFi position update (gated, Joseph form); False when rejected or ``fix.ok`` is False."""
-        if not fix.ok:
-            return False
-        z, R = _check_fix(fix)
-        st = self.state
-        st.x, st.P, st.last_nis, ok = joseph_update(st.x, st.P, z, R, H_POS4, self.params.gate_threshold)
-        st.n_updates += int(ok)
-        st.n_rejected += int(not ok)
-        return ok
-
-    def nis(self, fix: Fix) -> float:
-        """Normalised innovation squared of a fix against the current prediction (no update)."""
-        z, R = _check_fix(fix)
-        return float(mahalanobis_sq(z[None], self.state.x[:2], self.state.P[:2, :2] + R)[0])
-
-    def mahalanobis(self, points: np.ndarray) -> np.ndarray:
-        """Squared Mahalanobis distances of positions (N, 2) from the position estimate -> (N,)."""
-        return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
 
 
 class PdrEkf(_NonlinearPdrFilter):
