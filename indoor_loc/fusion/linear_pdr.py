@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc.params import field, require
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.measurements import Fix
 
 H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement matrix
@@ -123,7 +123,7 @@ def _check_fix(fix: Fix) -> tuple[np.ndarray, np.ndarray]:
     z = np.asarray(fix.xy, float).reshape(2)
     R = np.asarray(fix.cov, float).reshape(2, 2)
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
-        raise InvalidMessageError("nan", f"fix: expected finite xy and cov, got xy={z}, cov={R.tolist()}")
+        raise InvalidInputError("nan", f"fix: expected finite xy and cov, got xy={z}, cov={R.tolist()}")
     return z, R
 
 
@@ -194,7 +194,7 @@ class LinearPdrKf(PositionFilter):
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         """Propagate ``steps`` footsteps (may be fractional, >= 0) with heading change ``dtheta`` rad."""
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise InvalidMessageError("bad_pdr", f"LinearPdrKf.predict: expected finite steps >= 0 and dtheta, "
+            raise InvalidInputError("bad_pdr", f"LinearPdrKf.predict: expected finite steps >= 0 and dtheta, "
                                                   f"got {steps}, {dtheta}")
         F = transition_matrix(steps, dtheta)
         self.last_F = F
@@ -259,7 +259,7 @@ def filter_batch(params: LinearPdrParams, steps: np.ndarray, dtheta: np.ndarray,
     R = np.asarray(R, float)
     T = len(steps)
     if not (dtheta.shape == (T,) and z.shape == (T, 2) and R.shape == (T, 2, 2)):
-        raise ConfigError(f"filter_batch: expected steps (T,), dtheta (T,), z (T,2), R (T,2,2), got "
+        raise InvalidInputError("shape", f"filter_batch: expected steps (T,), dtheta (T,), z (T,2), R (T,2,2), got "
                           f"{steps.shape}, {dtheta.shape}, {z.shape}, {R.shape}")
     st = initial_state(params, xy0=xy0, pos_cov0=pos_cov0)
     x, Pm = st.x, st.P

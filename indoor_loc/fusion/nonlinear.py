@@ -22,7 +22,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc.params import field, require
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, PositionFilter)
 from indoor_loc.measurements import Fix
 
@@ -106,7 +106,7 @@ class _NonlinearPdrFilter(PositionFilter):
 
     def _check(self, steps: float, dtheta: float) -> None:
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise InvalidMessageError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
+            raise InvalidInputError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
                                       f"and dtheta, got {steps}, {dtheta}")
 
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:

@@ -151,10 +151,7 @@ class ImuStage(Stage):
                 if self._mag is not None and abs(s.stamp_ns - self._mag[0]) <= self.params.mag_max_age_s * 1e9:
                     mag = self._mag[1]
                     self._mag = None
-                try:
-                    self.aekf.update(s.stamp_ns, s.gyro, s.acc, mag)
-                except ValueError as err:
-                    raise InvalidMessageError("aekf_input", str(err)) from err
+                self.aekf.update(s.stamp_ns, s.gyro, s.acc, mag)   # InvalidInputError: counted by its reason
                 if mag is not None:
                     self.counts["mag_used"] += 1
                 q = self.aekf.quat_wxyz
