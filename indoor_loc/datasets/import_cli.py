@@ -89,6 +89,10 @@ def import_putmc(args: argparse.Namespace) -> int:
     params = {
         "imu_node": {"ros__parameters": {"heading_source": "orientation", "step_length_m": 0.65}},
         "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), "method": "wknn"}},
+        # the seed-001 paper's joint + step-length configuration: walks one after another (1…24),
+        # each matching the survey and all earlier walks' scans
+        "backend_node": {"ros__parameters": {"radiomap": str(rm_dir), "offline_order": "sequential",
+                                             "joint": True, "estimate_step_length": True}},
     }
     (out / "params.yaml").write_text(
         "# Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
