@@ -19,7 +19,9 @@ ones):
   attaches to the last pose, else a pose is added at the scan stamp, initialised at the WKNN
   position (the paper's policy). The stepometer reports a hop only at its end, so the motion from
   the last hop to the scan is extrapolated at the last hop's step rate and taken off the next hop;
-- a scan WKNN cannot localise (fewer than k candidates) adds nothing and is counted.
+- a scan WKNN cannot localise (fewer than k candidates) gets no hyperedge but still a pose by the
+  same rule (from PDR) once the user has started, and joins the map there (joint configuration): a
+  user walking beyond the survey leaves fingerprints that later users can match.
 
 Solver: ``scipy.optimize.least_squares`` (trust-region reflective) on the whitened residuals of
 all factors touching the chosen variables, with the analytic sparse Jacobian assembled in a few
@@ -231,16 +233,19 @@ class MultiUserGraph:
         return None
 
     def add_scan(self, name: str, scan: WifiScan) -> tuple[int | None, Match | None]:
-        """A WiFi scan of user ``name``. Returns (pose it is attached to or None, the WKNN match or None)."""
+        """A WiFi scan of user ``name``. Returns (pose it is attached to or None (user not started yet),
+        the WKNN match or None)."""
         tr = self.user(name)
         self._check_order(tr, scan.stamp_ns, "scan")
         tr.last_event_ns = int(scan.stamp_ns)
         match = self.map.match(scan, user=tr.index, joint=self.params.joint)
         if match is None:
             tr.scans_unlocalised += 1
-            return None, None
-        tr.scans_localised += 1
-        tr.scans_from_users += int(match.n_from_users > 0)
+            if not tr.started:
+                return None, None
+        else:
+            tr.scans_localised += 1
+            tr.scans_from_users += int(match.n_from_users > 0)
         if not tr.started:
             tr.started = True
             tr.last_grid_ns = int(scan.stamp_ns)
@@ -257,11 +262,12 @@ class MultiUserGraph:
             else:
                 tr.carry_steps += extra
                 tr.acc_steps += extra
-                i = self._new_pose(tr, scan.stamp_ns, match.fix.xy)
-        self.wifi.append(pose=i, refs=match.refs, w=match.weights, sqrt_info=self._wifi_sqrt_info(match))
+                i = self._new_pose(tr, scan.stamp_ns, match.fix.xy if match is not None else None)
+        if match is not None:
+            self.wifi.append(pose=i, refs=match.refs, w=match.weights, sqrt_info=self._wifi_sqrt_info(match))
         if self.params.joint:
-            self.map.add_scan(scan, i, tr.index)
-        if self.params.window_poses:
+            self.map.add_scan(scan, i, tr.index)     # localised or not, it is a fingerprint at pose i
+        if self.params.window_poses and match is not None:
             self.optimize_window(name)
         return i, match
 
@@ -327,6 +333,32 @@ class MultiUserGraph:
 
     def _solve(self, var: np.ndarray, max_iter: int) -> SolveReport | None:
         t0 = time.perf_counter()
+        prob = self.problem(var)
+        if prob is None:
+            return None
+        fun, jac, z0, unpack, n_factors = prob
+        sparse = len(z0) > 300
+        kw: dict[str, Any] = {"tr_solver": "lsmr"} if sparse else {"tr_solver": "exact"}
+        r0 = fun(z0)
+        sol = least_squares(fun, z0, jac=(lambda z: jac(z)) if sparse else (lambda z: jac(z).toarray()),
+                            method="trf", max_nfev=max_iter, x_scale=1.0, **kw)
+        Xc, L = unpack(sol.x)
+        Xc[var, 2] = F.wrap(Xc[var, 2])
+        self.poses.x[:self.poses.n] = Xc
+        self.step_len = L
+        col = np.full(self.poses.n, -1, np.int64)
+        col[var] = 3 * np.arange(len(var))
+        self._last_J = (jac(sol.x), var, col)
+        rep = SolveReport(len(var), n_factors, int(sol.nfev), 0.5 * float(r0 @ r0), float(sol.cost),
+                          time.perf_counter() - t0)
+        self.last_solve = rep
+        return rep
+
+    def problem(self, var: np.ndarray):
+        """The least-squares problem over poses ``var`` (and their users' step lengths): (fun(z) ->
+        whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths),
+        number of factors), or None when no factor touches the variables."""
+        var = np.asarray(var, np.int64)
         if len(var) == 0:
             return None
         p = self.params
@@ -445,23 +477,10 @@ class MultiUserGraph:
 
         def jac(z):
             _, v = evaluate(z, True)
-            J = sp.csr_matrix((v, (rows, cols)), shape=(n_r, n_x))
-            return J if sparse else J.toarray()
+            return sp.csr_matrix((v, (rows, cols)), shape=(n_r, n_x))
 
         z0 = np.concatenate([X[var].ravel(), self.step_len[var_users]])
-        sparse = n_x > 300
-        kw: dict[str, Any] = {"tr_solver": "lsmr"} if sparse else {"tr_solver": "exact"}
-        r0 = fun(z0)
-        sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale=1.0, **kw)
-        Xc, L = unpack(sol.x)
-        Xc[var, 2] = F.wrap(Xc[var, 2])
-        self.poses.x[:n_pose] = Xc
-        self.step_len = L
-        self._last_J = (jac(sol.x), var, col)
-        rep = SolveReport(len(var), n_p + n_w + n_g + n_u, int(sol.nfev), 0.5 * float(r0 @ r0),
-                          float(sol.cost), time.perf_counter() - t0)
-        self.last_solve = rep
-        return rep
+        return fun, jac, z0, unpack, n_p + n_w + n_g + n_u
 
     def marginal_cov(self, pose: int) -> np.ndarray | None:
         """(3, 3) covariance of a pose from the last solve's information matrix JᵀJ (None if that
