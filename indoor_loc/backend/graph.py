@@ -337,7 +337,7 @@ class MultiUserGraph:
         if prob is None:
             return None
         fun, jac, z0, unpack, n_factors = prob
-        sparse = len(z0) > 300
+        sparse = len(z0) > 120         # dense SVD trust-region steps only for small windows
         kw: dict[str, Any] = {"tr_solver": "lsmr"} if sparse else {"tr_solver": "exact"}
         r0 = fun(z0)
         sol = least_squares(fun, z0, jac=(lambda z: jac(z)) if sparse else (lambda z: jac(z).toarray()),
