@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from indoor_loc.cli import main as cli_main
-    from indoor_loc.eval.cli import evaluate, trajectories_from_bags, truth_from_import
+    from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
     from indoor_loc.eval.trajectory import write_csv
     from indoor_loc.pipeline.offline import run_offline
 
@@ -47,9 +47,12 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     imp = out / "import"
     t0 = time.perf_counter()
-    if args.reimport or not (imp / "params.yaml").exists():
+    params = imp / "params.yaml"
+    # params files from before /**/ keys configure no namespaced node: import again
+    if args.reimport or not params.exists() or "/**/" not in params.read_text():
         print(f"== 1/4 import PUTMC -> {imp}")
-        argv = ["import", "putmc", str(putmc), str(imp)] + ([] if args.walks == "all" else ["--walks", args.walks])
+        argv = (["import", "putmc", str(putmc), str(imp), "--overwrite"]
+                + ([] if args.walks == "all" else ["--walks", args.walks]))
         rc = cli_main(argv)
         if rc:
             return rc
@@ -61,7 +64,7 @@ def main(args: argparse.Namespace) -> int:
         bags = [b for b in bags if b.name in keep]
     run = out / "run.mcap"
     print(f"== 2/4 replay {len(bags)} bags through nodes {','.join(NODES)} -> {run}")
-    summary = run_offline(bags, run, nodes=NODES, params=imp / "params.yaml")
+    summary = run_offline(bags, run, nodes=NODES, params=imp / "params.yaml", overwrite=True)
     print(f"   {summary.messages_in} messages in, {summary.messages_out} out, {summary.bag_span_s:.0f} s of "
           f"recordings in {summary.wall_s:.1f} s")
     for name, kv in summary.per_stage.items():

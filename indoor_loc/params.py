@@ -7,7 +7,7 @@ their ROS parameters from the fields, offline runs read the same YAML files.
 from __future__ import annotations
 
 import dataclasses
-import fnmatch
+import re
 from pathlib import Path
 from typing import Any, Mapping, TypeVar
 
@@ -54,7 +54,9 @@ def _coerce(owner: str, f: dataclasses.Field, value: Any) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"{owner}.{f.name}: expected a bool, got {value!r}")
         return value
-    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+    if isinstance(value, bool):   # bool is an int subclass: `harmonics: true` must not mean 1
+        raise ConfigError(f"{owner}.{f.name}: expected {type(default).__name__}, got {value!r}")
+    if isinstance(default, float) and isinstance(value, int):
         return float(value)
     if isinstance(default, int) and isinstance(value, float) and value.is_integer():
         return int(value)
@@ -122,23 +124,70 @@ def nest_dotted(values: Mapping[str, Any], where: str = "parameters") -> dict[st
     return out
 
 
+def node_key(node_name: str) -> str:
+    """The params-file key that reaches ``node_name`` in every namespace: ``/**/node_name``.
+
+    rcl matches a bare ``node_name:`` key only to the node in the root namespace (``/node_name``),
+    so a file keyed that way is silently ignored by ``--ros-args -r __ns:=/alice``; ``/**:`` would
+    reach every node, and a key meant for one node then stops the next ("unknown parameter")."""
+    return f"/**/{node_name}"
+
+
+def params_file_text(nodes: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
+    """A ROS 2 params file with one ``/**/node_name:`` section per entry of ``nodes``
+    ({node name: {parameter: value}}), preceded by ``header`` (comment lines)."""
+    data = {node_key(name): {"ros__parameters": dict(values)} for name, values in nodes.items()}
+    text = yaml.safe_dump(data, sort_keys=False)
+    return "".join(f"# {line}\n".replace("# \n", "#\n") for line in header.splitlines()) + text
+
+
+def _key_regex(key: str) -> re.Pattern[str]:
+    """rcl's node-key pattern as a regex: ``*`` is one name token, ``/**`` zero or more tokens;
+    a key without a leading slash is a name in the root namespace (``node`` = ``/node``)."""
+    k = key if key.startswith("/") else "/" + key
+    out = []
+    i = 0
+    while i < len(k):
+        if k.startswith("/**", i):
+            out.append("(?:/[^/]+)*")
+            i += 3
+        elif k[i] == "*":
+            out.append("[^/]*")
+            i += 1
+        else:
+            out.append(re.escape(k[i]))
+            i += 1
+    return re.compile("".join(out) + r"\Z")
+
+
+def node_key_matches(key: str, node_name: str, namespace: str = "") -> bool:
+    """Whether a params-file key applies to ``namespace/node_name`` the way rcl decides it."""
+    fq = f"{namespace.rstrip('/')}/{node_name}" if namespace.strip("/") else f"/{node_name}"
+    if key in ("/**", "**"):
+        return True
+    return _key_regex(key).match(fq) is not None
+
+
 def params_for_node(files: Mapping[str, Mapping[str, Any]], node_name: str, namespace: str = "") -> dict[str, Any]:
-    """Merge the entries of a params file that apply to ``namespace/node_name``, as rcl does:
-    wildcard entries first (``/**``), then plain ``node_name``, then fully qualified matches."""
-    fq = f"{namespace.rstrip('/')}/{node_name}" if namespace else f"/{node_name}"
+    """Merge the entries of a params file that apply to ``namespace/node_name``, as rcl matches
+    them (see :func:`node_key_matches`): wildcard entries first (``/**``, ``/**/node``), then exact
+    fully qualified names. A bare ``node_name:`` key applies only in the root namespace, as live."""
     merged: dict[str, Any] = {}
-    ranked: list[tuple[int, str]] = []
-    for key in files:
-        k = key if key.startswith("/") else None
-        if key in ("/**", "**"):
-            ranked.append((0, key))
-        elif key == node_name:
-            ranked.append((1, key))
-        elif k is not None and (k == fq or fnmatch.fnmatchcase(fq, k.replace("/**/", "/*/"))):
-            ranked.append((2 if "*" in k else 3, key))
-    for _, key in sorted(ranked):
+    ranked: list[tuple[int, int, str]] = []
+    for order, key in enumerate(files):
+        if node_key_matches(key, node_name, namespace):
+            ranked.append((1 if "*" in key else 2, order, key))
+    for _, _, key in sorted(ranked):
         _deep_update(merged, files[key])
     return merged
+
+
+def misplaced_keys(files: Mapping[str, Mapping[str, Any]], node_name: str, namespace: str = "") -> list[str]:
+    """Keys that name this node but do not reach it: a bare ``node_name`` (or ``/node_name``) key
+    when the node runs in a namespace. rcl ignores them silently; callers say so loudly."""
+    if not namespace.strip("/"):
+        return []
+    return [k for k in files if k.strip("/") == node_name and not node_key_matches(k, node_name, namespace)]
 
 
 def _deep_update(into: dict[str, Any], new: Mapping[str, Any]) -> None:

@@ -14,9 +14,9 @@ from conftest import dataset
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.imu.pdr import Pdr, PdrParams
-from indoor_loc.msg_adapters.odom import odom_to_msg
-from indoor_loc.msg_adapters.path import path_from_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
 from indoor_loc.pipeline import offline
 from indoor_loc.pipeline.backend_stage import BackendParams, BackendStage
 from indoor_loc.wifi.radiomap import save_radiomap

@@ -10,7 +10,7 @@ from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_b
                                           process_noise, rts_smooth)
 from indoor_loc.fusion.nonlinear import NonlinearPdrParams, PdrEkf, PdrUkf, run_filter
 from indoor_loc.params import params_from_dict
-from indoor_loc.wifi.types import Fix
+from indoor_loc.measurements import Fix
 
 
 def synthetic_walk(rng: np.random.Generator, n_epochs: int = 240, wifi_every: int = 4, wifi_sigma: float = 3.0):

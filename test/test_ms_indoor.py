@@ -81,9 +81,9 @@ def _args(out: Path, **kw) -> argparse.Namespace:
 def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     from indoor_loc.bag import read_bag
     from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
-    from indoor_loc.msg_adapters.imu import imu_from_msg, mag_from_msg
-    from indoor_loc.msg_adapters.path import path_from_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+    from msg_adapters.imu import imu_from_msg, mag_from_msg
+    from msg_adapters.path import path_from_msg
+    from msg_adapters.wifi_scan import scan_from_msg
     from indoor_loc.wifi.radiomap import load_radiomap
 
     out = tmp_path / "out"

@@ -12,8 +12,8 @@ from indoor_loc import params as P
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError
-from indoor_loc.msg_adapters.odom import odom_to_msg
-from indoor_loc.msg_adapters.path import path_to_msg
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_to_msg
 from indoor_loc.pipeline import offline, registry
 from indoor_loc.pipeline.stage import Port, Stage, namespace_of_user, user_of_namespace
 
@@ -121,7 +121,7 @@ def test_auto_order_follows_the_stage_params(tmp_path, echo_registered):
     params.write_text("echo_node:\n  ros__parameters:\n    offline_order: sequential\n")
     s = offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], params=params, progress=False)
     assert s.order == "sequential"
-    s = offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], progress=False)
+    s = offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], progress=False, overwrite=True)
     assert s.order == "merged"
     with pytest.raises(ConfigError, match="order"):
         offline.run_offline(_bags(tmp_path), tmp_path / "o.mcap", nodes=["echo"], progress=False, order="random")

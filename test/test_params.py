@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
 from indoor_loc.errors import ConfigError
-from indoor_loc.params import field, load_params_file, params_for_node, params_from_dict, require
+from indoor_loc.params import (field, load_params_file, misplaced_keys, node_key_matches, params_file_text,
+                               params_for_node, params_from_dict, require)
 
 
 @dataclass(frozen=True)
@@ -36,7 +38,7 @@ def test_params_file_precedence_and_dotted_keys(tmp_path):
     f.write_text("""
 /**:
   ros__parameters: {gain: 1.5, wknn.k: 3}
-my_node:
+/**/my_node:
   ros__parameters: {count: 7, wknn: {shared_threshold: 0.6}}
 /walk07/my_node:
   ros__parameters: {name: w7, wknn.k: 5}
@@ -45,7 +47,48 @@ my_node:
     assert params_for_node(files, "my_node", "/walk07") == {
         "gain": 1.5, "count": 7, "name": "w7", "wknn": {"k": 5, "shared_threshold": 0.6}}
     assert params_for_node(files, "my_node", "/walk08")["wknn"] == {"k": 3, "shared_threshold": 0.6}
+    assert params_for_node(files, "my_node")["count"] == 7            # /**/ matches the root namespace too
+    assert params_for_node(files, "my_node", "/a/b")["count"] == 7    # and nested namespaces
     assert params_for_node(files, "other_node") == {"gain": 1.5, "wknn": {"k": 3}}
+
+
+def test_bare_node_keys_apply_only_in_the_root_namespace_as_in_rcl(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("my_node:\n  ros__parameters: {count: 7}\n/*/my_node:\n  ros__parameters: {gain: 2.0}\n")
+    files = load_params_file(f)
+    assert params_for_node(files, "my_node") == {"count": 7}
+    assert params_for_node(files, "my_node", "/alice") == {"gain": 2.0}   # bare key: not for /alice/my_node
+    assert params_for_node(files, "my_node", "/a/b") == {}                # * is one namespace token
+    assert misplaced_keys(files, "my_node", "/alice") == ["my_node"]
+    assert misplaced_keys(files, "my_node") == [] and misplaced_keys(files, "other", "/alice") == []
+    assert node_key_matches("/**/my_node", "my_node", "/") and not node_key_matches("/**/my_node", "my_node2", "/x")
+
+
+def test_written_params_files_reach_namespaced_nodes(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text(params_file_text({"imu_node": {"step_length_m": 0.7}, "wifi_fix_node": {"radiomap": "/m"}},
+                                  header="two lines\nof header"))
+    assert f.read_text().startswith("# two lines\n# of header\n")
+    files = load_params_file(f)
+    assert params_for_node(files, "imu_node", "/walk06") == {"step_length_m": 0.7}
+    assert params_for_node(files, "wifi_fix_node", "/walk06") == {"radiomap": "/m"}
+    assert params_for_node(files, "pdr_kf_node", "/walk06") == {}       # no key reaches a third node
+
+
+def test_shipped_params_files_reach_namespaced_nodes():
+    config = Path(__file__).resolve().parents[1] / "config"
+    for path in sorted(config.glob("*_node.yaml")):
+        node = path.stem
+        files = load_params_file(path)
+        assert params_for_node(files, node, "/alice"), f"{path.name} sets nothing for /alice/{node}"
+        assert misplaced_keys(files, node, "/alice") == []
+
+
+def test_bool_is_not_an_int():
+    with pytest.raises(ConfigError, match="count: expected int"):
+        params_from_dict(DemoParams, {"count": True})
+    with pytest.raises(ConfigError, match="gain: expected float"):
+        params_from_dict(DemoParams, {"gain": False})
 
 
 def test_params_file_errors(tmp_path):

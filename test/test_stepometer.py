@@ -8,7 +8,8 @@ import pytest
 
 from conftest import dataset
 from indoor_loc.errors import ConfigError, InvalidMessageError
-from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch, recover_intervals
+from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
+from indoor_loc.measurements import pdr_intervals
 from indoor_loc.imu.stepometer import (CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
                                        amplitude_spectrum, analyse_windows, harmonic_score,
                                        stepometer_batch, total_steps)
@@ -197,7 +198,8 @@ def test_pdr_contract_recovers_steps_and_heading_change(rng):
     poses = pdr_batch(t0, t0 + 320_000_000, steps, yaw, np.full(n, 0.01), PdrParams(step_length_m=0.7))
     xy = np.array([[0.0, 0.0]] + [[p.x, p.y] for p in poses])
     yaws = np.array([poses[0].yaw] + [p.yaw for p in poses])
-    rec_steps, rec_dpsi = recover_intervals(xy, yaws, 0.7)
+    iv = pdr_intervals(np.arange(len(xy)), xy, yaws, step_length_m=0.7)
+    rec_steps, rec_dpsi = iv.steps, iv.dtheta
     np.testing.assert_allclose(rec_steps, steps, atol=1e-9)
     np.testing.assert_allclose(rec_dpsi[1:], (np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi, atol=1e-9)
     # speed and yaw rate as documented; covariance grows with distance

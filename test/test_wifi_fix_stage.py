@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from indoor_loc.errors import ConfigError, MapError
-from indoor_loc.msg_adapters.pose import pose_from_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.pose import pose_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
 from indoor_loc.params import load_params_file, params_for_node, params_from_dict
 from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
 from indoor_loc.wifi.radiomap import save_radiomap
@@ -87,7 +87,7 @@ def test_no_map_drops_scans_with_reason(map_dir):
     assert st.process("wifi/scan", scan_to_msg(scan_at([1, 1])), 1) == []
     assert st.diag.rejected["no_map"] == 1
     assert "no radio map" in st.extra_diagnostics()["error"]
-    from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
+    from msg_adapters.diagnostics import stage_diagnostics
     status = stage_diagnostics("/alice/wifi_fix_node", st, 10).status[0]
     level = status.level if isinstance(status.level, int) else status.level[0]   # byte field
     assert level >= 1 and any(kv.key == "error" for kv in status.values)

@@ -16,8 +16,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import String
 
 from indoor_loc.errors import ConfigError
-from indoor_loc.msg_adapters.wifi_json import scan_from_json_msg, scan_to_json_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
+from msg_adapters.wifi_json import scan_from_json_msg, scan_to_json_msg
+from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.wifi_scan_stage import IFACE_INPUT, WifiScanParams, WifiScanStage
 from indoor_loc.wifi.iface import InterfaceScanner

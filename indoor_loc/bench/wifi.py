@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from indoor_loc.wifi.methods import available_methods, make_positioner
-from indoor_loc.wifi.types import Fix, RadioMap, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import RadioMap, WifiScan
 
 CHI2_2_50 = 1.3862943611198906     # chi2 (2 dof) 50 % quantile = 2 ln 2
 CHI2_2_95 = 5.991464547107979

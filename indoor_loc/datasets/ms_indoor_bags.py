@@ -26,9 +26,9 @@ from indoor_loc.bag import BagWriter
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import join_ns
 from indoor_loc.datasets.ms_indoor import Trace
-from indoor_loc.msg_adapters.imu import imu_to_msg, mag_to_msg
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.imu import imu_to_msg, mag_to_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.wifi_scan import scan_to_msg
 
 ROLL_PITCH_STD_RAD = math.radians(2.0)
 YAW_STD_RAD = math.radians(10.0)

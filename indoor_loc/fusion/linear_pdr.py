@@ -27,7 +27,7 @@ from scipy.stats import chi2
 
 from indoor_loc import params as P
 from indoor_loc.errors import ConfigError, InvalidMessageError
-from indoor_loc.wifi.types import Fix
+from indoor_loc.measurements import Fix
 
 H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement matrix
 

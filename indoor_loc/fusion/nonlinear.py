@@ -25,7 +25,7 @@ from indoor_loc import params as P
 from indoor_loc.errors import InvalidMessageError
 from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, StateAccessors, _check_fix,
                                           joseph_update, mahalanobis_sq)
-from indoor_loc.wifi.types import Fix
+from indoor_loc.measurements import Fix
 
 H_POS4 = H_POS  # the position is also the first two components of [r1, r2, theta, s]
 

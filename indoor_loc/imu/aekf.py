@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc.imu.quaternion import wrap_angle
+from indoor_loc.measurements import wrap_angle
 from indoor_loc.params import field, require
 
 _DEG = math.pi / 180.0

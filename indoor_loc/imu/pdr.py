@@ -6,7 +6,8 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
 ``x_i = x_(i-1) + d_i cos ψ̄_i``, ``y_i = y_(i-1) + d_i sin ψ̄_i``.
 
 ``pdr/odom`` contract (one nav_msgs/Odometry per stepometer hop, stamped at the hop's end, frame
-``<user>/odom`` → ``<user>/base_link``): a consumer recovers per interval
+``<user>/odom`` → ``<user>/base_link``); consumers decode it with :mod:`indoor_loc.measurements`
+(:class:`~indoor_loc.measurements.PdrInterval`), which recovers per interval
 
 - the step count ``n_i = |p_i − p_(i-1)| / step_length_m`` (each segment is laid straight along the
   mean heading, so the chord is exactly the walked distance; the odom origin (0, 0) is the start
@@ -33,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from indoor_loc.imu.quaternion import wrap_angle
+from indoor_loc.measurements import wrap_angle
 from indoor_loc.params import field, require
 
 #: Yaw variance meaning "heading unknown", rad².
@@ -137,15 +138,6 @@ def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams 
     yv = np.zeros(len(steps)) if yaw_var is None else np.asarray(yaw_var, float)
     return [pdr.update(int(a), int(b), float(n), None if not np.isfinite(y) else float(y), float(v))
             for a, b, n, y, v in zip(t_start_ns, t_end_ns, steps, np.asarray(yaw, float), yv)]
-
-
-def recover_intervals(xy: np.ndarray, yaw: np.ndarray, step_length_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Consumer side of the contract: per consecutive pair of poses, (steps (N-1,), Δψ (N-1,) rad)."""
-    xy = np.asarray(xy, float)
-    yaw = np.asarray(yaw, float)
-    steps = np.hypot(*np.diff(xy, axis=0).T) / step_length_m
-    dpsi = (np.diff(yaw) + math.pi) % (2 * math.pi) - math.pi
-    return steps, dpsi
 
 
 class HeadingHistory:

@@ -64,11 +64,6 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", quat_to_rotmat(q), np.asarray(v, dtype=float))
 
 
-def wrap_angle(a: float) -> float:
-    """Angle wrapped to [-π, π), rad."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def yaw_xyzw(q) -> float:
     """Yaw (ZYX Euler, CCW from world x), rad, of one quaternion in ROS order x, y, z, w.
     Plain floats: this runs once per IMU sample, where numpy's per-call overhead is 5x the math."""

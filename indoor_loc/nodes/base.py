@@ -40,8 +40,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from indoor_loc.contract import Qos, join_ns, msg_class
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
-from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
-from indoor_loc.params import params_from_dict
+from msg_adapters.diagnostics import stage_diagnostics
+from indoor_loc.params import load_params_file, misplaced_keys, node_key, params_from_dict
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 
 QOS_PROFILES: dict[Qos, QoSProfile] = {
@@ -122,6 +122,27 @@ class StageNode(Node):
         self.get_logger().info(
             f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
             f"out {[p.topic for p in self.stage.outputs()]}")
+        standing = self.stage.extra_diagnostics().get("error")
+        if standing:   # a required input (radio map, graph) is missing: say so now, not per message
+            self.get_logger().error(f"{stage_cls.NODE_NAME} cannot work: {standing}")
+
+    def check_params_files(self, paths: list[str]) -> list[str]:
+        """Log an ERROR for every key of these params files that names this node but does not
+        reach it (a bare ``node_name:`` key while the node runs in a namespace: rcl ignores it
+        without a word). Returns the messages."""
+        msgs = []
+        for path in paths:
+            try:
+                files = load_params_file(path)
+            except ConfigError:
+                continue          # rcl already refused or accepted the file; nothing to add
+            for key in misplaced_keys(files, self.get_name(), self.get_namespace()):
+                msgs.append(f"params file {path}: key {key!r} does not apply to {self.get_fully_qualified_name()} "
+                            f"(rcl matches a bare node name only in the root namespace); its parameters are "
+                            f"NOT in force. Key it {node_key(self.get_name())!r} to reach the node in any namespace")
+        for m in msgs:
+            self.get_logger().error(m)
+        return msgs
 
     # -- parameters ------------------------------------------------------------------------------
     def _declare_params(self, params_cls: type) -> dict[str, Any]:
@@ -136,7 +157,8 @@ class StageNode(Node):
             default = _default_of(f)
             if isinstance(default, dict):
                 continue   # not expressible as a ROS parameter: stays at its default
-            desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True)
+            desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                       read_only=True)   # read at start-up; a change needs a restart
             p = self.declare_parameter(f.name, _ros_value(default), desc)
             value = _py_value(p.value)
             if value is None and isinstance(default, (list, tuple)):
@@ -250,7 +272,8 @@ class StageNode(Node):
 
     def _on_timer(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
-        self._publish(self.stage.tick(now_ns))
+        self._publish(self.stage.run_tick(now_ns))
+        self._log_rejections()
         self._diag_pub.publish(self.diagnostics_msg(now_ns))
 
     def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
@@ -258,7 +281,7 @@ class StageNode(Node):
 
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
-        self._publish(self.stage.finish())
+        self._publish(self.stage.run_finish())
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
@@ -308,6 +331,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     status = 0
     try:
         node = node_factory() if node_factory is not None else StageNode(stage_cls)
+        node.check_params_files(params_file_args(argv))
         spin_node(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -329,6 +353,19 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
         for sig, handler in old.items():
             signal.signal(sig, handler)
     return status
+
+
+def params_file_args(argv: list[str]) -> list[str]:
+    """The ``--params-file FILE`` arguments inside ``--ros-args`` sections of ``argv``."""
+    out, in_ros = [], False
+    for i, a in enumerate(argv):
+        if a == "--ros-args":
+            in_ros = True
+        elif a == "--":
+            in_ros = False
+        elif in_ros and a == "--params-file" and i + 1 < len(argv):
+            out.append(argv[i + 1])
+    return out
 
 
 def node_usage(stage_cls: type[Stage]) -> str:

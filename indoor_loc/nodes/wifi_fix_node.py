@@ -37,7 +37,8 @@ class WifiFixNode(StageNode):
             block: dict[str, Any] = {}
             for f in dataclasses.fields(pcls):
                 default = _default_of(f)
-                desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True)
+                desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                           read_only=True)
                 p = self.declare_parameter(f"{method}.{f.name}", _ros_value(default), desc)
                 value = _py_value(p.value)
                 if value is None and isinstance(default, (list, tuple)):

@@ -33,11 +33,11 @@ from indoor_loc import params as P
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.markers import points_markers
-from indoor_loc.msg_adapters.odom import odom_from_msg
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import pose_to_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+from msg_adapters.markers import points_markers
+from msg_adapters.odom import odom_from_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import pose_to_msg
+from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
 

@@ -43,8 +43,8 @@ from indoor_loc.imu.aekf import Aekf, AekfParams
 from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
 from indoor_loc.imu.quaternion import yaw_xyzw
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
-from indoor_loc.msg_adapters.odom import odom_to_msg
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
+from msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
 

@@ -1,8 +1,7 @@
 """PdrKfStage: the seed-004 linear PDR Kalman filter fusing ``pdr/odom`` with ``wifi/fix``.
 
 Per ``pdr/odom`` message the filter predicts with the interval's step count and heading change
-(recovered as the contract documents: ``steps = |p_i - p_(i-1)| / step_length_m``,
-``dtheta = wrap(yaw_i - yaw_(i-1))``) and publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a
+(decoded once by :class:`msg_adapters.odom.PdrOdomReader`, see :mod:`indoor_loc.measurements`) and publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a
 gated linear position update. ``pdr_kf/path`` is the RTS-smoothed history (seed 004's offline
 smoother), republished at most every ``smooth_period_s`` of stamp time and at the end of input.
 The filter starts at the first WiFi fix (position and covariance from the fix; step vector 0 with
@@ -21,15 +20,13 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.measurements import Fix
 from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           rts_smooth)
-from indoor_loc.imu.quaternion import wrap_angle
-from indoor_loc.msg_adapters.odom import odom_from_msg
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import fix_from_msg, fix_to_msg
+from msg_adapters.odom import PdrOdomReader
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import fix_from_msg, fix_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.types import Fix
 
 
 @dataclass(frozen=True)
@@ -68,7 +65,7 @@ class PdrKfStage(Stage):
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
         self.kf: LinearPdrKf | None = None
-        self._last_odom: tuple[float, float, float, int] | None = None  # x, y, yaw, stamp
+        self._odom = PdrOdomReader(params.step_length_m)
         # smoother segments, each (initial fix, epochs); an epoch is [stamp, steps, dtheta, fix or None]
         self._segments: list[tuple[Fix, list[list]]] = []
         self._epochs: list[list] = []
@@ -90,18 +87,12 @@ class PdrKfStage(Stage):
 
     # ------------------------------------------------------------------------------------------
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
-        od = odom_from_msg(msg)
-        if self._last_odom is not None and od.stamp_ns <= self._last_odom[3]:
-            raise InvalidMessageError("non_monotonic_stamp",
-                                      f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom[3]}")
+        od, interval = self._odom.read(msg)
         outs = self._apply_pending(lambda s: s < od.stamp_ns)   # fixes inside the interval just closed
-        prev, self._last_odom = self._last_odom, (od.x, od.y, od.yaw, od.stamp_ns)
-        if prev is None or self.kf is None:
+        if interval is None or self.kf is None:
             return outs
-        steps = math.hypot(od.x - prev[0], od.y - prev[1]) / self.params.step_length_m
-        dtheta = wrap_angle(od.yaw - prev[2])
-        self.kf.predict(steps, dtheta, stamp_ns=od.stamp_ns)
-        self._epochs.append([od.stamp_ns, steps, dtheta, None])
+        self.kf.predict(interval.steps, interval.dtheta, stamp_ns=od.stamp_ns)
+        self._epochs.append([od.stamp_ns, interval.steps, interval.dtheta, None])
         outs.append(("pdr_kf/pose", self._pose_msg(od.stamp_ns)))
         return outs + self._maybe_smooth(od.stamp_ns)
 
@@ -112,7 +103,7 @@ class PdrKfStage(Stage):
         fix = fix_from_msg(msg)
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
-        last_odom = self._last_odom[3] if self._last_odom is not None else None
+        last_odom = self._odom.last_stamp_ns
         horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
         return self._apply_pending(lambda s: s <= horizon or (last_odom is not None and s < last_odom))
 

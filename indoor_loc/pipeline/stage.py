@@ -13,8 +13,8 @@ bag ends in a sequential offline run; its publishers leave the ROS graph live). 
 instance serves all bags (``indoor-loc run --order merged|sequential``, see ``pipeline/offline.py``);
 live, ``StageNode`` subscribes to the users of its ``users`` parameter or discovers them from the
 graph and follows them as they come and go (``nodes/base.py``).
-``Stage.process`` never raises on a message: an :class:`InvalidMessageError` is counted under its
-reason and dropped; any other exception is counted as ``internal_error`` and reported in
+``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
+the contract, or input the core refuses) is counted under its reason and dropped; any other exception is counted as ``internal_error`` and reported in
 ``last_error`` (the node logs it, throttled). Nothing else is lost: the stage state is unchanged
 by a rejected message because handlers validate (via msg_adapters) before touching state.
 """
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 
 Output = tuple[str, Any]  # (relative topic, message)
 
@@ -171,11 +171,30 @@ class Stage:
         stats.last_ns = recv_ns
         try:
             outs = handler(msg, recv_ns)
-        except InvalidMessageError as err:
+        except InvalidInputError as err:
             self._reject(err.reason, f"{user + '/' if user else ''}{topic}: {err}")
             return []
         except Exception as err:  # noqa: BLE001 - a node never dies on a message
             self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+            return []
+        for out_topic, _ in outs:
+            self.diag.published[out_topic] += 1
+        return outs
+
+    def run_tick(self, now_ns: int) -> list[Output]:
+        """:meth:`tick` for drivers: an exception is counted as ``internal_error`` (never escapes
+        the timer or aborts an offline run); what the stage published before is kept."""
+        return self._guarded("tick", lambda: self.tick(now_ns))
+
+    def run_finish(self) -> list[Output]:
+        """:meth:`finish` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("finish", self.finish)
+
+    def _guarded(self, what: str, fn: Callable[[], list[Output]]) -> list[Output]:
+        try:
+            outs = fn()
+        except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
+            self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1

@@ -28,8 +28,8 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError
-from indoor_loc.msg_adapters.pose import fix_to_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+from msg_adapters.pose import fix_to_msg
+from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.wifi.methods import METHODS, make_params, make_positioner
 from indoor_loc.wifi.radiomap import load_radiomap

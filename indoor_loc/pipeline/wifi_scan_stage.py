@@ -26,8 +26,8 @@ from typing import Any
 from indoor_loc import params
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.wifi_json import parse_json_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
+from msg_adapters.wifi_json import parse_json_msg
+from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import require
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, ScanCommandError, build_command

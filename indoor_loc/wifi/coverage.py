@@ -33,7 +33,8 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.errors import InvalidMessageError, MapError
-from indoor_loc.wifi.types import ApIndex, Fix, Positioner, RadioMap, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
 
 
 @dataclass(frozen=True)

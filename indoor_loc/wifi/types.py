@@ -1,9 +1,14 @@
-"""Core WiFi types shared by ingestion, radio maps and every positioning method (pure numpy)."""
+"""Core WiFi types shared by ingestion, radio maps and every positioning method (pure numpy); a
+method's output, :class:`~indoor_loc.measurements.Fix`, is a measurement shared by every estimator."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from indoor_loc.measurements import Fix
+
+__all__ = ["ApIndex", "Positioner", "RadioMap", "WifiScan"]
 
 
 @dataclass(frozen=True)
@@ -27,21 +32,6 @@ class WifiScan:
 
     def as_dict(self) -> dict[str, float]:
         return {b: float(r) for b, r in zip(self.bssid, self.rssi_dbm)}
-
-
-@dataclass(frozen=True)
-class Fix:
-    """A position estimate from one scan: ``xy`` (2,) metres in the map frame, ``cov`` (2, 2) m^2.
-
-    ``ok`` is False when the method declined (too few shared APs, outlier rejection...), with
-    ``reason`` saying why; ``info`` holds method-specific extras (matched map scans, weights...).
-    """
-    stamp_ns: int
-    xy: np.ndarray
-    cov: np.ndarray
-    ok: bool = True
-    reason: str = ""
-    info: dict = field(default_factory=dict)
 
 
 @dataclass

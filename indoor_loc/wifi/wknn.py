@@ -40,7 +40,8 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.errors import MapError
-from indoor_loc.wifi.types import ApIndex, Fix, Positioner, RadioMap, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
 
 ERROR_TYPES = ("l2", "l1", "rms", "mae")
 

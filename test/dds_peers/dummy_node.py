@@ -12,8 +12,8 @@ from pathlib import Path
 
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
-from indoor_loc.msg_adapters.imu import imu_from_msg
-from indoor_loc.msg_adapters.pose import pose_to_msg
+from msg_adapters.imu import imu_from_msg
+from msg_adapters.pose import pose_to_msg
 from indoor_loc.pipeline.stage import Port, Stage
 
 

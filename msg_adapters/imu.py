@@ -12,7 +12,7 @@ from geometry_msgs.msg import Quaternion, Vector3
 from sensor_msgs.msg import Imu, MagneticField
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.time import as_matrix, as_vector, require_len, stamp_from_ns, stamp_to_ns
+from msg_adapters.time import as_matrix, as_vector, require_len, stamp_from_ns, stamp_to_ns
 
 #: |‖q‖ - 1| above this rejects an orientation as ``"bad_quaternion"``.
 QUAT_NORM_TOL = 1e-3

@@ -78,9 +78,9 @@ def _user_of(topic: str, rel: str, default: str) -> str:
 def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01") -> dict[str, Trajectory]:
     """Trajectories per user from the bags' ``topic`` (Path: last message; poses/odometry: all)."""
     from indoor_loc.bag import read_bag
-    from indoor_loc.msg_adapters.odom import odom_from_msg
-    from indoor_loc.msg_adapters.path import path_from_msg
-    from indoor_loc.msg_adapters.pose import pose_from_msg
+    from msg_adapters.odom import odom_from_msg
+    from msg_adapters.path import path_from_msg
+    from msg_adapters.pose import pose_from_msg
 
     topics = _matching_topics(paths, topic)
     if not topics:
@@ -114,8 +114,8 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
     """Truth per user from imported bags: ``ground_truth`` (time-stamped scan positions) and the
     LINE_LIST markers of ``ground_truth/route`` (consecutive point pairs = segments)."""
     from indoor_loc.bag import read_bag
-    from indoor_loc.msg_adapters.markers import marker_points
-    from indoor_loc.msg_adapters.path import path_from_msg
+    from msg_adapters.markers import marker_points
+    from msg_adapters.path import path_from_msg
 
     bags = sorted(Path(import_dir).glob("*.mcap"))
     if not bags:

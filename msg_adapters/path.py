@@ -6,8 +6,8 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.odom import quat_to_yaw, yaw_to_quat
-from indoor_loc.msg_adapters.time import require_finite, stamp_from_ns, stamp_to_ns
+from msg_adapters.odom import quat_to_yaw, yaw_to_quat
+from msg_adapters.time import require_finite, stamp_from_ns, stamp_to_ns
 
 
 def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | None = None,

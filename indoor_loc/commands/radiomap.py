@@ -26,9 +26,9 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
+from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import (add_fingerprints, empty_radiomap, interpolate_positions, load_radiomap,
                                       nominal_spacing_m, radiomap_summary, read_manifest, save_radiomap)
 from indoor_loc.wifi.types import RadioMap
@@ -64,8 +64,8 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     counts: scans, used, outside_truth, invalid (by reason), no_truth.
     """
     from indoor_loc.bag import bag_topics, read_bag
-    from indoor_loc.msg_adapters.path import path_from_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_from_msg
+    from msg_adapters.path import path_from_msg
+    from msg_adapters.wifi_scan import scan_from_msg
 
     topics = bag_topics(bags)
     wanted = [t for t in topics if _namespace(t, topic_scan) is not None or _namespace(t, topic_truth) is not None]
@@ -139,10 +139,10 @@ def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan:
                        f"report: {report}")
     inputs = [str(p) for p in bags] + ([f"putmc:{putmc}"] if putmc is not None else [])
     save_radiomap(rm, out, created_by="indoor-loc radiomap build", inputs=inputs)
-    params = {"wifi_fix_node": {"ros__parameters": {"radiomap": str(Path(out).resolve()), "method": method}}}
-    (Path(out) / "params.yaml").write_text(
-        "# wifi_fix_node configured for this radio map (indoor-loc radiomap build)\n"
-        + yaml.safe_dump(params, sort_keys=False))
+    params = {"wifi_fix_node": {"radiomap": str(Path(out).resolve()), "method": method}}
+    (Path(out) / "params.yaml").write_text(params_file_text(
+        params, header="wifi_fix_node configured for this radio map (indoor-loc radiomap build);\n"
+                       "the /**/ key reaches wifi_fix_node in any namespace"))
     return rm, report
 
 

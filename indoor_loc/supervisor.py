@@ -1,4 +1,5 @@
-"""``indoor-loc up CONFIG.yaml``: start a set of nodes from a bring-up YAML, like a launch file.
+"""Process supervisor (no ROS in it): start a set of nodes from a bring-up YAML, like a launch file;
+``indoor-loc up CONFIG.yaml`` is its command line (:mod:`indoor_loc.commands.up`).
 
 Each node runs as a child process::
 
@@ -13,7 +14,6 @@ every child ended cleanly, 1 otherwise. ``config/bringup_example.yaml`` document
 """
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import os
 import re
@@ -109,7 +109,7 @@ def package_executables() -> dict[str, str]:
     for ep in entry_points(group="console_scripts"):
         if ep.value.startswith("indoor_loc.") and ep.name != "indoor-loc":
             out[ep.name] = ep.value
-    nodes_dir = Path(__file__).resolve().parent
+    nodes_dir = Path(__file__).resolve().parent / "nodes"
     for p in nodes_dir.glob("*_node.py"):           # also nodes not (yet) installed as scripts
         name = p.stem
         out.setdefault(name.removesuffix("_node") if name in ("player_node", "recorder_node") else name,
@@ -418,19 +418,3 @@ class Bringup:
         status = 1 if self._failed else 0
         self.log(PREFIX, "all nodes stopped" + ("" if status == 0 else " (some exited with an error)"))
         return status
-
-
-# ---------------------------------------------------------------------------------------- CLI
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("config", type=Path, help="bring-up YAML (see config/bringup_example.yaml)")
-    parser.add_argument("--dry-run", action="store_true", help="print each node's command line and exit")
-
-
-def main(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
-    if args.dry_run:
-        for spec in config.nodes:
-            env = " ".join(f"{k}={shlex.quote(v)}" for k, v in {**config.env, **spec.env}.items())
-            print(f"{spec.name}: {env + ' ' if env else ''}{shlex.join(spec.command())}")
-        return 0
-    return Bringup(config).run()

@@ -14,7 +14,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.time import as_vector, require_finite, stamp_from_ns
+from msg_adapters.time import as_vector, require_finite, stamp_from_ns
 
 Color = tuple[float, float, float, float]   # r, g, b, a in [0, 1]
 

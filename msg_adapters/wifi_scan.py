@@ -17,7 +17,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from indoor_loc.contract import SCHEMA_WIFI_SCAN
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.time import stamp_from_ns, stamp_to_ns
+from msg_adapters.time import stamp_from_ns, stamp_to_ns
 from indoor_loc.wifi.types import WifiScan
 
 RSSI_MIN_DBM = -120.0

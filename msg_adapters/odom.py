@@ -14,7 +14,8 @@ from geometry_msgs.msg import Quaternion
 from nav_msgs.msg import Odometry
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
+from indoor_loc.measurements import PdrInterval, PdrIntervalDecoder, PdrIntervals, pdr_intervals
+from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
 
 PLANAR_IDX = (0, 1, 5)          # x, y, yaw in a 6x6 ROS covariance
 
@@ -90,3 +91,35 @@ def odom_from_msg(msg: Odometry) -> OdomSample:
     require_finite("twist.covariance", msg.twist.covariance)
     return OdomSample(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
                       msg.header.frame_id, msg.child_frame_id)
+
+
+class PdrOdomReader:
+    """The one ``pdr/odom`` decoder: messages -> :class:`~indoor_loc.measurements.PdrInterval`
+    (validation here, the arithmetic in :class:`~indoor_loc.measurements.PdrIntervalDecoder`).
+
+    ``step_length_m`` is the nominal step length the PDR producer used (steps = distance / it)."""
+
+    def __init__(self, step_length_m: float) -> None:
+        self.decoder = PdrIntervalDecoder(step_length_m)
+
+    @property
+    def last_stamp_ns(self) -> int | None:
+        return self.decoder.last_stamp_ns
+
+    def read(self, msg: Odometry) -> tuple[OdomSample, PdrInterval | None]:
+        """Validate one message; returns it unpacked and the interval it closes (None for the first).
+        Raises :class:`InvalidMessageError` (the reader is then unchanged)."""
+        od = odom_from_msg(msg)
+        last = self.decoder.last_stamp_ns
+        if last is not None and od.stamp_ns <= last:
+            raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {last}")
+        return od, self.decoder.update(od.stamp_ns, od.x, od.y, od.yaw, od.cov)
+
+
+def pdr_intervals_from_msgs(msgs: list[Odometry], step_length_m: float) -> PdrIntervals:
+    """A whole ``pdr/odom`` stream -> intervals as arrays (the batch path of :class:`PdrOdomReader`)."""
+    ods = [odom_from_msg(m) for m in msgs]
+    return pdr_intervals(np.array([o.stamp_ns for o in ods], np.int64),
+                         np.array([(o.x, o.y) for o in ods], float).reshape(-1, 2),
+                         np.array([o.yaw for o in ods], float),
+                         np.array([o.cov for o in ods], float).reshape(-1, 3, 3), step_length_m=step_length_m)

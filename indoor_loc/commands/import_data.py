@@ -15,9 +15,10 @@ import math
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.output_paths import check_outputs
+from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import save_radiomap
 
 
@@ -34,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="yaw added to the phone's ENU orientation to align it with the map frame, deg "
                         "(default: the dataset estimate, about 7.8; 0 = raw Android ENU)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace walk bags, radiomap/, params.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_putmc)
     from indoor_loc.datasets import ms_indoor_import
     ms_indoor_import.add_arguments(sub)
@@ -67,6 +70,11 @@ def import_putmc(args: argparse.Namespace) -> int:
     walks = parse_walks(args.walks, ds.walk_numbers)
     map_yaw = PUTMC_MAP_YAW_RAD if args.map_yaw_deg is None else math.radians(args.map_yaw_deg)
     out = Path(args.out_dir).resolve()
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"OUT_DIR {out} exists and is not a directory")
+    check_outputs([out / f"walk{n:02d}.mcap" for n in walks]
+                  + [out / "radiomap", out / "params.yaml", out / "import_report.md"],
+                  overwrite=args.overwrite, what=f"import into {out}")
     out.mkdir(parents=True, exist_ok=True)
 
     survey = ds.survey_map()
@@ -86,18 +94,16 @@ def import_putmc(args: argparse.Namespace) -> int:
             bar.update(sum(counts.values()) - len(w.acc_t))   # IMU messages were counted as written
             rows.append(_row(w, ds.routes[w.walk].length_m, counts))
 
-    params = {
-        "imu_node": {"ros__parameters": {"heading_source": "orientation", "step_length_m": 0.65}},
-        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), "method": "wknn"}},
-        # the seed-001 paper's joint + step-length configuration: walks one after another (1…24),
-        # each matching the survey and all earlier walks' scans
-        "backend_node": {"ros__parameters": {"radiomap": str(rm_dir), "offline_order": "sequential",
-                                             "joint": True, "estimate_step_length": True}},
-    }
-    (out / "params.yaml").write_text(
-        "# Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
-        f"# map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
-        + yaml.safe_dump(params, sort_keys=False))
+    params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
+              "wifi_fix_node": {"radiomap": str(rm_dir), "method": "wknn"},
+              # the seed-001 paper's joint + step-length configuration: walks one after another
+              # (1…24), each matching the survey and all earlier walks' scans
+              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
+                               "estimate_step_length": True}}
+    (out / "params.yaml").write_text(params_file_text(params, header=(
+        "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
+        f"map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
+        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/walkNN --params-file).")))
     oddities = ds.oddities + [o for w in parsed for o in w.oddities]
     try:
         yaw_est, yaw_per = estimate_map_yaw(parsed)

@@ -31,7 +31,7 @@ def _file_summary(path: Path) -> tuple[int, int, int, int, str]:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    from indoor_loc.bag.mcap_io import scan_records
+    from indoor_loc.bag.recover import scan_records
     with open(path, "rb") as f:
         try:
             summary = make_reader(f).get_summary()
@@ -47,9 +47,9 @@ def _file_summary(path: Path) -> tuple[int, int, int, int, str]:
 
 
 def info(paths: list[Path]) -> int:
-    from indoor_loc.bag.mcap_io import scan_records
-    from indoor_loc.bag.mcap_io import bag_info as topics_of
-    from indoor_loc.bag.mcap_io import bag_files
+    from indoor_loc.bag.recover import scan_records
+    from indoor_loc.bag.reader import bag_info as topics_of
+    from indoor_loc.bag.reader import bag_files
     for path in bag_files(paths):
         if not path.is_file():
             raise BagError(f"bag {path} does not exist")
@@ -79,7 +79,7 @@ def info(paths: list[Path]) -> int:
 
 
 def recover_cmd(args: argparse.Namespace) -> int:
-    from indoor_loc.bag.mcap_io import recover
+    from indoor_loc.bag.recover import recover
     r = recover(args.src, args.dst, chunk_size=args.chunk_size, compression=args.compression)
     state = "truncated" if r.truncated else "complete"
     print(f"{args.src} ({state}): kept {r.messages} messages on {r.topics} topics from {r.chunks} chunks"

@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from indoor_loc.msg_adapters.time import stamp_from_ns
+from msg_adapters.time import stamp_from_ns
 
 
 class StatusSummary(NamedTuple):

@@ -13,9 +13,9 @@ import numpy as np
 from geometry_msgs.msg import Pose, PoseArray, PoseWithCovarianceStamped
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.odom import quat_to_yaw, yaw_to_quat
-from indoor_loc.msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
-from indoor_loc.wifi.types import Fix
+from msg_adapters.odom import quat_to_yaw, yaw_to_quat
+from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
+from indoor_loc.measurements import Fix
 
 YAW_VAR_UNKNOWN = 1e6   # rad^2
 
