@@ -57,6 +57,8 @@ class Fix:
 
     ``ok`` is False when the method declined (too few shared APs, outlier rejection...), with
     ``reason`` saying why; ``info`` holds method-specific extras (matched map scans, weights...).
+    ``z`` is the floor's height (m, the radio map's ``z_m``; 0 on a single-floor map) and ``z_var``
+    its variance (m², from the floor probabilities; 0 when the floor is certain).
     """
     stamp_ns: int
     xy: np.ndarray
@@ -64,6 +66,8 @@ class Fix:
     ok: bool = True
     reason: str = ""
     info: dict[str, Any] = field(default_factory=dict)
+    z: float = 0.0
+    z_var: float = 0.0
 
 
 class PdrInterval(NamedTuple):

@@ -80,7 +80,7 @@ def _args(out: Path, **kw) -> argparse.Namespace:
 
 def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     from indoor_loc.bag import read_bag
-    from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     from msg_adapters.imu import imu_from_msg, mag_from_msg
     from msg_adapters.path import path_from_msg
     from msg_adapters.wifi_scan import scan_from_msg
@@ -127,7 +127,8 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     assert sorted(set(rm.z_m.tolist())) == [-5.0, 0.0]
     assert rm.age_ms is not None and np.nanmax(rm.age_ms) == 4000
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert Path(params["wifi_fix_node"]["ros__parameters"]["radiomap"]) == out / "radiomap"
+    wifi = params["/**/wifi_fix_node"]["ros__parameters"]
+    assert Path(wifi["radiomap"]) == out / "radiomap" and wifi["method"] == "powed"    # ages, two floors
     plan = yaml.safe_load((out / "floors" / "B1" / "map.yaml").read_text())
     assert plan["z_m"] == -5.0 and plan["width_m"] == 60.0
     assert (out / "floors" / "B1" / "geojson_map.json").exists()
@@ -136,12 +137,12 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert split["F1"]["survey"] == ["5f0000000000000000000001"]
     # a second import onto the same bags is refused unless asked
-    with pytest.raises(ConfigError, match="exists"):
+    with pytest.raises(ConfigError, match="refusing to overwrite"):
         import_ms_indoor(_args(out, floors="F1"))
 
 
 def test_import_selection_errors(tmp_path):
-    from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     with pytest.raises(ConfigError, match="no floor"):
         import_ms_indoor(_args(tmp_path / "o", floors="F9"))
     with pytest.raises(ConfigError, match="matches 2"):

@@ -146,3 +146,32 @@ def test_node_declares_dotted_method_parameters(map_dir, ros_domain):
             WifiFixNode(context=ctx, parameter_overrides=[Parameter("wknn.kk", value=2)])
     finally:
         rclpy.shutdown(context=ctx)
+
+
+def test_two_floors_fix_carries_the_floor_and_fallback_is_counted(tmp_path):
+    """A two-floor map (format v2): wifi/fix z = the detected floor's height, covariance[14] its
+    variance, diagnostics name the floor; WKNN declines are positioned by the fallback and counted."""
+    from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, map_scans
+    upper = grid_map()
+    upper.rssi_dbm = upper.rssi_dbm - 15.0            # the same APs through a floor slab
+    rm = add_fingerprints(empty_radiomap(), grid_map().positions, map_scans(grid_map()), "g", z_m=0.0,
+                          floors={"F1": 0.0})
+    rm = add_fingerprints(rm, upper.positions, map_scans(upper), "u", z_m=5.0, floors={"F2": 5.0})
+    d = save_radiomap(rm, tmp_path / "rm2")
+    st = make({"radiomap": str(d), "method": "powed"})
+    outs = st.process("wifi/scan", scan_to_msg(scan_at([4.0, 6.0])), 1)
+    msg = outs[0][1]
+    assert msg.pose.pose.position.z == 0.0 and msg.pose.covariance[14] >= 0.0
+    assert st.extra_diagnostics()["last_floor"] == "F1"
+    s = scan_at([4.0, 6.0], stamp_ns=6 * 10**9)
+    weak = WifiScan(s.stamp_ns, s.bssid, s.rssi_dbm - 15.0, s.freq_mhz, frame_id=s.frame_id)
+    msg = st.process("wifi/scan", scan_to_msg(weak), 2)[0][1]
+    assert msg.pose.pose.position.z == 5.0
+    assert st.extra_diagnostics()["floor.F2"] == "1"
+    # fallback: WKNN requiring all 36 map scans as candidates declines; powed positions the scan
+    st = make({"radiomap": str(d), "method": "wknn", "wknn": {"k": 80}, "fallback": "powed"})
+    assert len(st.process("wifi/scan", scan_to_msg(scan_at([4.0, 6.0])), 1)) == 1
+    diag = st.extra_diagnostics()
+    assert diag["fallback.few_candidates"] == "1" and diag["declined.total"] == "0"
+    with pytest.raises(ConfigError, match="fallback"):
+        make({"method": "wknn", "fallback": "wknn"})

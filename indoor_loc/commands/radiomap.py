@@ -43,7 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("--topic-truth", default="ground_truth",
                    help="relative nav_msgs/Path topic with time-stamped true positions (default ground_truth)")
     b.add_argument("--putmc", type=Path, help="PUTMC dataset directory: start from its 114-scan survey map")
-    b.add_argument("--method", default="wknn", help="method written to DIR/params.yaml (default wknn)")
+    b.add_argument("--method", default="auto",
+                   help="method written to DIR/params.yaml (default auto: powed k-NN for maps with reading ages or "
+                        "several floors, else the best measured WKNN with a powed fallback)")
     i = sub.add_parser("info", help="summarise a radio map directory")
     i.add_argument("directory", type=Path)
 
@@ -71,6 +73,7 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     wanted = [t for t in topics if _namespace(t, topic_scan) is not None or _namespace(t, topic_truth) is not None]
     scans: dict[str, list] = defaultdict(list)
     truth: dict[str, list] = defaultdict(list)
+    truth_z: dict[str, float] = {}
     invalid: dict[str, Counter] = defaultdict(Counter)
     for m in read_bag(bags, topics=wanted):
         ns = _namespace(m.topic, topic_scan)
@@ -84,6 +87,8 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
         if ns is not None:
             try:
                 truth[ns].append(path_from_msg(m.msg))
+                if m.msg.poses:
+                    truth_z[ns] = float(m.msg.poses[0].pose.position.z)
             except InvalidMessageError as err:
                 invalid[ns][f"truth_{err.reason}"] += 1
     stem = bags[0].stem if len(bags) == 1 else "bag"
@@ -91,7 +96,8 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     report: dict[str, dict] = {}
     for ns in sorted(set(scans) | set(truth) | set(invalid)):
         lst = sorted(scans.get(ns, []), key=lambda s: s.stamp_ns)
-        rep = {"scans": len(lst), "used": 0, "outside_truth": 0, "no_truth": 0, "invalid": dict(invalid.get(ns, {}))}
+        rep = {"scans": len(lst), "used": 0, "outside_truth": 0, "no_truth": 0, "invalid": dict(invalid.get(ns, {})),
+               "z_m": truth_z.get(ns, 0.0)}
         report[ns or "/"] = rep
         if not truth.get(ns):
             rep["no_truth"] = len(lst)
@@ -104,6 +110,7 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
         rep["used"] = int(inside.sum())
         rep["outside_truth"] = int((~inside).sum())
         label = ns.strip("/").replace("/", "_") or stem
+        rep["label"] = label
         for s, p, ok in zip(lst, pos, inside):
             if ok:
                 out_scans.append(s)
@@ -113,10 +120,10 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
 
 
 def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan: str = "wifi/scan",
-          topic_truth: str = "ground_truth", method: str = "wknn") -> tuple[RadioMap, dict]:
+          topic_truth: str = "ground_truth", method: str = "auto") -> tuple[RadioMap, dict]:
     """Build, save and write params.yaml; returns (map, report)."""
-    from indoor_loc.wifi.methods import METHODS
-    if method not in METHODS:
+    from indoor_loc.wifi.methods import METHODS, recommended_params
+    if method != "auto" and method not in METHODS:
         raise ConfigError(f"--method: expected one of {sorted(METHODS)}, got {method!r}")
     if not bags and putmc is None:
         raise ConfigError("nothing to build from: give bags and/or --putmc DATASET_DIR")
@@ -133,13 +140,15 @@ def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan:
         scans, pos, src, per_ns = fingerprints_from_bags(bags, topic_scan=topic_scan, topic_truth=topic_truth)
         report["bags"] = per_ns
         if scans:
-            rm = add_fingerprints(rm, pos, scans, src)
+            z_of = {rep["label"]: rep["z_m"] for rep in per_ns.values() if "label" in rep}
+            rm = add_fingerprints(rm, pos, scans, src, z_m=[z_of.get(s, 0.0) for s in src])
     if rm.n_scans == 0:
         raise MapError("no fingerprint could be built (no scans within a ground-truth time span); "
                        f"report: {report}")
     inputs = [str(p) for p in bags] + ([f"putmc:{putmc}"] if putmc is not None else [])
     save_radiomap(rm, out, created_by="indoor-loc radiomap build", inputs=inputs)
-    params = {"wifi_fix_node": {"radiomap": str(Path(out).resolve()), "method": method}}
+    chosen = recommended_params(rm) if method == "auto" else {"method": method}
+    params = {"wifi_fix_node": {"radiomap": str(Path(out).resolve()), **chosen}}
     (Path(out) / "params.yaml").write_text(params_file_text(
         params, header="wifi_fix_node configured for this radio map (indoor-loc radiomap build);\n"
                        "the /**/ key reaches wifi_fix_node in any namespace"))

@@ -30,11 +30,10 @@ import numpy as np
 import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.output_paths import check_outputs
+from indoor_loc.params import params_file_text
+from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
-
-#: the WiFi fix settings the importer (and ``radiomap build``) configure; measured with
-#: ``indoor-loc bench wifi`` (see README)
-RECOMMENDED_WIFI = {"method": "wknn"}
 
 
 def add_arguments(sub) -> None:
@@ -48,7 +47,8 @@ def add_arguments(sub) -> None:
     p.add_argument("--survey-walks", default="",
                    help="trace ids (or prefixes) that build the radio map (default: the interleaved split)")
     p.add_argument("--storey-height-m", type=float, default=5.0, help="floor height per storey, m (default 5)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing bags in OUT_DIR")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace bags, radiomap/, params.yaml, split.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_ms_indoor)
 
 
@@ -89,6 +89,9 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     flat = sorted(i for v in all_ids.values() for i in v)
     walks = set(_select(args.walks, flat, "--walks"))
     user_survey = set(_select(args.survey_walks, flat, "--survey-walks")) if args.survey_walks.strip() else None
+    bag_of = {i: out / f.name / f"{i}.mcap" for f in floors for i in all_ids[f.name] if i in walks}
+    check_outputs([*bag_of.values(), out / "radiomap", out / "params.yaml", out / "split.yaml",
+                   out / "import_report.md"], overwrite=args.overwrite, what="import ms-indoor")
 
     rm = empty_radiomap()
     rows, oddities, split = [], [], {}
@@ -117,9 +120,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                           floors={fl.name: floor_z[fl.name]})
             if tid not in walks:
                 continue
-            bag = out / fl.name / f"{tid}.mcap"
-            if bag.exists() and not args.overwrite:
-                raise ConfigError(f"{bag} exists (use --overwrite to replace it)")
+            bag = bag_of[tid]
             bag.parent.mkdir(parents=True, exist_ok=True)
             counts = write_trace_bag(tr, bag, z_m=floor_z[fl.name])
             sc, _ = scans_with_truth(tr)
@@ -140,14 +141,12 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
     (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
                                     + yaml.safe_dump(split, sort_keys=False))
-    params = {
-        "imu_node": {"ros__parameters": {"heading_source": "orientation"}},
-        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), **RECOMMENDED_WIFI}},
-    }
-    (out / "params.yaml").write_text(
-        "# Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
-        "# magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
-        + yaml.safe_dump(params, sort_keys=False))
+    params = {"imu_node": {"heading_source": "orientation"},
+              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm)}}
+    (out / "params.yaml").write_text(params_file_text(params, header=(
+        "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
+        "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
+        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file).")))
     (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m))
     print(_table(rows))
     print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
