@@ -35,7 +35,7 @@ class NonlinearPdrParams:
     init_step_var_m2: float = field(0.01, "initial footstep length variance (m^2)")
     init_heading_rad: float = field(0.0, "initial heading mean (rad, ENU)")
     init_heading_var_rad2: float = field(1.0, "initial heading variance (rad^2); keep < (pi/2)^2 or the UKF's "
-                                          "sigma points wrap around and hide the uncertainty")
+                                              "sigma points wrap around and hide the uncertainty")
     init_pos_var_m2: float = field(100.0, "initial position variance per axis when no position is given (m^2)")
     sigma_dtheta_rad: float = field(0.1, "heading-change noise per footstep (rad)")
     sigma_ds_m: float = field(0.02, "footstep-length random walk per footstep (m)")

@@ -73,17 +73,17 @@ class PowedKnnParams:
     """Powed k-NN parameters (defaults chosen on ms_site2 B1/F7, see README)."""
     k: int = field(4, "number of nearest map scans averaged")
     floor_dbm: float = field(-100.0, "RSS mapped to 0 in the positive representation; weaker readings are "
-                                       "treated as not heard (dBm)")
+                                     "treated as not heard (dBm)")
     beta: float = field(math.e, "exponent of the powed representation")
     age_tau_ms: float = field(5000.0, "readings weigh exp(-age_ms / age_tau_ms); 0 = ignore ages (ms)")
     ap_weighting: str = field("idf", "'idf' (sqrt(ln(1 + M / n_a)): APs heard everywhere weigh less) or 'none'")
     epsilon: float = field(1e-4, "epsilon in the neighbour weight 1 / (D + epsilon)")
     floor_k: int = field(8, "nearest map scans over all floors that vote for the floor")
     cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
-                                    "covariance (0: the cross-validated sigma already holds it)")
+                                  "covariance (0: the cross-validated sigma already holds it)")
     cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
     cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
-                                          "cross-validation at fit time")
+                                        "cross-validation at fit time")
 
     def validate(self) -> None:
         n = type(self).__name__
