@@ -13,7 +13,7 @@ from indoor_loc.errors import IndoorLocError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("indoor_loc.demo", "replay a PUTMC walk through the pipeline, score it and plot it"),
+    "demo": ("indoor_loc.demo", "the main job: simulated walkers in the sample building, every node live over DDS, scored and plotted"),
     "run": ("indoor_loc.pipeline.offline", "run bags through the nodes offline, as fast as the CPU allows"),
     "up": ("indoor_loc.commands.up", "start a set of nodes from a bring-up YAML (like a launch file)"),
     "record": ("indoor_loc.commands.record", "record DDS topics to an MCAP bag"),
@@ -25,7 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
-    "sim": ("indoor_loc.sim.cli", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
+    "view": ("indoor_loc.commands.view", "live view of a running system over Foxglove WebSocket (foxglove-sdk)"),
+    "sim": ("indoor_loc.commands.sim", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
 }
 
 

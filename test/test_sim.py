@@ -219,7 +219,7 @@ def test_written_run_replays_through_the_nodes_with_truth(tmp_path):
     from indoor_loc.bag import bag_topics
     from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
     from indoor_loc.pipeline.offline import run_offline
-    from indoor_loc.sim.cli import generate
+    from indoor_loc.commands.sim import generate
     from indoor_loc.wifi.radiomap import load_radiomap
 
     paths = generate(tmp_path / "sim", SimConfig(walkers=2, duration_s=40.0, seed=2), quiet=True)
