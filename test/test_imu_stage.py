@@ -162,7 +162,7 @@ def test_frames_and_config_errors():
     with pytest.raises(ConfigError, match="heading_source"):
         params_from_dict(ImuStageParams, {"heading_source": "compass"})
     with pytest.raises(ConfigError, match="window_s"):
-        params_from_dict(ImuStageParams, {"window_s": -1.0})
+        params_from_dict(ImuStageParams, {"stepometer": {"window_s": -1.0}})
     with pytest.raises(ConfigError, match="unknown"):
         params_from_dict(ImuStageParams, {"step_lenght_m": 0.7})
 

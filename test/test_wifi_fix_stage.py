@@ -127,23 +127,23 @@ def test_node_declares_dotted_method_parameters(map_dir, ros_domain):
     rclpy = pytest.importorskip("rclpy")
     from rclpy.parameter import Parameter
 
-    from indoor_loc.nodes.wifi_fix_node import WifiFixNode
+    from indoor_loc.nodes.base import StageNode
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
-        node = WifiFixNode(context=ctx, parameter_overrides=[
+        node = StageNode(WifiFixStage, context=ctx, parameter_overrides=[
             Parameter("radiomap", value=str(map_dir)), Parameter("wknn.k", value=2),
             Parameter("wknn.error_type", value="l1"), Parameter("coverage.mimo", value=False)])
         try:
             assert node.stage.positioner.params.k == 2 and node.stage.positioner.params.error_type == "l1"
             assert node.get_parameter("wknn.shared_threshold").value == 0.6
-            assert node.stage.params.coverage["mimo"] is False
+            assert node.stage.params.coverage.mimo is False
             res = node._on_set_params([Parameter("wknn.k", value=3)])
             assert not res.successful
         finally:
             node.destroy_node()
         with pytest.raises(ConfigError, match="wknn.kk"):
-            WifiFixNode(context=ctx, parameter_overrides=[Parameter("wknn.kk", value=2)])
+            StageNode(WifiFixStage, context=ctx, parameter_overrides=[Parameter("wknn.kk", value=2)])
     finally:
         rclpy.shutdown(context=ctx)
 

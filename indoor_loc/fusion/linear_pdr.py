@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.errors import ConfigError, InvalidMessageError
 from indoor_loc.measurements import Fix
 
@@ -35,24 +35,24 @@ H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement 
 @dataclass(frozen=True)
 class LinearPdrParams:
     """Parameters of the seed-004 linear PDR model and its WiFi update."""
-    step_length_m: float = P.field(0.7, "nominal footstep length s (m), scales the heading noise")
-    sigma_dtheta_rad: float = P.field(0.1, "heading-change noise per footstep (rad)")
-    sigma_ds_m: float = P.field(0.07, "step-vector length change noise per footstep (m)")
-    q_floor_m2: float = P.field(1e-6, "process-noise floor on the step vector per prediction (m^2)")
-    init_pos_var_m2: float = P.field(100.0, "initial position variance per axis when no position is given (m^2)")
-    init_step_var_m2: float = P.field(1.0, "initial step-vector variance per axis; mean 0 (m^2)")
-    gate: bool = P.field(True, "reject WiFi fixes whose innovation fails the chi-square test")
-    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the innovation gate")
+    step_length_m: float = field(0.7, "nominal footstep length s (m), scales the heading noise")
+    sigma_dtheta_rad: float = field(0.1, "heading-change noise per footstep (rad)")
+    sigma_ds_m: float = field(0.07, "step-vector length change noise per footstep (m)")
+    q_floor_m2: float = field(1e-6, "process-noise floor on the step vector per prediction (m^2)")
+    init_pos_var_m2: float = field(100.0, "initial position variance per axis when no position is given (m^2)")
+    init_step_var_m2: float = field(1.0, "initial step-vector variance per axis; mean 0 (m^2)")
+    gate: bool = field(True, "reject WiFi fixes whose innovation fails the chi-square test")
+    gate_prob: float = field(0.999, "chi-square (2 dof) probability of the innovation gate")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
-        P.require(self.sigma_dtheta_rad >= 0, n, "sigma_dtheta_rad", ">= 0", self.sigma_dtheta_rad)
-        P.require(self.sigma_ds_m >= 0, n, "sigma_ds_m", ">= 0", self.sigma_ds_m)
-        P.require(self.q_floor_m2 > 0, n, "q_floor_m2", "> 0", self.q_floor_m2)
-        P.require(self.init_pos_var_m2 > 0, n, "init_pos_var_m2", "> 0", self.init_pos_var_m2)
-        P.require(self.init_step_var_m2 > 0, n, "init_step_var_m2", "> 0", self.init_step_var_m2)
-        P.require(0.0 < self.gate_prob < 1.0, n, "gate_prob", "in (0, 1)", self.gate_prob)
+        require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        require(self.sigma_dtheta_rad >= 0, n, "sigma_dtheta_rad", ">= 0", self.sigma_dtheta_rad)
+        require(self.sigma_ds_m >= 0, n, "sigma_ds_m", ">= 0", self.sigma_ds_m)
+        require(self.q_floor_m2 > 0, n, "q_floor_m2", "> 0", self.q_floor_m2)
+        require(self.init_pos_var_m2 > 0, n, "init_pos_var_m2", "> 0", self.init_pos_var_m2)
+        require(self.init_step_var_m2 > 0, n, "init_step_var_m2", "> 0", self.init_step_var_m2)
+        require(0.0 < self.gate_prob < 1.0, n, "gate_prob", "in (0, 1)", self.gate_prob)
 
     @property
     def gate_threshold(self) -> float:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import array
 import argparse
-import dataclasses
 import signal
 import sys
 import threading
@@ -41,7 +40,8 @@ from rclpy.signals import SignalHandlerOptions
 from indoor_loc.contract import Qos, join_ns, msg_class
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
 from msg_adapters.diagnostics import stage_diagnostics
-from indoor_loc.params import load_params_file, misplaced_keys, node_key, params_from_dict
+from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
+                               params_from_dict, params_to_dict)
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 
 QOS_PROFILES: dict[Qos, QoSProfile] = {
@@ -66,14 +66,6 @@ _SPIN_PERIOD_S = 0.1
 
 def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
-
-
-def _default_of(f: dataclasses.Field) -> Any:
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-        return f.default_factory()  # type: ignore[misc]
-    return None
 
 
 def _ros_value(value: Any) -> Any:
@@ -146,40 +138,42 @@ class StageNode(Node):
 
     # -- parameters ------------------------------------------------------------------------------
     def _declare_params(self, params_cls: type) -> dict[str, Any]:
-        """Declare one ROS parameter per Params field and return the values in force.
+        """Declare one ROS parameter per Params field and return the values in force (nested for
+        groups: a group's fields are declared with dotted names, ``stepometer.window_s``).
 
         Parameters are dynamically typed so ``step_length_m: 1`` in a YAML file (an int for a
         float) is coerced by :func:`params_from_dict` instead of failing inside rclpy; type errors
         are reported there as ConfigError. Overrides naming no field are a ConfigError too.
         """
         values: dict[str, Any] = {}
-        for f in dataclasses.fields(params_cls):
-            default = _default_of(f)
+        names = []
+        for name, f, default in leaves(params_cls):
             if isinstance(default, dict):
                 continue   # not expressible as a ROS parameter: stays at its default
+            names.append(name)
             desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
                                        read_only=True)   # read at start-up; a change needs a restart
-            p = self.declare_parameter(f.name, _ros_value(default), desc)
+            p = self.declare_parameter(name, _ros_value(default), desc)
             value = _py_value(p.value)
             if value is None and isinstance(default, (list, tuple)):
                 value = type(default)()
             if value is not None or default is None:
-                values[f.name] = value
+                values[name] = value
         overrides = getattr(self, "_parameter_overrides", {}) or {}
         unknown = sorted(n for n in overrides if not self.has_parameter(n)
                          and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
         if unknown:
-            names = sorted(f.name for f in dataclasses.fields(params_cls))
+            names = sorted(names)
             raise ConfigError(f"{params_cls.__name__}: unknown parameter(s) {unknown} for "
                               f"{self.get_fully_qualified_name()}; expected some of {names}")
-        return values
+        return nest_dotted(values)
 
     def _on_set_params(self, changes: list) -> SetParametersResult:
-        fields = {f.name for f in dataclasses.fields(self._stage_cls.PARAMS)}
+        fields = {name for name, _, _ in leaves(self._stage_cls.PARAMS)}
         ours = [p for p in changes if p.name in fields]
         if not ours:
             return SetParametersResult(successful=True)   # use_sim_time and friends
-        current = dataclasses.asdict(self.stage.params)
+        current = flatten(params_to_dict(self.stage.params))
         current.update({p.name: _py_value(p.value) for p in ours})
         try:
             params_from_dict(self._stage_cls.PARAMS, current)
@@ -371,8 +365,8 @@ def params_file_args(argv: list[str]) -> list[str]:
 def node_usage(stage_cls: type[Stage]) -> str:
     lines = [f"usage: ros2 run indoor_loc {stage_cls.NODE_NAME} [--ros-args -r __ns:=/USER "
              f"--params-file FILE -p NAME:=VALUE ...]", "", (stage_cls.__doc__ or "").strip(), "", "parameters:"]
-    for f in dataclasses.fields(stage_cls.PARAMS):
-        lines.append(f"  {f.name} (default {_default_of(f)!r}): {f.metadata.get('doc', '')}")
+    for name, f, default in leaves(stage_cls.PARAMS):
+        lines.append(f"  {name} (default {default!r}): {f.metadata.get('doc', '')}")
     try:
         stage = stage_cls(stage_cls.PARAMS(), namespace="")
     except IndoorLocError as err:     # a stage that needs files to start still gets its help printed

@@ -29,14 +29,13 @@ any state changes: counted by reason and dropped.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import deque
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, group, require, validate_groups
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidMessageError
 from indoor_loc.imu.aekf import Aekf, AekfParams
@@ -49,62 +48,39 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 
 
 HEADING_SOURCES = ("auto", "aekf", "orientation")
-AEKF_PREFIX = "aekf_"
 
 
-def _copy_field(f: dataclasses.Field, name: str | None = None) -> tuple[str, type, Any]:
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-    return (name or f.name, f.type, P.field(default, f.metadata.get("doc", "")))
+@dataclass(frozen=True)
+class ImuStageParams:
+    """Parameters of ``imu_node`` (see config/imu_node.yaml): its own, and the stepometer's and the
+    AEKF's as groups (ROS parameters ``stepometer.window_s``, ``aekf.gyro_noise``, ...; defaults and
+    docs live in :class:`StepometerParams` and :class:`AekfParams`)."""
+    heading_source: str = field("auto", "'auto' (imu/data orientation if it arrives, else the AEKF), "
+                                          "'aekf' or 'orientation'")
+    step_length_m: float = field(0.65, "nominal step length, m: distance = steps x this")
+    step_length_rel_std: float = field(0.1, "relative std of the walked distance per hop, 1")
+    heading_offset_rad: float = field(0.0, "added to the device yaw to get the walking heading, rad "
+                                             "(0: device x forward, REP 103; pi/2: phone +y forward)")
+    default_yaw_std_rad: float = field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")
+    odom_frame: str = field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")
+    base_frame: str = field("", "pdr/odom child frame; '' = '<namespace>/base_link'")
+    mag_max_age_s: float = field(0.2, "a magnetometer sample older than this is not used, s")
+    stepometer: StepometerParams = group(StepometerParams, "FFT stepometer (indoor_loc/imu/stepometer.py)")
+    aekf: AekfParams = group(AekfParams, "adaptive EKF orientation (indoor_loc/imu/aekf.py), used when the "
+                                           "heading comes from the AEKF")
 
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.heading_source in HEADING_SOURCES, n, "heading_source", f"one of {HEADING_SOURCES}",
+                  self.heading_source)
+        require(self.default_yaw_std_rad > 0, n, "default_yaw_std_rad", "> 0", self.default_yaw_std_rad)
+        require(self.mag_max_age_s >= 0, n, "mag_max_age_s", ">= 0", self.mag_max_age_s)
+        require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
+        validate_groups(self)
+        self.pdr_params().validate()
 
-_OWN_FIELDS: list[tuple[str, Any, Any]] = [
-    ("heading_source", str, P.field("auto", "'auto' (imu/data orientation if it arrives, else the AEKF), "
-                                            "'aekf' or 'orientation'")),
-    ("step_length_m", float, P.field(0.65, "nominal step length, m: distance = steps x this")),
-    ("step_length_rel_std", float, P.field(0.1, "relative std of the walked distance per hop, 1")),
-    ("heading_offset_rad", float, P.field(0.0, "added to the device yaw to get the walking heading, rad "
-                                               "(0: device x forward, REP 103; pi/2: phone +y forward)")),
-    ("default_yaw_std_rad", float, P.field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")),
-    ("odom_frame", str, P.field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")),
-    ("base_frame", str, P.field("", "pdr/odom child frame; '' = '<namespace>/base_link'")),
-    ("mag_max_age_s", float, P.field(0.2, "a magnetometer sample older than this is not used, s")),
-]
-
-
-def _validate(self) -> None:
-    n = type(self).__name__
-    P.require(self.heading_source in HEADING_SOURCES, n, "heading_source", f"one of {HEADING_SOURCES}",
-              self.heading_source)
-    P.require(self.default_yaw_std_rad > 0, n, "default_yaw_std_rad", "> 0", self.default_yaw_std_rad)
-    P.require(self.mag_max_age_s >= 0, n, "mag_max_age_s", ">= 0", self.mag_max_age_s)
-    P.require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
-    self.stepometer_params().validate()
-    self.pdr_params().validate()
-    self.aekf_params().validate()
-
-
-def _stepometer_params(self) -> StepometerParams:
-    return StepometerParams(**{f.name: getattr(self, f.name) for f in dataclasses.fields(StepometerParams)})
-
-
-def _pdr_params(self) -> PdrParams:
-    return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
-
-
-def _aekf_params(self) -> AekfParams:
-    return AekfParams(**{f.name: getattr(self, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)})
-
-
-_fields = (list(_OWN_FIELDS) + [_copy_field(f) for f in dataclasses.fields(StepometerParams)]
-           + [_copy_field(f, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)])
-
-#: Parameters of ``imu_node``: its own, every :class:`StepometerParams` field under the same name and
-#: every ``AekfParams`` field prefixed ``aekf_`` (defaults and docs live in those classes).
-ImuStageParams = dataclasses.make_dataclass(
-    "ImuStageParams", _fields, frozen=True,
-    namespace={"validate": _validate, "stepometer_params": _stepometer_params, "pdr_params": _pdr_params,
-               "aekf_params": _aekf_params,
-               "__doc__": "Parameters of imu_node (see config/imu_node.yaml)."})
+    def pdr_params(self) -> PdrParams:
+        return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
 
 
 class ImuStage(Stage):
@@ -112,15 +88,15 @@ class ImuStage(Stage):
     NODE_NAME = "imu_node"
     PARAMS = ImuStageParams
 
-    def __init__(self, params, *, namespace: str = "") -> None:
+    def __init__(self, params: ImuStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
         ns = namespace.strip("/")
         self.odom_frame = params.odom_frame or (f"{ns}/odom" if ns else "odom")
         self.base_frame = params.base_frame or (f"{ns}/base_link" if ns else "base_link")
-        self.stepometer = Stepometer(params.stepometer_params())
+        self.stepometer = Stepometer(params.stepometer)
         self.pdr = Pdr(params.pdr_params())
-        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.window_s))
-        self.aekf = Aekf(params.aekf_params())
+        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.stepometer.window_s))
+        self.aekf = Aekf(params.aekf)
         self._acc_topic: str | None = None          # which input feeds the stepometer
         self._last_raw_ns: int | None = None
         self._last_orient_ns: int | None = None

@@ -2,7 +2,7 @@
 
 Parameters (``wifi_fix_node``): ``radiomap`` (a radio map directory, see
 :mod:`indoor_loc.wifi.radiomap`; "" = none), ``method`` ("wknn" | "pathloss" | "coverage"),
-``frame_id`` and the method's own parameters under a prefix named after the method — in a params
+``frame_id`` and each method's own parameters as a group named after the method — in a params
 file a nested mapping, which ROS 2 flattens to dotted parameter names::
 
     wifi_fix_node:
@@ -34,15 +34,19 @@ from pathlib import Path
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, group, require, validate_groups
 from indoor_loc.contract import Qos
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import InvalidMessageError
 from msg_adapters.pose import fix_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.methods import METHODS, make_chain, make_params
+from indoor_loc.wifi.coverage import CoverageParams
+from indoor_loc.wifi.methods import METHODS, make_chain
+from indoor_loc.wifi.pathloss import PathLossParams
+from indoor_loc.wifi.powed_knn import PowedKnnParams
 from indoor_loc.wifi.radiomap import load_radiomap
 from indoor_loc.wifi.types import Positioner, RadioMap
+from indoor_loc.wifi.wknn import WknnParams
 
 NODE_NAME = "wifi_fix_node"
 
@@ -50,38 +54,33 @@ NODE_NAME = "wifi_fix_node"
 @dataclass(frozen=True)
 class WifiFixParams:
     """Parameters of ``wifi_fix_node`` (see config/wifi_fix_node.yaml)."""
-    radiomap: str = P.field("", "radio map directory (indoor-loc radiomap build / import); '' = none: "
+    radiomap: str = field("", "radio map directory (indoor-loc radiomap build / import); '' = none: "
                                 "scans are dropped (reason no_map) and diagnostics report the error")
-    method: str = P.field("wknn", "positioning method: 'wknn', 'powed', 'pathloss' or 'coverage'")
-    fallback: str = P.field("", "method for the scans the first declines ('' = none, e.g. 'powed')")
-    frame_id: str = P.field("map", "frame_id of the published fixes (the radio map's frame)")
-    wknn: dict = P.field({}, "WKNN parameters (wknn.k, wknn.shared_threshold, ...; see WknnParams)")
-    pathloss: dict = P.field({}, "path-loss parameters (pathloss.sigma_db, ...; see PathLossParams)")
-    coverage: dict = P.field({}, "coverage-area parameters (coverage.two_level, ...; see CoverageParams)")
-    powed: dict = P.field({}, "powed k-NN parameters (powed.k, powed.age_tau_ms, ...; see PowedKnnParams)")
+    method: str = field("wknn", "positioning method: 'wknn', 'powed', 'pathloss' or 'coverage'")
+    fallback: str = field("", "method for the scans the first declines ('' = none, e.g. 'powed')")
+    frame_id: str = field("map", "frame_id of the published fixes (the radio map's frame)")
+    wknn: WknnParams = group(WknnParams, "WKNN (indoor_loc/wifi/wknn.py; wknn.k, wknn.shared_threshold, ...)")
+    pathloss: PathLossParams = group(PathLossParams, "path-loss model (indoor_loc/wifi/pathloss.py; pathloss.*)")
+    coverage: CoverageParams = group(CoverageParams, "coverage areas (indoor_loc/wifi/coverage.py; coverage.*)")
+    powed: PowedKnnParams = group(PowedKnnParams, "powed k-NN (indoor_loc/wifi/powed_knn.py; powed.k, "
+                                                  "powed.age_tau_ms, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.method in METHODS, n, "method", f"one of {sorted(METHODS)}", self.method)
-        P.require(self.fallback in ("", *METHODS) and self.fallback != self.method, n, "fallback",
-                  f"'' or another of {sorted(METHODS)}", self.fallback)
-        P.require(bool(self.frame_id), n, "frame_id", "a non-empty frame name", self.frame_id)
-        # the selected method's parameters must be valid (other methods' blocks are checked lazily)
-        for m in (self.method, self.fallback):
-            if not m:
-                continue
-            try:
-                make_params(m, getattr(self, m))
-            except ConfigError as err:
-                raise ConfigError(f"{n}.{m}: {err}") from err
+        require(self.method in METHODS, n, "method", f"one of {sorted(METHODS)}", self.method)
+        require(self.fallback in ("", *METHODS) and self.fallback != self.method, n, "fallback",
+                f"'' or another of {sorted(METHODS)}", self.fallback)
+        require(bool(self.frame_id), n, "frame_id", "a non-empty frame name", self.frame_id)
+        validate_groups(self)
 
-    def method_params(self) -> dict:
-        return dict(getattr(self, self.method))
+    def method_params(self) -> WknnParams | PathLossParams | CoverageParams | PowedKnnParams:
+        """The Params object of the selected method."""
+        return getattr(self, self.method)
 
     def make_positioner(self):
         """The configured positioner (with its fallback), unfitted."""
         return make_chain(self.method, self.method_params(), self.fallback,
-                          dict(getattr(self, self.fallback)) if self.fallback else None)
+                          getattr(self, self.fallback) if self.fallback else None)
 
 
 class WifiFixStage(Stage):

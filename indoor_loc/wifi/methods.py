@@ -57,9 +57,12 @@ def make_params(name: str, params: Mapping[str, Any] | None = None) -> Any:
     return params_from_dict(params_class(name), dict(params or {}))
 
 
-def make_positioner(name: str, params: Mapping[str, Any] | None = None) -> Positioner:
-    """An unfitted positioner ``name`` built from ``params`` (dict of its Params fields)."""
+def make_positioner(name: str, params: Any = None) -> Positioner:
+    """An unfitted positioner ``name`` built from ``params``: its Params object, or a dict of its
+    Params fields (unknown keys -> ConfigError)."""
     cls, pcls = _load(name)
+    if isinstance(params, pcls):
+        return cls(params)
     return cls(params_from_dict(pcls, dict(params or {})))
 
 
@@ -96,8 +99,8 @@ class FallbackPositioner(Positioner):
         return replace(fb, reason=f"fallback_{fb.reason}")
 
 
-def make_chain(name: str, params: Mapping[str, Any] | None = None, fallback: str = "",
-               fallback_params: Mapping[str, Any] | None = None) -> Positioner:
+def make_chain(name: str, params: Any = None, fallback: str = "",
+               fallback_params: Any = None) -> Positioner:
     """``make_positioner(name, params)``, wrapped in a :class:`FallbackPositioner` when ``fallback``
     names a method ("" = none)."""
     pos = make_positioner(name, params)

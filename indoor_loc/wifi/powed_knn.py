@@ -59,7 +59,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
@@ -70,37 +70,37 @@ AP_WEIGHTINGS = ("idf", "none")
 @dataclass(frozen=True)
 class PowedKnnParams:
     """Powed k-NN parameters (defaults chosen on ms_site2 B1/F7, see README)."""
-    k: int = P.field(4, "number of nearest map scans averaged")
-    floor_dbm: float = P.field(-100.0, "RSS mapped to 0 in the positive representation; weaker readings are "
+    k: int = field(4, "number of nearest map scans averaged")
+    floor_dbm: float = field(-100.0, "RSS mapped to 0 in the positive representation; weaker readings are "
                                        "treated as not heard (dBm)")
-    beta: float = P.field(math.e, "exponent of the powed representation")
-    age_tau_ms: float = P.field(5000.0, "readings weigh exp(-age_ms / age_tau_ms); 0 = ignore ages (ms)")
-    ap_weighting: str = P.field("idf", "'idf' (sqrt(ln(1 + M / n_a)): APs heard everywhere weigh less) or 'none'")
-    epsilon: float = P.field(1e-4, "epsilon in the neighbour weight 1 / (D + epsilon)")
-    floor_k: int = P.field(8, "nearest map scans over all floors that vote for the floor")
-    cov_scale: float = P.field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
+    beta: float = field(math.e, "exponent of the powed representation")
+    age_tau_ms: float = field(5000.0, "readings weigh exp(-age_ms / age_tau_ms); 0 = ignore ages (ms)")
+    ap_weighting: str = field("idf", "'idf' (sqrt(ln(1 + M / n_a)): APs heard everywhere weigh less) or 'none'")
+    epsilon: float = field(1e-4, "epsilon in the neighbour weight 1 / (D + epsilon)")
+    floor_k: int = field(8, "nearest map scans over all floors that vote for the floor")
+    cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
                                     "covariance (0: the cross-validated sigma already holds it)")
-    cov_floor_m: float = P.field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
-    cov_calibration: bool = P.field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
+    cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
+    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
                                           "cross-validation at fit time")
-    cov_calibration_scans: int = P.field(2000, "at most this many map scans (evenly spaced) are cross-validated "
-                                               "(bounds the fit time on large maps)")
+    cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
+                                         "(bounds the fit time on large maps)")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(int(self.k) >= 1, n, "k", "an integer >= 1", self.k)
-        P.require(-120.0 <= self.floor_dbm < 0.0, n, "floor_dbm", "in [-120, 0) dBm", self.floor_dbm)
-        P.require(math.isfinite(self.beta) and self.beta > 0, n, "beta", "> 0", self.beta)
-        P.require(math.isfinite(self.age_tau_ms) and self.age_tau_ms >= 0, n, "age_tau_ms", ">= 0 ms",
+        require(int(self.k) >= 1, n, "k", "an integer >= 1", self.k)
+        require(-120.0 <= self.floor_dbm < 0.0, n, "floor_dbm", "in [-120, 0) dBm", self.floor_dbm)
+        require(math.isfinite(self.beta) and self.beta > 0, n, "beta", "> 0", self.beta)
+        require(math.isfinite(self.age_tau_ms) and self.age_tau_ms >= 0, n, "age_tau_ms", ">= 0 ms",
                   self.age_tau_ms)
-        P.require(self.ap_weighting in AP_WEIGHTINGS, n, "ap_weighting", f"one of {list(AP_WEIGHTINGS)}",
+        require(self.ap_weighting in AP_WEIGHTINGS, n, "ap_weighting", f"one of {list(AP_WEIGHTINGS)}",
                   self.ap_weighting)
-        P.require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
-        P.require(int(self.floor_k) >= 1, n, "floor_k", "an integer >= 1", self.floor_k)
-        P.require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
-                  self.cov_calibration_scans)
-        P.require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
-        P.require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
+        require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
+        require(int(self.floor_k) >= 1, n, "floor_k", "an integer >= 1", self.floor_k)
+        require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
+                self.cov_calibration_scans)
+        require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
+        require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
 
 
