@@ -162,6 +162,10 @@ def node_params(run: SimRun, radiomap_dir: Path) -> dict:
             "heading_offset_rad": 0.0}},      # the device's x axis points forward (REP 103)
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
         "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
+        # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
+        "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
+                                                 "odom_step_length_m": round(mean_step, 3),
+                                                 "path_period_s": 10.0}},
     }
 
 
