@@ -49,12 +49,21 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import splu
 
-from indoor_loc.params import field as pfield, params_from_dict, require
+from indoor_loc.params import field as pfield, group, params_from_dict, require
 from indoor_loc.backend import factors as F
 from indoor_loc.backend.wifi_map import EvolvingMap, Match
 from indoor_loc.errors import ConfigError
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from indoor_loc.wifi.wknn import WknnParams
+
+
+@dataclass(frozen=True)
+class BackendWknnParams(WknnParams):
+    """WKNN of the back-end; defaults are the authors' code's comparison (RMS of RSS differences over
+    the shared APs, more than 50 % of both scans' APs shared), which the published Table 2 used."""
+    error_type: str = pfield("rms", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (the authors' code) or 'mae'")
+    shared_threshold: float = pfield(0.5, "minimum fraction of each scan's networks the pair must share, both ways")
+    shared_strict: bool = pfield(True, "require more than (instead of at least) shared_threshold (authors' code)")
 
 
 @dataclass(frozen=True)
@@ -84,7 +93,11 @@ class GraphParams:
     window_iterations: int = pfield(5, "solver iterations of a window optimisation")
     max_active_poses: int = pfield(20000, "at most this many poses are optimised; older ones are frozen")
     max_map_rows: int = pfield(20000, "at most this many users' scans in the WiFi map (oldest dropped)")
-    wknn: dict = pfield({}, "WKNN parameters (wknn.k, ...; see WknnParams; paper k = 4, the authors' comparison)")
+    wknn: BackendWknnParams = group(BackendWknnParams, "WKNN against the survey and users' scans (wknn.k, ...)")
+
+    def __post_init__(self) -> None:
+        if isinstance(self.wknn, dict):        # GraphParams(wknn={"k": 3}) in code and tests
+            object.__setattr__(self, "wknn", params_from_dict(BackendWknnParams, self.wknn))
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -108,13 +121,11 @@ class GraphParams:
         self.wknn_params()
 
     def wknn_params(self) -> WknnParams:
-        # the authors' comparison (RMS over shared APs, > 50 % shared both ways) unless overridden
-        values = {"k": 4, "error_type": "rms", "shared_threshold": 0.5, "shared_strict": True}
-        values.update(self.wknn)
         try:
-            return params_from_dict(WknnParams, values)
+            self.wknn.validate()
         except ConfigError as err:
             raise ConfigError(f"{type(self).__name__}.wknn: {err}") from err
+        return self.wknn
 
 
 @dataclass

@@ -43,7 +43,6 @@ from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
 
 NODE_NAME = "backend_node"
 
-
 @dataclass(frozen=True)
 class BackendParams(GraphParams):
     """Parameters of ``backend_node``: its own, and the graph's inherited from :class:`GraphParams`
