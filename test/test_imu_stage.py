@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from indoor_loc.errors import ConfigError
-from indoor_loc.imu.pdr import recover_intervals
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
-from indoor_loc.msg_adapters.odom import odom_from_msg
+from indoor_loc.measurements import pdr_intervals
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
+from msg_adapters.odom import odom_from_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.imu_stage import ImuStage, ImuStageParams
 
@@ -60,7 +60,7 @@ def test_aekf_heading_with_mag(rng):
     assert st.stepometer.total_steps == pytest.approx(expected_steps, rel=0.01)
     xy = np.array([[0.0, 0.0]] + [[o.x, o.y] for o in od])
     yaw = np.array([od[0].yaw] + [o.yaw for o in od])
-    steps, _ = recover_intervals(xy, yaw, 0.65)
+    steps = pdr_intervals(np.arange(len(xy)), xy, yaw, step_length_m=0.65).steps
     assert steps.sum() == pytest.approx(st.stepometer.total_steps, rel=1e-6)
     assert od[-1].frame_id == "alice/odom" and od[-1].child_frame_id == "alice/base_link"
     assert od[-1].cov[2, 2] < 0.1                      # magnetometer: heading known
@@ -162,7 +162,7 @@ def test_frames_and_config_errors():
     with pytest.raises(ConfigError, match="heading_source"):
         params_from_dict(ImuStageParams, {"heading_source": "compass"})
     with pytest.raises(ConfigError, match="window_s"):
-        params_from_dict(ImuStageParams, {"window_s": -1.0})
+        params_from_dict(ImuStageParams, {"stepometer": {"window_s": -1.0}})
     with pytest.raises(ConfigError, match="unknown"):
         params_from_dict(ImuStageParams, {"step_lenght_m": 0.7})
 

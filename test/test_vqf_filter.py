@@ -12,7 +12,7 @@ from indoor_loc.errors import ConfigError
 from indoor_loc.imu.mag_sync import IMU, MagSync
 from indoor_loc.imu.quaternion import qconj, qmul, quat_yaw
 from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams, vqf_batch
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.imu_stage import ImuStage, ImuStageParams
 

@@ -43,7 +43,7 @@ FILTERS = ("aekf (stage)", "vqf (stage)", "vqf (offline)", "madgwick", "android"
 def run_stage(t_ns, gyr, acc, mag_t_ns, mag_ut, heading_source: str, **overrides) -> tuple[np.ndarray, np.ndarray]:
     """Drive :class:`ImuStage` with messages in stamp order (magnetometer after the IMU sample of the
     same stamp); returns the stamps and quaternions of the ``imu/data`` it publishes."""
-    from indoor_loc.msg_adapters.imu import imu_to_msg, mag_to_msg
+    from msg_adapters.imu import imu_to_msg, mag_to_msg
     from indoor_loc.params import params_from_dict
     from indoor_loc.pipeline.imu_stage import ImuStage, ImuStageParams
 

@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from indoor_loc.errors import InvalidInputError
+
 IMU = 0
 MAG = 1
 
@@ -64,7 +66,7 @@ class MagSync:
     def push_imu(self, t_ns: int, payload: Any) -> list[tuple[int, int, Any]]:
         st = self._st
         if st.last_imu_in_ns is not None and t_ns <= st.last_imu_in_ns:
-            raise ValueError(f"IMU stamps must increase: {t_ns} ns after {st.last_imu_in_ns} ns")
+            raise InvalidInputError("non_monotonic_stamp", f"IMU stamps must increase: {t_ns} ns after {st.last_imu_in_ns} ns")
         st.last_imu_in_ns = t_ns
         st.imu.append((t_ns, payload))
         return self._release()
@@ -74,7 +76,7 @@ class MagSync:
         sample already released is counted late and dropped (returns what is ready anyway)."""
         st = self._st
         if st.last_mag_in_ns is not None and t_ns <= st.last_mag_in_ns:
-            raise ValueError(f"magnetometer stamps must increase: {t_ns} ns after {st.last_mag_in_ns} ns")
+            raise InvalidInputError("non_monotonic_stamp", f"magnetometer stamps must increase: {t_ns} ns after {st.last_mag_in_ns} ns")
         st.last_mag_in_ns = t_ns
         if st.last_released_imu_ns is not None and t_ns < st.last_released_imu_ns:
             st.n_late += 1

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import field, require
 
 _DEG = math.pi / 180.0
@@ -131,15 +132,15 @@ class VqfFilter:
         return self._st.vqf_state is not None or self._vqf is not None
 
     def update_imu(self, t_ns: int, gyr, acc) -> None:
-        """One IMU sample: ``gyr`` (3,) rad/s, ``acc`` (3,) m/s². Raises ValueError on non-finite
+        """One IMU sample: ``gyr`` (3,) rad/s, ``acc`` (3,) m/s². Raises InvalidInputError on non-finite
         input or a stamp that does not increase (state unchanged)."""
         g = np.asarray(gyr, dtype=float).reshape(3)
         a = np.asarray(acc, dtype=float).reshape(3)
         if not (np.isfinite(g).all() and np.isfinite(a).all()):
-            raise ValueError(f"non-finite gyroscope/accelerometer sample at stamp {t_ns} ns")
+            raise InvalidInputError("nan", f"non-finite gyroscope/accelerometer sample at stamp {t_ns} ns")
         st = self._st
         if st.stamp_ns is not None and t_ns <= st.stamp_ns:
-            raise ValueError(f"stamps must increase: {t_ns} ns after {st.stamp_ns} ns")
+            raise InvalidInputError("non_monotonic_stamp", f"stamps must increase: {t_ns} ns after {st.stamp_ns} ns")
         self._ensure()
         if self._vqf is None:
             ts = _ts_from_rate(self.params.gyr_rate_hz)
@@ -185,13 +186,13 @@ class VqfFilter:
 
     def update_mag(self, t_ns: int, mag) -> None:
         """One magnetometer sample (3,), any unit, at its own stamp (after the IMU samples up to it).
-        Ignored before the first IMU sample. Raises ValueError on non-finite input."""
+        Ignored before the first IMU sample. Raises InvalidInputError on non-finite input."""
         m = np.asarray(mag, dtype=float).reshape(3)
         if not np.isfinite(m).all():
-            raise ValueError(f"non-finite magnetometer sample at stamp {t_ns} ns")
+            raise InvalidInputError("nan", f"non-finite magnetometer sample at stamp {t_ns} ns")
         st = self._st
         if st.mag_stamp_ns is not None and t_ns <= st.mag_stamp_ns:
-            raise ValueError(f"magnetometer stamps must increase: {t_ns} ns after {st.mag_stamp_ns} ns")
+            raise InvalidInputError("non_monotonic_stamp", f"magnetometer stamps must increase: {t_ns} ns after {st.mag_stamp_ns} ns")
         self._ensure()
         prev = st.mag_stamp_ns
         st.mag_stamp_ns = t_ns

@@ -1,4 +1,4 @@
-"""ImuStage (``imu_node``): FFT stepometer + heading -> ``pdr/odom`` (and ``imu/data`` from the AEKF).
+"""ImuStage (``imu_node``): FFT stepometer + heading -> ``pdr/odom`` (and ``imu/data`` from the filter).
 
 Inputs
 - ``imu/data_raw`` (sensor_msgs/Imu, REP 145): the accelerometer feeds the stepometer; with a
@@ -6,10 +6,9 @@ Inputs
 - ``imu/mag`` (sensor_msgs/MagneticField, optional) at its own rate: merged with ``imu/data_raw``
   in stamp order (:class:`indoor_loc.imu.mag_sync.MagSync`: an IMU sample waits at most
   ``mag_max_delay_s`` for the magnetometer), each sample used once at its stamp, after subtracting
-  the hard-iron bias ``mag_bias_{x,y,z}`` (tesla, as imu_tools' ``mag_bias_*``; estimate it with
-  ``indoor-loc mag-bias BAG.mcap``). A sample later than that is dropped and counted
-  (``mag_late``). Without it the filter runs 6-D and its heading variance grows (and says so in
-  ``pdr/odom``).
+  the hard-iron bias ``mag_bias_{x,y,z}`` (tesla, as imu_tools' ``mag_bias_*``). A sample later
+  than that is dropped and counted (``mag_late``). Without it the filter runs 6-D and its heading
+  variance grows (and says so in ``pdr/odom``).
 - ``imu/data`` (sensor_msgs/Imu with orientation, e.g. the PUTMC phones' OS quaternion): heading
   source for ``heading_source: orientation`` (and ``auto`` once it arrives); if no ``imu/data_raw``
   carries the accelerometer, the acceleration of ``imu/data`` feeds the stepometer.
@@ -19,7 +18,7 @@ Inputs
 (:mod:`indoor_loc.imu.vqf_filter`) on the same inputs; ``auto`` = the orientation of ``imu/data`` if
 that topic arrives from elsewhere (our own output echoed back is recognised by its stamps and
 ignored), else :data:`AUTO_FILTER`, the filter ``indoor-loc bench heading`` finds better on walking
-phones (VQF: lower heading error on the TyRex walking-phone trials, see the README).
+phones (VQF, see the README's "Heading on walking phones").
 Heading = yaw (ZYX, CCW from the world x axis) of the device->world quaternion plus
 ``heading_offset_rad`` (π/2 for a phone walking along its +y axis). No heading at all
 (accelerometer only): the yaw is held and published with variance 1e6 rad² (unknown).
@@ -36,24 +35,23 @@ any state changes: counted by reason and dropped.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import deque
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, group, require, validate_groups
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError, InvalidMessageError
 from indoor_loc.imu.aekf import Aekf, AekfParams
 from indoor_loc.imu.mag_sync import IMU, MagSync
 from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
 from indoor_loc.imu.quaternion import yaw_xyzw
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
 from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
-from indoor_loc.msg_adapters.odom import odom_to_msg
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
+from msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
 
@@ -61,78 +59,48 @@ HEADING_SOURCES = ("auto", "aekf", "vqf", "orientation")
 #: the filter ``auto`` runs when no external orientation arrives: the better one on walking phones in
 #: ``indoor-loc bench heading`` (TyRex walking trials, README "Heading on walking phones").
 AUTO_FILTER = "vqf"
-AEKF_PREFIX = "aekf_"
-VQF_PREFIX = "vqf_"
 
 
-def _copy_field(f: dataclasses.Field, name: str | None = None) -> tuple[str, type, Any]:
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-    return (name or f.name, f.type, P.field(default, f.metadata.get("doc", "")))
+@dataclass(frozen=True)
+class ImuStageParams:
+    """Parameters of ``imu_node`` (see config/imu_node.yaml): its own, and the stepometer's and the
+    AEKF's as groups (ROS parameters ``stepometer.window_s``, ``aekf.gyro_noise``, ...; defaults and
+    docs live in :class:`StepometerParams` and :class:`AekfParams`)."""
+    heading_source: str = field("auto", "'auto' (imu/data orientation if it arrives, else the better filter "
+                                          "on walking phones, VQF), 'aekf', 'vqf' or 'orientation'")
+    step_length_m: float = field(0.65, "nominal step length, m: distance = steps x this")
+    step_length_rel_std: float = field(0.1, "relative std of the walked distance per hop, 1")
+    heading_offset_rad: float = field(0.0, "added to the device yaw to get the walking heading, rad "
+                                           "(0: device x forward, REP 103; pi/2: phone +y forward)")
+    default_yaw_std_rad: float = field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")
+    odom_frame: str = field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")
+    base_frame: str = field("", "pdr/odom child frame; '' = '<namespace>/base_link'")
+    mag_max_delay_s: float = field(0.1, "an imu/data_raw sample waits at most this long (stamp time) for "
+                                        "imu/mag samples up to its stamp; later ones are dropped and counted, s")
+    mag_bias_x: float = field(0.0, "hard-iron bias subtracted from imu/mag x, T (indoor-loc mag-bias)")
+    mag_bias_y: float = field(0.0, "hard-iron bias subtracted from imu/mag y, T")
+    mag_bias_z: float = field(0.0, "hard-iron bias subtracted from imu/mag z, T")
+    stepometer: StepometerParams = group(StepometerParams, "FFT stepometer (indoor_loc/imu/stepometer.py)")
+    aekf: AekfParams = group(AekfParams, "adaptive EKF orientation (indoor_loc/imu/aekf.py), used when the "
+                                         "heading comes from the AEKF")
+    vqf: VqfParams = group(VqfParams, "VQF orientation (indoor_loc/imu/vqf_filter.py), used when the heading "
+                                      "comes from VQF")
 
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.heading_source in HEADING_SOURCES, n, "heading_source", f"one of {HEADING_SOURCES}",
+                  self.heading_source)
+        require(self.default_yaw_std_rad > 0, n, "default_yaw_std_rad", "> 0", self.default_yaw_std_rad)
+        require(self.mag_max_delay_s >= 0, n, "mag_max_delay_s", ">= 0", self.mag_max_delay_s)
+        for ax in "xyz":
+            v = getattr(self, "mag_bias_" + ax)
+            require(math.isfinite(v), n, "mag_bias_" + ax, "finite", v)
+        require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
+        validate_groups(self)
+        self.pdr_params().validate()
 
-_OWN_FIELDS: list[tuple[str, Any, Any]] = [
-    ("heading_source", str, P.field("auto", "'auto' (imu/data orientation if it arrives, else the better "
-                                            "filter on walking phones, VQF), 'aekf', 'vqf' or 'orientation'")),
-    ("step_length_m", float, P.field(0.65, "nominal step length, m: distance = steps x this")),
-    ("step_length_rel_std", float, P.field(0.1, "relative std of the walked distance per hop, 1")),
-    ("heading_offset_rad", float, P.field(0.0, "added to the device yaw to get the walking heading, rad "
-                                               "(0: device x forward, REP 103; pi/2: phone +y forward)")),
-    ("default_yaw_std_rad", float, P.field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")),
-    ("odom_frame", str, P.field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")),
-    ("base_frame", str, P.field("", "pdr/odom child frame; '' = '<namespace>/base_link'")),
-    ("mag_max_delay_s", float, P.field(0.1, "an imu/data_raw sample waits at most this long (stamp time) "
-                                            "for imu/mag samples up to its stamp; later ones are dropped "
-                                            "and counted, s")),
-    ("mag_bias_x", float, P.field(0.0, "hard-iron bias subtracted from imu/mag x, T (indoor-loc mag-bias)")),
-    ("mag_bias_y", float, P.field(0.0, "hard-iron bias subtracted from imu/mag y, T")),
-    ("mag_bias_z", float, P.field(0.0, "hard-iron bias subtracted from imu/mag z, T")),
-]
-
-
-def _validate(self) -> None:
-    n = type(self).__name__
-    P.require(self.heading_source in HEADING_SOURCES, n, "heading_source", f"one of {HEADING_SOURCES}",
-              self.heading_source)
-    P.require(self.default_yaw_std_rad > 0, n, "default_yaw_std_rad", "> 0", self.default_yaw_std_rad)
-    P.require(self.mag_max_delay_s >= 0, n, "mag_max_delay_s", ">= 0", self.mag_max_delay_s)
-    for ax in "xyz":
-        v = getattr(self, "mag_bias_" + ax)
-        P.require(math.isfinite(v), n, "mag_bias_" + ax, "finite", v)
-    P.require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
-    self.stepometer_params().validate()
-    self.pdr_params().validate()
-    self.aekf_params().validate()
-    self.vqf_params().validate()
-
-
-def _stepometer_params(self) -> StepometerParams:
-    return StepometerParams(**{f.name: getattr(self, f.name) for f in dataclasses.fields(StepometerParams)})
-
-
-def _pdr_params(self) -> PdrParams:
-    return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
-
-
-def _aekf_params(self) -> AekfParams:
-    return AekfParams(**{f.name: getattr(self, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)})
-
-
-def _vqf_params(self) -> VqfParams:
-    return VqfParams(**{f.name: getattr(self, VQF_PREFIX + f.name) for f in dataclasses.fields(VqfParams)})
-
-
-_fields = (list(_OWN_FIELDS) + [_copy_field(f) for f in dataclasses.fields(StepometerParams)]
-           + [_copy_field(f, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)]
-           + [_copy_field(f, VQF_PREFIX + f.name) for f in dataclasses.fields(VqfParams)])
-
-#: Parameters of ``imu_node``: its own, every :class:`StepometerParams` field under the same name and
-#: every ``AekfParams`` field prefixed ``aekf_`` and every ``VqfParams`` field prefixed ``vqf_``
-#: (defaults and docs live in those classes).
-ImuStageParams = dataclasses.make_dataclass(
-    "ImuStageParams", _fields, frozen=True,
-    namespace={"validate": _validate, "stepometer_params": _stepometer_params, "pdr_params": _pdr_params,
-               "aekf_params": _aekf_params, "vqf_params": _vqf_params,
-               "__doc__": "Parameters of imu_node (see config/imu_node.yaml)."})
+    def pdr_params(self) -> PdrParams:
+        return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
 
 
 class ImuStage(Stage):
@@ -140,17 +108,16 @@ class ImuStage(Stage):
     NODE_NAME = "imu_node"
     PARAMS = ImuStageParams
 
-    def __init__(self, params, *, namespace: str = "") -> None:
+    def __init__(self, params: ImuStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
         ns = namespace.strip("/")
         self.odom_frame = params.odom_frame or (f"{ns}/odom" if ns else "odom")
         self.base_frame = params.base_frame or (f"{ns}/base_link" if ns else "base_link")
-        self.stepometer = Stepometer(params.stepometer_params())
+        self.stepometer = Stepometer(params.stepometer)
         self.pdr = Pdr(params.pdr_params())
-        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.window_s))
+        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.stepometer.window_s))
         self.filter_name = AUTO_FILTER if params.heading_source in ("auto", "orientation") else params.heading_source
-        self.filter: Aekf | VqfFilter = (Aekf(params.aekf_params()) if self.filter_name == "aekf"
-                                         else VqfFilter(params.vqf_params()))
+        self.filter: Aekf | VqfFilter = Aekf(params.aekf) if self.filter_name == "aekf" else VqfFilter(params.vqf)
         self.mag_sync = MagSync(params.mag_max_delay_s)
         self._mag_bias = np.array([params.mag_bias_x, params.mag_bias_y, params.mag_bias_z])
         self._last_mag_ns: int | None = None
@@ -222,7 +189,8 @@ class ImuStage(Stage):
         return outs + self._hops(hops)
 
     def _run_events(self, events) -> list[Output]:
-        """Feed merged IMU/magnetometer events (stamp order) to the filter; imu/data per IMU sample."""
+        """Feed merged IMU/magnetometer events (stamp order) to the filter; imu/data per IMU sample.
+        A sample the filter refuses is counted by its reason and the rest still run."""
         outs: list[Output] = []
         for kind, stamp, payload in events:
             try:
@@ -230,8 +198,8 @@ class ImuStage(Stage):
                     self.filter.update_imu(stamp, payload.gyro, payload.acc)
                 else:
                     self.filter.update_mag(stamp, payload)
-            except ValueError as err:
-                self._reject("filter_input", f"{self.filter_name}: {err}")
+            except InvalidInputError as err:
+                self._reject(err.reason, f"{self.filter_name}: {err}")
                 continue
             if kind != IMU:
                 self.counts["mag_used"] += 1
