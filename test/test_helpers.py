@@ -29,3 +29,24 @@ def test_rate_hz():
     assert rate_hz(1, 0, 5) == 0.0 and rate_hz(5, None, 10) == 0.0 and rate_hz(5, 10, 10) == 0.0
     st = TopicStats(count=3, first_ns=0, last_ns=500_000_000)
     assert st.rate_hz() == pytest.approx(4.0)
+
+
+def test_ap_readings_gather_matches_the_dense_matrix(rng):
+    """The inverted index returns exactly the masked readings of the asked columns, column by column."""
+    import numpy as np
+
+    from indoor_loc.wifi.types import ApReadings
+    vals = rng.normal(-70, 10, (40, 12))
+    mask = rng.random((40, 12)) < 0.3
+    idx = ApReadings(mask, vals)
+    cols = np.array([3, 0, 11, 3])
+    rows, got, lens = idx.gather(cols)
+    assert lens.tolist() == [int(mask[:, c].sum()) for c in cols]
+    start = 0
+    for c, n in zip(cols, lens):
+        r = np.flatnonzero(mask[:, c])
+        assert rows[start:start + n].tolist() == r.tolist()
+        np.testing.assert_array_equal(got[start:start + n], vals[r, c])
+        start += n
+    empty = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))
+    assert [len(a) for a in empty.gather(np.zeros(0, np.int64))] == [0, 0, 0]
