@@ -96,7 +96,11 @@ def import_putmc(args: argparse.Namespace) -> int:
             rows.append(_row(w, ds.routes[w.walk].length_m, counts))
 
     params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
-              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)}}
+              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)},
+              # the seed-001 paper's joint + step-length configuration: walks one after another
+              # (1…24), each matching the survey and all earlier walks' scans
+              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
+                               "estimate_step_length": True}}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
         f"map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
