@@ -309,6 +309,8 @@ def run(args) -> int:
 
     # --- throughput ------------------------------------------------------------------------------
     tp_methods = [("WKNN L2 (paper)", "wknn", dict(PAPER)), ("WKNN L1", "wknn", {**PAPER, "error_type": "l1"})]
+    if "powed" in avail:
+        tp_methods.append(("powed k-NN", "powed", {}))
     if "pathloss" in avail:
         tp_methods.append(("path loss", "pathloss", {}))
     if "coverage" in avail:

@@ -50,8 +50,7 @@ error is larger (correlation 0.6–0.75 between D₁ and the error on three of f
 leave-one-source-out cross-validation (each map scan positioned against the map without its own
 walk; a, b = the least-squares line of those errors on D₁; for a 2-D isotropic Gaussian the mean
 error is σ·sqrt(π/2)). So the covariance follows each building's own accuracy instead of constants
-fitted to one building; a map with a single source (no cross-validation possible) uses
-``cov_floor_m`` alone.
+fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan out instead.
 """
 from __future__ import annotations
 
@@ -84,6 +83,8 @@ class PowedKnnParams:
     cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
     cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
                                           "cross-validation at fit time")
+    cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
+                                         "(bounds the fit time on large maps)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -96,6 +97,8 @@ class PowedKnnParams:
                   self.ap_weighting)
         require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
         require(int(self.floor_k) >= 1, n, "floor_k", "an integer >= 1", self.floor_k)
+        require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
+                self.cov_calibration_scans)
         require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
         require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
@@ -178,13 +181,13 @@ class PowedKnn(Positioner):
     def _calibrate(self, val: np.ndarray, source: list[str]) -> None:
         """Leave-one-source-out errors of the map's own scans -> the line mean error = a + b D1."""
         p = self.params
-        src = np.array(source)
-        if len(set(source)) < 2:
-            return
+        # leave one walk (source) out; a map from one source (a survey) leaves one scan out
+        src = np.array(source) if len(set(source)) >= 2 else np.arange(len(source)).astype(str)
         m = len(self._pos)
         d1 = np.full(m, np.nan)
         err = np.full(m, np.nan)
-        for i in range(m):
+        rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
+        for i in rows:
             c = np.flatnonzero(val[i] > 0)
             if len(c) == 0:
                 continue
