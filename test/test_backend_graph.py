@@ -161,5 +161,5 @@ def test_bad_parameters_are_refused():
         GraphParams(robust_kernel="tukey").validate()
     with pytest.raises(ConfigError, match="pdr_info"):
         GraphParams(pdr_info=[1.0, 1.0]).validate()
-    with pytest.raises(ConfigError, match="wknn"):
+    with pytest.raises(ConfigError, match="k: expected an integer"):
         GraphParams(wknn={"k": 0}).validate()

@@ -58,6 +58,15 @@ from indoor_loc.wifi.wknn import WknnParams
 
 
 @dataclass(frozen=True)
+class BackendWknnParams(WknnParams):
+    """WKNN of the back-end; defaults are the authors' code's comparison (RMS of RSS differences over
+    the shared APs, more than 50 % of both scans' APs shared), which the published Table 2 used."""
+    error_type: str = P.field("rms", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (the authors' code) or 'mae'")
+    shared_threshold: float = P.field(0.5, "minimum fraction of each scan's networks the pair must share, both ways")
+    shared_strict: bool = P.field(True, "require more than (instead of at least) shared_threshold (authors' code)")
+
+
+@dataclass(frozen=True)
 class GraphParams:
     """Parameters of the multi-user graph (defaults: the paper's joint + step-length configuration)."""
     joint: bool = P.field(True, "match other users' scans too (multi-user coupling); False = each user against "
@@ -84,7 +93,11 @@ class GraphParams:
     window_iterations: int = P.field(5, "solver iterations of a window optimisation")
     max_active_poses: int = P.field(20000, "at most this many poses are optimised; older ones are frozen")
     max_map_rows: int = P.field(20000, "at most this many users' scans in the WiFi map (oldest dropped)")
-    wknn: dict = P.field({}, "WKNN parameters (wknn.k, ...; see WknnParams; paper k = 4, the authors' comparison)")
+    wknn: BackendWknnParams = P.group(BackendWknnParams, "WKNN against the survey and users' scans (wknn.k, ...)")
+
+    def __post_init__(self) -> None:
+        if isinstance(self.wknn, dict):        # GraphParams(wknn={"k": 3}) in code and tests
+            object.__setattr__(self, "wknn", P.params_from_dict(BackendWknnParams, self.wknn))
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -108,13 +121,11 @@ class GraphParams:
         self.wknn_params()
 
     def wknn_params(self) -> WknnParams:
-        # the authors' comparison (RMS over shared APs, > 50 % shared both ways) unless overridden
-        values = {"k": 4, "error_type": "rms", "shared_threshold": 0.5, "shared_strict": True}
-        values.update(self.wknn)
         try:
-            return P.params_from_dict(WknnParams, values)
+            self.wknn.validate()
         except ConfigError as err:
             raise ConfigError(f"{type(self).__name__}.wknn: {err}") from err
+        return self.wknn
 
 
 @dataclass

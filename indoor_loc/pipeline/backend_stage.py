@@ -64,6 +64,10 @@ _OWN_FIELDS: list[tuple[str, Any, Any]] = [
 def _graph_fields() -> list[tuple[str, Any, Any]]:
     out = []
     for f in dataclasses.fields(GraphParams):
+        sub = P.group_class(f)
+        if sub is not None:
+            out.append((f.name, sub, P.group(sub, f.metadata.get("doc", ""))))
+            continue
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
         out.append((f.name, f.type, P.field(default, f.metadata.get("doc", ""))))
     return out
