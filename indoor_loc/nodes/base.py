@@ -147,9 +147,16 @@ class StageNode(Node):
         """
         values: dict[str, Any] = {}
         names = []
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
         for name, f, default in leaves(params_cls):
             if isinstance(default, dict):
-                continue   # not expressible as a ROS parameter: stays at its default
+                # a free-form mapping (its owner validates it): each ``name.key`` given is declared
+                for key in sorted(k for k in overrides if k.startswith(name + ".")):
+                    names.append(key)
+                    desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                               read_only=True)
+                    values[key] = _py_value(self.declare_parameter(key, None, desc).value)
+                continue
             names.append(name)
             desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
                                        read_only=True)   # read at start-up; a change needs a restart
@@ -159,7 +166,6 @@ class StageNode(Node):
                 value = type(default)()
             if value is not None or default is None:
                 values[name] = value
-        overrides = getattr(self, "_parameter_overrides", {}) or {}
         unknown = sorted(n for n in overrides if not self.has_parameter(n)
                          and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
         if unknown:

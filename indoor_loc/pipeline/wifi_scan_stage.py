@@ -29,7 +29,8 @@ from msg_adapters.wifi_json import parse_json_msg
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import require
 from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, ScanCommandError, build_command
+from indoor_loc.errors import ScanCommandError
+from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, build_command
 from indoor_loc.wifi.normalize import NormalizeParams, normalize_report
 from indoor_loc.wifi.parsers import SIGNAL_MAPPINGS, ParseResult
 from indoor_loc.wifi.types import WifiScan

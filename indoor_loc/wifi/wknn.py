@@ -51,7 +51,7 @@ class WknnParams:
     """WKNN parameters; defaults are the paper's best (k=4, 0.6, -100 dBm, L2)."""
     k: int = field(4, "number of most similar map scans averaged")
     shared_threshold: float = field(0.6, "minimum fraction of each scan's networks the pair must share, "
-                                           "checked in both directions (0-1)")
+                                         "checked in both directions (0-1)")
     shared_strict: bool = field(False, "require more than (instead of at least) shared_threshold")
     min_signal_dbm: float = field(-100.0, "readings below this RSS are ignored in scans and map (dBm)")
     error_type: str = field("l2", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (sqrt of the mean "
@@ -60,7 +60,7 @@ class WknnParams:
     min_candidates: int = field(0, "fewer candidate map scans -> no fix; 0 = k (as the authors' code)")
     min_shared_aps: int = field(1, "a pair must share at least this many APs")
     cov_scale: float = field(0.35, "factor on the weighted spread of the k neighbour positions in the fix "
-                                    "covariance")
+                                   "covariance")
     cov_floor_m: float = field(1.0, "isotropic standard deviation added to the fix covariance (m)")
 
     def validate(self) -> None:
