@@ -37,7 +37,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from indoor_loc.contract import Qos, join_ns, msg_class
+from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
 from msg_adapters.diagnostics import stage_diagnostics
 from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
@@ -211,8 +211,9 @@ class StageNode(Node):
             rels = [p.topic for p in self.stage.inputs()]
             for name, _types in self.get_topic_names_and_types():
                 for rel in rels:
-                    if name.endswith("/" + rel) and len(name) > len(rel) + 1:
-                        user = user_of_namespace(name[: -len(rel) - 1])
+                    ns = namespace_of_topic(name, rel)
+                    if ns:
+                        user = user_of_namespace(ns)
                         if user and self.count_publishers(name) > 0:
                             self._follow(user)
         timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))

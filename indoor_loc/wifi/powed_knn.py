@@ -64,7 +64,7 @@ import numpy as np
 from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
 
 AP_WEIGHTINGS = ("idf", "none")
 
@@ -140,9 +140,7 @@ class PowedKnn(Positioner):
         self._pos = np.zeros((0, 2))
         self._z = np.zeros(0)
         self._sum = np.zeros(0)                      # (M,) Σ_a value of each map scan
-        self._inv_ptr = np.zeros(1, np.int64)
-        self._inv_row = np.zeros(0, np.int64)
-        self._inv_val = np.zeros(0)
+        self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # powed values by AP
         self._floors: np.ndarray = np.zeros(0)
         self._floor_names: dict[float, str] = {}
         self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
@@ -175,10 +173,7 @@ class PowedKnn(Positioner):
         self._pos = pos
         self._z = np.asarray(radio_map.z_m, float)
         self._sum = val.sum(axis=1)
-        cols, rows = np.nonzero(heard.T)
-        self._inv_ptr = np.searchsorted(cols, np.arange(heard.shape[1] + 1)).astype(np.int64)
-        self._inv_row = rows.astype(np.int64)
-        self._inv_val = val[rows, cols]
+        self._readings = ApReadings(heard, val)
         self._floors = np.unique(self._z)
         self._floor_names = {float(z): str(name) for name, z in radio_map.floors.items()}
         ceiling = np.array([val[self._z == z].max(axis=0) for z in self._floors]).reshape(len(self._floors), -1)
@@ -246,14 +241,10 @@ class PowedKnn(Positioner):
     def _dist_cols(self, c: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Sørensen distance (M,) of a query given as map columns c (q,) and weighted values q (q,)."""
         m = len(self._pos)
-        start, stop = self._inv_ptr[c], self._inv_ptr[c + 1]
-        lens = stop - start
-        total = int(lens.sum())
-        if total == 0:
+        rows, map_vals, lens = self._readings.gather(c)
+        if len(rows) == 0:
             return np.ones(m)
-        offs = np.repeat(start - np.cumsum(lens) + lens, lens) + np.arange(total)
-        rows = self._inv_row[offs]
-        mins = np.minimum(np.repeat(q, lens), self._inv_val[offs])
+        mins = np.minimum(np.repeat(q, lens), map_vals)
         shared = np.bincount(rows, weights=mins, minlength=m)
         d = 1.0 - 2.0 * shared / np.maximum(q.sum() + self._sum, 1e-300)
         return np.clip(d, 0.0, 1.0)

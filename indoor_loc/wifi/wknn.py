@@ -41,7 +41,7 @@ import numpy as np
 from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
 
 ERROR_TYPES = ("l2", "l1", "rms", "mae")
 
@@ -88,9 +88,7 @@ class Wknn(Positioner):
         self.aps = ApIndex()
         self._n_map = np.zeros(0)                    # (M,) usable networks per map scan
         self._pos = np.zeros((0, 2))                 # (M, 2) map positions, m
-        self._inv_ptr = np.zeros(1, np.int64)        # (A + 1,) CSR column pointers
-        self._inv_row = np.zeros(0, np.int64)        # (R,) map row of each usable reading
-        self._inv_val = np.zeros(0)                  # (R,) its RSS, dBm
+        self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # usable RSS (dBm) by AP
 
     # ------------------------------------------------------------------------------------------
     def fit(self, radio_map: RadioMap) -> "Wknn":
@@ -106,11 +104,7 @@ class Wknn(Positioner):
         self.aps = ApIndex(radio_map.bssids)
         self._n_map = usable.sum(axis=1).astype(float)
         self._pos = pos
-        # inverted index AP -> map scans (CSR by column): rows and RSS of each column's readings
-        cols, rows = np.nonzero(usable.T)
-        self._inv_ptr = np.searchsorted(cols, np.arange(usable.shape[1] + 1)).astype(np.int64)
-        self._inv_row = rows.astype(np.int64)
-        self._inv_val = rss[rows, cols].astype(float)
+        self._readings = ApReadings(usable, rss)
         return self
 
     @property
@@ -132,15 +126,10 @@ class Wknn(Positioner):
         """One query through the inverted index: cols (q,), vals (q,). Touches only the readings of
         the query's APs (sum of their map counts), so the cost is O(M q density)."""
         m = self._pos.shape[0]
-        start, stop = self._inv_ptr[cols], self._inv_ptr[cols + 1]
-        lens = stop - start
-        total = int(lens.sum())
-        if total == 0:
+        rows, map_vals, lens = self._readings.gather(cols)
+        if len(rows) == 0:
             return np.full(m, np.inf), np.zeros(m)
-        # flat positions of every reading of the query's columns
-        offs = np.repeat(start - np.cumsum(lens) + lens, lens) + np.arange(total)
-        rows = self._inv_row[offs]
-        diff = np.repeat(vals, lens) - self._inv_val[offs]
+        diff = np.repeat(vals, lens) - map_vals
         shared = np.bincount(rows, minlength=m).astype(float)
         et = self.params.error_type
         acc = np.bincount(rows, weights=diff * diff if et in ("l2", "rms") else np.abs(diff), minlength=m)
