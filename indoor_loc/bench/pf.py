@@ -56,8 +56,8 @@ def prepare(data: Path, work: Path, walks: str = "all") -> Path:
 def load_inputs(run: Path) -> dict[str, dict]:
     """Per walk: odom (T,) stamps + (T, 2) xy; fixes (K,) stamps, (K, 2) xy, (K, 2, 2) cov."""
     from indoor_loc.bag import read_bag
-    from indoor_loc.msg_adapters.odom import odom_from_msg
-    from indoor_loc.msg_adapters.pose import fix_from_msg
+    from msg_adapters.odom import odom_from_msg
+    from msg_adapters.pose import fix_from_msg
 
     out: dict[str, dict] = {}
     for m in read_bag([run]):
@@ -120,7 +120,7 @@ def kf_wifi_only(inp: dict, interval_s: float) -> tuple[np.ndarray, np.ndarray, 
     """Constant-velocity linear KF on the decimated fixes (the WiFi-only KF of the TLL paper's
     comparison), filtered and RTS-smoothed, estimates at every scan time."""
     from indoor_loc.fusion.linear_pdr import LinearPdrParams, filter_batch, fixes_to_arrays, rts_smooth
-    from indoor_loc.wifi.types import Fix
+    from indoor_loc.measurements import Fix
 
     fixes = inp["fix"]
     kept = {f[0] for f in decimate(fixes, interval_s)}
@@ -138,7 +138,7 @@ def kf_wifi_only(inp: dict, interval_s: float) -> tuple[np.ndarray, np.ndarray, 
 
 # ----------------------------------------------------------------------------------------------
 def _score(trajs: dict, truths: dict) -> dict:
-    from indoor_loc.eval.cli import evaluate
+    from indoor_loc.commands.eval import evaluate
     from indoor_loc.eval.trajectory import Trajectory
     tj = {u: Trajectory.make(u, t, xy) for u, (t, xy) in trajs.items() if len(t)}
     scores, _ = evaluate(tj, truths)
@@ -165,8 +165,17 @@ def off_graph(graph, trajs: dict) -> float:
     return worst
 
 
+def run(args: argparse.Namespace) -> int:
+    """Entry point of ``indoor-loc bench pf`` (options missing from the shared bench CLI default)."""
+    for name, default in (("work", Path("out/bench_pf")), ("runs", 3), ("particles", 1000), ("walks", "all"),
+                          ("no_perf", False), ("quick", False)):
+        if not hasattr(args, name):
+            setattr(args, name, default)
+    return main(args)
+
+
 def main(args: argparse.Namespace) -> int:
-    from indoor_loc.eval.cli import trajectories_from_bags, truth_from_import
+    from indoor_loc.commands.eval import trajectories_from_bags, truth_from_import
     from indoor_loc.graph.io import load_graph
     from indoor_loc.graph.tll import TransitionParams, transition_table
     from indoor_loc.pf.filter import PfParams

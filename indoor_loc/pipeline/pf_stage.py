@@ -26,10 +26,10 @@ from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, MapError
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions
-from indoor_loc.msg_adapters.markers import graph_markers
-from indoor_loc.msg_adapters.odom import odom_from_msg
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
+from msg_adapters.markers import graph_markers
+from msg_adapters.odom import odom_from_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from indoor_loc.pf.filter import PfParams
 from indoor_loc.pf.tracker import Estimate, GraphTracker
 from indoor_loc.pipeline.stage import Output, Port, Stage
