@@ -23,7 +23,7 @@ import numpy as np
 
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
-from indoor_loc.errors import ConfigError, MapError
+from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions
 from msg_adapters.markers import graph_markers
@@ -60,7 +60,6 @@ class PfStageParams:
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(bool(self.graph_file), n, "graph_file", "a building graph file", self.graph_file)
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
         P.require(self.time_jump_s > 0, n, "time_jump_s", "> 0", self.time_jump_s)
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
@@ -84,6 +83,15 @@ class PfStage(Stage):
 
     def __init__(self, params: PfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
+        self._pending: list[tuple[int, int, tuple]] = []
+        self.on("pdr/odom", self._on_odom)
+        self.on("wifi/fix", self._on_fix)
+        self.on("initialpose", self._on_initialpose)
+        if not params.graph_file:
+            # the node starts (so parameters can be inspected) but rejects every message, counted
+            # under "no_graph" in /diagnostics
+            self.graph = None
+            return
         path = Path(params.graph_file)
         try:
             self.graph = load_graph(path)
@@ -92,7 +100,6 @@ class PfStage(Stage):
         self.transitions, self.cache_hit = cached_transitions(self.graph, path, params.transition_params())
         self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
                                     rng=np.random.default_rng(params.seed))
-        self._pending: list[tuple[int, int, tuple]] = []
         self._seq = 0
         self._last_odom_ns: int | None = None
         self._newest_ns: int | None = None
@@ -100,9 +107,6 @@ class PfStage(Stage):
         self._n_pose = 0
         self._last_path_ns: int | None = None
         self.time_jumps = 0
-        self.on("pdr/odom", self._on_odom)
-        self.on("wifi/fix", self._on_fix)
-        self.on("initialpose", self._on_initialpose)
 
     def inputs(self) -> list[Port]:
         return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
@@ -118,6 +122,9 @@ class PfStage(Stage):
     # ------------------------------------------------------------------------------------------
     def _start(self, stamp_ns: int) -> list[Output]:
         """map/graph once; a backwards time jump resets the filter."""
+        if self.graph is None:
+            raise InvalidMessageError("no_graph", "graph_file is not set: give the tll_pf node a building graph "
+                                      "(format indoor_loc.graph v1; `indoor-loc import putmc` writes one)")
         outs: list[Output] = []
         if not self._graph_sent:
             self._graph_sent = True
@@ -165,6 +172,8 @@ class PfStage(Stage):
 
     def global_localization(self, stamp_ns: int) -> list[Output]:
         """Spread the particles over the whole graph (the ``~/global_localization`` service)."""
+        if self.graph is None:
+            return []
         return self._publish(self.tracker.global_localization(stamp_ns))
 
     def _apply_pending(self, due, *, speed: bool = False) -> list[Output]:
@@ -210,6 +219,8 @@ class PfStage(Stage):
         return outs + self._path(self.tracker.estimates)
 
     def extra_diagnostics(self) -> dict[str, str]:
+        if self.graph is None:
+            return {"initialised": "false (graph_file not set)"}
         pf = self.tracker.pf
         d = {"graph": f"{self.graph.n_nodes} nodes, {self.graph.n_links} links", "rule": self.transitions.rule,
              "tll_cache": "hit" if self.cache_hit else "computed", "time_jumps": str(self.time_jumps),
