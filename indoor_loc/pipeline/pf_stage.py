@@ -102,7 +102,7 @@ class PfStage(Stage):
                                     rng=np.random.default_rng(params.seed))
         self._seq = 0
         self._last_odom_ns: int | None = None
-        self._newest_ns: int | None = None
+        self._newest: dict[str, int] = {}
         self._graph_sent = False
         self._n_pose = 0
         self._last_path_ns: int | None = None
@@ -120,7 +120,7 @@ class PfStage(Stage):
                 Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
-    def _start(self, stamp_ns: int) -> list[Output]:
+    def _start(self, stamp_ns: int, topic: str = "") -> list[Output]:
         """map/graph once; a backwards time jump resets the filter."""
         if self.graph is None:
             raise InvalidMessageError("no_graph", "graph_file is not set: give the tll_pf node a building graph "
@@ -130,19 +130,21 @@ class PfStage(Stage):
             self._graph_sent = True
             outs.append(("map/graph", graph_markers(self.graph.node_xyz[:, :2], self.graph.link_nodes.astype(np.int64),
                                                     self.params.frame_id, stamp_ns, ns="map/graph")))
-        if self._newest_ns is not None and stamp_ns < self._newest_ns - int(self.params.time_jump_s * 1e9):
+        # per input topic: pdr/odom legitimately runs a second or two behind wifi/fix
+        newest = self._newest.get(topic)
+        if newest is not None and stamp_ns < newest - int(self.params.time_jump_s * 1e9):
             self.time_jumps += 1
             self.tracker.reset()
             self._pending.clear()
             self._last_odom_ns = None
-            self._newest_ns = None
+            self._newest = {}
             self._last_path_ns = None
-        self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
+        self._newest[topic] = stamp_ns if topic not in self._newest else max(self._newest[topic], stamp_ns)
         return outs
 
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
         od = odom_from_msg(msg)
-        outs = self._start(od.stamp_ns)
+        outs = self._start(od.stamp_ns, "pdr/odom")
         if self._last_odom_ns is not None and od.stamp_ns <= self._last_odom_ns:
             from indoor_loc.errors import InvalidMessageError
             raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom_ns}")
@@ -155,7 +157,7 @@ class PfStage(Stage):
 
     def _on_fix(self, msg, recv_ns: int) -> list[Output]:
         fix = fix_from_msg(msg)
-        outs = self._start(fix.stamp_ns)
+        outs = self._start(fix.stamp_ns, "wifi/fix")
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, (fix.xy, fix.cov)))
         if self._last_odom_ns is None:                 # no PDR (yet): the speed model moves particles
@@ -166,7 +168,7 @@ class PfStage(Stage):
 
     def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:
         ps = pose_from_msg(msg)
-        outs = self._start(ps.stamp_ns)
+        outs = self._start(ps.stamp_ns, "initialpose")
         cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
         return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov))
 
