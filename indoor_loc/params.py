@@ -66,7 +66,8 @@ def leaves(cls: type, prefix: str = "", defaults: Any = None) -> Iterator[tuple[
 
 
 def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | None = None) -> ParamsT:
-    """Build ``cls(**values)`` (``values`` a mapping, or a ``cls`` object to check again): unknown keys and ill-typed values raise ConfigError; then validate().
+    """Build ``cls(**values)`` (``values`` a mapping, or a ``cls`` object to check again): unknown keys
+    and ill-typed values raise ConfigError; then validate().
 
     Groups (:func:`group`) take a nested mapping or dotted keys (``{"wknn.k": 5}``); a leaf given at
     the wrong level is named in the error with its dotted spelling."""

@@ -13,8 +13,9 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
 - ``/map/graph`` (MarkerArray, latched): the building's links, nodes and walls.
 
 ``OUT/radiomap/`` the survey (radio map format v1), ``OUT/building.geojson`` the building (walls,
-rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`, ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
-cumulative true step count), ``OUT/params.yaml`` configuring every node for this run
+rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`,
+``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the cumulative
+true step count), ``OUT/params.yaml`` configuring every node for this run
 (``/**/node_name:`` keys, so it applies in any namespace, live and offline), ``OUT/scenario.yaml``
 (seed, walkers, their step length and cadence, AP events).
 """
