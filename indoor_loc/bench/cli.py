@@ -1,4 +1,4 @@
-"""``indoor-loc bench {imu,wifi,steps}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {imu,wifi,steps,backend}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -9,6 +9,7 @@ BENCHES = {
     "imu": "indoor_loc.bench.imu",
     "wifi": "indoor_loc.bench.wifi",
     "steps": "indoor_loc.bench.steps",
+    "backend": "indoor_loc.bench.backend",
 }
 
 
