@@ -220,7 +220,7 @@ class StageNode(Node):
                 continue
             self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
             self._finished_users.add(user)
-            self._publish(self.stage.finish_user(user))
+            self._publish(self.stage.run_finish_user(user))
             if not self._fixed_users:
                 for sub in self.user_subs.pop(user):
                     self.destroy_subscription(sub)
