@@ -268,6 +268,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"memory: peak Python heap of one joint run {peak / 2**20:.1f} MB (tracemalloc); peak RSS of this process "
           f"{rss:.0f} MB (interpreter, numpy, scipy and the whole dataset included); reference C++ "
           f"{REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB")
+    if getattr(args, "live", False):
+        from indoor_loc.bench import backend_live
+        backend_live.run(data, rates=(10.0,) if quick else (1.0, 10.0))
     if getattr(args, "json", None):
         out = {name: {"pooled": r["pooled"][:6], "wall_s": r["wall_s"]} for name, r in results.items()}
         out["reduced_map"] = {str(k): v for k, v in reduced.items()}

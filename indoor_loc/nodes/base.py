@@ -190,6 +190,8 @@ class StageNode(Node):
         self.user_subs[user] = [
             self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
                                      qos_profile(p.qos)) for p in self.stage.inputs()]
+        for port in self.stage.user_outputs():      # ready (and matched) before the first output
+            self._publisher(port.topic.format(user=user))
         self._user_seen[user] = self._monotonic()
         self._finished_users.discard(user)
         self.get_logger().info(f"following user {user!r}")
