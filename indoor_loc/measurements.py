@@ -34,7 +34,7 @@ import numpy as np
 
 from indoor_loc.errors import InvalidInputError
 
-__all__ = ["Fix", "PdrInterval", "PdrIntervalDecoder", "PdrIntervals", "pdr_intervals", "wrap_angle"]
+__all__ = ["Fix", "OdomPose", "PdrInterval", "PdrIntervalDecoder", "PdrIntervals", "pdr_intervals", "wrap_angle"]
 
 _A = TypeVar("_A", bound=np.ndarray)
 
@@ -68,6 +68,21 @@ class Fix:
     info: dict[str, Any] = field(default_factory=dict)
     z: float = 0.0
     z_var: float = 0.0
+
+
+class OdomPose(NamedTuple):
+    """A planar odometry pose as ``pdr/odom`` carries it: stamp_ns; x, y m and yaw rad (ENU, CCW from
+    x) in ``frame_id``; cov (3, 3) of (x, y, yaw); speed m/s; yaw_rate rad/s; the frames ("" from the
+    core, which does not know them)."""
+    stamp_ns: int
+    x: float
+    y: float
+    yaw: float
+    cov: np.ndarray
+    speed: float
+    yaw_rate: float
+    frame_id: str = ""
+    child_frame_id: str = ""
 
 
 class PdrInterval(NamedTuple):

@@ -25,13 +25,16 @@ def field(default: Any, doc: str, **kw: Any) -> Any:
     return dataclasses.field(default=default, metadata={"doc": doc}, **kw)
 
 
-def group(cls: type, doc: str) -> Any:
-    """A nested Params group: a field holding a whole ``cls`` Params dataclass (default ``cls()``).
+def group(cls: type, doc: str, default: Any = None) -> Any:
+    """A nested Params group: a field holding a whole ``cls`` Params dataclass (default ``cls()``,
+    or ``default``, a frozen ``cls`` object, when the owner wants other defaults for it).
 
     Its leaves are ROS parameters with dotted names (``stepometer.window_s``), a params file may
-    give them as a nested mapping (``stepometer: {window_s: 3.84}``) or dotted keys, and files
-    merge per leaf. Groups nest to any depth."""
-    return dataclasses.field(default_factory=cls, metadata={"doc": doc, "group": cls})
+    give them as a nested mapping (``stepometer: {window_s: 3.84}``) or dotted keys, values given
+    for some leaves keep the group's defaults for the others, and files merge per leaf. Groups nest
+    to any depth."""
+    factory = cls if default is None else (lambda: default)
+    return dataclasses.field(default_factory=factory, metadata={"doc": doc, "group": cls})
 
 
 def group_class(f: dataclasses.Field) -> type | None:
@@ -49,14 +52,16 @@ def field_default(f: dataclasses.Field) -> Any:
     return None
 
 
-def leaves(cls: type, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field, Any]]:
-    """Every plain parameter of a Params class, groups expanded: ``(dotted name, field, default)``."""
+def leaves(cls: type, prefix: str = "", defaults: Any = None) -> Iterator[tuple[str, dataclasses.Field, Any]]:
+    """Every plain parameter of a Params class, groups expanded: ``(dotted name, field, default)``
+    (a group's leaves default to the group's default object)."""
     for f in dataclasses.fields(cls):
+        default = getattr(defaults, f.name) if defaults is not None else field_default(f)
         sub = group_class(f)
         if sub is not None:
-            yield from leaves(sub, f"{prefix}{f.name}.")
+            yield from leaves(sub, f"{prefix}{f.name}.", default)
         else:
-            yield f"{prefix}{f.name}", f, field_default(f)
+            yield f"{prefix}{f.name}", f, default
 
 
 def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | None = None) -> ParamsT:
@@ -80,8 +85,8 @@ def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | N
         if sub is None:
             values[name] = _coerce(cls.__name__, f, value)
         elif isinstance(value, Mapping):
-            try:
-                values[name] = params_from_dict(sub, value)
+            try:   # leaves not given keep the group's default (which may differ from sub())
+                values[name] = params_from_dict(sub, {**params_to_dict(field_default(f)), **nest_dotted(value)})
             except ConfigError as err:
                 raise ConfigError(f"{cls.__name__}.{name}: {err}") from err
         elif not isinstance(value, sub):

@@ -2,6 +2,7 @@
 recording opened with ``rosbags``, the score table, the picture; nothing left running (also on Ctrl-C)."""
 from __future__ import annotations
 
+import importlib.util
 import os
 import signal
 import sys
@@ -54,6 +55,13 @@ def test_demo_runs_every_node_live_and_scores_them(ros_domain, tmp_path):
             for rel in ("imu/data", "pdr/odom", "wifi/fix", "pdr_kf/pose", "pdr_kf/path"):
                 assert counts.get(f"/{w}/{rel}", 0) > 0, f"/{w}/{rel} missing: {sorted(counts)}"
         assert counts.get("/diagnostics", 0) > 0
+        # the nodes of later builds, when this build has them
+        if importlib.util.find_spec("indoor_loc.nodes.backend_node") is not None:
+            for w in ("alice", "bob"):
+                assert counts.get(f"/backend/{w}/path", 0) > 0 and counts.get(f"/backend/{w}/pose", 0) > 0
+        if importlib.util.find_spec("indoor_loc.nodes.tll_pf_node") is not None:
+            for w in ("alice", "bob"):
+                assert counts.get(f"/{w}/pf/pose", 0) > 0
         assert counts[f"/alice/imu/data"] > 1000          # 100 Hz AEKF output of a 24 s walk
         conn = next(c for c in reader.connections if c.topic == "/alice/wifi/fix")
         msg = reader.deserialize(next(reader.messages(connections=[conn]))[2], conn.msgtype)

@@ -161,3 +161,14 @@ def test_params_files_merge_groups_per_leaf(tmp_path):
 """)
     values = params_for_node(load_params_file(f), "outer_node", "/alice")
     assert params_from_dict(OuterParams, values).inner == InnerParams(window_s=5.0, taps=9)
+
+
+@dataclass(frozen=True)
+class TunedParams:
+    inner: InnerParams = group(InnerParams, "inner with other defaults", default=InnerParams(taps=8))
+
+
+def test_a_group_may_carry_its_own_defaults_and_leaves_merge_over_them():
+    assert TunedParams().inner == InnerParams(taps=8)
+    assert [(n, d) for n, _, d in leaves(TunedParams)] == [("inner.window_s", 2.0), ("inner.taps", 8)]
+    assert params_from_dict(TunedParams, {"inner": {"window_s": 3.0}}).inner == InnerParams(window_s=3.0, taps=8)

@@ -120,9 +120,9 @@ def test_reasons_and_bad_params(rng):
 
 def test_locate_many_equals_locate(rng):
     rm, rss, bssids, _ = _two_floor_map(rng)
-    pos = PowedKnn().fit(rm)
     scans = _scans(rss(rng.uniform([0, 0], SIZE, size=(20, 2)), np.ones(20, int), 4.0), bssids)
-    for a, b in zip(pos.locate_many(scans), [pos.locate(s) for s in scans]):
+    one, other = PowedKnn().fit(rm), PowedKnn().fit(rm)     # the device offset is state: two instances
+    for a, b in zip(one.locate_many(scans), [other.locate(s) for s in scans]):
         np.testing.assert_array_equal(a.xy, b.xy)
         np.testing.assert_array_equal(a.cov, b.cov)
         assert a.z == b.z
@@ -181,3 +181,23 @@ def test_fallback_chain_and_recommended_params(rng):
     assert recommended_params(rm) == {"method": "powed"}           # two floors
     one = RadioMap(positions=rm.positions[:5], bssids=rm.bssids, rssi_dbm=rm.rssi_dbm[:5], freq_mhz=rm.freq_mhz)
     assert recommended_params(one)["fallback"] == "powed"
+
+
+def test_online_device_offset_recovers_a_phone_that_reads_8_db_low():
+    rng = np.random.default_rng(11)
+    rss = _field(rng, 40, [0.0])
+    bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+    g = _grid()
+    rm = add_fingerprints(empty_radiomap(), g, _scans(rss(g, np.zeros(len(g), int), 3.0), bssids),
+                          [f"w{i % 5}" for i in range(len(g))])
+    pts = rng.uniform([3, 3], np.array(SIZE) - 3, size=(120, 2))
+    rows = rss(pts, np.zeros(len(pts), int), 3.0)
+    low = _scans(np.where(np.isnan(rows), np.nan, rows - 8.0), bssids)
+    fixed = PowedKnn().fit(rm)
+    fixes = fixed.locate_many(low)
+    assert -10.0 < fixed.offset_db < -6.0                     # learnt: about -8 dB
+    off = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(rm).locate_many(low)
+    err = [np.mean([np.hypot(*(f.xy - p)) for f, p in zip(fx[40:], pts[40:])]) for fx in (fixes, off)]
+    assert err[0] < 0.8 * err[1]
+    fixed.reset()
+    assert fixed.offset_db == 0.0

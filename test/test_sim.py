@@ -236,3 +236,32 @@ def test_written_run_replays_through_the_nodes_with_truth(tmp_path):
     scores, _ = evaluate(trajectories_from_bags([run], "wifi/fix"), truths)
     assert {s.name for s in scores} >= {"alice", "bob"}
     assert scores[-1].scan_m.mean < 3.0        # time-aligned error of WKNN on the survey of this building
+
+
+# ------------------------------------------------------------------------------------ failure paths
+@pytest.mark.parametrize("argv, match", [
+    (["--walkers", "0"], "walkers: expected 1..8"),
+    (["--duration", "3"], "duration_s: expected >= 10"),
+    (["--imu-hz", "5"], "rate_hz: expected 20..1000"),
+    (["--scan-period", "1"], "period_s > sweep_s"),
+])
+def test_sim_command_refuses_bad_options(tmp_path, capsys, argv, match):
+    from indoor_loc.cli import main
+    assert main(["sim", str(tmp_path / "out"), *argv]) == 2
+    assert match in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()           # nothing half-written
+
+
+def test_sim_command_refuses_a_missing_or_foreign_building(tmp_path, capsys):
+    from indoor_loc.cli import main
+    assert main(["sim", str(tmp_path / "out"), "--building", str(tmp_path / "none.geojson")]) == 2
+    assert "cannot read building file" in capsys.readouterr().err
+    (tmp_path / "fc.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": []}))
+    assert main(["sim", str(tmp_path / "out"), "--building", str(tmp_path / "fc.geojson")]) == 2
+    assert "not a building GeoJSON" in capsys.readouterr().err
+
+
+def test_putmc_demo_without_the_dataset_says_where_it_looked(tmp_path, capsys):
+    from indoor_loc.cli import main
+    assert main(["demo", "--dataset", "putmc", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "PUTMC dataset not found" in capsys.readouterr().err

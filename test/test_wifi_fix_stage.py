@@ -152,20 +152,21 @@ def test_two_floors_fix_carries_the_floor_and_fallback_is_counted(tmp_path):
     """A two-floor map (format v2): wifi/fix z = the detected floor's height, covariance[14] its
     variance, diagnostics name the floor; WKNN declines are positioned by the fallback and counted."""
     from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, map_scans
-    upper = grid_map()
-    upper.rssi_dbm = upper.rssi_dbm - 15.0            # the same APs through a floor slab
-    rm = add_fingerprints(empty_radiomap(), grid_map().positions, map_scans(grid_map()), "g", z_m=0.0,
-                          floors={"F1": 0.0})
+    lower, upper = grid_map(), grid_map()
+    lower.rssi_dbm[:, 3:] -= 15.0                     # APs 3-5 hang upstairs: heard through the slab below
+    upper.rssi_dbm[:, :3] -= 15.0                     # APs 0-2 downstairs
+    rm = add_fingerprints(empty_radiomap(), lower.positions, map_scans(lower), "g", z_m=0.0, floors={"F1": 0.0})
     rm = add_fingerprints(rm, upper.positions, map_scans(upper), "u", z_m=5.0, floors={"F2": 5.0})
     d = save_radiomap(rm, tmp_path / "rm2")
     st = make({"radiomap": str(d), "method": "powed"})
-    outs = st.process("wifi/scan", scan_to_msg(scan_at([4.0, 6.0])), 1)
-    msg = outs[0][1]
+    s = scan_at([4.0, 6.0])
+    down = WifiScan(s.stamp_ns, s.bssid, s.rssi_dbm - np.r_[0, 0, 0, 15, 15, 15], s.freq_mhz, frame_id=s.frame_id)
+    msg = st.process("wifi/scan", scan_to_msg(down), 1)[0][1]
     assert msg.pose.pose.position.z == 0.0 and msg.pose.covariance[14] >= 0.0
     assert st.extra_diagnostics()["last_floor"] == "F1"
     s = scan_at([4.0, 6.0], stamp_ns=6 * 10**9)
-    weak = WifiScan(s.stamp_ns, s.bssid, s.rssi_dbm - 15.0, s.freq_mhz, frame_id=s.frame_id)
-    msg = st.process("wifi/scan", scan_to_msg(weak), 2)[0][1]
+    up = WifiScan(s.stamp_ns, s.bssid, s.rssi_dbm - np.r_[15, 15, 15, 0, 0, 0], s.freq_mhz, frame_id=s.frame_id)
+    msg = st.process("wifi/scan", scan_to_msg(up), 2)[0][1]
     assert msg.pose.pose.position.z == 5.0
     assert st.extra_diagnostics()["floor.F2"] == "1"
     # fallback: WKNN requiring all 36 map scans as candidates declines; powed positions the scan

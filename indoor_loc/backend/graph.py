@@ -49,7 +49,7 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import splu
 
-from indoor_loc import params as P
+from indoor_loc.params import field as pfield, group, params_from_dict, require
 from indoor_loc.backend import factors as F
 from indoor_loc.backend.wifi_map import EvolvingMap, Match
 from indoor_loc.errors import ConfigError
@@ -61,63 +61,63 @@ from indoor_loc.wifi.wknn import WknnParams
 class BackendWknnParams(WknnParams):
     """WKNN of the back-end; defaults are the authors' code's comparison (RMS of RSS differences over
     the shared APs, more than 50 % of both scans' APs shared), which the published Table 2 used."""
-    error_type: str = P.field("rms", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (the authors' code) or 'mae'")
-    shared_threshold: float = P.field(0.5, "minimum fraction of each scan's networks the pair must share, both ways")
-    shared_strict: bool = P.field(True, "require more than (instead of at least) shared_threshold (authors' code)")
+    error_type: str = pfield("rms", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (the authors' code) or 'mae'")
+    shared_threshold: float = pfield(0.5, "minimum fraction of each scan's networks the pair must share, both ways")
+    shared_strict: bool = pfield(True, "require more than (instead of at least) shared_threshold (authors' code)")
 
 
 @dataclass(frozen=True)
 class GraphParams:
     """Parameters of the multi-user graph (defaults: the paper's joint + step-length configuration)."""
-    joint: bool = P.field(True, "match other users' scans too (multi-user coupling); False = each user against "
-                                "the survey map only ('separate')")
-    estimate_step_length: bool = P.field(True, "optimise a per-user step length (with its prior); False = fixed "
-                                               "at step_prior_m")
-    step_prior_m: float = P.field(F.STEP_PRIOR_M, "step-length prior mean, m (paper 0.65)")
-    step_prior_info: float = P.field(F.STEP_PRIOR_INFO, "step-length prior information, 1/m² (paper 200)")
-    pdr_info: list = P.field(list(F.PDR_INFO), "PDR edge information diag (x, y, θ) (paper 1, 1, 15)")
-    wifi_info: float = P.field(F.WIFI_INFO, "WKNN hyperedge information, 1/m² (paper 10); with wifi_info_from_fix "
-                                            "a factor on the inverse fix covariance")
-    wifi_info_from_fix: bool = P.field(False, "weight each hyperedge by the inverse of its WKNN fix covariance "
-                                              "(neighbour spread + floor, see Wknn) times wifi_info, instead of "
-                                              "the paper's constant wifi_info I")
-    robust_kernel: str = P.field("none", "kernel on WKNN hyperedges: 'none' (paper), 'huber' or 'cauchy'")
-    robust_threshold_m: float = P.field(2.0, "robust kernel threshold, m of WKNN error")
-    pose_period_s: float = P.field(1.28, "a pose every this much stamp time, s (paper: 256 samples at 200 Hz)")
-    min_scan_move_m: float = P.field(0.3, "a scan closer than this (PDR distance) to the last pose attaches to it, m")
-    gauge_std_m: float = P.field(100.0, "weak prior on each user's first pose position, m (fixes the gauge only)")
-    gauge_std_rad: float = P.field(3.0, "weak prior on each user's first heading, rad")
-    max_iterations: int = P.field(15, "solver iterations per whole-graph optimisation (paper: 15 LM iterations)")
-    window_poses: int = P.field(30, "live: at each localised scan optimise the user's last this many poses "
-                                    "(0 = never; batch use then calls optimize())")
-    window_iterations: int = P.field(5, "solver iterations of a window optimisation")
-    max_active_poses: int = P.field(20000, "at most this many poses are optimised; older ones are frozen")
-    max_map_rows: int = P.field(20000, "at most this many users' scans in the WiFi map (oldest dropped)")
-    wknn: BackendWknnParams = P.group(BackendWknnParams, "WKNN against the survey and users' scans (wknn.k, ...)")
+    joint: bool = pfield(True, "match other users' scans too (multi-user coupling); False = each user against "
+                               "the survey map only ('separate')")
+    estimate_step_length: bool = pfield(True, "optimise a per-user step length (with its prior); False = fixed "
+                                              "at step_prior_m")
+    step_prior_m: float = pfield(F.STEP_PRIOR_M, "step-length prior mean, m (paper 0.65)")
+    step_prior_info: float = pfield(F.STEP_PRIOR_INFO, "step-length prior information, 1/m² (paper 200)")
+    pdr_info: list = pfield(list(F.PDR_INFO), "PDR edge information diag (x, y, θ) (paper 1, 1, 15)")
+    wifi_info: float = pfield(F.WIFI_INFO, "WKNN hyperedge information, 1/m² (paper 10); with wifi_info_from_fix "
+                                           "a factor on the inverse fix covariance")
+    wifi_info_from_fix: bool = pfield(False, "weight each hyperedge by the inverse of its WKNN fix covariance "
+                                             "(neighbour spread + floor, see Wknn) times wifi_info, instead of "
+                                             "the paper's constant wifi_info I")
+    robust_kernel: str = pfield("none", "kernel on WKNN hyperedges: 'none' (paper), 'huber' or 'cauchy'")
+    robust_threshold_m: float = pfield(2.0, "robust kernel threshold, m of WKNN error")
+    pose_period_s: float = pfield(1.28, "a pose every this much stamp time, s (paper: 256 samples at 200 Hz)")
+    min_scan_move_m: float = pfield(0.3, "a scan closer than this (PDR distance) to the last pose attaches to it, m")
+    gauge_std_m: float = pfield(100.0, "weak prior on each user's first pose position, m (fixes the gauge only)")
+    gauge_std_rad: float = pfield(3.0, "weak prior on each user's first heading, rad")
+    max_iterations: int = pfield(15, "solver iterations per whole-graph optimisation (paper: 15 LM iterations)")
+    window_poses: int = pfield(30, "live: at each localised scan optimise the user's last this many poses "
+                                   "(0 = never; batch use then calls optimize())")
+    window_iterations: int = pfield(5, "solver iterations of a window optimisation")
+    max_active_poses: int = pfield(20000, "at most this many poses are optimised; older ones are frozen")
+    max_map_rows: int = pfield(20000, "at most this many users' scans in the WiFi map (oldest dropped)")
+    wknn: BackendWknnParams = group(BackendWknnParams, "WKNN against the survey and users' scans (wknn.k, ...)")
 
     def __post_init__(self) -> None:
         if isinstance(self.wknn, dict):        # GraphParams(wknn={"k": 3}) in code and tests
-            object.__setattr__(self, "wknn", P.params_from_dict(BackendWknnParams, self.wknn))
+            object.__setattr__(self, "wknn", params_from_dict(BackendWknnParams, self.wknn))
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.step_prior_m > 0, n, "step_prior_m", "> 0", self.step_prior_m)
-        P.require(self.step_prior_info > 0, n, "step_prior_info", "> 0", self.step_prior_info)
-        P.require(len(self.pdr_info) == 3 and all(float(v) > 0 for v in self.pdr_info), n, "pdr_info",
+        require(self.step_prior_m > 0, n, "step_prior_m", "> 0", self.step_prior_m)
+        require(self.step_prior_info > 0, n, "step_prior_info", "> 0", self.step_prior_info)
+        require(len(self.pdr_info) == 3 and all(float(v) > 0 for v in self.pdr_info), n, "pdr_info",
                   "three positive numbers", self.pdr_info)
-        P.require(self.wifi_info > 0, n, "wifi_info", "> 0", self.wifi_info)
-        P.require(self.robust_kernel in F.ROBUST_KERNELS, n, "robust_kernel", f"one of {F.ROBUST_KERNELS}",
+        require(self.wifi_info > 0, n, "wifi_info", "> 0", self.wifi_info)
+        require(self.robust_kernel in F.ROBUST_KERNELS, n, "robust_kernel", f"one of {F.ROBUST_KERNELS}",
                   self.robust_kernel)
-        P.require(self.robust_threshold_m > 0, n, "robust_threshold_m", "> 0", self.robust_threshold_m)
-        P.require(self.pose_period_s > 0, n, "pose_period_s", "> 0", self.pose_period_s)
-        P.require(self.min_scan_move_m >= 0, n, "min_scan_move_m", ">= 0", self.min_scan_move_m)
-        P.require(self.gauge_std_m > 0 and self.gauge_std_rad > 0, n, "gauge_std_m/gauge_std_rad", "> 0",
+        require(self.robust_threshold_m > 0, n, "robust_threshold_m", "> 0", self.robust_threshold_m)
+        require(self.pose_period_s > 0, n, "pose_period_s", "> 0", self.pose_period_s)
+        require(self.min_scan_move_m >= 0, n, "min_scan_move_m", ">= 0", self.min_scan_move_m)
+        require(self.gauge_std_m > 0 and self.gauge_std_rad > 0, n, "gauge_std_m/gauge_std_rad", "> 0",
                   (self.gauge_std_m, self.gauge_std_rad))
-        P.require(self.max_iterations >= 1, n, "max_iterations", ">= 1", self.max_iterations)
-        P.require(self.window_poses >= 0, n, "window_poses", ">= 0", self.window_poses)
-        P.require(self.window_iterations >= 1, n, "window_iterations", ">= 1", self.window_iterations)
-        P.require(self.max_active_poses >= 10, n, "max_active_poses", ">= 10", self.max_active_poses)
-        P.require(self.max_map_rows >= 0, n, "max_map_rows", ">= 0", self.max_map_rows)
+        require(self.max_iterations >= 1, n, "max_iterations", ">= 1", self.max_iterations)
+        require(self.window_poses >= 0, n, "window_poses", ">= 0", self.window_poses)
+        require(self.window_iterations >= 1, n, "window_iterations", ">= 1", self.window_iterations)
+        require(self.max_active_poses >= 10, n, "max_active_poses", ">= 10", self.max_active_poses)
+        require(self.max_map_rows >= 0, n, "max_map_rows", ">= 0", self.max_map_rows)
         self.wknn_params()
 
     def wknn_params(self) -> WknnParams:

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc.wifi.types import Fix, RadioMap, WifiScan
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import RadioMap, WifiScan
 from indoor_loc.wifi.wknn import Wknn, WknnParams
 
 SURVEY = -1      # user index of fixed rows

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.contract import namespace_of_topic
 from indoor_loc.errors import ConfigError, DatasetError
 from indoor_loc.eval.metrics import WalkErrors, WalkScore, pool, score, walk_errors
 from indoor_loc.eval.trajectory import Trajectory, Truth, read_csv_dir, truth_from_putmc, write_csv
@@ -64,15 +65,15 @@ def _matching_topics(paths: list[Path], rel: str) -> dict[str, str]:
         pat = _user_pattern(rel)
         return {t: ty for t, (ty, _) in bag_topics(paths).items() if pat.match(t)}
     return {t: ty for t, (ty, _) in bag_topics(paths).items()
-            if t == rel or t == "/" + rel.lstrip("/") or t.endswith("/" + rel.lstrip("/"))}
+            if namespace_of_topic(t, rel) is not None}
 
 
 def _user_of(topic: str, rel: str, default: str) -> str:
     if "{user}" in rel:
         m = _user_pattern(rel).match(topic)
         return m.group("user") if m else default
-    ns = topic[: -len(rel.lstrip("/"))].strip("/")
-    return ns or default
+    ns = namespace_of_topic(topic, rel)
+    return (ns or "").strip("/") or default
 
 
 def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01") -> dict[str, Trajectory]:

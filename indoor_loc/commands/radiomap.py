@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.contract import namespace_of_topic
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
 from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import (add_fingerprints, empty_radiomap, interpolate_positions, load_radiomap,
@@ -50,14 +51,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     i.add_argument("directory", type=Path)
 
 
-def _namespace(full: str, rel: str) -> str | None:
-    if full == "/" + rel:
-        return ""
-    if full.endswith("/" + rel):
-        return full[: -len(rel) - 1]
-    return None
-
-
 def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
                            topic_truth: str = "ground_truth") -> tuple[list, np.ndarray, list[str], dict]:
     """Scans paired with interpolated true positions from bags.
@@ -70,20 +63,20 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     from msg_adapters.wifi_scan import scan_from_msg
 
     topics = bag_topics(bags)
-    wanted = [t for t in topics if _namespace(t, topic_scan) is not None or _namespace(t, topic_truth) is not None]
+    wanted = [t for t in topics if namespace_of_topic(t, topic_scan) is not None or namespace_of_topic(t, topic_truth) is not None]
     scans: dict[str, list] = defaultdict(list)
     truth: dict[str, list] = defaultdict(list)
     truth_z: dict[str, float] = {}
     invalid: dict[str, Counter] = defaultdict(Counter)
     for m in read_bag(bags, topics=wanted):
-        ns = _namespace(m.topic, topic_scan)
+        ns = namespace_of_topic(m.topic, topic_scan)
         if ns is not None:
             try:
                 scans[ns].append(scan_from_msg(m.msg))
             except InvalidMessageError as err:
                 invalid[ns][err.reason] += 1
             continue
-        ns = _namespace(m.topic, topic_truth)
+        ns = namespace_of_topic(m.topic, topic_truth)
         if ns is not None:
             try:
                 truth[ns].append(path_from_msg(m.msg))

@@ -22,12 +22,10 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc.params import field, require
-from indoor_loc.errors import InvalidMessageError
-from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, StateAccessors, _check_fix,
-                                          joseph_update, mahalanobis_sq)
+from indoor_loc.errors import InvalidInputError
+from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, PositionFilter)
 from indoor_loc.measurements import Fix
 
-H_POS4 = H_POS  # the position is also the first two components of [r1, r2, theta, s]
 
 
 @dataclass(frozen=True)
@@ -37,7 +35,7 @@ class NonlinearPdrParams:
     init_step_var_m2: float = field(0.01, "initial footstep length variance (m^2)")
     init_heading_rad: float = field(0.0, "initial heading mean (rad, ENU)")
     init_heading_var_rad2: float = field(1.0, "initial heading variance (rad^2); keep < (pi/2)^2 or the UKF's "
-                                          "sigma points wrap around and hide the uncertainty")
+                                              "sigma points wrap around and hide the uncertainty")
     init_pos_var_m2: float = field(100.0, "initial position variance per axis when no position is given (m^2)")
     sigma_dtheta_rad: float = field(0.1, "heading-change noise per footstep (rad)")
     sigma_ds_m: float = field(0.02, "footstep-length random walk per footstep (m)")
@@ -89,7 +87,7 @@ def process_noise(p: NonlinearPdrParams, steps: float) -> np.ndarray:
     return np.diag([0.0, 0.0, n * p.sigma_dtheta_rad ** 2 + p.q_floor, n * p.sigma_ds_m ** 2 + p.q_floor])
 
 
-class _NonlinearPdrFilter(StateAccessors):
+class _NonlinearPdrFilter(PositionFilter):
     """Shared state handling of the EKF and the UKF (the update is linear for both)."""
 
     def __init__(self, params: NonlinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
@@ -108,31 +106,11 @@ class _NonlinearPdrFilter(StateAccessors):
 
     def _check(self, steps: float, dtheta: float) -> None:
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise InvalidMessageError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
+            raise InvalidInputError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
                                       f"and dtheta, got {steps}, {dtheta}")
 
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         raise NotImplementedError
-
-    def update(self, fix: Fix) -> bool:
-        """Linear WiFi position update (gated, Joseph form); False when rejected or ``fix.ok`` is False."""
-        if not fix.ok:
-            return False
-        z, R = _check_fix(fix)
-        st = self.state
-        st.x, st.P, st.last_nis, ok = joseph_update(st.x, st.P, z, R, H_POS4, self.params.gate_threshold)
-        st.n_updates += int(ok)
-        st.n_rejected += int(not ok)
-        return ok
-
-    def nis(self, fix: Fix) -> float:
-        """Normalised innovation squared of a fix against the current prediction (no update)."""
-        z, R = _check_fix(fix)
-        return float(mahalanobis_sq(z[None], self.state.x[:2], self.state.P[:2, :2] + R)[0])
-
-    def mahalanobis(self, points: np.ndarray) -> np.ndarray:
-        """Squared Mahalanobis distances of positions (N, 2) from the position estimate -> (N,)."""
-        return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
 
 
 class PdrEkf(_NonlinearPdrFilter):

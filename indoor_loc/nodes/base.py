@@ -37,7 +37,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from indoor_loc.contract import Qos, join_ns, msg_class
+from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
 from msg_adapters.diagnostics import stage_diagnostics
 from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
@@ -147,9 +147,16 @@ class StageNode(Node):
         """
         values: dict[str, Any] = {}
         names = []
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
         for name, f, default in leaves(params_cls):
             if isinstance(default, dict):
-                continue   # not expressible as a ROS parameter: stays at its default
+                # a free-form mapping (its owner validates it): each ``name.key`` given is declared
+                for key in sorted(k for k in overrides if k.startswith(name + ".")):
+                    names.append(key)
+                    desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                               read_only=True)
+                    values[key] = _py_value(self.declare_parameter(key, None, desc).value)
+                continue
             names.append(name)
             desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
                                        read_only=True)   # read at start-up; a change needs a restart
@@ -159,7 +166,6 @@ class StageNode(Node):
                 value = type(default)()
             if value is not None or default is None:
                 values[name] = value
-        overrides = getattr(self, "_parameter_overrides", {}) or {}
         unknown = sorted(n for n in overrides if not self.has_parameter(n)
                          and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
         if unknown:
@@ -207,8 +213,9 @@ class StageNode(Node):
             rels = [p.topic for p in self.stage.inputs()]
             for name, _types in self.get_topic_names_and_types():
                 for rel in rels:
-                    if name.endswith("/" + rel) and len(name) > len(rel) + 1:
-                        user = user_of_namespace(name[: -len(rel) - 1])
+                    ns = namespace_of_topic(name, rel)
+                    if ns:
+                        user = user_of_namespace(ns)
                         if user and self.count_publishers(name) > 0:
                             self._follow(user)
         timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))

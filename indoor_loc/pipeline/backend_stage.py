@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field as pfield, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
@@ -43,57 +43,39 @@ from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
 
 NODE_NAME = "backend_node"
 
-_OWN_FIELDS: list[tuple[str, Any, Any]] = [
-    ("radiomap", str, P.field("", "pre-surveyed radio map directory (fixed map scans); '' = start from users' scans "
-                                  "only (a map grows, but nothing ties it to the map frame)")),
-    ("users", list, P.field([], "live: user namespaces to follow; [] = discover them from the ROS graph")),
-    ("user_timeout_s", float, P.field(10.0, "live: a user whose inputs have had no publisher for this long has "
-                                            "left (its path is published), s")),
-    ("offline_order", str, P.field("merged", "indoor-loc run --order auto: 'sequential' plays bags one after "
-                                             "another (the paper's joint configuration), 'merged' in one stamp order")),
-    ("odom_step_length_m", float, P.field(0.65, "step length imu_node used: steps = |Δp| / this, m")),
-    ("reorder_window_s", float, P.field(0.5, "events wait until the user's pdr/odom is this far past them, s")),
-    ("max_scan_wait_s", float, P.field(10.0, "a scan waits at most this long (stamp time of newer scans) for PDR, s")),
-    ("path_period_s", float, P.field(0.0, "republish a user's path at most this often (stamp time, after a window "
-                                          "optimisation), s; 0 = only when the user finishes and at the end")),
-    ("save_map", str, P.field("", "directory to save the evolving WiFi map to at the end (radio map format); '' = no")),
-    ("frame_id", str, P.field("map", "frame of the estimates")),
-]
+@dataclass(frozen=True)
+class BackendParams(GraphParams):
+    """Parameters of ``backend_node``: its own, and the graph's inherited from :class:`GraphParams`
+    (same names, defaults and docs, declared once)."""
+    radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = start from users' scans "
+                           "only (a map grows, but nothing ties it to the map frame)")
+    users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
+    user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
+                                         "left (its path is published), s")
+    offline_order: str = pfield("merged", "indoor-loc run --order auto: 'sequential' plays bags one after "
+                                "another (the paper's joint configuration), 'merged' in one stamp order")
+    odom_step_length_m: float = pfield(0.65, "step length imu_node used: steps = |Δp| / this, m")
+    reorder_window_s: float = pfield(0.5, "events wait until the user's pdr/odom is this far past them, s")
+    max_scan_wait_s: float = pfield(10.0, "a scan waits at most this long (stamp time of newer scans) for PDR, s")
+    path_period_s: float = pfield(0.0, "republish a user's path at most this often (stamp time, after a window "
+                                       "optimisation), s; 0 = only when the user finishes and at the end")
+    save_map: str = pfield("", "directory to save the evolving WiFi map to at the end (radio map format); '' = no")
+    frame_id: str = pfield("map", "frame of the estimates")
 
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.offline_order in ORDERS, n, "offline_order", f"one of {ORDERS}", self.offline_order)
+        require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
+        require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
+        require(self.max_scan_wait_s >= 0, n, "max_scan_wait_s", ">= 0", self.max_scan_wait_s)
+        require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
+        require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
+        require(all(isinstance(u, str) and u.strip("/") for u in self.users), n, "users", "namespace names",
+                self.users)
+        GraphParams.validate(self)
 
-def _graph_fields() -> list[tuple[str, Any, Any]]:
-    out = []
-    for f in dataclasses.fields(GraphParams):
-        sub = P.group_class(f)
-        if sub is not None:
-            out.append((f.name, sub, P.group(sub, f.metadata.get("doc", ""))))
-            continue
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        out.append((f.name, f.type, P.field(default, f.metadata.get("doc", ""))))
-    return out
-
-
-def _validate(self) -> None:
-    n = type(self).__name__
-    P.require(self.offline_order in ORDERS, n, "offline_order", f"one of {ORDERS}", self.offline_order)
-    P.require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
-    P.require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
-    P.require(self.max_scan_wait_s >= 0, n, "max_scan_wait_s", ">= 0", self.max_scan_wait_s)
-    P.require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
-    P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
-    P.require(all(isinstance(u, str) and u.strip("/") for u in self.users), n, "users", "namespace names",
-              self.users)
-    self.graph_params().validate()
-
-
-def _graph_params(self) -> GraphParams:
-    return GraphParams(**{f.name: getattr(self, f.name) for f in dataclasses.fields(GraphParams)})
-
-
-BackendParams = dataclasses.make_dataclass(
-    "BackendParams", _OWN_FIELDS + _graph_fields(), frozen=True,
-    namespace={"validate": _validate, "graph_params": _graph_params,
-               "__doc__": "Parameters of ``backend_node``: its own plus the graph's (GraphParams)."})
+    def graph_params(self) -> GraphParams:
+        return GraphParams(**{f.name: getattr(self, f.name) for f in dataclasses.fields(GraphParams)})
 
 
 @dataclass

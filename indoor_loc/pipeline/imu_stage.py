@@ -60,14 +60,14 @@ class ImuStageParams:
     step_length_m: float = field(0.65, "nominal step length, m: distance = steps x this")
     step_length_rel_std: float = field(0.1, "relative std of the walked distance per hop, 1")
     heading_offset_rad: float = field(0.0, "added to the device yaw to get the walking heading, rad "
-                                             "(0: device x forward, REP 103; pi/2: phone +y forward)")
+                                           "(0: device x forward, REP 103; pi/2: phone +y forward)")
     default_yaw_std_rad: float = field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")
     odom_frame: str = field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")
     base_frame: str = field("", "pdr/odom child frame; '' = '<namespace>/base_link'")
     mag_max_age_s: float = field(0.2, "a magnetometer sample older than this is not used, s")
     stepometer: StepometerParams = group(StepometerParams, "FFT stepometer (indoor_loc/imu/stepometer.py)")
     aekf: AekfParams = group(AekfParams, "adaptive EKF orientation (indoor_loc/imu/aekf.py), used when the "
-                                           "heading comes from the AEKF")
+                                         "heading comes from the AEKF")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -151,10 +151,7 @@ class ImuStage(Stage):
                 if self._mag is not None and abs(s.stamp_ns - self._mag[0]) <= self.params.mag_max_age_s * 1e9:
                     mag = self._mag[1]
                     self._mag = None
-                try:
-                    self.aekf.update(s.stamp_ns, s.gyro, s.acc, mag)
-                except ValueError as err:
-                    raise InvalidMessageError("aekf_input", str(err)) from err
+                self.aekf.update(s.stamp_ns, s.gyro, s.acc, mag)   # InvalidInputError: counted by its reason
                 if mag is not None:
                     self.counts["mag_used"] += 1
                 q = self.aekf.quat_wxyz

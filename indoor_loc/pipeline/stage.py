@@ -42,6 +42,14 @@ class Port:
     qos: Qos
 
 
+def rate_hz(count: int, first_ns: int | None, last_ns: int | None) -> float:
+    """Mean rate (Hz) of ``count`` events stamped from ``first_ns`` to ``last_ns``; 0 before two
+    events or when no time passed."""
+    if count < 2 or first_ns is None or last_ns is None or last_ns <= first_ns:
+        return 0.0
+    return (count - 1) / ((last_ns - first_ns) * 1e-9)
+
+
 @dataclass
 class TopicStats:
     count: int = 0
@@ -49,9 +57,7 @@ class TopicStats:
     last_ns: int | None = None
 
     def rate_hz(self) -> float:
-        if self.count < 2 or self.first_ns is None or self.last_ns is None or self.last_ns <= self.first_ns:
-            return 0.0
-        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+        return rate_hz(self.count, self.first_ns, self.last_ns)
 
 
 @dataclass

@@ -28,8 +28,9 @@ from indoor_loc.errors import InvalidMessageError
 from msg_adapters.wifi_json import parse_json_msg
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import require
-from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, ScanCommandError, build_command
+from indoor_loc.pipeline.stage import Output, Port, Stage, rate_hz
+from indoor_loc.errors import ScanCommandError
+from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, build_command
 from indoor_loc.wifi.normalize import NormalizeParams, normalize_report
 from indoor_loc.wifi.parsers import SIGNAL_MAPPINGS, ParseResult
 from indoor_loc.wifi.types import WifiScan
@@ -173,10 +174,7 @@ class WifiScanStage(Stage):
 
     def scans_per_s(self) -> float:
         """Published scans per second of scan time (0 before two scans)."""
-        if self.scans_published < 2 or self._first_out_ns is None or self._last_out_ns is None \
-                or self._last_out_ns <= self._first_out_ns:
-            return 0.0
-        return (self.scans_published - 1) / ((self._last_out_ns - self._first_out_ns) * 1e-9)
+        return rate_hz(self.scans_published, self._first_out_ns, self._last_out_ns)
 
     def extra_diagnostics(self) -> dict[str, str]:
         out = {

@@ -179,6 +179,8 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     graph = save_graph(building_graph(run.building), out / "graph.yaml",
                        source={"tool": "indoor-loc sim", "building": run.building.name})
     (out / "truth").mkdir(exist_ok=True)
+    for stale in (out / "truth").glob("*.csv"):      # a previous run's walkers
+        stale.unlink()
     for w in run.walkers:
         write_truth_csv(w, out / "truth" / f"{w.name}.csv")
     params = node_params(run, rm_dir)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from indoor_loc.params import field, require
-from indoor_loc.errors import InvalidMessageError, MapError
+from indoor_loc.errors import InvalidInputError, MapError
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
 
@@ -177,7 +177,7 @@ class CoverageArea(Positioner):
         every AP heard (new BSSIDs get new CAs)."""
         xy = np.asarray(xy, float).reshape(2)
         if not np.all(np.isfinite(xy)):
-            raise InvalidMessageError("nan", f"coverage.add_fingerprint: expected a finite position, got {xy}")
+            raise InvalidInputError("nan", f"coverage.add_fingerprint: expected a finite position, got {xy}")
         idx = np.array([self.aps.add(b) for b in scan.bssid], dtype=np.int64)
         A = len(self.bssids)
         self.weak.grow(A)

@@ -60,7 +60,7 @@ class PathLossParams:
     clip_margin_m: float = field(10.0, "estimates are clipped to the map's bounding box grown by this (m)")
     inflate_by_residual: bool = field(True, "scale the fix covariance by the reduced chi-square when > 1")
     model_error_m: float = field(2.0, "std of the position error the model cannot see (walls, spatially "
-                                        "correlated shadowing), added isotropically to the fix covariance (m)")
+                                      "correlated shadowing), added isotropically to the fix covariance (m)")
 
     def validate(self) -> None:
         n = type(self).__name__
