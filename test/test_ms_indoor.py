@@ -129,11 +129,14 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     params = yaml.safe_load((out / "params.yaml").read_text())
     wifi = params["/**/wifi_fix_node"]["ros__parameters"]
     assert Path(wifi["radiomap"]) == out / "radiomap" and wifi["method"] == "powed"    # ages, two floors
+    # phone yaw 45°, walking east: the heading offset that maps the phone's yaw onto the walk
+    assert params["/**/imu_node"]["ros__parameters"]["heading_offset_rad"] == pytest.approx(-np.pi / 4, abs=1e-3)
     plan = yaml.safe_load((out / "floors" / "B1" / "map.yaml").read_text())
     assert plan["z_m"] == -5.0 and plan["width_m"] == 60.0
     assert (out / "floors" / "B1" / "geojson_map.json").exists()
     report = (out / "import_report.md").read_text()
     assert "duplicate BSSID" in report and "no mag rows" in report
+    assert "## Heading check" in report and "- F1: 1 waypoint pairs, mean -45.0°, R = 1.00" in report
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert split["F1"]["survey"] == ["5f0000000000000000000001"]
     # a second import onto the same bags is refused unless asked
@@ -159,3 +162,17 @@ def test_cli_entry(tmp_path):
     assert main(["import", "ms-indoor", str(SITE), str(tmp_path / "o"), "--floors", "F1"]) == 0
     assert (tmp_path / "o" / "F1" / "5f0000000000000000000001.mcap").exists()
     assert main(["import", "ms-indoor", str(SITE), str(tmp_path / "o"), "--floors", "F1"]) == 2
+
+
+def test_an_unreadable_walk_is_skipped_and_reported_not_fatal(tmp_path, capsys):
+    import shutil
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    site = tmp_path / "site"
+    shutil.copytree(SITE, site)
+    (site / "F1" / "path_data_files" / "5f0000000000000000000009.txt.gz").write_bytes(b"not gzip at all")
+    args = _args(tmp_path / "out", floors="F1")
+    args.dataset_dir = site
+    assert import_ms_indoor(args) == 0
+    assert (tmp_path / "out" / "F1" / "5f0000000000000000000001.mcap").exists()
+    assert "SKIPPED 1 unreadable walk(s): 5f0000000000000000000009" in capsys.readouterr().out
+    assert "5f0000000000000000000009: SKIPPED, unreadable" in (tmp_path / "out" / "import_report.md").read_text()
