@@ -609,14 +609,14 @@ class Aekf:
         self.params = params if params is not None else AekfParams()
         self.params.validate()
         self._st = AekfState()
-        self._pending_mag: list | None = None
+        self._pending_mag: list[float] | None = None
 
     def update(self, stamp_ns: int, gyro: Sequence[float] | np.ndarray, acc: Sequence[float] | np.ndarray,
                mag: Sequence[float] | np.ndarray | None = None) -> None:
         """One sample: ``gyro`` (3,) rad/s, ``acc`` (3,) m/s² (specific force, +g up at rest),
         ``mag`` (3,) any unit or None. dt comes from the stamps (irregular is fine); the first call
-        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or stamps that do not
-        increase (the state is then unchanged)."""
+        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or
+        stamps that do not increase (the state is then unchanged)."""
         g = [float(v) for v in gyro]
         a = [float(v) for v in acc]
         mm = None if mag is None else [[float(v) for v in mag]]
@@ -625,13 +625,13 @@ class Aekf:
         # _run checks a sample before touching the state, so a rejected sample leaves it unchanged
         _run(self._st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
 
-    def update_imu(self, stamp_ns: int, gyro, acc) -> None:
+    def update_imu(self, stamp_ns: int, gyro: Sequence[float] | np.ndarray, acc: Sequence[float] | np.ndarray) -> None:
         """One IMU sample; a magnetometer sample given by :meth:`update_mag` since the previous IMU
         sample is applied with it (each magnetometer sample once)."""
         mag, self._pending_mag = self._pending_mag, None
         self.update(stamp_ns, gyro, acc, mag)
 
-    def update_mag(self, stamp_ns: int, mag) -> None:
+    def update_mag(self, stamp_ns: int, mag: Sequence[float] | np.ndarray) -> None:
         """One magnetometer sample at its own stamp, applied with the next IMU sample."""
         m = [float(v) for v in mag]
         if len(m) != 3 or not all(math.isfinite(v) for v in m):
