@@ -107,7 +107,7 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
            "RCUTILS_COLORIZED_OUTPUT": "0"}
     params = str(sim["params"])
     nodes: list[dict] = [{"name": "recorder", "module": "indoor_loc.nodes.recorder_node",
-                          "args": ["-a", "-o", str(out / "live.mcap"), "--poll", "0.5",
+                          "args": ["-a", "-o", str(out / "live.mcap"), "--overwrite", "--poll", "0.5",
                                    "--exclude", INPUT_TOPICS_RE],
                           # wall clock: its graph polling must run before the player's /clock starts
                           # (log time = wall-clock reception; every message keeps its bag-time stamp)
@@ -200,8 +200,11 @@ def run_sim_demo(args: argparse.Namespace) -> int:
         if stale.exists():
             stale.unlink()
     cfg_map = bringup_config(walkers, sim, out, rate=args.rate, foxglove=args.foxglove)
-    (out / "bringup.yaml").write_text("# The demo's bring-up (indoor-loc up " + str(out / "bringup.yaml") + ")\n"
-                                      + yaml.safe_dump(cfg_map, sort_keys=False))
+    (out / "bringup.yaml").write_text(
+        f"# The demo's bring-up; `indoor-loc up {out / 'bringup.yaml'}` runs the same processes. The player\n"
+        "# is not `required`: when the bag ends the nodes keep running until Ctrl-C (`indoor-loc demo` itself\n"
+        "# stops the estimators first, then the recorder, so their last outputs are recorded).\n"
+        + yaml.safe_dump(cfg_map, sort_keys=False))
     config = parse_config(cfg_map, out)
     names = [n["name"] for n in cfg_map["nodes"]]
     missing = [m for _, m in OPTIONAL_PER_WALKER + OPTIONAL_SHARED if not _module_exists(m)]

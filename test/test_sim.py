@@ -63,6 +63,26 @@ def test_bad_building_files_are_refused(building, breakage, match):
         building_from_geojson(data)
 
 
+def test_floor_plan_image_draws_the_walls_where_they_are(building, tmp_path):
+    import yaml
+    from PIL import Image
+
+    from indoor_loc.sim.building import floor_plan_image, save_floor_plans
+    img, (x0, y0) = floor_plan_image(building, 0, resolution_m=0.05)
+    h = img.shape[0]
+
+    def px(x, y):
+        return img[int(round(h - 1 - (y - y0) / 0.05)), int(round((x - x0) / 0.05))]
+    assert px(20.0, 0.0) == 0 and px(8.0, 4.0) == 0          # outer wall, a room partition
+    assert px(20.0, 4.0) == 254 and px(20.0, 10.0) == 254     # a room, the corridor
+    assert px(12.0, 8.8) == 254                               # the door gap in the corridor wall
+    meta = yaml.safe_load(save_floor_plans(building, tmp_path)[1].read_text())
+    assert meta["resolution"] == 0.05 and meta["origin"][:2] == [round(x0, 6), round(y0, 6)]
+    assert Image.open(tmp_path / meta["image"]).size == (img.shape[1], img.shape[0])
+    with pytest.raises(MapError, match="no floor 2"):
+        floor_plan_image(building, 2)
+
+
 # ------------------------------------------------------------------------------------------ IMU
 def _walk(building, seed, **kw):
     rng = np.random.default_rng(seed)

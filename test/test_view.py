@@ -102,3 +102,12 @@ def test_shipped_layout_names_contract_topics():
         ns, rel = split_ns(topic, known)
         backend = re.fullmatch(BACKEND_PATH.replace("{user}", r"[a-z]+").replace("/", r"\/"), topic.lstrip("/"))
         assert rel in known or backend, f"layout topic {topic} is not in the message contract"
+
+
+@pytest.mark.parametrize("argv, match", [(["--port", "70000"], "view.port"), (["--poll", "0"], "view.poll"),
+                                         (["--exclude", "(("], "view.exclude"),
+                                         (["--building", "/nonexistent.geojson"], "view.building")])
+def test_view_refuses_bad_options_before_starting(argv, match, capsys):
+    from indoor_loc.nodes.view_node import main
+    assert main(["view", *argv]) == 2
+    assert match in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""``indoor-loc bench {imu,wifi,steps}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {heading,imu,wifi,steps}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -6,6 +6,7 @@ import importlib
 from pathlib import Path
 
 BENCHES = {
+    "heading": "indoor_loc.bench.heading",
     "imu": "indoor_loc.bench.imu",
     "wifi": "indoor_loc.bench.wifi",
     "steps": "indoor_loc.bench.steps",

@@ -606,6 +606,7 @@ class Aekf:
         self.params = params if params is not None else AekfParams()
         self.params.validate()
         self._st = AekfState()
+        self._pending_mag: list | None = None
 
     def update(self, stamp_ns: int, gyro, acc, mag=None) -> None:
         """One sample: ``gyro`` (3,) rad/s, ``acc`` (3,) m/s² (specific force, +g up at rest),
@@ -619,6 +620,19 @@ class Aekf:
             raise InvalidInputError("shape", "gyro, acc and mag must have 3 components")
         # _run checks a sample before touching the state, so a rejected sample leaves it unchanged
         _run(self._st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
+
+    def update_imu(self, stamp_ns: int, gyro, acc) -> None:
+        """One IMU sample; a magnetometer sample given by :meth:`update_mag` since the previous IMU
+        sample is applied with it (each magnetometer sample once)."""
+        mag, self._pending_mag = self._pending_mag, None
+        self.update(stamp_ns, gyro, acc, mag)
+
+    def update_mag(self, stamp_ns: int, mag) -> None:
+        """One magnetometer sample at its own stamp, applied with the next IMU sample."""
+        m = [float(v) for v in mag]
+        if len(m) != 3 or not all(math.isfinite(v) for v in m):
+            raise InvalidInputError("nan", f"non-finite or malformed magnetometer sample at stamp {stamp_ns} ns")
+        self._pending_mag = m
 
     @property
     def initialised(self) -> bool:

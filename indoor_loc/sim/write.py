@@ -13,7 +13,8 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
 - ``/map/graph`` (MarkerArray, latched): the building's links, nodes and walls.
 
 ``OUT/radiomap/`` the survey (radio map format v1), ``OUT/building.geojson`` the building (walls,
-rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`, ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
+rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`,
+``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format), ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
 cumulative true step count), ``OUT/params.yaml`` configuring every node for this run
 (``/**/node_name:`` keys, so it applies in any namespace, live and offline), ``OUT/scenario.yaml``
 (seed, walkers, their step length and cadence, AP events).
@@ -30,7 +31,7 @@ from indoor_loc.bag import BagWriter
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import join_ns
 from indoor_loc.graph import save_graph
-from indoor_loc.sim.building import Building, building_graph, save_building
+from indoor_loc.sim.building import Building, building_graph, save_building, save_floor_plans
 from indoor_loc.sim.scenario import T0_NS, SimRun, SimWalker
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
 
@@ -176,6 +177,7 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     rm = add_fingerprints(empty_radiomap(), run.survey_xy, run.survey_scans, source="survey")
     rm_dir = save_radiomap(rm, out / "radiomap", created_by="indoor-loc sim")
     geo = save_building(run.building, out / "building.geojson")
+    plans = save_floor_plans(run.building, out / "floor_plans")
     graph = save_graph(building_graph(run.building), out / "graph.yaml",
                        source={"tool": "indoor-loc sim", "building": run.building.name})
     (out / "truth").mkdir(exist_ok=True)
@@ -205,5 +207,5 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     (out / "scenario.yaml").write_text(yaml.safe_dump(scenario, sort_keys=False))
     bag = out / "sim.mcap"
     write_bag(run, bag, progress=progress)
-    return {"bag": bag, "radiomap": rm_dir, "building": geo, "graph": graph, "params": out / "params.yaml",
+    return {"bag": bag, "radiomap": rm_dir, "building": geo, "graph": graph, "floor_plans": plans[0].parent, "params": out / "params.yaml",
             "scenario": out / "scenario.yaml", "truth": out / "truth"}
