@@ -36,7 +36,8 @@ from indoor_loc.errors import ConfigError
 ESTIMATORS = [("WiFi only, WKNN", "wifi/fix"),
               ("PDR + WiFi KF, filtered", "pdr_kf/pose"),
               ("PDR + WiFi KF, RTS-smoothed", "pdr_kf/path"),
-              ("particle filter (TLL)", "pf/pose"),
+              ("particle filter (TLL), filtered", "pf/pose"),
+              ("particle filter (TLL), smoothed", "pf/path"),
               ("multi-user back-end", "backend/{user}/path")]
 #: Inputs played from the simulated bag: not recorded again (the sim bag has them).
 INPUT_TOPICS_RE = r"(/imu/data_raw|/imu/mag|/wifi/scan|^/clock|^/rosout|^/parameter_events)$"
@@ -336,7 +337,8 @@ def plot_run(png: Path, sim_dir: Path, trajs: dict, rows: list[ScoreRow]) -> Pat
     style = {"wifi/fix": dict(ls="", marker="o", ms=4, color="tab:orange", alpha=0.8),
              "pdr_kf/pose": dict(lw=0.8, color="tab:purple", alpha=0.6),
              "pdr_kf/path": dict(lw=1.8, color="tab:blue"),
-             "pf/pose": dict(lw=1.5, color="tab:red"),
+             "pf/pose": dict(lw=0.8, color="tab:red", alpha=0.6),
+             "pf/path": dict(lw=1.5, color="tab:red"),
              "backend/{user}/path": dict(lw=1.5, color="tab:green")}
     err = {(r.walker, r.topic): r.mean_m for r in rows}
     try:

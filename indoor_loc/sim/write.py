@@ -154,7 +154,7 @@ def write_truth_csv(w: SimWalker, path: Path, t0_ns: int = T0_NS) -> None:
                          int(m.floor[i]), f"{m.heading[i]:.5f}", f"{m.steps[i]:.3f}"))
 
 
-def node_params(run: SimRun, radiomap_dir: Path) -> dict:
+def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
     """The params.yaml of a simulated run: every node, ``/**/node_name`` keys (any namespace)."""
     mean_step = float(run.config.step_length_m[0])
     return {
@@ -164,6 +164,8 @@ def node_params(run: SimRun, radiomap_dir: Path) -> dict:
             "heading_offset_rad": 0.0}},      # the device's x axis points forward (REP 103)
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
         "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
+        # the particle filter on the building graph (its TLL table is cached beside graph.yaml)
+        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file)}},
         # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
@@ -186,7 +188,7 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
         stale.unlink()
     for w in run.walkers:
         write_truth_csv(w, out / "truth" / f"{w.name}.csv")
-    params = node_params(run, rm_dir)
+    params = node_params(run, rm_dir, graph)
     (out / "params.yaml").write_text(
         "# Written by `indoor-loc sim`: configures every node for this simulated run (any namespace).\n"
         "# imu/data_raw + imu/mag feed the AEKF; the step length is the population mean (each walker's\n"
