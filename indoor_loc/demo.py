@@ -168,7 +168,8 @@ def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event,
             break
         if time.monotonic() >= next_report:
             elapsed = time.monotonic() - t_start
-            print(f"   ... {elapsed:.0f} s (the bag lasts {duration_s / rate:.0f} s at rate {rate:g})", flush=True)
+            print(f"   ... {elapsed:.0f} s since start-up (the bag plays for {duration_s / rate:.0f} s once every "
+                  f"node has subscribed)", flush=True)
             next_report += 10.0
         time.sleep(0.1)
     if stop_event.is_set() or bup._stop_requested is not None:
