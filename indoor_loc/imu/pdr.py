@@ -19,6 +19,13 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
   accumulates, per hop, an along-track variance ``(step_length_rel_std · d_i)²`` and a cross-track
   variance ``d_i² · min(σ_ψ², 1)`` rotated into x, y (hops treated as independent), so it grows with
   the distance walked and with the heading uncertainty.
+- step confidence: a hop the stepometer is unsure of (a moving but not periodic window, see
+  :class:`indoor_loc.imu.stepometer.StepHop`) carries a count standard deviation ``σ_n`` (steps);
+  it adds ``(step_length_m · σ_n)²`` to that hop's along-track variance, and
+  ``twist.covariance[0]`` (variance of ``twist.linear.x``) is the hop's walking-speed variance
+  ``((step_length_rel_std · d_i)² + (step_length_m · σ_n)²) / Δt²`` (m²/s²): a consumer recovers
+  the count's standard deviation as ``σ_n = sqrt(var_v Δt² − (rel_std · d_i)²) / step_length_m``.
+  A confident hop has ``σ_n = 0``: its speed variance is the step-length term alone.
 
 Without a heading the yaw is held at its last value (0 at the start) and the track is a straight
 line whose length is still the walked distance.
@@ -67,6 +74,8 @@ class PdrPose(NamedTuple):
     yaw_rate: float
     steps: float
     distance_m: float
+    steps_std: float = 0.0
+    speed_var: float = 0.0
 
 
 @dataclass
@@ -99,9 +108,10 @@ class Pdr:
         self._st = state.copy()
 
     def update(self, t_start_ns: int, t_end_ns: int, steps: float, yaw: float | None,
-               yaw_var: float | None = None) -> PdrPose:
+               yaw_var: float | None = None, steps_std: float = 0.0) -> PdrPose:
         """Integrate one hop. ``yaw`` rad at the hop's end (None = unknown: the last yaw is held),
-        ``yaw_var`` rad² (None with a known yaw = 0)."""
+        ``yaw_var`` rad² (None with a known yaw = 0), ``steps_std`` the count's standard deviation
+        (steps; 0 = a confident count)."""
         st = self._st
         p = self.params
         if yaw is None or not math.isfinite(yaw):
@@ -117,7 +127,8 @@ class Pdr:
         st.y += d * s
         # heading uncertainty of the segment: the larger of the two ends' variances
         seg_var = max(var, float(st.cov[2, 2]) if st.stamp_ns is not None else var)
-        q_along = (p.step_length_rel_std * d) ** 2
+        n_std = float(steps_std) if math.isfinite(steps_std) and steps_std > 0 else 0.0
+        q_along = (p.step_length_rel_std * d) ** 2 + (p.step_length_m * n_std) ** 2
         q_cross = d * d * min(seg_var, 1.0)
         rot = np.array([[c, -s], [s, c]])
         st.cov[:2, :2] += rot @ np.diag([q_along, q_cross]) @ rot.T
@@ -128,7 +139,7 @@ class Pdr:
         st.total_steps += max(0.0, float(steps))
         st.distance_m += d
         return PdrPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
-                       max(0.0, float(steps)), d)
+                       max(0.0, float(steps)), d, n_std, q_along / (dt * dt))
 
 
 def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[PdrPose]:
