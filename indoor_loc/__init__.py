@@ -2,7 +2,7 @@
 
 Layers (imports flow one way, checked by test/test_architecture.py):
   core      indoor_loc.{imu,wifi,eval,...}  pure numpy/scipy, no ROS imports
-  adapters  indoor_loc.msg_adapters         pure message <-> core-type functions
+  adapters  msg_adapters         pure message <-> core-type functions
   stages    indoor_loc.pipeline             a node's message logic without rclpy (used live and offline)
   nodes     indoor_loc.nodes                the only code that imports rclpy
 """

@@ -10,14 +10,41 @@ class ConfigError(IndoorLocError, ValueError):
     """Invalid parameters or configuration (unknown key, out-of-range value)."""
 
 
-class InvalidMessageError(IndoorLocError, ValueError):
-    """A message that violates the message contract. ``reason`` is a short stable slug counted
-    in diagnostics (e.g. ``"nan"``, ``"schema_version"``, ``"rssi_range"``)."""
+class InvalidInputError(IndoorLocError, ValueError):
+    """Input to a core function that breaks its documented contract (array shape, a non-finite
+    value, time going backwards). ``reason`` is a short stable slug a stage counts in diagnostics
+    (e.g. ``"shape"``, ``"nan"``, ``"non_monotonic_stamp"``); ``detail`` says what was expected and got."""
 
     def __init__(self, reason: str, detail: str = "") -> None:
         self.reason = reason
         self.detail = detail
         super().__init__(f"{reason}: {detail}" if detail else reason)
+
+
+class InvalidMessageError(InvalidInputError):
+    """A message that violates the message contract (raised by ``msg_adapters``). ``reason`` is a
+    short stable slug counted in diagnostics (e.g. ``"nan"``, ``"schema_version"``, ``"rssi_range"``)."""
+
+
+class EvalError(InvalidInputError):
+    """Inputs to a metric with the wrong shape, non-finite values or nothing to score."""
+
+    def __init__(self, detail: str, reason: str = "eval_input") -> None:
+        super().__init__(reason, detail)
+
+    def __str__(self) -> str:
+        return self.detail
+
+
+class ScanCommandError(IndoorLocError):
+    """A WiFi scan command (``iw``, ``nmcli``) that could not run or failed. ``reason`` is a short
+    stable slug counted in diagnostics; ``hint`` says what to do about it."""
+
+    def __init__(self, reason: str, message: str, hint: str = "") -> None:
+        self.reason = reason
+        self.message = message
+        self.hint = hint
+        super().__init__(f"{message}; {hint}" if hint else message)
 
 
 class MapError(IndoorLocError):

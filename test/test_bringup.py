@@ -12,7 +12,7 @@ import yaml
 
 from helpers_dds import PEERS, Peer, child_env, ros_node, spin_until
 from indoor_loc.errors import ConfigError
-from indoor_loc.nodes.bringup import load_config, package_executables, param_text, parse_config
+from indoor_loc.supervisor import load_config, package_executables, param_text, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DUMMY = str(PEERS / "dummy_node.py")
@@ -201,7 +201,7 @@ def test_program_that_cannot_start(tmp_path):
     import dataclasses
     import io
 
-    from indoor_loc.nodes.bringup import Bringup
+    from indoor_loc.supervisor import Bringup
     cfg = parse_config({"nodes": [{"name": "ok", "script": EXIT}]}, tmp_path)
     broken = dataclasses.replace(cfg.nodes[0], name="broken", program=(str(tmp_path / "not_there"),))
     out = io.StringIO()

@@ -163,10 +163,10 @@ def test_bags_truth_and_trajectories_through_cli(tmp_path):
     from indoor_loc.bag import BagWriter
     from indoor_loc.cli import main as cli_main
     from indoor_loc.datasets.putmc_bags import write_walk_bag
-    from indoor_loc.eval.cli import trajectories_from_bags, truth_from_import
-    from indoor_loc.msg_adapters.path import path_to_msg
-    from indoor_loc.msg_adapters.pose import fix_to_msg
-    from indoor_loc.wifi.types import Fix
+    from indoor_loc.commands.eval import trajectories_from_bags, truth_from_import
+    from msg_adapters.path import path_to_msg
+    from msg_adapters.pose import fix_to_msg
+    from indoor_loc.measurements import Fix
 
     walk, route = _synthetic_walk()
     counts = write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from indoor_loc.errors import ConfigError
-from indoor_loc.imu.pdr import recover_intervals
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
-from indoor_loc.msg_adapters.odom import odom_from_msg
+from indoor_loc.measurements import pdr_intervals
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_to_msg
+from msg_adapters.odom import odom_from_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.imu_stage import ImuStage, ImuStageParams
 
@@ -60,7 +60,7 @@ def test_aekf_heading_with_mag(rng):
     assert st.stepometer.total_steps == pytest.approx(expected_steps, rel=0.01)
     xy = np.array([[0.0, 0.0]] + [[o.x, o.y] for o in od])
     yaw = np.array([od[0].yaw] + [o.yaw for o in od])
-    steps, _ = recover_intervals(xy, yaw, 0.65)
+    steps = pdr_intervals(np.arange(len(xy)), xy, yaw, step_length_m=0.65).steps
     assert steps.sum() == pytest.approx(st.stepometer.total_steps, rel=1e-6)
     assert od[-1].frame_id == "alice/odom" and od[-1].child_frame_id == "alice/base_link"
     assert od[-1].cov[2, 2] < 0.1                      # magnetometer: heading known
@@ -115,7 +115,7 @@ def test_auto_ignores_own_echo_and_switches_to_external_orientation(rng):
         for topic, msg in got:                     # DDS delivers our own imu/data back to us
             if topic == "imu/data":
                 st.process("imu/data", msg, ns)
-    assert st.heading_mode == "aekf"
+    assert st.heading_mode == "vqf"                # auto: the better filter on walking phones
     ns = int(stamps[300]) + 1
     st.process("imu/data", imu_to_msg(ns, "imu", [0, 0, 0], None, [0, 0, 0, 1], np.eye(3) * 0.01), ns)
     assert st.heading_mode == "orientation"
@@ -128,7 +128,7 @@ def test_nan_and_backwards_stamps_are_rejected_without_state_change(rng):
     feed_part = [st.process("imu/data_raw", imu_to_msg(int(s), "imu", a, g), int(s))
                  for s, a, g in zip(stamps[:400], acc[:400], gyro[:400])]
     assert feed_part
-    step_state, aekf_q = st.stepometer.state(), st.aekf.quat_wxyz.copy()
+    step_state, aekf_q = st.stepometer.state(), st.filter.quat_wxyz.copy()
     bad = imu_to_msg(int(stamps[400]), "imu", acc[400], gyro[400])
     bad.linear_acceleration.x = float("nan")
     assert st.process("imu/data_raw", bad, 0) == []
@@ -139,7 +139,7 @@ def test_nan_and_backwards_stamps_are_rejected_without_state_change(rng):
     assert st.process("imu/data_raw", imu_to_msg(int(stamps[399]), "imu", acc[399], gyro[399]), 0) == []
     assert st.diag.rejected["nan"] == 2 and st.diag.rejected["non_monotonic_stamp"] == 2
     assert st.stepometer.state().buffer == step_state.buffer
-    np.testing.assert_array_equal(st.aekf.quat_wxyz, aekf_q)
+    np.testing.assert_array_equal(st.filter.quat_wxyz, aekf_q)
     bad_mag = mag_to_msg(int(stamps[400]), "imu", [1e-5, 0, 0])
     bad_mag.magnetic_field.y = float("nan")
     st.process("imu/mag", bad_mag, 0)
@@ -162,7 +162,7 @@ def test_frames_and_config_errors():
     with pytest.raises(ConfigError, match="heading_source"):
         params_from_dict(ImuStageParams, {"heading_source": "compass"})
     with pytest.raises(ConfigError, match="window_s"):
-        params_from_dict(ImuStageParams, {"window_s": -1.0})
+        params_from_dict(ImuStageParams, {"stepometer": {"window_s": -1.0}})
     with pytest.raises(ConfigError, match="unknown"):
         params_from_dict(ImuStageParams, {"step_lenght_m": 0.7})
 

@@ -14,16 +14,17 @@ from nav_msgs.msg import Path
 from visualization_msgs.msg import Marker
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.msg_adapters.diagnostics import diagnostics_from_msg, stage_diagnostics
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg, mag_to_msg
-from indoor_loc.msg_adapters.markers import graph_markers, marker_points, points_markers
-from indoor_loc.msg_adapters.odom import odom_from_msg, odom_to_msg
-from indoor_loc.msg_adapters.path import path_from_msg, path_to_msg
-from indoor_loc.msg_adapters.pose import (YAW_VAR_UNKNOWN, fix_from_msg, fix_to_msg, pose_array_from_msg,
+from msg_adapters.diagnostics import diagnostics_from_msg, stage_diagnostics
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg, mag_to_msg
+from msg_adapters.markers import graph_markers, marker_points, points_markers
+from msg_adapters.odom import odom_from_msg, odom_to_msg
+from msg_adapters.path import path_from_msg, path_to_msg
+from msg_adapters.pose import (YAW_VAR_UNKNOWN, fix_from_msg, fix_to_msg, pose_array_from_msg,
                                           pose_array_to_msg, pose_from_msg, pose_to_msg)
-from indoor_loc.msg_adapters.time import MAX_STAMP_NS, header_ns, stamp_from_ns, stamp_to_ns
-from indoor_loc.msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
-from indoor_loc.wifi.types import Fix, WifiScan
+from msg_adapters.time import MAX_STAMP_NS, header_ns, stamp_from_ns, stamp_to_ns
+from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import WifiScan
 
 STAMP = 1_700_000_123_456_789_012
 
@@ -418,7 +419,7 @@ def test_stage_diagnostics_round_trip():
 def test_standing_stage_error_makes_diagnostics_level_error():
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
+    from msg_adapters.diagnostics import stage_diagnostics
     from indoor_loc.params import params_from_dict
     from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
 

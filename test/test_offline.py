@@ -8,9 +8,9 @@ import numpy as np
 
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.cli import main as cli_main
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import pose_from_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import pose_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
 from indoor_loc.wifi.radiomap import save_radiomap
 from indoor_loc.wifi.types import RadioMap, WifiScan
 
@@ -33,7 +33,7 @@ def _map(tmp_path) -> str:
 def test_run_chains_stages_per_user_and_writes_diagnostics(tmp_path):
     radiomap = _map(tmp_path)
     params = tmp_path / "params.yaml"
-    params.write_text(f"wifi_fix_node:\n  ros__parameters:\n    radiomap: {radiomap}\n    wknn: {{k: 3}}\n")
+    params.write_text(f"/**/wifi_fix_node:\n  ros__parameters:\n    radiomap: {radiomap}\n    wknn: {{k: 3}}\n")
     truth = {"/alice": np.array([10.0, 5.0]), "/bob": np.array([30.0, 10.0])}
     bag = tmp_path / "in.mcap"
     with BagWriter(bag) as w:

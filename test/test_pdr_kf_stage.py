@@ -5,12 +5,12 @@ import math
 
 import numpy as np
 
-from indoor_loc.msg_adapters.odom import odom_to_msg
-from indoor_loc.msg_adapters.path import path_from_msg
-from indoor_loc.msg_adapters.pose import fix_from_msg, fix_to_msg
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_from_msg
+from msg_adapters.pose import fix_from_msg, fix_to_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage, PdrKfStageParams
-from indoor_loc.wifi.types import Fix
+from indoor_loc.measurements import Fix
 
 STEP = 0.65
 

@@ -9,7 +9,7 @@ import pytest
 from conftest import dataset
 
 from indoor_loc.cli import main as cli_main
-from indoor_loc.eval.cli import evaluate, trajectories_from_bags, truth_from_import
+from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
 from indoor_loc.pipeline.offline import run_offline
 
 

@@ -147,7 +147,7 @@ def test_bad_dataset_input(tmp_path):
     (tmp_path / "nodes.map").write_text("2\n0 0\n1\n5\n1 1\n1\n0\n")
     with pytest.raises(DatasetError, match="neighbour 5 outside"):
         P.read_route(tmp_path / "nodes.map")
-    from indoor_loc.datasets.import_cli import parse_walks
+    from indoor_loc.commands.import_data import parse_walks
     assert parse_walks("", [1, 2]) == [1, 2] and parse_walks("2, 1", [1, 2]) == [1, 2]
     with pytest.raises(ConfigError, match="no walk"):
         parse_walks("1,99", [1, 2])
@@ -169,7 +169,7 @@ def _read_back(bag: Path) -> dict[str, list]:
 
 def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     pytest.importorskip("indoor_loc.wifi.radiomap", reason="radio map I/O not available")
-    from indoor_loc.datasets import import_cli
+    from indoor_loc.commands import import_data as import_cli
 
     parser = argparse.ArgumentParser()
     import_cli.add_arguments(parser)
@@ -179,9 +179,10 @@ def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     out = tmp_path / "imp"
     assert sorted(p.name for p in out.glob("*.mcap")) == ["walk16.mcap", "walk17.mcap"]
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert params["imu_node"]["ros__parameters"] == {"heading_source": "orientation", "step_length_m": 0.65}
-    assert params["wifi_fix_node"]["ros__parameters"] == {"radiomap": str((out / "radiomap").resolve()),
-                                                          "method": "wknn"}
+    assert params["/**/imu_node"]["ros__parameters"] == {"heading_source": "orientation", "step_length_m": 0.65}
+    assert params["/**/wifi_fix_node"]["ros__parameters"] == {
+        "radiomap": str((out / "radiomap").resolve()), "method": "wknn", "fallback": "powed",
+        "wknn": {"k": 3, "shared_threshold": 0.6, "shared_strict": True, "error_type": "rms"}}
     from indoor_loc.wifi.radiomap import load_radiomap
     rm, survey = load_radiomap(out / "radiomap"), ds.survey_map()
     assert rm.n_scans == 114 and rm.bssids == survey.bssids
@@ -189,6 +190,12 @@ def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     np.testing.assert_array_equal(rm.rssi_dbm, survey.rssi_dbm)
     report = (out / "import_report.md").read_text()
     assert "stale_samples" in report and "20 acc, 12 orient" in report and "stale_samples" in printed
+    # importing again onto the same directory: refused (exit 2, files untouched) unless --overwrite
+    from indoor_loc.cli import main as cli_main
+    before = (out / "walk16.mcap").stat().st_mtime_ns
+    assert cli_main(["import", "putmc", str(ds.root), str(out), "--walks", "16", "--no-progress"]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert (out / "walk16.mcap").stat().st_mtime_ns == before
 
     for n, stale_acc in ((16, 0), (17, 20)):
         raw = ds.walk(n, keep_stale=True)

@@ -51,9 +51,9 @@ def test_round_trip(tmp_path):
 def test_version_and_format_checks(tmp_path):
     d = save_radiomap(small_map(), tmp_path / "m")
     man = yaml.safe_load((d / MANIFEST).read_text())
-    man["version"] = 2
+    man["version"] = 3
     (d / MANIFEST).write_text(yaml.safe_dump(man))
-    with pytest.raises(MapError, match="version 2 is not supported"):
+    with pytest.raises(MapError, match="version 3 is not supported"):
         load_radiomap(d)
     man["version"], man["format"] = 1, "something.else"
     (d / MANIFEST).write_text(yaml.safe_dump(man))
@@ -141,8 +141,8 @@ def test_interpolate_positions():
 # ----------------------------------------------------------------------------------------------
 def _write_bag(path: Path) -> None:
     bag = pytest.importorskip("indoor_loc.bag")
-    from indoor_loc.msg_adapters.path import path_to_msg
-    from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+    from msg_adapters.path import path_to_msg
+    from msg_adapters.wifi_scan import scan_to_msg
     s = 10**9
     with bag.BagWriter(path) as w:
         # truth: (0,0) at 1 s, (10,0) at 3 s, (10,10) at 5 s
@@ -160,13 +160,14 @@ def _write_bag(path: Path) -> None:
 
 
 def test_build_from_bag_and_run_with_its_params(tmp_path):
-    from indoor_loc.wifi.radiomap_cli import build, info_lines
+    from indoor_loc.commands.radiomap import build, info_lines
     bag_path = tmp_path / "walk.mcap"
     _write_bag(bag_path)
     out = tmp_path / "rm"
     rm, report = build([bag_path], out)
     alice, bob = report["bags"]["/alice"], report["bags"]["/bob"]
-    assert alice == {"scans": 9, "used": 7, "outside_truth": 2, "no_truth": 0, "invalid": {"nan": 1}}
+    assert alice == {"scans": 9, "used": 7, "outside_truth": 2, "no_truth": 0, "invalid": {"nan": 1}, "z_m": 0.0,
+                     "label": "alice"}
     assert bob["no_truth"] == 1 and bob["used"] == 0
     back = load_radiomap(out)
     assert back.n_scans == 7
@@ -175,7 +176,10 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
     np.testing.assert_array_equal(back.stamps_ns[:2], [1_500_000_000, 2 * 10**9])
     assert back.rssi_dbm[1, back.bssids.index(B[0])] == -42.0
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert params == {"wifi_fix_node": {"ros__parameters": {"radiomap": str(out.resolve()), "method": "wknn"}}}
+    # no reading ages, one floor: the best measured WKNN, with powed k-NN for the scans it declines
+    assert params == {"/**/wifi_fix_node": {"ros__parameters": {
+        "radiomap": str(out.resolve()), "method": "wknn", "fallback": "powed",
+        "wknn": {"k": 3, "shared_threshold": 0.6, "shared_strict": True, "error_type": "rms"}}}}
     assert any("scans 7" in ln for ln in info_lines(out))
 
     # the params file positions the same (or another) recording with no editing
@@ -194,12 +198,12 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
 
 def test_build_from_putmc_survey(tmp_path):
     from conftest import dataset
-    from indoor_loc.wifi.radiomap_cli import build
+    from indoor_loc.commands.radiomap import build
     root = dataset("putmc")
     rm, report = build([], tmp_path / "rm", putmc=root, method="coverage")
     assert rm.n_scans == 114 and rm.n_aps == 119
     back = load_radiomap(tmp_path / "rm")
     # ENU: y = 1049/28.50518 - y_img; location 0 of positions.map is in the image's upper half
     assert back.positions[:, 1].min() > 0 and back.positions[:, 1].max() < 1049 / 28.50518
-    assert yaml.safe_load((tmp_path / "rm" / "params.yaml").read_text())["wifi_fix_node"]["ros__parameters"][
+    assert yaml.safe_load((tmp_path / "rm" / "params.yaml").read_text())["/**/wifi_fix_node"]["ros__parameters"][
         "method"] == "coverage"

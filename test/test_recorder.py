@@ -167,3 +167,18 @@ def test_recorder_rejects_bad_options(tmp_path: Path) -> None:
     with pytest.raises(SystemExit):                   # -t and -a are exclusive, one is required
         p.parse_args(["-t", "/x", "-a"])
     assert is_hidden("/a/_action/status") and not is_hidden("/walk01/imu/data")
+
+
+def test_recorder_refuses_to_overwrite(tmp_path: Path) -> None:
+    import argparse
+
+    from indoor_loc.errors import ConfigError
+    from indoor_loc.nodes.recorder_node import add_arguments, run
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    out = tmp_path / "x.mcap"
+    out.write_bytes(b"an earlier recording")
+    with pytest.raises(ConfigError, match="exists; refusing to overwrite it"):
+        run(p.parse_args(["-t", "/x", "-o", str(out)]))
+    assert out.read_bytes() == b"an earlier recording"
+    assert p.parse_args(["-t", "/x", "-o", str(out), "--overwrite"]).overwrite

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from conftest import dataset
-from indoor_loc.errors import ConfigError, InvalidMessageError
-from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch, recover_intervals
+from indoor_loc.errors import ConfigError, InvalidInputError
+from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
+from indoor_loc.measurements import pdr_intervals
 from indoor_loc.imu.stepometer import (CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
                                        amplitude_spectrum, analyse_windows, harmonic_score,
                                        stepometer_batch, total_steps)
@@ -166,13 +167,13 @@ def test_bad_samples_raise_and_leave_state_untouched(rng):
     s = Stepometer()
     s.update_many(stamps[:600], acc[:600])
     before = s.state()
-    with pytest.raises(InvalidMessageError) as e1:
+    with pytest.raises(InvalidInputError) as e1:
         s.update(int(stamps[600]), [np.nan, 0.0, 9.8])
     assert e1.value.reason == "nan"
-    with pytest.raises(InvalidMessageError) as e2:
+    with pytest.raises(InvalidInputError) as e2:
         s.update(int(stamps[100]), acc[100])
     assert e2.value.reason == "non_monotonic_stamp"
-    with pytest.raises(InvalidMessageError):
+    with pytest.raises(InvalidInputError):
         s.update_many(stamps[600:610], np.vstack([acc[600:609], [np.inf, 0, 0]]))
     after = s.state()
     assert after.buffer == before.buffer and after.n_grid == before.n_grid and after.last_t_ns == before.last_t_ns
@@ -197,7 +198,8 @@ def test_pdr_contract_recovers_steps_and_heading_change(rng):
     poses = pdr_batch(t0, t0 + 320_000_000, steps, yaw, np.full(n, 0.01), PdrParams(step_length_m=0.7))
     xy = np.array([[0.0, 0.0]] + [[p.x, p.y] for p in poses])
     yaws = np.array([poses[0].yaw] + [p.yaw for p in poses])
-    rec_steps, rec_dpsi = recover_intervals(xy, yaws, 0.7)
+    iv = pdr_intervals(np.arange(len(xy)), xy, yaws, step_length_m=0.7)
+    rec_steps, rec_dpsi = iv.steps, iv.dtheta
     np.testing.assert_allclose(rec_steps, steps, atol=1e-9)
     np.testing.assert_allclose(rec_dpsi[1:], (np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi, atol=1e-9)
     # speed and yaw rate as documented; covariance grows with distance
@@ -397,5 +399,5 @@ def test_pdr_step_uncertainty_grows_along_track_variance_and_speed_variance():
     assert b.speed_var == pytest.approx(b.cov[0, 0] / 0.32 ** 2)
     # the consumer's recovery of the count's standard deviation (README contract)
     dt = 0.32
-    rec = math.sqrt(b.speed_var * dt * dt - (0.1 * b.distance_m) ** 2) / 0.7
+    rec = math.sqrt(b.speed_var * dt * dt - (0.1 * 0.42) ** 2) / 0.7
     assert rec == pytest.approx(0.3)

@@ -12,7 +12,7 @@ Counters, side by side on the same samples in one run:
 - ``stage``: the stepometer online, sample by sample, through :class:`ImuStage` — the stage
   ``imu_node`` runs — fed accelerometer-only ``sensor_msgs/Imu`` messages on ``imu/data_raw``;
   steps are recovered from its ``pdr/odom`` output as a consumer would (path length / step length,
-  :func:`indoor_loc.imu.pdr.recover_intervals`);
+  :func:`indoor_loc.measurements.pdr_intervals`);
 - ``peaks``: the plain peak detector (:mod:`indoor_loc.bench.steps_baseline`);
 - ``phone``: the phone's own counter where the data has it (validation: the app's ``algo_steps``
   and the hardware counter ``hw_steps`` when it is not all zero).
@@ -118,9 +118,9 @@ def stage_steps(stamps_ns: np.ndarray, acc: np.ndarray, params=None) -> tuple[fl
     """The stepometer as ``imu_node`` runs it: accelerometer-only ``imu/data_raw`` messages, one per
     sample, through :class:`ImuStage`; steps recovered from ``pdr/odom`` (|Δp| / step length).
     Returns (steps, info) with the mean step confidence and the rejected-message count."""
-    from indoor_loc.imu.pdr import recover_intervals
-    from indoor_loc.msg_adapters.imu import imu_to_msg
-    from indoor_loc.msg_adapters.odom import odom_from_msg
+    from indoor_loc.measurements import pdr_intervals
+    from msg_adapters.imu import imu_to_msg
+    from msg_adapters.odom import odom_from_msg
     from indoor_loc.params import params_from_dict
     from indoor_loc.pipeline.imu_stage import ImuStage, ImuStageParams
 
@@ -138,7 +138,7 @@ def stage_steps(stamps_ns: np.ndarray, acc: np.ndarray, params=None) -> tuple[fl
         return 0.0, {"rejected": sum(stage.diag.rejected.values())}
     xy = np.array([[0.0, 0.0]] + [[o.x, o.y] for o in odoms])
     yaw = np.array([odoms[0].yaw] + [o.yaw for o in odoms])
-    steps, _ = recover_intervals(xy, yaw, stage.pdr.params.step_length_m)
+    steps = pdr_intervals(np.arange(len(xy)), xy, yaw, step_length_m=stage.pdr.params.step_length_m).steps
     return float(steps.sum()), {"rejected": sum(stage.diag.rejected.values()), "odom": len(odoms)}
 
 

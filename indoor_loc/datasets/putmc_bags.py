@@ -32,10 +32,10 @@ from indoor_loc.bag import BagWriter
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import join_ns
 from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Route, Walk, causal_index, to_map_quat
-from indoor_loc.msg_adapters.imu import imu_to_msg
-from indoor_loc.msg_adapters.markers import graph_markers
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.wifi_scan import scan_to_msg
+from msg_adapters.imu import imu_to_msg
+from msg_adapters.markers import graph_markers
+from msg_adapters.path import path_to_msg
+from msg_adapters.wifi_scan import scan_to_msg
 
 #: Roll/pitch standard deviation written into imu/data, rad: the rotation vector's tilt comes from
 #: gravity and is far better than its heading; Android gives no figure, 2° is assumed.

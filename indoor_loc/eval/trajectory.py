@@ -12,7 +12,7 @@ Trajectory CSV format (one file per user, ``<user>.csv``, e.g. ``walk07.csv``)::
 - ``heading``: yaw, rad, CCW from map x; empty or ``nan`` when unknown.
 
 The user name is the file stem; it is matched with the ground truth's walk name (``walkNN``).
-Trajectories can also come from an MCAP bag (see ``indoor_loc/eval/cli.py``): on a topic of
+Trajectories can also come from an MCAP bag (see ``indoor_loc/commands/eval.py``): on a topic of
 ``nav_msgs/Path`` the last message is the trajectory; on ``PoseWithCovarianceStamped`` or
 ``Odometry`` topics every message adds a pose (header stamp, position, yaw). The namespace of
 the topic (``/walk07/wifi/fix``) is the user.

@@ -6,7 +6,8 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
 ``x_i = x_(i-1) + d_i cos ψ̄_i``, ``y_i = y_(i-1) + d_i sin ψ̄_i``.
 
 ``pdr/odom`` contract (one nav_msgs/Odometry per stepometer hop, stamped at the hop's end, frame
-``<user>/odom`` → ``<user>/base_link``): a consumer recovers per interval
+``<user>/odom`` → ``<user>/base_link``); consumers decode it with :mod:`indoor_loc.measurements`
+(:class:`~indoor_loc.measurements.PdrInterval`), which recovers per interval
 
 - the step count ``n_i = |p_i − p_(i-1)| / step_length_m`` (each segment is laid straight along the
   mean heading, so the chord is exactly the walked distance; the odom origin (0, 0) is the start
@@ -21,11 +22,12 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
   the distance walked and with the heading uncertainty.
 - step confidence: a hop the stepometer is unsure of (a moving but not periodic window, see
   :class:`indoor_loc.imu.stepometer.StepHop`) carries a count standard deviation ``σ_n`` (steps);
-  it adds ``(step_length_m · σ_n)²`` to that hop's along-track variance, and
-  ``twist.covariance[0]`` (variance of ``twist.linear.x``) is the hop's walking-speed variance
-  ``((step_length_rel_std · d_i)² + (step_length_m · σ_n)²) / Δt²`` (m²/s²): a consumer recovers
-  the count's standard deviation as ``σ_n = sqrt(var_v Δt² − (rel_std · d_i)²) / step_length_m``.
-  A confident hop has ``σ_n = 0``: its speed variance is the step-length term alone.
+  it adds ``(step_length_m · σ_n)²`` to that hop's along-track variance (so the decoded interval's
+  ``distance_var`` carries it), and ``twist.covariance[0]`` (variance of ``twist.linear.x``) is the
+  hop's walking-speed variance ``((step_length_rel_std · d_i)² + (step_length_m · σ_n)²) / Δt²``
+  (m²/s²): a consumer recovers the count's standard deviation as
+  ``σ_n = sqrt(var_v Δt² − (step_length_rel_std · d_i)²) / step_length_m``. A confident hop has
+  ``σ_n = 0``.
 
 Without a heading the yaw is held at its last value (0 at the start) and the track is a straight
 line whose length is still the walked distance.
@@ -36,11 +38,10 @@ import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field as dc_field
-from typing import NamedTuple
 
 import numpy as np
 
-from indoor_loc.imu.quaternion import wrap_angle
+from indoor_loc.measurements import OdomPose, wrap_angle
 from indoor_loc.params import field, require
 
 #: Yaw variance meaning "heading unknown", rad².
@@ -60,22 +61,6 @@ class PdrParams:
         require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         require(self.step_length_rel_std >= 0, n, "step_length_rel_std", ">= 0", self.step_length_rel_std)
         require(self.unknown_yaw_var > 0, n, "unknown_yaw_var", "> 0", self.unknown_yaw_var)
-
-
-class PdrPose(NamedTuple):
-    """One PDR output: stamp_ns (hop end); x, y m and yaw rad in the odom frame; cov (3, 3) of
-    (x, y, yaw); speed m/s; yaw_rate rad/s; steps in this hop; distance m in this hop."""
-    stamp_ns: int
-    x: float
-    y: float
-    yaw: float
-    cov: np.ndarray
-    speed: float
-    yaw_rate: float
-    steps: float
-    distance_m: float
-    steps_std: float = 0.0
-    speed_var: float = 0.0
 
 
 @dataclass
@@ -108,7 +93,7 @@ class Pdr:
         self._st = state.copy()
 
     def update(self, t_start_ns: int, t_end_ns: int, steps: float, yaw: float | None,
-               yaw_var: float | None = None, steps_std: float = 0.0) -> PdrPose:
+               yaw_var: float | None = None, steps_std: float = 0.0) -> OdomPose:
         """Integrate one hop. ``yaw`` rad at the hop's end (None = unknown: the last yaw is held),
         ``yaw_var`` rad² (None with a known yaw = 0), ``steps_std`` the count's standard deviation
         (steps; 0 = a confident count)."""
@@ -138,25 +123,16 @@ class Pdr:
         st.stamp_ns = int(t_end_ns)
         st.total_steps += max(0.0, float(steps))
         st.distance_m += d
-        return PdrPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
-                       max(0.0, float(steps)), d, n_std, q_along / (dt * dt))
+        return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
+                        speed_var=q_along / (dt * dt))
 
 
-def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[PdrPose]:
+def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[OdomPose]:
     """Integrate whole arrays of hops (N,) (``yaw`` NaN = unknown). Same as :meth:`Pdr.update` in a loop."""
     pdr = Pdr(params)
     yv = np.zeros(len(steps)) if yaw_var is None else np.asarray(yaw_var, float)
     return [pdr.update(int(a), int(b), float(n), None if not np.isfinite(y) else float(y), float(v))
             for a, b, n, y, v in zip(t_start_ns, t_end_ns, steps, np.asarray(yaw, float), yv)]
-
-
-def recover_intervals(xy: np.ndarray, yaw: np.ndarray, step_length_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Consumer side of the contract: per consecutive pair of poses, (steps (N-1,), Δψ (N-1,) rad)."""
-    xy = np.asarray(xy, float)
-    yaw = np.asarray(yaw, float)
-    steps = np.hypot(*np.diff(xy, axis=0).T) / step_length_m
-    dpsi = (np.diff(yaw) + math.pi) % (2 * math.pi) - math.pi
-    return steps, dpsi
 
 
 class HeadingHistory:

@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from indoor_loc.errors import InvalidInputError
+
 
 def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a ⊗ b`` of (…, 4) arrays (w x y z)."""
@@ -35,7 +37,7 @@ def qnormalize(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if not np.all(np.isfinite(n)) or np.any(n == 0.0):
-        raise ValueError("quaternion with zero or non-finite norm")
+        raise InvalidInputError("bad_quaternion", "quaternion with zero or non-finite norm")
     return q / n
 
 
@@ -62,11 +64,6 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
 def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate vector(s) ``v`` (…, 3) by ``q`` (…, 4): ``R(q) v``."""
     return np.einsum("...ij,...j->...i", quat_to_rotmat(q), np.asarray(v, dtype=float))
-
-
-def wrap_angle(a: float) -> float:
-    """Angle wrapped to [-π, π), rad."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def yaw_xyzw(q) -> float:

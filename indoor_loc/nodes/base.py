@@ -10,15 +10,22 @@
   time under ``use_sim_time``).
 - SIGINT and SIGTERM end the node cleanly: the stage's ``finish()`` outputs are published before
   the context shuts down.
+- Multi-user stages (``Stage.MULTI_USER``): the node subscribes to the stage's inputs in every
+  user namespace — those of the stage's ``users`` parameter, or, when it is empty, every namespace
+  in which a publisher of one of the inputs appears (the ROS graph is polled every
+  ``DISCOVERY_PERIOD_S``). A user whose input publishers have all been gone for the stage's
+  ``user_timeout_s`` has left: ``finish_user`` runs (its outputs are published) and a discovered
+  user's subscriptions are destroyed; it is followed again if it comes back. Per-user output
+  publishers (``backend/<user>/path``) are created on first use.
 """
 from __future__ import annotations
 
 import array
 import argparse
-import dataclasses
 import signal
 import sys
 import threading
+import time
 from typing import Any, Callable
 
 import rclpy
@@ -30,11 +37,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from indoor_loc.contract import Qos, msg_class
+from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
-from indoor_loc.msg_adapters.diagnostics import stage_diagnostics
-from indoor_loc.params import params_from_dict
-from indoor_loc.pipeline.stage import Stage
+from msg_adapters.diagnostics import stage_diagnostics
+from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
+                               params_from_dict, params_to_dict)
+from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 
 QOS_PROFILES: dict[Qos, QoSProfile] = {
     Qos.SENSOR: QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
@@ -48,6 +56,8 @@ QOS_PROFILES: dict[Qos, QoSProfile] = {
 }
 
 DIAGNOSTICS_PERIOD_S = 1.0
+#: How often a multi-user node polls the ROS graph for users joining and leaving (s).
+DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
 _BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
 #: How often the spin loop returns to Python so SIGINT/SIGTERM are handled promptly (s).
@@ -56,14 +66,6 @@ _SPIN_PERIOD_S = 0.1
 
 def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
-
-
-def _default_of(f: dataclasses.Field) -> Any:
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-        return f.default_factory()  # type: ignore[misc]
-    return None
 
 
 def _ros_value(value: Any) -> Any:
@@ -94,50 +96,90 @@ class StageNode(Node):
         self.add_on_set_parameters_callback(self._on_set_params)
         self._pubs = {p.topic: self.create_publisher(msg_class(p.type), p.topic, qos_profile(p.qos))
                       for p in self.stage.outputs()}
-        self._subs = [self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic),
-                                               qos_profile(p.qos)) for p in self.stage.inputs()]
+        self._subs = [] if self.stage.MULTI_USER else [
+            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), qos_profile(p.qos))
+            for p in self.stage.inputs()]
+        # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
+        self.user_subs: dict[str, list] = {}
+        self._user_seen: dict[str, float] = {}
+        self._finished_users: set[str] = set()
+        self._fixed_users = tuple(getattr(self.stage.params, "users", ()) or ())
+        if self.stage.MULTI_USER:
+            for user in self._fixed_users:
+                self._follow(user_of_namespace(user))
+            self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
         self.get_logger().info(
             f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
             f"out {[p.topic for p in self.stage.outputs()]}")
+        standing = self.stage.extra_diagnostics().get("error")
+        if standing:   # a required input (radio map, graph) is missing: say so now, not per message
+            self.get_logger().error(f"{stage_cls.NODE_NAME} cannot work: {standing}")
+
+    def check_params_files(self, paths: list[str]) -> list[str]:
+        """Log an ERROR for every key of these params files that names this node but does not
+        reach it (a bare ``node_name:`` key while the node runs in a namespace: rcl ignores it
+        without a word). Returns the messages."""
+        msgs = []
+        for path in paths:
+            try:
+                files = load_params_file(path)
+            except ConfigError:
+                continue          # rcl already refused or accepted the file; nothing to add
+            for key in misplaced_keys(files, self.get_name(), self.get_namespace()):
+                msgs.append(f"params file {path}: key {key!r} does not apply to {self.get_fully_qualified_name()} "
+                            f"(rcl matches a bare node name only in the root namespace); its parameters are "
+                            f"NOT in force. Key it {node_key(self.get_name())!r} to reach the node in any namespace")
+        for m in msgs:
+            self.get_logger().error(m)
+        return msgs
 
     # -- parameters ------------------------------------------------------------------------------
     def _declare_params(self, params_cls: type) -> dict[str, Any]:
-        """Declare one ROS parameter per Params field and return the values in force.
+        """Declare one ROS parameter per Params field and return the values in force (nested for
+        groups: a group's fields are declared with dotted names, ``stepometer.window_s``).
 
         Parameters are dynamically typed so ``step_length_m: 1`` in a YAML file (an int for a
         float) is coerced by :func:`params_from_dict` instead of failing inside rclpy; type errors
         are reported there as ConfigError. Overrides naming no field are a ConfigError too.
         """
         values: dict[str, Any] = {}
-        for f in dataclasses.fields(params_cls):
-            default = _default_of(f)
+        names = []
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        for name, f, default in leaves(params_cls):
             if isinstance(default, dict):
-                continue   # not expressible as a ROS parameter: stays at its default
-            desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True)
-            p = self.declare_parameter(f.name, _ros_value(default), desc)
+                # a free-form mapping (its owner validates it): each ``name.key`` given is declared
+                for key in sorted(k for k in overrides if k.startswith(name + ".")):
+                    names.append(key)
+                    desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                               read_only=True)
+                    values[key] = _py_value(self.declare_parameter(key, None, desc).value)
+                continue
+            names.append(name)
+            desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                       read_only=True)   # read at start-up; a change needs a restart
+            p = self.declare_parameter(name, _ros_value(default), desc)
             value = _py_value(p.value)
             if value is None and isinstance(default, (list, tuple)):
                 value = type(default)()
             if value is not None or default is None:
-                values[f.name] = value
-        overrides = getattr(self, "_parameter_overrides", {}) or {}
+                values[name] = value
         unknown = sorted(n for n in overrides if not self.has_parameter(n)
                          and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
         if unknown:
-            names = sorted(f.name for f in dataclasses.fields(params_cls))
+            names = sorted(names)
             raise ConfigError(f"{params_cls.__name__}: unknown parameter(s) {unknown} for "
                               f"{self.get_fully_qualified_name()}; expected some of {names}")
-        return values
+        return nest_dotted(values)
 
     def _on_set_params(self, changes: list) -> SetParametersResult:
-        fields = {f.name for f in dataclasses.fields(self._stage_cls.PARAMS)}
+        fields = {name for name, _, _ in leaves(self._stage_cls.PARAMS)}
         ours = [p for p in changes if p.name in fields]
         if not ours:
             return SetParametersResult(successful=True)   # use_sim_time and friends
-        current = dataclasses.asdict(self.stage.params)
+        current = flatten(params_to_dict(self.stage.params))
         current.update({p.name: _py_value(p.value) for p in ours})
         try:
             params_from_dict(self._stage_cls.PARAMS, current)
@@ -146,17 +188,72 @@ class StageNode(Node):
         # Parameters are read at start-up; changing them live needs a restart of the node.
         return SetParametersResult(successful=False, reason="parameters are read-only at run time; restart the node")
 
+    # -- users (multi-user stages) -------------------------------------------------------------------
+    def _follow(self, user: str) -> None:
+        if not user or user in self.user_subs:
+            return
+        ns = namespace_of_user(user)
+        self.user_subs[user] = [
+            self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
+                                     qos_profile(p.qos)) for p in self.stage.inputs()]
+        for port in self.stage.user_outputs():      # ready (and matched) before the first output
+            self._publisher(port.topic.format(user=user))
+        self._user_seen[user] = self._monotonic()
+        self._finished_users.discard(user)
+        self.get_logger().info(f"following user {user!r}")
+
+    @staticmethod
+    def _monotonic() -> float:
+        return time.monotonic()
+
+    def _discover_users(self) -> None:
+        """Follow new users (namespaces publishing one of the inputs) and notice users leaving."""
+        now = self._monotonic()
+        if not self._fixed_users:
+            rels = [p.topic for p in self.stage.inputs()]
+            for name, _types in self.get_topic_names_and_types():
+                for rel in rels:
+                    ns = namespace_of_topic(name, rel)
+                    if ns:
+                        user = user_of_namespace(ns)
+                        if user and self.count_publishers(name) > 0:
+                            self._follow(user)
+        timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))
+        for user in list(self.user_subs):
+            ns = namespace_of_user(user)
+            if any(self.count_publishers(join_ns(ns, p.topic)) > 0 for p in self.stage.inputs()):
+                self._user_seen[user] = now
+                self._finished_users.discard(user)
+                continue
+            if user in self._finished_users or now - self._user_seen[user] < timeout:
+                continue
+            self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
+            self._finished_users.add(user)
+            self._publish(self.stage.run_finish_user(user))
+            if not self._fixed_users:
+                for sub in self.user_subs.pop(user):
+                    self.destroy_subscription(sub)
+                self._user_seen.pop(user, None)
+
     # -- messages ----------------------------------------------------------------------------------
-    def _callback(self, topic: str) -> Callable[[Any], None]:
+    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any], None]:
         def cb(msg: Any) -> None:
             now_ns = self.get_clock().now().nanoseconds
-            self._publish(self.stage.process(topic, msg, now_ns))
+            self._publish(self.stage.process(topic, msg, now_ns, user))
             self._log_rejections()
         return cb
 
+    def _publisher(self, topic: str):
+        pub = self._pubs.get(topic)
+        if pub is None and self.stage.MULTI_USER:
+            port = self.stage.output_port(topic)
+            if port is not None:
+                pub = self._pubs[topic] = self.create_publisher(msg_class(port.type), topic, qos_profile(port.qos))
+        return pub
+
     def _publish(self, outs: list) -> None:
         for topic, msg in outs:
-            pub = self._pubs.get(topic)
+            pub = self._publisher(topic)
             if pub is None:
                 self.stage._reject("internal_error", f"stage returned undeclared output topic {topic!r}")
                 self.get_logger().error(f"stage returned undeclared output topic {topic!r}", throttle_duration_sec=5.0)
@@ -178,7 +275,8 @@ class StageNode(Node):
 
     def _on_timer(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
-        self._publish(self.stage.tick(now_ns))
+        self._publish(self.stage.run_tick(now_ns))
+        self._log_rejections()
         self._diag_pub.publish(self.diagnostics_msg(now_ns))
 
     def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
@@ -186,7 +284,7 @@ class StageNode(Node):
 
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
-        self._publish(self.stage.finish())
+        self._publish(self.stage.run_finish())
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
@@ -236,6 +334,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     status = 0
     try:
         node = node_factory() if node_factory is not None else StageNode(stage_cls)
+        node.check_params_files(params_file_args(argv))
         spin_node(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -259,19 +358,35 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     return status
 
 
+def params_file_args(argv: list[str]) -> list[str]:
+    """The ``--params-file FILE`` arguments inside ``--ros-args`` sections of ``argv``."""
+    out, in_ros = [], False
+    for i, a in enumerate(argv):
+        if a == "--ros-args":
+            in_ros = True
+        elif a == "--":
+            in_ros = False
+        elif in_ros and a == "--params-file" and i + 1 < len(argv):
+            out.append(argv[i + 1])
+    return out
+
+
 def node_usage(stage_cls: type[Stage]) -> str:
     lines = [f"usage: ros2 run indoor_loc {stage_cls.NODE_NAME} [--ros-args -r __ns:=/USER "
              f"--params-file FILE -p NAME:=VALUE ...]", "", (stage_cls.__doc__ or "").strip(), "", "parameters:"]
-    for f in dataclasses.fields(stage_cls.PARAMS):
-        lines.append(f"  {f.name} (default {_default_of(f)!r}): {f.metadata.get('doc', '')}")
+    for name, f, default in leaves(stage_cls.PARAMS):
+        lines.append(f"  {name} (default {default!r}): {f.metadata.get('doc', '')}")
     try:
         stage = stage_cls(stage_cls.PARAMS(), namespace="")
     except IndoorLocError as err:     # a stage that needs files to start still gets its help printed
         lines += ["", f"(topics unavailable with default parameters: {err})"]
         return "\n".join(lines)
     lines.append("")
-    lines.append("subscribes: " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.inputs()))
-    lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs()) + ", /diagnostics")
+    per_user = "/<user>/" if stage.MULTI_USER else ""
+    lines.append("subscribes: " + ", ".join(f"{per_user}{p.topic} [{p.type}]" for p in stage.inputs())
+                 + (" in every user namespace (parameter users, else discovered)" if per_user else ""))
+    lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs() + stage.user_outputs())
+                 + ", /diagnostics")
     return "\n".join(lines)
 
 

@@ -30,7 +30,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosgraph_msgs.msg import Clock
 
 from indoor_loc.bag import bag_info, read_raw
-from indoor_loc.bag.mcap_io import bag_files
+from indoor_loc.bag.reader import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError

@@ -30,11 +30,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from indoor_loc.bag import BagWriter
-from indoor_loc.bag.mcap_io import DEFAULT_CHUNK_SIZE
+from indoor_loc.bag.writer import DEFAULT_CHUNK_SIZE
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import msg_class
 from indoor_loc.errors import BagError, ConfigError
 from indoor_loc.nodes.base import run_option_node
+from indoor_loc.output_paths import check_output
 
 NODE_NAME = "recorder"
 SUB_DEPTH = 1000       # queue per subscription: a slow disk must not drop messages at 200 Hz
@@ -47,7 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="topics to record; relative names resolve in the node namespace (--namespace)")
     what.add_argument("-a", "--all", action="store_true", help="record every topic, adding new ones as they appear")
     parser.add_argument("-o", "--output", type=Path, default=None,
-                        help="output .mcap file (default rosbag2_YYYY_MM_DD-HH_MM_SS.mcap)")
+                        help="output .mcap file (default rosbag2_YYYY_MM_DD-HH_MM_SS.mcap); an existing "
+                             "file is refused unless --overwrite")
+    parser.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     parser.add_argument("--namespace", default="", help="node namespace, e.g. /walk01 (default: from --ros-args)")
     parser.add_argument("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE,
                         help=f"chunk size in bytes before compression (default {DEFAULT_CHUNK_SIZE})")
@@ -211,6 +214,7 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     output = options.output or default_output()
     if output.suffix != ".mcap":
         output = output.with_suffix(output.suffix + ".mcap") if output.suffix else output.with_suffix(".mcap")
+    check_output(output, overwrite=options.overwrite, what="-o")
     # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps)
     rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
     node = None

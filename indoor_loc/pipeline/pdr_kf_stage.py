@@ -1,8 +1,7 @@
 """PdrKfStage: the seed-004 linear PDR Kalman filter fusing ``pdr/odom`` with ``wifi/fix``.
 
 Per ``pdr/odom`` message the filter predicts with the interval's step count and heading change
-(recovered as the contract documents: ``steps = |p_i - p_(i-1)| / step_length_m``,
-``dtheta = wrap(yaw_i - yaw_(i-1))``) and publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a
+(decoded once by :class:`msg_adapters.odom.PdrOdomReader`, see :mod:`indoor_loc.measurements`) and publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a
 gated linear position update. ``pdr_kf/path`` is the RTS-smoothed history (seed 004's offline
 smoother), republished at most every ``smooth_period_s`` of stamp time and at the end of input.
 The filter starts at the first WiFi fix (position and covariance from the fix; step vector 0 with
@@ -19,39 +18,37 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.measurements import Fix
 from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           rts_smooth)
-from indoor_loc.imu.quaternion import wrap_angle
-from indoor_loc.msg_adapters.odom import odom_from_msg
-from indoor_loc.msg_adapters.path import path_to_msg
-from indoor_loc.msg_adapters.pose import fix_from_msg, fix_to_msg
+from msg_adapters.odom import PdrOdomReader
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import fix_from_msg, fix_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.types import Fix
 
 
 @dataclass(frozen=True)
 class PdrKfStageParams:
     """Parameters of ``pdr_kf_node``."""
-    step_length_m: float = P.field(0.65, "nominal step length the PDR node used (m): steps = distance / this")
-    kf_step_length_m: float = P.field(0.7, "footstep length s in the heading-noise model (m)")
-    sigma_dtheta_rad: float = P.field(0.2, "heading-change noise per footstep (rad); 0.2 measured best on PUTMC (0.1 and 0.3 also tried)")
-    sigma_ds_m: float = P.field(0.07, "step-vector length change noise per footstep (m)")
-    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
-    max_rejected_fixes: int = P.field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
-    max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
-    smooth_period_s: float = P.field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
-    frame_id: str = P.field("map", "frame of the estimates")
+    step_length_m: float = field(0.65, "nominal step length the PDR node used (m): steps = distance / this")
+    kf_step_length_m: float = field(0.7, "footstep length s in the heading-noise model (m)")
+    sigma_dtheta_rad: float = field(0.2, "heading-change noise per footstep (rad); 0.2 measured best on PUTMC (0.1 and 0.3 also tried)")
+    sigma_ds_m: float = field(0.07, "step-vector length change noise per footstep (m)")
+    gate_prob: float = field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
+    max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
+    max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
+    smooth_period_s: float = field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
+    frame_id: str = field("map", "frame of the estimates")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
-        P.require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
-        P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
-        P.require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
-        P.require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
+        require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
+        require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
+        require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         self.kf_params().validate()
 
     def kf_params(self) -> LinearPdrParams:
@@ -68,7 +65,7 @@ class PdrKfStage(Stage):
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
         self.kf: LinearPdrKf | None = None
-        self._last_odom: tuple[float, float, float, int] | None = None  # x, y, yaw, stamp
+        self._odom = PdrOdomReader(params.step_length_m)
         # smoother segments, each (initial fix, epochs); an epoch is [stamp, steps, dtheta, fix or None]
         self._segments: list[tuple[Fix, list[list]]] = []
         self._epochs: list[list] = []
@@ -90,18 +87,12 @@ class PdrKfStage(Stage):
 
     # ------------------------------------------------------------------------------------------
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
-        od = odom_from_msg(msg)
-        if self._last_odom is not None and od.stamp_ns <= self._last_odom[3]:
-            raise InvalidMessageError("non_monotonic_stamp",
-                                      f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom[3]}")
+        od, interval = self._odom.read(msg)
         outs = self._apply_pending(lambda s: s < od.stamp_ns)   # fixes inside the interval just closed
-        prev, self._last_odom = self._last_odom, (od.x, od.y, od.yaw, od.stamp_ns)
-        if prev is None or self.kf is None:
+        if interval is None or self.kf is None:
             return outs
-        steps = math.hypot(od.x - prev[0], od.y - prev[1]) / self.params.step_length_m
-        dtheta = wrap_angle(od.yaw - prev[2])
-        self.kf.predict(steps, dtheta, stamp_ns=od.stamp_ns)
-        self._epochs.append([od.stamp_ns, steps, dtheta, None])
+        self.kf.predict(interval.steps, interval.dtheta, stamp_ns=od.stamp_ns)
+        self._epochs.append([od.stamp_ns, interval.steps, interval.dtheta, None])
         outs.append(("pdr_kf/pose", self._pose_msg(od.stamp_ns)))
         return outs + self._maybe_smooth(od.stamp_ns)
 
@@ -112,7 +103,7 @@ class PdrKfStage(Stage):
         fix = fix_from_msg(msg)
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
-        last_odom = self._last_odom[3] if self._last_odom is not None else None
+        last_odom = self._odom.last_stamp_ns
         horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
         return self._apply_pending(lambda s: s <= horizon or (last_odom is not None and s < last_odom))
 

@@ -2,20 +2,35 @@
 
 Subclasses declare ``NODE_NAME``, ``PARAMS`` (a Params dataclass), ``inputs()`` and ``outputs()``
 and implement one handler per input topic returning ``[(relative_topic, message), ...]``.
-``Stage.process`` never raises on a message: an :class:`InvalidMessageError` is counted under its
-reason and dropped; any other exception is counted as ``internal_error`` and reported in
+
+Multi-user stages (``MULTI_USER = True``, e.g. the factor-graph back-end) are one instance for every
+user: their ``inputs()`` are per-user topics taken from *every* user namespace (``/alice/pdr/odom``,
+``/bob/pdr/odom``, ...), each handler is called as ``handler(msg, recv_ns, user)`` with the user's
+name (the namespace without its leading slash, :func:`user_of_namespace`), and besides the fixed
+``outputs()`` they publish per-user topics declared by ``user_outputs()`` as templates containing
+``{user}`` (``backend/{user}/path``). ``finish_user(user)`` is called when a user's input ends (its
+bag ends in a sequential offline run; its publishers leave the ROS graph live). Offline, one
+instance serves all bags (``indoor-loc run --order merged|sequential``, see ``pipeline/offline.py``);
+live, ``StageNode`` subscribes to the users of its ``users`` parameter or discovers them from the
+graph and follows them as they come and go (``nodes/base.py``).
+``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
+the contract, or input the core refuses) is counted under its reason and dropped; any other exception is counted as ``internal_error`` and reported in
 ``last_error`` (the node logs it, throttled). Nothing else is lost: the stage state is unchanged
 by a rejected message because handlers validate (via msg_adapters) before touching state.
 """
 from __future__ import annotations
 
+import functools
+import time
 import traceback
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
+import numpy as np
+
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 
 Output = tuple[str, Any]  # (relative topic, message)
 
@@ -27,6 +42,14 @@ class Port:
     qos: Qos
 
 
+def rate_hz(count: int, first_ns: int | None, last_ns: int | None) -> float:
+    """Mean rate (Hz) of ``count`` events stamped from ``first_ns`` to ``last_ns``; 0 before two
+    events or when no time passed."""
+    if count < 2 or first_ns is None or last_ns is None or last_ns <= first_ns:
+        return 0.0
+    return (count - 1) / ((last_ns - first_ns) * 1e-9)
+
+
 @dataclass
 class TopicStats:
     count: int = 0
@@ -34,9 +57,7 @@ class TopicStats:
     last_ns: int | None = None
 
     def rate_hz(self) -> float:
-        if self.count < 2 or self.first_ns is None or self.last_ns is None or self.last_ns <= self.first_ns:
-            return 0.0
-        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+        return rate_hz(self.count, self.first_ns, self.last_ns)
 
 
 @dataclass
@@ -46,6 +67,8 @@ class StageDiagnostics:
     rejected: Counter = field(default_factory=Counter)   # reason -> count
     last_error: str = ""
     last_error_reason: str = ""
+    #: wall-clock processing time of the latest messages, s (bounded window): the node's per-update latency
+    process_s: deque = field(default_factory=lambda: deque(maxlen=20000))
 
     def summary(self) -> dict[str, str]:
         """Flat key/values for a DiagnosticStatus."""
@@ -59,12 +82,33 @@ class StageDiagnostics:
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected.{reason}"] = str(n)
         out["rejected.total"] = str(sum(self.rejected.values()))
+        if self.process_s:
+            t = np.fromiter(self.process_s, float) * 1e3
+            out["process_ms.p50"] = f"{np.percentile(t, 50):.2f}"
+            out["process_ms.p99"] = f"{np.percentile(t, 99):.2f}"
+            out["process_ms.max"] = f"{t.max():.2f}"
         return out
+
+
+def user_of_namespace(namespace: str) -> str:
+    """``/walk07`` -> ``walk07`` (the user name a multi-user stage sees; ``""`` for the root)."""
+    return namespace.strip("/")
+
+
+def namespace_of_user(user: str) -> str:
+    """``walk07`` -> ``/walk07``."""
+    return "/" + user.strip("/") if user.strip("/") else ""
+
+
+#: Offline replay orders a multi-user stage may ask for (``Stage.offline_order``).
+ORDERS = ("merged", "sequential")
 
 
 class Stage:
     NODE_NAME: ClassVar[str] = "stage"
     PARAMS: ClassVar[type] = object
+    #: One instance for all users (inputs from every namespace, handlers get the user, per-user outputs).
+    MULTI_USER: ClassVar[bool] = False
 
     def __init__(self, params: Any, *, namespace: str = "") -> None:
         self.params = params
@@ -79,8 +123,33 @@ class Stage:
     def outputs(self) -> list[Port]:
         raise NotImplementedError
 
-    def on(self, topic: str, handler: Callable[[Any, int], list[Output]]) -> None:
-        """Register ``handler(msg, recv_ns) -> outputs`` for an input topic (call in __init__)."""
+    def user_outputs(self) -> list[Port]:
+        """Multi-user stages: per-user output ports, topics containing ``{user}``."""
+        return []
+
+    def output_port(self, topic: str) -> Port | None:
+        """The declared port a returned output topic belongs to (a fixed one or a user template)."""
+        for p in self.outputs():
+            if p.topic == topic:
+                return p
+        for p in self.user_outputs():
+            head, _, tail = p.topic.partition("{user}")
+            if topic.startswith(head) and topic.endswith(tail) and len(topic) > len(head) + len(tail):
+                return p
+        return None
+
+    def finish_user(self, user: str) -> list[Output]:
+        """Multi-user stages: this user's input has ended (flush and publish what is pending)."""
+        return []
+
+    def offline_order(self) -> str:
+        """How an offline run should replay several bags for this stage: ``"merged"`` (all bags in
+        one stamp order, users concurrent) or ``"sequential"`` (one bag after another)."""
+        return "merged"
+
+    def on(self, topic: str, handler: Callable[..., list[Output]]) -> None:
+        """Register ``handler(msg, recv_ns) -> outputs`` for an input topic (call in __init__);
+        multi-user stages: ``handler(msg, recv_ns, user)``."""
         self._handlers[topic] = handler
 
     def handles(self, topic: str) -> bool:
@@ -100,23 +169,55 @@ class Stage:
         return {}
 
     # -- driver entry point ------------------------------------------------------------------------
-    def process(self, topic: str, msg: Any, recv_ns: int) -> list[Output]:
-        """Handle one message. Never raises: rejected messages are counted and dropped."""
+    def process(self, topic: str, msg: Any, recv_ns: int, user: str | None = None) -> list[Output]:
+        """Handle one message (``user``: whose it is, for multi-user stages). Never raises:
+        rejected messages are counted and dropped."""
         handler = self._handlers.get(topic)
         if handler is None:
             self._reject("unknown_topic", f"no handler for {topic!r}")
             return []
-        stats = self.diag.received[topic]
+        if self.MULTI_USER:
+            if not user:
+                self._reject("no_user", f"{topic}: a multi-user stage needs the message's user")
+                return []
+            handler = functools.partial(handler, user=user)
+        stats = self.diag.received[f"{user}/{topic}" if self.MULTI_USER else topic]
         stats.count += 1
         stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns
         stats.last_ns = recv_ns
+        t0 = time.perf_counter()
         try:
             outs = handler(msg, recv_ns)
-        except InvalidMessageError as err:
-            self._reject(err.reason, f"{topic}: {err}")
+        except InvalidInputError as err:
+            self._reject(err.reason, f"{user + '/' if user else ''}{topic}: {err}")
             return []
         except Exception as err:  # noqa: BLE001 - a node never dies on a message
             self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+            return []
+        finally:
+            self.diag.process_s.append(time.perf_counter() - t0)
+        for out_topic, _ in outs:
+            self.diag.published[out_topic] += 1
+        return outs
+
+    def run_tick(self, now_ns: int) -> list[Output]:
+        """:meth:`tick` for drivers: an exception is counted as ``internal_error`` (never escapes
+        the timer or aborts an offline run); what the stage published before is kept."""
+        return self._guarded("tick", lambda: self.tick(now_ns))
+
+    def run_finish_user(self, user: str) -> list[Output]:
+        """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("finish_user", lambda: self.finish_user(user))
+
+    def run_finish(self) -> list[Output]:
+        """:meth:`finish` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("finish", self.finish)
+
+    def _guarded(self, what: str, fn: Callable[[], list[Output]]) -> list[Output]:
+        try:
+            outs = fn()
+        except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
+            self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1

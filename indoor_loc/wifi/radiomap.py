@@ -29,6 +29,11 @@ CSV), carries SSIDs and free-text sources without pickling, and stays readable
 when the package is not installed. The manifest's counts are checked on load, so a truncated file
 is reported instead of silently giving a smaller map.
 
+Version 2 (written when a map spans several floors or carries reading ages) appends two columns to
+``fingerprints.csv``: ``z`` (the scan's floor height, m) and ``age_ms`` (how old the reading was
+when its scan was taken — a cached result; empty = unknown), and a ``floors: {name: z_m}`` block to
+the manifest. Single-floor maps without ages are still written as version 1; both are read.
+
 A manifest with another ``format`` or a ``version`` this code does not know raises
 :class:`~indoor_loc.errors.MapError`; readers of newer versions must bump ``FORMAT_VERSION``.
 """
@@ -48,11 +53,13 @@ from indoor_loc.errors import MapError
 from indoor_loc.wifi.types import RadioMap, WifiScan
 
 FORMAT_NAME = "indoor_loc.radiomap"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
 MANIFEST = "radiomap.yaml"
 APS_FILE = "aps.csv"
 FINGERPRINTS_FILE = "fingerprints.csv"
 FP_COLUMNS = ("scan_id", "stamp_ns", "x", "y", "source", "bssid", "ssid", "rssi_dbm", "freq_mhz")
+FP_COLUMNS_V2 = FP_COLUMNS + ("z", "age_ms")
 AP_COLUMNS = ("column", "bssid", "ssid", "freq_mhz")
 
 
@@ -85,6 +92,13 @@ def check_radiomap(rm: RadioMap) -> None:
             raise MapError(f"radio map: {name} needs one entry per scan ({m}), got {len(arr)}")
     if len(set(int(i) for i in rm.scan_ids)) != m:
         raise MapError("radio map: scan_ids must be unique")
+    z = np.asarray(rm.z_m, float)
+    if z.shape != (m,) or not np.all(np.isfinite(z)):
+        raise MapError(f"radio map: z_m must be ({m},) finite floor heights, got shape {z.shape}")
+    if rm.age_ms is not None:
+        age = np.asarray(rm.age_ms, float)
+        if age.shape != (m, a) or np.any(age[~np.isnan(age)] < 0):
+            raise MapError(f"radio map: age_ms must be ({m}, {a}) with NaN or values >= 0 ms")
 
 
 def radiomap_summary(rm: RadioMap) -> dict:
@@ -100,6 +114,7 @@ def radiomap_summary(rm: RadioMap) -> dict:
         "aps_per_scan": ({"min": int(per_scan.min()), "mean": round(float(per_scan.mean()), 2),
                           "max": int(per_scan.max())} if len(per_scan) else {}),
         "sources": dict(sorted(Counter(rm.source).items())),
+        **({"floors": {str(k): float(v) for k, v in rm.floors.items()}} if rm.floors else {}),
     }
 
 
@@ -120,6 +135,9 @@ def save_radiomap(rm: RadioMap, directory: str | Path, *, created_by: str = "ind
         d.mkdir(parents=True, exist_ok=True)
         rss = np.asarray(rm.rssi_dbm, float)
         freq = np.asarray(rm.freq_mhz, float)
+        z = np.asarray(rm.z_m, float)
+        v2 = bool(rm.floors) or rm.age_ms is not None or bool(np.any(z != 0))
+        age = np.asarray(rm.age_ms, float) if rm.age_ms is not None else None
         with open(d / APS_FILE, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh, lineterminator="\n")
             w.writerow(AP_COLUMNS)
@@ -127,18 +145,22 @@ def save_radiomap(rm: RadioMap, directory: str | Path, *, created_by: str = "ind
                 w.writerow([j, b, s, _num(f)])
         with open(d / FINGERPRINTS_FILE, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh, lineterminator="\n")
-            w.writerow(FP_COLUMNS)
+            w.writerow(FP_COLUMNS_V2 if v2 else FP_COLUMNS)
             for i in range(rm.n_scans):
                 head = [int(rm.scan_ids[i]), int(rm.stamps_ns[i]), repr(float(rm.positions[i, 0])),
                         repr(float(rm.positions[i, 1])), rm.source[i]]
                 cols = np.flatnonzero(~np.isnan(rss[i]))
                 if len(cols) == 0:
-                    w.writerow(head + ["", "", "", ""])
+                    w.writerow(head + ["", "", "", ""] + ([_num(z[i]), ""] if v2 else []))
                 for j in cols:
-                    w.writerow(head + [rm.bssids[j], rm.ssids[j], _num(rss[i, j]), _num(freq[j])])
+                    row = head + [rm.bssids[j], rm.ssids[j], _num(rss[i, j]), _num(freq[j])]
+                    if v2:
+                        a = age[i, j] if age is not None else math.nan
+                        row += [_num(z[i]), "" if math.isnan(a) else _num(a)]
+                    w.writerow(row)
         manifest = {
             "format": FORMAT_NAME,
-            "version": FORMAT_VERSION,
+            "version": FORMAT_VERSION if v2 else 1,
             "frame_id": rm.frame_id,
             "units": {"position": "m", "rssi": "dBm", "frequency": "MHz", "stamp": "ns"},
             **radiomap_summary(rm),
@@ -166,9 +188,9 @@ def read_manifest(directory: str | Path) -> dict:
     if not isinstance(man, dict) or man.get("format") != FORMAT_NAME:
         got = man.get("format") if isinstance(man, dict) else type(man).__name__
         raise MapError(f"{path}: not a radio map manifest (format {got!r}, expected {FORMAT_NAME!r})")
-    if man.get("version") != FORMAT_VERSION:
+    if man.get("version") not in READ_VERSIONS:
         raise MapError(f"{path}: radio map format version {man.get('version')!r} is not supported "
-                       f"(this code reads version {FORMAT_VERSION})")
+                       f"(this code reads versions {list(READ_VERSIONS)})")
     return man
 
 
@@ -185,8 +207,9 @@ def load_radiomap(directory: str | Path) -> RadioMap:
                 ap_rows = list(csv.DictReader(fh))
         with open(d / files.get("fingerprints", FINGERPRINTS_FILE), newline="", encoding="utf-8") as fh:
             reader = csv.DictReader(fh)
-            if tuple(reader.fieldnames or ()) != FP_COLUMNS:
-                raise MapError(f"{d}: fingerprints columns {reader.fieldnames}, expected {list(FP_COLUMNS)}")
+            expected = FP_COLUMNS if man.get("version") == 1 else FP_COLUMNS_V2
+            if tuple(reader.fieldnames or ()) != expected:
+                raise MapError(f"{d}: fingerprints columns {reader.fieldnames}, expected {list(expected)}")
             fp_rows = list(reader)
     except OSError as err:
         raise MapError(f"cannot read radio map {d}: {err}") from err
@@ -205,7 +228,9 @@ def load_radiomap(directory: str | Path) -> RadioMap:
         stamps: list[int] = []
         pos: list[tuple[float, float]] = []
         src: list[str] = []
+        zs: list[float] = []
         cells: list[tuple[int, int, float]] = []
+        ages: list[float] = []
         for r in fp_rows:
             sid = int(r["scan_id"])
             if not ids or ids[-1] != sid:
@@ -213,20 +238,28 @@ def load_radiomap(directory: str | Path) -> RadioMap:
                 stamps.append(int(r["stamp_ns"]))
                 pos.append((float(r["x"]), float(r["y"])))
                 src.append(r["source"])
+                zs.append(float(r.get("z") or 0.0))
             if r["bssid"]:
                 j = col.get(r["bssid"])
                 if j is None:
                     raise MapError(f"{d}: reading of {r['bssid']!r} (scan {sid}) has no column in {APS_FILE}")
                 cells.append((len(ids) - 1, j, float(r["rssi_dbm"])))
+                ages.append(float(r["age_ms"]) if r.get("age_ms") else math.nan)
     except (KeyError, ValueError, TypeError) as err:
         raise MapError(f"{d}: malformed radio map row: {err}") from err
     rss = np.full((len(ids), len(bssids)), np.nan)
+    age = None
     if cells:
         ii, jj, vv = (np.array(c) for c in zip(*cells))
         rss[ii.astype(int), jj.astype(int)] = vv
+        if not all(math.isnan(a) for a in ages):
+            age = np.full(rss.shape, np.nan)
+            age[ii.astype(int), jj.astype(int)] = ages
+    floors = {str(k): float(v) for k, v in (man.get("floors") or {}).items()}
     rm = RadioMap(positions=np.array(pos, float).reshape(-1, 2), bssids=bssids, rssi_dbm=rss, freq_mhz=freq,
                   ssids=ssids, scan_ids=np.array(ids, np.int64), stamps_ns=np.array(stamps, np.int64),
-                  source=src, frame_id=str(man.get("frame_id", "map")))
+                  source=src, frame_id=str(man.get("frame_id", "map")), z_m=np.array(zs, float),
+                  floors=floors, age_ms=age)
     counts = man.get("counts") or {k: man[k] for k in ("scans", "aps") if k in man}
     got = {"scans": rm.n_scans, "aps": rm.n_aps, "readings": len(cells)}
     for key, n in got.items():
@@ -247,12 +280,15 @@ def empty_radiomap(frame_id: str = "map") -> RadioMap:
 
 
 def add_fingerprints(rm: RadioMap, positions, scans: Sequence[WifiScan], source: str | Iterable[str] = "online",
-                     *, scan_ids: Iterable[int] | None = None) -> RadioMap:
+                     *, scan_ids: Iterable[int] | None = None, z_m=0.0,
+                     floors: dict | None = None) -> RadioMap:
     """A new map: ``rm`` plus one fingerprint per scan at ``positions`` (N, 2) m (map frame).
 
     New BSSIDs become new columns (NaN in the old rows). ``source`` is one label for all or one per
     scan; stamps come from the scans; ``scan_ids`` default to ``max(existing) + 1 ...``. ``rm`` is
-    not modified (positioners re-``fit`` on the returned map).
+    not modified (positioners re-``fit`` on the returned map). ``z_m``: the floor height of the new
+    scans (one value or one per scan); ``floors`` names heights (merged into the map's). The scans'
+    ``age_ms`` are kept (the map's ``age_ms`` exists as soon as one reading has an age).
     """
     pos = np.asarray(positions, float).reshape(-1, 2)
     scans = list(scans)
@@ -276,9 +312,16 @@ def add_fingerprints(rm: RadioMap, positions, scans: Sequence[WifiScan], source:
     m0, n = rm.n_scans, len(scans)
     rss = np.full((m0 + n, len(bssids)), np.nan)
     rss[:m0, :rm.n_aps] = rm.rssi_dbm
+    any_age = rm.age_ms is not None or any(sc.age_ms is not None for sc in scans)
+    age = np.full(rss.shape, np.nan) if any_age else None
+    if age is not None and rm.age_ms is not None:
+        age[:m0, :rm.n_aps] = rm.age_ms
     for i, sc in enumerate(scans):
-        for b, r in zip(sc.bssid, sc.rssi_dbm):
-            rss[m0 + i, col[b]] = r
+        cs = np.fromiter((col[b] for b in sc.bssid), np.int64, count=len(sc.bssid))
+        rss[m0 + i, cs] = sc.rssi_dbm
+        if age is not None and sc.age_ms is not None:
+            age[m0 + i, cs] = sc.age_ms
+    zn = np.broadcast_to(np.asarray(z_m, float), (n,)).astype(float)
     if scan_ids is None:
         start = int(np.max(rm.scan_ids)) + 1 if m0 else 0
         new_ids = np.arange(start, start + n, dtype=np.int64)
@@ -289,7 +332,9 @@ def add_fingerprints(rm: RadioMap, positions, scans: Sequence[WifiScan], source:
                    scan_ids=np.concatenate([np.asarray(rm.scan_ids, np.int64), new_ids]),
                    stamps_ns=np.concatenate([np.asarray(rm.stamps_ns, np.int64),
                                              np.array([s.stamp_ns for s in scans], np.int64)]),
-                   source=list(rm.source) + srcs, frame_id=rm.frame_id)
+                   source=list(rm.source) + srcs, frame_id=rm.frame_id,
+                   z_m=np.concatenate([np.asarray(rm.z_m, float), zn]), floors={**rm.floors, **(floors or {})},
+                   age_ms=age)
     check_radiomap(out)
     return out
 
@@ -302,6 +347,7 @@ def map_scans(rm: RadioMap) -> list[WifiScan]:
         cols = np.flatnonzero(~np.isnan(rss[i]))
         out.append(WifiScan(stamp_ns=int(rm.stamps_ns[i]), bssid=tuple(rm.bssids[j] for j in cols),
                             rssi_dbm=rss[i, cols].copy(), freq_mhz=np.asarray(rm.freq_mhz, float)[cols],
+                            age_ms=None if rm.age_ms is None else np.asarray(rm.age_ms, float)[i, cols],
                             ssid=tuple(rm.ssids[j] for j in cols), frame_id=rm.frame_id, source=rm.source[i]))
     return out
 

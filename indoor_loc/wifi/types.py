@@ -1,9 +1,14 @@
-"""Core WiFi types shared by ingestion, radio maps and every positioning method (pure numpy)."""
+"""Core WiFi types shared by ingestion, radio maps and every positioning method (pure numpy); a
+method's output, :class:`~indoor_loc.measurements.Fix`, is a measurement shared by every estimator."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from indoor_loc.measurements import Fix
+
+__all__ = ["ApIndex", "ApReadings", "Positioner", "RadioMap", "WifiScan"]
 
 
 @dataclass(frozen=True)
@@ -29,21 +34,6 @@ class WifiScan:
         return {b: float(r) for b, r in zip(self.bssid, self.rssi_dbm)}
 
 
-@dataclass(frozen=True)
-class Fix:
-    """A position estimate from one scan: ``xy`` (2,) metres in the map frame, ``cov`` (2, 2) m^2.
-
-    ``ok`` is False when the method declined (too few shared APs, outlier rejection...), with
-    ``reason`` saying why; ``info`` holds method-specific extras (matched map scans, weights...).
-    """
-    stamp_ns: int
-    xy: np.ndarray
-    cov: np.ndarray
-    ok: bool = True
-    reason: str = ""
-    info: dict = field(default_factory=dict)
-
-
 @dataclass
 class RadioMap:
     """Fingerprints: M scans at known positions over A access points.
@@ -54,6 +44,10 @@ class RadioMap:
     freq_mhz: (A,) per-AP frequency (0 if unknown).
     scan_ids: (M,) int identifiers; stamps_ns: (M,) int (0 for a pre-surveyed map);
     source: (M,) str label, e.g. "survey" or the user/walk a fingerprint was learnt from.
+    z_m: (M,) float, the floor height of each scan, m (0 on a single-floor map); ``floors`` names
+    the heights (``{"B1": -5.0, "F3": 10.0}``, empty on a single-floor map).
+    age_ms: (M, A) float, how old each reading was when its scan was taken (a cached result),
+    NaN where unknown or not heard; None when no reading has an age.
     """
     positions: np.ndarray
     bssids: list[str]
@@ -64,9 +58,14 @@ class RadioMap:
     stamps_ns: np.ndarray | None = None
     source: list[str] = field(default_factory=list)
     frame_id: str = "map"
+    z_m: np.ndarray | None = None
+    floors: dict = field(default_factory=dict)
+    age_ms: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         m = len(self.positions)
+        if self.z_m is None:
+            self.z_m = np.zeros(m)
         if self.scan_ids is None:
             self.scan_ids = np.arange(m)
         if self.stamps_ns is None:
@@ -120,6 +119,28 @@ class ApIndex:
             j = self._col[bssid] = len(self.bssids)
             self.bssids.append(bssid)
         return j
+
+
+class ApReadings:
+    """Inverted index of a radio map's readings by AP: for each column (AP) the map rows that hold a
+    reading and its value, in CSR-by-column layout (``ptr`` (A + 1,), ``row`` (R,), ``val`` (R,)).
+    A query touches only the readings of its own APs, so fingerprint methods cost O(M q density)
+    per scan instead of O(M A)."""
+
+    def __init__(self, mask: np.ndarray, values: np.ndarray) -> None:
+        """``mask`` (M, A) bool: which readings count; ``values`` (M, A): their values."""
+        cols, rows = np.nonzero(np.asarray(mask, bool).T)
+        self.ptr = np.searchsorted(cols, np.arange(mask.shape[1] + 1)).astype(np.int64)
+        self.row = rows.astype(np.int64)
+        self.val = np.asarray(values, float)[rows, cols]
+
+    def gather(self, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The readings of columns ``cols`` (q,): map rows (R',), values (R',) and per-column counts
+        (q,) (the readings of ``cols[i]`` are the i-th run of ``lens[i]`` entries)."""
+        start, stop = self.ptr[cols], self.ptr[cols + 1]
+        lens = stop - start
+        offs = np.repeat(start - np.cumsum(lens) + lens, lens) + np.arange(int(lens.sum()))
+        return self.row[offs], self.val[offs], lens
 
 
 class Positioner:

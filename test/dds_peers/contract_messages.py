@@ -7,15 +7,16 @@ import numpy as np
 from rosgraph_msgs.msg import Clock
 
 from indoor_loc.contract import TOPICS
-from indoor_loc.msg_adapters.diagnostics import diagnostics_from_msg
-from indoor_loc.msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg, mag_to_msg
-from indoor_loc.msg_adapters.markers import graph_markers, marker_points, points_markers
-from indoor_loc.msg_adapters.odom import odom_from_msg, odom_to_msg
-from indoor_loc.msg_adapters.path import path_from_msg, path_to_msg
-from indoor_loc.msg_adapters.pose import fix_to_msg, pose_array_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
-from indoor_loc.msg_adapters.time import stamp_from_ns, stamp_to_ns
-from indoor_loc.msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
-from indoor_loc.wifi.types import Fix, WifiScan
+from msg_adapters.diagnostics import diagnostics_from_msg
+from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg, mag_to_msg
+from msg_adapters.markers import graph_markers, marker_points, points_markers
+from msg_adapters.odom import odom_from_msg, odom_to_msg
+from msg_adapters.path import path_from_msg, path_to_msg
+from msg_adapters.pose import fix_to_msg, pose_array_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
+from msg_adapters.time import stamp_from_ns, stamp_to_ns
+from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import WifiScan
 
 NAMESPACE = "/alice"
 T0 = 1_712_345_678_123_456_789

@@ -1,0 +1,148 @@
+"""Read MCAP bags (one or several, merged in log-time order): messages, raw CDR, topics and counts."""
+from __future__ import annotations
+
+import heapq
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Iterator, NamedTuple
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from indoor_loc.bag.recover import ZstdError, scan_records
+from indoor_loc.contract import msg_class
+from indoor_loc.errors import BagError
+
+
+class BagMessage(NamedTuple):
+    """One deserialised message: full topic name, ``pkg/msg/Name``, log time in ns, rclpy message."""
+    topic: str
+    type: str
+    stamp_ns: int
+    msg: Any
+
+
+class RawMessage(NamedTuple):
+    """One message as stored: CDR bytes, log and publish time in ns."""
+    topic: str
+    type: str
+    stamp_ns: int
+    data: bytes
+    publish_ns: int
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """A channel of a bag: type, message count and the offered QoS text as recorded."""
+    topic: str
+    type: str
+    count: int
+    qos_yaml: str = ""
+    type_hash: str = ""
+
+
+def bag_files(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> list[Path]:
+    """Bag files; a directory (``ros2 bag record`` writes one) stands for the ``.mcap`` files in it."""
+    items = [Path(paths)] if isinstance(paths, (str, os.PathLike)) else [Path(p) for p in paths]
+    out: list[Path] = []
+    for p in items:
+        if p.is_dir():
+            files = sorted(p.glob("*.mcap"))
+            if not files:
+                raise BagError(f"bag directory {p} holds no .mcap file")
+            out += files
+        else:
+            out.append(p)
+    return out
+
+
+def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, RawMessage]]:
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            for schema, channel, message in reader.iter_messages(
+                    topics=sorted(topics) if topics is not None else None, log_time_order=True):
+                yield (message.log_time, message.sequence,
+                       RawMessage(channel.topic, schema.name if schema else "", message.log_time,
+                                  message.data, message.publish_time))
+    except FileNotFoundError as err:
+        raise BagError(f"bag {path} does not exist") from err
+    except (McapError, ZstdError, struct.error, ValueError, EOFError) as err:
+        raise BagError(f"bag {path} cannot be read ({type(err).__name__}: {err}); if its writer was "
+                       f"killed, run `indoor-loc bag recover {path} FIXED.mcap`") from err
+
+
+def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
+             topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
+    """Stored messages of one or more bags merged in log-time order (ties: file order, then sequence)."""
+    wanted = set(topics) if topics is not None else None
+    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(bag_files(paths))]
+    for _, _, _, m in heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2])):
+        yield m
+
+
+def read_bag(paths: str | os.PathLike | Iterable[str | os.PathLike],
+             topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    """Messages of one or more bags in log-time order, deserialised to rclpy message classes.
+
+    Args:
+        paths: one bag or several (merged, e.g. one per user).
+        topics: full topic names to keep (default all).
+    """
+    from rclpy.serialization import deserialize_message
+    classes: dict[str, type] = {}
+    for m in read_raw(paths, topics):
+        cls = classes.get(m.type)
+        if cls is None:
+            try:
+                cls = classes[m.type] = msg_class(m.type)
+            except (ImportError, AttributeError, ValueError) as err:
+                raise BagError(f"topic {m.topic}: message type {m.type!r} is not importable") from err
+        yield BagMessage(m.topic, m.type, m.stamp_ns, deserialize_message(m.data, cls))
+
+
+def bag_info(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> dict[str, TopicInfo]:
+    """Topics of the bags with type, message count and recorded QoS (summary, or a scan without one)."""
+    out: dict[str, TopicInfo] = {}
+    for path in bag_files(paths):
+        for name, info in _file_topics(path).items():
+            prev = out.get(name)
+            if prev is not None and prev.type != info.type:
+                raise BagError(f"topic {name} is {prev.type} in one bag and {info.type} in {path}")
+            out[name] = info if prev is None else TopicInfo(name, info.type, prev.count + info.count,
+                                                            prev.qos_yaml or info.qos_yaml,
+                                                            prev.type_hash or info.type_hash)
+    return out
+
+
+def bag_topics(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> dict[str, tuple[str, int]]:
+    """``{topic: (type, message count)}`` over one or more bags."""
+    return {name: (i.type, i.count) for name, i in bag_info(paths).items()}
+
+
+def _file_topics(path: Path) -> dict[str, TopicInfo]:
+    try:
+        with open(path, "rb") as f:
+            summary = None
+            try:
+                summary = make_reader(f).get_summary()
+            except (McapError, struct.error, ValueError, OSError):
+                summary = None
+            if summary is not None and summary.statistics is not None:
+                counts = summary.statistics.channel_message_counts
+                return {c.topic: TopicInfo(c.topic, summary.schemas[c.schema_id].name if c.schema_id else "",
+                                           counts.get(cid, 0), c.metadata.get("offered_qos_profiles", ""),
+                                           c.metadata.get("topic_type_hash", ""))
+                        for cid, c in summary.channels.items()}
+    except FileNotFoundError as err:
+        raise BagError(f"bag {path} does not exist") from err
+    scan = scan_records(path)
+    if scan.truncated:
+        raise BagError(f"bag {path} has no summary and ends in a partial record (writer killed?); run "
+                       f"`indoor-loc bag recover {path} FIXED.mcap`")
+    return {c.topic: TopicInfo(c.topic, scan.schemas[c.schema_id].name if c.schema_id in scan.schemas else "",
+                               scan.counts.get(cid, 0), c.metadata.get("offered_qos_profiles", ""),
+                               c.metadata.get("topic_type_hash", ""))
+            for cid, c in scan.channels.items()}

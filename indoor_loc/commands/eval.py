@@ -1,0 +1,245 @@
+"""``indoor-loc eval``: score trajectories against ground truth, per walk and pooled.
+
+Trajectories: MCAP bags (``--topic``, default ``wifi/fix``; the namespace of each matching topic
+is the user, e.g. ``/walk07/wifi/fix`` -> ``walk07``) and/or ``--csv-dir`` (``<user>.csv``, format
+in :mod:`indoor_loc.eval.trajectory`). Truth: ``--truth IMPORT_DIR`` (the imported bags'
+``ground_truth`` Path and ``ground_truth/route`` LINE_LIST markers) or ``--dataset PUTMC_DIR``.
+
+Examples::
+
+    indoor-loc eval run.mcap --truth import/ --topic wifi/fix --plot plots/ --json scores.json
+    indoor-loc eval --csv-dir trajs/ --dataset ../shared/datasets/putmc
+
+Metrics (see :mod:`indoor_loc.eval.metrics`): the seed-001 paper convention (squared units),
+the route distance in metres, and the scan-time error in metres.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from indoor_loc.contract import namespace_of_topic
+from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.eval.metrics import WalkErrors, WalkScore, pool, score, walk_errors
+from indoor_loc.eval.trajectory import Trajectory, Truth, read_csv_dir, truth_from_putmc, write_csv
+
+ROUTE_TOPIC = "ground_truth/route"
+LINE_LIST = 5          # visualization_msgs/Marker.LINE_LIST
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bags", nargs="*", type=Path, help="MCAP bags (or bag directories) with trajectories")
+    parser.add_argument("--topic", default="wifi/fix",
+                        help="relative topic of the trajectory: nav_msgs/Path (last message), "
+                             "PoseWithCovarianceStamped or Odometry (accumulated); default wifi/fix; "
+                             "'{user}' marks the user in a multi-user node's topics (backend/{user}/path)")
+    parser.add_argument("--csv-dir", type=Path, help="directory of <user>.csv trajectories")
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--truth", type=Path, help="import directory (walkNN.mcap with ground_truth + route)")
+    src.add_argument("--dataset", type=Path, help="the PUTMC dataset directory (truth read from the files)")
+    parser.add_argument("--user", default="walk01", help="user name for a topic without namespace (default walk01)")
+    parser.add_argument("--json", type=Path, help="write the scores as JSON here")
+    parser.add_argument("--plot", type=Path, help="write one PNG per walk into this directory")
+    parser.add_argument("--write-csv", type=Path, help="also write the trajectories read as <user>.csv here")
+    parser.add_argument("--keep-stale", action="store_true", help="with --dataset: keep stale samples' scans")
+
+
+# ---------------------------------------------------------------------------------------------
+# reading bags (plumbing: this module may use the bag reader and the message adapters)
+# ---------------------------------------------------------------------------------------------
+def _user_pattern(rel: str):
+    """``backend/{user}/path`` -> a regex whose group ``user`` is the user (per-user topics of a
+    multi-user node in the root namespace)."""
+    import re
+    head, _, tail = rel.strip("/").partition("{user}")
+    return re.compile("^/" + re.escape(head) + "(?P<user>.+)" + re.escape(tail) + "$")
+
+
+def _matching_topics(paths: list[Path], rel: str) -> dict[str, str]:
+    from indoor_loc.bag import bag_topics
+    if "{user}" in rel:
+        pat = _user_pattern(rel)
+        return {t: ty for t, (ty, _) in bag_topics(paths).items() if pat.match(t)}
+    return {t: ty for t, (ty, _) in bag_topics(paths).items()
+            if namespace_of_topic(t, rel) is not None}
+
+
+def _user_of(topic: str, rel: str, default: str) -> str:
+    if "{user}" in rel:
+        m = _user_pattern(rel).match(topic)
+        return m.group("user") if m else default
+    ns = namespace_of_topic(topic, rel)
+    return (ns or "").strip("/") or default
+
+
+def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01") -> dict[str, Trajectory]:
+    """Trajectories per user from the bags' ``topic`` (Path: last message; poses/odometry: all)."""
+    from indoor_loc.bag import read_bag
+    from msg_adapters.odom import odom_from_msg
+    from msg_adapters.path import path_from_msg
+    from msg_adapters.pose import pose_from_msg
+
+    topics = _matching_topics(paths, topic)
+    if not topics:
+        raise DatasetError(f"no topic named */{topic} in {[str(p) for p in paths]}")
+    acc: dict[str, list] = {}
+    last_path: dict[str, tuple] = {}
+    for m in read_bag(paths, topics=list(topics)):
+        user = _user_of(m.topic, topic, default_user)
+        if m.type == "nav_msgs/msg/Path":
+            last_path[user] = path_from_msg(m.msg)
+        elif m.type == "geometry_msgs/msg/PoseWithCovarianceStamped":
+            s = pose_from_msg(m.msg)
+            yaw = s.yaw if m.msg.pose.covariance[35] < 1e5 else math.nan   # fixes carry no heading
+            acc.setdefault(user, []).append((s.stamp_ns, s.xy[0], s.xy[1], yaw))
+        elif m.type == "nav_msgs/msg/Odometry":
+            s = odom_from_msg(m.msg)
+            acc.setdefault(user, []).append((s.stamp_ns, s.x, s.y, s.yaw))
+        else:
+            raise DatasetError(f"topic {m.topic}: cannot read a trajectory from {m.type}")
+    out: dict[str, Trajectory] = {}
+    for user, (t, xy, yaw) in last_path.items():
+        out[user] = Trajectory.make(user, t, xy, yaw)
+    for user, rows in acc.items():
+        a = np.array(rows, dtype=object)
+        out[user] = Trajectory.make(user, np.array(a[:, 0], dtype=np.int64), np.array(a[:, 1:3], dtype=float),
+                                    np.array(a[:, 3], dtype=float))
+    return out
+
+
+def truth_from_import(import_dir: Path) -> dict[str, Truth]:
+    """Truth per user from imported bags: ``ground_truth`` (time-stamped scan positions) and the
+    LINE_LIST markers of ``ground_truth/route`` (consecutive point pairs = segments)."""
+    from indoor_loc.bag import read_bag
+    from msg_adapters.markers import marker_points
+    from msg_adapters.path import path_from_msg
+
+    bags = sorted(Path(import_dir).glob("*.mcap"))
+    if not bags:
+        raise DatasetError(f"{import_dir}: no .mcap bags (run `indoor-loc import` first)")
+    from indoor_loc.bag import bag_topics
+    wanted = [t for t in bag_topics(bags) if t.endswith(("/" + ROUTE_TOPIC, "/ground_truth"))]
+    gt: dict[str, tuple] = {}
+    segs: dict[str, np.ndarray] = {}
+    for m in read_bag(bags, topics=wanted):
+        if m.topic.endswith("/" + ROUTE_TOPIC):
+            user = _user_of(m.topic, ROUTE_TOPIC, "")
+            pts = [marker_points(mk)[:, :2] for mk in m.msg.markers if mk.type == LINE_LIST and mk.points]
+            if pts:
+                p = np.concatenate(pts)
+                segs[user] = p.reshape(-1, 2, 2)
+        elif m.topic.endswith("/ground_truth") and m.type == "nav_msgs/msg/Path":
+            user = _user_of(m.topic, "ground_truth", "")
+            t, xy, _ = path_from_msg(m.msg)
+            gt[user] = (t, xy)
+    out = {}
+    for user in sorted(set(gt) | set(segs)):
+        if user not in segs:
+            raise DatasetError(f"{import_dir}: {user} has ground_truth but no {ROUTE_TOPIC} markers")
+        t, xy = gt.get(user, (np.zeros(0, dtype=np.int64), np.zeros((0, 2))))
+        out[user] = Truth(user, segs[user], t, xy)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------------
+def format_table(scores: list[WalkScore]) -> str:
+    """Plain-text table: paper convention ("RMSE"/"mean" in m², as published), route distance and
+    scan-time error in metres."""
+    head = (f"{'walk':8s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
+            f"{'rmed':>5s} {'rp95':>5s} {'rmax':>5s} | {'scans':>5s} {'smean':>6s} {'smed':>5s} {'sp95':>5s} "
+            f"{'smax':>5s} {'sRMSE':>6s}")
+    sub = ("paper: e=d² (m²) over poses with e<100 ('cut' = poses dropped) | route distance (m), same poses | "
+           "scan-time error (m): trajectory interpolated at every true scan (held before/after its ends)")
+    lines = [sub, head, "-" * len(head)]
+    for s in scores:
+        r, c, p = s.route_m, s.scan_m, s.paper
+        lines.append(f"{s.name:8s} {s.n_poses:5d} {p.n_cut:3d} | {p.rmse:6.2f} {p.mean:6.2f} | {r.rmse:6.3f} "
+                     f"{r.mean:6.3f} {r.median:5.2f} {r.p95:5.2f} {r.max:5.2f} | {c.n:5d} {c.mean:6.3f} "
+                     f"{c.median:5.2f} {c.p95:5.2f} {c.max:5.2f} {c.rmse:6.3f}")
+    return "\n".join(lines)
+
+
+def evaluate(trajs: dict[str, Trajectory], truths: dict[str, Truth]) -> tuple[list[WalkScore], list[WalkErrors]]:
+    """Per-user scores (users with both a trajectory and a truth, sorted) plus the pooled score last."""
+    users = sorted(set(trajs) & set(truths))
+    if not users:
+        raise ConfigError(f"no user has both a trajectory ({sorted(trajs)}) and a ground truth ({sorted(truths)})")
+    errs = []
+    for u in users:
+        tr, gt = trajs[u], truths[u]
+        if len(tr) == 0:
+            continue
+        errs.append(walk_errors(u, tr.stamps_ns, tr.xy, gt.segments, gt.scan_ns, gt.scan_xy))
+    scores = [score(e) for e in errs] + [score(pool(errs))]
+    return scores, errs
+
+
+def main(args: argparse.Namespace) -> int:
+    trajs: dict[str, Trajectory] = {}
+    if args.bags:
+        trajs.update(trajectories_from_bags(list(args.bags), args.topic, default_user=args.user))
+    if args.csv_dir:
+        trajs.update(read_csv_dir(args.csv_dir))
+    if not trajs:
+        raise ConfigError("nothing to score: give bags (with --topic) and/or --csv-dir")
+    if args.truth:
+        truths = truth_from_import(args.truth)
+    else:
+        walks = sorted(int(u[4:]) for u in trajs if u.startswith("walk") and u[4:].isdigit())
+        truths = truth_from_putmc(args.dataset, walks or None, keep_stale=args.keep_stale)
+    missing = sorted(set(trajs) - set(truths))
+    if missing:
+        print(f"no ground truth for {missing}: not scored")
+    scores, _ = evaluate(trajs, truths)
+    print(format_table(scores))
+    if args.write_csv:
+        Path(args.write_csv).mkdir(parents=True, exist_ok=True)
+        for u, tr in trajs.items():
+            write_csv(Path(args.write_csv) / f"{u}.csv", tr)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        doc = {"topic": args.topic if args.bags else None, "walks": [s.as_dict() for s in scores[:-1]],
+               "pooled": scores[-1].as_dict()}
+        Path(args.json).write_text(json.dumps(_nan_to_none(doc), indent=2, allow_nan=False))
+        print(f"scores: {args.json}")
+    if args.plot:
+        _plots(args, trajs, truths, scores)
+    return 0
+
+
+def _nan_to_none(obj):
+    """NaN (no value, e.g. no scans scored) -> null, so the JSON file is standard JSON."""
+    if isinstance(obj, float) and math.isnan(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _nan_to_none(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_nan_to_none(v) for v in obj]
+    return obj
+
+
+def _plots(args, trajs, truths, scores) -> None:
+    from indoor_loc.datasets.putmc import map_extent
+    from indoor_loc.eval.plot import plot_walk
+
+    floor_plan = None
+    for cand in ([args.dataset] if args.dataset else []) + [Path(__file__).resolve().parents[3] / "shared" /
+                                                             "datasets" / "putmc"]:
+        if cand is not None and (Path(cand) / "map.png").exists():
+            floor_plan = Path(cand) / "map.png"
+            break
+    by_name = {s.name: s for s in scores}
+    for u in sorted(set(trajs) & set(truths)):
+        s = by_name.get(u)
+        src = args.topic if args.bags else "csv"
+        title = u if s is None else (f"{u}: {src}  scan-time mean {s.scan_m.mean:.2f} m, "
+                                     f"route mean {s.route_m.mean:.2f} m, paper RMSE {s.paper.rmse:.2f}")
+        out = plot_walk(Path(args.plot) / f"{u}.png", truths[u], trajs[u], floor_plan=floor_plan,
+                        extent=map_extent(), title=title)
+        print(f"plot: {out}")

@@ -1,0 +1,276 @@
+"""``indoor-loc import ms-indoor SITE_DIR OUT_DIR``: a Microsoft indoor-location site -> bags + maps.
+
+Writes, for the selected floors (``--floors B1,F3``; default all) and walks (``--walks ID,…``, ids
+or unique id prefixes; default all):
+
+- ``OUT_DIR/<floor>/<trace id>.mcap`` — one bag per walk (topics in
+  :mod:`indoor_loc.datasets.ms_indoor_bags`);
+- ``OUT_DIR/radiomap/`` — one multi-floor radio map (format v2: per-scan floor height ``z``,
+  per-reading ``age_ms``) from every scan of the **survey walks** inside their waypoint span, at
+  the position interpolated between waypoints. Survey walks: ``--survey-walks ID,…`` (the user's),
+  else the documented interleaved split (per floor, ids sorted, in every block of five the 1st,
+  3rd and 5th are survey walks, the 2nd and 4th test walks);
+- ``OUT_DIR/floors/<floor>/`` — ``floor_image.png``, ``geojson_map.json`` (both already in the map
+  frame: metres, x right, y up, origin at the plan's bottom-left corner) and ``map.yaml`` (a nav2
+  map_server description of the image: resolution m/px, origin [0, 0, 0], plus the floor's z);
+- ``OUT_DIR/split.yaml`` — survey and test walks per floor; ``OUT_DIR/params.yaml`` — every node
+  (imu_node heading from the rotation vector; wifi_fix_node with the radio map and the
+  recommended method); ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
+
+Floor heights: ``z = storey index × --storey-height-m`` (B1 → −1, F1 → 0, F3 → 2; default 5 m).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.output_paths import check_outputs
+from indoor_loc.params import params_file_text
+from indoor_loc.wifi.methods import recommended_params
+from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
+
+
+def add_arguments(sub) -> None:
+    p = sub.add_parser("ms-indoor", help="Microsoft Indoor Location Competition 2.0 site (trace .txt/.txt.gz)",
+                       description="Import a Microsoft indoor-location site into MCAP bags (one per walk), a "
+                                   "multi-floor radio map, floor plans, params.yaml and an import report")
+    p.add_argument("dataset_dir", type=Path, help="the site directory (<floor>/path_data_files/, floor_info.json…)")
+    p.add_argument("out_dir", type=Path, help="output directory (created)")
+    p.add_argument("--floors", default="", help="comma-separated floor names (default: all), e.g. B1,F3")
+    p.add_argument("--walks", default="", help="comma-separated trace ids or unique prefixes (default: all)")
+    p.add_argument("--survey-walks", default="",
+                   help="trace ids (or prefixes) that build the radio map (default: the interleaved split)")
+    p.add_argument("--storey-height-m", type=float, default=5.0, help="floor height per storey, m (default 5)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace bags, radiomap/, params.yaml, split.yaml and import_report.md already in OUT_DIR")
+    p.set_defaults(func=import_ms_indoor)
+
+
+def _select(text: str, ids: list[str], what: str) -> list[str]:
+    if not text.strip():
+        return list(ids)
+    out = []
+    for tok in (t.strip() for t in text.split(",")):
+        if not tok:
+            continue
+        hit = [i for i in ids if i == tok] or [i for i in ids if i.startswith(tok)]
+        if len(hit) != 1:
+            raise ConfigError(f"{what}: {tok!r} matches {len(hit)} of the {len(ids)} walks (need exactly one)")
+        out.append(hit[0])
+    return sorted(set(out))
+
+
+def import_ms_indoor(args: argparse.Namespace) -> int:
+    from indoor_loc.datasets.ms_indoor import (heading_offsets, read_trace, scans_with_truth, site_floors,
+                                               split_map_test)
+    from indoor_loc.datasets.ms_indoor_bags import trace_bag_counts, walk_namespace, write_trace_bag
+
+    if not (args.storey_height_m > 0):
+        raise ConfigError(f"--storey-height-m: expected > 0, got {args.storey_height_m}")
+    floors = site_floors(args.dataset_dir)
+    names = [f.name for f in floors]
+    if args.floors.strip():
+        want = [t.strip() for t in args.floors.split(",") if t.strip()]
+        bad = [w for w in want if w not in names]
+        if bad:
+            raise ConfigError(f"--floors: no floor(s) {bad}; the site has {names}")
+        floors = [f for f in floors if f.name in want]
+    out = Path(args.out_dir).resolve()
+    src = Path(args.dataset_dir).resolve()
+    if out == src or src in out.parents:
+        raise ConfigError(f"OUT_DIR {out} is inside the dataset directory {src}: refusing to write there")
+    out.mkdir(parents=True, exist_ok=True)
+    all_ids = {f.name: [p.name.split(".")[0] for p in f.trace_files] for f in floors}
+    flat = sorted(i for v in all_ids.values() for i in v)
+    walks = set(_select(args.walks, flat, "--walks"))
+    user_survey = set(_select(args.survey_walks, flat, "--survey-walks")) if args.survey_walks.strip() else None
+    bag_of = {i: out / f.name / f"{i}.mcap" for f in floors for i in all_ids[f.name] if i in walks}
+    check_outputs([*bag_of.values(), out / "radiomap", out / "params.yaml", out / "split.yaml",
+                   out / "import_report.md"], overwrite=args.overwrite, what="import ms-indoor")
+
+    rm = empty_radiomap()
+    rows, oddities, split = [], [], {}
+    skipped: list[str] = []
+    heading: dict[str, list] = {}
+    floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
+    for fl in floors:
+        ids = all_ids[fl.name]
+        if user_survey is None:
+            survey, test = split_map_test(ids)
+        else:
+            survey = [i for i in ids if i in user_survey]
+            test = [i for i in ids if i not in user_survey]
+        split[fl.name] = {"z_m": floor_z[fl.name], "survey": survey, "test": test}
+        _write_floor_plan(fl, out / "floors" / fl.name, floor_z[fl.name])
+        for p in fl.trace_files:
+            tid = p.name.split(".")[0]
+            if tid not in walks and tid not in survey:
+                continue
+            try:
+                tr = read_trace(p)
+            except DatasetError as err:          # one unreadable walk must not lose the others
+                oddities.append(f"{tid}: SKIPPED, unreadable: {err}")
+                skipped.append(tid)
+                continue
+            if tr.floor and tr.floor != fl.name:
+                oddities.append(f"{tid}: header FloorName {tr.floor!r} but stored under {fl.name}")
+            oddities += [f"{tid}: {o}" for o in tr.oddities if not o.startswith("rows not used")]
+            if tid in survey:
+                sc, xy = scans_with_truth(tr)
+                if sc:
+                    rm = add_fingerprints(rm, xy, sc, source=f"{fl.name}/{tid}", z_m=floor_z[fl.name],
+                                          floors={fl.name: floor_z[fl.name]})
+            if tid not in walks:
+                continue
+            heading.setdefault(fl.name, []).append(heading_offsets(tr))
+            bag = bag_of[tid]
+            bag.parent.mkdir(parents=True, exist_ok=True)
+            counts = write_trace_bag(tr, bag, z_m=floor_z[fl.name])
+            sc, _ = scans_with_truth(tr)
+            rel = trace_bag_counts(tr)
+            rows.append({"floor": fl.name, "walk": tid, "ns": walk_namespace(tr), "role":
+                         "survey" if tid in survey else "test", "device": tr.device,
+                         "duration_s": (tr.end_ns - tr.start_ns) * 1e-9, "waypoints": len(tr.waypoint_t),
+                         "scans": len(tr.scans), "scans_in_span": len(sc),
+                         "aps_per_scan": float(np.mean([len(s) for s in tr.scans])) if tr.scans else 0.0,
+                         "messages": sum(counts.values()), "imu_raw": rel["imu/data_raw"],
+                         "unused_rows": sum(v for k, v in tr.row_counts.items()
+                                            if k not in ("TYPE_WIFI", "TYPE_WAYPOINT") and not k.startswith("TYPE_ACC")
+                                            and not k.startswith("TYPE_GYR") and not k.startswith("TYPE_MAG")
+                                            and k != "TYPE_ROTATION_VECTOR")})
+    if rm.n_scans == 0:
+        raise DatasetError("no survey scan inside a waypoint span: the radio map would be empty")
+    rm_dir = out / "radiomap"
+    save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
+    (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
+                                    + yaml.safe_dump(split, sort_keys=False))
+    offset = _heading_offset(heading)
+    imu_params = {"heading_source": "orientation"}
+    if offset is not None:
+        imu_params["heading_offset_rad"] = round(offset, 4)
+    params = {"imu_node": imu_params,
+              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm)}}
+    (out / "params.yaml").write_text(params_file_text(params, header=(
+        "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
+        "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
+        "heading_offset_rad: walking direction in the map frame minus the phone's yaw, from the waypoints\n"
+        "(import_report.md, 'Heading check'); absent when the walks show no constant offset.\n"
+        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file).")))
+    heading_note = _heading_note(heading)
+    (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m)
+                                          + "\n" + heading_note + "\n")
+    print(_table(rows))
+    print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
+          + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+    print(f"params:    {out / 'params.yaml'}\nsplit:     {out / 'split.yaml'}\nreport:    {out / 'import_report.md'}")
+    print(f"oddities:  {len(oddities)} (see the report)")
+    if skipped:
+        print(f"SKIPPED {len(skipped)} unreadable walk(s): {', '.join(skipped)} (see the report)")
+    return 0
+
+
+def _heading_offset(heading: dict[str, list]) -> float | None:
+    """Site-wide circular mean of (walking direction − phone yaw), rad, or None if R < 0.5."""
+    parts = [d for v in heading.values() for d in v if len(d)]
+    if not parts:
+        return None
+    c = np.mean(np.exp(1j * np.concatenate(parts)))
+    return float(np.angle(c)) if abs(c) >= 0.5 else None
+
+
+def _heading_note(heading: dict[str, list]) -> str:
+    """Per floor: circular mean and resultant length R of (walking direction − phone yaw)."""
+    import math
+    off = _heading_offset(heading)
+    lines = ["## Heading check", "",
+             "Walking direction between waypoints (map frame) minus the rotation vector's yaw, per floor: "
+             "circular mean and resultant length R (1 = one constant offset, 0 = none). The site-wide mean "
+             "becomes imu_node's `heading_offset_rad` (ms_site2: about +90°, a phone carried along its +y "
+             "axis on plans nearly aligned with magnetic north) unless R < 0.5: "
+             + (f"**{math.degrees(off):.1f}° set**." if off is not None else "**none set**."), ""]
+    for name, parts in heading.items():
+        d = np.concatenate(parts) if parts else np.zeros(0)
+        if len(d) == 0:
+            lines.append(f"- {name}: no pair of waypoints 2 m apart")
+            continue
+        c = np.mean(np.exp(1j * d))
+        lines.append(f"- {name}: {len(d)} waypoint pairs, mean {math.degrees(float(np.angle(c))):.1f}°, "
+                     f"R = {abs(c):.2f}")
+    return "\n".join(lines)
+
+
+def _write_floor_plan(fl, d: Path, z_m: float) -> None:
+    d.mkdir(parents=True, exist_ok=True)
+    img = fl.directory / "floor_image.png"
+    gj = fl.directory / "geojson_map.json"
+    meta = {"floor": fl.name, "z_m": z_m, "width_m": fl.width_m, "height_m": fl.height_m, "frame_id": "map"}
+    if img.exists():
+        shutil.copyfile(img, d / "floor_image.png")
+        w_px = _png_width(img)
+        if w_px and np.isfinite(fl.width_m):
+            meta.update({"image": "floor_image.png", "resolution": fl.width_m / w_px,
+                         "origin": [0.0, 0.0, 0.0], "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196,
+                         "mode": "trinary"})
+    if gj.exists():
+        shutil.copyfile(gj, d / "geojson_map.json")
+    (d / "map.yaml").write_text("# floor plan in the map frame (nav2 map_server keys + floor height)\n"
+                                + yaml.safe_dump(meta, sort_keys=False))
+
+
+def _png_width(path: Path) -> int:
+    head = path.read_bytes()[:24]
+    if head[:8] != b"\x89PNG\r\n\x1a\n":
+        return 0
+    return int.from_bytes(head[16:20], "big")
+
+
+_COLS = [("floor", "floor", "{}"), ("walk", "walk", "{}"), ("role", "role", "{}"), ("device", "device", "{}"),
+         ("duration_s", "duration s", "{:.1f}"), ("waypoints", "waypoints", "{}"), ("scans", "scans", "{}"),
+         ("scans_in_span", "scans in waypoint span", "{}"), ("aps_per_scan", "AP/scan", "{:.0f}"),
+         ("imu_raw", "imu/data_raw", "{}"), ("messages", "messages", "{}"), ("unused_rows", "rows not used", "{}")]
+
+
+def _table(rows: list[dict]) -> str:
+    lines = ["| " + " | ".join(c[1] for c in _COLS) + " |", "|" + "---|" * len(_COLS)]
+    for r in rows:
+        lines.append("| " + " | ".join(f.format(r[k]) for k, _, f in _COLS) + " |")
+    return "\n".join(lines)
+
+
+def _report(src, rows, oddities, rm, floor_z, storey) -> str:
+    lines = ["# Microsoft indoor-location import report", "",
+             f"Site: `{src}`; {len(rows)} walks written; storey height {storey:g} m "
+             f"({', '.join(f'{k}: z = {v:g} m' for k, v in floor_z.items())}).", "",
+             "Conventions: time = Unix time in int ns (bag log time = header stamp). Map frame: the floor plans' "
+             "metres, x right, y up, origin at the plan's bottom-left; ground_truth = the waypoints (linear in "
+             "between), z = floor height. WiFi: readings with last_seen before the scan time are cached results, "
+             "age_ms = scan time − last_seen; a BSSID listed twice in a scan keeps its most recent reading. Rows "
+             "not used: Bluetooth (TYPE_BLUE/BLU4), iBeacons, TYPE_DIST*, accuracy changes.", "",
+             f"Radio map: `radiomap/`, {rm.n_scans} scans, {rm.n_aps} APs (survey walks in `split.yaml`).", "",
+             "## Walks", "", _table(rows), "", f"## Oddities ({len(oddities)})", ""]
+    lines += [f"- {o}" for o in oddities] or ["(none)"]
+    return "\n".join(lines) + "\n"
+
+
+def geojson_bounds(path: Path) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of every coordinate in a GeoJSON file (a frame sanity check)."""
+    pts: list[tuple[float, float]] = []
+
+    def walk(o):
+        if isinstance(o, (list, tuple)) and len(o) >= 2 and all(isinstance(v, (int, float)) for v in o[:2]):
+            pts.append((float(o[0]), float(o[1])))
+        elif isinstance(o, (list, tuple)):
+            for v in o:
+                walk(v)
+        elif isinstance(o, dict):
+            for v in o.values():
+                walk(v)
+    walk(json.loads(Path(path).read_text()))
+    a = np.array(pts)
+    return float(a[:, 0].min()), float(a[:, 1].min()), float(a[:, 0].max()), float(a[:, 1].max())
