@@ -168,7 +168,8 @@ def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event,
             break
         if time.monotonic() >= next_report:
             elapsed = time.monotonic() - t_start
-            print(f"   ... {elapsed:.0f} s (the bag lasts {duration_s / rate:.0f} s at rate {rate:g})", flush=True)
+            print(f"   ... {elapsed:.0f} s since start-up (the bag plays for {duration_s / rate:.0f} s once every "
+                  f"node has subscribed)", flush=True)
             next_report += 10.0
         time.sleep(0.1)
     if stop_event.is_set() or bup._stop_requested is not None:
@@ -284,7 +285,9 @@ def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
             for w in walkers:
                 t = rel.format(user=w)
                 if any(name.endswith("/" + t) for name in topics):
-                    per_user.update({w: tr for u, tr in trajectories_from_bags([bag], t).items()})
+                    found = list(trajectories_from_bags([bag], t).values())
+                    if found:
+                        per_user[w] = found[-1]
         elif any(name.endswith("/" + rel) for name in topics):
             per_user = trajectories_from_bags([bag], rel)
         for w in walkers:
@@ -323,7 +326,6 @@ def plot_run(png: Path, sim_dir: Path, trajs: dict, rows: list[ScoreRow]) -> Pat
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     from indoor_loc.commands.eval import truth_from_import
     from indoor_loc.sim.building import load_building

@@ -115,7 +115,7 @@ class PdrIntervals(NamedTuple):
     distance_var: np.ndarray
     dtheta_var: np.ndarray
 
-    def __len__(self) -> int:  # type: ignore[override]
+    def __len__(self) -> int:
         return len(self.t_end_ns)
 
     def row(self, i: int) -> PdrInterval:

@@ -40,6 +40,7 @@ from collections import deque
 from dataclasses import dataclass, field as dc_field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.measurements import OdomPose, wrap_angle
 from indoor_loc.params import field, require
@@ -127,12 +128,15 @@ class Pdr:
                         speed_var=q_along / (dt * dt))
 
 
-def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[OdomPose]:
+def pdr_batch(t_start_ns: ArrayLike, t_end_ns: ArrayLike, steps: ArrayLike, yaw: ArrayLike,
+              yaw_var: ArrayLike | None = None, params: PdrParams | None = None) -> list[OdomPose]:
     """Integrate whole arrays of hops (N,) (``yaw`` NaN = unknown). Same as :meth:`Pdr.update` in a loop."""
     pdr = Pdr(params)
-    yv = np.zeros(len(steps)) if yaw_var is None else np.asarray(yaw_var, float)
+    n_ = np.asarray(steps, float)
+    yv = np.zeros(len(n_)) if yaw_var is None else np.asarray(yaw_var, float)
     return [pdr.update(int(a), int(b), float(n), None if not np.isfinite(y) else float(y), float(v))
-            for a, b, n, y, v in zip(t_start_ns, t_end_ns, steps, np.asarray(yaw, float), yv)]
+            for a, b, n, y, v in zip(np.asarray(t_start_ns, np.int64), np.asarray(t_end_ns, np.int64), n_,
+                                     np.asarray(yaw, float), yv)]
 
 
 class HeadingHistory:
@@ -142,9 +146,9 @@ class HeadingHistory:
 
     def __init__(self, horizon_s: float = 10.0) -> None:
         self.horizon_ns = int(horizon_s * 1e9)
-        self._t: deque = deque()
-        self._yaw: deque = deque()      # unwrapped
-        self._var: deque = deque()
+        self._t: deque[int] = deque()
+        self._yaw: deque[float] = deque()      # unwrapped
+        self._var: deque[float] = deque()
 
     def __len__(self) -> int:
         return len(self._t)

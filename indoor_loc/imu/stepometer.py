@@ -35,9 +35,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field as dc_field
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
 
 from indoor_loc.errors import InvalidInputError
@@ -272,13 +273,13 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
 class StepometerState:
     """Everything :class:`Stepometer` needs to resume (save with :meth:`Stepometer.state`)."""
     grid_hz: float = 0.0                 # resampling rate in force (0 = not yet known)
-    pending_t: list = dc_field(default_factory=list)   # raw samples waiting for the rate estimate
-    pending_m: list = dc_field(default_factory=list)
+    pending_t: list[int] = dc_field(default_factory=list)   # raw samples waiting for the rate estimate
+    pending_m: list[float] = dc_field(default_factory=list)
     t0_ns: int | None = None             # stamp of grid index 0 of the current segment
     n_grid: int = 0                      # grid samples produced in the current segment
     last_t_ns: int | None = None         # last raw sample (for interpolation)
     last_m: float = 0.0
-    buffer: list = dc_field(default_factory=list)   # last grid samples of |a|, m/s²
+    buffer: list[float] = dc_field(default_factory=list)   # last grid samples of |a|, m/s²
     buffer_start: int = 0                # grid index of buffer[0]
     next_window: int = 0                 # index j of the next window to analyse
     last_freq_hz: float = 0.0
@@ -297,7 +298,7 @@ class StepometerState:
                                    buffer=list(self.buffer))
 
 
-def _magnitude(acc) -> np.ndarray:
+def _magnitude(acc: ArrayLike) -> np.ndarray:
     a = np.asarray(acc, dtype=float)
     return np.sqrt(np.sum(a * a, axis=-1))
 
@@ -357,7 +358,7 @@ class Stepometer:
         return self._design
 
     # -- input ------------------------------------------------------------------------------------
-    def update(self, stamp_ns: int, acc) -> list[StepHop]:
+    def update(self, stamp_ns: int, acc: Sequence[float] | np.ndarray) -> list[StepHop]:
         """One accelerometer sample: ``acc`` (3,) m/s² incl. gravity. Raises InvalidInputError
         (``"nan"``, ``"non_monotonic_stamp"``) with the state unchanged."""
         st = self._st
@@ -392,7 +393,7 @@ class Stepometer:
             raise InvalidInputError("shape", f"acc: expected 3 components, got {a.shape}")
         return self.update_many(np.array([t], dtype=np.int64), a[None, :])
 
-    def update_many(self, stamps_ns, acc) -> list[StepHop]:
+    def update_many(self, stamps_ns: ArrayLike, acc: ArrayLike) -> list[StepHop]:
         """A chunk of samples: ``stamps_ns`` (N,) int ns non-decreasing, ``acc`` (N, 3) m/s².
         Validated as a whole before any state change."""
         t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
@@ -467,7 +468,7 @@ class Stepometer:
                 continue
             # the run of samples up to the next big gap
             tt = t[start:]
-            prev_t = np.concatenate(([st.last_t_ns], tt[:-1]))
+            prev_t = np.concatenate((np.array([st.last_t_ns], np.int64), tt[:-1]))
             big = np.flatnonzero(tt - prev_t > gap_ns)
             stop = start + (int(big[0]) if len(big) else len(tt))
             if stop > start:
@@ -619,7 +620,7 @@ class Stepometer:
         return out
 
 
-def stepometer_batch(stamps_ns, acc, params: StepometerParams | None = None) -> list[StepHop]:
+def stepometer_batch(stamps_ns: ArrayLike, acc: ArrayLike, params: StepometerParams | None = None) -> list[StepHop]:
     """Whole recording at once: ``stamps_ns`` (N,) int ns, ``acc`` (N, 3) m/s². Returns the hops
     (the same as feeding :class:`Stepometer` sample by sample and calling ``finish()``)."""
     s = Stepometer(params)
