@@ -85,6 +85,9 @@ class StepometerParams:
     coast_s: float = field(0.0, "after the last periodic walking window, hops that are still moving but "
                                 "not periodic (a turn, a bag bumping) are counted at the last walking "
                                 "cadence for up to this long, s; 0 = never")
+    coast_energy_ratio: float = field(0.8, "coasting also needs the hop's |a| standard deviation (over "
+                                           "motion_window_s) at least this fraction of the last walking "
+                                           "hop's: a turn keeps the gait's energy, a stop loses it, 1")
     coast_confidence: float = field(0.5, "confidence of a hop counted while coasting, or of a moving "
                                          "hop counted as 0 steps, 0..1")
 
@@ -116,6 +119,7 @@ class StepometerParams:
                 self.motion_window_s)
         require(self.min_motion_std_m_s2 >= 0, n, "min_motion_std_m_s2", ">= 0", self.min_motion_std_m_s2)
         require(self.coast_s >= 0, n, "coast_s", ">= 0", self.coast_s)
+        require(self.coast_energy_ratio >= 0, n, "coast_energy_ratio", ">= 0", self.coast_energy_ratio)
         require(0.0 <= self.coast_confidence <= 1.0, n, "coast_confidence", "in [0, 1]", self.coast_confidence)
 
 
@@ -286,6 +290,7 @@ class StepometerState:
     last_walking: bool = False
     walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
     walk_end: int | None = None          # grid index where the last periodic walking hop ended
+    walk_motion_std: float = 0.0         # |a| std around the last periodic walking hop, m/s²
     count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
     count_confidence: float = 1.0
     last_confidence: float = 1.0
@@ -540,12 +545,14 @@ class Stepometer:
         if est.walking:
             st.walk_freq_hz = est.freq_hz
             st.walk_end = hi
+            st.walk_motion_std = est.motion_std_m_s2
             return self._emit(lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
         if est.motion_std_m_s2 < p.min_motion_std_m_s2:
             return self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)
         c = p.coast_confidence
         since_s = math.inf if st.walk_end is None else (lo - st.walk_end) / st.grid_hz
-        if st.walk_freq_hz > 0 and since_s < p.coast_s:
+        if (st.walk_freq_hz > 0 and since_s < p.coast_s
+                and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std):
             f = st.walk_freq_hz
             return self._emit(lo, hi, est.freq_hz, f, True, c, (1.0 - c) * f * dur)
         f_ref = min(max(est.freq_hz, p.f_min_hz), p.f_max_hz)
