@@ -277,7 +277,9 @@ def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
             for w in walkers:
                 t = rel.format(user=w)
                 if any(name.endswith("/" + t) for name in topics):
-                    per_user.update({w: tr for u, tr in trajectories_from_bags([bag], t).items()})
+                    found = list(trajectories_from_bags([bag], t).values())
+                    if found:
+                        per_user[w] = found[-1]
         elif any(name.endswith("/" + rel) for name in topics):
             per_user = trajectories_from_bags([bag], rel)
         for w in walkers:
@@ -316,7 +318,6 @@ def plot_run(png: Path, sim_dir: Path, trajs: dict, rows: list[ScoreRow]) -> Pat
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     from indoor_loc.commands.eval import truth_from_import
     from indoor_loc.sim.building import load_building

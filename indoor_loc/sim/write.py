@@ -14,8 +14,9 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
 
 ``OUT/radiomap/`` the survey (radio map format v1), ``OUT/building.geojson`` the building (walls,
 rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`,
-``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format), ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
-cumulative true step count), ``OUT/params.yaml`` configuring every node for this run
+``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format),
+``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the cumulative
+true step count), ``OUT/params.yaml`` configuring every node for this run
 (``/**/node_name:`` keys, so it applies in any namespace, live and offline), ``OUT/scenario.yaml``
 (seed, walkers, their step length and cadence, AP events).
 """
