@@ -249,9 +249,9 @@ class ImuStage(Stage):
         for h in hops:
             head = self.headings.at(h.t_end_ns) if self.heading_mode != "none" else None
             yaw, var = (None, UNKNOWN_YAW_VAR) if head is None else head
-            pose = self.pdr.update(h.t_start_ns, h.t_end_ns, h.steps, yaw, var)
+            pose = self.pdr.update(h.t_start_ns, h.t_end_ns, h.steps, yaw, var, h.steps_std)
             outs.append(("pdr/odom", odom_to_msg(pose.stamp_ns, self.odom_frame, self.base_frame, pose.x, pose.y,
-                                                 pose.yaw, pose.cov, pose.speed, pose.yaw_rate)))
+                                                 pose.yaw, pose.cov, pose.speed, pose.yaw_rate, pose.speed_var)))
             self.counts["odom"] += 1
         return outs
 
@@ -265,6 +265,7 @@ class ImuStage(Stage):
             "steps": f"{self.stepometer.total_steps:.1f}",
             "walking": str(self.stepometer.walking).lower(),
             "step_freq_hz": f"{self.stepometer.freq_hz:.3f}",
+            "step_confidence": f"{self.stepometer.confidence:.2f}",
             "rate_hz": f"{self.stepometer.rate_hz:.1f}",
             "acc_source": self._acc_topic or "",
             "heading_source": self.heading_mode,
