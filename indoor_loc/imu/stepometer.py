@@ -297,8 +297,8 @@ class StepometerState:
     walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
     walk_end: int | None = None          # grid index where the last periodic walking hop ended
     walk_motion_std: float = 0.0         # |a| std around the last periodic walking hop, m/s²
-    head_t: list = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
-    head_yaw: list = dc_field(default_factory=list)    # and unwrapped yaw, rad
+    head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
+    head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
     count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
     count_confidence: float = 1.0
     last_confidence: float = 1.0
