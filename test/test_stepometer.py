@@ -401,3 +401,33 @@ def test_pdr_step_uncertainty_grows_along_track_variance_and_speed_variance():
     dt = 0.32
     rec = math.sqrt(b.speed_var * dt * dt - (0.1 * 0.42) ** 2) / 0.7
     assert rec == pytest.approx(0.3)
+
+
+def test_turn_coasting_counts_a_corridor_turn_only_with_a_turning_heading(rng):
+    """Walk, a 2.5 s turn whose |a| loses its periodicity, walk. With turn_coast_s and a heading that
+    swings by 90° during the spell the turn is counted (confidence 0.5); with a straight heading or
+    none it is not. Online (headings interleaved) = batch."""
+    rate = 100.0
+    stamps = 10**9 + np.round(np.arange(int(40 * rate)) * 1e9 / rate).astype(np.int64)
+    acc = gait(rng, stamps, cadence_hz=1.8)
+    t = (stamps - stamps[0]) * 1e-9
+    spell = (t >= 20.0) & (t < 22.5)
+    acc[spell] = aperiodic_motion(rng, stamps[spell], std=2.0)
+    hs = stamps[::5]
+    turn = np.clip((t[::5] - 20.0) / 2.5, 0.0, 1.0) * (np.pi / 2)
+    p = StepometerParams(turn_coast_s=4.0)
+    truth = true_count(stamps, 1.8)
+    turned = stepometer_batch(stamps, acc, p, heading_stamps_ns=hs, heading_rad=turn)
+    straight = stepometer_batch(stamps, acc, p, heading_stamps_ns=hs, heading_rad=np.zeros(len(hs)))
+    none = stepometer_batch(stamps, acc, p)
+    assert total_steps(turned) == pytest.approx(truth, rel=0.02)
+    assert total_steps(straight) == total_steps(none) < total_steps(turned) - 2.0
+    assert any(h.confidence == 0.5 and h.steps > 0 for h in turned)
+    s = Stepometer(p)
+    online, k = [], 0
+    for i in range(len(stamps)):
+        while k < len(hs) and hs[k] <= stamps[i]:
+            s.add_heading(int(hs[k]), float(turn[k]))
+            k += 1
+        online += s.update(int(stamps[i]), acc[i])
+    assert online + s.finish() == turned

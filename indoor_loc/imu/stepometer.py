@@ -88,6 +88,10 @@ class StepometerParams:
     coast_energy_ratio: float = field(0.8, "coasting also needs the hop's |a| standard deviation (over "
                                            "motion_window_s) at least this fraction of the last walking "
                                            "hop's: a turn keeps the gait's energy, a stop loses it, 1")
+    turn_coast_s: float = field(0.0, "with a heading (add_heading), a moving but not periodic hop within "
+                                     "this long of the last walking window is counted at the last cadence "
+                                     "while the heading turns (a corridor turn), s; 0 = never")
+    turn_min_rad: float = field(0.5, "heading change over the window span of such a hop that makes it a turn, rad")
     coast_confidence: float = field(0.5, "confidence of a hop counted while coasting, or of a moving "
                                          "hop counted as 0 steps, 0..1")
 
@@ -119,6 +123,8 @@ class StepometerParams:
                 self.motion_window_s)
         require(self.min_motion_std_m_s2 >= 0, n, "min_motion_std_m_s2", ">= 0", self.min_motion_std_m_s2)
         require(self.coast_s >= 0, n, "coast_s", ">= 0", self.coast_s)
+        require(self.turn_coast_s >= 0, n, "turn_coast_s", ">= 0", self.turn_coast_s)
+        require(self.turn_min_rad > 0, n, "turn_min_rad", "> 0", self.turn_min_rad)
         require(self.coast_energy_ratio >= 0, n, "coast_energy_ratio", ">= 0", self.coast_energy_ratio)
         require(0.0 <= self.coast_confidence <= 1.0, n, "coast_confidence", "in [0, 1]", self.coast_confidence)
 
@@ -291,6 +297,8 @@ class StepometerState:
     walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
     walk_end: int | None = None          # grid index where the last periodic walking hop ended
     walk_motion_std: float = 0.0         # |a| std around the last periodic walking hop, m/s²
+    head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
+    head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
     count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
     count_confidence: float = 1.0
     last_confidence: float = 1.0
@@ -300,7 +308,8 @@ class StepometerState:
 
     def copy(self) -> "StepometerState":
         return dataclasses.replace(self, pending_t=list(self.pending_t), pending_m=list(self.pending_m),
-                                   buffer=list(self.buffer))
+                                   buffer=list(self.buffer), head_t=list(self.head_t),
+                                   head_yaw=list(self.head_yaw))
 
 
 def _magnitude(acc: ArrayLike) -> np.ndarray:
@@ -363,6 +372,40 @@ class Stepometer:
         return self._design
 
     # -- input ------------------------------------------------------------------------------------
+    def add_heading(self, stamp_ns: int, yaw_rad: float) -> None:
+        """A heading sample (rad, any frame; only its changes matter) for the turn test of
+        :meth:`_count`. Give headings up to a stamp before the accelerometer samples of that stamp
+        (live: as they arrive). Non-finite or out-of-order samples are ignored."""
+        st = self._st
+        t = int(stamp_ns)
+        if not math.isfinite(yaw_rad) or (st.head_t and t <= st.head_t[-1]):
+            return
+        y = float(yaw_rad)
+        if st.head_yaw:
+            y = st.head_yaw[-1] + (y - st.head_yaw[-1] + math.pi) % (2 * math.pi) - math.pi
+        st.head_t.append(t)
+        st.head_yaw.append(y)
+        keep_ns = int((2.0 * self.params.window_s + 2.0) * 1e9)
+        drop = 0
+        while drop < len(st.head_t) - 2 and st.head_t[drop] < t - keep_ns:
+            drop += 1
+        if drop:
+            del st.head_t[:drop], st.head_yaw[:drop]
+
+    def clear_headings(self) -> None:
+        """Forget the stored headings (the heading source changed its frame)."""
+        self._st.head_t, self._st.head_yaw = [], []
+
+    def _turned_rad(self, t0_ns: int, t1_ns: int) -> float:
+        """|heading change| over [t0, t1] from the stored headings (0 without any)."""
+        st = self._st
+        if len(st.head_t) < 2:
+            return 0.0
+        tt = np.asarray(st.head_t, dtype=np.int64)
+        yy = np.asarray(st.head_yaw, dtype=float)
+        y0, y1 = np.interp([float(t0_ns - tt[0]), float(t1_ns - tt[0])], (tt - tt[0]).astype(float), yy)
+        return abs(float(y1 - y0))
+
     def update(self, stamp_ns: int, acc: Sequence[float] | np.ndarray) -> list[StepHop]:
         """One accelerometer sample: ``acc`` (3,) m/s² incl. gravity. Raises InvalidInputError
         (``"nan"``, ``"non_monotonic_stamp"``) with the state unchanged."""
@@ -551,8 +594,13 @@ class Stepometer:
             return self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)
         c = p.coast_confidence
         since_s = math.inf if st.walk_end is None else (lo - st.walk_end) / st.grid_hz
-        if (st.walk_freq_hz > 0 and since_s < p.coast_s
-                and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std):
+        coast = (since_s < p.coast_s and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
+        if not coast and since_s < p.turn_coast_s and st.walk_freq_hz > 0:
+            # a corridor turn: the heading swings while the gait loses its periodicity
+            half = int(0.5 * p.window_s * 1e9)
+            mid = (self._grid_time(lo) + self._grid_time(hi)) // 2
+            coast = self._turned_rad(mid - half, mid + half) >= p.turn_min_rad
+        if st.walk_freq_hz > 0 and coast:
             f = st.walk_freq_hz
             return self._emit(lo, hi, est.freq_hz, f, True, c, (1.0 - c) * f * dur)
         f_ref = min(max(est.freq_hz, p.f_min_hz), p.f_max_hz)
@@ -627,11 +675,29 @@ class Stepometer:
         return out
 
 
-def stepometer_batch(stamps_ns: ArrayLike, acc: ArrayLike, params: StepometerParams | None = None) -> list[StepHop]:
-    """Whole recording at once: ``stamps_ns`` (N,) int ns, ``acc`` (N, 3) m/s². Returns the hops
-    (the same as feeding :class:`Stepometer` sample by sample and calling ``finish()``)."""
+def stepometer_batch(stamps_ns: ArrayLike, acc: ArrayLike, params: StepometerParams | None = None, *,
+                     heading_stamps_ns: ArrayLike | None = None, heading_rad: ArrayLike | None = None) -> list[StepHop]:
+    """Whole recording at once: ``stamps_ns`` (N,) int ns, ``acc`` (N, 3) m/s²; optionally headings
+    (M,) int ns / rad for the turn test. Returns the hops (the same as feeding :class:`Stepometer`
+    sample by sample, each heading before the accelerometer samples at or after its stamp, and
+    calling ``finish()``)."""
     s = Stepometer(params)
-    hops = s.update_many(stamps_ns, acc)
+    t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    a = np.asarray(acc, dtype=float)
+    if heading_stamps_ns is None or heading_rad is None:
+        return s.update_many(t, a) + s.finish()
+    ht = np.asarray(heading_stamps_ns, dtype=np.int64).reshape(-1)
+    hy = np.asarray(heading_rad, dtype=float).reshape(-1)
+    cut = np.searchsorted(t, ht, side="left")          # acc samples before each heading
+    hops: list[StepHop] = []
+    prev = 0
+    for k, c in enumerate(cut):
+        if c > prev:
+            hops += s.update_many(t[prev:c], a[prev:c])
+            prev = int(c)
+        s.add_heading(int(ht[k]), float(hy[k]))
+    if prev < len(t):
+        hops += s.update_many(t[prev:], a[prev:])
     return hops + s.finish()
 
 
