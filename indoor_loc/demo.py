@@ -3,7 +3,7 @@
 With no arguments:
 
 1. simulate a few walkers with phones in the sample building (``indoor-loc sim``) -> OUT/sim/
-   (bag, radio map, building graph, truth, params.yaml); skipped when OUT/sim holds the same scenario;
+   (bag, radio map, building graph, truth, params.yaml; a few seconds, the same seed gives the same run);
 2. bring up every node as its own process over DDS (``indoor-loc up`` machinery), namespaced per
    walker: ``imu_node`` (stepometer + AEKF heading -> pdr/odom, imu/data), ``wifi_fix_node`` (WKNN
    -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman filter -> pdr_kf/pose, pdr_kf/path), the particle
@@ -84,14 +84,6 @@ def _simulate(out: Path, args: argparse.Namespace) -> dict[str, Path]:
     except ValueError as err:
         raise ConfigError(str(err)) from err
     sim_dir = out / "sim"
-    scen = sim_dir / "scenario.yaml"
-    if scen.exists() and (sim_dir / "sim.mcap").exists():
-        old = yaml.safe_load(scen.read_text()) or {}
-        if (old.get("seed"), old.get("duration_s"), len(old.get("walkers", []))) == (cfg.seed, cfg.duration_s,
-                                                                                   cfg.walkers):
-            print(f"== 1/4 simulation: using {sim_dir} (same seed, walkers and duration)")
-            return {"bag": sim_dir / "sim.mcap", "params": sim_dir / "params.yaml", "dir": sim_dir,
-                    "walkers": [w["name"] for w in old["walkers"]]}
     print(f"== 1/4 simulate {cfg.walkers} walkers x {cfg.duration_s:g} s in the sample building -> {sim_dir}")
     paths = generate(sim_dir, cfg)
     names = [w["name"] for w in yaml.safe_load(paths["scenario"].read_text())["walkers"]]

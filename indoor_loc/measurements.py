@@ -83,6 +83,7 @@ class OdomPose(NamedTuple):
     yaw_rate: float
     frame_id: str = ""
     child_frame_id: str = ""
+    speed_var: float = 0.0          # variance of speed (twist.covariance[0]), m²/s²; 0 = not given
 
 
 class PdrInterval(NamedTuple):

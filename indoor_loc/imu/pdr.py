@@ -20,6 +20,14 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
   accumulates, per hop, an along-track variance ``(step_length_rel_std · d_i)²`` and a cross-track
   variance ``d_i² · min(σ_ψ², 1)`` rotated into x, y (hops treated as independent), so it grows with
   the distance walked and with the heading uncertainty.
+- step confidence: a hop the stepometer is unsure of (a moving but not periodic window, see
+  :class:`indoor_loc.imu.stepometer.StepHop`) carries a count standard deviation ``σ_n`` (steps);
+  it adds ``(step_length_m · σ_n)²`` to that hop's along-track variance (so the decoded interval's
+  ``distance_var`` carries it), and ``twist.covariance[0]`` (variance of ``twist.linear.x``) is the
+  hop's walking-speed variance ``((step_length_rel_std · d_i)² + (step_length_m · σ_n)²) / Δt²``
+  (m²/s²): a consumer recovers the count's standard deviation as
+  ``σ_n = sqrt(var_v Δt² − (step_length_rel_std · d_i)²) / step_length_m``. A confident hop has
+  ``σ_n = 0``.
 
 Without a heading the yaw is held at its last value (0 at the start) and the track is a straight
 line whose length is still the walked distance.
@@ -86,9 +94,10 @@ class Pdr:
         self._st = state.copy()
 
     def update(self, t_start_ns: int, t_end_ns: int, steps: float, yaw: float | None,
-               yaw_var: float | None = None) -> OdomPose:
+               yaw_var: float | None = None, steps_std: float = 0.0) -> OdomPose:
         """Integrate one hop. ``yaw`` rad at the hop's end (None = unknown: the last yaw is held),
-        ``yaw_var`` rad² (None with a known yaw = 0)."""
+        ``yaw_var`` rad² (None with a known yaw = 0), ``steps_std`` the count's standard deviation
+        (steps; 0 = a confident count)."""
         st = self._st
         p = self.params
         if yaw is None or not math.isfinite(yaw):
@@ -104,7 +113,8 @@ class Pdr:
         st.y += d * s
         # heading uncertainty of the segment: the larger of the two ends' variances
         seg_var = max(var, float(st.cov[2, 2]) if st.stamp_ns is not None else var)
-        q_along = (p.step_length_rel_std * d) ** 2
+        n_std = float(steps_std) if math.isfinite(steps_std) and steps_std > 0 else 0.0
+        q_along = (p.step_length_rel_std * d) ** 2 + (p.step_length_m * n_std) ** 2
         q_cross = d * d * min(seg_var, 1.0)
         rot = np.array([[c, -s], [s, c]])
         st.cov[:2, :2] += rot @ np.diag([q_along, q_cross]) @ rot.T
@@ -114,7 +124,8 @@ class Pdr:
         st.stamp_ns = int(t_end_ns)
         st.total_steps += max(0.0, float(steps))
         st.distance_m += d
-        return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt)
+        return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
+                        speed_var=q_along / (dt * dt))
 
 
 def pdr_batch(t_start_ns: ArrayLike, t_end_ns: ArrayLike, steps: ArrayLike, yaw: ArrayLike,
