@@ -96,7 +96,10 @@ def _oracle_tll(g, l_max, pieces=200):
         chain = [a] + list(range(nid, nid + pieces - 1)) + [b]
         nid += pieces - 1
         for u, v in zip(chain[:-1], chain[1:]):
-            rows.append(u); cols.append(v); w.append(g.link_len[li] / pieces); piece_link.append(li)
+            rows.append(u)
+            cols.append(v)
+            w.append(g.link_len[li] / pieces)
+            piece_link.append(li)
     n = nid
     mat = csr_matrix((w, (rows, cols)), shape=(n, n))
     rows, cols, w = np.array(rows), np.array(cols), np.array(w)
@@ -109,7 +112,8 @@ def _oracle_tll(g, l_max, pieces=200):
         order = np.argsort(dist[k])
         edge_of = {}
         for e, (u, v) in enumerate(zip(rows, cols)):
-            edge_of[(u, v)] = e; edge_of[(v, u)] = e
+            edge_of[(u, v)] = e
+            edge_of[(v, u)] = e
         for x in order:
             p = pred[k, x]
             if p < 0:

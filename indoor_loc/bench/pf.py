@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -159,7 +158,7 @@ def _fmt_runs(rows: list[dict]) -> str:
 def off_graph(graph, trajs: dict) -> float:
     """Largest distance of any pose to the graph (m)."""
     worst = 0.0
-    for t, xy in trajs.values():
+    for _t, xy in trajs.values():
         if len(xy):
             worst = max(worst, float(graph.project(xy)[2].max()))
     return worst
@@ -228,8 +227,10 @@ def main(args: argparse.Namespace) -> int:
             lines.append(f"| PF {rule} + PDR, backward-simulation smoothed | {_fmt_runs(srows)} |")
     kf = trajectories_from_bags([run], "pdr_kf/pose")
     kfs = trajectories_from_bags([run], "pdr_kf/path")
-    lines.append(f"| linear KF + PDR, causal (`pdr_kf/pose`) | {_fmt_runs([_score({u: (kf[u].stamps_ns, kf[u].xy) for u in users}, truths)])} |")
-    lines.append(f"| linear KF + PDR, RTS-smoothed (`pdr_kf/path`) | {_fmt_runs([_score({u: (kfs[u].stamps_ns, kfs[u].xy) for u in users}, truths)])} |")
+    kf_rows = _fmt_runs([_score({u: (kf[u].stamps_ns, kf[u].xy) for u in users}, truths)])
+    kfs_rows = _fmt_runs([_score({u: (kfs[u].stamps_ns, kfs[u].xy) for u in users}, truths)])
+    lines.append(f"| linear KF + PDR, causal (`pdr_kf/pose`) | {kf_rows} |")
+    lines.append(f"| linear KF + PDR, RTS-smoothed (`pdr_kf/path`) | {kfs_rows} |")
     print("\nWith PDR (pdr/odom + wifi/fix):\n")
     print("\n".join(lines))
     print(f"\nsmoothed poses: farthest from the graph {smooth_off:.3f} m; PF TLL + PDR + smoother ran "

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -42,7 +41,8 @@ class PlanParams:
     clearance_m: float = P.field(0.12, "free space keeps at least this distance from walls (m)")
     min_spur_m: float = P.field(1.0, "dead-end links shorter than this are pruned (m)")
     simplify_m: float = P.field(0.25, "Douglas-Peucker tolerance when straightening skeleton chains (m)")
-    envelope_gap_m: float = P.field(2.5, "outer-wall gaps (windows, doors) up to twice this wide are closed to find the building's inside (m); 0 = keep the outside")
+    envelope_gap_m: float = P.field(2.5, "outer-wall gaps (windows, doors) up to twice this wide are closed "
+                                         "to find the building's inside (m); 0 = keep the outside")
     origin_x_m: float = P.field(0.0, "map x of the image's left edge (m)")
     origin_y_m: float = P.field(0.0, "map y of the image's bottom edge (m)")
 
@@ -139,7 +139,7 @@ def skeleton_graph(grey: np.ndarray, p: PlanParams, seeds_xy: np.ndarray | None 
     from skimage.morphology import skeletonize
 
     free = free_space(grey, p, seeds_xy)
-    skel = skeletonize(free)
+    skel = skeletonize(free)  # type: ignore[no-untyped-call]
     h, w = skel.shape
     nb = _neighbour_count(skel)
     node_px = skel & (nb != 2)
@@ -197,8 +197,11 @@ def skeleton_graph(grey: np.ndarray, p: PlanParams, seeds_xy: np.ndarray | None 
         d = dijkstra(sub, directed=False, indices=int(na[0]))
         order = members[np.argsort(d)]
         poly = np.column_stack([rr[order], cc[order]]).astype(float)
-        poly = np.vstack([[node_r[a], node_c[a]], poly] + ([[node_r[b], node_c[b]]] if b is not None else []))
-        simp = approximate_polygon(poly, tolerance=tol_px) if len(poly) > 2 else poly
+        rows_: list[np.ndarray] = [np.array([[node_r[a], node_c[a]]]), poly]
+        if b is not None:
+            rows_.append(np.array([[node_r[b], node_c[b]]]))
+        poly = np.vstack(rows_)
+        simp = approximate_polygon(poly, tolerance=tol_px) if len(poly) > 2 else poly  # type: ignore[no-untyped-call]
         prev = a
         for q in simp[1:-1] if b is not None else simp[1:]:
             pts.append((float(q[0]), float(q[1])))
@@ -236,7 +239,7 @@ def _tidy(xy: np.ndarray, links: list[tuple[int, int]], min_spur_m: float) -> Bu
     remap = -np.ones(m, np.int64)
     remap[keep_nodes] = np.arange(len(keep_nodes))
     keep_links = lk_arr[(remap[lk_arr[:, 0]] >= 0)]
-    return build_graph(np.arange(len(keep_nodes)), xy[keep_nodes], remap[keep_links].tolist())
+    return build_graph(list(range(len(keep_nodes))), xy[keep_nodes], remap[keep_links].tolist())
 
 
 def grid_graph(grey: np.ndarray, p: PlanParams, cell_m: float, seeds_xy: np.ndarray | None = None) -> BuildingGraph:
@@ -257,7 +260,7 @@ def grid_graph(grey: np.ndarray, p: PlanParams, cell_m: float, seeds_xy: np.ndar
         r0, r1 = 0, gh - dr
         c0, c1 = max(0, -dc), gw - max(0, dc)
 
-        def shifted(sr: int, sc: int) -> np.ndarray:
+        def shifted(sr: int, sc: int, r0: int = r0, r1: int = r1, c0: int = c0, c1: int = c1) -> np.ndarray:
             return idx[r0 + sr:r1 + sr, c0 + sc:c1 + sc]
         a, b = shifted(0, 0), shifted(dr, dc)
         ok = (a >= 0) & (b >= 0)

@@ -36,6 +36,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -78,7 +79,7 @@ def _weights_csr(g: BuildingGraph) -> csr_matrix:
                       shape=(g.n_nodes, g.n_nodes))
 
 
-def _link_lookup(g: BuildingGraph):
+def _link_lookup(g: BuildingGraph) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """Vectorised (u, v) -> link index via sorted keys u * M + v (both orders)."""
     m = g.n_nodes
     ln = g.link_nodes.astype(np.int64)

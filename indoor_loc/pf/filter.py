@@ -68,7 +68,8 @@ class PfParams:
     init_sigma_extra_m: float = P.field(2.0, "initial cloud: fix covariance inflated by this std per axis (m)")
     reinit_mahalanobis2: float = P.field(40.0, "re-initialise around a fix when every particle's squared Mahalanobis distance exceeds this")
     reinit_fraction: float = P.field(0.5, "fraction of particles redrawn at a re-initialisation")
-    inject_fraction: float = P.field(0.15, "at every WiFi fix this fraction of the lowest-weight particles is redrawn around the fix (sensor resetting)")
+    inject_fraction: float = P.field(0.15, "at every WiFi fix this fraction of the lowest-weight particles is "
+                                           "redrawn around the fix (sensor resetting)")
 
     def validate(self) -> None:
         n = type(self).__name__

@@ -173,8 +173,6 @@ def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
                                                  "path_period_s": 10.0}},
-        # the graph particle filter on the building's link graph (written beside the radio map)
-        "/**/tll_pf": {"ros__parameters": {"graph_file": str(Path(radiomap_dir).parent / "graph.yaml")}},
     }
 
 
