@@ -63,6 +63,8 @@ class AekfOracle:
         self.rest_s = 0.0
         self.en = self.ed = 0.0
         self.dist_s = 0.0
+        self.ok_s = 0.0
+        self.mag_t = 0
         self.init = True
 
     def _correct(self, dx):
@@ -148,21 +150,24 @@ class AekfOracle:
                 dip = math.asin(max(-1.0, min(1.0, me[2] / mn)))
                 if not self.ref_ok:
                     self.ref_ok, self.norm_ref, self.dip_ref = True, mn, dip
-                gam = dt / (p.mag_anomaly_tau_s + dt)
+                dtm = min((t - self.mag_t) * 1e-9 if self.mag_t else dt, p.max_dt_s)
+                self.mag_t = t
+                gam = dtm / (p.mag_anomaly_tau_s + dtm)
                 self.en += gam * (mn / self.norm_ref - 1.0 - self.en)
                 self.ed += gam * (dip - self.dip_ref - self.ed)
                 rn, rd = self.en / p.mag_norm_tol, self.ed / p.mag_dip_tol
                 anomaly = rn * rn + rd * rd
                 if rn * rn <= 1.0 and rd * rd <= 1.0:
-                    beta = dt / (p.mag_ref_tau_s + dt)
+                    beta = dtm / (p.mag_ref_tau_s + dtm)
                     ed = dip - self.dip_ref
                     self.norm_ref += beta * (mn - self.norm_ref)
                     self.dip_ref += beta * ed
                     self.dist_s = 0.0
+                    self.ok_s += dtm
                 else:
                     use = False
-                    self.dist_s += dt
-                    if self.dist_s > p.mag_relearn_s:
+                    self.dist_s += dtm
+                    if self.dist_s > (p.mag_relearn_s if self.ok_s >= p.mag_ref_confirm_s else p.mag_relearn_first_s):
                         self.norm_ref, self.dip_ref = mn, dip
                         self.dist_s = 0.0
                         self.en = self.ed = 0.0
