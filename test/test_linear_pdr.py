@@ -134,7 +134,7 @@ def test_rts_without_measurements_equals_forward():
 def test_joseph_form_keeps_covariance_symmetric_psd():
     rng = np.random.default_rng(3)
     kf = LinearPdrKf(LinearPdrParams(gate=False), xy0=np.zeros(2), pos_cov0=1e6 * np.eye(2))
-    for t in range(300):
+    for _ in range(300):
         kf.predict(1.0, 0.3 * rng.standard_normal())
         kf.update(Fix(0, rng.standard_normal(2), 1e-8 * np.eye(2)))
         assert np.array_equal(kf.P, kf.P.T)

@@ -126,6 +126,9 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     assert rm.n_scans == 4 and rm.floors == {"B1": -5.0, "F1": 0.0}
     assert sorted(set(rm.z_m.tolist())) == [-5.0, 0.0]
     assert rm.age_ms is not None and np.nanmax(rm.age_ms) == 4000
+    from indoor_loc.commands.radiomap import info_lines
+    info = "\n".join(info_lines(out / "radiomap"))
+    assert "floors: B1 z=-5 m (2 scans), F1 z=0 m (2 scans)" in info and "reading ages: median" in info
     params = yaml.safe_load((out / "params.yaml").read_text())
     wifi = params["/**/wifi_fix_node"]["ros__parameters"]
     assert Path(wifi["radiomap"]) == out / "radiomap" and wifi["method"] == "powed"    # ages, two floors
@@ -176,3 +179,26 @@ def test_an_unreadable_walk_is_skipped_and_reported_not_fatal(tmp_path, capsys):
     assert (tmp_path / "out" / "F1" / "5f0000000000000000000001.mcap").exists()
     assert "SKIPPED 1 unreadable walk(s): 5f0000000000000000000009" in capsys.readouterr().out
     assert "5f0000000000000000000009: SKIPPED, unreadable" in (tmp_path / "out" / "import_report.md").read_text()
+
+
+def test_imported_bags_replayed_through_wifi_give_the_core_fixes(tmp_path):
+    """indoor-loc run --nodes wifi with the importer's params.yaml = the powed positioner on the same
+    map and scans (the live/offline stage adds nothing and loses nothing)."""
+    from indoor_loc.bag import read_bag
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    from indoor_loc.pipeline.offline import run_offline
+    from indoor_loc.wifi.powed_knn import PowedKnn
+    from indoor_loc.wifi.radiomap import load_radiomap
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(out, survey_walks="5f0000000000000000000001,5f0000000000000000000002")) == 0
+    bag = out / "B1" / "5f0000000000000000000002.mcap"
+    run_offline([bag], tmp_path / "run.mcap", nodes=["wifi"], params=out / "params.yaml", progress=False)
+    fixes = [m.msg for m in read_bag(tmp_path / "run.mcap") if m.topic.endswith("/wifi/fix")]
+    pos = PowedKnn().fit(load_radiomap(out / "radiomap"))
+    expect = [pos.locate(s) for s in read_trace(B1).scans]
+    assert len(fixes) == len(expect) == 3 and all(f.ok for f in expect)
+    for msg, f in zip(fixes, expect):
+        p = msg.pose.pose.position
+        np.testing.assert_allclose([p.x, p.y], f.xy, atol=1e-9)
+        assert p.z == f.z == -5.0
+        np.testing.assert_allclose(np.reshape(msg.pose.covariance, (6, 6))[:2, :2], f.cov, atol=1e-9)

@@ -46,7 +46,7 @@ def _run(stage, odoms, fixes):
         for topic, msg in stage.process("pdr/odom", od, 0):
             (poses if topic == "pdr_kf/pose" else paths).append(msg)
         if i in fixes:
-            for topic, msg in stage.process("wifi/fix", fixes[i], 0):
+            for _, msg in stage.process("wifi/fix", fixes[i], 0):
                 poses.append(msg)
     paths += [m for topic, m in stage.finish() if topic == "pdr_kf/path"]
     return poses, paths

@@ -1,6 +1,7 @@
 """``indoor-loc import DATASET ...``: convert a dataset into MCAP bags + params.yaml.
 
-One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each adds its own arguments and a ``func``.
+One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each
+adds its own arguments and a ``func``.
 
 ``indoor-loc import putmc DATASET_DIR OUT_DIR [--walks 1,2,7] [--keep-stale]`` writes
 ``OUT_DIR/walkNN.mcap`` (namespace ``/walkNN``; topics in :mod:`indoor_loc.datasets.putmc_bags`),

@@ -162,6 +162,15 @@ def info_lines(directory: Path) -> list[str]:
     if heard.any():
         lines.append(f"  RSSI range: {np.nanmin(rm.rssi_dbm):.0f} .. {np.nanmax(rm.rssi_dbm):.0f} dBm; "
                      f"APs heard in 1 scan only: {int((heard.sum(axis=0) == 1).sum())}")
+    zs, counts = np.unique(np.asarray(rm.z_m, float), return_counts=True)
+    if len(zs) > 1 or rm.floors:
+        names = {float(v): k for k, v in rm.floors.items()}
+        lines.append("  floors: " + ", ".join(f"{names.get(float(z), '?')} z={z:g} m ({c} scans)"
+                                              for z, c in zip(zs, counts)))
+    ages = np.asarray(rm.age_ms, float)[~np.isnan(np.asarray(rm.age_ms, float))] if rm.age_ms is not None else []
+    if len(ages):
+        lines.append(f"  reading ages: median {np.median(ages):.0f} ms, {100 * np.mean(ages > 1000):.0f} % older "
+                     "than 1 s (cached results)")
     created = man.get("created") or {}
     if created:
         lines.append(f"  created {created.get('utc', '?')} by {created.get('by', '?')}")

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc.params import field, require
-from indoor_loc.errors import ConfigError, InvalidInputError
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.measurements import Fix
 
 H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement matrix

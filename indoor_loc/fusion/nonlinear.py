@@ -23,7 +23,7 @@ from scipy.stats import chi2
 
 from indoor_loc.params import field, require
 from indoor_loc.errors import InvalidInputError
-from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, PositionFilter)
+from indoor_loc.fusion.linear_pdr import (KfState, KfTrack, LinearPdrKf, PositionFilter)
 from indoor_loc.measurements import Fix
 
 

@@ -39,8 +39,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.measurements import wrap_angle
@@ -127,15 +129,15 @@ class AekfState:
 
     initialised: bool = False
     stamp_ns: int = 0
-    q: list = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
-    bias: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    P: list = dataclasses.field(default_factory=lambda: [0.0] * 36)
+    q: list[float] = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
+    bias: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    P: list[float] = dataclasses.field(default_factory=lambda: [0.0] * 36)
     acc_mean: float = 0.0            # running mean of |a|, m/s²
     acc_var: float = 0.0             # running variance of |a|, (m/s²)²
-    gyro_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    acc_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    enu_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])       # m/s², ENU
-    enu_lp_rate: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s³, ENU
+    gyro_lp: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    acc_lp: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    enu_lp: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])       # m/s², ENU
+    enu_lp_rate: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s³, ENU
     rest_s: float = 0.0              # how long the device has been still, s
     mag_ref_ok: bool = False
     mag_norm_ref: float = 0.0        # reference field norm (input unit)
@@ -154,7 +156,7 @@ class AekfState:
                                    enu_lp=list(self.enu_lp), enu_lp_rate=list(self.enu_lp_rate))
 
 
-def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
+def _initialise(st: AekfState, p: AekfParams, a: list[float], m: list[float] | None) -> None:
     """Tilt from the accelerometer (shortest arc a → e_z), heading from the magnetometer if any."""
     ax, ay, az = a
     n = math.sqrt(ax * ax + ay * ay + az * az)
@@ -197,7 +199,7 @@ def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
     st.initialised = True
 
 
-def _rot(q: list, v: list) -> tuple[float, float, float]:
+def _rot(q: list[float], v: list[float]) -> tuple[float, float, float]:
     w, x, y, z = q
     vx, vy, vz = v
     return ((1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
@@ -205,8 +207,9 @@ def _rot(q: list, v: list) -> tuple[float, float, float]:
             2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz)
 
 
-def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None,
-         out_q: list | None, out_cov: list | None) -> None:
+def _run(st: AekfState, p: AekfParams, t: list[int], g: list[list[float]], a: list[list[float]],
+         m: list[list[float]] | None, out_q: list[Sequence[float]] | None,
+         out_cov: list[Sequence[float]] | None) -> None:
     """Process samples ``t[k]`` (int ns), ``g[k]``, ``a[k]``, ``m[k]`` (lists of 3 floats; ``m`` None
     or an entry None for no magnetometer) in place on ``st``. Appends (w,x,y,z) to ``out_q`` and
     the 9 entries of P[0:3,0:3] to ``out_cov`` per sample when given."""
@@ -625,13 +628,14 @@ class Aekf:
         self.params = params if params is not None else AekfParams()
         self.params.validate()
         self._st = AekfState()
-        self._pending_mag: list | None = None
+        self._pending_mag: list[float] | None = None
 
-    def update(self, stamp_ns: int, gyro, acc, mag=None) -> None:
+    def update(self, stamp_ns: int, gyro: Sequence[float] | np.ndarray, acc: Sequence[float] | np.ndarray,
+               mag: Sequence[float] | np.ndarray | None = None) -> None:
         """One sample: ``gyro`` (3,) rad/s, ``acc`` (3,) m/s² (specific force, +g up at rest),
         ``mag`` (3,) any unit or None. dt comes from the stamps (irregular is fine); the first call
-        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or stamps that do not
-        increase (the state is then unchanged)."""
+        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or
+        stamps that do not increase (the state is then unchanged)."""
         g = [float(v) for v in gyro]
         a = [float(v) for v in acc]
         mm = None if mag is None else [[float(v) for v in mag]]
@@ -640,13 +644,13 @@ class Aekf:
         # _run checks a sample before touching the state, so a rejected sample leaves it unchanged
         _run(self._st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
 
-    def update_imu(self, stamp_ns: int, gyro, acc) -> None:
+    def update_imu(self, stamp_ns: int, gyro: Sequence[float] | np.ndarray, acc: Sequence[float] | np.ndarray) -> None:
         """One IMU sample; a magnetometer sample given by :meth:`update_mag` since the previous IMU
         sample is applied with it (each magnetometer sample once)."""
         mag, self._pending_mag = self._pending_mag, None
         self.update(stamp_ns, gyro, acc, mag)
 
-    def update_mag(self, stamp_ns: int, mag) -> None:
+    def update_mag(self, stamp_ns: int, mag: Sequence[float] | np.ndarray) -> None:
         """One magnetometer sample at its own stamp, applied with the next IMU sample."""
         m = [float(v) for v in mag]
         if len(m) != 3 or not all(math.isfinite(v) for v in m):
@@ -695,7 +699,8 @@ class Aekf:
         self._st = state.copy()
 
 
-def aekf_batch(t_ns, gyro, acc, mag=None, params: AekfParams | None = None,
+def aekf_batch(t_ns: ArrayLike, gyro: ArrayLike, acc: ArrayLike, mag: ArrayLike | None = None,
+               params: AekfParams | None = None,
                state: AekfState | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Run the filter over whole arrays: ``t_ns`` (N,) int ns, ``gyro`` (N, 3) rad/s, ``acc`` (N, 3)
     m/s², ``mag`` (N, 3) or None (rows of NaN = no magnetometer sample). Returns ``quat`` (N, 4)
@@ -720,7 +725,7 @@ def aekf_batch(t_ns, gyro, acc, mag=None, params: AekfParams | None = None,
             for i in np.flatnonzero(~ok):
                 mlist[i] = None
     st = state if state is not None else AekfState()
-    out_q: list = []
-    out_c: list = []
+    out_q: list[Sequence[float]] = []
+    out_c: list[Sequence[float]] = []
     _run(st, params, t.tolist(), g.tolist(), a.tolist(), mlist, out_q, out_c)
     return np.array(out_q).reshape(n, 4), np.array(out_c).reshape(n, 3, 3)

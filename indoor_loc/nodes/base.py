@@ -196,6 +196,8 @@ class StageNode(Node):
         self.user_subs[user] = [
             self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
                                      qos_profile(p.qos)) for p in self.stage.inputs()]
+        for port in self.stage.user_outputs():      # ready (and matched) before the first output
+            self._publisher(port.topic.format(user=user))
         self._user_seen[user] = self._monotonic()
         self._finished_users.discard(user)
         self.get_logger().info(f"following user {user!r}")
@@ -227,7 +229,7 @@ class StageNode(Node):
                 continue
             self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
             self._finished_users.add(user)
-            self._publish(self.stage.finish_user(user))
+            self._publish(self.stage.run_finish_user(user))
             if not self._fixed_users:
                 for sub in self.user_subs.pop(user):
                     self.destroy_subscription(sub)

@@ -14,17 +14,21 @@ instance serves all bags (``indoor-loc run --order merged|sequential``, see ``pi
 live, ``StageNode`` subscribes to the users of its ``users`` parameter or discovers them from the
 graph and follows them as they come and go (``nodes/base.py``).
 ``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
-the contract, or input the core refuses) is counted under its reason and dropped; any other exception is counted as ``internal_error`` and reported in
-``last_error`` (the node logs it, throttled). Nothing else is lost: the stage state is unchanged
-by a rejected message because handlers validate (via msg_adapters) before touching state.
+the contract, or input the core refuses) is counted under its reason and dropped; any other
+exception is counted as ``internal_error`` and reported in ``last_error`` (the node logs it,
+throttled). Nothing else is lost: the stage state is unchanged by a rejected message because
+handlers validate (via msg_adapters) before touching state.
 """
 from __future__ import annotations
 
 import functools
+import time
 import traceback
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
+
+import numpy as np
 
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidInputError
@@ -64,6 +68,8 @@ class StageDiagnostics:
     rejected: Counter = field(default_factory=Counter)   # reason -> count
     last_error: str = ""
     last_error_reason: str = ""
+    #: wall-clock processing time of the latest messages, s (bounded window): the node's per-update latency
+    process_s: deque = field(default_factory=lambda: deque(maxlen=20000))
 
     def summary(self) -> dict[str, str]:
         """Flat key/values for a DiagnosticStatus."""
@@ -77,6 +83,11 @@ class StageDiagnostics:
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected.{reason}"] = str(n)
         out["rejected.total"] = str(sum(self.rejected.values()))
+        if self.process_s:
+            t = np.fromiter(self.process_s, float) * 1e3
+            out["process_ms.p50"] = f"{np.percentile(t, 50):.2f}"
+            out["process_ms.p99"] = f"{np.percentile(t, 99):.2f}"
+            out["process_ms.max"] = f"{t.max():.2f}"
         return out
 
 
@@ -175,6 +186,7 @@ class Stage:
         stats.count += 1
         stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns
         stats.last_ns = recv_ns
+        t0 = time.perf_counter()
         try:
             outs = handler(msg, recv_ns)
         except InvalidInputError as err:
@@ -183,6 +195,8 @@ class Stage:
         except Exception as err:  # noqa: BLE001 - a node never dies on a message
             self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
+        finally:
+            self.diag.process_s.append(time.perf_counter() - t0)
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1
         return outs
@@ -191,6 +205,10 @@ class Stage:
         """:meth:`tick` for drivers: an exception is counted as ``internal_error`` (never escapes
         the timer or aborts an offline run); what the stage published before is kept."""
         return self._guarded("tick", lambda: self.tick(now_ns))
+
+    def run_finish_user(self, user: str) -> list[Output]:
+        """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("finish_user", lambda: self.finish_user(user))
 
     def run_finish(self) -> list[Output]:
         """:meth:`finish` for drivers, guarded like :meth:`run_tick`."""

@@ -14,8 +14,9 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
 
 ``OUT/radiomap/`` the survey (radio map format v1), ``OUT/building.geojson`` the building (walls,
 rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`,
-``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format), ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
-cumulative true step count), ``OUT/params.yaml`` configuring every node for this run
+``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format),
+``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the cumulative
+true step count), ``OUT/params.yaml`` configuring every node for this run
 (``/**/node_name:`` keys, so it applies in any namespace, live and offline), ``OUT/scenario.yaml``
 (seed, walkers, their step length and cadence, AP events).
 """
@@ -153,7 +154,7 @@ def write_truth_csv(w: SimWalker, path: Path, t0_ns: int = T0_NS) -> None:
                          int(m.floor[i]), f"{m.heading[i]:.5f}", f"{m.steps[i]:.3f}"))
 
 
-def node_params(run: SimRun, radiomap_dir: Path) -> dict:
+def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
     """The params.yaml of a simulated run: every node, ``/**/node_name`` keys (any namespace)."""
     mean_step = float(run.config.step_length_m[0])
     return {
@@ -163,6 +164,11 @@ def node_params(run: SimRun, radiomap_dir: Path) -> dict:
             "heading_offset_rad": 0.0}},      # the device's x axis points forward (REP 103)
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
         "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
+        # the particle filter on the building graph (its TLL table is cached beside graph.yaml)
+        # time_jump_s: live, a WiFi fix arrives about 2 s before the PDR hops of the same time (the
+        # stepometer reports half a window late), so "older than the newest stamp" must allow more
+        # than that; a bag played in a loop still jumps back by the whole run
+        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file), "time_jump_s": 10.0}},
         # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
@@ -185,7 +191,7 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
         stale.unlink()
     for w in run.walkers:
         write_truth_csv(w, out / "truth" / f"{w.name}.csv")
-    params = node_params(run, rm_dir)
+    params = node_params(run, rm_dir, graph)
     (out / "params.yaml").write_text(
         "# Written by `indoor-loc sim`: configures every node for this simulated run (any namespace).\n"
         "# imu/data_raw + imu/mag feed the AEKF; the step length is the population mean (each walker's\n"
