@@ -105,7 +105,8 @@ class AekfParams:
             require(isinstance(v, (int, float)) and math.isfinite(v), owner, f.name, "a finite number", v)
         positive = ("gyro_noise", "bias_init_std", "gravity", "acc_noise", "acc_stat_tau_s",
                     "acc_reject_m_s2", "mag_noise", "mag_norm_tol", "mag_dip_tol", "mag_ref_tau_s",
-                    "mag_relearn_s", "mag_relearn_first_s", "mag_ref_confirm_s", "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
+                    "mag_relearn_s", "mag_relearn_first_s", "mag_ref_confirm_s",
+                    "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
                     "max_dt_s")
         for name in positive:
             v = getattr(self, name)
