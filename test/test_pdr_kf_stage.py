@@ -63,7 +63,7 @@ def test_filter_and_smoother_beat_wifi_alone(rng):
     wifi_err = np.array([np.linalg.norm(fix_from_msg(m).xy - true_xy[i]) for i, m in fixes.items()])
     last = [fix_from_msg(m) for m in poses][-1]
     assert np.isfinite(last.cov).all()
-    # seed 004's ordering: smoothed < WiFi-only, with margin
+    # Raitoharju et al. 2015's ordering: smoothed < WiFi-only, with margin
     assert smooth_err[20:].mean() < 0.6 * wifi_err.mean(), (smooth_err.mean(), wifi_err.mean())
 
 

@@ -98,7 +98,7 @@ def import_putmc(args: argparse.Namespace) -> int:
 
     params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
               "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)},
-              # the seed-001 paper's joint + step-length configuration: walks one after another
+              # Nowicki & Skrzypczyński 2019's joint + step-length configuration: walks one after another
               # (1…24), each matching the survey and all earlier walks' scans
               "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
                                "estimate_step_length": True}}

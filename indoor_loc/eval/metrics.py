@@ -1,4 +1,4 @@
-"""Trajectory error metrics (pure numpy): route distance, the seed-001 paper metric, scan-time error.
+"""Trajectory error metrics (pure numpy): route distance, Nowicki & Skrzypczyński 2019 metric, scan-time error.
 
 Three views of one estimated trajectory against a PUTMC-style ground truth (a route made of
 segments, plus true positions at time-stamped WiFi scans):
@@ -100,7 +100,7 @@ def stats(d: ArrayLike) -> Stats:
 
 
 def paper_score(d: ArrayLike, *, max_sq_err_m2: float = PAPER_MAX_SQ_ERR_M2) -> PaperScore:
-    """The seed-001 metric of route distances d (N,) m: e = d², keep e < max_sq_err_m2,
+    """The Nowicki & Skrzypczyński 2019 metric of route distances d (N,) m: e = d², keep e < max_sq_err_m2,
     "RMSE" = sqrt(mean(e²)), "mean" = mean(e) (both in squared units, as published)."""
     d = np.asarray(d, dtype=np.float64).ravel()
     e = d * d

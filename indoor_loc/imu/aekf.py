@@ -1,6 +1,6 @@
 """Adaptive error-state EKF for orientation (device→ENU) and gyroscope bias.
 
-Method (SPEC §1.2; seed 001 ref. [45]): the state is a unit quaternion ``q`` (device→ENU,
+Method (the AEKF of Nowicki & Skrzypczyński 2019, Sec. 3, after their ref. [45]): the state is a unit quaternion ``q`` (device→ENU,
 ``v_enu = R(q) v_dev``) and the gyroscope bias ``b`` (rad/s, device frame). The filter is
 multiplicative: its 6-D error state is ``δx = [δθ, δb]`` with ``q_true = exp(δθ) ⊗ q`` — δθ is a
 small rotation about the **ENU** axes, so ``P[0:3, 0:3]`` is directly the orientation covariance

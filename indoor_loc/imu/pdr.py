@@ -1,8 +1,8 @@
-"""Pedestrian dead reckoning: stepometer hops × step length along the heading (SPEC §1.1, §6).
+"""Pedestrian dead reckoning: stepometer hops × step length along the heading (Nowicki & Skrzypczyński 2019, Sec. 3).
 
 Per stepometer hop ``i`` (``[t_start, t_end)``, ``n_i`` steps) and the heading ``ψ_i`` at the hop's
 end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading of the interval**
-``ψ̄_i = ψ_(i-1) + wrap(ψ_i − ψ_(i-1))/2`` (the paper's PDR edge, seed 001 eq. for ``e_p``):
+``ψ̄_i = ψ_(i-1) + wrap(ψ_i − ψ_(i-1))/2`` (the PDR edge ``e_p`` of Nowicki & Skrzypczyński 2019):
 ``x_i = x_(i-1) + d_i cos ψ̄_i``, ``y_i = y_(i-1) + d_i sin ψ̄_i``.
 
 ``pdr/odom`` contract (one nav_msgs/Odometry per stepometer hop, stamped at the hop's end, frame

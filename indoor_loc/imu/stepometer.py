@@ -1,4 +1,4 @@
-"""FFT stepometer (SPEC §1.1, seed 001 §3.1): step frequency of the accelerometer magnitude.
+"""FFT stepometer (Nowicki & Skrzypczyński 2019, Sec. 3.1): step frequency of the accelerometer magnitude.
 
 The magnitude ``|a|`` (m/s²) is resampled onto a uniform grid from the sample stamps (linear
 interpolation, so 50–400 Hz and irregular sampling are all fine), and a window of ``window_s``

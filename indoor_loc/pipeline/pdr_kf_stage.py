@@ -60,7 +60,7 @@ class PdrKfStageParams:
 
 
 class PdrKfStage(Stage):
-    """Linear PDR Kalman filter + RTS smoother (seed 004): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
+    """Linear PDR Kalman filter + RTS smoother (Raitoharju et al. 2015): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
 

@@ -1,4 +1,4 @@
-"""Log-distance path-loss WiFi positioning (seed 000, Koivisto-style; SPEC §2.2).
+"""Log-distance path-loss WiFi positioning (Nurminen et al. 2014).
 
 Per AP a the received power at position r (m) is modelled as::
 
