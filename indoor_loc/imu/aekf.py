@@ -61,7 +61,7 @@ class AekfParams:
     bias_init_std: float = field(0.5 * _DEG, "initial gyroscope bias standard deviation, rad/s")
     bias_walk: float = field(5e-5, "gyroscope bias random walk, rad/s/√s")
     gravity: float = field(9.81, "local gravity magnitude, m/s²")
-    acc_noise: float = field(1.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
+    acc_noise: float = field(2.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
                                   "per sample")
     acc_lp_tau_s: float = field(3.0, "time constant of the 2nd-order Butterworth low-pass applied to the "
                                      "accelerometer in the ENU frame before the tilt update (0 = raw), s")
@@ -84,6 +84,10 @@ class AekfParams:
     mag_ref_tau_s: float = field(30.0, "time constant of the online field-norm/dip reference, s")
     mag_relearn_s: float = field(30.0, "a disturbance lasting longer than this becomes the new "
                                        "reference (changed environment), s")
+    mag_relearn_first_s: float = field(5.0, "the same for the start-up reference (one sample, dipped through a "
+                                            "start-up tilt), until it is confirmed, s")
+    mag_ref_confirm_s: float = field(20.0, "the reference is confirmed once the field has agreed with it this "
+                                           "long, s")
     mag_gate_nis: float = field(9.0, "normalised innovation squared above which the magnetometer noise "
                                      "is inflated, 1")
     mag_declination: float = field(0.0, "magnetic declination (east of true north positive); 0 keeps "
@@ -101,7 +105,8 @@ class AekfParams:
             require(isinstance(v, (int, float)) and math.isfinite(v), owner, f.name, "a finite number", v)
         positive = ("gyro_noise", "bias_init_std", "gravity", "acc_noise", "acc_stat_tau_s",
                     "acc_reject_m_s2", "mag_noise", "mag_norm_tol", "mag_dip_tol", "mag_ref_tau_s",
-                    "mag_relearn_s", "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
+                    "mag_relearn_s", "mag_relearn_first_s", "mag_ref_confirm_s",
+                    "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
                     "max_dt_s")
         for name in positive:
             v = getattr(self, name)
@@ -139,6 +144,8 @@ class AekfState:
     mag_norm_ref: float = 0.0        # reference field norm (input unit)
     mag_dip_ref: float = 0.0         # reference dip angle, rad (positive = field points up)
     mag_dist_s: float = 0.0          # how long the field has been disturbed, s
+    mag_ok_s: float = 0.0            # how long the field has agreed with the reference, s
+    mag_stamp_ns: int = 0            # stamp of the previous magnetometer sample used
     mag_norm_anomaly: float = 0.0    # smoothed ‖m‖/ref − 1
     mag_dip_anomaly: float = 0.0     # smoothed dip − ref, rad
     n_acc_skipped: int = 0
@@ -226,6 +233,8 @@ def _run(st: AekfState, p: AekfParams, t: list[int], g: list[list[float]], a: li
     dtol = p.mag_dip_tol
     tau_m = p.mag_ref_tau_s
     relearn = p.mag_relearn_s
+    relearn_first = p.mag_relearn_first_s
+    confirm = p.mag_ref_confirm_s
     gate = p.mag_gate_nis
     decl = p.mag_declination
     rest_g2 = p.rest_gyro ** 2
@@ -517,22 +526,33 @@ def _run(st: AekfState, p: AekfParams, t: list[int], g: list[list[float]], a: li
                 if not st.mag_ref_ok:
                     st.mag_ref_ok = True
                     st.mag_norm_ref, st.mag_dip_ref = mn, dip
+                # the magnetometer's own clock: its timers and low-passes advance by the time since the
+                # previous magnetometer sample, not by the IMU's dt (a 50 Hz magnetometer beside a
+                # 200 Hz gyroscope would otherwise age 4x too slowly)
+                dtm = (tk - st.mag_stamp_ns) * 1e-9 if st.mag_stamp_ns else dt
+                dtm = min(dtm, max_dt)
+                st.mag_stamp_ns = tk
                 # anomalies, smoothed over mag_anomaly_tau_s (sensor noise alone should not trip them)
-                gam = dt / (tau_an + dt)
+                gam = dtm / (tau_an + dtm)
                 en_lp += gam * (mn / st.mag_norm_ref - 1.0 - en_lp)
                 ed_lp += gam * (dip - st.mag_dip_ref - ed_lp)
                 ed = dip - st.mag_dip_ref
                 rn, rd = en_lp / ntol, ed_lp / dtol
                 anomaly = rn * rn + rd * rd
                 if rn * rn <= 1.0 and rd * rd <= 1.0:
-                    beta = dt / (tau_m + dt)
+                    beta = dtm / (tau_m + dtm)
                     st.mag_norm_ref += beta * (mn - st.mag_norm_ref)
                     st.mag_dip_ref += beta * ed
                     st.mag_dist_s = 0.0
+                    st.mag_ok_s += dtm
                 else:
                     use = False
-                    st.mag_dist_s += dt
-                    if st.mag_dist_s > relearn:  # persistent: a new environment, not a disturbance
+                    st.mag_dist_s += dtm
+                    # persistent: a new environment, not a disturbance. The first reference comes from
+                    # one sample at start-up, dipped through a tilt that may be wrong while moving:
+                    # until the field has agreed with it for mag_ref_confirm_s, relearn after the shorter
+                    # mag_relearn_first_s
+                    if st.mag_dist_s > (relearn if st.mag_ok_s >= confirm else relearn_first):
                         st.mag_norm_ref, st.mag_dip_ref = mn, dip
                         st.mag_dist_s = 0.0
                         en_lp = ed_lp = 0.0
