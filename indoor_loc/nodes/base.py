@@ -32,6 +32,7 @@ from typing import Any, Callable
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -56,6 +57,8 @@ QOS_PROFILES: dict[Qos, QoSProfile] = {
 }
 
 DIAGNOSTICS_PERIOD_S = 1.0
+#: How long a stopping node waits for subscribers to acknowledge its last outputs (s).
+FINISH_ACK_TIMEOUT_S = 2.0
 #: How often a multi-user node polls the ROS graph for users joining and leaving (s).
 DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
@@ -282,6 +285,11 @@ class StageNode(Node):
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
         self._publish(self.stage.run_finish())
+        # the end-of-input outputs (a final smoothed path) must reach reliable subscribers before
+        # the process ends: wait (bounded) until every reliable publisher's messages are acked
+        for pub in self._pubs.values():
+            if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+                pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S))
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
