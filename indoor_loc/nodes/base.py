@@ -67,8 +67,43 @@ _BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
 _SPIN_PERIOD_S = 0.1
 
 
+#: History depth of the nodes' *subscriptions*, sized for bursts rather than for the steady rate:
+#: a replay at 5x, a scheduler hiccup on a loaded machine or a slow first callback must not make
+#: DDS overwrite messages the node has not taken yet (2000 IMU samples = 10 s at 200 Hz, ~1 MB).
+SUB_DEPTH = {Qos.SENSOR: 2000, Qos.RELIABLE: 1000, Qos.BEST_EFFORT: 100}
+
+
 def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
+
+
+def subscription_qos(qos: Qos) -> QoSProfile:
+    """The contract QoS of an input, with the burst-sized depth of :data:`SUB_DEPTH`."""
+    base = QOS_PROFILES[qos]
+    depth = SUB_DEPTH.get(qos, base.depth)
+    return QoSProfile(history=base.history, depth=max(depth, base.depth), reliability=base.reliability,
+                      durability=base.durability)
+
+
+class SequenceGaps:
+    """Messages lost on the way to a subscription, from gaps in the publisher's sequence numbers
+    (``publication_sequence_number`` of the message info; DDS numbers each writer's samples 1, 2,
+    3...). rclpy does not say which publisher a message came from, so gaps are counted only while
+    the topic has a single publisher (``publishers`` is refreshed by the caller)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.publishers = 1
+
+    def gap(self, info: Any) -> int:
+        seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if not seq or self.publishers != 1:
+            self.last = None if self.publishers != 1 else self.last
+            return 0
+        last, self.last = self.last, seq
+        if last is None or seq <= last:          # first message, or a restarted publisher
+            return 0
+        return seq - last - 1
 
 
 def _default_of(f: dataclasses.Field) -> Any:
@@ -101,6 +136,7 @@ class StageNode(Node):
     def __init__(self, stage_cls: type[Stage], **node_kwargs: Any) -> None:
         super().__init__(stage_cls.NODE_NAME, **node_kwargs)
         self._stage_cls = stage_cls
+        self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> sequence-gap counter
         values = self._declare_params(stage_cls.PARAMS)
         params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
         self.stage: Stage = stage_cls(params, namespace=self.get_namespace())
@@ -108,7 +144,7 @@ class StageNode(Node):
         self._pubs = {p.topic: self.create_publisher(msg_class(p.type), p.topic, qos_profile(p.qos))
                       for p in self.stage.outputs()}
         self._subs = [] if self.stage.MULTI_USER else [
-            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), qos_profile(p.qos))
+            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), subscription_qos(p.qos))
             for p in self.stage.inputs()]
         # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
         self.user_subs: dict[str, list] = {}
@@ -121,6 +157,7 @@ class StageNode(Node):
             self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
+        self._refresh_publisher_counts()
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
         self.get_logger().info(
             f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
@@ -198,7 +235,7 @@ class StageNode(Node):
         ns = namespace_of_user(user)
         self.user_subs[user] = [
             self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
-                                     qos_profile(p.qos)) for p in self.stage.inputs()]
+                                     subscription_qos(p.qos)) for p in self.stage.inputs()]
         self._user_seen[user] = self._monotonic()
         self._finished_users.discard(user)
         self.get_logger().info(f"following user {user!r}")
@@ -236,12 +273,23 @@ class StageNode(Node):
                 self._user_seen.pop(user, None)
 
     # -- messages ----------------------------------------------------------------------------------
-    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any], None]:
-        def cb(msg: Any) -> None:
+    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
+        gaps = self._gaps.setdefault(join_ns(namespace_of_user(user), topic) if user else topic, SequenceGaps())
+
+        def cb(msg: Any, info: Any) -> None:
             now_ns = self.get_clock().now().nanoseconds
+            lost = gaps.gap(info)
+            if lost:
+                self.stage.diag.count_lost(topic, lost, now_ns)
+                self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
+                                          f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
             self._publish(self.stage.process(topic, msg, now_ns, user))
             self._log_rejections()
         return cb
+
+    def _refresh_publisher_counts(self) -> None:
+        for topic, gaps in self._gaps.items():
+            gaps.publishers = self.count_publishers(topic)
 
     def _publisher(self, topic: str):
         pub = self._pubs.get(topic)
@@ -274,6 +322,7 @@ class StageNode(Node):
                 throttle_duration_sec=5.0)
 
     def _on_timer(self) -> None:
+        self._refresh_publisher_counts()
         now_ns = self.get_clock().now().nanoseconds
         self._publish(self.stage.run_tick(now_ns))
         self._log_rejections()
