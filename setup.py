@@ -14,6 +14,8 @@ NODES = {
     "recorder": "indoor_loc.nodes.recorder_node:main",
     "player": "indoor_loc.nodes.player_node:main",
     "pdr_kf_node": "indoor_loc.nodes.pdr_kf_node:main",
+    "backend_node": "indoor_loc.nodes.backend_node:main",
+    "view": "indoor_loc.nodes.view_node:main",
 }
 
 setup(

@@ -1,7 +1,8 @@
 """``indoor-loc``: the package's command line (offline replay, bring-up, bags, import, eval, bench).
 
-Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``main(args) -> int``;
-modules are imported only when their command runs (``--help`` lists them all without importing).
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``main(args) -> int``
+(``"module:function"`` names another entry point, e.g. a node's ``run``); modules are imported only
+when their command runs (``--help`` lists them all without importing).
 """
 from __future__ import annotations
 
@@ -13,11 +14,11 @@ from indoor_loc.errors import IndoorLocError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("indoor_loc.demo", "replay a PUTMC walk through the pipeline, score it and plot it"),
+    "demo": ("indoor_loc.demo", "the main job: simulated walkers in the sample building, every node live over DDS, scored and plotted"),
     "run": ("indoor_loc.pipeline.offline", "run bags through the nodes offline, as fast as the CPU allows"),
     "up": ("indoor_loc.commands.up", "start a set of nodes from a bring-up YAML (like a launch file)"),
-    "record": ("indoor_loc.commands.record", "record DDS topics to an MCAP bag"),
-    "play": ("indoor_loc.commands.play", "publish an MCAP bag onto DDS (rate, loop, /clock)"),
+    "record": ("indoor_loc.nodes.recorder_node:run", "record DDS topics to an MCAP bag (the recorder node)"),
+    "play": ("indoor_loc.nodes.player_node:run", "publish an MCAP bag onto DDS (rate, loop, /clock; the player node)"),
     "bag": ("indoor_loc.commands.bag", "bag tools: info, recover"),
     "import": ("indoor_loc.commands.import_data", "import a dataset into MCAP bags + params.yaml"),
     "eval": ("indoor_loc.commands.eval", "score trajectories against ground truth"),
@@ -25,7 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
-    "sim": ("indoor_loc.sim.cli", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
+    "view": ("indoor_loc.commands.view", "live view of a running system over Foxglove WebSocket (foxglove-sdk)"),
+    "sim": ("indoor_loc.commands.sim", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
 }
 
 
@@ -35,7 +37,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
         if name == selected:
-            importlib.import_module(module).add_arguments(p)
+            importlib.import_module(module.partition(":")[0]).add_arguments(p)
     return parser
 
 
@@ -49,9 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 1
-    module = importlib.import_module(COMMANDS[args.command][0])
+    module, _, function = COMMANDS[args.command][0].partition(":")
+    entry = getattr(importlib.import_module(module), function or "main")
     try:
-        return int(module.main(args) or 0)
+        return int(entry(args) or 0)
     except IndoorLocError as err:
         print(f"indoor-loc {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -95,12 +95,22 @@ def join_ns(namespace: str, topic: str) -> str:
     return f"/{ns}/{topic}" if ns else f"/{topic}"
 
 
+def namespace_of_topic(full: str, rel: str) -> str | None:
+    """The namespace under which ``full`` is the relative topic ``rel``: ``('/walk07/imu/data',
+    'imu/data') -> '/walk07'``, ``('/imu/data', 'imu/data') -> ''``; None when it is not ``rel``."""
+    rel = rel.lstrip("/")
+    if full == "/" + rel or full == rel:
+        return ""
+    if full.endswith("/" + rel):
+        return full[: -len(rel) - 1]
+    return None
+
+
 def split_ns(full: str, relative_names: set[str] | None = None) -> tuple[str, str]:
     """Split ``/walk07/imu/data`` into (``/walk07``, ``imu/data``) by matching known relative names."""
     names = relative_names or {t for t in TOPICS if not t.startswith("/")}
     for rel in sorted(names, key=len, reverse=True):
-        if full == "/" + rel:
-            return "", rel
-        if full.endswith("/" + rel):
-            return full[: -len(rel) - 1], rel
+        ns = namespace_of_topic(full, rel)
+        if ns is not None:
+            return ns, rel
     return "", full

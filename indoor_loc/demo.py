@@ -1,118 +1,379 @@
-"""``indoor-loc demo`` (``make demo``): the pipeline on the real PUTMC dataset, end to end.
+"""``indoor-loc demo`` (``make demo``): the package's main job, live over DDS, on the shipped sample building.
 
-1. import the PUTMC walks into MCAP bags + radio map + params.yaml (once; cached in OUT/import);
-2. replay them offline through the nodes ``imu`` (FFT stepometer + PDR from the phone's
-   orientation), ``wifi`` (WKNN fixes against the 114-scan survey map) and ``pdr_kf`` (seed-004
-   linear PDR Kalman filter + RTS smoother), exactly as the live nodes would run -> OUT/run.mcap;
-3. score WiFi-only, filtered and smoothed trajectories against the ground truth (seed-001 paper
-   convention and true metres, route and scan-time errors), beside the published reference;
-4. plot one walk on the floor plan -> OUT/walkNN.png, and write every trajectory as CSV.
+With no arguments:
+
+1. simulate a few walkers with phones in the sample building (``indoor-loc sim``) -> OUT/sim/
+   (bag, radio map, building graph, truth, params.yaml); skipped when OUT/sim holds the same scenario;
+2. bring up every node as its own process over DDS (``indoor-loc up`` machinery), namespaced per
+   walker: ``imu_node`` (stepometer + AEKF heading -> pdr/odom, imu/data), ``wifi_fix_node`` (WKNN
+   -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman filter -> pdr_kf/pose, pdr_kf/path), the particle
+   filter and the multi-user back-end when this build has them, the recorder (every output topic
+   -> OUT/live.mcap) and the player (the simulated bag, with /clock, all nodes on sim time);
+3. when the bag has been played, stop the estimators (their final outputs are recorded), then the
+   recorder; score each estimator per walker against the ground truth; draw OUT/demo.png.
+
+``--dataset putmc`` runs the real-data demo instead (PUTMC import, offline replay through the same
+stages, scores beside the published reference). ``--foxglove`` adds the live view
+(``indoor-loc view``: Foxglove WebSocket on ws://localhost:8765).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import importlib.util
+import os
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 
-from indoor_loc.errors import DatasetError
+import yaml
 
-NODES = ["imu", "wifi", "pdr_kf"]
-# (label, topic) scored from the run bag
-ESTIMATES = [("WiFi only, WKNN (wifi/fix)", "wifi/fix"),
-             ("PDR + WiFi linear KF, filtered (pdr_kf/pose)", "pdr_kf/pose"),
-             ("PDR + WiFi linear KF, RTS-smoothed (pdr_kf/path)", "pdr_kf/path")]
-# Published / reference figures on the same 24 walks (../shared/datasets/README.md, SPEC §6):
-REFERENCE = [("reference C++: separate graph, no step-length est.", 6.24, 2.42, 1.123, 2.86, 2.20, 7.97),
-             ("reference C++: joint graph + step-length est.", 4.65, 2.11, 1.076, 2.78, 2.10, 6.87)]
+from indoor_loc.errors import ConfigError
+
+# (label, relative topic) of the estimators scored per walker (those present in the recording)
+ESTIMATORS = [("WiFi only, WKNN", "wifi/fix"),
+              ("PDR + WiFi KF, filtered", "pdr_kf/pose"),
+              ("PDR + WiFi KF, RTS-smoothed", "pdr_kf/path"),
+              ("particle filter (TLL), filtered", "pf/pose"),
+              ("particle filter (TLL), smoothed", "pf/path"),
+              ("multi-user back-end", "backend/{user}/path")]
+#: Inputs played from the simulated bag: not recorded again (the sim bag has them).
+INPUT_TOPICS_RE = r"(/imu/data_raw|/imu/mag|/wifi/scan|^/clock|^/rosout|^/parameter_events)$"
+PER_WALKER_NODES = [("imu", "imu_node"), ("wifi", "wifi_fix_node"), ("pdr_kf", "pdr_kf_node")]
+#: Node modules that later builds add; the demo starts them when present.
+OPTIONAL_PER_WALKER = [("pf", "tll_pf_node")]
+OPTIONAL_SHARED = [("backend", "backend_node")]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
-    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
-    parser.add_argument("--walks", default="all", help="PUTMC walks to use: 'all' or e.g. 1,7,12")
-    parser.add_argument("--plot-walk", type=int, default=6, help="walk drawn on the floor plan (default 6)")
-    parser.add_argument("--reimport", action="store_true", help="import again even if OUT/import exists")
+    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory (default out/demo)")
+    parser.add_argument("--walkers", type=int, default=3, help="simulated walkers (default 3)")
+    parser.add_argument("--duration", type=float, default=60.0, help="simulated run length, s (default 60)")
+    parser.add_argument("--seed", type=int, default=7, help="simulation seed (default 7)")
+    parser.add_argument("--rate", type=float, default=1.0, help="playback rate (default 1.0 = real time)")
+    parser.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                        help="also serve the live view over the Foxglove WebSocket protocol (default port 8765)")
+    parser.add_argument("--verbose", action="store_true", help="print every node's log lines (always in OUT/nodes.log)")
+    parser.add_argument("--dataset", choices=("sim", "putmc"), default="sim",
+                        help="'sim' (default): the shipped sample building, live over DDS; 'putmc': the real "
+                             "PUTMC dataset from --data, replayed offline")
+    g = parser.add_argument_group("--dataset putmc")
+    g.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
+    g.add_argument("--walks", default="all", help="PUTMC walks to use: 'all' or e.g. 1,7,12")
+    g.add_argument("--plot-walk", type=int, default=6, help="walk drawn on the floor plan (default 6)")
+    g.add_argument("--reimport", action="store_true", help="import again even if OUT/import exists")
 
 
 def main(args: argparse.Namespace) -> int:
-    from indoor_loc.cli import main as cli_main
-    from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
-    from indoor_loc.eval.trajectory import write_csv
-    from indoor_loc.pipeline.offline import run_offline
+    if args.dataset == "putmc":
+        from indoor_loc.demo_putmc import main as putmc_main
+        return putmc_main(args)
+    return run_sim_demo(args)
 
-    putmc = Path(args.data) / "putmc"
-    if not (putmc / "PUTMC_Floor3_Xperia_trajs").is_dir():
-        raise DatasetError(f"PUTMC dataset not found at {putmc}: run from the repository root with ../shared beside "
-                           f"it, or pass --data DATASETS_DIR")
-    out = Path(args.out)
-    imp = out / "import"
+
+# ------------------------------------------------------------------------------------ simulation
+def _simulate(out: Path, args: argparse.Namespace) -> dict[str, Path]:
+    from indoor_loc.commands.sim import generate
+    from indoor_loc.sim.scenario import SimConfig
+
+    try:
+        cfg = SimConfig(walkers=args.walkers, duration_s=args.duration, seed=args.seed)
+        cfg.validate()
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+    sim_dir = out / "sim"
+    scen = sim_dir / "scenario.yaml"
+    if scen.exists() and (sim_dir / "sim.mcap").exists():
+        old = yaml.safe_load(scen.read_text()) or {}
+        if (old.get("seed"), old.get("duration_s"), len(old.get("walkers", []))) == (cfg.seed, cfg.duration_s,
+                                                                                   cfg.walkers):
+            print(f"== 1/4 simulation: using {sim_dir} (same seed, walkers and duration)")
+            return {"bag": sim_dir / "sim.mcap", "params": sim_dir / "params.yaml", "dir": sim_dir,
+                    "walkers": [w["name"] for w in old["walkers"]]}
+    print(f"== 1/4 simulate {cfg.walkers} walkers x {cfg.duration_s:g} s in the sample building -> {sim_dir}")
+    paths = generate(sim_dir, cfg)
+    names = [w["name"] for w in yaml.safe_load(paths["scenario"].read_text())["walkers"]]
+    return {"bag": paths["bag"], "params": paths["params"], "dir": sim_dir, "walkers": names}
+
+
+def _module_exists(name: str) -> bool:
+    return importlib.util.find_spec(f"indoor_loc.nodes.{name}") is not None
+
+
+def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, foxglove: int | None) -> dict:
+    """The bring-up mapping (same schema as ``indoor-loc up``) of the live demo."""
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST"),
+           "RCUTILS_COLORIZED_OUTPUT": "0"}
+    params = str(sim["params"])
+    nodes: list[dict] = [{"name": "recorder", "module": "indoor_loc.nodes.recorder_node",
+                          "args": ["-a", "-o", str(out / "live.mcap"), "--overwrite", "--poll", "0.5",
+                                   "--exclude", INPUT_TOPICS_RE],
+                          # wall clock: its graph polling must run before the player's /clock starts
+                          # (log time = wall-clock reception; every message keeps its bag-time stamp)
+                          "use_sim_time": False}]
+    for w in walkers:
+        for label, mod in PER_WALKER_NODES + [n for n in OPTIONAL_PER_WALKER if _module_exists(n[1])]:
+            nodes.append({"name": f"{label}_{w}", "module": f"indoor_loc.nodes.{mod}", "namespace": f"/{w}",
+                          "params_files": [params]})
+    for label, mod in OPTIONAL_SHARED:
+        if _module_exists(mod):
+            nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "params_files": [params]})
+    if foxglove is not None:
+        nodes.append({"name": "view", "module": "indoor_loc.nodes.view_node",
+                      "args": ["--port", str(foxglove), "--building", str(sim["dir"] / "building.geojson")],
+                      "use_sim_time": True})
+    nodes.append({"name": "player", "module": "indoor_loc.nodes.player_node",
+                  "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "30",
+                           "--delay", "1.0"],
+                  "use_sim_time": False})
+    return {"env": env, "use_sim_time": True, "stop_timeout_s": 10.0, "nodes": nodes}
+
+
+class _Console:
+    """Bring-up output: every line to OUT/nodes.log; to the terminal only the supervisor's lines,
+    warnings and errors (or everything with --verbose)."""
+
+    def __init__(self, log_path: Path, verbose: bool) -> None:
+        self._log = open(log_path, "w", encoding="utf-8")
+        self.verbose = verbose
+        self._lock = threading.Lock()
+
+    def write(self, text: str) -> int:
+        with self._lock:
+            self._log.write(text)
+            for line in text.splitlines():
+                if self.verbose or line.startswith("[up]") or "ERROR" in line or "Traceback" in line \
+                        or "WARN" in line:
+                    sys.stdout.write("   " + line + "\n")
+        return len(text)
+
+    def flush(self) -> None:
+        self._log.flush()
+        sys.stdout.flush()
+
+    def close(self) -> None:
+        self._log.close()
+
+
+def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event, state: dict) -> None:
+    """Progress while the player runs; when it has finished, stop the estimators first (their
+    final outputs reach the recorder), then everything else."""
+    player = next(c for c in bup.children if c.spec.name == "player")
+    t_start = time.monotonic()
+    next_report = t_start + 10.0
+    while not stop_event.is_set():
+        if player.proc is None and player.starts > 0:
+            break
+        if time.monotonic() >= next_report:
+            elapsed = time.monotonic() - t_start
+            print(f"   ... {elapsed:.0f} s (the bag lasts {duration_s / rate:.0f} s at rate {rate:g})", flush=True)
+            next_report += 10.0
+        time.sleep(0.1)
+    if stop_event.is_set() or bup._stop_requested is not None:
+        return                          # interrupted (Ctrl-C) or a node died: the bring-up stops everything
+    state["played"] = player.last_rc == 0
+    time.sleep(1.5)          # let the last messages drain through the nodes
+    estimators = [c for c in bup.children if c.spec.name not in ("recorder", "player") and c.proc is not None]
+    for c in estimators:
+        if c.proc is not None and c.proc.poll() is None:
+            c.proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 15.0
+    while time.monotonic() < deadline and any(c.proc is not None and c.proc.poll() is None for c in estimators):
+        time.sleep(0.1)
+    time.sleep(1.0)          # the recorder receives what they published on their way out
+    bup.request_stop(signal.SIGINT)
+
+
+def run_sim_demo(args: argparse.Namespace) -> int:
+    from indoor_loc.supervisor import Bringup, parse_config
+
+    if not args.rate > 0:
+        raise ConfigError(f"--rate: expected > 0, got {args.rate}")
     t0 = time.perf_counter()
-    params = imp / "params.yaml"
-    # params files from before /**/ keys configure no namespaced node: import again
-    if args.reimport or not params.exists() or "/**/" not in params.read_text():
-        print(f"== 1/4 import PUTMC -> {imp}")
-        argv = (["import", "putmc", str(putmc), str(imp), "--overwrite"]
-                + ([] if args.walks == "all" else ["--walks", args.walks]))
-        rc = cli_main(argv)
-        if rc:
-            return rc
-    else:
-        print(f"== 1/4 import: using {imp} (--reimport to redo)")
-    bags = sorted(imp.glob("walk*.mcap"))
-    if args.walks != "all":
-        keep = {f"walk{int(w):02d}.mcap" for w in args.walks.split(",")}
-        bags = [b for b in bags if b.name in keep]
-    run = out / "run.mcap"
-    print(f"== 2/4 replay {len(bags)} bags through nodes {','.join(NODES)} -> {run}")
-    summary = run_offline(bags, run, nodes=NODES, params=imp / "params.yaml", overwrite=True)
-    print(f"   {summary.messages_in} messages in, {summary.messages_out} out, {summary.bag_span_s:.0f} s of "
-          f"recordings in {summary.wall_s:.1f} s")
-    for name, kv in summary.per_stage.items():
-        if kv.get("rejected.total", "0") != "0":
-            print(f"   {name}: rejected " + ", ".join(f"{k[9:]}={v}" for k, v in kv.items()
-                                                     if k.startswith("rejected.") and k != "rejected.total"))
-
-    print("== 3/4 score against ground truth")
-    truths = truth_from_import(imp)
-    rows, trajs_by_topic = [], {}
-    for label, topic in ESTIMATES:
-        trajs = trajectories_from_bags([run], topic)
-        trajs_by_topic[topic] = trajs
-        scores, _ = evaluate(trajs, truths)
-        p = scores[-1]
-        rows.append((label, p.paper.rmse, p.paper.mean, p.route_m.mean, p.scan_m.mean, p.scan_m.median, p.scan_m.p95))
-        (out / "trajectories" / topic.replace("/", "_")).mkdir(parents=True, exist_ok=True)
-        for u, tr in trajs.items():
-            write_csv(out / "trajectories" / topic.replace("/", "_") / f"{u}.csv", tr)
-    print(_table(rows, len(bags)))
-
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    sim = _simulate(out, args)
+    walkers = sim["walkers"]
+    live = out / "live.mcap"
+    for stale in (live, live.with_suffix(".mcap.partial")):
+        if stale.exists():
+            stale.unlink()
+    cfg_map = bringup_config(walkers, sim, out, rate=args.rate, foxglove=args.foxglove)
+    (out / "bringup.yaml").write_text(
+        f"# The demo's bring-up; `indoor-loc up {out / 'bringup.yaml'}` runs the same processes. The player\n"
+        "# is not `required`: when the bag ends the nodes keep running until Ctrl-C (`indoor-loc demo` itself\n"
+        "# stops the estimators first, then the recorder, so their last outputs are recorded).\n"
+        + yaml.safe_dump(cfg_map, sort_keys=False))
+    config = parse_config(cfg_map, out)
+    names = [n["name"] for n in cfg_map["nodes"]]
+    missing = [m for _, m in OPTIONAL_PER_WALKER + OPTIONAL_SHARED if not _module_exists(m)]
+    print(f"== 2/4 live over DDS (ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}): {len(names)} processes "
+          f"({', '.join(names)})")
+    if missing:
+        print(f"   not in this build, so not started: {', '.join(missing)}")
+    if args.foxglove is not None:
+        print(f"   live view: open Foxglove -> Open connection -> ws://localhost:{args.foxglove} "
+              f"(layout: {layout_path()})")
+    console = _Console(out / "nodes.log", args.verbose)
+    bup = Bringup(config, out=console)
+    stop_event = threading.Event()
+    state = {"played": False}
+    watcher = threading.Thread(target=_supervise, args=(bup, args.duration, args.rate, stop_event, state),
+                               daemon=True)
+    watcher.start()
+    try:
+        status = bup.run()
+    finally:
+        stop_event.set()
+        watcher.join(timeout=5.0)
+        console.close()
+    if not state["played"] or not live.exists():
+        print(f"indoor-loc demo: stopped before the bag was played; node logs in {out / 'nodes.log'}",
+              file=sys.stderr)
+        return 130 if status == 0 else status
+    print(f"== 3/4 score each estimator per walker against the ground truth ({live})")
+    rows, trajs = score_run(live, sim["dir"], walkers)
+    print(format_scores(rows))
     print("== 4/4 plot")
-    walk = f"walk{args.plot_walk:02d}"
-    smooth = trajs_by_topic["pdr_kf/path"]
-    if walk in smooth and walk in truths:
-        from indoor_loc.datasets.putmc import map_extent
-        from indoor_loc.eval.plot import plot_walk
-        scores, _ = evaluate({walk: smooth[walk]}, {walk: truths[walk]})
-        s = scores[0]
-        png = plot_walk(out / f"{walk}.png", truths[walk], smooth[walk], floor_plan=putmc / "map.png",
-                        extent=map_extent(), title=f"{walk}: PDR + WiFi, RTS-smoothed — scan-time mean "
-                        f"{s.scan_m.mean:.2f} m, route mean {s.route_m.mean:.2f} m")
-        print(f"   {png}")
-    else:
-        print(f"   {walk} not in this run; pass --plot-walk N")
-    print(f"trajectories (CSV): {out / 'trajectories'}; bags: {run}; done in {time.perf_counter() - t0:.0f} s")
-    return 0
+    png = plot_run(out / "demo.png", sim["dir"], trajs, rows)
+    print(f"   {png}")
+    print(f"files: recording {live}; simulated input {sim['bag']}; radio map {sim['dir'] / 'radiomap'}; "
+          f"building {sim['dir'] / 'building.geojson'}; node logs {out / 'nodes.log'}; "
+          f"bring-up {out / 'bringup.yaml'}")
+    print(f"done in {time.perf_counter() - t0:.0f} s" + ("" if status == 0 else
+                                                        " (some node exited with an error: see nodes.log)"))
+    return status
 
 
-def _table(rows, n_walks: int) -> str:
-    head = (f"{'estimate (' + str(n_walks) + ' walks, pooled)':52s} | {'paper RMSE':>10s} {'paper mean':>10s} | "
-            f"{'route mean':>10s} | {'scan mean':>9s} {'median':>6s} {'p95':>6s}")
-    units = f"{'':52s} | {'(m², as published)':>21s} | {'(m)':>10s} | {'scan-time error (m)':>23s}"
-    lines = [head, units, "-" * len(head)]
-    for label, prmse, pmean, rmean, smean, smed, sp95 in rows:
-        lines.append(f"{label:52s} | {prmse:10.2f} {pmean:10.2f} | {rmean:10.3f} | {smean:9.2f} {smed:6.2f} {sp95:6.2f}")
-    lines.append("-" * len(head))
-    for label, prmse, pmean, rmean, smean, smed, sp95 in REFERENCE:
-        lines.append(f"{label:52s} | {prmse:10.2f} {pmean:10.2f} | {rmean:10.3f} | {smean:9.2f} {smed:6.2f} {sp95:6.2f}")
-    lines.append("(reference rows: the seed-001 authors' C++ on all 24 walks, ../shared/datasets/README.md)")
+def layout_path() -> Path:
+    from importlib import resources
+    return Path(str(resources.files("indoor_loc") / "data" / "foxglove_layout.json"))
+
+
+# ------------------------------------------------------------------------------------ scoring
+@dataclasses.dataclass(frozen=True)
+class ScoreRow:
+    walker: str
+    estimator: str
+    topic: str
+    n: int
+    mean_m: float
+    p95_m: float
+    max_m: float
+    route_m: float
+    coverage: float
+
+
+def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
+    """Per walker and estimator: the error of the estimate interpolated at the 5 Hz truth samples
+    (time-aligned, m) over the span the estimate covers, and the distance to the walked route."""
+    import numpy as np
+
+    from indoor_loc.bag import bag_topics
+    from indoor_loc.commands.eval import trajectories_from_bags, truth_from_import
+    from indoor_loc.eval.metrics import point_segment_distance, scan_time_errors
+
+    truths = truth_from_import(sim_dir)
+    topics = bag_topics([bag])
+    rows, trajs = [], {}
+    for label, rel in ESTIMATORS:
+        per_user = {}
+        if "{user}" in rel:
+            for w in walkers:
+                t = rel.format(user=w)
+                if any(name.endswith("/" + t) for name in topics):
+                    per_user.update({w: tr for u, tr in trajectories_from_bags([bag], t).items()})
+        elif any(name.endswith("/" + rel) for name in topics):
+            per_user = trajectories_from_bags([bag], rel)
+        for w in walkers:
+            tr = per_user.get(w)
+            truth = truths.get(w)
+            if tr is None or truth is None or len(tr) == 0:
+                continue
+            trajs[(w, rel)] = tr
+            d, inside = scan_time_errors(tr.stamps_ns, tr.xy, truth.scan_ns, truth.scan_xy)
+            d = d[inside]
+            route = point_segment_distance(tr.xy, truth.segments) if len(truth.segments) else np.full(len(tr), np.nan)
+            if len(d) == 0:
+                continue
+            rows.append(ScoreRow(w, label, rel, len(tr), float(np.mean(d)), float(np.percentile(d, 95)),
+                                 float(np.max(d)), float(np.mean(route)), float(np.mean(inside))))
+    return rows, trajs
+
+
+def format_scores(rows: list[ScoreRow]) -> str:
+    head = (f"{'walker':8s} {'estimator':30s} {'poses':>6s} | {'error at truth samples (m)':>26s} | "
+            f"{'to route':>8s} {'covers':>6s}")
+    sub = f"{'':8s} {'':30s} {'':>6s} | {'mean':>8s} {'p95':>8s} {'max':>8s} | {'mean m':>8s} {'':>6s}"
+    lines = [head, sub, "-" * len(head)]
+    for r in rows:
+        lines.append(f"{r.walker:8s} {r.estimator:30s} {r.n:6d} | {r.mean_m:8.2f} {r.p95_m:8.2f} {r.max_m:8.2f} | "
+                     f"{r.route_m:8.2f} {100 * r.coverage:5.0f}%")
+    if not rows:
+        lines.append("(no estimates were recorded: see nodes.log)")
+    lines.append("error at truth samples: the estimate interpolated at the 5 Hz ground-truth stamps it spans; "
+                 "covers: share of those stamps")
     return "\n".join(lines)
+
+
+def plot_run(png: Path, sim_dir: Path, trajs: dict, rows: list[ScoreRow]) -> Path:
+    """One panel per walker: walls, graph, true path, the estimates."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from indoor_loc.commands.eval import truth_from_import
+    from indoor_loc.sim.building import load_building
+
+    b = load_building(sim_dir / "building.geojson")
+    truths = truth_from_import(sim_dir)
+    walkers = sorted({w for w, _ in trajs} | set(truths))
+    x0, x1, y0, y1 = b.extent(1.0)
+    fig, axes = plt.subplots(len(walkers), 1, figsize=(11, 5.2 * len(walkers)), dpi=100, squeeze=False)
+    style = {"wifi/fix": dict(ls="", marker="o", ms=4, color="tab:orange", alpha=0.8),
+             "pdr_kf/pose": dict(lw=0.8, color="tab:purple", alpha=0.6),
+             "pdr_kf/path": dict(lw=1.8, color="tab:blue"),
+             "pf/pose": dict(lw=0.8, color="tab:red", alpha=0.6),
+             "pf/path": dict(lw=1.5, color="tab:red"),
+             "backend/{user}/path": dict(lw=1.5, color="tab:green")}
+    err = {(r.walker, r.topic): r.mean_m for r in rows}
+    try:
+        for ax, w in zip(axes[:, 0], walkers):
+            for (a, c), f in zip(b.walls, b.wall_floor):
+                ax.plot([a[0], c[0]], [a[1], c[1]], color="0.35" if f == 0 else "0.75", lw=1.6 if f == 0 else 0.8,
+                        ls="-" if f == 0 else "--", zorder=0)
+            for i, j in b.link_nodes:
+                ax.plot(b.node_xyz[[i, j], 0], b.node_xyz[[i, j], 1], color="0.85", lw=0.6, zorder=0)
+            truth = truths.get(w)
+            if truth is not None:
+                ax.plot(truth.scan_xy[:, 0], truth.scan_xy[:, 1], color="black", lw=2.2, alpha=0.55,
+                        label="ground truth", zorder=1)
+            for _, rel in ESTIMATORS:
+                tr = trajs.get((w, rel))
+                if tr is None:
+                    continue
+                e = err.get((w, rel))
+                ax.plot(tr.xy[:, 0], tr.xy[:, 1], zorder=2, **style[rel],
+                        label=f"{rel.format(user=w)} ({e:.2f} m)" if e is not None else rel.format(user=w))
+            ax.set_xlim(x0, x1)
+            ax.set_ylim(y0, y1)
+            ax.set_aspect("equal")
+            ax.set_title(f"/{w}: estimates vs ground truth (mean error at truth samples); "
+                         f"walls: floor 0 solid, floor 1 dashed")
+            ax.set_xlabel("x [m] (map, ENU)")
+            ax.set_ylabel("y [m]")
+            ax.legend(loc="upper left", fontsize=8, framealpha=0.85)
+        fig.tight_layout()
+        png.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(png)
+    finally:
+        plt.close(fig)
+    return png
+
+
+if __name__ == "__main__":      # python -m indoor_loc.demo (the same as indoor-loc demo)
+    from indoor_loc.cli import main as _cli
+    sys.exit(_cli(["demo", *sys.argv[1:]]))

@@ -26,6 +26,27 @@ class InvalidMessageError(InvalidInputError):
     short stable slug counted in diagnostics (e.g. ``"nan"``, ``"schema_version"``, ``"rssi_range"``)."""
 
 
+class EvalError(InvalidInputError):
+    """Inputs to a metric with the wrong shape, non-finite values or nothing to score."""
+
+    def __init__(self, detail: str, reason: str = "eval_input") -> None:
+        super().__init__(reason, detail)
+
+    def __str__(self) -> str:
+        return self.detail
+
+
+class ScanCommandError(IndoorLocError):
+    """A WiFi scan command (``iw``, ``nmcli``) that could not run or failed. ``reason`` is a short
+    stable slug counted in diagnostics; ``hint`` says what to do about it."""
+
+    def __init__(self, reason: str, message: str, hint: str = "") -> None:
+        self.reason = reason
+        self.message = message
+        self.hint = hint
+        super().__init__(f"{message}; {hint}" if hint else message)
+
+
 class MapError(IndoorLocError):
     """A radio map or building graph that cannot be read or used."""
 

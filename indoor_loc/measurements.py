@@ -34,7 +34,7 @@ import numpy as np
 
 from indoor_loc.errors import InvalidInputError
 
-__all__ = ["Fix", "PdrInterval", "PdrIntervalDecoder", "PdrIntervals", "pdr_intervals", "wrap_angle"]
+__all__ = ["Fix", "OdomPose", "PdrInterval", "PdrIntervalDecoder", "PdrIntervals", "pdr_intervals", "wrap_angle"]
 
 _A = TypeVar("_A", bound=np.ndarray)
 
@@ -57,6 +57,8 @@ class Fix:
 
     ``ok`` is False when the method declined (too few shared APs, outlier rejection...), with
     ``reason`` saying why; ``info`` holds method-specific extras (matched map scans, weights...).
+    ``z`` is the floor's height (m, the radio map's ``z_m``; 0 on a single-floor map) and ``z_var``
+    its variance (m², from the floor probabilities; 0 when the floor is certain).
     """
     stamp_ns: int
     xy: np.ndarray
@@ -64,6 +66,23 @@ class Fix:
     ok: bool = True
     reason: str = ""
     info: dict[str, Any] = field(default_factory=dict)
+    z: float = 0.0
+    z_var: float = 0.0
+
+
+class OdomPose(NamedTuple):
+    """A planar odometry pose as ``pdr/odom`` carries it: stamp_ns; x, y m and yaw rad (ENU, CCW from
+    x) in ``frame_id``; cov (3, 3) of (x, y, yaw); speed m/s; yaw_rate rad/s; the frames ("" from the
+    core, which does not know them)."""
+    stamp_ns: int
+    x: float
+    y: float
+    yaw: float
+    cov: np.ndarray
+    speed: float
+    yaw_rate: float
+    frame_id: str = ""
+    child_frame_id: str = ""
 
 
 class PdrInterval(NamedTuple):

@@ -9,13 +9,13 @@ from __future__ import annotations
 import dataclasses
 import re
 from pathlib import Path
-from typing import Any, Mapping, TypeVar
+from typing import Any, Iterator, Mapping, TypeVar
 
 import yaml
 
 from indoor_loc.errors import ConfigError
 
-P = TypeVar("P")
+ParamsT = TypeVar("ParamsT")
 
 
 def field(default: Any, doc: str, **kw: Any) -> Any:
@@ -25,16 +25,72 @@ def field(default: Any, doc: str, **kw: Any) -> Any:
     return dataclasses.field(default=default, metadata={"doc": doc}, **kw)
 
 
-def params_from_dict(cls: type[P], values: Mapping[str, Any] | None = None) -> P:
-    """Build ``cls(**values)``: unknown keys and ill-typed values raise ConfigError; then validate()."""
-    values = dict(values or {})
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(values) - names)
+def group(cls: type, doc: str, default: Any = None) -> Any:
+    """A nested Params group: a field holding a whole ``cls`` Params dataclass (default ``cls()``,
+    or ``default``, a frozen ``cls`` object, when the owner wants other defaults for it).
+
+    Its leaves are ROS parameters with dotted names (``stepometer.window_s``), a params file may
+    give them as a nested mapping (``stepometer: {window_s: 3.84}``) or dotted keys, values given
+    for some leaves keep the group's defaults for the others, and files merge per leaf. Groups nest
+    to any depth."""
+    factory = cls if default is None else (lambda: default)
+    return dataclasses.field(default_factory=factory, metadata={"doc": doc, "group": cls})
+
+
+def group_class(f: dataclasses.Field) -> type | None:
+    """The Params class of a :func:`group` field, None for a plain field."""
+    cls = f.metadata.get("group")
+    return cls if isinstance(cls, type) else None
+
+
+def field_default(f: dataclasses.Field) -> Any:
+    """The default value of a dataclass field (its factory called), None when it has none."""
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
+
+
+def leaves(cls: type, prefix: str = "", defaults: Any = None) -> Iterator[tuple[str, dataclasses.Field, Any]]:
+    """Every plain parameter of a Params class, groups expanded: ``(dotted name, field, default)``
+    (a group's leaves default to the group's default object)."""
+    for f in dataclasses.fields(cls):
+        default = getattr(defaults, f.name) if defaults is not None else field_default(f)
+        sub = group_class(f)
+        if sub is not None:
+            yield from leaves(sub, f"{prefix}{f.name}.", default)
+        else:
+            yield f"{prefix}{f.name}", f, default
+
+
+def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | None = None) -> ParamsT:
+    """Build ``cls(**values)`` (``values`` a mapping, or a ``cls`` object to check again): unknown keys and ill-typed values raise ConfigError; then validate().
+
+    Groups (:func:`group`) take a nested mapping or dotted keys (``{"wknn.k": 5}``); a leaf given at
+    the wrong level is named in the error with its dotted spelling."""
+    if isinstance(values, cls):
+        values = params_to_dict(values)
+    values = nest_dotted(dict(values or {}), cls.__name__)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - set(fields))
     if unknown:
-        raise ConfigError(f"{cls.__name__}: unknown parameter(s) {unknown}; expected some of {sorted(names)}")
-    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
-        if f.name in values:
-            values[f.name] = _coerce(cls.__name__, f, values[f.name])
+        hints = [f"{n}.{k}" for k in unknown for n, f in fields.items()
+                 if (g := group_class(f)) is not None and k in {x.name for x in dataclasses.fields(g)}]
+        hint = f" (did you mean {hints}?)" if hints else ""
+        raise ConfigError(f"{cls.__name__}: unknown parameter(s) {unknown}{hint}; expected some of {sorted(fields)}")
+    for name, value in list(values.items()):
+        f = fields[name]
+        sub = group_class(f)
+        if sub is None:
+            values[name] = _coerce(cls.__name__, f, value)
+        elif isinstance(value, Mapping):
+            try:   # leaves not given keep the group's default (which may differ from sub())
+                values[name] = params_from_dict(sub, {**params_to_dict(field_default(f)), **nest_dotted(value)})
+            except ConfigError as err:
+                raise ConfigError(f"{cls.__name__}.{name}: {err}") from err
+        elif not isinstance(value, sub):
+            raise ConfigError(f"{cls.__name__}.{name}: expected a mapping of {sub.__name__} parameters, got {value!r}")
     try:
         obj = cls(**values)
     except TypeError as err:
@@ -46,8 +102,7 @@ def params_from_dict(cls: type[P], values: Mapping[str, Any] | None = None) -> P
 
 
 def _coerce(owner: str, f: dataclasses.Field, value: Any) -> Any:
-    default = f.default if f.default is not dataclasses.MISSING else (
-        f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
+    default = field_default(f)
     if default is None or value is None:
         return value
     if isinstance(default, bool):
@@ -67,12 +122,38 @@ def _coerce(owner: str, f: dataclasses.Field, value: Any) -> Any:
     return value
 
 
+def validate_groups(obj: Any) -> None:
+    """Call ``validate()`` of every group of a Params object (a parent's ``validate()`` calls this
+    so that a directly constructed object is checked as deeply as :func:`params_from_dict` does)."""
+    for f in dataclasses.fields(obj):
+        if group_class(f) is not None:
+            child = getattr(obj, f.name)
+            validate_groups(child)
+            validate = getattr(child, "validate", None)
+            if validate is not None:
+                validate()
+
+
 def params_to_dict(obj: Any) -> dict[str, Any]:
-    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+    """A Params object as a (nested, for groups) dict that :func:`params_from_dict` reads back."""
+    return {f.name: params_to_dict(getattr(obj, f.name)) if group_class(f) is not None else getattr(obj, f.name)
+            for f in dataclasses.fields(obj)}
+
+
+def flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"wknn": {"k": 5}}`` -> ``{"wknn.k": 5}`` (the inverse of :func:`nest_dotted`)."""
+    out: dict[str, Any] = {}
+    for k, v in values.items():
+        if isinstance(v, Mapping):
+            out.update(flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def param_docs(cls: type) -> dict[str, str]:
-    return {f.name: f.metadata.get("doc", "") for f in dataclasses.fields(cls)}
+    """``{dotted name: doc}`` of every plain parameter."""
+    return {name: f.metadata.get("doc", "") for name, f, _ in leaves(cls)}
 
 
 def require(cond: bool, owner: str, name: str, expected: str, got: Any) -> None:

@@ -7,31 +7,16 @@ twist.linear.x is the walking speed (m/s, body frame) and twist.angular.z the ya
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from geometry_msgs.msg import Quaternion
 from nav_msgs.msg import Odometry
 
 from indoor_loc.errors import InvalidMessageError
-from indoor_loc.measurements import PdrInterval, PdrIntervalDecoder, PdrIntervals, pdr_intervals
+from indoor_loc.measurements import OdomPose, PdrInterval, PdrIntervalDecoder, PdrIntervals, pdr_intervals
 from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
 
 PLANAR_IDX = (0, 1, 5)          # x, y, yaw in a 6x6 ROS covariance
-
-
-class OdomSample(NamedTuple):
-    """stamp_ns; x, y metres and yaw rad (ENU, CCW from x) in ``frame_id``; cov (3, 3) of (x, y, yaw);
-    speed m/s; yaw_rate rad/s."""
-    stamp_ns: int
-    x: float
-    y: float
-    yaw: float
-    cov: np.ndarray
-    speed: float
-    yaw_rate: float
-    frame_id: str
-    child_frame_id: str
 
 
 def yaw_to_quat(yaw: float) -> Quaternion:
@@ -79,7 +64,7 @@ def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: 
     return msg
 
 
-def odom_from_msg(msg: Odometry) -> OdomSample:
+def odom_from_msg(msg: Odometry) -> OdomPose:
     """Validate and unpack a planar Odometry message (``"nan"``, ``"bad_quaternion"``, stamps)."""
     stamp = stamp_to_ns(msg.header.stamp)
     p = msg.pose.pose.position
@@ -89,7 +74,7 @@ def odom_from_msg(msg: Odometry) -> OdomSample:
     t = msg.twist.twist
     require_finite("twist", [t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z])
     require_finite("twist.covariance", msg.twist.covariance)
-    return OdomSample(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
+    return OdomPose(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
                       msg.header.frame_id, msg.child_frame_id)
 
 
@@ -106,7 +91,7 @@ class PdrOdomReader:
     def last_stamp_ns(self) -> int | None:
         return self.decoder.last_stamp_ns
 
-    def read(self, msg: Odometry) -> tuple[OdomSample, PdrInterval | None]:
+    def read(self, msg: Odometry) -> tuple[OdomPose, PdrInterval | None]:
         """Validate one message; returns it unpacked and the interval it closes (None for the first).
         Raises :class:`InvalidMessageError` (the reader is then unchanged)."""
         od = odom_from_msg(msg)

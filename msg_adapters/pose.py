@@ -30,9 +30,10 @@ class PoseSample(NamedTuple):
 
 
 def pose_to_msg(stamp_ns: int, xy, yaw: float = 0.0, cov_xy=None, *, frame_id: str = "map",
-                yaw_var: float = YAW_VAR_UNKNOWN) -> PoseWithCovarianceStamped:
+                yaw_var: float = YAW_VAR_UNKNOWN, z: float = 0.0, z_var: float = 0.0) -> PoseWithCovarianceStamped:
     """A planar PoseWithCovarianceStamped: xy (2,) m, yaw rad, cov_xy (2, 2) m^2 (zeros when None),
-    yaw variance ``yaw_var`` rad^2 (1e6 = unknown)."""
+    yaw variance ``yaw_var`` rad^2 (1e6 = unknown); ``z`` m (a floor's height) with variance
+    ``z_var`` m^2."""
     p = as_vector("xy", xy, 2)
     c = np.zeros((2, 2)) if cov_xy is None else as_matrix("cov_xy", cov_xy, 2)
     require_finite("yaw", float(yaw))
@@ -42,20 +43,25 @@ def pose_to_msg(stamp_ns: int, xy, yaw: float = 0.0, cov_xy=None, *, frame_id: s
     msg.header.frame_id = frame_id
     msg.pose.pose.position.x = float(p[0])
     msg.pose.pose.position.y = float(p[1])
+    require_finite("z", float(z))
+    msg.pose.pose.position.z = float(z)
     msg.pose.pose.orientation = yaw_to_quat(float(yaw))
     full = np.zeros((6, 6))
     full[:2, :2] = c
+    full[2, 2] = float(z_var)
     full[5, 5] = float(yaw_var)
     msg.pose.covariance = full.ravel().tolist()
     return msg
 
 
 def fix_to_msg(fix: Fix, frame_id: str = "map") -> PoseWithCovarianceStamped:
-    """The PoseWithCovarianceStamped of a WiFi fix (yaw unknown). A declined fix (``ok=False``) has
-    no position to publish and raises InvalidMessageError ``"fix_not_ok"``."""
+    """The PoseWithCovarianceStamped of a WiFi fix (yaw unknown; position.z = the floor's height,
+    covariance[14] its variance). A declined fix (``ok=False``) has no position to publish and
+    raises InvalidMessageError ``"fix_not_ok"``."""
     if not fix.ok:
         raise InvalidMessageError("fix_not_ok", f"fix declined: {fix.reason}")
-    return pose_to_msg(fix.stamp_ns, fix.xy, 0.0, fix.cov, frame_id=frame_id, yaw_var=YAW_VAR_UNKNOWN)
+    return pose_to_msg(fix.stamp_ns, fix.xy, 0.0, fix.cov, frame_id=frame_id, yaw_var=YAW_VAR_UNKNOWN,
+                       z=fix.z, z_var=fix.z_var)
 
 
 def pose_from_msg(msg: PoseWithCovarianceStamped) -> PoseSample:
@@ -84,7 +90,8 @@ def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None)
         raise InvalidMessageError("bad_covariance", f"fix covariance not symmetric: {c.tolist()}")
     if not (c[0, 0] > 0 and c[1, 1] > 0 and c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0):
         raise InvalidMessageError("bad_covariance", f"fix covariance not positive definite: {c.tolist()}")
-    return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=s.cov_xy)
+    return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=s.cov_xy, z=float(msg.pose.pose.position.z),
+               z_var=float(msg.pose.covariance[14]))
 
 
 def pose_array_to_msg(stamp_ns: int, xy, yaw=None, *, frame_id: str = "map") -> PoseArray:

@@ -66,3 +66,32 @@ def test_adapters_do_not_import_stages_or_nodes() -> None:
 def test_adapters_do_not_import_rclpy() -> None:
     bad = [f"{p.name}: {n}" for p in sorted(ADAPTERS.rglob("*.py")) for n in _imports(p) if n.split(".")[0] == "rclpy"]
     assert not bad, "adapters are pure message <-> core functions (no Node, no rclpy.init):\n" + "\n".join(bad)
+
+
+def _all_modules() -> list[Path]:
+    return sorted(PKG.rglob("*.py")) + sorted(ADAPTERS.rglob("*.py"))
+
+
+def test_one_error_hierarchy() -> None:
+    """Every exception class the package defines lives in indoor_loc/errors.py."""
+    bad = []
+    for p in _all_modules():
+        if p == PKG / "errors.py":
+            continue
+        for node in ast.walk(ast.parse(p.read_text(), filename=str(p))):
+            if isinstance(node, ast.ClassDef) and any(
+                    (isinstance(b, ast.Name) and (b.id.endswith(("Error", "Exception")))) for b in node.bases):
+                bad.append(f"{p.relative_to(ROOT)}: class {node.name}")
+    assert not bad, "define exceptions in indoor_loc/errors.py:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize("sub", CORE + CORE_MODULES)
+def test_core_raises_core_input_errors_not_message_errors(sub: str) -> None:
+    """The core knows no messages: bad input is InvalidInputError (InvalidMessageError is the adapters')."""
+    bad = []
+    for p in _modules(sub):
+        for node in ast.walk(ast.parse(p.read_text(), filename=str(p))):
+            if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call) and \
+                    isinstance(node.exc.func, ast.Name) and node.exc.func.id == "InvalidMessageError":
+                bad.append(f"{p.relative_to(PKG)}:{node.lineno}")
+    assert not bad, "core modules raise InvalidMessageError:\n" + "\n".join(bad)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.params import params_from_dict
 from indoor_loc.wifi.coverage import CoverageArea, CoverageParams, fuse, mimo_factors
 from indoor_loc.wifi.types import RadioMap, WifiScan
@@ -146,5 +146,5 @@ def test_bad_input_gives_declined_fixes():
         params_from_dict(CoverageParams, {"prior_weak_m2": -1.0})
     with pytest.raises(ConfigError, match="bool"):
         params_from_dict(CoverageParams, {"mimo": "yes"})
-    with pytest.raises(InvalidMessageError, match="nan"):
+    with pytest.raises(InvalidInputError, match="nan"):
         ca.add_fingerprint(np.array([np.nan, 0.0]), scans[0])

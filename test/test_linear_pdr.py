@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           process_noise, rts_smooth)
 from indoor_loc.fusion.nonlinear import NonlinearPdrParams, PdrEkf, PdrUkf, run_filter
@@ -165,11 +165,11 @@ def test_bad_params_and_inputs():
     with pytest.raises(ConfigError, match="unknown"):
         params_from_dict(LinearPdrParams, {"sigma": 1.0})
     kf = LinearPdrKf()
-    with pytest.raises(InvalidMessageError, match="steps"):
+    with pytest.raises(InvalidInputError, match="steps"):
         kf.predict(-1.0, 0.0)
-    with pytest.raises(InvalidMessageError, match="finite"):
+    with pytest.raises(InvalidInputError, match="finite"):
         kf.update(Fix(0, np.array([np.nan, 0.0]), np.eye(2)))
-    with pytest.raises(ConfigError, match="T"):
+    with pytest.raises(InvalidInputError, match="T"):
         filter_batch(LinearPdrParams(), np.ones(3), np.zeros(2), np.zeros((3, 2)), np.zeros((3, 2, 2)))
 
 

@@ -80,7 +80,7 @@ def _args(out: Path, **kw) -> argparse.Namespace:
 
 def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     from indoor_loc.bag import read_bag
-    from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     from msg_adapters.imu import imu_from_msg, mag_from_msg
     from msg_adapters.path import path_from_msg
     from msg_adapters.wifi_scan import scan_from_msg
@@ -126,22 +126,29 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     assert rm.n_scans == 4 and rm.floors == {"B1": -5.0, "F1": 0.0}
     assert sorted(set(rm.z_m.tolist())) == [-5.0, 0.0]
     assert rm.age_ms is not None and np.nanmax(rm.age_ms) == 4000
+    from indoor_loc.commands.radiomap import info_lines
+    info = "\n".join(info_lines(out / "radiomap"))
+    assert "floors: B1 z=-5 m (2 scans), F1 z=0 m (2 scans)" in info and "reading ages: median" in info
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert Path(params["wifi_fix_node"]["ros__parameters"]["radiomap"]) == out / "radiomap"
+    wifi = params["/**/wifi_fix_node"]["ros__parameters"]
+    assert Path(wifi["radiomap"]) == out / "radiomap" and wifi["method"] == "powed"    # ages, two floors
+    # phone yaw 45°, walking east: the heading offset that maps the phone's yaw onto the walk
+    assert params["/**/imu_node"]["ros__parameters"]["heading_offset_rad"] == pytest.approx(-np.pi / 4, abs=1e-3)
     plan = yaml.safe_load((out / "floors" / "B1" / "map.yaml").read_text())
     assert plan["z_m"] == -5.0 and plan["width_m"] == 60.0
     assert (out / "floors" / "B1" / "geojson_map.json").exists()
     report = (out / "import_report.md").read_text()
     assert "duplicate BSSID" in report and "no mag rows" in report
+    assert "## Heading check" in report and "- F1: 1 waypoint pairs, mean -45.0°, R = 1.00" in report
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert split["F1"]["survey"] == ["5f0000000000000000000001"]
     # a second import onto the same bags is refused unless asked
-    with pytest.raises(ConfigError, match="exists"):
+    with pytest.raises(ConfigError, match="refusing to overwrite"):
         import_ms_indoor(_args(out, floors="F1"))
 
 
 def test_import_selection_errors(tmp_path):
-    from indoor_loc.datasets.ms_indoor_import import import_ms_indoor
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     with pytest.raises(ConfigError, match="no floor"):
         import_ms_indoor(_args(tmp_path / "o", floors="F9"))
     with pytest.raises(ConfigError, match="matches 2"):
@@ -158,3 +165,40 @@ def test_cli_entry(tmp_path):
     assert main(["import", "ms-indoor", str(SITE), str(tmp_path / "o"), "--floors", "F1"]) == 0
     assert (tmp_path / "o" / "F1" / "5f0000000000000000000001.mcap").exists()
     assert main(["import", "ms-indoor", str(SITE), str(tmp_path / "o"), "--floors", "F1"]) == 2
+
+
+def test_an_unreadable_walk_is_skipped_and_reported_not_fatal(tmp_path, capsys):
+    import shutil
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    site = tmp_path / "site"
+    shutil.copytree(SITE, site)
+    (site / "F1" / "path_data_files" / "5f0000000000000000000009.txt.gz").write_bytes(b"not gzip at all")
+    args = _args(tmp_path / "out", floors="F1")
+    args.dataset_dir = site
+    assert import_ms_indoor(args) == 0
+    assert (tmp_path / "out" / "F1" / "5f0000000000000000000001.mcap").exists()
+    assert "SKIPPED 1 unreadable walk(s): 5f0000000000000000000009" in capsys.readouterr().out
+    assert "5f0000000000000000000009: SKIPPED, unreadable" in (tmp_path / "out" / "import_report.md").read_text()
+
+
+def test_imported_bags_replayed_through_wifi_give_the_core_fixes(tmp_path):
+    """indoor-loc run --nodes wifi with the importer's params.yaml = the powed positioner on the same
+    map and scans (the live/offline stage adds nothing and loses nothing)."""
+    from indoor_loc.bag import read_bag
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    from indoor_loc.pipeline.offline import run_offline
+    from indoor_loc.wifi.powed_knn import PowedKnn
+    from indoor_loc.wifi.radiomap import load_radiomap
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(out, survey_walks="5f0000000000000000000001,5f0000000000000000000002")) == 0
+    bag = out / "B1" / "5f0000000000000000000002.mcap"
+    run_offline([bag], tmp_path / "run.mcap", nodes=["wifi"], params=out / "params.yaml", progress=False)
+    fixes = [m.msg for m in read_bag(tmp_path / "run.mcap") if m.topic.endswith("/wifi/fix")]
+    pos = PowedKnn().fit(load_radiomap(out / "radiomap"))
+    expect = [pos.locate(s) for s in read_trace(B1).scans]
+    assert len(fixes) == len(expect) == 3 and all(f.ok for f in expect)
+    for msg, f in zip(fixes, expect):
+        p = msg.pose.pose.position
+        np.testing.assert_allclose([p.x, p.y], f.xy, atol=1e-9)
+        assert p.z == f.z == -5.0
+        np.testing.assert_allclose(np.reshape(msg.pose.covariance, (6, 6))[:2, :2], f.cov, atol=1e-9)

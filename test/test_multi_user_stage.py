@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from indoor_loc import params as P
+from indoor_loc.params import field
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError
@@ -22,7 +22,7 @@ SEC = 1_000_000_000
 
 @dataclass(frozen=True)
 class EchoParams:
-    offline_order: str = P.field("merged", "merged or sequential")
+    offline_order: str = field("merged", "merged or sequential")
 
 
 class EchoStage(Stage):

@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 
 from indoor_loc.errors import ConfigError
-from indoor_loc.params import (field, load_params_file, misplaced_keys, node_key_matches, params_file_text,
-                               params_for_node, params_from_dict, require)
+from indoor_loc.params import (field, flatten, group, leaves, load_params_file, misplaced_keys, node_key_matches,
+                               param_docs, params_file_text, params_for_node, params_from_dict, params_to_dict,
+                               require, validate_groups)
 
 
 @dataclass(frozen=True)
@@ -102,3 +103,72 @@ def test_params_file_errors(tmp_path):
         load_params_file(clash)
     with pytest.raises(ConfigError, match="cannot read"):
         load_params_file(tmp_path / "missing.yaml")
+
+
+# -- nested Params groups ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InnerParams:
+    window_s: float = field(2.0, "window, s")
+    taps: int = field(4, "taps")
+
+    def validate(self) -> None:
+        require(self.window_s > 0, "InnerParams", "window_s", "> 0", self.window_s)
+
+
+@dataclass(frozen=True)
+class OuterParams:
+    gain: float = field(1.0, "gain, 1")
+    inner: InnerParams = group(InnerParams, "the inner algorithm")
+    other: InnerParams = group(InnerParams, "a second instance of it")
+
+    def validate(self) -> None:
+        validate_groups(self)
+
+
+def test_groups_are_static_dataclasses_built_from_nested_or_dotted_keys():
+    assert OuterParams().inner == InnerParams() and OuterParams().inner is not OuterParams().inner
+    a = params_from_dict(OuterParams, {"inner": {"window_s": 3}, "other.taps": 7})
+    assert a == OuterParams(inner=InnerParams(window_s=3.0), other=InnerParams(taps=7))
+    assert isinstance(a.inner.window_s, float)
+    assert [name for name, _, _ in leaves(OuterParams)] == ["gain", "inner.window_s", "inner.taps",
+                                                             "other.window_s", "other.taps"]
+    assert param_docs(OuterParams)["other.taps"] == "taps"
+    assert params_to_dict(a) == {"gain": 1.0, "inner": {"window_s": 3.0, "taps": 4}, "other": {"window_s": 2.0, "taps": 7}}
+    assert params_from_dict(OuterParams, params_to_dict(a)) == a
+    assert flatten(params_to_dict(a))["other.taps"] == 7
+
+
+def test_group_errors_name_the_dotted_path():
+    with pytest.raises(ConfigError, match=r"OuterParams.inner: InnerParams.window_s: expected > 0"):
+        params_from_dict(OuterParams, {"inner.window_s": -1.0})
+    with pytest.raises(ConfigError, match=r"did you mean \['inner.taps', 'other.taps'\]"):
+        params_from_dict(OuterParams, {"taps": 3})           # a leaf given at the top level
+    with pytest.raises(ConfigError, match="OuterParams.inner: InnerParams: unknown parameter"):
+        params_from_dict(OuterParams, {"inner": {"tapz": 3}})
+    with pytest.raises(ConfigError, match="expected a mapping of InnerParams parameters"):
+        params_from_dict(OuterParams, {"inner": 5})
+    with pytest.raises(ConfigError, match="InnerParams.window_s"):  # a directly built object is checked as deep
+        OuterParams(inner=InnerParams(window_s=0.0)).validate()
+
+
+def test_params_files_merge_groups_per_leaf(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("""
+/**:
+  ros__parameters: {inner: {window_s: 5.0, taps: 2}}
+/**/outer_node:
+  ros__parameters: {inner.taps: 9}
+""")
+    values = params_for_node(load_params_file(f), "outer_node", "/alice")
+    assert params_from_dict(OuterParams, values).inner == InnerParams(window_s=5.0, taps=9)
+
+
+@dataclass(frozen=True)
+class TunedParams:
+    inner: InnerParams = group(InnerParams, "inner with other defaults", default=InnerParams(taps=8))
+
+
+def test_a_group_may_carry_its_own_defaults_and_leaves_merge_over_them():
+    assert TunedParams().inner == InnerParams(taps=8)
+    assert [(n, d) for n, _, d in leaves(TunedParams)] == [("inner.window_s", 2.0), ("inner.taps", 8)]
+    assert params_from_dict(TunedParams, {"inner": {"window_s": 3.0}}).inner == InnerParams(window_s=3.0, taps=8)

@@ -180,8 +180,9 @@ def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     assert sorted(p.name for p in out.glob("*.mcap")) == ["walk16.mcap", "walk17.mcap"]
     params = yaml.safe_load((out / "params.yaml").read_text())
     assert params["/**/imu_node"]["ros__parameters"] == {"heading_source": "orientation", "step_length_m": 0.65}
-    assert params["/**/wifi_fix_node"]["ros__parameters"] == {"radiomap": str((out / "radiomap").resolve()),
-                                                          "method": "wknn"}
+    assert params["/**/wifi_fix_node"]["ros__parameters"] == {
+        "radiomap": str((out / "radiomap").resolve()), "method": "wknn", "fallback": "powed",
+        "wknn": {"k": 3, "shared_threshold": 0.6, "shared_strict": True, "error_type": "rms"}}
     from indoor_loc.wifi.radiomap import load_radiomap
     rm, survey = load_radiomap(out / "radiomap"), ds.survey_map()
     assert rm.n_scans == 114 and rm.bssids == survey.bssids

@@ -166,7 +166,8 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
     out = tmp_path / "rm"
     rm, report = build([bag_path], out)
     alice, bob = report["bags"]["/alice"], report["bags"]["/bob"]
-    assert alice == {"scans": 9, "used": 7, "outside_truth": 2, "no_truth": 0, "invalid": {"nan": 1}}
+    assert alice == {"scans": 9, "used": 7, "outside_truth": 2, "no_truth": 0, "invalid": {"nan": 1}, "z_m": 0.0,
+                     "label": "alice"}
     assert bob["no_truth"] == 1 and bob["used"] == 0
     back = load_radiomap(out)
     assert back.n_scans == 7
@@ -175,7 +176,10 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
     np.testing.assert_array_equal(back.stamps_ns[:2], [1_500_000_000, 2 * 10**9])
     assert back.rssi_dbm[1, back.bssids.index(B[0])] == -42.0
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert params == {"/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(out.resolve()), "method": "wknn"}}}
+    # no reading ages, one floor: the best measured WKNN, with powed k-NN for the scans it declines
+    assert params == {"/**/wifi_fix_node": {"ros__parameters": {
+        "radiomap": str(out.resolve()), "method": "wknn", "fallback": "powed",
+        "wknn": {"k": 3, "shared_threshold": 0.6, "shared_strict": True, "error_type": "rms"}}}}
     assert any("scans 7" in ln for ln in info_lines(out))
 
     # the params file positions the same (or another) recording with no editing

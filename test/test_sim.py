@@ -63,6 +63,26 @@ def test_bad_building_files_are_refused(building, breakage, match):
         building_from_geojson(data)
 
 
+def test_floor_plan_image_draws_the_walls_where_they_are(building, tmp_path):
+    import yaml
+    from PIL import Image
+
+    from indoor_loc.sim.building import floor_plan_image, save_floor_plans
+    img, (x0, y0) = floor_plan_image(building, 0, resolution_m=0.05)
+    h = img.shape[0]
+
+    def px(x, y):
+        return img[int(round(h - 1 - (y - y0) / 0.05)), int(round((x - x0) / 0.05))]
+    assert px(20.0, 0.0) == 0 and px(8.0, 4.0) == 0          # outer wall, a room partition
+    assert px(20.0, 4.0) == 254 and px(20.0, 10.0) == 254     # a room, the corridor
+    assert px(12.0, 8.8) == 254                               # the door gap in the corridor wall
+    meta = yaml.safe_load(save_floor_plans(building, tmp_path)[1].read_text())
+    assert meta["resolution"] == 0.05 and meta["origin"][:2] == [round(x0, 6), round(y0, 6)]
+    assert Image.open(tmp_path / meta["image"]).size == (img.shape[1], img.shape[0])
+    with pytest.raises(MapError, match="no floor 2"):
+        floor_plan_image(building, 2)
+
+
 # ------------------------------------------------------------------------------------------ IMU
 def _walk(building, seed, **kw):
     rng = np.random.default_rng(seed)
@@ -219,7 +239,7 @@ def test_written_run_replays_through_the_nodes_with_truth(tmp_path):
     from indoor_loc.bag import bag_topics
     from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
     from indoor_loc.pipeline.offline import run_offline
-    from indoor_loc.sim.cli import generate
+    from indoor_loc.commands.sim import generate
     from indoor_loc.wifi.radiomap import load_radiomap
 
     paths = generate(tmp_path / "sim", SimConfig(walkers=2, duration_s=40.0, seed=2), quiet=True)
@@ -236,3 +256,32 @@ def test_written_run_replays_through_the_nodes_with_truth(tmp_path):
     scores, _ = evaluate(trajectories_from_bags([run], "wifi/fix"), truths)
     assert {s.name for s in scores} >= {"alice", "bob"}
     assert scores[-1].scan_m.mean < 3.0        # time-aligned error of WKNN on the survey of this building
+
+
+# ------------------------------------------------------------------------------------ failure paths
+@pytest.mark.parametrize("argv, match", [
+    (["--walkers", "0"], "walkers: expected 1..8"),
+    (["--duration", "3"], "duration_s: expected >= 10"),
+    (["--imu-hz", "5"], "rate_hz: expected 20..1000"),
+    (["--scan-period", "1"], "period_s > sweep_s"),
+])
+def test_sim_command_refuses_bad_options(tmp_path, capsys, argv, match):
+    from indoor_loc.cli import main
+    assert main(["sim", str(tmp_path / "out"), *argv]) == 2
+    assert match in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()           # nothing half-written
+
+
+def test_sim_command_refuses_a_missing_or_foreign_building(tmp_path, capsys):
+    from indoor_loc.cli import main
+    assert main(["sim", str(tmp_path / "out"), "--building", str(tmp_path / "none.geojson")]) == 2
+    assert "cannot read building file" in capsys.readouterr().err
+    (tmp_path / "fc.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": []}))
+    assert main(["sim", str(tmp_path / "out"), "--building", str(tmp_path / "fc.geojson")]) == 2
+    assert "not a building GeoJSON" in capsys.readouterr().err
+
+
+def test_putmc_demo_without_the_dataset_says_where_it_looked(tmp_path, capsys):
+    from indoor_loc.cli import main
+    assert main(["demo", "--dataset", "putmc", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "PUTMC dataset not found" in capsys.readouterr().err

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import dataset
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
 from indoor_loc.measurements import pdr_intervals
 from indoor_loc.imu.stepometer import (CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
@@ -167,13 +167,13 @@ def test_bad_samples_raise_and_leave_state_untouched(rng):
     s = Stepometer()
     s.update_many(stamps[:600], acc[:600])
     before = s.state()
-    with pytest.raises(InvalidMessageError) as e1:
+    with pytest.raises(InvalidInputError) as e1:
         s.update(int(stamps[600]), [np.nan, 0.0, 9.8])
     assert e1.value.reason == "nan"
-    with pytest.raises(InvalidMessageError) as e2:
+    with pytest.raises(InvalidInputError) as e2:
         s.update(int(stamps[100]), acc[100])
     assert e2.value.reason == "non_monotonic_stamp"
-    with pytest.raises(InvalidMessageError):
+    with pytest.raises(InvalidInputError):
         s.update_many(stamps[600:610], np.vstack([acc[600:609], [np.inf, 0, 0]]))
     after = s.state()
     assert after.buffer == before.buffer and after.n_grid == before.n_grid and after.last_t_ns == before.last_t_ns

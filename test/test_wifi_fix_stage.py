@@ -127,22 +127,52 @@ def test_node_declares_dotted_method_parameters(map_dir, ros_domain):
     rclpy = pytest.importorskip("rclpy")
     from rclpy.parameter import Parameter
 
-    from indoor_loc.nodes.wifi_fix_node import WifiFixNode
+    from indoor_loc.nodes.base import StageNode
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
-        node = WifiFixNode(context=ctx, parameter_overrides=[
+        node = StageNode(WifiFixStage, context=ctx, parameter_overrides=[
             Parameter("radiomap", value=str(map_dir)), Parameter("wknn.k", value=2),
             Parameter("wknn.error_type", value="l1"), Parameter("coverage.mimo", value=False)])
         try:
             assert node.stage.positioner.params.k == 2 and node.stage.positioner.params.error_type == "l1"
             assert node.get_parameter("wknn.shared_threshold").value == 0.6
-            assert node.stage.params.coverage["mimo"] is False
+            assert node.stage.params.coverage.mimo is False
             res = node._on_set_params([Parameter("wknn.k", value=3)])
             assert not res.successful
         finally:
             node.destroy_node()
         with pytest.raises(ConfigError, match="wknn.kk"):
-            WifiFixNode(context=ctx, parameter_overrides=[Parameter("wknn.kk", value=2)])
+            StageNode(WifiFixStage, context=ctx, parameter_overrides=[Parameter("wknn.kk", value=2)])
     finally:
         rclpy.shutdown(context=ctx)
+
+
+def test_two_floors_fix_carries_the_floor_and_fallback_is_counted(tmp_path):
+    """A two-floor map (format v2): wifi/fix z = the detected floor's height, covariance[14] its
+    variance, diagnostics name the floor; WKNN declines are positioned by the fallback and counted."""
+    from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, map_scans
+    lower, upper = grid_map(), grid_map()
+    lower.rssi_dbm[:, 3:] -= 15.0                     # APs 3-5 hang upstairs: heard through the slab below
+    upper.rssi_dbm[:, :3] -= 15.0                     # APs 0-2 downstairs
+    rm = add_fingerprints(empty_radiomap(), lower.positions, map_scans(lower), "g", z_m=0.0, floors={"F1": 0.0})
+    rm = add_fingerprints(rm, upper.positions, map_scans(upper), "u", z_m=5.0, floors={"F2": 5.0})
+    d = save_radiomap(rm, tmp_path / "rm2")
+    st = make({"radiomap": str(d), "method": "powed"})
+    s = scan_at([4.0, 6.0])
+    down = WifiScan(s.stamp_ns, s.bssid, s.rssi_dbm - np.r_[0, 0, 0, 15, 15, 15], s.freq_mhz, frame_id=s.frame_id)
+    msg = st.process("wifi/scan", scan_to_msg(down), 1)[0][1]
+    assert msg.pose.pose.position.z == 0.0 and msg.pose.covariance[14] >= 0.0
+    assert st.extra_diagnostics()["last_floor"] == "F1"
+    s = scan_at([4.0, 6.0], stamp_ns=6 * 10**9)
+    up = WifiScan(s.stamp_ns, s.bssid, s.rssi_dbm - np.r_[15, 15, 15, 0, 0, 0], s.freq_mhz, frame_id=s.frame_id)
+    msg = st.process("wifi/scan", scan_to_msg(up), 2)[0][1]
+    assert msg.pose.pose.position.z == 5.0
+    assert st.extra_diagnostics()["floor.F2"] == "1"
+    # fallback: WKNN requiring all 36 map scans as candidates declines; powed positions the scan
+    st = make({"radiomap": str(d), "method": "wknn", "wknn": {"k": 80}, "fallback": "powed"})
+    assert len(st.process("wifi/scan", scan_to_msg(scan_at([4.0, 6.0])), 1)) == 1
+    diag = st.extra_diagnostics()
+    assert diag["fallback.few_candidates"] == "1" and diag["declined.total"] == "0"
+    with pytest.raises(ConfigError, match="fallback"):
+        make({"method": "wknn", "fallback": "wknn"})

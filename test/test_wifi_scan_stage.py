@@ -52,16 +52,17 @@ def _script(tmp_path: Path, name: str, body: str) -> Path:
 # ------------------------------------------------------------------------------------------------
 def test_params_share_normalize_defaults_and_validate():
     p = WifiScanParams()
-    assert p.normalize_params() == NormalizeParams()
-    docs = {f.name: f.metadata["doc"] for f in dataclasses.fields(WifiScanParams)}
+    assert p.normalize == NormalizeParams()
+    from indoor_loc.params import param_docs
+    docs = param_docs(WifiScanParams)
     for f in dataclasses.fields(NormalizeParams):
-        assert docs[f.name] == f.metadata["doc"]
+        assert docs[f"normalize.{f.name}"] == f.metadata["doc"]
     with pytest.raises(ConfigError, match="source"):
         params_from_dict(WifiScanParams, {"source": "iwlist"})
     with pytest.raises(ConfigError, match="scan_period_s"):
         params_from_dict(WifiScanParams, {"scan_period_s": 0.0})
     with pytest.raises(ConfigError, match="bands"):
-        params_from_dict(WifiScanParams, {"bands": ["2.4", "60"]})
+        params_from_dict(WifiScanParams, {"normalize": {"bands": ["2.4", "60"]}})
     with pytest.raises(ConfigError, match="signal_mapping"):
         params_from_dict(WifiScanParams, {"signal_mapping": "linear"})
 
@@ -82,7 +83,7 @@ def test_config_yaml_matches_params():
 # topic input
 # ------------------------------------------------------------------------------------------------
 def test_scan_raw_is_normalised_and_republished():
-    st = _stage(min_rssi_dbm=-90.0)
+    st = _stage(**{"normalize.min_rssi_dbm": -90.0})
     raw = _scan(["00:11:22:33:44:55", "DA:A1:19:6B:22:01", "00:11:22:33:44:66", "00:11:22:33:44:77"],
                 [-50.0, -40.0, -95.0, -60.0])
     outs = st.process("wifi/scan_raw", scan_to_msg(raw), T0 + 5)
@@ -151,7 +152,7 @@ def test_json_adapter_round_trip():
 
 
 def test_filtered_to_empty_is_not_published():
-    st = _stage(ssid_allow=["corp-*"])
+    st = _stage(**{"normalize.ssid_allow": ["corp-*"]})
     assert st.process("wifi/scan_raw", scan_to_msg(_scan(["00:11:22:33:44:55"], [-50.0])), T0) == []
     d = st.extra_diagnostics()
     assert d["scans.empty"] == "1" and d["dropped.ssid_not_allowed"] == "1" and st.diag.rejected == {}
@@ -180,7 +181,7 @@ def test_iw_permission_error_falls_back_to_scan_dump(tmp_path):
     body = (f'if [ "$4" = dump ]; then cat "{DATA / "iw6_scan_6ghz.txt"}"; exit 0; fi\n'
             'echo "command failed: Operation not permitted (-1)" >&2\nexit 255\n')
     fake = _script(tmp_path, "iw", body)
-    st = _stage(source="iw", iw_command=f"{fake} dev {{interface}} scan", max_age_ms=10000.0)
+    st = _stage(source="iw", iw_command=f"{fake} dev {{interface}} scan", **{"normalize.max_age_ms": 10000.0})
     a = st.acquire(lambda: T0)
     assert a.fallback and a.error is None and a.command[-1] == "dump"
     got = scan_from_msg(st.process(IFACE_INPUT, a, a.stamp_ns)[0][1])

@@ -1,4 +1,4 @@
-"""``indoor-loc bench {imu,wifi,steps}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {heading,imu,wifi,steps,backend}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -6,9 +6,11 @@ import importlib
 from pathlib import Path
 
 BENCHES = {
+    "heading": "indoor_loc.bench.heading",
     "imu": "indoor_loc.bench.imu",
     "wifi": "indoor_loc.bench.wifi",
     "steps": "indoor_loc.bench.steps",
+    "backend": "indoor_loc.bench.backend",
 }
 
 
@@ -17,6 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
     parser.add_argument("--quick", action="store_true", help="smaller run (fewer repetitions / grid points)")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON here")
+    parser.add_argument("--live", action="store_true", help="backend: also replay all walks live over DDS "
+                                                            "through backend_node at 1x and 10x")
+    parser.add_argument("--dataset", default="", help="dataset of the benchmark when it has several "
+                                                      "(wifi: putmc (default) or ms_site2)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -1,5 +1,7 @@
 """``indoor-loc bench wifi``: WiFi-only positioning on PUTMC, methods side by side in one run.
 
+(``--dataset ms_site2``: the four-floor mall, :mod:`indoor_loc.bench.wifi_ms`.)
+
 Data: PUTMC (Nowicki & Skrzypczyński, Sensors 2019, GPLv3) via :mod:`indoor_loc.datasets.putmc`,
 all in the ENU map frame (``y = PUTMC_Y0 - y_img``): each of the 347 trajectory scans of the 24
 walks (stale pre-walk scans included, as in the paper's evaluation) is positioned against the
@@ -28,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from indoor_loc.wifi.methods import available_methods, make_positioner
+from indoor_loc.wifi.methods import WKNN_BEST, available_methods, make_chain, make_positioner
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import RadioMap, WifiScan
 
@@ -115,7 +117,9 @@ def score(fixes: list[Fix], truth: np.ndarray) -> dict[str, Any]:
 
 def run_method(name: str, params: dict, rm: RadioMap, scans: list[WifiScan], truth: np.ndarray) -> dict[str, Any]:
     t0 = time.perf_counter()
-    pos = make_positioner(name, params).fit(rm)
+    primary, _, fallback = name.partition("+")
+    pos = make_chain(primary, params, fallback)
+    pos.fit(rm)
     t1 = time.perf_counter()
     fixes = pos.locate_many(scans)
     t2 = time.perf_counter()
@@ -199,6 +203,13 @@ def _queries_like(rm: RadioMap, rng: np.random.Generator, n: int) -> list[WifiSc
 
 # ----------------------------------------------------------------------------------------------
 def run(args) -> int:
+    dataset = getattr(args, "dataset", "") or "putmc"
+    if dataset == "ms_site2":
+        from indoor_loc.bench import wifi_ms
+        return wifi_ms.run(args)
+    if dataset != "putmc":
+        print(f"bench wifi: unknown --dataset {dataset!r} (putmc or ms_site2)")
+        return 2
     data = Path(getattr(args, "data", "../shared/datasets"))
     quick = bool(getattr(args, "quick", False))
     root = data / "putmc"
@@ -236,6 +247,9 @@ def run(args) -> int:
     if best_all is not None and best_all[0] != (best[0] if best else None):
         methods.append(("WKNN best overall", "wknn", dict(best_all[0])))
     avail = available_methods()
+    if "powed" in avail:
+        methods.append(("powed k-NN (ms_site2 defaults)", "powed", {}))
+        methods.append(("WKNN best found + powed fallback", "wknn+powed", dict(WKNN_BEST)))
     if "pathloss" in avail:
         methods.append(("path loss", "pathloss", {}))
     if "coverage" in avail:
@@ -295,6 +309,8 @@ def run(args) -> int:
 
     # --- throughput ------------------------------------------------------------------------------
     tp_methods = [("WKNN L2 (paper)", "wknn", dict(PAPER)), ("WKNN L1", "wknn", {**PAPER, "error_type": "l1"})]
+    if "powed" in avail:
+        tp_methods.append(("powed k-NN", "powed", {}))
     if "pathloss" in avail:
         tp_methods.append(("path loss", "pathloss", {}))
     if "coverage" in avail:

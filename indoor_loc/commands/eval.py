@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.contract import namespace_of_topic
 from indoor_loc.errors import ConfigError, DatasetError
 from indoor_loc.eval.metrics import WalkErrors, WalkScore, pool, score, walk_errors
 from indoor_loc.eval.trajectory import Trajectory, Truth, read_csv_dir, truth_from_putmc, write_csv
@@ -34,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bags", nargs="*", type=Path, help="MCAP bags (or bag directories) with trajectories")
     parser.add_argument("--topic", default="wifi/fix",
                         help="relative topic of the trajectory: nav_msgs/Path (last message), "
-                             "PoseWithCovarianceStamped or Odometry (accumulated); default wifi/fix")
+                             "PoseWithCovarianceStamped or Odometry (accumulated); default wifi/fix; "
+                             "'{user}' marks the user in a multi-user node's topics (backend/{user}/path)")
     parser.add_argument("--csv-dir", type=Path, help="directory of <user>.csv trajectories")
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--truth", type=Path, help="import directory (walkNN.mcap with ground_truth + route)")
@@ -49,15 +51,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # ---------------------------------------------------------------------------------------------
 # reading bags (plumbing: this module may use the bag reader and the message adapters)
 # ---------------------------------------------------------------------------------------------
+def _user_pattern(rel: str):
+    """``backend/{user}/path`` -> a regex whose group ``user`` is the user (per-user topics of a
+    multi-user node in the root namespace)."""
+    import re
+    head, _, tail = rel.strip("/").partition("{user}")
+    return re.compile("^/" + re.escape(head) + "(?P<user>.+)" + re.escape(tail) + "$")
+
+
 def _matching_topics(paths: list[Path], rel: str) -> dict[str, str]:
     from indoor_loc.bag import bag_topics
+    if "{user}" in rel:
+        pat = _user_pattern(rel)
+        return {t: ty for t, (ty, _) in bag_topics(paths).items() if pat.match(t)}
     return {t: ty for t, (ty, _) in bag_topics(paths).items()
-            if t == rel or t == "/" + rel.lstrip("/") or t.endswith("/" + rel.lstrip("/"))}
+            if namespace_of_topic(t, rel) is not None}
 
 
 def _user_of(topic: str, rel: str, default: str) -> str:
-    ns = topic[: -len(rel.lstrip("/"))].strip("/")
-    return ns or default
+    if "{user}" in rel:
+        m = _user_pattern(rel).match(topic)
+        return m.group("user") if m else default
+    ns = namespace_of_topic(topic, rel)
+    return (ns or "").strip("/") or default
 
 
 def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01") -> dict[str, Trajectory]:

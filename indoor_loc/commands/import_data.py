@@ -1,6 +1,6 @@
 """``indoor-loc import DATASET ...``: convert a dataset into MCAP bags + params.yaml.
 
-One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.datasets.ms_indoor_import`); each adds its own arguments and a ``func``.
+One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each adds its own arguments and a ``func``.
 
 ``indoor-loc import putmc DATASET_DIR OUT_DIR [--walks 1,2,7] [--keep-stale]`` writes
 ``OUT_DIR/walkNN.mcap`` (namespace ``/walkNN``; topics in :mod:`indoor_loc.datasets.putmc_bags`),
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.output_paths import check_outputs
 from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import save_radiomap
@@ -38,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace walk bags, radiomap/, params.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_putmc)
-    from indoor_loc.datasets import ms_indoor_import
-    ms_indoor_import.add_arguments(sub)
+    from indoor_loc.commands import import_ms_indoor
+    import_ms_indoor.add_arguments(sub)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -95,7 +96,11 @@ def import_putmc(args: argparse.Namespace) -> int:
             rows.append(_row(w, ds.routes[w.walk].length_m, counts))
 
     params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
-              "wifi_fix_node": {"radiomap": str(rm_dir), "method": "wknn"}}
+              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)},
+              # the seed-001 paper's joint + step-length configuration: walks one after another
+              # (1…24), each matching the survey and all earlier walks' scans
+              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
+                               "estimate_step_length": True}}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
         f"map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"

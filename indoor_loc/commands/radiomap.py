@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.contract import namespace_of_topic
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
 from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import (add_fingerprints, empty_radiomap, interpolate_positions, load_radiomap,
@@ -43,17 +44,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("--topic-truth", default="ground_truth",
                    help="relative nav_msgs/Path topic with time-stamped true positions (default ground_truth)")
     b.add_argument("--putmc", type=Path, help="PUTMC dataset directory: start from its 114-scan survey map")
-    b.add_argument("--method", default="wknn", help="method written to DIR/params.yaml (default wknn)")
+    b.add_argument("--method", default="auto",
+                   help="method written to DIR/params.yaml (default auto: powed k-NN for maps with reading ages or "
+                        "several floors, else the best measured WKNN with a powed fallback)")
     i = sub.add_parser("info", help="summarise a radio map directory")
     i.add_argument("directory", type=Path)
-
-
-def _namespace(full: str, rel: str) -> str | None:
-    if full == "/" + rel:
-        return ""
-    if full.endswith("/" + rel):
-        return full[: -len(rel) - 1]
-    return None
 
 
 def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
@@ -68,22 +63,25 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     from msg_adapters.wifi_scan import scan_from_msg
 
     topics = bag_topics(bags)
-    wanted = [t for t in topics if _namespace(t, topic_scan) is not None or _namespace(t, topic_truth) is not None]
+    wanted = [t for t in topics if namespace_of_topic(t, topic_scan) is not None or namespace_of_topic(t, topic_truth) is not None]
     scans: dict[str, list] = defaultdict(list)
     truth: dict[str, list] = defaultdict(list)
+    truth_z: dict[str, float] = {}
     invalid: dict[str, Counter] = defaultdict(Counter)
     for m in read_bag(bags, topics=wanted):
-        ns = _namespace(m.topic, topic_scan)
+        ns = namespace_of_topic(m.topic, topic_scan)
         if ns is not None:
             try:
                 scans[ns].append(scan_from_msg(m.msg))
             except InvalidMessageError as err:
                 invalid[ns][err.reason] += 1
             continue
-        ns = _namespace(m.topic, topic_truth)
+        ns = namespace_of_topic(m.topic, topic_truth)
         if ns is not None:
             try:
                 truth[ns].append(path_from_msg(m.msg))
+                if m.msg.poses:
+                    truth_z[ns] = float(m.msg.poses[0].pose.position.z)
             except InvalidMessageError as err:
                 invalid[ns][f"truth_{err.reason}"] += 1
     stem = bags[0].stem if len(bags) == 1 else "bag"
@@ -91,7 +89,8 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
     report: dict[str, dict] = {}
     for ns in sorted(set(scans) | set(truth) | set(invalid)):
         lst = sorted(scans.get(ns, []), key=lambda s: s.stamp_ns)
-        rep = {"scans": len(lst), "used": 0, "outside_truth": 0, "no_truth": 0, "invalid": dict(invalid.get(ns, {}))}
+        rep = {"scans": len(lst), "used": 0, "outside_truth": 0, "no_truth": 0, "invalid": dict(invalid.get(ns, {})),
+               "z_m": truth_z.get(ns, 0.0)}
         report[ns or "/"] = rep
         if not truth.get(ns):
             rep["no_truth"] = len(lst)
@@ -104,6 +103,7 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
         rep["used"] = int(inside.sum())
         rep["outside_truth"] = int((~inside).sum())
         label = ns.strip("/").replace("/", "_") or stem
+        rep["label"] = label
         for s, p, ok in zip(lst, pos, inside):
             if ok:
                 out_scans.append(s)
@@ -113,10 +113,10 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
 
 
 def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan: str = "wifi/scan",
-          topic_truth: str = "ground_truth", method: str = "wknn") -> tuple[RadioMap, dict]:
+          topic_truth: str = "ground_truth", method: str = "auto") -> tuple[RadioMap, dict]:
     """Build, save and write params.yaml; returns (map, report)."""
-    from indoor_loc.wifi.methods import METHODS
-    if method not in METHODS:
+    from indoor_loc.wifi.methods import METHODS, recommended_params
+    if method != "auto" and method not in METHODS:
         raise ConfigError(f"--method: expected one of {sorted(METHODS)}, got {method!r}")
     if not bags and putmc is None:
         raise ConfigError("nothing to build from: give bags and/or --putmc DATASET_DIR")
@@ -133,13 +133,15 @@ def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan:
         scans, pos, src, per_ns = fingerprints_from_bags(bags, topic_scan=topic_scan, topic_truth=topic_truth)
         report["bags"] = per_ns
         if scans:
-            rm = add_fingerprints(rm, pos, scans, src)
+            z_of = {rep["label"]: rep["z_m"] for rep in per_ns.values() if "label" in rep}
+            rm = add_fingerprints(rm, pos, scans, src, z_m=[z_of.get(s, 0.0) for s in src])
     if rm.n_scans == 0:
         raise MapError("no fingerprint could be built (no scans within a ground-truth time span); "
                        f"report: {report}")
     inputs = [str(p) for p in bags] + ([f"putmc:{putmc}"] if putmc is not None else [])
     save_radiomap(rm, out, created_by="indoor-loc radiomap build", inputs=inputs)
-    params = {"wifi_fix_node": {"radiomap": str(Path(out).resolve()), "method": method}}
+    chosen = recommended_params(rm) if method == "auto" else {"method": method}
+    params = {"wifi_fix_node": {"radiomap": str(Path(out).resolve()), **chosen}}
     (Path(out) / "params.yaml").write_text(params_file_text(
         params, header="wifi_fix_node configured for this radio map (indoor-loc radiomap build);\n"
                        "the /**/ key reaches wifi_fix_node in any namespace"))
@@ -160,6 +162,15 @@ def info_lines(directory: Path) -> list[str]:
     if heard.any():
         lines.append(f"  RSSI range: {np.nanmin(rm.rssi_dbm):.0f} .. {np.nanmax(rm.rssi_dbm):.0f} dBm; "
                      f"APs heard in 1 scan only: {int((heard.sum(axis=0) == 1).sum())}")
+    zs, counts = np.unique(np.asarray(rm.z_m, float), return_counts=True)
+    if len(zs) > 1 or rm.floors:
+        names = {float(v): k for k, v in rm.floors.items()}
+        lines.append("  floors: " + ", ".join(f"{names.get(float(z), '?')} z={z:g} m ({c} scans)"
+                                              for z, c in zip(zs, counts)))
+    ages = np.asarray(rm.age_ms, float)[~np.isnan(np.asarray(rm.age_ms, float))] if rm.age_ms is not None else []
+    if len(ages):
+        lines.append(f"  reading ages: median {np.median(ages):.0f} ms, {100 * np.mean(ages > 1000):.0f} % older "
+                     "than 1 s (cached results)")
     created = man.get("created") or {}
     if created:
         lines.append(f"  created {created.get('utc', '?')} by {created.get('by', '?')}")

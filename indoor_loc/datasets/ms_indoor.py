@@ -410,3 +410,25 @@ def scans_with_truth(trace: Trace) -> tuple[list[WifiScan], np.ndarray]:
         return [], np.zeros((0, 2))
     xy, inside = trace.truth_at([s.stamp_ns for s in trace.scans])
     return [s for s, k in zip(trace.scans, inside) if k], xy[inside]
+
+
+def heading_offsets(trace: Trace, *, min_step_m: float = 2.0) -> np.ndarray:
+    """Map-frame walking direction minus the phone's yaw (rad, wrapped) per pair of consecutive
+    waypoints at least ``min_step_m`` apart: atan2 of the surveyed displacement minus the circular mean
+    of the rotation vector's yaw between the two waypoints. Their circular mean over a site is the
+    ``heading_offset_rad`` that turns Android's (magnetic-north ENU, device-axis) yaw into the walking
+    direction in the floor plans' frame."""
+    from indoor_loc.imu.quaternion import quat_yaw
+    if len(trace.rotvec) == 0 or len(trace.waypoint_t) < 2:
+        return np.zeros(0)
+    yaw = quat_yaw(trace.quaternions_xyzw()[:, [3, 0, 1, 2]])     # quat_yaw takes (w, x, y, z)
+    t = trace.rotvec.t_ns
+    out = []
+    for i in range(len(trace.waypoint_t) - 1):
+        dp = trace.waypoint_xy[i + 1] - trace.waypoint_xy[i]
+        m = (t >= trace.waypoint_t[i]) & (t < trace.waypoint_t[i + 1])
+        if np.hypot(*dp) < min_step_m or not m.any():
+            continue
+        dev = np.angle(np.mean(np.exp(1j * yaw[m])))
+        out.append(float(np.angle(np.exp(1j * (math.atan2(dp[1], dp[0]) - dev)))))
+    return np.array(out)

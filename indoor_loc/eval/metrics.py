@@ -18,14 +18,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from indoor_loc.errors import IndoorLocError
+from indoor_loc.errors import EvalError
 
 #: The paper keeps poses whose squared route distance is below this, m² (i.e. d < 10 m).
 PAPER_MAX_SQ_ERR_M2 = 100.0
-
-
-class EvalError(IndoorLocError, ValueError):
-    """Inputs to a metric with the wrong shape, non-finite values or nothing to score."""
 
 
 def _xy(name: str, xy) -> np.ndarray:

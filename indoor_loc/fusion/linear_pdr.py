@@ -20,13 +20,13 @@ Joseph-form covariance update.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.stats import chi2
 
-from indoor_loc import params as P
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.params import field, require
+from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.measurements import Fix
 
 H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement matrix
@@ -35,24 +35,24 @@ H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement 
 @dataclass(frozen=True)
 class LinearPdrParams:
     """Parameters of the seed-004 linear PDR model and its WiFi update."""
-    step_length_m: float = P.field(0.7, "nominal footstep length s (m), scales the heading noise")
-    sigma_dtheta_rad: float = P.field(0.1, "heading-change noise per footstep (rad)")
-    sigma_ds_m: float = P.field(0.07, "step-vector length change noise per footstep (m)")
-    q_floor_m2: float = P.field(1e-6, "process-noise floor on the step vector per prediction (m^2)")
-    init_pos_var_m2: float = P.field(100.0, "initial position variance per axis when no position is given (m^2)")
-    init_step_var_m2: float = P.field(1.0, "initial step-vector variance per axis; mean 0 (m^2)")
-    gate: bool = P.field(True, "reject WiFi fixes whose innovation fails the chi-square test")
-    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the innovation gate")
+    step_length_m: float = field(0.7, "nominal footstep length s (m), scales the heading noise")
+    sigma_dtheta_rad: float = field(0.1, "heading-change noise per footstep (rad)")
+    sigma_ds_m: float = field(0.07, "step-vector length change noise per footstep (m)")
+    q_floor_m2: float = field(1e-6, "process-noise floor on the step vector per prediction (m^2)")
+    init_pos_var_m2: float = field(100.0, "initial position variance per axis when no position is given (m^2)")
+    init_step_var_m2: float = field(1.0, "initial step-vector variance per axis; mean 0 (m^2)")
+    gate: bool = field(True, "reject WiFi fixes whose innovation fails the chi-square test")
+    gate_prob: float = field(0.999, "chi-square (2 dof) probability of the innovation gate")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
-        P.require(self.sigma_dtheta_rad >= 0, n, "sigma_dtheta_rad", ">= 0", self.sigma_dtheta_rad)
-        P.require(self.sigma_ds_m >= 0, n, "sigma_ds_m", ">= 0", self.sigma_ds_m)
-        P.require(self.q_floor_m2 > 0, n, "q_floor_m2", "> 0", self.q_floor_m2)
-        P.require(self.init_pos_var_m2 > 0, n, "init_pos_var_m2", "> 0", self.init_pos_var_m2)
-        P.require(self.init_step_var_m2 > 0, n, "init_step_var_m2", "> 0", self.init_step_var_m2)
-        P.require(0.0 < self.gate_prob < 1.0, n, "gate_prob", "in (0, 1)", self.gate_prob)
+        require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        require(self.sigma_dtheta_rad >= 0, n, "sigma_dtheta_rad", ">= 0", self.sigma_dtheta_rad)
+        require(self.sigma_ds_m >= 0, n, "sigma_ds_m", ">= 0", self.sigma_ds_m)
+        require(self.q_floor_m2 > 0, n, "q_floor_m2", "> 0", self.q_floor_m2)
+        require(self.init_pos_var_m2 > 0, n, "init_pos_var_m2", "> 0", self.init_pos_var_m2)
+        require(self.init_step_var_m2 > 0, n, "init_step_var_m2", "> 0", self.init_step_var_m2)
+        require(0.0 < self.gate_prob < 1.0, n, "gate_prob", "in (0, 1)", self.gate_prob)
 
     @property
     def gate_threshold(self) -> float:
@@ -123,16 +123,19 @@ def _check_fix(fix: Fix) -> tuple[np.ndarray, np.ndarray]:
     z = np.asarray(fix.xy, float).reshape(2)
     R = np.asarray(fix.cov, float).reshape(2, 2)
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
-        raise InvalidMessageError("nan", f"fix: expected finite xy and cov, got xy={z}, cov={R.tolist()}")
+        raise InvalidInputError("nan", f"fix: expected finite xy and cov, got xy={z}, cov={R.tolist()}")
     return z, R
 
 
 # ----------------------------------------------------------------------------------------------
 # Online filter
 # ----------------------------------------------------------------------------------------------
-class StateAccessors:
-    """Read access shared by the PDR filters: ``x``, ``P``, ``position`` (2,), ``position_cov`` (2, 2)."""
+class PositionFilter:
+    """What the PDR filters share: a state whose first two components are the position, read
+    access (``x``, ``P``, ``position`` (2,), ``position_cov`` (2, 2)), the gated linear WiFi
+    position update and the innovation / Mahalanobis tests on it."""
     state: KfState
+    params: Any    # a Params object with ``gate_threshold``
 
     @property
     def x(self) -> np.ndarray:
@@ -151,35 +154,9 @@ class StateAccessors:
         return self.state.P[:2, :2].copy()
 
 
-class LinearPdrKf(StateAccessors):
-    """Online seed-004 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
-    ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
-
-    def __init__(self, params: LinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
-                 pos_cov0: np.ndarray | None = None, stamp_ns: int = 0) -> None:
-        self.params = params or LinearPdrParams()
-        self.params.validate()
-        self.state = initial_state(self.params, xy0=xy0, pos_cov0=pos_cov0, stamp_ns=stamp_ns)
-        self.last_F = np.eye(4)
-
-
-    def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
-        """Propagate ``steps`` footsteps (may be fractional, >= 0) with heading change ``dtheta`` rad."""
-        if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise InvalidMessageError("bad_pdr", f"LinearPdrKf.predict: expected finite steps >= 0 and dtheta, "
-                                                  f"got {steps}, {dtheta}")
-        F = transition_matrix(steps, dtheta)
-        self.last_F = F
-        st = self.state
-        st.x = F @ st.x
-        Pn = F @ st.P @ F.T + process_noise(self.params, steps)
-        st.P = 0.5 * (Pn + Pn.T)
-        if stamp_ns is not None:
-            st.stamp_ns = int(stamp_ns)
-
     def update(self, fix: Fix) -> bool:
-        """Apply a WiFi fix as a linear position measurement. Returns True if it passed the gate
-        (fixes with ``ok=False`` are ignored and return False)."""
+        """Apply a WiFi fix as a linear position measurement (gated, Joseph form). Returns True if
+        it passed the gate (fixes with ``ok=False`` are ignored and return False)."""
         if not fix.ok:
             return False
         z, R = _check_fix(fix)
@@ -198,9 +175,35 @@ class LinearPdrKf(StateAccessors):
 
     def mahalanobis(self, points: np.ndarray) -> np.ndarray:
         """Squared Mahalanobis distance of candidate positions (N, 2) from the position estimate
-        (seed 004 integrity monitoring of a particle filter: ``(c_i - x)^T P^-1 (c_i - x)``)."""
+        (seed 004 integrity monitoring of a particle filter: ``(c_i - x)^T P^-1 (c_i - x)``) -> (N,)."""
         return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
 
+
+class LinearPdrKf(PositionFilter):
+    """Online seed-004 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
+    ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
+
+    def __init__(self, params: LinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
+                 pos_cov0: np.ndarray | None = None, stamp_ns: int = 0) -> None:
+        self.params = params or LinearPdrParams()
+        self.params.validate()
+        self.state = initial_state(self.params, xy0=xy0, pos_cov0=pos_cov0, stamp_ns=stamp_ns)
+        self.last_F = np.eye(4)
+
+
+    def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
+        """Propagate ``steps`` footsteps (may be fractional, >= 0) with heading change ``dtheta`` rad."""
+        if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
+            raise InvalidInputError("bad_pdr", f"LinearPdrKf.predict: expected finite steps >= 0 and dtheta, "
+                                                  f"got {steps}, {dtheta}")
+        F = transition_matrix(steps, dtheta)
+        self.last_F = F
+        st = self.state
+        st.x = F @ st.x
+        Pn = F @ st.P @ F.T + process_noise(self.params, steps)
+        st.P = 0.5 * (Pn + Pn.T)
+        if stamp_ns is not None:
+            st.stamp_ns = int(stamp_ns)
 
 def initial_state(p: LinearPdrParams, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None,
                   stamp_ns: int = 0) -> KfState:
@@ -260,7 +263,7 @@ def filter_batch(params: LinearPdrParams, steps: np.ndarray, dtheta: np.ndarray,
     R = np.asarray(R, float)
     T = len(steps)
     if not (dtheta.shape == (T,) and z.shape == (T, 2) and R.shape == (T, 2, 2)):
-        raise ConfigError(f"filter_batch: expected steps (T,), dtheta (T,), z (T,2), R (T,2,2), got "
+        raise InvalidInputError("shape", f"filter_batch: expected steps (T,), dtheta (T,), z (T,2), R (T,2,2), got "
                           f"{steps.shape}, {dtheta.shape}, {z.shape}, {R.shape}")
     st = initial_state(params, xy0=xy0, pos_cov0=pos_cov0)
     x, Pm = st.x, st.P

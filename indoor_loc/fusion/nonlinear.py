@@ -21,42 +21,40 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from indoor_loc import params as P
-from indoor_loc.errors import InvalidMessageError
-from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, StateAccessors, _check_fix,
-                                          joseph_update, mahalanobis_sq)
+from indoor_loc.params import field, require
+from indoor_loc.errors import InvalidInputError
+from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, PositionFilter)
 from indoor_loc.measurements import Fix
 
-H_POS4 = H_POS  # the position is also the first two components of [r1, r2, theta, s]
 
 
 @dataclass(frozen=True)
 class NonlinearPdrParams:
     """Parameters of the nonlinear [r, theta, s] PDR model (eq. 47) for EKF and UKF."""
-    step_length_m: float = P.field(0.7, "initial footstep length mean (m)")
-    init_step_var_m2: float = P.field(0.01, "initial footstep length variance (m^2)")
-    init_heading_rad: float = P.field(0.0, "initial heading mean (rad, ENU)")
-    init_heading_var_rad2: float = P.field(1.0, "initial heading variance (rad^2); keep < (pi/2)^2 or the UKF's "
-                                          "sigma points wrap around and hide the uncertainty")
-    init_pos_var_m2: float = P.field(100.0, "initial position variance per axis when no position is given (m^2)")
-    sigma_dtheta_rad: float = P.field(0.1, "heading-change noise per footstep (rad)")
-    sigma_ds_m: float = P.field(0.02, "footstep-length random walk per footstep (m)")
-    q_floor: float = P.field(1e-8, "process-noise floor on theta (rad^2) and s (m^2) per prediction")
-    gate: bool = P.field(True, "reject WiFi fixes whose innovation fails the chi-square test")
-    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the innovation gate")
-    ukf_alpha: float = P.field(1.0, "UKF spread alpha (eq. 17)")
-    ukf_beta: float = P.field(2.0, "UKF beta (eq. 21); 2 is optimal for Gaussians")
-    ukf_kappa: float = P.field(-1.0, "UKF kappa (eq. 17); 3 - d = -1 matches Gaussian fourth moments for d = 4")
+    step_length_m: float = field(0.7, "initial footstep length mean (m)")
+    init_step_var_m2: float = field(0.01, "initial footstep length variance (m^2)")
+    init_heading_rad: float = field(0.0, "initial heading mean (rad, ENU)")
+    init_heading_var_rad2: float = field(1.0, "initial heading variance (rad^2); keep < (pi/2)^2 or the UKF's "
+                                              "sigma points wrap around and hide the uncertainty")
+    init_pos_var_m2: float = field(100.0, "initial position variance per axis when no position is given (m^2)")
+    sigma_dtheta_rad: float = field(0.1, "heading-change noise per footstep (rad)")
+    sigma_ds_m: float = field(0.02, "footstep-length random walk per footstep (m)")
+    q_floor: float = field(1e-8, "process-noise floor on theta (rad^2) and s (m^2) per prediction")
+    gate: bool = field(True, "reject WiFi fixes whose innovation fails the chi-square test")
+    gate_prob: float = field(0.999, "chi-square (2 dof) probability of the innovation gate")
+    ukf_alpha: float = field(1.0, "UKF spread alpha (eq. 17)")
+    ukf_beta: float = field(2.0, "UKF beta (eq. 21); 2 is optimal for Gaussians")
+    ukf_kappa: float = field(-1.0, "UKF kappa (eq. 17); 3 - d = -1 matches Gaussian fourth moments for d = 4")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         for name in ("init_step_var_m2", "init_heading_var_rad2", "init_pos_var_m2", "q_floor", "ukf_alpha"):
-            P.require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
+            require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
         for name in ("sigma_dtheta_rad", "sigma_ds_m", "ukf_beta"):
-            P.require(getattr(self, name) >= 0, n, name, ">= 0", getattr(self, name))
-        P.require(0.0 < self.gate_prob < 1.0, n, "gate_prob", "in (0, 1)", self.gate_prob)
-        P.require(self.ukf_alpha ** 2 * (4 + self.ukf_kappa) > 0, n, "ukf_kappa", "alpha^2 (4 + kappa) > 0",
+            require(getattr(self, name) >= 0, n, name, ">= 0", getattr(self, name))
+        require(0.0 < self.gate_prob < 1.0, n, "gate_prob", "in (0, 1)", self.gate_prob)
+        require(self.ukf_alpha ** 2 * (4 + self.ukf_kappa) > 0, n, "ukf_kappa", "alpha^2 (4 + kappa) > 0",
                   self.ukf_kappa)
 
     @property
@@ -89,7 +87,7 @@ def process_noise(p: NonlinearPdrParams, steps: float) -> np.ndarray:
     return np.diag([0.0, 0.0, n * p.sigma_dtheta_rad ** 2 + p.q_floor, n * p.sigma_ds_m ** 2 + p.q_floor])
 
 
-class _NonlinearPdrFilter(StateAccessors):
+class _NonlinearPdrFilter(PositionFilter):
     """Shared state handling of the EKF and the UKF (the update is linear for both)."""
 
     def __init__(self, params: NonlinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
@@ -108,31 +106,11 @@ class _NonlinearPdrFilter(StateAccessors):
 
     def _check(self, steps: float, dtheta: float) -> None:
         if not (np.isfinite(steps) and np.isfinite(dtheta)) or steps < 0:
-            raise InvalidMessageError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
+            raise InvalidInputError("bad_pdr", f"{type(self).__name__}.predict: expected finite steps >= 0 "
                                       f"and dtheta, got {steps}, {dtheta}")
 
     def predict(self, steps: float, dtheta: float, *, stamp_ns: int | None = None) -> None:
         raise NotImplementedError
-
-    def update(self, fix: Fix) -> bool:
-        """Linear WiFi position update (gated, Joseph form); False when rejected or ``fix.ok`` is False."""
-        if not fix.ok:
-            return False
-        z, R = _check_fix(fix)
-        st = self.state
-        st.x, st.P, st.last_nis, ok = joseph_update(st.x, st.P, z, R, H_POS4, self.params.gate_threshold)
-        st.n_updates += int(ok)
-        st.n_rejected += int(not ok)
-        return ok
-
-    def nis(self, fix: Fix) -> float:
-        """Normalised innovation squared of a fix against the current prediction (no update)."""
-        z, R = _check_fix(fix)
-        return float(mahalanobis_sq(z[None], self.state.x[:2], self.state.P[:2, :2] + R)[0])
-
-    def mahalanobis(self, points: np.ndarray) -> np.ndarray:
-        """Squared Mahalanobis distances of positions (N, 2) from the position estimate -> (N,)."""
-        return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
 
 
 class PdrEkf(_NonlinearPdrFilter):

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.measurements import wrap_angle
 from indoor_loc.params import field, require
 
@@ -152,7 +153,7 @@ def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
     ax, ay, az = a
     n = math.sqrt(ax * ax + ay * ay + az * az)
     if n < 1e-6:
-        raise ValueError("cannot initialise the orientation from a zero accelerometer reading")
+        raise InvalidInputError("zero_acc", "cannot initialise the orientation from a zero accelerometer reading")
     ax, ay, az = ax / n, ay / n, az / n
     # shortest arc from (ax, ay, az) to (0, 0, 1): q = [1 + az, a × e_z] normalised
     w, x, y, z = 1.0 + az, ay, -ax, 0.0
@@ -255,9 +256,9 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
         mk = None if m is None else m[k]
         if not (isfinite(gx) and isfinite(gy) and isfinite(gz) and isfinite(ax) and isfinite(ay)
                 and isfinite(az)):
-            raise ValueError(f"non-finite gyroscope/accelerometer sample at stamp {tk} ns")
+            raise InvalidInputError("nan", f"non-finite gyroscope/accelerometer sample at stamp {tk} ns")
         if mk is not None and not (isfinite(mk[0]) and isfinite(mk[1]) and isfinite(mk[2])):
-            raise ValueError(f"non-finite magnetometer sample at stamp {tk} ns")
+            raise InvalidInputError("nan", f"non-finite magnetometer sample at stamp {tk} ns")
         if not st.initialised:
             _initialise(st, p, [ax, ay, az], mk)
             qw, qx, qy, qz = st.q
@@ -276,7 +277,7 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                             P[14] + (sys2 if st.mag_ref_ok else 0.0)))
             continue
         if tk <= t_prev:
-            raise ValueError(f"stamps must increase: {tk} ns after {t_prev} ns")
+            raise InvalidInputError("non_monotonic_stamp", f"stamps must increase: {tk} ns after {t_prev} ns")
         dt = (tk - t_prev) * 1e-9
         t_prev = tk
 
@@ -605,19 +606,33 @@ class Aekf:
         self.params = params if params is not None else AekfParams()
         self.params.validate()
         self._st = AekfState()
+        self._pending_mag: list | None = None
 
     def update(self, stamp_ns: int, gyro, acc, mag=None) -> None:
         """One sample: ``gyro`` (3,) rad/s, ``acc`` (3,) m/s² (specific force, +g up at rest),
         ``mag`` (3,) any unit or None. dt comes from the stamps (irregular is fine); the first call
-        initialises from acc [+ mag]. Raises ValueError on non-finite input or stamps that do not
+        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or stamps that do not
         increase (the state is then unchanged)."""
         g = [float(v) for v in gyro]
         a = [float(v) for v in acc]
         mm = None if mag is None else [[float(v) for v in mag]]
         if len(g) != 3 or len(a) != 3 or (mm is not None and len(mm[0]) != 3):
-            raise ValueError("gyro, acc and mag must have 3 components")
+            raise InvalidInputError("shape", "gyro, acc and mag must have 3 components")
         # _run checks a sample before touching the state, so a rejected sample leaves it unchanged
         _run(self._st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
+
+    def update_imu(self, stamp_ns: int, gyro, acc) -> None:
+        """One IMU sample; a magnetometer sample given by :meth:`update_mag` since the previous IMU
+        sample is applied with it (each magnetometer sample once)."""
+        mag, self._pending_mag = self._pending_mag, None
+        self.update(stamp_ns, gyro, acc, mag)
+
+    def update_mag(self, stamp_ns: int, mag) -> None:
+        """One magnetometer sample at its own stamp, applied with the next IMU sample."""
+        m = [float(v) for v in mag]
+        if len(m) != 3 or not all(math.isfinite(v) for v in m):
+            raise InvalidInputError("nan", f"non-finite or malformed magnetometer sample at stamp {stamp_ns} ns")
+        self._pending_mag = m
 
     @property
     def initialised(self) -> bool:
@@ -674,12 +689,12 @@ def aekf_batch(t_ns, gyro, acc, mag=None, params: AekfParams | None = None,
     a = np.asarray(acc, dtype=float)
     n = len(t)
     if g.shape != (n, 3) or a.shape != (n, 3):
-        raise ValueError(f"expected gyro/acc of shape ({n}, 3), got {g.shape} and {a.shape}")
+        raise InvalidInputError("shape", f"expected gyro/acc of shape ({n}, 3), got {g.shape} and {a.shape}")
     mlist = None
     if mag is not None:
         mg = np.asarray(mag, dtype=float)
         if mg.shape != (n, 3):
-            raise ValueError(f"expected mag of shape ({n}, 3), got {mg.shape}")
+            raise InvalidInputError("shape", f"expected mag of shape ({n}, 3), got {mg.shape}")
         ok = np.isfinite(mg).all(axis=1)
         mlist = mg.tolist()
         if not ok.all():

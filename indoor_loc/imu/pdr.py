@@ -30,11 +30,10 @@ import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field as dc_field
-from typing import NamedTuple
 
 import numpy as np
 
-from indoor_loc.measurements import wrap_angle
+from indoor_loc.measurements import OdomPose, wrap_angle
 from indoor_loc.params import field, require
 
 #: Yaw variance meaning "heading unknown", rad².
@@ -54,20 +53,6 @@ class PdrParams:
         require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         require(self.step_length_rel_std >= 0, n, "step_length_rel_std", ">= 0", self.step_length_rel_std)
         require(self.unknown_yaw_var > 0, n, "unknown_yaw_var", "> 0", self.unknown_yaw_var)
-
-
-class PdrPose(NamedTuple):
-    """One PDR output: stamp_ns (hop end); x, y m and yaw rad in the odom frame; cov (3, 3) of
-    (x, y, yaw); speed m/s; yaw_rate rad/s; steps in this hop; distance m in this hop."""
-    stamp_ns: int
-    x: float
-    y: float
-    yaw: float
-    cov: np.ndarray
-    speed: float
-    yaw_rate: float
-    steps: float
-    distance_m: float
 
 
 @dataclass
@@ -100,7 +85,7 @@ class Pdr:
         self._st = state.copy()
 
     def update(self, t_start_ns: int, t_end_ns: int, steps: float, yaw: float | None,
-               yaw_var: float | None = None) -> PdrPose:
+               yaw_var: float | None = None) -> OdomPose:
         """Integrate one hop. ``yaw`` rad at the hop's end (None = unknown: the last yaw is held),
         ``yaw_var`` rad² (None with a known yaw = 0)."""
         st = self._st
@@ -128,11 +113,10 @@ class Pdr:
         st.stamp_ns = int(t_end_ns)
         st.total_steps += max(0.0, float(steps))
         st.distance_m += d
-        return PdrPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
-                       max(0.0, float(steps)), d)
+        return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt)
 
 
-def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[PdrPose]:
+def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[OdomPose]:
     """Integrate whole arrays of hops (N,) (``yaw`` NaN = unknown). Same as :meth:`Pdr.update` in a loop."""
     pdr = Pdr(params)
     yv = np.zeros(len(steps)) if yaw_var is None else np.asarray(yaw_var, float)

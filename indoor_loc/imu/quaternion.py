@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from indoor_loc.errors import InvalidInputError
+
 
 def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a ⊗ b`` of (…, 4) arrays (w x y z)."""
@@ -35,7 +37,7 @@ def qnormalize(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if not np.all(np.isfinite(n)) or np.any(n == 0.0):
-        raise ValueError("quaternion with zero or non-finite norm")
+        raise InvalidInputError("bad_quaternion", "quaternion with zero or non-finite norm")
     return q / n
 
 

@@ -40,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import field, require
 
 #: Resolution of the candidate step-frequency grid before parabolic refinement, Hz.
@@ -289,7 +289,7 @@ class Stepometer:
 
     # -- input ------------------------------------------------------------------------------------
     def update(self, stamp_ns: int, acc) -> list[StepHop]:
-        """One accelerometer sample: ``acc`` (3,) m/s² incl. gravity. Raises InvalidMessageError
+        """One accelerometer sample: ``acc`` (3,) m/s² incl. gravity. Raises InvalidInputError
         (``"nan"``, ``"non_monotonic_stamp"``) with the state unchanged."""
         st = self._st
         t = int(stamp_ns)
@@ -298,9 +298,9 @@ class Stepometer:
             # Fast scalar path (the common case once running); same arithmetic as _extend.
             x, y, z = float(acc[0]), float(acc[1]), float(acc[2])
             if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-                raise InvalidMessageError("nan", "acc has NaN/inf components")
+                raise InvalidInputError("nan", "acc has NaN/inf components")
             if t < st.last_t_ns:
-                raise InvalidMessageError("non_monotonic_stamp",
+                raise InvalidInputError("non_monotonic_stamp",
                                           f"stamp {t} goes backwards (previous {st.last_t_ns})")
             m = math.sqrt(x * x + y * y + z * z)
             st.samples += 1
@@ -320,7 +320,7 @@ class Stepometer:
             return []
         a = np.asarray(acc, dtype=float).reshape(-1)
         if a.shape != (3,):
-            raise InvalidMessageError("shape", f"acc: expected 3 components, got {a.shape}")
+            raise InvalidInputError("shape", f"acc: expected 3 components, got {a.shape}")
         return self.update_many(np.array([t], dtype=np.int64), a[None, :])
 
     def update_many(self, stamps_ns, acc) -> list[StepHop]:
@@ -329,14 +329,14 @@ class Stepometer:
         t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
         a = np.asarray(acc, dtype=float)
         if a.ndim != 2 or a.shape != (len(t), 3):
-            raise InvalidMessageError("shape", f"acc: expected ({len(t)}, 3), got {a.shape}")
+            raise InvalidInputError("shape", f"acc: expected ({len(t)}, 3), got {a.shape}")
         if not np.isfinite(a).all():
-            raise InvalidMessageError("nan", "acc has NaN/inf components")
+            raise InvalidInputError("nan", "acc has NaN/inf components")
         if len(t) == 0:
             return []
         prev = self._st.pending_t[-1] if self._st.pending_t else self._st.last_t_ns
         if (prev is not None and t[0] < prev) or np.any(np.diff(t) < 0):
-            raise InvalidMessageError("non_monotonic_stamp",
+            raise InvalidInputError("non_monotonic_stamp",
                                       f"stamp {int(t[0])} goes backwards (previous {prev})")
         m = _magnitude(a)
         st = self._st

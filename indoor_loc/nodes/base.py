@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import array
 import argparse
-import dataclasses
 import signal
 import sys
 import threading
@@ -39,10 +38,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from indoor_loc.contract import Qos, join_ns, msg_class
+from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
 from msg_adapters.diagnostics import stage_diagnostics
-from indoor_loc.params import load_params_file, misplaced_keys, node_key, params_from_dict
+from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
+                               params_from_dict, params_to_dict)
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 
 QOS_PROFILES: dict[Qos, QoSProfile] = {
@@ -95,7 +95,19 @@ class SequenceGaps:
         self.last: int | None = None
         self.publishers = 1
 
-    def gap(self, info: Any) -> int:
+    def gap(self, info: Any, recount: Callable[[], int] | None = None) -> int:
+        """Messages missing before this one; ``recount()`` (the topic's publisher count now) is
+        asked before a gap is reported, so a publisher that joined since the last refresh (its
+        numbers interleave) is not mistaken for a loss."""
+        n = self._gap(info)
+        if n and recount is not None:
+            self.publishers = recount()
+            if self.publishers != 1:
+                self.last = None
+                return 0
+        return n
+
+    def _gap(self, info: Any) -> int:
         seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
         if not seq or self.publishers != 1:
             self.last = None if self.publishers != 1 else self.last
@@ -104,14 +116,6 @@ class SequenceGaps:
         if last is None or seq <= last:          # first message, or a restarted publisher
             return 0
         return seq - last - 1
-
-
-def _default_of(f: dataclasses.Field) -> Any:
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-        return f.default_factory()  # type: ignore[misc]
-    return None
 
 
 def _ros_value(value: Any) -> Any:
@@ -186,40 +190,48 @@ class StageNode(Node):
 
     # -- parameters ------------------------------------------------------------------------------
     def _declare_params(self, params_cls: type) -> dict[str, Any]:
-        """Declare one ROS parameter per Params field and return the values in force.
+        """Declare one ROS parameter per Params field and return the values in force (nested for
+        groups: a group's fields are declared with dotted names, ``stepometer.window_s``).
 
         Parameters are dynamically typed so ``step_length_m: 1`` in a YAML file (an int for a
         float) is coerced by :func:`params_from_dict` instead of failing inside rclpy; type errors
         are reported there as ConfigError. Overrides naming no field are a ConfigError too.
         """
         values: dict[str, Any] = {}
-        for f in dataclasses.fields(params_cls):
-            default = _default_of(f)
+        names = []
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        for name, f, default in leaves(params_cls):
             if isinstance(default, dict):
-                continue   # not expressible as a ROS parameter: stays at its default
+                # a free-form mapping (its owner validates it): each ``name.key`` given is declared
+                for key in sorted(k for k in overrides if k.startswith(name + ".")):
+                    names.append(key)
+                    desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                               read_only=True)
+                    values[key] = _py_value(self.declare_parameter(key, None, desc).value)
+                continue
+            names.append(name)
             desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
                                        read_only=True)   # read at start-up; a change needs a restart
-            p = self.declare_parameter(f.name, _ros_value(default), desc)
+            p = self.declare_parameter(name, _ros_value(default), desc)
             value = _py_value(p.value)
             if value is None and isinstance(default, (list, tuple)):
                 value = type(default)()
             if value is not None or default is None:
-                values[f.name] = value
-        overrides = getattr(self, "_parameter_overrides", {}) or {}
+                values[name] = value
         unknown = sorted(n for n in overrides if not self.has_parameter(n)
                          and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
         if unknown:
-            names = sorted(f.name for f in dataclasses.fields(params_cls))
+            names = sorted(names)
             raise ConfigError(f"{params_cls.__name__}: unknown parameter(s) {unknown} for "
                               f"{self.get_fully_qualified_name()}; expected some of {names}")
-        return values
+        return nest_dotted(values)
 
     def _on_set_params(self, changes: list) -> SetParametersResult:
-        fields = {f.name for f in dataclasses.fields(self._stage_cls.PARAMS)}
+        fields = {name for name, _, _ in leaves(self._stage_cls.PARAMS)}
         ours = [p for p in changes if p.name in fields]
         if not ours:
             return SetParametersResult(successful=True)   # use_sim_time and friends
-        current = dataclasses.asdict(self.stage.params)
+        current = flatten(params_to_dict(self.stage.params))
         current.update({p.name: _py_value(p.value) for p in ours})
         try:
             params_from_dict(self._stage_cls.PARAMS, current)
@@ -236,6 +248,8 @@ class StageNode(Node):
         self.user_subs[user] = [
             self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
                                      subscription_qos(p.qos)) for p in self.stage.inputs()]
+        for port in self.stage.user_outputs():      # ready (and matched) before the first output
+            self._publisher(port.topic.format(user=user))
         self._user_seen[user] = self._monotonic()
         self._finished_users.discard(user)
         self.get_logger().info(f"following user {user!r}")
@@ -251,8 +265,9 @@ class StageNode(Node):
             rels = [p.topic for p in self.stage.inputs()]
             for name, _types in self.get_topic_names_and_types():
                 for rel in rels:
-                    if name.endswith("/" + rel) and len(name) > len(rel) + 1:
-                        user = user_of_namespace(name[: -len(rel) - 1])
+                    ns = namespace_of_topic(name, rel)
+                    if ns:
+                        user = user_of_namespace(ns)
                         if user and self.count_publishers(name) > 0:
                             self._follow(user)
         timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))
@@ -266,7 +281,7 @@ class StageNode(Node):
                 continue
             self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
             self._finished_users.add(user)
-            self._publish(self.stage.finish_user(user))
+            self._publish(self.stage.run_finish_user(user))
             if not self._fixed_users:
                 for sub in self.user_subs.pop(user):
                     self.destroy_subscription(sub)
@@ -274,11 +289,15 @@ class StageNode(Node):
 
     # -- messages ----------------------------------------------------------------------------------
     def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
-        gaps = self._gaps.setdefault(join_ns(namespace_of_user(user), topic) if user else topic, SequenceGaps())
+        resolved = join_ns(namespace_of_user(user), topic) if user else topic
+        gaps = self._gaps.setdefault(resolved, SequenceGaps())
+
+        def recount() -> int:
+            return self.count_publishers(resolved)
 
         def cb(msg: Any, info: Any) -> None:
             now_ns = self.get_clock().now().nanoseconds
-            lost = gaps.gap(info)
+            lost = gaps.gap(info, recount)
             if lost:
                 self.stage.diag.count_lost(topic, lost, now_ns)
                 self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
@@ -428,8 +447,8 @@ def params_file_args(argv: list[str]) -> list[str]:
 def node_usage(stage_cls: type[Stage]) -> str:
     lines = [f"usage: ros2 run indoor_loc {stage_cls.NODE_NAME} [--ros-args -r __ns:=/USER "
              f"--params-file FILE -p NAME:=VALUE ...]", "", (stage_cls.__doc__ or "").strip(), "", "parameters:"]
-    for f in dataclasses.fields(stage_cls.PARAMS):
-        lines.append(f"  {f.name} (default {_default_of(f)!r}): {f.metadata.get('doc', '')}")
+    for name, f, default in leaves(stage_cls.PARAMS):
+        lines.append(f"  {name} (default {default!r}): {f.metadata.get('doc', '')}")
     try:
         stage = stage_cls(stage_cls.PARAMS(), namespace="")
     except IndoorLocError as err:     # a stage that needs files to start still gets its help printed

@@ -292,7 +292,7 @@ class RecorderNode(Node):
             src = info.get("source_timestamp") if isinstance(info, dict) else None
             put(("m", topic, data, now, src if src else now))
             self.received += 1
-            lost = gaps.gap(info)
+            lost = gaps.gap(info, lambda: self.count_publishers(topic))
             if lost:
                 self.lost[topic] = self.lost.get(topic, 0) + lost
                 self._last_loss_ns = now

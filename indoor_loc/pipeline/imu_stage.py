@@ -1,18 +1,24 @@
-"""ImuStage (``imu_node``): FFT stepometer + heading -> ``pdr/odom`` (and ``imu/data`` from the AEKF).
+"""ImuStage (``imu_node``): FFT stepometer + heading -> ``pdr/odom`` (and ``imu/data`` from the filter).
 
 Inputs
 - ``imu/data_raw`` (sensor_msgs/Imu, REP 145): the accelerometer feeds the stepometer; with a
   gyroscope (``angular_velocity_covariance[0] != -1``) it also drives the adaptive EKF.
-- ``imu/mag`` (sensor_msgs/MagneticField, optional): the latest sample (at most ``mag_max_age_s``
-  old) goes into the AEKF with the next raw IMU sample; without it the AEKF runs in 6-D mode and its
-  heading variance grows (and says so in ``pdr/odom``).
+- ``imu/mag`` (sensor_msgs/MagneticField, optional) at its own rate: merged with ``imu/data_raw``
+  in stamp order (:class:`indoor_loc.imu.mag_sync.MagSync`: an IMU sample waits at most
+  ``mag_max_delay_s`` for the magnetometer), each sample used once at its stamp, after subtracting
+  the hard-iron bias ``mag_bias_{x,y,z}`` (tesla, as imu_tools' ``mag_bias_*``). A sample later
+  than that is dropped and counted (``mag_late``). Without it the filter runs 6-D and its heading
+  variance grows (and says so in ``pdr/odom``).
 - ``imu/data`` (sensor_msgs/Imu with orientation, e.g. the PUTMC phones' OS quaternion): heading
   source for ``heading_source: orientation`` (and ``auto`` once it arrives); if no ``imu/data_raw``
   carries the accelerometer, the acceleration of ``imu/data`` feeds the stepometer.
 
-``heading_source``: ``orientation`` = yaw of ``imu/data``; ``aekf`` = the AEKF on ``imu/data_raw``
-(+ ``imu/mag``); ``auto`` = the orientation of ``imu/data`` if that topic arrives from elsewhere
-(our own AEKF output echoed back is recognised by its stamps and ignored), else the AEKF.
+``heading_source``: ``orientation`` = yaw of ``imu/data``; ``aekf`` = the adaptive EKF
+(:mod:`indoor_loc.imu.aekf`) on ``imu/data_raw`` (+ ``imu/mag``); ``vqf`` = VQF's compiled core
+(:mod:`indoor_loc.imu.vqf_filter`) on the same inputs; ``auto`` = the orientation of ``imu/data`` if
+that topic arrives from elsewhere (our own output echoed back is recognised by its stamps and
+ignored), else :data:`AUTO_FILTER`, the filter ``indoor-loc bench heading`` finds better on walking
+phones (VQF, see the README's "Heading on walking phones").
 Heading = yaw (ZYX, CCW from the world x axis) of the device->world quaternion plus
 ``heading_offset_rad`` (π/2 for a phone walking along its +y axis). No heading at all
 (accelerometer only): the yaw is held and published with variance 1e6 rad² (unknown).
@@ -21,110 +27,103 @@ Outputs
 - ``pdr/odom`` (nav_msgs/Odometry): one message per stepometer hop, stamped at the hop's end; see
   :mod:`indoor_loc.imu.pdr` for the contract (steps = |Δp| / step_length_m, Δψ = wrap(Δyaw)).
   Latency: about (window_s + hop_s)/2 behind the newest sample.
-- ``imu/data`` (sensor_msgs/Imu): AEKF orientation + covariance, one per raw sample, when the AEKF
-  runs.
+- ``imu/data`` (sensor_msgs/Imu): the filter's orientation + covariance, one per raw sample, when a
+  filter runs.
 
 Bad input (NaN/inf, stamps going backwards, non-unit quaternions) raises InvalidMessageError before
 any state changes: counted by reason and dropped.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import deque
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, group, require, validate_groups
 from indoor_loc.contract import Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError, InvalidMessageError
 from indoor_loc.imu.aekf import Aekf, AekfParams
+from indoor_loc.imu.mag_sync import IMU, MagSync
 from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
 from indoor_loc.imu.quaternion import yaw_xyzw
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
+from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams
 from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
 from msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
 
-HEADING_SOURCES = ("auto", "aekf", "orientation")
-AEKF_PREFIX = "aekf_"
+HEADING_SOURCES = ("auto", "aekf", "vqf", "orientation")
+#: the filter ``auto`` runs when no external orientation arrives: the better one on walking phones in
+#: ``indoor-loc bench heading`` (TyRex walking trials, README "Heading on walking phones").
+AUTO_FILTER = "vqf"
 
 
-def _copy_field(f: dataclasses.Field, name: str | None = None) -> tuple[str, type, Any]:
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-    return (name or f.name, f.type, P.field(default, f.metadata.get("doc", "")))
+@dataclass(frozen=True)
+class ImuStageParams:
+    """Parameters of ``imu_node`` (see config/imu_node.yaml): its own, and the stepometer's and the
+    AEKF's as groups (ROS parameters ``stepometer.window_s``, ``aekf.gyro_noise``, ...; defaults and
+    docs live in :class:`StepometerParams` and :class:`AekfParams`)."""
+    heading_source: str = field("auto", "'auto' (imu/data orientation if it arrives, else the better filter "
+                                          "on walking phones, VQF), 'aekf', 'vqf' or 'orientation'")
+    step_length_m: float = field(0.65, "nominal step length, m: distance = steps x this")
+    step_length_rel_std: float = field(0.1, "relative std of the walked distance per hop, 1")
+    heading_offset_rad: float = field(0.0, "added to the device yaw to get the walking heading, rad "
+                                           "(0: device x forward, REP 103; pi/2: phone +y forward)")
+    default_yaw_std_rad: float = field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")
+    odom_frame: str = field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")
+    base_frame: str = field("", "pdr/odom child frame; '' = '<namespace>/base_link'")
+    mag_max_delay_s: float = field(0.1, "an imu/data_raw sample waits at most this long (stamp time) for "
+                                        "imu/mag samples up to its stamp; later ones are dropped and counted, s")
+    mag_bias_x: float = field(0.0, "hard-iron bias subtracted from imu/mag x, T (indoor-loc mag-bias)")
+    mag_bias_y: float = field(0.0, "hard-iron bias subtracted from imu/mag y, T")
+    mag_bias_z: float = field(0.0, "hard-iron bias subtracted from imu/mag z, T")
+    stepometer: StepometerParams = group(StepometerParams, "FFT stepometer (indoor_loc/imu/stepometer.py)")
+    aekf: AekfParams = group(AekfParams, "adaptive EKF orientation (indoor_loc/imu/aekf.py), used when the "
+                                         "heading comes from the AEKF")
+    vqf: VqfParams = group(VqfParams, "VQF orientation (indoor_loc/imu/vqf_filter.py), used when the heading "
+                                      "comes from VQF")
 
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.heading_source in HEADING_SOURCES, n, "heading_source", f"one of {HEADING_SOURCES}",
+                  self.heading_source)
+        require(self.default_yaw_std_rad > 0, n, "default_yaw_std_rad", "> 0", self.default_yaw_std_rad)
+        require(self.mag_max_delay_s >= 0, n, "mag_max_delay_s", ">= 0", self.mag_max_delay_s)
+        for ax in "xyz":
+            v = getattr(self, "mag_bias_" + ax)
+            require(math.isfinite(v), n, "mag_bias_" + ax, "finite", v)
+        require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
+        validate_groups(self)
+        self.pdr_params().validate()
 
-_OWN_FIELDS: list[tuple[str, Any, Any]] = [
-    ("heading_source", str, P.field("auto", "'auto' (imu/data orientation if it arrives, else the AEKF), "
-                                            "'aekf' or 'orientation'")),
-    ("step_length_m", float, P.field(0.65, "nominal step length, m: distance = steps x this")),
-    ("step_length_rel_std", float, P.field(0.1, "relative std of the walked distance per hop, 1")),
-    ("heading_offset_rad", float, P.field(0.0, "added to the device yaw to get the walking heading, rad "
-                                               "(0: device x forward, REP 103; pi/2: phone +y forward)")),
-    ("default_yaw_std_rad", float, P.field(0.2, "yaw std used when imu/data carries no covariance (zeros), rad")),
-    ("odom_frame", str, P.field("", "pdr/odom header frame; '' = '<namespace>/odom' (REP 105, per user)")),
-    ("base_frame", str, P.field("", "pdr/odom child frame; '' = '<namespace>/base_link'")),
-    ("mag_max_age_s", float, P.field(0.2, "a magnetometer sample older than this is not used, s")),
-]
-
-
-def _validate(self) -> None:
-    n = type(self).__name__
-    P.require(self.heading_source in HEADING_SOURCES, n, "heading_source", f"one of {HEADING_SOURCES}",
-              self.heading_source)
-    P.require(self.default_yaw_std_rad > 0, n, "default_yaw_std_rad", "> 0", self.default_yaw_std_rad)
-    P.require(self.mag_max_age_s >= 0, n, "mag_max_age_s", ">= 0", self.mag_max_age_s)
-    P.require(math.isfinite(self.heading_offset_rad), n, "heading_offset_rad", "finite", self.heading_offset_rad)
-    self.stepometer_params().validate()
-    self.pdr_params().validate()
-    self.aekf_params().validate()
-
-
-def _stepometer_params(self) -> StepometerParams:
-    return StepometerParams(**{f.name: getattr(self, f.name) for f in dataclasses.fields(StepometerParams)})
-
-
-def _pdr_params(self) -> PdrParams:
-    return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
-
-
-def _aekf_params(self) -> AekfParams:
-    return AekfParams(**{f.name: getattr(self, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)})
-
-
-_fields = (list(_OWN_FIELDS) + [_copy_field(f) for f in dataclasses.fields(StepometerParams)]
-           + [_copy_field(f, AEKF_PREFIX + f.name) for f in dataclasses.fields(AekfParams)])
-
-#: Parameters of ``imu_node``: its own, every :class:`StepometerParams` field under the same name and
-#: every ``AekfParams`` field prefixed ``aekf_`` (defaults and docs live in those classes).
-ImuStageParams = dataclasses.make_dataclass(
-    "ImuStageParams", _fields, frozen=True,
-    namespace={"validate": _validate, "stepometer_params": _stepometer_params, "pdr_params": _pdr_params,
-               "aekf_params": _aekf_params,
-               "__doc__": "Parameters of imu_node (see config/imu_node.yaml)."})
+    def pdr_params(self) -> PdrParams:
+        return PdrParams(step_length_m=self.step_length_m, step_length_rel_std=self.step_length_rel_std)
 
 
 class ImuStage(Stage):
-    """FFT stepometer + heading (AEKF or given orientation) -> pdr/odom [+ imu/data]."""
+    """FFT stepometer + heading (AEKF, VQF or given orientation) -> pdr/odom [+ imu/data]."""
     NODE_NAME = "imu_node"
     PARAMS = ImuStageParams
 
-    def __init__(self, params, *, namespace: str = "") -> None:
+    def __init__(self, params: ImuStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
         ns = namespace.strip("/")
         self.odom_frame = params.odom_frame or (f"{ns}/odom" if ns else "odom")
         self.base_frame = params.base_frame or (f"{ns}/base_link" if ns else "base_link")
-        self.stepometer = Stepometer(params.stepometer_params())
+        self.stepometer = Stepometer(params.stepometer)
         self.pdr = Pdr(params.pdr_params())
-        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.window_s))
-        self.aekf = Aekf(params.aekf_params())
+        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.stepometer.window_s))
+        self.filter_name = AUTO_FILTER if params.heading_source in ("auto", "orientation") else params.heading_source
+        self.filter: Aekf | VqfFilter = Aekf(params.aekf) if self.filter_name == "aekf" else VqfFilter(params.vqf)
+        self.mag_sync = MagSync(params.mag_max_delay_s)
+        self._mag_bias = np.array([params.mag_bias_x, params.mag_bias_y, params.mag_bias_z])
+        self._last_mag_ns: int | None = None
         self._acc_topic: str | None = None          # which input feeds the stepometer
         self._last_raw_ns: int | None = None
         self._last_orient_ns: int | None = None
-        self._mag: tuple[int, np.ndarray] | None = None
         self._external_orientation = params.heading_source == "orientation"
         self._published_stamps: deque = deque(maxlen=512)   # our imu/data stamps (echo detection)
         self._published_set: set = set()
@@ -147,18 +146,27 @@ class ImuStage(Stage):
 
     @property
     def heading_mode(self) -> str:
-        """The heading source in use now: 'orientation', 'aekf' or 'none'."""
+        """The heading source in use now: 'orientation', 'aekf', 'vqf' or 'none'."""
         if self._external_orientation:
             return "orientation" if len(self.headings) else "none"
-        if self.params.heading_source in ("aekf", "auto") and self.aekf.initialised:
-            return "aekf"
+        if self.filter.initialised:
+            return self.filter_name
         return "none"
 
     # -- handlers ---------------------------------------------------------------------------------
     def _on_mag(self, msg, recv_ns: int) -> list[Output]:
         stamp, field_t = mag_from_msg(msg)
-        self._mag = (stamp, field_t)
-        return []
+        if self._last_mag_ns is not None and stamp <= self._last_mag_ns:
+            raise InvalidMessageError("non_monotonic_stamp", f"imu/mag stamp {stamp} <= previous {self._last_mag_ns}")
+        if self._external_orientation:
+            return []
+        self._last_mag_ns = stamp
+        late = self.mag_sync.n_late
+        events = self.mag_sync.push_mag(stamp, field_t - self._mag_bias)
+        if self.mag_sync.n_late > late:
+            self._reject("mag_late", f"imu/mag stamp {stamp} is older than imu/data_raw samples already "
+                                     f"used (more than mag_max_delay_s late): dropped")
+        return self._run_events(events)
 
     def _on_raw(self, msg, recv_ns: int) -> list[Output]:
         s = imu_from_msg(msg)
@@ -166,36 +174,47 @@ class ImuStage(Stage):
             raise InvalidMessageError("non_monotonic_stamp",
                                       f"imu/data_raw stamp {s.stamp_ns} <= previous {self._last_raw_ns}")
         outs: list[Output] = []
-        run_aekf = not self._external_orientation and self.params.heading_source in ("aekf", "auto")
-        if run_aekf:
-            if s.gyro is None:
-                self.counts["no_gyro"] += 1
-            else:
-                mag = None
-                if self._mag is not None and abs(s.stamp_ns - self._mag[0]) <= self.params.mag_max_age_s * 1e9:
-                    mag = self._mag[1]
-                    self._mag = None
-                try:
-                    self.aekf.update(s.stamp_ns, s.gyro, s.acc, mag)
-                except ValueError as err:
-                    raise InvalidMessageError("aekf_input", str(err)) from err
-                if mag is not None:
-                    self.counts["mag_used"] += 1
-                q = self.aekf.quat_wxyz
-                cov = self.aekf.orientation_cov
-                q_xyzw = np.array([q[1], q[2], q[3], q[0]])
-                self.headings.add(s.stamp_ns, yaw_xyzw(q_xyzw) + self.params.heading_offset_rad,
-                                  float(cov[2, 2]))
-                outs.append(("imu/data", imu_to_msg(s.stamp_ns, s.frame_id, s.acc, s.gyro, q_xyzw, cov)))
-                if len(self._published_stamps) == self._published_stamps.maxlen:
-                    self._published_set.discard(self._published_stamps[0])
-                self._published_stamps.append(s.stamp_ns)
-                self._published_set.add(s.stamp_ns)
-        self._last_raw_ns = s.stamp_ns
         if self._acc_topic is None:
             self._acc_topic = "imu/data_raw"
         if self._acc_topic == "imu/data_raw":
-            outs += self._hops(self.stepometer.update(s.stamp_ns, s.acc))
+            hops = self.stepometer.update(s.stamp_ns, s.acc)      # may raise: nothing changed yet
+        else:
+            hops = []
+        self._last_raw_ns = s.stamp_ns
+        if not self._external_orientation:
+            if s.gyro is None:
+                self.counts["no_gyro"] += 1
+            else:
+                outs += self._run_events(self.mag_sync.push_imu(s.stamp_ns, s))
+        return outs + self._hops(hops)
+
+    def _run_events(self, events) -> list[Output]:
+        """Feed merged IMU/magnetometer events (stamp order) to the filter; imu/data per IMU sample.
+        A sample the filter refuses is counted by its reason and the rest still run."""
+        outs: list[Output] = []
+        for kind, stamp, payload in events:
+            try:
+                if kind == IMU:
+                    self.filter.update_imu(stamp, payload.gyro, payload.acc)
+                else:
+                    self.filter.update_mag(stamp, payload)
+            except InvalidInputError as err:
+                self._reject(err.reason, f"{self.filter_name}: {err}")
+                continue
+            if kind != IMU:
+                self.counts["mag_used"] += 1
+                continue
+            if not self.filter.initialised:
+                continue
+            q = self.filter.quat_wxyz
+            cov = self.filter.orientation_cov
+            q_xyzw = np.array([q[1], q[2], q[3], q[0]])
+            self.headings.add(stamp, yaw_xyzw(q_xyzw) + self.params.heading_offset_rad, float(cov[2, 2]))
+            outs.append(("imu/data", imu_to_msg(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
+            if len(self._published_stamps) == self._published_stamps.maxlen:
+                self._published_set.discard(self._published_stamps[0])
+            self._published_stamps.append(stamp)
+            self._published_set.add(stamp)
         return outs
 
     def _on_orientation(self, msg, recv_ns: int) -> list[Output]:
@@ -237,7 +256,8 @@ class ImuStage(Stage):
         return outs
 
     def finish(self) -> list[Output]:
-        return self._hops(self.stepometer.finish())
+        outs = [] if self._external_orientation else self._run_events(self.mag_sync.flush())
+        return outs + self._hops(self.stepometer.finish())
 
     def extra_diagnostics(self) -> dict[str, str]:
         st = self.pdr.state()
@@ -251,6 +271,7 @@ class ImuStage(Stage):
             "yaw_std_rad": f"{math.sqrt(st.cov[2, 2]):.3g}",
             "distance_m": f"{st.distance_m:.2f}",
             "mag_used": str(self.counts["mag_used"]),
+            "mag_late": str(self.mag_sync.n_late),
             "raw_without_gyro": str(self.counts["no_gyro"]),
             "latency_s": f"{self.stepometer.latency_s:.2f}",
         }

@@ -283,7 +283,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                             emit(ns, s, s.run_finish(), end)
                         for s in multi:
                             if user_of_namespace(ns):
-                                emit("", s, s.finish_user(user_of_namespace(ns)), end)
+                                emit("", s, s.run_finish_user(user_of_namespace(ns)), end)
                     tick(end, bag_ns)
                 for s in multi:
                     emit("", s, s.run_finish(), end or 0)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.contract import Qos
 from indoor_loc.measurements import Fix
 from indoor_loc.errors import ConfigError
@@ -34,29 +34,29 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 @dataclass(frozen=True)
 class PdrKfStageParams:
     """Parameters of ``pdr_kf_node``."""
-    step_length_m: float = P.field(0.65, "nominal step length the PDR node used (m): steps = distance / this")
-    kf_step_length_m: float = P.field(0.7, "footstep length s in the heading-noise model (m)")
-    sigma_dtheta_rad: float = P.field(0.2, "heading-change noise per footstep (rad); 0.2 measured best on PUTMC (0.1 and 0.3 also tried)")
-    sigma_ds_m: float = P.field(0.07, "step-vector length change noise per footstep (m)")
-    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
-    max_rejected_fixes: int = P.field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
-    max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
-    smooth_period_s: float = P.field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
-    smooth_lag_s: float = P.field(60.0, "fixed-lag smoother window (s of stamp time): poses older than this are final and "
+    step_length_m: float = field(0.65, "nominal step length the PDR node used (m): steps = distance / this")
+    kf_step_length_m: float = field(0.7, "footstep length s in the heading-noise model (m)")
+    sigma_dtheta_rad: float = field(0.2, "heading-change noise per footstep (rad); 0.2 measured best on PUTMC (0.1 and 0.3 also tried)")
+    sigma_ds_m: float = field(0.07, "step-vector length change noise per footstep (m)")
+    gate_prob: float = field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
+    max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
+    max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
+    smooth_period_s: float = field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
+    smooth_lag_s: float = field(60.0, "fixed-lag smoother window (s of stamp time): poses older than this are final and "
                                         "never re-smoothed, so the cost per update stays bounded in long runs")
-    path_max_poses: int = P.field(20000, "pdr_kf/path keeps the newest this many poses (≈ 1.8 h at 0.32 s hops); older "
+    path_max_poses: int = field(20000, "pdr_kf/path keeps the newest this many poses (≈ 1.8 h at 0.32 s hops); older "
                                          "ones leave the message (bounded size and memory)")
-    frame_id: str = P.field("map", "frame of the estimates")
+    frame_id: str = field("map", "frame of the estimates")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
-        P.require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
-        P.require(self.smooth_lag_s > 0, n, "smooth_lag_s", "> 0", self.smooth_lag_s)
-        P.require(self.path_max_poses >= 1, n, "path_max_poses", ">= 1", self.path_max_poses)
-        P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
-        P.require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
-        P.require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
+        require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
+        require(self.smooth_lag_s > 0, n, "smooth_lag_s", "> 0", self.smooth_lag_s)
+        require(self.path_max_poses >= 1, n, "path_max_poses", ">= 1", self.path_max_poses)
+        require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
+        require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         self.kf_params().validate()
 
     def kf_params(self) -> LinearPdrParams:

@@ -14,6 +14,7 @@ STAGES: dict[str, str] = {
     "wifi": "indoor_loc.pipeline.wifi_fix_stage:WifiFixStage",
     "wifi_scan": "indoor_loc.pipeline.wifi_scan_stage:WifiScanStage",
     "pdr_kf": "indoor_loc.pipeline.pdr_kf_stage:PdrKfStage",
+    "backend": "indoor_loc.pipeline.backend_stage:BackendStage",
 }
 
 

@@ -21,10 +21,13 @@ by a rejected message because handlers validate (via msg_adapters) before touchi
 from __future__ import annotations
 
 import functools
+import time
 import traceback
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
+
+import numpy as np
 
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidInputError
@@ -39,6 +42,14 @@ class Port:
     qos: Qos
 
 
+def rate_hz(count: int, first_ns: int | None, last_ns: int | None) -> float:
+    """Mean rate (Hz) of ``count`` events stamped from ``first_ns`` to ``last_ns``; 0 before two
+    events or when no time passed."""
+    if count < 2 or first_ns is None or last_ns is None or last_ns <= first_ns:
+        return 0.0
+    return (count - 1) / ((last_ns - first_ns) * 1e-9)
+
+
 @dataclass
 class TopicStats:
     count: int = 0
@@ -46,9 +57,7 @@ class TopicStats:
     last_ns: int | None = None
 
     def rate_hz(self) -> float:
-        if self.count < 2 or self.first_ns is None or self.last_ns is None or self.last_ns <= self.first_ns:
-            return 0.0
-        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+        return rate_hz(self.count, self.first_ns, self.last_ns)
 
 
 @dataclass
@@ -68,6 +77,8 @@ class StageDiagnostics:
         """``n`` messages on ``topic`` never reached the stage (publication sequence gap)."""
         self.lost[topic] += n
         self.last_loss_ns = now_ns
+    #: wall-clock processing time of the latest messages, s (bounded window): the node's per-update latency
+    process_s: deque = field(default_factory=lambda: deque(maxlen=20000))
 
     def summary(self) -> dict[str, str]:
         """Flat key/values for a DiagnosticStatus."""
@@ -84,6 +95,11 @@ class StageDiagnostics:
         for topic, n in sorted(self.lost.items()):
             out[f"lost.{topic}"] = str(n)
         out["lost.total"] = str(sum(self.lost.values()))
+        if self.process_s:
+            t = np.fromiter(self.process_s, float) * 1e3
+            out["process_ms.p50"] = f"{np.percentile(t, 50):.2f}"
+            out["process_ms.p99"] = f"{np.percentile(t, 99):.2f}"
+            out["process_ms.max"] = f"{t.max():.2f}"
         return out
 
 
@@ -183,6 +199,7 @@ class Stage:
         stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns
         stats.last_ns = recv_ns
         self.diag.now_ns = recv_ns
+        t0 = time.perf_counter()
         try:
             outs = handler(msg, recv_ns)
         except InvalidInputError as err:
@@ -191,6 +208,8 @@ class Stage:
         except Exception as err:  # noqa: BLE001 - a node never dies on a message
             self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
+        finally:
+            self.diag.process_s.append(time.perf_counter() - t0)
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1
         return outs
@@ -200,6 +219,10 @@ class Stage:
         the timer or aborts an offline run); what the stage published before is kept."""
         self.diag.now_ns = now_ns
         return self._guarded("tick", lambda: self.tick(now_ns))
+
+    def run_finish_user(self, user: str) -> list[Output]:
+        """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("finish_user", lambda: self.finish_user(user))
 
     def run_finish(self) -> list[Output]:
         """:meth:`finish` for drivers, guarded like :meth:`run_tick`."""

@@ -2,7 +2,7 @@
 
 Parameters (``wifi_fix_node``): ``radiomap`` (a radio map directory, see
 :mod:`indoor_loc.wifi.radiomap`; "" = none), ``method`` ("wknn" | "pathloss" | "coverage"),
-``frame_id`` and the method's own parameters under a prefix named after the method — in a params
+``frame_id`` and each method's own parameters as a group named after the method — in a params
 file a nested mapping, which ROS 2 flattens to dotted parameter names::
 
     wifi_fix_node:
@@ -10,6 +10,15 @@ file a nested mapping, which ROS 2 flattens to dotted parameter names::
         radiomap: /data/putmc/radiomap
         method: wknn
         wknn: {k: 4, shared_threshold: 0.6}     # ROS parameters wknn.k, wknn.shared_threshold
+
+``fallback`` names a second method for the scans the first declines (the importers configure WKNN
+with ``fallback: powed``, so every scan sharing one AP with the map gets a fix); fallback fixes are
+counted under ``fallback.<primary reason>``.
+
+Floors: on a multi-floor radio map (format v2, per-scan ``z``) the ``powed`` method detects the
+floor; ``wifi/fix`` then carries ``pose.position.z`` = the floor's height from the map manifest's
+``floors: {name: z_m}`` and ``covariance[14]`` its variance; diagnostics give ``last_floor``.
+On a single-floor map z is 0.
 
 An unreadable radio map is a configuration error at start-up. With ``radiomap: ""`` the stage
 starts, drops every scan with reason ``no_map`` and says so under ``error`` in its diagnostics.
@@ -25,15 +34,19 @@ from pathlib import Path
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, group, require, validate_groups
 from indoor_loc.contract import Qos
-from indoor_loc.errors import ConfigError, InvalidMessageError
+from indoor_loc.errors import InvalidMessageError
 from msg_adapters.pose import fix_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.methods import METHODS, make_params, make_positioner
+from indoor_loc.wifi.coverage import CoverageParams
+from indoor_loc.wifi.methods import METHODS, make_chain
+from indoor_loc.wifi.pathloss import PathLossParams
+from indoor_loc.wifi.powed_knn import PowedKnnParams
 from indoor_loc.wifi.radiomap import load_radiomap
 from indoor_loc.wifi.types import Positioner, RadioMap
+from indoor_loc.wifi.wknn import WknnParams
 
 NODE_NAME = "wifi_fix_node"
 
@@ -41,26 +54,33 @@ NODE_NAME = "wifi_fix_node"
 @dataclass(frozen=True)
 class WifiFixParams:
     """Parameters of ``wifi_fix_node`` (see config/wifi_fix_node.yaml)."""
-    radiomap: str = P.field("", "radio map directory (indoor-loc radiomap build / import); '' = none: "
+    radiomap: str = field("", "radio map directory (indoor-loc radiomap build / import); '' = none: "
                                 "scans are dropped (reason no_map) and diagnostics report the error")
-    method: str = P.field("wknn", "positioning method: 'wknn', 'pathloss' or 'coverage'")
-    frame_id: str = P.field("map", "frame_id of the published fixes (the radio map's frame)")
-    wknn: dict = P.field({}, "WKNN parameters (wknn.k, wknn.shared_threshold, ...; see WknnParams)")
-    pathloss: dict = P.field({}, "path-loss parameters (pathloss.sigma_db, ...; see PathLossParams)")
-    coverage: dict = P.field({}, "coverage-area parameters (coverage.two_level, ...; see CoverageParams)")
+    method: str = field("wknn", "positioning method: 'wknn', 'powed', 'pathloss' or 'coverage'")
+    fallback: str = field("", "method for the scans the first declines ('' = none, e.g. 'powed')")
+    frame_id: str = field("map", "frame_id of the published fixes (the radio map's frame)")
+    wknn: WknnParams = group(WknnParams, "WKNN (indoor_loc/wifi/wknn.py; wknn.k, wknn.shared_threshold, ...)")
+    pathloss: PathLossParams = group(PathLossParams, "path-loss model (indoor_loc/wifi/pathloss.py; pathloss.*)")
+    coverage: CoverageParams = group(CoverageParams, "coverage areas (indoor_loc/wifi/coverage.py; coverage.*)")
+    powed: PowedKnnParams = group(PowedKnnParams, "powed k-NN (indoor_loc/wifi/powed_knn.py; powed.k, "
+                                                  "powed.age_tau_ms, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.method in METHODS, n, "method", f"one of {sorted(METHODS)}", self.method)
-        P.require(bool(self.frame_id), n, "frame_id", "a non-empty frame name", self.frame_id)
-        # the selected method's parameters must be valid (other methods' blocks are checked lazily)
-        try:
-            make_params(self.method, getattr(self, self.method))
-        except ConfigError as err:
-            raise ConfigError(f"{n}.{self.method}: {err}") from err
+        require(self.method in METHODS, n, "method", f"one of {sorted(METHODS)}", self.method)
+        require(self.fallback in ("", *METHODS) and self.fallback != self.method, n, "fallback",
+                f"'' or another of {sorted(METHODS)}", self.fallback)
+        require(bool(self.frame_id), n, "frame_id", "a non-empty frame name", self.frame_id)
+        validate_groups(self)
 
-    def method_params(self) -> dict:
-        return dict(getattr(self, self.method))
+    def method_params(self) -> WknnParams | PathLossParams | CoverageParams | PowedKnnParams:
+        """The Params object of the selected method."""
+        return getattr(self, self.method)
+
+    def make_positioner(self):
+        """The configured positioner (with its fallback), unfitted."""
+        return make_chain(self.method, self.method_params(), self.fallback,
+                          getattr(self, self.fallback) if self.fallback else None)
 
 
 class WifiFixStage(Stage):
@@ -73,6 +93,9 @@ class WifiFixStage(Stage):
         super().__init__(params, namespace=namespace)
         self.params: WifiFixParams = params
         self.declined: Counter = Counter()
+        self.fallbacks: Counter = Counter()
+        self.floors: Counter = Counter()
+        self.last_floor = ""
         self.fixes = 0
         self.last_sigma_m = math.nan
         self.radio_map: RadioMap | None = radio_map
@@ -80,7 +103,7 @@ class WifiFixStage(Stage):
         if self.radio_map is None and params.radiomap:
             self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
         if self.radio_map is not None:
-            self.positioner = make_positioner(params.method, params.method_params()).fit(self.radio_map)
+            self.positioner = params.make_positioner().fit(self.radio_map)
         self.on("wifi/scan", self._on_scan)
 
     def inputs(self) -> list[Port]:
@@ -92,7 +115,7 @@ class WifiFixStage(Stage):
     def set_radio_map(self, rm: RadioMap) -> None:
         """Replace the map (e.g. grown by the back-end) and refit the positioner."""
         self.radio_map = rm
-        self.positioner = make_positioner(self.params.method, self.params.method_params()).fit(rm)
+        self.positioner = self.params.make_positioner().fit(rm)
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
         scan = scan_from_msg(msg)          # InvalidMessageError -> counted by reason
@@ -106,6 +129,11 @@ class WifiFixStage(Stage):
             self.declined["non_finite"] += 1
             return []
         self.fixes += 1
+        if "fallback_from" in fix.info:
+            self.fallbacks[fix.info["fallback_from"] or "declined"] += 1
+        if self.radio_map is not None and self.radio_map.floors:
+            self.last_floor = fix.info.get("floor") or f"z={fix.z:g}"
+            self.floors[self.last_floor] += 1
         self.last_sigma_m = math.sqrt(max(float(np.max(np.linalg.eigvalsh(fix.cov))), 0.0))
         return [("wifi/fix", fix_to_msg(fix, frame_id=self.params.frame_id))]
 
@@ -113,6 +141,12 @@ class WifiFixStage(Stage):
         out = {"method": self.params.method, "radiomap": self.params.radiomap or "(none)",
                "fixes": str(self.fixes), "declined.total": str(sum(self.declined.values()))}
         out.update({f"declined.{k}": str(v) for k, v in sorted(self.declined.items())})
+        if self.params.fallback:
+            out["fallback"] = self.params.fallback
+            out.update({f"fallback.{k}": str(v) for k, v in sorted(self.fallbacks.items())})
+        if self.last_floor:
+            out["last_floor"] = self.last_floor
+            out.update({f"floor.{k}": str(v) for k, v in sorted(self.floors.items())})
         if self.radio_map is None:
             out["error"] = "no radio map configured (parameter radiomap is ''): scans are dropped"
         else:

@@ -17,7 +17,6 @@ so ``/diagnostics`` shows them with the command's hint.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -29,8 +28,9 @@ from indoor_loc.errors import InvalidMessageError
 from msg_adapters.wifi_json import parse_json_msg
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import require
-from indoor_loc.pipeline.stage import Output, Port, Stage
-from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, ScanCommandError, build_command
+from indoor_loc.pipeline.stage import Output, Port, Stage, rate_hz
+from indoor_loc.errors import ScanCommandError
+from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, build_command
 from indoor_loc.wifi.normalize import NormalizeParams, normalize_report
 from indoor_loc.wifi.parsers import SIGNAL_MAPPINGS, ParseResult
 from indoor_loc.wifi.types import WifiScan
@@ -38,16 +38,6 @@ from indoor_loc.wifi.types import WifiScan
 SOURCES = ("topic",) + TOOLS
 IFACE_INPUT = "iface"
 """Name of the internal input carrying :class:`ScanAttempt` objects (no subscription is made)."""
-
-_NORM_FIELDS = {f.name: f for f in dataclasses.fields(NormalizeParams)}
-
-
-def _from_normalize(name: str) -> Any:
-    """A field with the default and doc of ``NormalizeParams.<name>`` (defaults live in one place)."""
-    f = _NORM_FIELDS[name]
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-    return params.field(default, f.metadata["doc"])
-
 
 @dataclass(frozen=True)
 class WifiScanParams:
@@ -67,17 +57,8 @@ class WifiScanParams:
                                                 "`iw ... scan dump` (cached results of the last system scan)")
     signal_mapping: str = params.field("nm", "0-100 quality -> dBm for nmcli: 'nm' (dBm = 0.6 q - 100, "
                                              "NetworkManager's scale) or 'half' (dBm = q/2 - 100)")
-    min_rssi_dbm: float = _from_normalize("min_rssi_dbm")
-    keep_random_macs: bool = _from_normalize("keep_random_macs")
-    ssid_allow: list = _from_normalize("ssid_allow")
-    ssid_deny: list = _from_normalize("ssid_deny")
-    bssid_allow: list = _from_normalize("bssid_allow")
-    bssid_deny: list = _from_normalize("bssid_deny")
-    bands: list = _from_normalize("bands")
-    max_age_ms: float = _from_normalize("max_age_ms")
-
-    def normalize_params(self) -> NormalizeParams:
-        return NormalizeParams(**{name: getattr(self, name) for name in _NORM_FIELDS})
+    normalize: NormalizeParams = params.group(NormalizeParams, "how readings are cleaned, for every source "
+                                                               "(indoor_loc/wifi/normalize.py; normalize.*)")
 
     def validate(self) -> None:
         o = type(self).__name__
@@ -90,7 +71,7 @@ class WifiScanParams:
                 "a timeout > 0 s", self.scan_timeout_s)
         require(self.signal_mapping in SIGNAL_MAPPINGS, o, "signal_mapping", f"one of {list(SIGNAL_MAPPINGS)}",
                 self.signal_mapping)
-        self.normalize_params().validate()
+        params.validate_groups(self)
 
 
 class WifiScanStage(Stage):
@@ -101,7 +82,7 @@ class WifiScanStage(Stage):
     def __init__(self, p: WifiScanParams, *, namespace: str = "") -> None:
         super().__init__(p, namespace=namespace)
         self.params: WifiScanParams = p
-        self._norm = p.normalize_params()
+        self._norm = p.normalize
         self.dropped: Counter = Counter()           # AP readings dropped by normalisation, by reason
         self.scans_published = 0
         self.scans_empty = 0
@@ -193,10 +174,7 @@ class WifiScanStage(Stage):
 
     def scans_per_s(self) -> float:
         """Published scans per second of scan time (0 before two scans)."""
-        if self.scans_published < 2 or self._first_out_ns is None or self._last_out_ns is None \
-                or self._last_out_ns <= self._first_out_ns:
-            return 0.0
-        return (self.scans_published - 1) / ((self._last_out_ns - self._first_out_ns) * 1e-9)
+        return rate_hz(self.scans_published, self._first_out_ns, self._last_out_ns)
 
     def extra_diagnostics(self) -> dict[str, str]:
         out = {

@@ -277,6 +277,48 @@ def make_sample_building() -> Building:
                     np.array(links, dtype=np.int64), aps, dist)
 
 
+# ----------------------------------------------------------------------------------- floor plans
+def floor_plan_image(b: Building, floor: int, *, resolution_m: float = 0.05, margin_m: float = 1.0,
+                     wall_width_m: float = 0.15) -> tuple[np.ndarray, tuple[float, float]]:
+    """Occupancy image of one floor: (H, W) uint8, walls 0 (black), free 254, row 0 at the top; and
+    the map-frame position (x, y) of the image's bottom-left corner (the nav2 map_server ``origin``)."""
+    from PIL import Image, ImageDraw
+
+    if not 0 <= floor < b.n_floors:
+        raise MapError(f"building {b.name}: no floor {floor} (it has {b.n_floors})")
+    if not resolution_m > 0:
+        raise MapError(f"floor plan resolution must be > 0 m/pixel, got {resolution_m}")
+    x0, x1, y0, y1 = b.extent(margin_m)
+    w, h = int(np.ceil((x1 - x0) / resolution_m)), int(np.ceil((y1 - y0) / resolution_m))
+    img = Image.new("L", (w, h), 254)
+    draw = ImageDraw.Draw(img)
+    width = max(1, int(round(wall_width_m / resolution_m)))
+    for (a, c) in b.walls[b.wall_floor == floor]:
+        pts = [((p[0] - x0) / resolution_m, h - 1 - (p[1] - y0) / resolution_m) for p in (a, c)]
+        draw.line(pts, fill=0, width=width)
+    return np.asarray(img, dtype=np.uint8), (x0, y0)
+
+
+def save_floor_plans(b: Building, directory: str | Path, *, resolution_m: float = 0.05) -> list[Path]:
+    """``floor<k>.png`` + ``floor<k>.yaml`` per floor, in the nav2 map_server format (``image``,
+    ``resolution``, ``origin``, ``negate``, ``occupied_thresh``, ``free_thresh``). Returns the YAML paths."""
+    import yaml
+    from PIL import Image
+
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    out = []
+    for f in range(b.n_floors):
+        img, (x0, y0) = floor_plan_image(b, f, resolution_m=resolution_m)
+        Image.fromarray(img).save(d / f"floor{f}.png")
+        meta = {"image": f"floor{f}.png", "mode": "trinary", "resolution": resolution_m,
+                "origin": [round(x0, 6), round(y0, 6), 0.0], "negate": 0, "occupied_thresh": 0.65,
+                "free_thresh": 0.25, "floor": f, "height_m": float(b.floor_z[f])}
+        (d / f"floor{f}.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+        out.append(d / f"floor{f}.yaml")
+    return out
+
+
 # ------------------------------------------------------------------------------------ GeoJSON I/O
 def building_to_geojson(b: Building) -> dict:
     feats: list[dict] = []

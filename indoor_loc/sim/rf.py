@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from indoor_loc.errors import ConfigError
 from indoor_loc.sim.building import ApCluster, Building
 
 
@@ -44,10 +45,10 @@ class RfParams:
     def validate(self) -> None:
         for name in ("n_24", "n_5", "shadow_corr_m", "d0_m"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"RfParams.{name}: expected > 0, got {getattr(self, name)}")
+                raise ConfigError(f"RfParams.{name}: expected > 0, got {getattr(self, name)}")
         for name in ("wall_24_db", "wall_5_db", "floor_db", "shadow_std_db", "fading_std_db", "bssid_offset_std_db"):
             if not getattr(self, name) >= 0:
-                raise ValueError(f"RfParams.{name}: expected >= 0, got {getattr(self, name)}")
+                raise ConfigError(f"RfParams.{name}: expected >= 0, got {getattr(self, name)}")
 
 
 def is_5ghz(freq_mhz) -> np.ndarray:
@@ -163,9 +164,9 @@ class ScannerParams:
 
     def validate(self) -> None:
         if not self.period_s > self.sweep_s >= 0:
-            raise ValueError(f"ScannerParams: expected period_s > sweep_s >= 0, got {self.period_s}, {self.sweep_s}")
+            raise ConfigError(f"ScannerParams: expected period_s > sweep_s >= 0, got {self.period_s}, {self.sweep_s}")
         if not self.detection_slope_db > 0:
-            raise ValueError(f"ScannerParams.detection_slope_db: expected > 0, got {self.detection_slope_db}")
+            raise ConfigError(f"ScannerParams.detection_slope_db: expected > 0, got {self.detection_slope_db}")
 
 
 def read_rss(mean_dbm: np.ndarray, rng: np.random.Generator, *, fading_std_db: float, sensitivity_dbm: float,

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from indoor_loc.errors import ConfigError
 from indoor_loc.sim.building import Building
 from indoor_loc.sim.rf import RfParams, RssField, ScannerParams, read_rss
 from indoor_loc.sim.walker import ImuData, ImuParams, Motion, Plan, WalkerParams, make_plan, sample_motion, \
@@ -36,11 +37,11 @@ class SimConfig:
 
     def validate(self) -> None:
         if not 1 <= self.walkers <= len(NAMES):
-            raise ValueError(f"SimConfig.walkers: expected 1..{len(NAMES)}, got {self.walkers}")
+            raise ConfigError(f"SimConfig.walkers: expected 1..{len(NAMES)}, got {self.walkers}")
         if not self.duration_s >= 10.0:
-            raise ValueError(f"SimConfig.duration_s: expected >= 10 s, got {self.duration_s}")
+            raise ConfigError(f"SimConfig.duration_s: expected >= 10 s, got {self.duration_s}")
         if not self.survey_spacing_m > 0 or self.survey_scans < 1:
-            raise ValueError("SimConfig: survey_spacing_m must be > 0 and survey_scans >= 1")
+            raise ConfigError("SimConfig: survey_spacing_m must be > 0 and survey_scans >= 1")
         self.imu.validate()
         self.rf.validate()
         self.scanner.validate()

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
+from indoor_loc.errors import ConfigError
 from indoor_loc.sim.building import Building
 
 GRAVITY_M_S2 = 9.81
@@ -55,11 +56,11 @@ class WalkerParams:
 
     def validate(self) -> None:
         if not (0.2 <= self.step_length_m <= 1.5):
-            raise ValueError(f"WalkerParams.step_length_m: expected 0.2..1.5 m, got {self.step_length_m}")
+            raise ConfigError(f"WalkerParams.step_length_m: expected 0.2..1.5 m, got {self.step_length_m}")
         if not (0.5 <= self.cadence_hz <= 3.5):
-            raise ValueError(f"WalkerParams.cadence_hz: expected 0.5..3.5 Hz, got {self.cadence_hz}")
+            raise ConfigError(f"WalkerParams.cadence_hz: expected 0.5..3.5 Hz, got {self.cadence_hz}")
         if not (0 <= self.uturn_prob <= 1):
-            raise ValueError(f"WalkerParams.uturn_prob: expected 0..1, got {self.uturn_prob}")
+            raise ConfigError(f"WalkerParams.uturn_prob: expected 0..1, got {self.uturn_prob}")
 
 
 @dataclass(frozen=True)
@@ -79,9 +80,9 @@ class ImuParams:
 
     def validate(self) -> None:
         if not (20.0 <= self.rate_hz <= 1000.0):
-            raise ValueError(f"ImuParams.rate_hz: expected 20..1000 Hz, got {self.rate_hz}")
+            raise ConfigError(f"ImuParams.rate_hz: expected 20..1000 Hz, got {self.rate_hz}")
         if not (1.0 <= self.mag_rate_hz <= 1000.0):
-            raise ValueError(f"ImuParams.mag_rate_hz: expected 1..1000 Hz, got {self.mag_rate_hz}")
+            raise ConfigError(f"ImuParams.mag_rate_hz: expected 1..1000 Hz, got {self.mag_rate_hz}")
 
     def earth_field_enu(self) -> np.ndarray:
         inc = np.radians(self.inclination_deg)

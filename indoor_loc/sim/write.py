@@ -13,7 +13,8 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
 - ``/map/graph`` (MarkerArray, latched): the building's links, nodes and walls.
 
 ``OUT/radiomap/`` the survey (radio map format v1), ``OUT/building.geojson`` the building (walls,
-rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`, ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
+rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`,
+``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format), ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
 cumulative true step count), ``OUT/params.yaml`` configuring every node for this run
 (``/**/node_name:`` keys, so it applies in any namespace, live and offline), ``OUT/scenario.yaml``
 (seed, walkers, their step length and cadence, AP events).
@@ -30,7 +31,7 @@ from indoor_loc.bag import BagWriter
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import join_ns
 from indoor_loc.graph import save_graph
-from indoor_loc.sim.building import Building, building_graph, save_building
+from indoor_loc.sim.building import Building, building_graph, save_building, save_floor_plans
 from indoor_loc.sim.scenario import T0_NS, SimRun, SimWalker
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
 
@@ -152,7 +153,7 @@ def write_truth_csv(w: SimWalker, path: Path, t0_ns: int = T0_NS) -> None:
                          int(m.floor[i]), f"{m.heading[i]:.5f}", f"{m.steps[i]:.3f}"))
 
 
-def node_params(run: SimRun, radiomap_dir: Path) -> dict:
+def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
     """The params.yaml of a simulated run: every node, ``/**/node_name`` keys (any namespace)."""
     mean_step = float(run.config.step_length_m[0])
     return {
@@ -162,6 +163,12 @@ def node_params(run: SimRun, radiomap_dir: Path) -> dict:
             "heading_offset_rad": 0.0}},      # the device's x axis points forward (REP 103)
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
         "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
+        # the particle filter on the building graph (its TLL table is cached beside graph.yaml)
+        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file)}},
+        # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
+        "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
+                                                 "odom_step_length_m": round(mean_step, 3),
+                                                 "path_period_s": 10.0}},
     }
 
 
@@ -172,12 +179,15 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     rm = add_fingerprints(empty_radiomap(), run.survey_xy, run.survey_scans, source="survey")
     rm_dir = save_radiomap(rm, out / "radiomap", created_by="indoor-loc sim")
     geo = save_building(run.building, out / "building.geojson")
+    plans = save_floor_plans(run.building, out / "floor_plans")
     graph = save_graph(building_graph(run.building), out / "graph.yaml",
                        source={"tool": "indoor-loc sim", "building": run.building.name})
     (out / "truth").mkdir(exist_ok=True)
+    for stale in (out / "truth").glob("*.csv"):      # a previous run's walkers
+        stale.unlink()
     for w in run.walkers:
         write_truth_csv(w, out / "truth" / f"{w.name}.csv")
-    params = node_params(run, rm_dir)
+    params = node_params(run, rm_dir, graph)
     (out / "params.yaml").write_text(
         "# Written by `indoor-loc sim`: configures every node for this simulated run (any namespace).\n"
         "# imu/data_raw + imu/mag feed the AEKF; the step length is the population mean (each walker's\n"
@@ -199,5 +209,5 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     (out / "scenario.yaml").write_text(yaml.safe_dump(scenario, sort_keys=False))
     bag = out / "sim.mcap"
     write_bag(run, bag, progress=progress)
-    return {"bag": bag, "radiomap": rm_dir, "building": geo, "graph": graph, "params": out / "params.yaml",
+    return {"bag": bag, "radiomap": rm_dir, "building": geo, "graph": graph, "floor_plans": plans[0].parent, "params": out / "params.yaml",
             "scenario": out / "scenario.yaml", "truth": out / "truth"}

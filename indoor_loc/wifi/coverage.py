@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
-from indoor_loc.errors import InvalidMessageError, MapError
+from indoor_loc.params import field, require
+from indoor_loc.errors import InvalidInputError, MapError
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
 
@@ -40,25 +40,25 @@ from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
 @dataclass(frozen=True)
 class CoverageParams:
     """Coverage-area positioning (seed 004 §3). The four booleans are the paper's ablation switches."""
-    two_level: bool = P.field(True, "use strong CAs (RSS >= strong_rssi_dbm) beside the weak ones")
-    min_size: bool = P.field(True, "impose a minimum CA variance along the main axes (eq. 34)")
-    outlier_removal: bool = P.field(True, "Mahalanobis outlier removal with down-dating (eqs. 35-37)")
-    mimo: bool = P.field(True, "MIMO / similar-CA compensation of the CA covariances (eqs. 39-40)")
-    strong_rssi_dbm: float = P.field(-60.0, "RSS threshold of the strong level (dBm)")
-    prior_weak_m2: float = P.field(100.0 ** 2, "prior B of weak CAs, per axis (m^2)")
-    prior_strong_m2: float = P.field(20.0 ** 2, "prior B of strong CAs, per axis (m^2)")
-    sigma_min_weak_m2: float = P.field(40.0 ** 2, "minimum variance of weak CAs along main axes (m^2)")
-    sigma_min_strong_m2: float = P.field(5.0 ** 2, "minimum variance of strong CAs along main axes (m^2)")
-    outlier_chi2: float = P.field(5.9915, "squared-Mahalanobis outlier threshold, chi2_2(0.95)")
-    min_signal_dbm: float = P.field(-100.0, "readings below this (dBm) are ignored in map and scans")
+    two_level: bool = field(True, "use strong CAs (RSS >= strong_rssi_dbm) beside the weak ones")
+    min_size: bool = field(True, "impose a minimum CA variance along the main axes (eq. 34)")
+    outlier_removal: bool = field(True, "Mahalanobis outlier removal with down-dating (eqs. 35-37)")
+    mimo: bool = field(True, "MIMO / similar-CA compensation of the CA covariances (eqs. 39-40)")
+    strong_rssi_dbm: float = field(-60.0, "RSS threshold of the strong level (dBm)")
+    prior_weak_m2: float = field(100.0 ** 2, "prior B of weak CAs, per axis (m^2)")
+    prior_strong_m2: float = field(20.0 ** 2, "prior B of strong CAs, per axis (m^2)")
+    sigma_min_weak_m2: float = field(40.0 ** 2, "minimum variance of weak CAs along main axes (m^2)")
+    sigma_min_strong_m2: float = field(5.0 ** 2, "minimum variance of strong CAs along main axes (m^2)")
+    outlier_chi2: float = field(5.9915, "squared-Mahalanobis outlier threshold, chi2_2(0.95)")
+    min_signal_dbm: float = field(-100.0, "readings below this (dBm) are ignored in map and scans")
 
     def validate(self) -> None:
         n = type(self).__name__
         for name in ("prior_weak_m2", "prior_strong_m2", "sigma_min_weak_m2", "sigma_min_strong_m2", "outlier_chi2"):
-            P.require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
-        P.require(-120.0 <= self.strong_rssi_dbm <= 0.0, n, "strong_rssi_dbm", "in [-120, 0] dBm",
+            require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
+        require(-120.0 <= self.strong_rssi_dbm <= 0.0, n, "strong_rssi_dbm", "in [-120, 0] dBm",
                   self.strong_rssi_dbm)
-        P.require(-120.0 <= self.min_signal_dbm <= 0.0, n, "min_signal_dbm", "in [-120, 0] dBm", self.min_signal_dbm)
+        require(-120.0 <= self.min_signal_dbm <= 0.0, n, "min_signal_dbm", "in [-120, 0] dBm", self.min_signal_dbm)
 
 
 @dataclass
@@ -177,7 +177,7 @@ class CoverageArea(Positioner):
         every AP heard (new BSSIDs get new CAs)."""
         xy = np.asarray(xy, float).reshape(2)
         if not np.all(np.isfinite(xy)):
-            raise InvalidMessageError("nan", f"coverage.add_fingerprint: expected a finite position, got {xy}")
+            raise InvalidInputError("nan", f"coverage.add_fingerprint: expected a finite position, got {xy}")
         idx = np.array([self.aps.add(b) for b in scan.bssid], dtype=np.int64)
         A = len(self.bssids)
         self.weak.grow(A)

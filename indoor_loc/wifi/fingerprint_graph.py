@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.errors import ConfigError, MapError
 from indoor_loc.wifi.types import ApIndex, RadioMap, WifiScan
 
@@ -46,29 +46,29 @@ LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 @dataclass(frozen=True)
 class FingerprintGraphParams:
     """Building and evaluating the per-vertex fingerprint likelihood."""
-    assign: str = P.field("kernel", "fingerprint -> vertex assignment: 'kernel' or 'nearest'")
-    kernel_sigma_m: float = P.field(2.0, "Gaussian kernel std for assignment and for filling empty vertices (m)")
-    prior_sigma_db: float = P.field(4.0, "prior RSS std at a vertex (dB)")
-    sigma_nu0: float = P.field(2.0, "pseudo-observations of the prior std")
-    min_sigma_db: float = P.field(2.0, "lower bound of a vertex RSS std (dB)")
-    extrapolation_db_per_m: float = P.field(1.0, "std added per metre to the nearest fingerprint that heard the AP (dB/m)")
-    det_prior: float = P.field(0.5, "prior detection probability of an AP at a vertex")
-    det_prior_weight: float = P.field(1.0, "pseudo-observations of det_prior")
-    use_detection: bool = P.field(True, "multiply each heard AP's term by its detection probability")
-    use_non_detections: bool = P.field(True, "multiply by (1 - pdet) for the map's APs not heard")
-    outlier_prob: float = P.field(0.05, "weight eps of the uniform outlier component per AP")
-    rssi_range_db: float = P.field(100.0, "width of the uniform outlier density (dB)")
-    min_signal_dbm: float = P.field(-100.0, "readings below this (dBm) are ignored")
+    assign: str = field("kernel", "fingerprint -> vertex assignment: 'kernel' or 'nearest'")
+    kernel_sigma_m: float = field(2.0, "Gaussian kernel std for assignment and for filling empty vertices (m)")
+    prior_sigma_db: float = field(4.0, "prior RSS std at a vertex (dB)")
+    sigma_nu0: float = field(2.0, "pseudo-observations of the prior std")
+    min_sigma_db: float = field(2.0, "lower bound of a vertex RSS std (dB)")
+    extrapolation_db_per_m: float = field(1.0, "std added per metre to the nearest fingerprint that heard the AP (dB/m)")
+    det_prior: float = field(0.5, "prior detection probability of an AP at a vertex")
+    det_prior_weight: float = field(1.0, "pseudo-observations of det_prior")
+    use_detection: bool = field(True, "multiply each heard AP's term by its detection probability")
+    use_non_detections: bool = field(True, "multiply by (1 - pdet) for the map's APs not heard")
+    outlier_prob: float = field(0.05, "weight eps of the uniform outlier component per AP")
+    rssi_range_db: float = field(100.0, "width of the uniform outlier density (dB)")
+    min_signal_dbm: float = field(-100.0, "readings below this (dBm) are ignored")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(self.assign in ("kernel", "nearest"), n, "assign", "'kernel' or 'nearest'", self.assign)
+        require(self.assign in ("kernel", "nearest"), n, "assign", "'kernel' or 'nearest'", self.assign)
         for name in ("kernel_sigma_m", "prior_sigma_db", "sigma_nu0", "min_sigma_db", "det_prior_weight",
                      "rssi_range_db"):
-            P.require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
-        P.require(self.extrapolation_db_per_m >= 0, n, "extrapolation_db_per_m", ">= 0", self.extrapolation_db_per_m)
-        P.require(0.0 < self.det_prior < 1.0, n, "det_prior", "in (0, 1)", self.det_prior)
-        P.require(0.0 <= self.outlier_prob < 1.0, n, "outlier_prob", "in [0, 1)", self.outlier_prob)
+            require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
+        require(self.extrapolation_db_per_m >= 0, n, "extrapolation_db_per_m", ">= 0", self.extrapolation_db_per_m)
+        require(0.0 < self.det_prior < 1.0, n, "det_prior", "in (0, 1)", self.det_prior)
+        require(0.0 <= self.outlier_prob < 1.0, n, "outlier_prob", "in [0, 1)", self.outlier_prob)
 
 
 class FingerprintGraph:

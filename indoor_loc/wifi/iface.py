@@ -28,20 +28,10 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from indoor_loc.errors import IndoorLocError, ParseError
+from indoor_loc.errors import ParseError, ScanCommandError
 from indoor_loc.wifi.parsers import NMCLI_FIELDS, ParseResult, parse_iw, parse_nmcli
 
 TOOLS = ("iw", "nmcli")
-
-
-class ScanCommandError(IndoorLocError):
-    """A scan command that could not run or failed. ``reason`` is a short stable slug."""
-
-    def __init__(self, reason: str, message: str, hint: str = "") -> None:
-        self.reason = reason
-        self.message = message
-        self.hint = hint
-        super().__init__(f"{message}; {hint}" if hint else message)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from indoor_loc import params
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import require
 from indoor_loc.wifi.types import WifiScan
 
@@ -170,7 +170,7 @@ def normalize_report(scan: WifiScan, p: NormalizeParams | None = None) -> Normal
     rssi = np.asarray(scan.rssi_dbm, dtype=float).reshape(-1)
     freq = np.asarray(scan.freq_mhz, dtype=float).reshape(-1)
     if not len(rssi) == len(freq) == len(ages) == n:
-        raise InvalidMessageError("bad_shape", f"scan has {n} BSSIDs but {len(rssi)} RSSIs, {len(freq)} "
+        raise InvalidInputError("bad_shape", f"scan has {n} BSSIDs but {len(rssi)} RSSIs, {len(freq)} "
                                                f"frequencies and {len(ages)} ages")
     dropped: Counter = Counter()
     kept: dict[str, int] = {}          # bssid -> index of the reading kept so far

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
@@ -41,38 +41,38 @@ LN10 = np.log(10.0)
 @dataclass(frozen=True)
 class PathLossParams:
     """Path-loss model fitting and positioning parameters."""
-    sigma_db: float = P.field(4.0, "prior RSS noise std sigma0 (dB); per-AP sigma is shrunk towards it")
-    sigma_nu0: float = P.field(4.0, "pseudo-observations of the sigma0 prior in the per-AP noise estimate")
-    d0_m: float = P.field(1.0, "height offset of the APs; distance d = sqrt(horizontal^2 + d0^2) (m)")
-    prior_A_dbm: float = P.field(-40.0, "prior mean of A, the RSS at 1 m (dBm)")
-    prior_A_std_db: float = P.field(15.0, "prior std of A (dB)")
-    prior_n: float = P.field(2.5, "prior mean of the path-loss exponent")
-    prior_n_std: float = P.field(0.8, "prior std of the path-loss exponent")
-    n_bounds: list = P.field([1.0, 6.0], "path-loss exponent bounds [min, max]")
-    prior_pos_std_m: float = P.field(15.0, "std of the AP-position prior around its initial guess (m)")
-    init_top_k: int = P.field(3, "the AP position starts at the mean of its k strongest fingerprints")
-    fit_iters: int = P.field(40, "Gauss-Newton iterations of the AP fit")
-    min_fingerprints: int = P.field(2, "an AP heard in fewer map scans is not used")
-    min_signal_dbm: float = P.field(-100.0, "readings below this (dBm) are ignored")
-    min_aps: int = P.field(3, "fewer usable APs in a scan -> no fix")
-    n_starts: int = P.field(4, "positioning starts: the strongest APs' positions (+ their weighted centroid)")
-    locate_iters: int = P.field(25, "Gauss-Newton iterations per start when positioning")
-    clip_margin_m: float = P.field(10.0, "estimates are clipped to the map's bounding box grown by this (m)")
-    inflate_by_residual: bool = P.field(True, "scale the fix covariance by the reduced chi-square when > 1")
-    model_error_m: float = P.field(2.0, "std of the position error the model cannot see (walls, spatially "
-                                        "correlated shadowing), added isotropically to the fix covariance (m)")
+    sigma_db: float = field(4.0, "prior RSS noise std sigma0 (dB); per-AP sigma is shrunk towards it")
+    sigma_nu0: float = field(4.0, "pseudo-observations of the sigma0 prior in the per-AP noise estimate")
+    d0_m: float = field(1.0, "height offset of the APs; distance d = sqrt(horizontal^2 + d0^2) (m)")
+    prior_A_dbm: float = field(-40.0, "prior mean of A, the RSS at 1 m (dBm)")
+    prior_A_std_db: float = field(15.0, "prior std of A (dB)")
+    prior_n: float = field(2.5, "prior mean of the path-loss exponent")
+    prior_n_std: float = field(0.8, "prior std of the path-loss exponent")
+    n_bounds: list = field([1.0, 6.0], "path-loss exponent bounds [min, max]")
+    prior_pos_std_m: float = field(15.0, "std of the AP-position prior around its initial guess (m)")
+    init_top_k: int = field(3, "the AP position starts at the mean of its k strongest fingerprints")
+    fit_iters: int = field(40, "Gauss-Newton iterations of the AP fit")
+    min_fingerprints: int = field(2, "an AP heard in fewer map scans is not used")
+    min_signal_dbm: float = field(-100.0, "readings below this (dBm) are ignored")
+    min_aps: int = field(3, "fewer usable APs in a scan -> no fix")
+    n_starts: int = field(4, "positioning starts: the strongest APs' positions (+ their weighted centroid)")
+    locate_iters: int = field(25, "Gauss-Newton iterations per start when positioning")
+    clip_margin_m: float = field(10.0, "estimates are clipped to the map's bounding box grown by this (m)")
+    inflate_by_residual: bool = field(True, "scale the fix covariance by the reduced chi-square when > 1")
+    model_error_m: float = field(2.0, "std of the position error the model cannot see (walls, spatially "
+                                      "correlated shadowing), added isotropically to the fix covariance (m)")
 
     def validate(self) -> None:
         n = type(self).__name__
         for name in ("sigma_db", "sigma_nu0", "d0_m", "prior_A_std_db", "prior_n_std", "prior_pos_std_m"):
-            P.require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
-        P.require(len(self.n_bounds) == 2 and 0 < self.n_bounds[0] < self.n_bounds[1], n, "n_bounds",
+            require(getattr(self, name) > 0, n, name, "> 0", getattr(self, name))
+        require(len(self.n_bounds) == 2 and 0 < self.n_bounds[0] < self.n_bounds[1], n, "n_bounds",
                   "[min, max] with 0 < min < max", self.n_bounds)
         for name in ("init_top_k", "fit_iters", "min_fingerprints", "min_aps", "n_starts", "locate_iters"):
-            P.require(int(getattr(self, name)) >= 1, n, name, "an integer >= 1", getattr(self, name))
-        P.require(self.min_aps >= 2, n, "min_aps", ">= 2 (two unknowns)", self.min_aps)
-        P.require(self.clip_margin_m >= 0, n, "clip_margin_m", ">= 0", self.clip_margin_m)
-        P.require(self.model_error_m >= 0, n, "model_error_m", ">= 0", self.model_error_m)
+            require(int(getattr(self, name)) >= 1, n, name, "an integer >= 1", getattr(self, name))
+        require(self.min_aps >= 2, n, "min_aps", ">= 2 (two unknowns)", self.min_aps)
+        require(self.clip_margin_m >= 0, n, "clip_margin_m", ">= 0", self.clip_margin_m)
+        require(self.model_error_m >= 0, n, "model_error_m", ">= 0", self.model_error_m)
 
 
 def model(theta: np.ndarray, r: np.ndarray, d0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -38,10 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
 
 ERROR_TYPES = ("l2", "l1", "rms", "mae")
 
@@ -49,32 +49,32 @@ ERROR_TYPES = ("l2", "l1", "rms", "mae")
 @dataclass(frozen=True)
 class WknnParams:
     """WKNN parameters; defaults are the paper's best (k=4, 0.6, -100 dBm, L2)."""
-    k: int = P.field(4, "number of most similar map scans averaged")
-    shared_threshold: float = P.field(0.6, "minimum fraction of each scan's networks the pair must share, "
-                                           "checked in both directions (0-1)")
-    shared_strict: bool = P.field(False, "require more than (instead of at least) shared_threshold")
-    min_signal_dbm: float = P.field(-100.0, "readings below this RSS are ignored in scans and map (dBm)")
-    error_type: str = P.field("l2", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (sqrt of the mean "
+    k: int = field(4, "number of most similar map scans averaged")
+    shared_threshold: float = field(0.6, "minimum fraction of each scan's networks the pair must share, "
+                                         "checked in both directions (0-1)")
+    shared_strict: bool = field(False, "require more than (instead of at least) shared_threshold")
+    min_signal_dbm: float = field(-100.0, "readings below this RSS are ignored in scans and map (dBm)")
+    error_type: str = field("l2", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (sqrt of the mean "
                                     "square, the authors' code) or 'mae' (mean absolute)")
-    epsilon: float = P.field(1e-4, "epsilon in the similarity 1 / (d + epsilon) (dB)")
-    min_candidates: int = P.field(0, "fewer candidate map scans -> no fix; 0 = k (as the authors' code)")
-    min_shared_aps: int = P.field(1, "a pair must share at least this many APs")
-    cov_scale: float = P.field(0.35, "factor on the weighted spread of the k neighbour positions in the fix "
-                                    "covariance")
-    cov_floor_m: float = P.field(1.0, "isotropic standard deviation added to the fix covariance (m)")
+    epsilon: float = field(1e-4, "epsilon in the similarity 1 / (d + epsilon) (dB)")
+    min_candidates: int = field(0, "fewer candidate map scans -> no fix; 0 = k (as the authors' code)")
+    min_shared_aps: int = field(1, "a pair must share at least this many APs")
+    cov_scale: float = field(0.35, "factor on the weighted spread of the k neighbour positions in the fix "
+                                   "covariance")
+    cov_floor_m: float = field(1.0, "isotropic standard deviation added to the fix covariance (m)")
 
     def validate(self) -> None:
         n = type(self).__name__
-        P.require(int(self.k) >= 1, n, "k", "an integer >= 1", self.k)
-        P.require(0.0 <= self.shared_threshold <= 1.0, n, "shared_threshold", "in [0, 1]", self.shared_threshold)
-        P.require(-120.0 <= self.min_signal_dbm <= 0.0, n, "min_signal_dbm", "in [-120, 0] dBm",
+        require(int(self.k) >= 1, n, "k", "an integer >= 1", self.k)
+        require(0.0 <= self.shared_threshold <= 1.0, n, "shared_threshold", "in [0, 1]", self.shared_threshold)
+        require(-120.0 <= self.min_signal_dbm <= 0.0, n, "min_signal_dbm", "in [-120, 0] dBm",
                   self.min_signal_dbm)
-        P.require(self.error_type in ERROR_TYPES, n, "error_type", f"one of {list(ERROR_TYPES)}", self.error_type)
-        P.require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
-        P.require(int(self.min_candidates) >= 0, n, "min_candidates", "an integer >= 0", self.min_candidates)
-        P.require(int(self.min_shared_aps) >= 1, n, "min_shared_aps", "an integer >= 1", self.min_shared_aps)
-        P.require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
-        P.require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
+        require(self.error_type in ERROR_TYPES, n, "error_type", f"one of {list(ERROR_TYPES)}", self.error_type)
+        require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
+        require(int(self.min_candidates) >= 0, n, "min_candidates", "an integer >= 0", self.min_candidates)
+        require(int(self.min_shared_aps) >= 1, n, "min_shared_aps", "an integer >= 1", self.min_shared_aps)
+        require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
+        require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
 
 
@@ -88,9 +88,7 @@ class Wknn(Positioner):
         self.aps = ApIndex()
         self._n_map = np.zeros(0)                    # (M,) usable networks per map scan
         self._pos = np.zeros((0, 2))                 # (M, 2) map positions, m
-        self._inv_ptr = np.zeros(1, np.int64)        # (A + 1,) CSR column pointers
-        self._inv_row = np.zeros(0, np.int64)        # (R,) map row of each usable reading
-        self._inv_val = np.zeros(0)                  # (R,) its RSS, dBm
+        self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # usable RSS (dBm) by AP
 
     # ------------------------------------------------------------------------------------------
     def fit(self, radio_map: RadioMap) -> "Wknn":
@@ -106,11 +104,7 @@ class Wknn(Positioner):
         self.aps = ApIndex(radio_map.bssids)
         self._n_map = usable.sum(axis=1).astype(float)
         self._pos = pos
-        # inverted index AP -> map scans (CSR by column): rows and RSS of each column's readings
-        cols, rows = np.nonzero(usable.T)
-        self._inv_ptr = np.searchsorted(cols, np.arange(usable.shape[1] + 1)).astype(np.int64)
-        self._inv_row = rows.astype(np.int64)
-        self._inv_val = rss[rows, cols].astype(float)
+        self._readings = ApReadings(usable, rss)
         return self
 
     @property
@@ -132,15 +126,10 @@ class Wknn(Positioner):
         """One query through the inverted index: cols (q,), vals (q,). Touches only the readings of
         the query's APs (sum of their map counts), so the cost is O(M q density)."""
         m = self._pos.shape[0]
-        start, stop = self._inv_ptr[cols], self._inv_ptr[cols + 1]
-        lens = stop - start
-        total = int(lens.sum())
-        if total == 0:
+        rows, map_vals, lens = self._readings.gather(cols)
+        if len(rows) == 0:
             return np.full(m, np.inf), np.zeros(m)
-        # flat positions of every reading of the query's columns
-        offs = np.repeat(start - np.cumsum(lens) + lens, lens) + np.arange(total)
-        rows = self._inv_row[offs]
-        diff = np.repeat(vals, lens) - self._inv_val[offs]
+        diff = np.repeat(vals, lens) - map_vals
         shared = np.bincount(rows, minlength=m).astype(float)
         et = self.params.error_type
         acc = np.bincount(rows, weights=diff * diff if et in ("l2", "rms") else np.abs(diff), minlength=m)

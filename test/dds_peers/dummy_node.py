@@ -10,7 +10,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from indoor_loc import params as P
+from indoor_loc.params import field, require
 from indoor_loc.contract import Qos
 from msg_adapters.imu import imu_from_msg
 from msg_adapters.pose import pose_to_msg
@@ -20,14 +20,14 @@ from indoor_loc.pipeline.stage import Port, Stage
 @dataclass(frozen=True)
 class DummyParams:
     """Parameters of the dummy stage."""
-    gain: float = P.field(1.0, "output = gain * input acceleration (s^2)")
-    label: str = P.field("dummy", "reported in diagnostics")
-    weights: list = P.field([], "unused list parameter (exercises empty-list declaration)")
-    enabled: bool = P.field(True, "unused bool parameter")
+    gain: float = field(1.0, "output = gain * input acceleration (s^2)")
+    label: str = field("dummy", "reported in diagnostics")
+    weights: list = field([], "unused list parameter (exercises empty-list declaration)")
+    enabled: bool = field(True, "unused bool parameter")
 
     def validate(self) -> None:
-        P.require(self.gain > 0, "DummyParams", "gain", "> 0", self.gain)
-        P.require(self.label != "", "DummyParams", "label", "a non-empty string", self.label)
+        require(self.gain > 0, "DummyParams", "gain", "> 0", self.gain)
+        require(self.label != "", "DummyParams", "label", "a non-empty string", self.label)
 
 
 class DummyStage(Stage):

@@ -30,11 +30,10 @@ import numpy as np
 import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
+from indoor_loc.output_paths import check_outputs
+from indoor_loc.params import params_file_text
+from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
-
-#: the WiFi fix settings the importer (and ``radiomap build``) configure; measured with
-#: ``indoor-loc bench wifi`` (see README)
-RECOMMENDED_WIFI = {"method": "wknn"}
 
 
 def add_arguments(sub) -> None:
@@ -48,7 +47,8 @@ def add_arguments(sub) -> None:
     p.add_argument("--survey-walks", default="",
                    help="trace ids (or prefixes) that build the radio map (default: the interleaved split)")
     p.add_argument("--storey-height-m", type=float, default=5.0, help="floor height per storey, m (default 5)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing bags in OUT_DIR")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace bags, radiomap/, params.yaml, split.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_ms_indoor)
 
 
@@ -67,7 +67,8 @@ def _select(text: str, ids: list[str], what: str) -> list[str]:
 
 
 def import_ms_indoor(args: argparse.Namespace) -> int:
-    from indoor_loc.datasets.ms_indoor import read_trace, scans_with_truth, site_floors, split_map_test
+    from indoor_loc.datasets.ms_indoor import (heading_offsets, read_trace, scans_with_truth, site_floors,
+                                               split_map_test)
     from indoor_loc.datasets.ms_indoor_bags import trace_bag_counts, walk_namespace, write_trace_bag
 
     if not (args.storey_height_m > 0):
@@ -89,9 +90,14 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     flat = sorted(i for v in all_ids.values() for i in v)
     walks = set(_select(args.walks, flat, "--walks"))
     user_survey = set(_select(args.survey_walks, flat, "--survey-walks")) if args.survey_walks.strip() else None
+    bag_of = {i: out / f.name / f"{i}.mcap" for f in floors for i in all_ids[f.name] if i in walks}
+    check_outputs([*bag_of.values(), out / "radiomap", out / "params.yaml", out / "split.yaml",
+                   out / "import_report.md"], overwrite=args.overwrite, what="import ms-indoor")
 
     rm = empty_radiomap()
     rows, oddities, split = [], [], {}
+    skipped: list[str] = []
+    heading: dict[str, list] = {}
     floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
     for fl in floors:
         ids = all_ids[fl.name]
@@ -106,7 +112,12 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
             tid = p.name.split(".")[0]
             if tid not in walks and tid not in survey:
                 continue
-            tr = read_trace(p)
+            try:
+                tr = read_trace(p)
+            except DatasetError as err:          # one unreadable walk must not lose the others
+                oddities.append(f"{tid}: SKIPPED, unreadable: {err}")
+                skipped.append(tid)
+                continue
             if tr.floor and tr.floor != fl.name:
                 oddities.append(f"{tid}: header FloorName {tr.floor!r} but stored under {fl.name}")
             oddities += [f"{tid}: {o}" for o in tr.oddities if not o.startswith("rows not used")]
@@ -117,9 +128,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                           floors={fl.name: floor_z[fl.name]})
             if tid not in walks:
                 continue
-            bag = out / fl.name / f"{tid}.mcap"
-            if bag.exists() and not args.overwrite:
-                raise ConfigError(f"{bag} exists (use --overwrite to replace it)")
+            heading.setdefault(fl.name, []).append(heading_offsets(tr))
+            bag = bag_of[tid]
             bag.parent.mkdir(parents=True, exist_ok=True)
             counts = write_trace_bag(tr, bag, z_m=floor_z[fl.name])
             sc, _ = scans_with_truth(tr)
@@ -140,21 +150,59 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
     (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
                                     + yaml.safe_dump(split, sort_keys=False))
-    params = {
-        "imu_node": {"ros__parameters": {"heading_source": "orientation"}},
-        "wifi_fix_node": {"ros__parameters": {"radiomap": str(rm_dir), **RECOMMENDED_WIFI}},
-    }
-    (out / "params.yaml").write_text(
-        "# Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
-        "# magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
-        + yaml.safe_dump(params, sort_keys=False))
-    (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m))
+    offset = _heading_offset(heading)
+    imu_params = {"heading_source": "orientation"}
+    if offset is not None:
+        imu_params["heading_offset_rad"] = round(offset, 4)
+    params = {"imu_node": imu_params,
+              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm)}}
+    (out / "params.yaml").write_text(params_file_text(params, header=(
+        "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
+        "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
+        "heading_offset_rad: walking direction in the map frame minus the phone's yaw, from the waypoints\n"
+        "(import_report.md, 'Heading check'); absent when the walks show no constant offset.\n"
+        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file).")))
+    heading_note = _heading_note(heading)
+    (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m)
+                                          + "\n" + heading_note + "\n")
     print(_table(rows))
     print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
           + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
     print(f"params:    {out / 'params.yaml'}\nsplit:     {out / 'split.yaml'}\nreport:    {out / 'import_report.md'}")
     print(f"oddities:  {len(oddities)} (see the report)")
+    if skipped:
+        print(f"SKIPPED {len(skipped)} unreadable walk(s): {', '.join(skipped)} (see the report)")
     return 0
+
+
+def _heading_offset(heading: dict[str, list]) -> float | None:
+    """Site-wide circular mean of (walking direction − phone yaw), rad, or None if R < 0.5."""
+    parts = [d for v in heading.values() for d in v if len(d)]
+    if not parts:
+        return None
+    c = np.mean(np.exp(1j * np.concatenate(parts)))
+    return float(np.angle(c)) if abs(c) >= 0.5 else None
+
+
+def _heading_note(heading: dict[str, list]) -> str:
+    """Per floor: circular mean and resultant length R of (walking direction − phone yaw)."""
+    import math
+    off = _heading_offset(heading)
+    lines = ["## Heading check", "",
+             "Walking direction between waypoints (map frame) minus the rotation vector's yaw, per floor: "
+             "circular mean and resultant length R (1 = one constant offset, 0 = none). The site-wide mean "
+             "becomes imu_node's `heading_offset_rad` (ms_site2: about +90°, a phone carried along its +y "
+             "axis on plans nearly aligned with magnetic north) unless R < 0.5: "
+             + (f"**{math.degrees(off):.1f}° set**." if off is not None else "**none set**."), ""]
+    for name, parts in heading.items():
+        d = np.concatenate(parts) if parts else np.zeros(0)
+        if len(d) == 0:
+            lines.append(f"- {name}: no pair of waypoints 2 m apart")
+            continue
+        c = np.mean(np.exp(1j * d))
+        lines.append(f"- {name}: {len(d)} waypoint pairs, mean {math.degrees(float(np.angle(c))):.1f}°, "
+                     f"R = {abs(c):.2f}")
+    return "\n".join(lines)
 
 
 def _write_floor_plan(fl, d: Path, z_m: float) -> None:

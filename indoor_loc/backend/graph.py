@@ -1,0 +1,534 @@
+"""The multi-user factor graph: insertion policy, evolving WiFi map, bounded optimisation.
+
+Method: Nowicki & Skrzypczyński, "A Multi-user Personal Indoor Localization System Employing
+Graph-based Optimization", Sensors 19(16) 2019, §5. Per user: poses (x, y, θ) in the map frame and
+one step length; PDR edges between consecutive poses, WKNN hyperedges to the survey map (fixed) and
+— in the joint configuration — to other users' earlier scans (their poses, optimised), a prior on
+each step length. Factor models: :mod:`indoor_loc.backend.factors`.
+
+Insertion policy (events of one user arrive in stamp order; :class:`MultiUserGraph` refuses older
+ones):
+
+- a user's graph starts at its first *localised* scan (a pose at the WKNN position, heading = the
+  PDR heading): before it nothing ties the track to the map (as in the reference implementation,
+  whose trajectories span first to last scan);
+- PDR hops (stepometer intervals: steps, heading change) accumulate; a pose is added every
+  ``pose_period_s`` of stamp time (1.28 s ≈ the paper's 256-sample stepometer window), initialised
+  by PDR from the previous pose (a fixed grid in time, not restarted by scan poses);
+- at a localised scan: if the PDR distance since the last pose is below ``min_scan_move_m`` the scan
+  attaches to the last pose, else a pose is added at the scan stamp, initialised at the WKNN
+  position (the paper's policy). The stepometer reports a hop only at its end, so the motion from
+  the last hop to the scan is extrapolated at the last hop's step rate and taken off the next hop;
+- a scan WKNN cannot localise (fewer than k candidates) gets no hyperedge but still a pose by the
+  same rule (from PDR) once the user has started, and joins the map there (joint configuration): a
+  user walking beyond the survey leaves fingerprints that later users can match.
+
+Solver: ``scipy.optimize.least_squares`` on the whitened residuals of all factors touching the
+chosen variables, with the analytic Jacobian assembled in a few vectorised numpy calls: MINPACK's
+Levenberg–Marquardt on the dense Jacobian for small live windows (≤ 120 variables, ~10 ms), the
+trust-region reflective method with LSMR on the sparse Jacobian for the whole graph. GTSAM's LM with Python ``CustomFactor`` spends its time in one
+Python callback per factor (4.5 s for 15 iterations at this size); the vectorised residual makes a
+whole-graph solve a few hundred ms and a local window a few ms.
+
+Bounding (long-running deployments): at most ``max_active_poses`` poses are optimised; beyond that
+the oldest-inserted poses are frozen (kept as constants: finished users first, then the oldest
+history of active users), so solve time stays bounded; learnt map rows are capped
+(``max_map_rows``, oldest dropped) so matching stays bounded. Live updates optimise a window of the
+user's last ``window_poses`` poses (everything else constant); the whole active graph is optimised
+by :meth:`MultiUserGraph.optimize` (end of a user, end of input, or periodically).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+from scipy.sparse.linalg import splu
+
+from indoor_loc.params import field as pfield, group, params_from_dict, require
+from indoor_loc.backend import factors as F
+from indoor_loc.backend.wifi_map import EvolvingMap, Match
+from indoor_loc.errors import ConfigError
+from indoor_loc.wifi.types import RadioMap, WifiScan
+from indoor_loc.wifi.wknn import WknnParams
+
+
+@dataclass(frozen=True)
+class BackendWknnParams(WknnParams):
+    """WKNN of the back-end; defaults are the authors' code's comparison (RMS of RSS differences over
+    the shared APs, more than 50 % of both scans' APs shared), which the published Table 2 used."""
+    error_type: str = pfield("rms", "RSS distance over the shared APs: 'l2', 'l1', 'rms' (the authors' code) or 'mae'")
+    shared_threshold: float = pfield(0.5, "minimum fraction of each scan's networks the pair must share, both ways")
+    shared_strict: bool = pfield(True, "require more than (instead of at least) shared_threshold (authors' code)")
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    """Parameters of the multi-user graph (defaults: the paper's joint + step-length configuration)."""
+    joint: bool = pfield(True, "match other users' scans too (multi-user coupling); False = each user against "
+                               "the survey map only ('separate')")
+    estimate_step_length: bool = pfield(True, "optimise a per-user step length (with its prior); False = fixed "
+                                              "at step_prior_m")
+    step_prior_m: float = pfield(F.STEP_PRIOR_M, "step-length prior mean, m (paper 0.65)")
+    step_prior_info: float = pfield(F.STEP_PRIOR_INFO, "step-length prior information, 1/m² (paper 200)")
+    pdr_info: list = pfield(list(F.PDR_INFO), "PDR edge information diag (x, y, θ) (paper 1, 1, 15)")
+    wifi_info: float = pfield(F.WIFI_INFO, "WKNN hyperedge information, 1/m² (paper 10); with wifi_info_from_fix "
+                                           "a factor on the inverse fix covariance")
+    wifi_info_from_fix: bool = pfield(False, "weight each hyperedge by the inverse of its WKNN fix covariance "
+                                             "(neighbour spread + floor, see Wknn) times wifi_info, instead of "
+                                             "the paper's constant wifi_info I")
+    robust_kernel: str = pfield("none", "kernel on WKNN hyperedges: 'none' (paper), 'huber' or 'cauchy'")
+    robust_threshold_m: float = pfield(2.0, "robust kernel threshold, m of WKNN error")
+    pose_period_s: float = pfield(1.28, "a pose every this much stamp time, s (paper: 256 samples at 200 Hz)")
+    min_scan_move_m: float = pfield(0.3, "a scan closer than this (PDR distance) to the last pose attaches to it, m")
+    gauge_std_m: float = pfield(100.0, "weak prior on each user's first pose position, m (fixes the gauge only)")
+    gauge_std_rad: float = pfield(3.0, "weak prior on each user's first heading, rad")
+    max_iterations: int = pfield(15, "solver iterations per whole-graph optimisation (paper: 15 LM iterations)")
+    window_poses: int = pfield(30, "live: at each localised scan optimise the user's last this many poses "
+                                   "(0 = never; batch use then calls optimize())")
+    window_iterations: int = pfield(5, "solver iterations of a window optimisation")
+    max_active_poses: int = pfield(20000, "at most this many poses are optimised; older ones are frozen")
+    max_map_rows: int = pfield(20000, "at most this many users' scans in the WiFi map (oldest dropped)")
+    wknn: BackendWknnParams = group(BackendWknnParams, "WKNN against the survey and users' scans (wknn.k, ...)")
+
+    def __post_init__(self) -> None:
+        if isinstance(self.wknn, dict):        # GraphParams(wknn={"k": 3}) in code and tests
+            object.__setattr__(self, "wknn", params_from_dict(BackendWknnParams, self.wknn))
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.step_prior_m > 0, n, "step_prior_m", "> 0", self.step_prior_m)
+        require(self.step_prior_info > 0, n, "step_prior_info", "> 0", self.step_prior_info)
+        require(len(self.pdr_info) == 3 and all(float(v) > 0 for v in self.pdr_info), n, "pdr_info",
+                  "three positive numbers", self.pdr_info)
+        require(self.wifi_info > 0, n, "wifi_info", "> 0", self.wifi_info)
+        require(self.robust_kernel in F.ROBUST_KERNELS, n, "robust_kernel", f"one of {F.ROBUST_KERNELS}",
+                  self.robust_kernel)
+        require(self.robust_threshold_m > 0, n, "robust_threshold_m", "> 0", self.robust_threshold_m)
+        require(self.pose_period_s > 0, n, "pose_period_s", "> 0", self.pose_period_s)
+        require(self.min_scan_move_m >= 0, n, "min_scan_move_m", ">= 0", self.min_scan_move_m)
+        require(self.gauge_std_m > 0 and self.gauge_std_rad > 0, n, "gauge_std_m/gauge_std_rad", "> 0",
+                  (self.gauge_std_m, self.gauge_std_rad))
+        require(self.max_iterations >= 1, n, "max_iterations", ">= 1", self.max_iterations)
+        require(self.window_poses >= 0, n, "window_poses", ">= 0", self.window_poses)
+        require(self.window_iterations >= 1, n, "window_iterations", ">= 1", self.window_iterations)
+        require(self.max_active_poses >= 10, n, "max_active_poses", ">= 10", self.max_active_poses)
+        require(self.max_map_rows >= 0, n, "max_map_rows", ">= 0", self.max_map_rows)
+        self.wknn_params()
+
+    def wknn_params(self) -> WknnParams:
+        try:
+            self.wknn.validate()
+        except ConfigError as err:
+            raise ConfigError(f"{type(self).__name__}.wknn: {err}") from err
+        return self.wknn
+
+
+@dataclass
+class UserTrack:
+    """Per-user insertion state."""
+    index: int
+    name: str
+    poses: list = field(default_factory=list)         # global pose indices, in stamp order
+    started: bool = False
+    last_event_ns: int | None = None                  # newest hop end or scan stamp taken
+    last_hop_end_ns: int | None = None
+    last_grid_ns: int = 0                             # stamp of the last periodic pose (or the first pose)
+    last_yaw: float = 0.0                             # odometry yaw at the last hop end
+    step_rate: float = 0.0                            # steps/s of the last hop
+    carry_steps: float = 0.0                          # steps already given to a scan pose
+    acc_steps: float = 0.0                            # since the last pose
+    acc_dtheta: float = 0.0
+    finished: bool = False
+    scans_localised: int = 0
+    scans_unlocalised: int = 0
+    scans_from_users: int = 0                         # hyperedges with >= 1 other user's scan
+
+
+@dataclass(frozen=True)
+class SolveReport:
+    n_poses: int
+    n_factors: int
+    iterations: int
+    cost0: float
+    cost: float
+    wall_s: float
+
+
+class _Growing:
+    """Columns of a growable table (amortised O(1) append)."""
+
+    def __init__(self, **cols: tuple[tuple, Any]) -> None:
+        self._spec = cols
+        self.n = 0
+        for name, (shape, dtype) in cols.items():
+            setattr(self, name, np.zeros((16,) + shape, dtype))
+
+    def append(self, **vals: Any) -> int:
+        if self.n == len(getattr(self, next(iter(self._spec)))):
+            for name in self._spec:
+                a = getattr(self, name)
+                b = np.zeros((2 * len(a),) + a.shape[1:], a.dtype)
+                b[:self.n] = a[:self.n]
+                setattr(self, name, b)
+        for name, v in vals.items():
+            getattr(self, name)[self.n] = v
+        self.n += 1
+        return self.n - 1
+
+    def view(self, name: str) -> np.ndarray:
+        return getattr(self, name)[:self.n]
+
+
+class MultiUserGraph:
+    """Poses of many users, their PDR and WKNN factors, the evolving WiFi map (see module docstring)."""
+
+    def __init__(self, params: GraphParams, survey: RadioMap | None = None) -> None:
+        params.validate()
+        self.params = params
+        self.k = int(params.wknn_params().k)
+        self.map = EvolvingMap(params.wknn_params(), max_rows=params.max_map_rows)
+        if survey is not None and survey.n_scans:
+            self.map.add_fixed(survey)
+        self.users: dict[str, UserTrack] = {}
+        self.user_names: list[str] = []
+        self.step_len = np.zeros(0)
+        self.poses = _Growing(x=((3,), float), user=((), np.int64), stamp=((), np.int64), frozen=((), bool))
+        self.pdr = _Growing(prev=((), np.int64), cur=((), np.int64), steps=((), float), dtheta=((), float))
+        self.wifi = _Growing(pose=((), np.int64), refs=((self.k,), np.int64), w=((self.k,), float),
+                             sqrt_info=((2, 2), float))
+        self.gauge = _Growing(pose=((), np.int64), x=((3,), float))
+        self.n_frozen = 0
+        self.last_solve: SolveReport | None = None
+        self._sqrt_pdr = np.sqrt(np.asarray(params.pdr_info, float))
+        self._sqrt_wifi = math.sqrt(params.wifi_info)
+        self._sqrt_step = math.sqrt(params.step_prior_info)
+
+    # -- users and events ------------------------------------------------------------------------
+    def user(self, name: str) -> UserTrack:
+        tr = self.users.get(name)
+        if tr is None:
+            tr = self.users[name] = UserTrack(len(self.user_names), name)
+            self.user_names.append(name)
+            self.step_len = np.append(self.step_len, self.params.step_prior_m)
+        return tr
+
+    def _check_order(self, tr: UserTrack, stamp_ns: int, what: str) -> None:
+        if tr.last_event_ns is not None and stamp_ns < tr.last_event_ns:
+            raise ValueError(f"{tr.name}: {what} stamp {stamp_ns} older than the last event {tr.last_event_ns}")
+
+    def add_hop(self, name: str, t_start_ns: int, t_end_ns: int, steps: float, yaw: float) -> int | None:
+        """One stepometer hop of user ``name``: ``steps`` over [t_start, t_end], odometry yaw (rad) at
+        its end. Returns the index of a pose it added, else None."""
+        tr = self.user(name)
+        self._check_order(tr, t_end_ns, "hop")
+        if tr.last_hop_end_ns is not None and t_end_ns <= tr.last_hop_end_ns:
+            raise ValueError(f"{name}: hop end {t_end_ns} not after the previous hop end {tr.last_hop_end_ns}")
+        dtheta = float(F.wrap(yaw - tr.last_yaw)) if tr.last_hop_end_ns is not None else 0.0
+        dur = max((t_end_ns - t_start_ns) * 1e-9, 1e-3)
+        tr.step_rate = max(float(steps), 0.0) / dur
+        tr.last_hop_end_ns, tr.last_yaw, tr.last_event_ns = int(t_end_ns), float(yaw), int(t_end_ns)
+        if not tr.started:
+            return None
+        eff = max(float(steps) - tr.carry_steps, 0.0)
+        tr.carry_steps = max(tr.carry_steps - float(steps), 0.0)
+        tr.acc_steps += eff
+        tr.acc_dtheta += dtheta
+        if (t_end_ns - tr.last_grid_ns) * 1e-9 >= self.params.pose_period_s - 1e-3:
+            tr.last_grid_ns = int(t_end_ns)
+            return self._new_pose(tr, t_end_ns, None)
+        return None
+
+    def add_scan(self, name: str, scan: WifiScan) -> tuple[int | None, Match | None]:
+        """A WiFi scan of user ``name``. Returns (pose it is attached to or None (user not started yet),
+        the WKNN match or None)."""
+        tr = self.user(name)
+        self._check_order(tr, scan.stamp_ns, "scan")
+        tr.last_event_ns = int(scan.stamp_ns)
+        match = self.map.match(scan, user=tr.index, joint=self.params.joint)
+        if match is None:
+            tr.scans_unlocalised += 1
+            if not tr.started:
+                return None, None
+        else:
+            tr.scans_localised += 1
+            tr.scans_from_users += int(match.n_from_users > 0)
+        if not tr.started:
+            tr.started = True
+            tr.last_grid_ns = int(scan.stamp_ns)
+            yaw = tr.last_yaw
+            i = self._add_pose(tr, scan.stamp_ns, np.array([match.fix.xy[0], match.fix.xy[1], yaw]))
+            self.gauge.append(pose=i, x=self.poses.x[i].copy())
+        else:
+            extra = 0.0
+            if tr.last_hop_end_ns is not None and scan.stamp_ns > tr.last_hop_end_ns:
+                extra = tr.step_rate * (scan.stamp_ns - tr.last_hop_end_ns) * 1e-9
+            move = self.step_len[tr.index] * (tr.acc_steps + extra)
+            if move < self.params.min_scan_move_m:
+                i = tr.poses[-1]
+            else:
+                tr.carry_steps += extra
+                tr.acc_steps += extra
+                i = self._new_pose(tr, scan.stamp_ns, match.fix.xy if match is not None else None)
+        if match is not None:
+            self.wifi.append(pose=i, refs=match.refs, w=match.weights, sqrt_info=self._wifi_sqrt_info(match))
+        if self.params.joint:
+            self.map.add_scan(scan, i, tr.index)     # localised or not, it is a fingerprint at pose i
+        if self.params.window_poses and match is not None:
+            self.optimize_window(name)
+        return i, match
+
+    def _wifi_sqrt_info(self, match: Match) -> np.ndarray:
+        """Square root L (Lᵀ L = Ω) of a hyperedge's information."""
+        if not self.params.wifi_info_from_fix:
+            return self._sqrt_wifi * np.eye(2)
+        info = self.params.wifi_info * np.linalg.inv(np.asarray(match.fix.cov, float))
+        return np.linalg.cholesky(info).T
+
+    def _add_pose(self, tr: UserTrack, stamp_ns: int, x: np.ndarray) -> int:
+        i = self.poses.append(x=x, user=tr.index, stamp=stamp_ns, frozen=False)
+        tr.poses.append(i)
+        self._bound()
+        return i
+
+    def _new_pose(self, tr: UserTrack, stamp_ns: int, xy: np.ndarray | None) -> int:
+        """A pose after the last one, from the accumulated PDR (position from ``xy`` when given)."""
+        last = tr.poses[-1]
+        p = self.poses.x[last]
+        d = self.step_len[tr.index] * tr.acc_steps
+        mean = p[2] + 0.5 * tr.acc_dtheta
+        x = np.array([p[0] + d * math.cos(mean), p[1] + d * math.sin(mean), float(F.wrap(p[2] + tr.acc_dtheta))])
+        if xy is not None:
+            x[:2] = xy
+        i = self._add_pose(tr, stamp_ns, x)
+        self.pdr.append(prev=last, cur=i, steps=tr.acc_steps, dtheta=tr.acc_dtheta)
+        tr.acc_steps = tr.acc_dtheta = 0.0
+        return i
+
+    def finish_user(self, name: str) -> None:
+        """The user's input has ended (nothing else changes: its poses stay optimisable until the
+        bound freezes them; its scans stay in the map)."""
+        if name in self.users:
+            self.users[name].finished = True
+
+    def _bound(self) -> None:
+        """Freeze the oldest-inserted poses beyond ``max_active_poses`` (finished users first)."""
+        active = self.poses.n - self.n_frozen
+        excess = active - self.params.max_active_poses
+        if excess <= 0:
+            return
+        frozen = self.poses.view("frozen")
+        finished = np.array([self.users[u].finished for u in self.user_names])
+        cand = np.flatnonzero(~frozen)
+        order = np.argsort(~finished[self.poses.user[cand]], kind="stable")   # finished users' poses first
+        pick = cand[order[:excess]]
+        frozen[pick] = True
+        self.n_frozen += len(pick)
+
+    # -- optimisation ---------------------------------------------------------------------------
+    def optimize(self, *, max_iterations: int | None = None) -> SolveReport | None:
+        """Optimise every active (not frozen) pose and the step lengths of their users."""
+        var = np.flatnonzero(~self.poses.view("frozen"))
+        return self._solve(var, max_iterations or self.params.max_iterations)
+
+    def optimize_window(self, name: str) -> SolveReport | None:
+        """Optimise the user's last ``window_poses`` poses (and its step length); the rest constant."""
+        tr = self.users[name]
+        var = np.asarray(tr.poses[-self.params.window_poses:], np.int64)
+        var = var[~self.poses.frozen[var]]
+        return self._solve(var, self.params.window_iterations)
+
+    def _solve(self, var: np.ndarray, max_iter: int) -> SolveReport | None:
+        t0 = time.perf_counter()
+        prob = self.problem(var)
+        if prob is None:
+            return None
+        fun, jac, z0, unpack, n_factors = prob
+        r0 = fun(z0)
+        if len(z0) <= 120 and len(r0) >= len(z0):
+            # small windows: MINPACK's Levenberg-Marquardt on the dense Jacobian (a few ms)
+            sol = least_squares(fun, z0, jac=lambda z: jac(z).toarray(), method="lm", max_nfev=max_iter)
+        else:
+            # the whole graph: trust-region reflective with LSMR on the sparse Jacobian
+            sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale=1.0, tr_solver="lsmr")
+        Xc, L = unpack(sol.x)
+        Xc[var, 2] = F.wrap(Xc[var, 2])
+        self.poses.x[:self.poses.n] = Xc
+        self.step_len = L
+        col = np.full(self.poses.n, -1, np.int64)
+        col[var] = 3 * np.arange(len(var))
+        self._last_J = (jac(sol.x), var, col)
+        rep = SolveReport(len(var), n_factors, int(sol.nfev), 0.5 * float(r0 @ r0), float(sol.cost),
+                          time.perf_counter() - t0)
+        self.last_solve = rep
+        return rep
+
+    def problem(self, var: np.ndarray):
+        """The least-squares problem over poses ``var`` (and their users' step lengths): (fun(z) ->
+        whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths),
+        number of factors), or None when no factor touches the variables."""
+        var = np.asarray(var, np.int64)
+        if len(var) == 0:
+            return None
+        p = self.params
+        n_pose = self.poses.n
+        X = self.poses.view("x")
+        col = np.full(n_pose, -1, np.int64)
+        col[var] = 3 * np.arange(len(var))
+        var_users = np.unique(self.poses.user[var]) if p.estimate_step_length else np.zeros(0, np.int64)
+        ucol = np.full(len(self.user_names), -1, np.int64)
+        ucol[var_users] = 3 * len(var) + np.arange(len(var_users))
+        n_x = 3 * len(var) + len(var_users)
+        isvar = col >= 0
+
+        # factors touching a variable
+        pprev, pcur = self.pdr.view("prev"), self.pdr.view("cur")
+        sel_p = np.flatnonzero(isvar[pprev] | isvar[pcur])
+        pprev, pcur = pprev[sel_p], pcur[sel_p]
+        psteps, pdth = self.pdr.view("steps")[sel_p], self.pdr.view("dtheta")[sel_p]
+        puser = self.poses.user[pcur]
+        wpose, wrefs, ww = self.wifi.view("pose"), self.wifi.view("refs"), self.wifi.view("w")
+        wL = self.wifi.view("sqrt_info")
+        refvar = np.where(wrefs >= 0, isvar[np.maximum(wrefs, 0)], False)
+        sel_w = np.flatnonzero(isvar[wpose] | refvar.any(axis=1))
+        wpose, wrefs, ww, refvar, wL = wpose[sel_w], wrefs[sel_w], ww[sel_w], refvar[sel_w], wL[sel_w]
+        gpose, gx = self.gauge.view("pose"), self.gauge.view("x")
+        sel_g = np.flatnonzero(isvar[gpose])
+        gpose, gx = gpose[sel_g], gx[sel_g]
+        n_p, n_w, n_g, n_u = len(pprev), len(wpose), len(gpose), len(var_users)
+        if n_p + n_w + n_g == 0:
+            return None
+        r_p, r_w, r_g = 0, 3 * n_p, 3 * n_p + 2 * n_w
+        r_u = r_g + 3 * n_g
+        n_r = r_u + n_u
+        fixed_xy = self.map.fixed_xy
+        sqrt_g = np.array([1 / p.gauge_std_m, 1 / p.gauge_std_m, 1 / p.gauge_std_rad])
+        # threshold in whitened units: robust_threshold_m at the paper's information, else in sigmas
+        c_rob = (1.0 if p.wifi_info_from_fix else self._sqrt_wifi) * p.robust_threshold_m
+
+        # Jacobian sparsity: (rows, cols, keep) in the order jac() produces its values
+        def blk(row0, nrow, cols0, ncol, ok):
+            """Entries of (N, nrow, ncol) blocks: rows row0[n] + a, cols cols0[n] + b."""
+            r = row0[:, None, None] + np.arange(nrow)[None, :, None] + np.zeros((1, 1, ncol), np.int64)
+            c = cols0[:, None, None] + np.zeros((1, nrow, 1), np.int64) + np.arange(ncol)[None, None, :]
+            k = np.broadcast_to(ok[:, None, None], r.shape)
+            return r.ravel(), c.ravel(), k.ravel()
+
+        rp = r_p + 3 * np.arange(n_p)
+        rw = r_w + 2 * np.arange(n_w)
+        parts = [blk(rp, 3, col[pprev], 3, isvar[pprev]), blk(rp, 3, col[pcur], 3, isvar[pcur]),
+                 blk(rp, 3, ucol[puser], 1, ucol[puser] >= 0),
+                 blk(rw, 2, col[wpose], 2, isvar[wpose])]
+        for j in range(self.k):
+            rj = np.maximum(wrefs[:, j], 0)
+            parts.append(blk(rw, 2, col[rj], 2, refvar[:, j]))
+        parts.append(blk(r_g + 3 * np.arange(n_g), 3, col[gpose], 3, np.ones(n_g, bool)))
+        parts.append(blk(r_u + np.arange(n_u), 1, ucol[var_users], 1, np.ones(n_u, bool)))
+        rows = np.concatenate([q[0] for q in parts])
+        cols = np.concatenate([q[1] for q in parts])
+        keep = np.concatenate([q[2] for q in parts])
+        rows, cols = rows[keep], cols[keep]
+
+        base_x = X.copy()
+        base_l = self.step_len.copy()
+
+        def unpack(z):
+            Xc = base_x.copy()
+            Xc[var] = z[:3 * len(var)].reshape(-1, 3)
+            L = base_l.copy()
+            if n_u:
+                L[var_users] = z[3 * len(var):]
+            return Xc, L
+
+        def nbr_xy(Xc):
+            refs = wrefs
+            out = np.empty(refs.shape + (2,))
+            fx = refs < 0
+            out[fx] = fixed_xy[-1 - refs[fx]]
+            out[~fx] = Xc[refs[~fx], :2]
+            return out
+
+        def evaluate(z, want_jac):
+            Xc, L = unpack(z)
+            res = np.empty(n_r)
+            ep = F.pdr_error(Xc[pprev], Xc[pcur], L[puser], psteps, pdth, jacobians=want_jac)
+            ew = F.wifi_error(Xc[wpose, :2], nbr_xy(Xc), ww, jacobians=want_jac)
+            if want_jac:
+                ep, (jp, jc, jl) = ep
+                ew, (jwp, jwn) = ew
+            res[r_p:r_w] = (ep * self._sqrt_pdr).ravel()
+            ewh = np.einsum("nab,nb->na", wL, ew)
+            if want_jac:
+                jwp = np.einsum("nab,nbc->nac", wL, jwp)
+                jwn = np.einsum("nab,nkbc->nkac", wL, jwn)
+                ewh, (jwp, jwn), _ = F.robustify(ewh, [jwp, jwn.transpose(0, 2, 1, 3)], p.robust_kernel, c_rob)
+                jwn = jwn.transpose(0, 2, 1, 3)
+            else:
+                ewh, _, _ = F.robustify(ewh, None, p.robust_kernel, c_rob)
+            res[r_w:r_g] = ewh.ravel()
+            eg = Xc[gpose] - gx
+            eg[:, 2] = F.wrap(eg[:, 2])
+            res[r_g:r_u] = (eg * sqrt_g).ravel()
+            res[r_u:] = (L[var_users] - p.step_prior_m) * self._sqrt_step
+            if not want_jac:
+                return res
+            s = self._sqrt_pdr[None, :, None]
+            vals = [(jp * s).ravel(), (jc * s).ravel(), (jl[:, :, None] * s).ravel(), jwp.ravel()]
+            for j in range(self.k):
+                vals.append(jwn[:, j].ravel())
+            vals.append(np.broadcast_to(np.diag(sqrt_g), (n_g, 3, 3)).ravel())
+            vals.append(np.full(n_u, self._sqrt_step))
+            v = np.concatenate(vals)[keep]
+            return res, v
+
+        def fun(z):
+            return evaluate(z, False)
+
+        def jac(z):
+            _, v = evaluate(z, True)
+            return sp.csr_matrix((v, (rows, cols)), shape=(n_r, n_x))
+
+        z0 = np.concatenate([X[var].ravel(), self.step_len[var_users]])
+        return fun, jac, z0, unpack, n_p + n_w + n_g + n_u
+
+    def marginal_cov(self, pose: int) -> np.ndarray | None:
+        """(3, 3) covariance of a pose from the last solve's information matrix JᵀJ (None if that
+        pose was not a variable then)."""
+        last = getattr(self, "_last_J", None)
+        if last is None:
+            return None
+        J, var, col = last
+        c = int(col[pose]) if pose < len(col) else -1
+        if c < 0:
+            return None
+        J = sp.csr_matrix(J)
+        H = (J.T @ J).tocsc()
+        try:
+            lu = splu(H + sp.identity(H.shape[0], format="csc") * 1e-9)
+        except RuntimeError:
+            return None
+        E = np.zeros((H.shape[0], 3))
+        E[c:c + 3] = np.eye(3)
+        return lu.solve(E)[c:c + 3]
+
+    # -- outputs ---------------------------------------------------------------------------------
+    def trajectory(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_ns (T,), poses (T, 3)) of a user, in stamp order."""
+        tr = self.users.get(name)
+        if tr is None or not tr.poses:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        idx = np.asarray(tr.poses, np.int64)
+        return self.poses.stamp[idx].copy(), self.poses.x[idx].copy()
+
+    def wifi_radio_map(self) -> RadioMap:
+        """The evolving map at the current estimates (save with ``save_radiomap``)."""
+        return self.map.radio_map(self.poses.view("x")[:, :2], self.user_names)
+
+    def counts(self) -> dict[str, int]:
+        return {"poses": self.poses.n, "frozen_poses": self.n_frozen, "pdr_edges": self.pdr.n,
+                "wifi_edges": self.wifi.n, "map_rows": self.map.n, "map_user_rows": self.map.n_user_rows,
+                "users": len(self.user_names)}

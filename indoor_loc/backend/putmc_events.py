@@ -1,0 +1,52 @@
+"""PUTMC walks as back-end events (stepometer hops with heading, WiFi scans), without ROS messages.
+
+The same front end as ``imu_node`` with ``heading_source: orientation`` on the imported bags: the
+FFT stepometer on the accelerometer, the heading = yaw of the phone's rotation vector rotated into
+the map frame (the importer's calibration), looked up at each hop's end. Used by
+``indoor-loc bench backend`` and the real-data tests to drive :class:`MultiUserGraph` directly.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Walk, quat_yaw, to_map_quat
+from indoor_loc.backend.factors import wrap
+from indoor_loc.imu.stepometer import Stepometer, StepometerParams
+from indoor_loc.wifi.types import WifiScan
+
+
+@dataclass
+class WalkEvents:
+    """One walk: hops (t_start (H,), t_end (H,), steps (H,), yaw (H,) rad) and its scans."""
+    name: str
+    t_start: np.ndarray
+    t_end: np.ndarray
+    steps: np.ndarray
+    yaw: np.ndarray
+    scans: list[WifiScan]
+
+    def events(self) -> list[tuple[int, int, object]]:
+        """(stamp, kind 0 = hop / 1 = scan, payload) in stamp order (a hop before a scan of the same stamp)."""
+        ev = [(int(b), 0, (int(a), int(b), float(n), float(y)))
+              for a, b, n, y in zip(self.t_start, self.t_end, self.steps, self.yaw)]
+        ev += [(int(s.stamp_ns), 1, s) for s in self.scans]
+        ev.sort(key=lambda e: (e[0], e[1]))
+        return ev
+
+
+def walk_events(walk: Walk, *, stepometer: StepometerParams | None = None,
+                map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> WalkEvents:
+    """Stepometer hops and headings of a walk (see module docstring)."""
+    sm = Stepometer(stepometer)
+    hops = sm.update_many(walk.acc_t, walk.acc) + sm.finish()
+    yaw = quat_yaw(to_map_quat(walk.quat_xyzw, map_yaw_rad))
+    # linear interpolation of the unwrapped yaw at each hop's end (as HeadingHistory.at in imu_node)
+    t_end = np.array([h.t_end_ns for h in hops], np.int64)
+    t0 = int(walk.ori_t[0]) if len(walk.ori_t) else 0
+    hy = wrap(np.interp((t_end - t0).astype(float), (walk.ori_t - t0).astype(float), np.unwrap(yaw))) \
+        if len(hops) and len(yaw) else np.zeros(len(hops))
+    return WalkEvents(walk.name, np.array([h.t_start_ns for h in hops], np.int64),
+                      t_end, np.array([h.steps for h in hops], float),
+                      hy, list(walk.scans))

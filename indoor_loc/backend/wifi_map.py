@@ -1,0 +1,159 @@
+"""The evolving WiFi map of the back-end: fixed survey fingerprints plus users' scans.
+
+Each row is a fingerprint with a *position reference*: ``ref < 0`` is the fixed position
+``fixed_xy[-1 - ref]`` (a pre-surveyed scan, or a learnt one loaded from a saved map), ``ref >= 0``
+is a pose variable of the graph (a user's scan, whose position the optimiser moves). Matching is by
+RSS alone (WKNN, :class:`indoor_loc.wifi.wknn.Wknn`), so which rows a scan matches does not depend on
+the current position estimates; the graph turns each match into a hyperedge whose neighbour
+positions are those references.
+
+RSS is kept in one dense (rows, APs) array with spare capacity in both dimensions (appending a row
+or a new AP is amortised O(1)); a query builds a :class:`RadioMap` view of the rows it may use (the
+survey and, in the joint configuration, other users' scans) and fits WKNN's inverted index on it.
+The number of user rows is capped (``max_rows``): the oldest learnt rows are dropped first.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import RadioMap, WifiScan
+from indoor_loc.wifi.wknn import Wknn, WknnParams
+
+SURVEY = -1      # user index of fixed rows
+
+
+@dataclass(frozen=True)
+class Match:
+    """A localised scan: WKNN fix, the matched rows' position references (k,) and weights (k,)."""
+    fix: Fix
+    refs: np.ndarray
+    weights: np.ndarray
+    n_from_users: int          # how many of the k neighbours are other users' scans
+
+
+class EvolvingMap:
+    """Fingerprints with position references (see module docstring)."""
+
+    def __init__(self, wknn: WknnParams, *, max_rows: int = 20000) -> None:
+        self.wknn_params = wknn
+        self.max_rows = int(max_rows)
+        self.bssids: list[str] = []
+        self.ssids: list[str] = []
+        self.freq: list[float] = []
+        self._col: dict[str, int] = {}
+        self._rss = np.full((64, 64), np.nan)
+        self.n = 0
+        self.ref = np.zeros(64, np.int64)
+        self.user = np.zeros(64, np.int64)
+        self.stamp = np.zeros(64, np.int64)
+        self.fixed_xy = np.zeros((0, 2))
+        self.fixed_source: list[str] = []
+        self.dropped_rows = 0
+
+    # ------------------------------------------------------------------------------------------
+    def _columns(self, scan: WifiScan) -> np.ndarray:
+        cols = np.empty(len(scan.bssid), np.int64)
+        for i, b in enumerate(scan.bssid):
+            j = self._col.get(b)
+            if j is None:
+                j = self._col[b] = len(self.bssids)
+                self.bssids.append(b)
+                self.ssids.append(scan.ssid[i] if i < len(scan.ssid) else "")
+                self.freq.append(float(scan.freq_mhz[i]))
+            cols[i] = j
+        if len(self.bssids) > self._rss.shape[1]:
+            grown = np.full((self._rss.shape[0], 2 * len(self.bssids)), np.nan)
+            grown[:, :self._rss.shape[1]] = self._rss
+            self._rss = grown
+        return cols
+
+    def _append(self, cols: np.ndarray, rssi: np.ndarray, ref: int, user: int, stamp: int) -> int:
+        if self.n == len(self.ref):
+            cap = 2 * len(self.ref)
+            grown = np.full((cap, self._rss.shape[1]), np.nan)
+            grown[:self.n] = self._rss[:self.n]
+            self._rss = grown
+            for name in ("ref", "user", "stamp"):
+                a = getattr(self, name)
+                b = np.zeros(cap, a.dtype)
+                b[:self.n] = a[:self.n]
+                setattr(self, name, b)
+        i = self.n
+        self._rss[i] = np.nan
+        self._rss[i, cols] = rssi
+        self.ref[i], self.user[i], self.stamp[i] = ref, user, stamp
+        self.n += 1
+        return i
+
+    def add_fixed(self, radio_map: RadioMap) -> None:
+        """Add a radio map's fingerprints at their (fixed) positions."""
+        pos = np.asarray(radio_map.positions, float).reshape(-1, 2)
+        base = len(self.fixed_xy)
+        self.fixed_xy = np.vstack([self.fixed_xy, pos])
+        self.fixed_source += list(radio_map.source)
+        rss = np.asarray(radio_map.rssi_dbm, float)
+        scan = WifiScan(0, tuple(radio_map.bssids), np.zeros(len(radio_map.bssids)),
+                        np.asarray(radio_map.freq_mhz, float), ssid=tuple(radio_map.ssids))
+        cols = self._columns(scan)
+        for m in range(len(pos)):
+            ok = ~np.isnan(rss[m])
+            self._append(cols[ok], rss[m, ok], -1 - (base + m), SURVEY, int(radio_map.stamps_ns[m]))
+
+    def add_scan(self, scan: WifiScan, ref: int, user: int) -> int:
+        """A user's scan joins the map at pose ``ref``; returns its row. Beyond ``max_rows`` user rows
+        the oldest user row is dropped."""
+        cols = self._columns(scan)
+        row = self._append(cols, np.asarray(scan.rssi_dbm, float), ref, user, scan.stamp_ns)
+        if int(np.sum(self.user[:self.n] != SURVEY)) > self.max_rows:
+            self._drop_oldest_user_row()
+        return row
+
+    def _drop_oldest_user_row(self) -> None:
+        users = np.flatnonzero(self.user[:self.n] != SURVEY)
+        i = int(users[0])
+        keep = np.ones(self.n, bool)
+        keep[i] = False
+        n = self.n - 1
+        self._rss[:n] = self._rss[:self.n][keep]
+        for name in ("ref", "user", "stamp"):
+            a = getattr(self, name)
+            a[:n] = a[:self.n][keep]
+        self.n = n
+        self.dropped_rows += 1
+
+    # ------------------------------------------------------------------------------------------
+    def match(self, scan: WifiScan, *, user: int, joint: bool) -> Match | None:
+        """WKNN of ``scan`` against the survey rows and, when ``joint``, other users' rows (never the
+        user's own). None when WKNN declines (fewer candidates than k...)."""
+        u = self.user[:self.n]
+        rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
+        if len(rows) == 0:
+            return None
+        rm = RadioMap(positions=np.zeros((len(rows), 2)), bssids=list(self.bssids),
+                      rssi_dbm=self._rss[rows, :len(self.bssids)], freq_mhz=np.asarray(self.freq, float),
+                      ssids=list(self.ssids), scan_ids=rows.astype(np.int64), stamps_ns=self.stamp[rows].copy(),
+                      source=["map"] * len(rows))
+        fix = Wknn(self.wknn_params).fit(rm).locate(scan)
+        if not fix.ok:
+            return None
+        chosen = rows[np.asarray(fix.info["rows"], np.int64)]
+        return Match(fix, self.ref[chosen].copy(), np.asarray(fix.info["weights"], float),
+                     int(np.sum(self.user[chosen] != SURVEY)))
+
+    def radio_map(self, pose_xy: np.ndarray, user_names: list[str]) -> RadioMap:
+        """The whole map as a :class:`RadioMap` at the current positions (``pose_xy`` (P, 2) of the
+        graph's poses): what ``save_radiomap`` writes. Sources: the survey's labels, else the user."""
+        ref = self.ref[:self.n]
+        xy = np.where((ref < 0)[:, None], self.fixed_xy[np.maximum(-1 - ref, 0)] if len(self.fixed_xy) else 0.0,
+                      pose_xy[np.maximum(ref, 0)] if len(pose_xy) else 0.0)
+        src = [self.fixed_source[-1 - r] if r < 0 else user_names[u] for r, u in zip(ref, self.user[:self.n])]
+        return RadioMap(positions=xy, bssids=list(self.bssids), rssi_dbm=self._rss[:self.n, :len(self.bssids)].copy(),
+                        freq_mhz=np.asarray(self.freq, float), ssids=list(self.ssids),
+                        scan_ids=np.arange(self.n, dtype=np.int64), stamps_ns=self.stamp[:self.n].copy(), source=src)
+
+    @property
+    def n_user_rows(self) -> int:
+        return int(np.sum(self.user[:self.n] != SURVEY))

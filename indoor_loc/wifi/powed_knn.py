@@ -1,0 +1,327 @@
+"""Powed-representation k-NN fingerprinting with reading ages, AP weighting and floor detection.
+
+Representation and distance (Torres-Sospedra et al., "Comprehensive analysis of distance and
+similarity measures for Wi-Fi fingerprinting indoor positioning systems", Expert Systems with
+Applications 42, 2015, §3.1–3.2 — the *powed* data representation with the *Sørensen* distance was
+among the best on every database they compared, and needs no per-building tuning):
+
+    pos_a   = max(r_a − floor_dbm, 0) / (−floor_dbm)          positive representation, 0 = not heard
+    powed_a = pos_a ** beta                                   beta = e (their choice)
+    D(x, y) = Σ_a |x_a − y_a| / Σ_a (x_a + y_a)               Sørensen (Bray–Curtis), in [0, 1]
+
+so every AP heard by either scan counts (an AP missing on one side is a difference, not ignored),
+and a strong AP weighs far more than a weak one (strong readings vary least with the phone's
+orientation and body shadowing). ``D = 1 − 2 Σ_shared min(x_a, y_a) / (Σx + Σy)``: the shared sum
+runs through an inverted AP → map-readings index, as in :mod:`indoor_loc.wifi.wknn`.
+
+Two weights multiply each reading's value:
+
+- **age** — a cached result (``age_ms`` > 0: the phone reports an older measurement taken where
+  the user was seconds ago) is a weaker witness of *this* position: weight ``exp(−age / age_tau_ms)``
+  on the query's readings and on the map's (the map's positions are the scans' own; an old map
+  reading belongs elsewhere). Unknown ages (NaN, PUTMC) weigh 1.
+- **AP informativeness** — an AP heard by nearly every map scan (a mall-wide network) says little
+  about where one is: ``w_a = sqrt(ln(1 + M / n_a))`` (n_a = map scans hearing AP a; the inverse
+  document frequency of text retrieval, Sparck Jones 1972). APs unknown to the map are ignored.
+
+**Device offset**: phones differ by several dB in the RSS they report for the same signal, and
+the powed representation is absolute. After each fix the median difference between the scan and
+its weighted neighbours over the APs they all heard nudges a per-phone offset (``offset_gain`` of
+it per scan), which corrects the next scans. On ms_site2 (one phone model) test scans shifted by
+8 dB lose 1–3 m of mean error without it and recover most of it with it.
+
+Position: the similarity-weighted mean of the k nearest map scans, weights 1 / (D + epsilon)
+(as WKNN, Nowicki & Skrzypczyński 2019, eq. 13). A scan that shares no AP with the map gets no fix
+(reason ``no_shared_aps``); one with no usable reading ``no_usable_aps``.
+
+**Floor detection** (a map whose scans carry several floor heights ``z_m``): every AP has a
+*home floor*, the floor where the map hears it strongest (the largest weighted value among that
+floor's scans) — APs are mounted on a floor and a slab attenuates them by 10–20 dB. A scan's
+readings vote for their APs' home floors with their weighted values, ``s_f = Σ_{a: home(a) = f} x_a``;
+the floor with the most votes is chosen and the position uses that floor's scans only.
+``Fix.z`` = the floor's height, ``info["floor_p"]`` = the vote shares per height,
+``info["floor"]`` the floor's name when the map names it, ``Fix.z_var`` = Σ p_f (z_f − z)².
+On ms_site2 (four floors, 954 test scans) this is right for 953; the nearest map scans' vote was
+right for 934–940 and a per-floor field ceiling (Σ_a min(x_a, C_f(a))) for 942 — both fail where a
+test walk enters a part of its floor the survey walks did not cover but the floor above did.
+
+Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ(D₁)² I, where D₁ is the
+distance of the best match: a poor best match means a scan the map does not explain, and its
+error is larger (correlation 0.6–0.75 between D₁ and the error on three of four ms_site2 floors).
+σ(D) = max(cov_floor_m, a + b·D) / sqrt(π/2) is calibrated on the map itself at ``fit`` time by
+leave-one-source-out cross-validation (each map scan positioned against the map without its own
+walk; a, b = the least-squares line of those errors on D₁; for a 2-D isotropic Gaussian the mean
+error is σ·sqrt(π/2)). So the covariance follows each building's own accuracy instead of constants
+fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan out instead.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from indoor_loc.params import field, require
+from indoor_loc.errors import MapError
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
+
+AP_WEIGHTINGS = ("idf", "none")
+
+
+@dataclass(frozen=True)
+class PowedKnnParams:
+    """Powed k-NN parameters (defaults chosen on ms_site2 B1/F7, see README)."""
+    k: int = field(4, "number of nearest map scans averaged")
+    floor_dbm: float = field(-100.0, "RSS mapped to 0 in the positive representation; weaker readings are "
+                                       "treated as not heard (dBm)")
+    beta: float = field(math.e, "exponent of the powed representation")
+    age_tau_ms: float = field(5000.0, "readings weigh exp(-age_ms / age_tau_ms); 0 = ignore ages (ms)")
+    ap_weighting: str = field("idf", "'idf' (sqrt(ln(1 + M / n_a)): APs heard everywhere weigh less) or 'none'")
+    epsilon: float = field(1e-4, "epsilon in the neighbour weight 1 / (D + epsilon)")
+    cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
+                                    "covariance (0: the cross-validated sigma already holds it)")
+    cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
+    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
+                                          "cross-validation at fit time")
+    cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
+                                         "(bounds the fit time on large maps)")
+    offset_gain: float = field(0.2, "online device RSS offset: after each fix the offset moves by this fraction "
+                                    "of the median residual against the neighbours (0 = off)")
+    offset_max_db: float = field(20.0, "bound on the device RSS offset (dB)")
+    offset_min_aps: int = field(5, "readings shared with every neighbour needed to update the offset")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(int(self.k) >= 1, n, "k", "an integer >= 1", self.k)
+        require(-120.0 <= self.floor_dbm < 0.0, n, "floor_dbm", "in [-120, 0) dBm", self.floor_dbm)
+        require(math.isfinite(self.beta) and self.beta > 0, n, "beta", "> 0", self.beta)
+        require(math.isfinite(self.age_tau_ms) and self.age_tau_ms >= 0, n, "age_tau_ms", ">= 0 ms",
+                  self.age_tau_ms)
+        require(self.ap_weighting in AP_WEIGHTINGS, n, "ap_weighting", f"one of {list(AP_WEIGHTINGS)}",
+                  self.ap_weighting)
+        require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
+        require(math.isfinite(self.offset_gain) and 0.0 <= self.offset_gain <= 1.0, n, "offset_gain", "in [0, 1]",
+                self.offset_gain)
+        require(math.isfinite(self.offset_max_db) and self.offset_max_db >= 0, n, "offset_max_db", ">= 0 dB",
+                self.offset_max_db)
+        require(int(self.offset_min_aps) >= 1, n, "offset_min_aps", "an integer >= 1", self.offset_min_aps)
+        require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
+                self.cov_calibration_scans)
+        require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
+        require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
+                  "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
+
+
+def powed(rssi_dbm, floor_dbm: float, beta: float) -> np.ndarray:
+    """The powed representation of RSS values (dBm) -> [0, 1]; NaN -> 0."""
+    r = np.nan_to_num(np.asarray(rssi_dbm, float), nan=-np.inf)
+    return (np.clip(r - floor_dbm, 0.0, None) / -floor_dbm) ** beta
+
+
+def age_weight(age_ms, tau_ms: float) -> np.ndarray | float:
+    """exp(-age / tau) (1 for unknown ages or tau = 0)."""
+    if age_ms is None or tau_ms <= 0:
+        return 1.0
+    a = np.nan_to_num(np.asarray(age_ms, float), nan=0.0)
+    return np.exp(-np.maximum(a, 0.0) / tau_ms)
+
+
+class PowedKnn(Positioner):
+    """Powed/Sørensen k-NN with ages, AP weights and floor detection (see module docstring)."""
+    name = "powed"
+
+    def __init__(self, params: PowedKnnParams | None = None) -> None:
+        self.params = params or PowedKnnParams()
+        self.params.validate()
+        self.radio_map: RadioMap | None = None
+        self.aps = ApIndex()
+        self._w = np.zeros(0)                        # (A,) AP weights
+        self._pos = np.zeros((0, 2))
+        self._z = np.zeros(0)
+        self._sum = np.zeros(0)                      # (M,) Σ_a value of each map scan
+        self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # powed values by AP
+        self._floors: np.ndarray = np.zeros(0)
+        self._floor_names: dict[float, str] = {}
+        self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
+        self.sigma_line = (self.params.cov_floor_m * math.sqrt(math.pi / 2), 0.0)   # (a, b): mean error = a + b D
+        self.calibration: dict = {}
+        self._last_query = (np.zeros(0, np.int64), np.zeros(0))
+        self.offset_db = 0.0                          # online device RSS offset (state; reset() clears it)
+
+    def fit(self, radio_map: RadioMap) -> "PowedKnn":
+        p = self.params
+        rss = np.asarray(radio_map.rssi_dbm, float)
+        pos = np.asarray(radio_map.positions, float)
+        if pos.ndim != 2 or pos.shape[1] != 2 or rss.shape != (len(pos), len(radio_map.bssids)):
+            raise MapError(f"powed: radio map expected positions (M, 2) and rssi (M, A), got {pos.shape}, {rss.shape}")
+        if len(pos) == 0:
+            raise MapError("powed: the radio map has no scans")
+        val = powed(rss, p.floor_dbm, p.beta)
+        if radio_map.age_ms is not None:
+            val = val * age_weight(radio_map.age_ms, p.age_tau_ms)
+        heard = val > 0
+        n_a = heard.sum(axis=0)
+        if p.ap_weighting == "idf":
+            w = np.sqrt(np.log1p(len(pos) / np.maximum(n_a, 1)))
+        else:
+            w = np.ones(len(n_a))
+        val = val * w[None, :]
+        self.radio_map = radio_map
+        self.aps = ApIndex(radio_map.bssids)
+        self._w = w
+        self._pos = pos
+        self._z = np.asarray(radio_map.z_m, float)
+        self._sum = val.sum(axis=1)
+        self._readings = ApReadings(heard, val)
+        self._floors = np.unique(self._z)
+        self._floor_names = {float(z): str(name) for name, z in radio_map.floors.items()}
+        ceiling = np.array([val[self._z == z].max(axis=0) for z in self._floors]).reshape(len(self._floors), -1)
+        self._home = np.where(ceiling.max(axis=0) > 0, ceiling.argmax(axis=0), -1) if len(ceiling) else \
+            np.zeros(0, np.int64)
+        self.sigma_line = (p.cov_floor_m * math.sqrt(math.pi / 2), 0.0)
+        self.calibration = {}
+        if p.cov_calibration:
+            self._calibrate(val, list(radio_map.source))
+        return self
+
+    def _calibrate(self, val: np.ndarray, source: list[str]) -> None:
+        """Leave-one-source-out errors of the map's own scans -> the line mean error = a + b D1."""
+        p = self.params
+        # leave one walk (source) out; a map from one source (a survey) leaves one scan out
+        src = np.array(source) if len(set(source)) >= 2 else np.arange(len(source)).astype(str)
+        m = len(self._pos)
+        d1 = np.full(m, np.nan)
+        err = np.full(m, np.nan)
+        rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
+        for i in rows:
+            c = np.flatnonzero(val[i] > 0)
+            if len(c) == 0:
+                continue
+            d = self._dist_cols(c, val[i, c])
+            cand = np.flatnonzero((src != src[i]) & (self._z == self._z[i]) & (d < 1.0))
+            if len(cand) == 0:
+                continue
+            k = min(p.k, len(cand))
+            best = cand[np.argsort(d[cand], kind="stable")[:k]]
+            w = 1.0 / (d[best] + p.epsilon)
+            xy = (w / w.sum()) @ self._pos[best]
+            d1[i] = d[best[0]]
+            err[i] = float(np.hypot(*(xy - self._pos[i])))
+        ok = np.isfinite(err)
+        if ok.sum() < 10:
+            return
+        b, a = np.polyfit(d1[ok], err[ok], 1)
+        b = max(float(b), 0.0)
+        a = float(np.mean(err[ok]) - b * np.mean(d1[ok]))
+        self.sigma_line = (a, b)
+        self.calibration = {"scans": int(ok.sum()), "mean_error_m": float(np.mean(err[ok])), "a_m": a, "b_m": b}
+
+    def sigma_m(self, d1: float) -> float:
+        """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m."""
+        a, b = self.sigma_line
+        return max(self.params.cov_floor_m, (a + b * d1) / math.sqrt(math.pi / 2))
+
+    # ------------------------------------------------------------------------------------------
+    def distances(self, scan: WifiScan) -> tuple[np.ndarray, int, int]:
+        """(D (M,) Sørensen distance to every map scan, usable readings, readings known to the map)."""
+        p = self.params
+        v = powed(scan.rssi_dbm, p.floor_dbm, p.beta) * age_weight(scan.age_ms, p.age_tau_ms)
+        usable = v > 0
+        cols = self.aps.columns(scan.bssid)
+        keep = usable & (cols >= 0)
+        m = len(self._pos)
+        if not keep.any():
+            return np.ones(m), int(usable.sum()), 0
+        c = cols[keep]
+        q = v[keep] * self._w[c]
+        self._last_query = (c, q)
+        return self._dist_cols(c, q), int(usable.sum()), int(keep.sum())
+
+    def _dist_cols(self, c: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Sørensen distance (M,) of a query given as map columns c (q,) and weighted values q (q,)."""
+        m = len(self._pos)
+        rows, map_vals, lens = self._readings.gather(c)
+        if len(rows) == 0:
+            return np.ones(m)
+        mins = np.minimum(np.repeat(q, lens), map_vals)
+        shared = np.bincount(rows, weights=mins, minlength=m)
+        d = 1.0 - 2.0 * shared / np.maximum(q.sum() + self._sum, 1e-300)
+        return np.clip(d, 0.0, 1.0)
+
+    def reset(self) -> None:
+        """Forget the learnt device offset (a new phone)."""
+        self.offset_db = 0.0
+
+    def locate(self, scan: WifiScan) -> Fix:
+        """A fix (xy, cov, z = the detected floor's height) or ok=False with a reason. With
+        ``offset_gain`` > 0 the scan is first corrected by the learnt device offset, and the fix
+        updates it (so a sequence of scans from one phone is stateful; ``reset()`` per phone)."""
+        if self.radio_map is None:
+            raise MapError("powed: fit() a radio map before locating")
+        if self.params.offset_gain > 0 and self.offset_db != 0.0:
+            scan = replace(scan, rssi_dbm=np.clip(np.asarray(scan.rssi_dbm, float) - self.offset_db, -120.0, 0.0))
+        fix = self._locate(scan)
+        if fix.ok and self.params.offset_gain > 0:
+            self._update_offset(scan, fix)
+        fix.info["offset_db"] = self.offset_db
+        return fix
+
+    def _update_offset(self, scan: WifiScan, fix: Fix) -> None:
+        """Median residual of the (corrected) scan against the weighted neighbours over the APs
+        every neighbour heard; the offset moves by ``offset_gain`` of it (Laoudias et al., "Device
+        self-calibration in location systems using signal strength histograms", J. Location Based
+        Services 7(3), 2013, calibrate a device offset online; this estimates it from the matches)."""
+        p = self.params
+        rm = self.radio_map
+        assert rm is not None
+        cols = self.aps.columns(scan.bssid)
+        k = cols >= 0
+        if k.sum() < p.offset_min_aps:
+            return
+        m = np.asarray(rm.rssi_dbm, float)[np.ix_(fix.info["rows"], cols[k])]
+        shared = ~np.isnan(m).any(axis=0)
+        if shared.sum() < p.offset_min_aps:
+            return
+        ref = fix.info["weights"] @ m[:, shared]
+        r = float(np.median(np.asarray(scan.rssi_dbm, float)[k][shared] - ref))
+        self.offset_db = float(np.clip(self.offset_db + p.offset_gain * r, -p.offset_max_db, p.offset_max_db))
+
+    def _locate(self, scan: WifiScan) -> Fix:
+        p = self.params
+        nan_fix = (np.full(2, np.nan), np.full((2, 2), np.nan))
+        d, n_usable, n_known = self.distances(scan)
+        if n_usable == 0:
+            return Fix(scan.stamp_ns, *nan_fix, ok=False, reason="no_usable_aps")
+        if n_known == 0 or not np.any(d < 1.0):
+            return Fix(scan.stamp_ns, *nan_fix, ok=False, reason="no_shared_aps")
+        floor_p: dict[float, float] = {}
+        cand = np.flatnonzero(d < 1.0)
+        if len(self._floors) > 1:
+            c, q = self._last_query
+            h = self._home[c]
+            score = np.bincount(h[h >= 0], weights=q[h >= 0], minlength=len(self._floors))
+            share = score / max(float(score.sum()), 1e-300)
+            floor_p = {float(z): float(x) for z, x in zip(self._floors, share)}
+            z_best = float(self._floors[int(np.argmax(score))])
+            on_floor = cand[self._z[cand] == z_best]
+            cand = on_floor if len(on_floor) else cand
+        else:
+            z_best = float(self._floors[0]) if len(self._floors) else 0.0
+            floor_p[z_best] = 1.0
+        k = min(p.k, len(cand))
+        best = cand[np.argsort(d[cand], kind="stable")[:k]]
+        s = 1.0 / (d[best] + p.epsilon)
+        w = s / s.sum()
+        f = self._pos[best]
+        xy = w @ f
+        dev = f - xy
+        spread = (w[:, None] * dev).T @ dev
+        sigma = self.sigma_m(float(d[best[0]]))
+        cov = p.cov_scale * spread + sigma ** 2 * np.eye(2)
+        info = {"rows": best, "weights": w, "distance": d[best], "positions": f, "candidates": int(len(cand)),
+                "sigma_m": sigma,
+                "floor_p": floor_p, "floor": self._floor_names.get(z_best, "")}
+        z_best = float(self._z[best[0]])
+        return Fix(scan.stamp_ns, xy, cov, ok=True, info=info, z=z_best,
+                   z_var=float(sum(pp * (z - z_best) ** 2 for z, pp in floor_p.items())))

@@ -1,0 +1,165 @@
+"""MultiUserGraph: assembled Jacobian vs numerical derivatives, insertion policy, joint vs separate
+on a two-user synthetic building, bounding, the evolving map saved and loaded."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from backend_synth import SEC, corridor_walk, feed, scan_at, survey
+from indoor_loc.backend.graph import GraphParams, MultiUserGraph
+from indoor_loc.errors import ConfigError
+from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
+
+
+def _err(graph, walk) -> np.ndarray:
+    st, x = graph.trajectory(walk.name)
+    return np.linalg.norm(x[:, :2] - walk.true_xy_at(st), axis=1)
+
+
+@pytest.mark.parametrize("robust", ["none", "cauchy"])
+def test_assembled_jacobian_matches_numerical_derivatives(robust):
+    rng = np.random.default_rng(3)
+    g = MultiUserGraph(GraphParams(window_poses=0, robust_kernel=robust, robust_threshold_m=0.5,
+                                   wknn={"shared_threshold": 0.75, "shared_strict": False}), survey(0, 24, rng))
+    a = corridor_walk("a", 2, 40, 0, rng, scan_period_s=1.0)
+    b = corridor_walk("b", 38, 26, 100 * SEC, rng)
+    feed(g, a)
+    feed(g, b)
+    g.poses.x[:g.poses.n] += rng.normal(0, 0.5, (g.poses.n, 3))      # away from the optimum
+    assert g.wifi.n > 5 and np.any(g.wifi.view("refs") >= 0)             # b matched a's scans (joint)
+    var = np.arange(g.poses.n)
+    fun, jac, z0, _, _ = g.problem(var)
+    h = 1e-6
+    J = jac(z0).toarray()
+    cols = rng.choice(len(z0), 40, replace=False)
+    for c in cols:
+        d = np.zeros_like(z0)
+        d[c] = h
+        np.testing.assert_allclose(J[:, c], (fun(z0 + d) - fun(z0 - d)) / (2 * h), atol=2e-5)
+
+
+def test_insertion_policy():
+    rng = np.random.default_rng(5)
+    p = GraphParams(window_poses=0, pose_period_s=1.28, min_scan_move_m=0.3)
+    g = MultiUserGraph(p, survey(0, 60, rng))
+    # hops before the first localised scan add nothing
+    assert g.add_hop("u", 0, 320_000_000, 0.6, 0.0) is None and g.poses.n == 0
+    i, m = g.add_scan("u", scan_at(400_000_000, np.array([1.0, 0.0]), rng))
+    assert i == 0 and m is not None and g.poses.n == 1                    # first pose at the WKNN position
+    np.testing.assert_allclose(g.poses.x[0, :2], m.fix.xy)
+    # standing still: a scan right after attaches to the same pose
+    i2, _ = g.add_scan("u", scan_at(500_000_000, np.array([1.0, 0.0]), rng))
+    assert i2 == 0 and g.poses.n == 1 and g.wifi.n == 2
+    # walking: a pose every 1.28 s of hops (4 hops of 0.32 s)
+    added = [g.add_hop("u", t - 320_000_000, t, 0.6, 0.0) for t in range(720_000_000, 2_100_000_000, 320_000_000)]
+    assert sum(a is not None for a in added) == 1 and g.poses.n == 2      # at 1.68 s = first pose + 1.28 s
+    # a scan after some walking gets its own pose, initialised at its WKNN fix, with a PDR edge to the last
+    i3, m3 = g.add_scan("u", scan_at(2_300_000_000, np.array([3.0, 0.0]), rng))
+    assert i3 == 2 and g.pdr.n == 2
+    np.testing.assert_allclose(g.poses.x[2, :2], m3.fix.xy)
+    # the motion from the last hop (2.0 s) to the scan is extrapolated and taken off the next hop:
+    # every step counted after the start is in exactly one edge (or still accumulating)
+    g.add_hop("u", 2_000_000_000, 2_320_000_000, 0.6, 0.0)
+    g.add_hop("u", 2_320_000_000, 2_640_000_000, 0.6, 0.0)
+    assert g.pdr.view("steps").sum() + g.users["u"].acc_steps == pytest.approx(7 * 0.6, abs=1e-9)
+    with pytest.raises(ValueError, match="older"):
+        g.add_hop("u", 0, 1_000_000_000, 0.6, 0.0)
+
+
+def test_joint_optimisation_helps_the_user_outside_the_survey():
+    """The survey covers x in [0, 24] only; APs are heard within ~6 m and WKNN needs 75 % of the APs
+    shared both ways, so only scans over the survey are localised against it. User a walks 2 -> 58
+    scanning every second: localised at the start, PDR carries it on, and its scans join the map at
+    its poses. User b then walks 56 -> 30, outside the survey: on its own (separate) it is never
+    localised; jointly it matches a's scans from its first scan on and is placed where it really is."""
+    wknn = {"shared_threshold": 0.75, "shared_strict": False}
+    out = {}
+    for joint in (False, True):
+        rng = np.random.default_rng(11)
+        g = MultiUserGraph(GraphParams(joint=joint, window_poses=0, wknn=wknn), survey(0, 24, rng))
+        a = corridor_walk("a", 2, 58, 0, rng, step_len=0.65, scan_period_s=1.0)
+        b = corridor_walk("b", 56, 30, 100 * SEC, rng, step_len=0.65)
+        feed(g, a)
+        feed(g, b)
+        g.optimize(max_iterations=50)
+        st, _ = g.trajectory("b")
+        span = (st[-1] - st[0]) / (b.truth_t[-1] - b.truth_t[0]) if len(st) else 0.0
+        out[joint] = (_err(g, a), _err(g, b), span, g.users["b"].scans_from_users)
+    assert np.mean(out[False][0]) < 1.0 and np.mean(out[True][0]) < 1.0      # a is fine either way
+    assert out[False][2] == 0.0                       # separately b is never localised
+    assert out[True][2] > 0.85 and out[True][3] >= 4  # jointly from its first scan, via a's scans
+    assert np.mean(out[True][1]) < 1.0
+
+
+def test_step_length_is_estimated():
+    rng = np.random.default_rng(2)
+    g = MultiUserGraph(GraphParams(window_poses=0), survey(0, 60, rng))
+    w = corridor_walk("tall", 2, 58, 0, rng, step_len=0.75)
+    feed(g, w)
+    g.optimize(max_iterations=50)
+    # the prior (0.65 m, information 200) pulls back; the data moves it well towards 0.75 m
+    assert 0.69 < g.step_len[0] < 0.77
+    g2 = MultiUserGraph(GraphParams(window_poses=0, estimate_step_length=False), survey(0, 60, rng))
+    feed(g2, w)
+    g2.optimize()
+    assert g2.step_len[0] == 0.65
+
+
+def test_window_optimisation_matches_batch_closely():
+    rng = np.random.default_rng(8)
+    walk = corridor_walk("u", 2, 58, 0, rng)
+    live = MultiUserGraph(GraphParams(window_poses=30), survey(0, 60, np.random.default_rng(1)))
+    batch = MultiUserGraph(GraphParams(window_poses=0), survey(0, 60, np.random.default_rng(1)))
+    feed(live, walk)
+    feed(batch, walk)
+    live.optimize()
+    batch.optimize()
+    assert np.max(np.abs(live.poses.view("x")[:, :2] - batch.poses.view("x")[:, :2])) < 0.05
+
+
+def test_graph_stays_bounded():
+    rng = np.random.default_rng(4)
+    g = MultiUserGraph(GraphParams(window_poses=10, max_active_poses=40, max_map_rows=8), survey(0, 60, rng))
+    feed(g, corridor_walk("a", 2, 58, 0, rng))
+    g.finish_user("a")
+    feed(g, corridor_walk("b", 58, 2, 100 * SEC, rng))
+    assert g.poses.n > 60 and g.poses.n - g.n_frozen == 40
+    assert not g.poses.frozen[g.users["b"].poses[-1]]                  # the active user's newest poses stay free
+    assert g.map.n_user_rows == 8 and g.map.dropped_rows > 0
+    rep = g.optimize()
+    assert rep.n_poses == 40
+
+
+def test_evolving_map_save_and_load(tmp_path):
+    rng = np.random.default_rng(6)
+    wknn = {"shared_threshold": 0.75, "shared_strict": False}
+    g = MultiUserGraph(GraphParams(window_poses=0, wknn=wknn), survey(0, 24, rng))
+    walk = corridor_walk("a", 2, 40, 0, rng, step_len=0.65, scan_period_s=1.0)
+    feed(g, walk)
+    g.optimize()
+    rm = g.wifi_radio_map()
+    n_survey = 2 * 13
+    assert rm.n_scans == n_survey + g.map.n_user_rows and set(rm.source[n_survey:]) == {"a"}
+    path = save_radiomap(rm, tmp_path / "grown")
+    back = load_radiomap(path)
+    np.testing.assert_allclose(back.positions, rm.positions, atol=1e-6)
+    assert back.source == rm.source
+    # a later session starts from the grown map: a user beyond the survey is now localised
+    g2 = MultiUserGraph(GraphParams(window_poses=0, joint=False, wknn=wknn), back)
+    later = corridor_walk("b", 40, 26, 0, rng, scan_period_s=2.0)
+    feed(g2, later)
+    g2.optimize()
+    learnt = g2.wifi.view("refs")[g2.wifi.view("refs") < -n_survey]     # fixed rows beyond the survey's
+    assert g2.users["b"].scans_localised > 0 and len(learnt) > 0
+    assert np.mean(_err(g2, later)) < 3.0
+
+
+def test_bad_parameters_are_refused():
+    with pytest.raises(ConfigError, match="robust_kernel"):
+        GraphParams(robust_kernel="tukey").validate()
+    with pytest.raises(ConfigError, match="pdr_info"):
+        GraphParams(pdr_info=[1.0, 1.0]).validate()
+    with pytest.raises(ConfigError, match="k: expected an integer"):
+        GraphParams(wknn={"k": 0}).validate()

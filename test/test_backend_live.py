@@ -1,0 +1,99 @@
+"""backend_node live over DDS: one node, users discovered from the ROS graph as they appear, a
+user leaving gets its path published, SIGINT publishes every user's final path."""
+from __future__ import annotations
+
+import signal
+import sys
+
+import numpy as np
+
+from backend_synth import SEC, corridor_walk, survey
+from helpers_dds import Peer, child_env, ros_node, spin_until
+from indoor_loc.contract import Qos
+from indoor_loc.imu.pdr import Pdr, PdrParams
+from indoor_loc.nodes.base import qos_profile
+from indoor_loc.wifi.radiomap import save_radiomap
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
+
+
+def _messages(walk):
+    pdr = Pdr(PdrParams(step_length_m=0.65))
+    out = []
+    for _, kind, payload in walk.events:
+        if kind == 0:
+            p = pdr.update(*payload)
+            out.append(("pdr/odom", odom_to_msg(p.stamp_ns, "odom", "base_link", p.x, p.y, p.yaw, p.cov,
+                                                p.speed, p.yaw_rate)))
+        else:
+            out.append(("wifi/scan", scan_to_msg(payload)))
+    return out
+
+
+def test_users_join_and_leave_live(ros_domain, tmp_path):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry, Path
+
+    rm = save_radiomap(survey(0, 60, np.random.default_rng(1)), tmp_path / "map")
+    params = tmp_path / "params.yaml"
+    params.write_text(f"/**/backend_node:\n  ros__parameters:\n    radiomap: {rm}\n    user_timeout_s: 2.0\n"
+                      "    wknn: {shared_threshold: 0.75, shared_strict: false}\n")
+    node_proc = Peer([sys.executable, "-m", "indoor_loc.nodes.backend_node", "--ros-args", "--params-file",
+                      str(params)], env=child_env())
+    rng = np.random.default_rng(31)
+    walks = {"alice": corridor_walk("alice", 2, 30, 0, rng), "bob": corridor_walk("bob", 40, 20, 3 * SEC, rng)}
+    try:
+        with ros_node("probe") as (node, ex):
+            got: dict[str, list] = {f"{u}/{k}": [] for u in walks for k in ("pose", "path")}
+            for key, lst in got.items():
+                user, kind = key.split("/")
+                node.create_subscription(PoseWithCovarianceStamped if kind == "pose" else Path,
+                                         f"/backend/{user}/{kind}", lst.append,
+                                         qos_profile(Qos.RELIABLE if kind == "pose" else Qos.LATCHED))
+            diags: list = []
+            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: node.count_publishers("/diagnostics") > 0, 20), node_proc.output()
+
+            def join(user):
+                pubs = {"pdr/odom": node.create_publisher(Odometry, f"/{user}/pdr/odom", qos_profile(Qos.RELIABLE)),
+                        "wifi/scan": node.create_publisher(DiagnosticArray, f"/{user}/wifi/scan",
+                                                           qos_profile(Qos.RELIABLE))}
+                # the node discovers the user from the graph and subscribes: wait for its readers
+                assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20), \
+                    node_proc.output()
+                for topic, msg in _messages(walks[user]):
+                    pubs[topic].publish(msg)
+                    spin_until(ex, lambda: False, 0.002)
+                return pubs
+
+            alice = join("alice")
+            assert spin_until(ex, lambda: len(got["alice/pose"]) > 5, 20), node_proc.output()
+            bob = join("bob")                                   # a second user joins later
+            assert spin_until(ex, lambda: len(got["bob/pose"]) > 5, 20), node_proc.output()
+            assert node_proc.wait_line(r"following user 'bob'", 1) is not None or "following user 'bob'" in \
+                node_proc.output()
+
+            # alice leaves: her publishers go; after user_timeout_s her whole path is published
+            for p in alice.values():
+                node.destroy_publisher(p)
+            assert spin_until(ex, lambda: len(got["alice/path"]) >= 1, 20), node_proc.output()
+            stamps, xy, _ = path_from_msg(got["alice/path"][-1])
+            truth = walks["alice"].true_xy_at(stamps)
+            assert len(stamps) > 10 and np.mean(np.linalg.norm(xy - truth, axis=1)) < 1.5
+            assert "user 'alice' left" in node_proc.output()
+            assert not got["bob/path"]                          # bob is still there
+
+            # SIGINT: every user's final (whole-graph optimised) path goes out before the node ends
+            n_alice = len(got["alice/path"])
+            node_proc.signal(signal.SIGINT)
+            assert spin_until(ex, lambda: len(got["bob/path"]) >= 1 and len(got["alice/path"]) > n_alice, 20), \
+                node_proc.output()
+            stamps, xy, _ = path_from_msg(got["bob/path"][-1])
+            assert np.mean(np.linalg.norm(xy - walks["bob"].true_xy_at(stamps), axis=1)) < 1.5
+            del bob
+        assert node_proc.wait(timeout=20) == 0, node_proc.output()
+        assert "Traceback" not in node_proc.output()
+    finally:
+        node_proc.stop()

@@ -1,0 +1,164 @@
+"""BackendStage: messages in, per-user pose/path out; out-of-order input within the window gives the
+same graph, older input is counted and dropped; offline runs over several users' bags, merged and
+sequential; PUTMC walks (real data) through the graph."""
+from __future__ import annotations
+
+import random
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from backend_synth import SEC, corridor_walk, feed, survey
+from conftest import dataset
+from indoor_loc.backend.graph import GraphParams, MultiUserGraph
+from indoor_loc.bag import BagWriter, read_bag
+from indoor_loc.imu.pdr import Pdr, PdrParams
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
+from indoor_loc.pipeline import offline
+from indoor_loc.pipeline.backend_stage import BackendParams, BackendStage
+from indoor_loc.wifi.radiomap import save_radiomap
+
+WKNN = {"shared_threshold": 0.75, "shared_strict": False}
+
+
+def _messages(walk):
+    """The walk as the topics imu_node and wifi_scan_node publish: (stamp, topic, msg)."""
+    pdr = Pdr(PdrParams(step_length_m=0.65))
+    out = []
+    for stamp, kind, payload in walk.events:
+        if kind == 0:
+            p = pdr.update(*payload)
+            out.append((stamp, "pdr/odom", odom_to_msg(p.stamp_ns, f"{walk.name}/odom", f"{walk.name}/base_link",
+                                                       p.x, p.y, p.yaw, p.cov, p.speed, p.yaw_rate)))
+        else:
+            out.append((stamp, "wifi/scan", scan_to_msg(payload)))
+    return out
+
+
+def _stage(rng_seed=1, **kw):
+    params = BackendParams(window_poses=0, wknn=WKNN, **kw)
+    return BackendStage(params, survey=survey(0, 60, np.random.default_rng(rng_seed)))
+
+
+def test_stage_matches_the_core_graph_and_publishes_per_user():
+    rng = np.random.default_rng(21)
+    walk = corridor_walk("alice", 2, 50, 0, rng)
+    st = _stage()
+    outs = []
+    for _, topic, msg in _messages(walk):
+        outs += st.process(topic, msg, 0, "alice")
+    outs += st.finish()
+    topics = Counter(t for t, _ in outs)
+    assert topics["backend/alice/path"] == 1 and topics["backend/alice/pose"] > 10
+    assert topics["backend/wifi_map"] == 1 and sum(st.diag.rejected.values()) == 0
+    # the same events straight into the core give the same trajectory
+    core = MultiUserGraph(GraphParams(window_poses=0, wknn=WKNN), survey(0, 60, np.random.default_rng(1)))
+    feed(core, walk)
+    core.optimize()
+    stamps, xy, _ = path_from_msg([m for t, m in outs if t == "backend/alice/path"][-1])
+    t_core, x_core = core.trajectory("alice")
+    assert np.array_equal(stamps, t_core)
+    np.testing.assert_allclose(xy, x_core[:, :2], atol=0.05)   # hop steps recovered from odom (float round trip)
+    assert np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 1.0
+    diag = st.extra_diagnostics()
+    assert float(diag["user.alice.step_length_m"]) > 0.6 and diag["user.alice.dropped_late"] == "0"
+
+
+def test_out_of_order_within_the_window_gives_the_same_graph():
+    rng = np.random.default_rng(22)
+    msgs = _messages(corridor_walk("bob", 2, 40, 0, rng))
+    shuffled = list(msgs)
+    r = random.Random(5)
+    for i in range(0, len(shuffled) - 1, 2):         # swap neighbours (0.32 s apart < the 0.5 s window)
+        if r.random() < 0.5:
+            shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
+    ends = []
+    for order in (msgs, shuffled):
+        st = _stage(reorder_window_s=0.5)
+        for _, topic, msg in order:
+            st.process(topic, msg, 0, "bob")
+        st.finish()
+        assert sum(st.diag.rejected.values()) == 0
+        ends.append(st.graph.trajectory("bob"))
+    assert np.array_equal(ends[0][0], ends[1][0])
+    np.testing.assert_allclose(ends[0][1], ends[1][1], atol=1e-9)
+
+
+def test_too_late_messages_are_counted_and_dropped():
+    rng = np.random.default_rng(23)
+    msgs = _messages(corridor_walk("carol", 2, 30, 0, rng))
+    st = _stage(reorder_window_s=0.5)
+    late = msgs.pop(10)                               # arrives 3 s after its time
+    for k, (_, topic, msg) in enumerate(msgs):
+        st.process(topic, msg, 0, "carol")
+        if k == 20:
+            assert st.process(late[1], late[2], 0, "carol") == []
+    assert st.diag.rejected["too_late"] == 1
+    assert st.inputs_by_user["carol"].dropped_late == 1
+    assert st.extra_diagnostics()["user.carol.dropped_late"] == "1"
+
+
+def _bags(tmp_path, rng):
+    paths = []
+    for name, x0, x1, t0 in (("alice", 2, 50, 0), ("bob", 48, 10, 5 * SEC)):
+        walk = corridor_walk(name, x0, x1, t0, rng)
+        p = tmp_path / f"{name}.mcap"
+        with BagWriter(p) as w:
+            for stamp, topic, msg in _messages(walk):
+                w.write(f"/{name}/{topic}", msg, stamp)
+        paths.append(p)
+    return paths
+
+
+@pytest.mark.parametrize("order", ["merged", "sequential"])
+def test_offline_run_one_backend_for_all_users(tmp_path, order):
+    rng = np.random.default_rng(24)
+    bags = _bags(tmp_path, rng)
+    rm = save_radiomap(survey(0, 60, np.random.default_rng(1)), tmp_path / "map")
+    params = tmp_path / "params.yaml"
+    params.write_text(f"backend_node:\n  ros__parameters:\n    radiomap: {rm}\n    offline_order: {order}\n"
+                      f"    wknn: {{shared_threshold: 0.75, shared_strict: false}}\n")
+    out = tmp_path / "out.mcap"
+    s = offline.run_offline(bags, out, nodes=["backend"], params=params, progress=False)
+    assert s.order == order
+    msgs = list(read_bag([out]))
+    counts = Counter(m.topic for m in msgs)
+    for user in ("alice", "bob"):
+        assert counts[f"/backend/{user}/pose"] > 10
+        paths = [m.msg for m in msgs if m.topic == f"/backend/{user}/path"]
+        stamps, xy, _ = path_from_msg(paths[-1])              # the final path: the whole trajectory
+        assert len(stamps) == max(len(path_from_msg(p)[0]) for p in paths) > 20
+    if order == "sequential":                                   # alice's path when her bag ended, then at the end
+        assert counts["/backend/alice/path"] == 2
+    assert {m.msg.status[0].name for m in msgs if m.topic == "/diagnostics"} == {"/backend_node"}
+
+
+def test_putmc_walks_joint_with_step_length():
+    """Three real walks (2, 7 by the taller walker, 22) through the graph, the paper's joint +
+    step-length configuration, sequentially: route distance and scan-time error stay within what
+    the whole-dataset run gives (README)."""
+    from indoor_loc.backend.putmc_events import walk_events
+    from indoor_loc.datasets.putmc import Putmc
+    from indoor_loc.eval.metrics import point_segment_distance, scan_time_errors
+
+    ds = Putmc(dataset("putmc"))
+    g = MultiUserGraph(GraphParams(window_poses=0), ds.survey_map())
+    walks = [ds.walk(n) for n in (2, 7, 22)]
+    for w in walks:
+        ev = walk_events(w)
+        for _, kind, payload in ev.events():
+            g.add_hop(w.name, *payload) if kind == 0 else g.add_scan(w.name, payload)
+        g.finish_user(w.name)
+    g.optimize()
+    route, scan = [], []
+    for w in walks:
+        st, x = g.trajectory(w.name)
+        inside = (st >= w.scan_t[0]) & (st <= w.scan_t[-1])
+        route.append(point_segment_distance(x[inside, :2], ds.routes[w.walk].segments))
+        scan.append(scan_time_errors(st, x[:, :2], w.scan_t, w.scan_xy)[0])
+    route, scan = np.concatenate(route), np.concatenate(scan)
+    assert np.mean(route) < 1.0 and np.mean(scan) < 2.6
+    assert 0.55 < g.step_len[g.users["walk07"].index] < 0.8

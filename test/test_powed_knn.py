@@ -1,0 +1,203 @@
+"""Powed k-NN: representation, ages, floor detection on a synthetic two-floor field, covariance
+consistency of every method on synthetic data, fallback chain."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from indoor_loc.errors import ConfigError, MapError
+from indoor_loc.wifi.methods import FallbackPositioner, make_chain, make_positioner, recommended_params
+from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, age_weight, powed
+from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
+from indoor_loc.wifi.types import RadioMap, WifiScan
+
+CHI2_50, CHI2_95 = 2 * math.log(2), 5.991464547107979
+SIZE = (60.0, 30.0)
+
+
+def _field(rng, n_aps, floors_z, slab_db=15.0):
+    """APs spread over every floor (x, y, z); path loss 40 + 30 log10(d) + slab_db per floor crossed."""
+    ap_floor = rng.integers(0, len(floors_z), n_aps)
+    ap = np.column_stack([rng.uniform(0, SIZE[0], n_aps), rng.uniform(0, SIZE[1], n_aps)])
+    p0 = rng.uniform(-40, -30, n_aps)
+
+    def rss(xy, z_idx, noise_db):
+        d = np.sqrt(((xy[:, None, :] - ap[None]) ** 2).sum(-1) + (4.0 * (z_idx[:, None] - ap_floor[None])) ** 2 + 1)
+        r = p0[None] - 30 * np.log10(d) - slab_db * np.abs(z_idx[:, None] - ap_floor[None])
+        r = r + rng.normal(0, noise_db, r.shape)
+        r[r < -95] = np.nan
+        return np.clip(r, -120, 0)
+    return rss
+
+
+def _scans(rss_rows, bssids, stamp0=0, ages=None):
+    out = []
+    for i, row in enumerate(rss_rows):
+        c = np.flatnonzero(~np.isnan(row))
+        out.append(WifiScan(stamp_ns=stamp0 + i, bssid=tuple(bssids[j] for j in c), rssi_dbm=row[c].copy(),
+                            freq_mhz=np.full(len(c), 2437.0), age_ms=None if ages is None else ages[i][c]))
+    return out
+
+
+def _grid(step=3.0):
+    gx, gy = np.meshgrid(np.arange(1.5, SIZE[0], step), np.arange(1.5, SIZE[1], step))
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def _two_floor_map(rng, n_aps=60):
+    zs = [0.0, 5.0]
+    rss = _field(rng, n_aps, zs)
+    bssids = [f"02:00:00:00:{i >> 8:02x}:{i & 255:02x}" for i in range(n_aps)]
+    g = _grid()
+    rm = empty_radiomap()
+    for fi, z in enumerate(zs):
+        rows = rss(g, np.full(len(g), fi), 3.0)
+        rm = add_fingerprints(rm, g, _scans(rows, bssids), [f"walk{fi}_{i % 4}" for i in range(len(g))], z_m=z,
+                              floors={f"F{fi + 1}": z})
+    return rm, rss, bssids, zs
+
+
+def test_powed_representation_and_age_weight():
+    np.testing.assert_allclose(powed([-100.0, -50.0, 0.0, np.nan, -110.0], -100.0, math.e),
+                               [0.0, 0.5 ** math.e, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(age_weight(np.array([0.0, 5000.0, np.nan]), 5000.0), [1.0, math.exp(-1), 1.0])
+    assert age_weight(np.array([1e6]), 0.0) == 1.0
+
+
+def test_floor_detection_on_a_synthetic_two_floor_field(rng):
+    rm, rss, bssids, zs = _two_floor_map(rng)
+    pos = PowedKnn().fit(rm)
+    right = total = 0
+    err = []
+    for fi, z in enumerate(zs):
+        pts = rng.uniform([0, 0], SIZE, size=(150, 2))
+        fixes = pos.locate_many(_scans(rss(pts, np.full(len(pts), fi), 4.0), bssids))
+        assert all(f.ok for f in fixes)
+        right += sum(f.z == z for f in fixes)
+        total += len(fixes)
+        err += [float(np.hypot(*(f.xy - p))) for f, p in zip(fixes, pts)]
+        named = [f.info["floor"] for f in fixes if f.z == z]
+        assert set(named) == {f"F{fi + 1}"}
+        assert all(abs(sum(f.info["floor_p"].values()) - 1) < 1e-9 for f in fixes)
+    assert right / total >= 0.99
+    assert np.mean(err) < 4.0            # a 3 m grid, 4 dB noise
+
+
+def test_ages_make_stale_readings_weigh_less(rng):
+    rm, rss, bssids, _ = _two_floor_map(rng)
+    pos = PowedKnn().fit(rm)
+    p = np.array([[20.0, 10.0]])
+    row = rss(p, np.zeros(1, int), 0.0)[0]
+    far = rss(np.array([[55.0, 25.0]]), np.zeros(1, int), 0.0)[0]
+    # half of the readings are cached results from 55 m away, 20 s old
+    mixed = row.copy()
+    stale = np.zeros(len(row), bool)
+    stale[::2] = True
+    mixed[stale] = far[stale]
+    ages = np.where(stale, 20_000.0, 100.0)
+    with_age = pos.locate(_scans([mixed], bssids, ages=[ages])[0])
+    without = PowedKnn(PowedKnnParams(age_tau_ms=0.0)).fit(rm).locate(_scans([mixed], bssids, ages=[ages])[0])
+    assert np.hypot(*(with_age.xy - p[0])) < np.hypot(*(without.xy - p[0]))
+
+
+def test_reasons_and_bad_params(rng):
+    rm, rss, bssids, _ = _two_floor_map(rng)
+    pos = PowedKnn().fit(rm)
+    unknown = WifiScan(1, ("0a:00:00:00:00:01",), np.array([-50.0]), np.array([2412.0]))
+    assert pos.locate(unknown).reason == "no_shared_aps"
+    weak = WifiScan(1, (bssids[0],), np.array([-110.0]), np.array([2412.0]))
+    assert pos.locate(weak).reason == "no_usable_aps"
+    with pytest.raises(MapError, match="fit"):
+        PowedKnn().locate(unknown)
+    with pytest.raises(MapError, match="no scans"):
+        PowedKnn().fit(empty_radiomap())
+    for bad in ({"k": 0}, {"beta": -1.0}, {"ap_weighting": "magic"}, {"cov_floor_m": 0.0}, {"age_tau_ms": -1.0}):
+        with pytest.raises(ConfigError):
+            make_positioner("powed", bad)
+
+
+def test_locate_many_equals_locate(rng):
+    rm, rss, bssids, _ = _two_floor_map(rng)
+    scans = _scans(rss(rng.uniform([0, 0], SIZE, size=(20, 2)), np.ones(20, int), 4.0), bssids)
+    one, other = PowedKnn().fit(rm), PowedKnn().fit(rm)     # the device offset is state: two instances
+    for a, b in zip(one.locate_many(scans), [other.locate(s) for s in scans]):
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.cov, b.cov)
+        assert a.z == b.z
+
+
+def test_cross_validated_covariance_follows_the_building(rng):
+    """The fit-time leave-one-source-out calibration: a noisier building gets larger ellipses."""
+    sig = []
+    for noise in (2.0, 8.0):
+        r = np.random.default_rng(7)
+        rss = _field(r, 40, [0.0])
+        bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+        g = _grid()
+        rm = add_fingerprints(empty_radiomap(), g, _scans(rss(g, np.zeros(len(g), int), noise), bssids),
+                              [f"w{i % 5}" for i in range(len(g))])
+        pos = PowedKnn().fit(rm)
+        assert pos.calibration["scans"] == len(g)
+        sig.append(pos.sigma_m(0.3))
+    assert sig[1] > 1.5 * sig[0]
+
+
+@pytest.mark.parametrize("method,params", [("powed", {}), ("wknn", {}), ("pathloss", {}), ("coverage", {})])
+def test_covariance_consistency_on_synthetic_data(method, params):
+    """Every method's fix covariance on a synthetic single-floor field with 4 dB shadowing: the share of
+    true positions inside the 50 % / 95 % ellipses. Measured (seed 2024): powed 67/98, WKNN 58/95,
+    path loss 96/100, coverage 79/100 — path loss and coverage areas are conservative (their 50 %
+    ellipse holds far more than half), which the bounds below admit and pin, so a change that makes
+    any method overconfident (or powed/WKNN uselessly wide) fails."""
+    rng = np.random.default_rng(2024)
+    rss = _field(rng, 40, [0.0])
+    bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+    g = _grid()
+    rm = add_fingerprints(empty_radiomap(), g, _scans(rss(g, np.zeros(len(g), int), 4.0), bssids),
+                          [f"w{i % 5}" for i in range(len(g))])
+    pos = make_positioner(method, params).fit(rm)
+    pts = rng.uniform([3, 3], np.array(SIZE) - 3, size=(300, 2))
+    fixes = pos.locate_many(_scans(rss(pts, np.zeros(len(pts), int), 4.0), bssids))
+    ok = [(f, p) for f, p in zip(fixes, pts) if f.ok]
+    assert len(ok) >= 0.9 * len(pts)
+    m2 = np.array([(p - f.xy) @ np.linalg.solve(f.cov, p - f.xy) for f, p in ok])
+    in50, in95 = float(np.mean(m2 <= CHI2_50)), float(np.mean(m2 <= CHI2_95))
+    lo50, hi50, lo95 = {"powed": (0.45, 0.8, 0.9), "wknn": (0.45, 0.75, 0.9), "pathloss": (0.6, 1.0, 0.95),
+                        "coverage": (0.6, 0.95, 0.95)}[method]
+    assert lo50 <= in50 <= hi50 and lo95 <= in95, (in50, in95)
+
+
+def test_fallback_chain_and_recommended_params(rng):
+    rm, rss, bssids, _ = _two_floor_map(rng)
+    chain = make_chain("wknn", {"shared_threshold": 1.0, "k": 50}, "powed")
+    assert isinstance(chain, FallbackPositioner)
+    chain.fit(rm)
+    fix = chain.locate(_scans(rss(np.array([[10.0, 10.0]]), np.zeros(1, int), 4.0), bssids)[0])
+    assert fix.ok and fix.info["fallback_from"] in ("no_candidates", "few_candidates")
+    none = chain.locate(WifiScan(1, ("0a:00:00:00:00:01",), np.array([-50.0]), np.array([2412.0])))
+    assert not none.ok and none.reason == "fallback_no_shared_aps"
+    assert recommended_params(rm) == {"method": "powed"}           # two floors
+    one = RadioMap(positions=rm.positions[:5], bssids=rm.bssids, rssi_dbm=rm.rssi_dbm[:5], freq_mhz=rm.freq_mhz)
+    assert recommended_params(one)["fallback"] == "powed"
+
+
+def test_online_device_offset_recovers_a_phone_that_reads_8_db_low():
+    rng = np.random.default_rng(11)
+    rss = _field(rng, 40, [0.0])
+    bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+    g = _grid()
+    rm = add_fingerprints(empty_radiomap(), g, _scans(rss(g, np.zeros(len(g), int), 3.0), bssids),
+                          [f"w{i % 5}" for i in range(len(g))])
+    pts = rng.uniform([3, 3], np.array(SIZE) - 3, size=(120, 2))
+    rows = rss(pts, np.zeros(len(pts), int), 3.0)
+    low = _scans(np.where(np.isnan(rows), np.nan, rows - 8.0), bssids)
+    fixed = PowedKnn().fit(rm)
+    fixes = fixed.locate_many(low)
+    assert -10.0 < fixed.offset_db < -6.0                     # learnt: about -8 dB
+    off = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(rm).locate_many(low)
+    err = [np.mean([np.hypot(*(f.xy - p)) for f, p in zip(fx[40:], pts[40:])]) for fx in (fixes, off)]
+    assert err[0] < 0.8 * err[1]
+    fixed.reset()
+    assert fixed.offset_db == 0.0
