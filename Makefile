@@ -28,6 +28,11 @@ demo-putmc: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --timeout 300 test
 
+# also run by `make test` (test/test_lint.py)
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m mypy --config-file mypy.ini
+
 bench: $(STAMP)
 	$(VENV)/bin/indoor-loc bench imu --data $(DATA)
 	$(VENV)/bin/indoor-loc bench wifi --data $(DATA)

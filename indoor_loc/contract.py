@@ -48,11 +48,12 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "Integrated PDR pose, one message per stepometer hop (stamped at the hop's end). Per interval: "
           "steps = |p_i - p_(i-1)| / step_length_m (each hop is laid straight along its mean heading), "
           "heading change = wrap(yaw_i - yaw_(i-1)); twist.linear.x = walking speed m/s, twist.angular.z "
-          "= yaw rate rad/s; yaw variance 1e6 rad^2 = heading unknown"),
+          "= yaw rate rad/s; yaw variance 1e6 rad^2 = heading unknown; twist.covariance[0] = walking-speed "
+          "variance m^2/s^2, which carries the step-count confidence of the hop (see imu/pdr.py)"),
     Topic("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
           "WiFi-only position of one scan; covariance x/y in m^2, yaw variance set huge (unknown)"),
     Topic("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
-          "Linear PDR Kalman filter (seed 004) estimate: PDR + WiFi fixes, per PDR interval and fix"),
+          "Linear PDR Kalman filter (Raitoharju et al. 2015) estimate: PDR + WiFi fixes, per PDR interval and fix"),
     Topic("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "RTS-smoothed history of the linear PDR Kalman filter (republished periodically and at the end)"),
     Topic("pf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.LATCHED, "map",

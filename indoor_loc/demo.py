@@ -3,7 +3,7 @@
 With no arguments:
 
 1. simulate a few walkers with phones in the sample building (``indoor-loc sim``) -> OUT/sim/
-   (bag, radio map, building graph, truth, params.yaml); skipped when OUT/sim holds the same scenario;
+   (bag, radio map, building graph, truth, params.yaml; a few seconds, the same seed gives the same run);
 2. bring up every node as its own process over DDS (``indoor-loc up`` machinery), namespaced per
    walker: ``imu_node`` (stepometer + AEKF heading -> pdr/odom, imu/data), ``wifi_fix_node`` (WKNN
    -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman filter -> pdr_kf/pose, pdr_kf/path), the particle
@@ -84,14 +84,6 @@ def _simulate(out: Path, args: argparse.Namespace) -> dict[str, Path]:
     except ValueError as err:
         raise ConfigError(str(err)) from err
     sim_dir = out / "sim"
-    scen = sim_dir / "scenario.yaml"
-    if scen.exists() and (sim_dir / "sim.mcap").exists():
-        old = yaml.safe_load(scen.read_text()) or {}
-        if (old.get("seed"), old.get("duration_s"), len(old.get("walkers", []))) == (cfg.seed, cfg.duration_s,
-                                                                                   cfg.walkers):
-            print(f"== 1/4 simulation: using {sim_dir} (same seed, walkers and duration)")
-            return {"bag": sim_dir / "sim.mcap", "params": sim_dir / "params.yaml", "dir": sim_dir,
-                    "walkers": [w["name"] for w in old["walkers"]]}
     print(f"== 1/4 simulate {cfg.walkers} walkers x {cfg.duration_s:g} s in the sample building -> {sim_dir}")
     paths = generate(sim_dir, cfg)
     names = [w["name"] for w in yaml.safe_load(paths["scenario"].read_text())["walkers"]]
@@ -168,7 +160,8 @@ def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event,
             break
         if time.monotonic() >= next_report:
             elapsed = time.monotonic() - t_start
-            print(f"   ... {elapsed:.0f} s (the bag lasts {duration_s / rate:.0f} s at rate {rate:g})", flush=True)
+            print(f"   ... {elapsed:.0f} s since start-up (the bag plays for {duration_s / rate:.0f} s once every "
+                  f"node has subscribed)", flush=True)
             next_report += 10.0
         time.sleep(0.1)
     if stop_event.is_set() or bup._stop_requested is not None:
@@ -284,7 +277,9 @@ def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
             for w in walkers:
                 t = rel.format(user=w)
                 if any(name.endswith("/" + t) for name in topics):
-                    per_user.update({w: tr for u, tr in trajectories_from_bags([bag], t).items()})
+                    found = list(trajectories_from_bags([bag], t).values())
+                    if found:
+                        per_user[w] = found[-1]
         elif any(name.endswith("/" + rel) for name in topics):
             per_user = trajectories_from_bags([bag], rel)
         for w in walkers:
@@ -323,7 +318,6 @@ def plot_run(png: Path, sim_dir: Path, trajs: dict, rows: list[ScoreRow]) -> Pat
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     from indoor_loc.commands.eval import truth_from_import
     from indoor_loc.sim.building import load_building

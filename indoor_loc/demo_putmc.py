@@ -2,9 +2,9 @@
 
 1. import the PUTMC walks into MCAP bags + radio map + params.yaml (once; cached in OUT/import);
 2. replay them offline through the nodes ``imu`` (FFT stepometer + PDR from the phone's
-   orientation), ``wifi`` (WKNN fixes against the 114-scan survey map) and ``pdr_kf`` (seed-004
+   orientation), ``wifi`` (WKNN fixes against the 114-scan survey map) and ``pdr_kf`` (Raitoharju et al. 2015
    linear PDR Kalman filter + RTS smoother), exactly as the live nodes would run -> OUT/run.mcap;
-3. score WiFi-only, filtered and smoothed trajectories against the ground truth (seed-001 paper
+3. score WiFi-only, filtered and smoothed trajectories against the ground truth (Nowicki & Skrzypczyński 2019
    convention and true metres, route and scan-time errors), beside the published reference;
 4. plot one walk on the floor plan -> OUT/walkNN.png, and write every trajectory as CSV.
 """
@@ -21,7 +21,7 @@ NODES = ["imu", "wifi", "pdr_kf"]
 ESTIMATES = [("WiFi only, WKNN (wifi/fix)", "wifi/fix"),
              ("PDR + WiFi linear KF, filtered (pdr_kf/pose)", "pdr_kf/pose"),
              ("PDR + WiFi linear KF, RTS-smoothed (pdr_kf/path)", "pdr_kf/path")]
-# Published / reference figures on the same 24 walks (../shared/datasets/README.md, SPEC §6):
+# Published / reference figures on the same 24 walks (../shared/datasets/README.md):
 REFERENCE = [("reference C++: separate graph, no step-length est.", 6.24, 2.42, 1.123, 2.86, 2.20, 7.97),
              ("reference C++: joint graph + step-length est.", 4.65, 2.11, 1.076, 2.78, 2.10, 6.87)]
 
@@ -106,5 +106,5 @@ def _table(rows, n_walks: int) -> str:
     lines.append("-" * len(head))
     for label, prmse, pmean, rmean, smean, smed, sp95 in REFERENCE:
         lines.append(f"{label:52s} | {prmse:10.2f} {pmean:10.2f} | {rmean:10.3f} | {smean:9.2f} {smed:6.2f} {sp95:6.2f}")
-    lines.append("(reference rows: the seed-001 authors' C++ on all 24 walks, ../shared/datasets/README.md)")
+    lines.append("(reference rows: Nowicki & Skrzypczyński 2019's authors' C++ on all 24 walks, ../shared/datasets/README.md)")
     return "\n".join(lines)

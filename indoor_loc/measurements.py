@@ -83,6 +83,7 @@ class OdomPose(NamedTuple):
     yaw_rate: float
     frame_id: str = ""
     child_frame_id: str = ""
+    speed_var: float = 0.0          # variance of speed (twist.covariance[0]), m²/s²; 0 = not given
 
 
 class PdrInterval(NamedTuple):
@@ -114,7 +115,7 @@ class PdrIntervals(NamedTuple):
     distance_var: np.ndarray
     dtheta_var: np.ndarray
 
-    def __len__(self) -> int:  # type: ignore[override]
+    def __len__(self) -> int:
         return len(self.t_end_ns)
 
     def row(self, i: int) -> PdrInterval:

@@ -21,7 +21,8 @@ ParamsT = TypeVar("ParamsT")
 def field(default: Any, doc: str, **kw: Any) -> Any:
     """A dataclass field with a documentation string (shown as the ROS parameter description)."""
     if isinstance(default, (list, dict)):
-        return dataclasses.field(default_factory=lambda d=default: type(d)(d), metadata={"doc": doc}, **kw)
+        copy: Any = type(default)
+        return dataclasses.field(default_factory=lambda: copy(default), metadata={"doc": doc}, **kw)
     return dataclasses.field(default=default, metadata={"doc": doc}, **kw)
 
 
@@ -37,13 +38,13 @@ def group(cls: type, doc: str, default: Any = None) -> Any:
     return dataclasses.field(default_factory=factory, metadata={"doc": doc, "group": cls})
 
 
-def group_class(f: dataclasses.Field) -> type | None:
+def group_class(f: dataclasses.Field[Any]) -> type | None:
     """The Params class of a :func:`group` field, None for a plain field."""
     cls = f.metadata.get("group")
     return cls if isinstance(cls, type) else None
 
 
-def field_default(f: dataclasses.Field) -> Any:
+def field_default(f: dataclasses.Field[Any]) -> Any:
     """The default value of a dataclass field (its factory called), None when it has none."""
     if f.default is not dataclasses.MISSING:
         return f.default
@@ -52,7 +53,7 @@ def field_default(f: dataclasses.Field) -> Any:
     return None
 
 
-def leaves(cls: type, prefix: str = "", defaults: Any = None) -> Iterator[tuple[str, dataclasses.Field, Any]]:
+def leaves(cls: type, prefix: str = "", defaults: Any = None) -> Iterator[tuple[str, dataclasses.Field[Any], Any]]:
     """Every plain parameter of a Params class, groups expanded: ``(dotted name, field, default)``
     (a group's leaves default to the group's default object)."""
     for f in dataclasses.fields(cls):
@@ -65,13 +66,13 @@ def leaves(cls: type, prefix: str = "", defaults: Any = None) -> Iterator[tuple[
 
 
 def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | None = None) -> ParamsT:
-    """Build ``cls(**values)`` (``values`` a mapping, or a ``cls`` object to check again): unknown keys and ill-typed values raise ConfigError; then validate().
+    """Build ``cls(**values)`` (``values`` a mapping, or a ``cls`` object to check again): unknown keys
+    and ill-typed values raise ConfigError; then validate().
 
     Groups (:func:`group`) take a nested mapping or dotted keys (``{"wknn.k": 5}``); a leaf given at
     the wrong level is named in the error with its dotted spelling."""
-    if isinstance(values, cls):
-        values = params_to_dict(values)
-    values = nest_dotted(dict(values or {}), cls.__name__)
+    given: Any = params_to_dict(values) if isinstance(values, cls) else values or {}
+    values = nest_dotted(dict(given), cls.__name__)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(fields))
     if unknown:
@@ -101,7 +102,7 @@ def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | N
     return obj
 
 
-def _coerce(owner: str, f: dataclasses.Field, value: Any) -> Any:
+def _coerce(owner: str, f: dataclasses.Field[Any], value: Any) -> Any:
     default = field_default(f)
     if default is None or value is None:
         return value

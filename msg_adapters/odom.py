@@ -2,7 +2,9 @@
 
 The 6x6 pose covariance is ordered (x, y, z, roll, pitch, yaw); the planar (x, y, yaw) block sits
 at rows/columns (0, 1, 5). z/roll/pitch are fixed (walking on a floor) and get variance 0.
-twist.linear.x is the walking speed (m/s, body frame) and twist.angular.z the yaw rate (rad/s).
+twist.linear.x is the walking speed (m/s, body frame) and twist.angular.z the yaw rate (rad/s);
+twist.covariance[0] is the variance of twist.linear.x (m²/s², 0 = not given; for ``pdr/odom`` it
+carries the hop's step-count confidence, see indoor_loc/imu/pdr.py), the rest of it 0.
 """
 from __future__ import annotations
 
@@ -47,10 +49,14 @@ def planar_cov_from_6x6(cov36, what: str = "pose.covariance") -> np.ndarray:
 
 
 def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: float, yaw: float,
-                cov_xyyaw, speed_mps: float, yaw_rate: float) -> Odometry:
-    """Build a planar Odometry message (see module doc for the covariance layout)."""
-    for name, v in (("x", x), ("y", y), ("yaw", yaw), ("speed_mps", speed_mps), ("yaw_rate", yaw_rate)):
+                cov_xyyaw, speed_mps: float, yaw_rate: float, speed_var: float = 0.0) -> Odometry:
+    """Build a planar Odometry message (see module doc for the covariance layout);
+    ``speed_var`` (m²/s², >= 0) goes to ``twist.covariance[0]`` (the rest of it stays 0)."""
+    for name, v in (("x", x), ("y", y), ("yaw", yaw), ("speed_mps", speed_mps), ("yaw_rate", yaw_rate),
+                    ("speed_var", speed_var)):
         require_finite(name, float(v))
+    if speed_var < 0:
+        raise InvalidMessageError("bad_covariance", f"speed_var must be >= 0, got {speed_var}")
     msg = Odometry()
     msg.header.stamp = stamp_from_ns(stamp_ns)
     msg.header.frame_id = frame_id
@@ -61,6 +67,7 @@ def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: 
     msg.pose.covariance = planar_cov_to_6x6(cov_xyyaw)
     msg.twist.twist.linear.x = float(speed_mps)
     msg.twist.twist.angular.z = float(yaw_rate)
+    msg.twist.covariance[0] = float(speed_var)
     return msg
 
 
@@ -75,7 +82,7 @@ def odom_from_msg(msg: Odometry) -> OdomPose:
     require_finite("twist", [t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z])
     require_finite("twist.covariance", msg.twist.covariance)
     return OdomPose(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
-                      msg.header.frame_id, msg.child_frame_id)
+                    msg.header.frame_id, msg.child_frame_id, float(msg.twist.covariance[0]))
 
 
 class PdrOdomReader:

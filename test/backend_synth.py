@@ -62,7 +62,7 @@ def corridor_walk(name: str, x0: float, x1: float, t0_ns: int, rng: np.random.Ge
     truth_xy = np.stack([x0 + math.cos(heading) * dist, np.full(len(dist), y)], axis=1)
     steps_true = speed * HOP_NS / SEC / step_len
     ev = []
-    for i, te in enumerate(t_end):
+    for te in t_end:
         steps = steps_true * (1 + 0.03 * rng.normal())
         ev.append((int(te), 0, (int(te - HOP_NS), int(te), float(steps), heading + 0.02 * rng.normal())))
     w = Walk(name, [], truth_t, truth_xy)

@@ -2,7 +2,6 @@
 on a two-user synthetic building, bounding, the evolving map saved and loaded."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

@@ -97,3 +97,40 @@ def test_users_join_and_leave_live(ros_domain, tmp_path):
         assert "Traceback" not in node_proc.output()
     finally:
         node_proc.stop()
+
+
+def test_a_fixed_user_list_is_followed_and_nobody_else(ros_domain, tmp_path):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+
+    rm = save_radiomap(survey(0, 60, np.random.default_rng(1)), tmp_path / "map")
+    params = tmp_path / "params.yaml"
+    params.write_text(f"/**/backend_node:\n  ros__parameters:\n    radiomap: {rm}\n    users: [carol]\n"
+                      "    wknn: {shared_threshold: 0.75, shared_strict: false}\n")
+    node_proc = Peer([sys.executable, "-m", "indoor_loc.nodes.backend_node", "--ros-args", "--params-file",
+                      str(params)], env=child_env())
+    rng = np.random.default_rng(32)
+    try:
+        with ros_node("probe") as (node, ex):
+            poses: dict[str, list] = {"carol": [], "dave": []}
+            for u, lst in poses.items():
+                node.create_subscription(PoseWithCovarianceStamped, f"/backend/{u}/pose", lst.append,
+                                         qos_profile(Qos.RELIABLE))
+            pubs = {(u, t): node.create_publisher(Odometry if t == "pdr/odom" else DiagnosticArray, f"/{u}/{t}",
+                                                  qos_profile(Qos.RELIABLE))
+                    for u in poses for t in ("pdr/odom", "wifi/scan")}
+            assert spin_until(ex, lambda: all(pubs[("carol", t)].get_subscription_count() > 0
+                                              for t in ("pdr/odom", "wifi/scan")), 20), node_proc.output()
+            spin_until(ex, lambda: False, 2.5)          # two discovery rounds: dave must not be followed
+            assert all(pubs[("dave", t)].get_subscription_count() == 0 for t in ("pdr/odom", "wifi/scan"))
+            for u in poses:
+                for topic, msg in _messages(corridor_walk(u, 2, 30, 0, rng)):
+                    pubs[(u, topic)].publish(msg)
+                    spin_until(ex, lambda: False, 0.002)
+            assert spin_until(ex, lambda: len(poses["carol"]) > 5, 20), node_proc.output()
+            spin_until(ex, lambda: False, 1.0)
+            assert poses["dave"] == []
+        assert "following user 'carol'" in node_proc.output() and "'dave'" not in node_proc.output()
+    finally:
+        node_proc.stop()

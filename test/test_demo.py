@@ -9,7 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 
 from helpers_dds import Peer, child_env
 
@@ -62,7 +61,7 @@ def test_demo_runs_every_node_live_and_scores_them(ros_domain, tmp_path):
         if importlib.util.find_spec("indoor_loc.nodes.tll_pf_node") is not None:
             for w in ("alice", "bob"):
                 assert counts.get(f"/{w}/pf/pose", 0) > 0
-        assert counts[f"/alice/imu/data"] > 1000          # 100 Hz AEKF output of a 24 s walk
+        assert counts["/alice/imu/data"] > 1000          # 100 Hz AEKF output of a 24 s walk
         conn = next(c for c in reader.connections if c.topic == "/alice/wifi/fix")
         msg = reader.deserialize(next(reader.messages(connections=[conn]))[2], conn.msgtype)
         assert msg.header.frame_id == "map"

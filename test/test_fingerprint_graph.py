@@ -25,7 +25,7 @@ def grid_graph(size=(40.0, 20.0), step=2.5):
 
 
 def slow_log_likelihood(fg: FingerprintGraph, link: int, pos: float, scan: WifiScan) -> float:
-    """SPEC §2.4 written out for one point: distance-weighted vertex values, product over APs."""
+    """Kim et al. 2012's fingerprint model written out for one point: distance-weighted vertex values, product over APs."""
     p = fg.params
     i, j = fg.link_nodes[link]
     xi, xj = fg.node_xy[i], fg.node_xy[j]

@@ -99,7 +99,8 @@ def _broken(edit) -> dict:
      "2 disconnected parts; the smallest \\(2 nodes\\) contains node 14"),
     (lambda d: d["nodes"].append([14, 1.0, 1.0, 7]), "node 14 is on floor 7, which is not in the floor table"),
     (lambda d: d.update(rooms={"lab": [99]}), "room 'lab' names unknown node 99"),
-    (lambda d: d.update(vertical_links=[{"nodes": [10, 13], "length_m": 3.0}]), r"vertical link #3 \(10, 13\) joins two nodes of one floor"),
+    (lambda d: d.update(vertical_links=[{"nodes": [10, 13], "length_m": 3.0}]),
+     r"vertical link #3 \(10, 13\) joins two nodes of one floor"),
     (lambda d: d.update(vertical_links=[{"nodes": [10]}]), r"vertical_links\[0\] must be"),
 ])
 def test_every_validation_error(edit, match):

@@ -134,7 +134,7 @@ def test_rts_without_measurements_equals_forward():
 def test_joseph_form_keeps_covariance_symmetric_psd():
     rng = np.random.default_rng(3)
     kf = LinearPdrKf(LinearPdrParams(gate=False), xy0=np.zeros(2), pos_cov0=1e6 * np.eye(2))
-    for t in range(300):
+    for _ in range(300):
         kf.predict(1.0, 0.3 * rng.standard_normal())
         kf.update(Fix(0, rng.standard_normal(2), 1e-8 * np.eye(2)))
         assert np.array_equal(kf.P, kf.P.T)
@@ -180,7 +180,7 @@ def test_fixes_to_arrays_skips_missing_and_declined():
 
 
 def test_ukf_captures_curvature_better_than_ekf():
-    """One prediction from a known position with uncertain heading (seed 004 Fig. 2): the UKF's
+    """One prediction from a known position with uncertain heading (Raitoharju et al. 2015, Fig. 2): the UKF's
     mean and covariance are closer to the exact moments than the EKF's."""
     p = NonlinearPdrParams(init_pos_var_m2=1e-6, init_heading_var_rad2=0.2, init_step_var_m2=1e-6,
                            sigma_dtheta_rad=0.0, sigma_ds_m=0.0)

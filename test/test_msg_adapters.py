@@ -182,7 +182,8 @@ def scans(draw) -> WifiScan:
     fl = st.floats(min_value=-120.0, max_value=0.0, allow_nan=False)
     rssi = np.array(draw(st.lists(fl, min_size=n, max_size=n)))
     freq = np.array(draw(st.lists(st.floats(min_value=0.0, max_value=7200.0), min_size=n, max_size=n)))
-    ssid = tuple(draw(st.lists(st.text(st.characters(blacklist_characters="\0", blacklist_categories=("Cs",)), max_size=32), min_size=n, max_size=n)))
+    ssid_chars = st.characters(blacklist_characters="\0", blacklist_categories=("Cs",))
+    ssid = tuple(draw(st.lists(st.text(ssid_chars, max_size=32), min_size=n, max_size=n)))
     age = draw(st.one_of(st.none(), st.lists(st.one_of(st.just(math.nan), st.floats(min_value=0, max_value=1e7)),
                                              min_size=n, max_size=n)))
     if age is not None and all(math.isnan(a) for a in age):

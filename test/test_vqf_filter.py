@@ -87,7 +87,7 @@ def _stage(**over):
     return ImuStage(params_from_dict(ImuStageParams, over), namespace="/alice")
 
 
-def _drive(stage, d, order, mag_offset_ut=np.zeros(3)):
+def _drive(stage, d, order, mag_offset_ut=(0.0, 0.0, 0.0)):
     out = {}
     for kind, i in order:
         if kind == "imu":

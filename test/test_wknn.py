@@ -1,4 +1,4 @@
-"""WKNN (seed 001): oracle, synthetic path-loss field, declines, scale, registry, PUTMC regression."""
+"""WKNN (Nowicki & Skrzypczyński 2019): oracle, synthetic path-loss field, declines, scale, registry, PUTMC regression."""
 from __future__ import annotations
 
 import itertools

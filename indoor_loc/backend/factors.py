@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Paper values (seed-001 paper §5): PDR information diag(1, 1, 15), WiFi 10 I, step-length prior 200.
+#: Paper values (Nowicki & Skrzypczyński 2019, Sec. 5): PDR information diag(1, 1, 15), WiFi 10 I, step-length prior 200.
 PDR_INFO = (1.0, 1.0, 15.0)
 WIFI_INFO = 10.0
 STEP_PRIOR_INFO = 200.0

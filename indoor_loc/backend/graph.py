@@ -26,9 +26,10 @@ ones):
 Solver: ``scipy.optimize.least_squares`` on the whitened residuals of all factors touching the
 chosen variables, with the analytic Jacobian assembled in a few vectorised numpy calls: MINPACK's
 Levenberg–Marquardt on the dense Jacobian for small live windows (≤ 120 variables, ~10 ms), the
-trust-region reflective method with LSMR on the sparse Jacobian for the whole graph. GTSAM's LM with Python ``CustomFactor`` spends its time in one
-Python callback per factor (4.5 s for 15 iterations at this size); the vectorised residual makes a
-whole-graph solve a few hundred ms and a local window a few ms.
+trust-region reflective method with LSMR on the sparse Jacobian for the whole graph. GTSAM's LM with
+Python ``CustomFactor`` spends its time in one Python callback per factor (4.5 s for 15 iterations at
+this size); the vectorised residual makes a whole-graph solve a few hundred ms and a local window a
+few ms.
 
 Bounding (long-running deployments): at most ``max_active_poses`` poses are optimised; beyond that
 the oldest-inserted poses are frozen (kept as constants: finished users first, then the oldest

@@ -129,15 +129,15 @@ def tyrex_rows(data_dir: Path, *, quick: bool = False, rates: dict | None = None
         args = (tr.t_ns, tr.gyr, tr.acc, tr.mag_t_ns, tr.mag)
         ests: dict[str, tuple[np.ndarray, np.ndarray, bool]] = {}
         if "aekf (stage)" in filters:
-            t, q = _timed(lambda: run_stage(*args, "aekf", **ov), n, rates, "aekf (stage)")
+            t, q = _timed(lambda a=args: run_stage(*a, "aekf", **ov), n, rates, "aekf (stage)")
             ests["aekf (stage)"] = (t, q, False)
         if "vqf (stage)" in filters:
-            t, q = _timed(lambda: run_stage(*args, "vqf", **ov), n, rates, "vqf (stage)")
+            t, q = _timed(lambda a=args: run_stage(*a, "vqf", **ov), n, rates, "vqf (stage)")
             ests["vqf (stage)"] = (t, q, False)
         if "vqf (offline)" in filters:
-            ests["vqf (offline)"] = (tr.t_ns, _timed(lambda: run_vqf_offline(*args), n, rates, "vqf (offline)"), False)
+            ests["vqf (offline)"] = (tr.t_ns, _timed(lambda a=args: run_vqf_offline(*a), n, rates, "vqf (offline)"), False)
         if "madgwick" in filters and not quick:
-            ests["madgwick"] = (tr.t_ns, _timed(lambda: run_madgwick(*args), n, rates, "madgwick"), False)
+            ests["madgwick"] = (tr.t_ns, _timed(lambda a=args: run_madgwick(*a), n, rates, "madgwick"), False)
         if "android" in filters:
             ests["android"] = (tr.rv_t_ns, tr.rv_quat, True)
         for name, (t, q, true_north) in ests.items():
@@ -160,11 +160,11 @@ def broad_rows(data_dir: Path, *, quick: bool = False, rates: dict | None = None
         ests: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         for name, src in (("aekf (stage)", "aekf"), ("vqf (stage)", "vqf")):
             if name in filters:
-                ests[name] = _timed(lambda: run_stage(*args, src, **ov), n, rates, name)
+                ests[name] = _timed(lambda a=args, s=src: run_stage(*a, s, **ov), n, rates, name)
         if "vqf (offline)" in filters:
-            ests["vqf (offline)"] = (t, _timed(lambda: run_vqf_offline(*args), n, rates, "vqf (offline)"))
+            ests["vqf (offline)"] = (t, _timed(lambda a=args: run_vqf_offline(*a), n, rates, "vqf (offline)"))
         if "madgwick" in filters and not quick:
-            ests["madgwick"] = (t, _timed(lambda: run_madgwick(*args), n, rates, "madgwick"))
+            ests["madgwick"] = (t, _timed(lambda a=args: run_madgwick(*a), n, rates, "madgwick"))
         for name, (te, q) in ests.items():
             # the stage publishes one imu/data per IMU sample once initialised: align by stamp
             full = np.full((n, 4), np.nan)

@@ -10,7 +10,7 @@ walks (stale pre-walk scans included, as in the paper's evaluation) is positione
 Tables:
 1. methods — WKNN with the paper's setting (k=4, shared 0.6, -100 dBm, L2), WKNN with the authors'
    comparison (RMS over shared APs, > 50 % shared both ways), the best WKNN of the grid, path loss,
-   coverage area with the seed-004 ablation (all on, each modification off, all off): scans
+   coverage area with the Raitoharju et al. 2015 ablation (all on, each modification off, all off): scans
    located, mean / median / 75 % / 95 % / max error (m, over located scans) and the covariance
    consistency (fraction of truths inside the fix's 50 % and 95 % ellipses);
 2. the paper's WKNN grid (k ∈ {3,4,5,6,8}, shared ∈ {0.5,...,0.8}, threshold ∈ {-100,-90}, L1/L2;

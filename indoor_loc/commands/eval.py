@@ -10,7 +10,7 @@ Examples::
     indoor-loc eval run.mcap --truth import/ --topic wifi/fix --plot plots/ --json scores.json
     indoor-loc eval --csv-dir trajs/ --dataset ../shared/datasets/putmc
 
-Metrics (see :mod:`indoor_loc.eval.metrics`): the seed-001 paper convention (squared units),
+Metrics (see :mod:`indoor_loc.eval.metrics`): Nowicki & Skrzypczyński 2019 convention (squared units),
 the route distance in metres, and the scan-time error in metres.
 """
 from __future__ import annotations

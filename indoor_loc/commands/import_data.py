@@ -1,6 +1,7 @@
 """``indoor-loc import DATASET ...``: convert a dataset into MCAP bags + params.yaml.
 
-One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each adds its own arguments and a ``func``.
+One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each
+adds its own arguments and a ``func``.
 
 ``indoor-loc import putmc DATASET_DIR OUT_DIR [--walks 1,2,7] [--keep-stale]`` writes
 ``OUT_DIR/walkNN.mcap`` (namespace ``/walkNN``; topics in :mod:`indoor_loc.datasets.putmc_bags`),
@@ -97,7 +98,7 @@ def import_putmc(args: argparse.Namespace) -> int:
 
     params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
               "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)},
-              # the seed-001 paper's joint + step-length configuration: walks one after another
+              # Nowicki & Skrzypczyński 2019's joint + step-length configuration: walks one after another
               # (1…24), each matching the survey and all earlier walks' scans
               "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
                                "estimate_step_length": True}}

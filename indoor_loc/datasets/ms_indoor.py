@@ -173,7 +173,7 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
     try:
         fh = _open_text(path)
         with fh:
-            for lineno, line in enumerate(fh, 1):
+            for line in fh:
                 line = line.rstrip("\r\n")
                 if not line:
                     continue

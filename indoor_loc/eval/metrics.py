@@ -1,4 +1,4 @@
-"""Trajectory error metrics (pure numpy): route distance, the seed-001 paper metric, scan-time error.
+"""Trajectory error metrics (pure numpy): route distance, Nowicki & Skrzypczyński 2019 metric, scan-time error.
 
 Three views of one estimated trajectory against a PUTMC-style ground truth (a route made of
 segments, plus true positions at time-stamped WiFi scans):
@@ -16,7 +16,10 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+from typing import Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.errors import EvalError
 
@@ -24,7 +27,7 @@ from indoor_loc.errors import EvalError
 PAPER_MAX_SQ_ERR_M2 = 100.0
 
 
-def _xy(name: str, xy) -> np.ndarray:
+def _xy(name: str, xy: ArrayLike) -> np.ndarray:
     a = np.asarray(xy, dtype=np.float64)
     if a.size == 0:
         a = a.reshape(0, 2)
@@ -35,7 +38,7 @@ def _xy(name: str, xy) -> np.ndarray:
     return a
 
 
-def _segments(segments) -> np.ndarray:
+def _segments(segments: ArrayLike) -> np.ndarray:
     s = np.asarray(segments, dtype=np.float64)
     if s.ndim != 3 or s.shape[1:] != (2, 2) or s.shape[0] == 0:
         raise EvalError(f"segments: expected shape (L >= 1, 2, 2), got {s.shape}")
@@ -44,7 +47,7 @@ def _segments(segments) -> np.ndarray:
     return s
 
 
-def point_segment_distance(xy, segments) -> np.ndarray:
+def point_segment_distance(xy: ArrayLike, segments: ArrayLike) -> np.ndarray:
     """Distance, m, from each point (N, 2) to the nearest of L segments (L, 2, 2) -> (N,).
 
     Projection clamped to the segment (a zero-length segment is a point)."""
@@ -82,11 +85,11 @@ class Stats:
     p95: float
     max: float
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
-def stats(d) -> Stats:
+def stats(d: ArrayLike) -> Stats:
     """RMSE, mean, median, 95th percentile (linear interpolation) and max of distances d (N,), m."""
     d = np.asarray(d, dtype=np.float64).ravel()
     if d.size == 0:
@@ -96,8 +99,8 @@ def stats(d) -> Stats:
                  float(np.percentile(d, 95)), float(np.max(d)))
 
 
-def paper_score(d, *, max_sq_err_m2: float = PAPER_MAX_SQ_ERR_M2) -> PaperScore:
-    """The seed-001 metric of route distances d (N,) m: e = d², keep e < max_sq_err_m2,
+def paper_score(d: ArrayLike, *, max_sq_err_m2: float = PAPER_MAX_SQ_ERR_M2) -> PaperScore:
+    """The Nowicki & Skrzypczyński 2019 metric of route distances d (N,) m: e = d², keep e < max_sq_err_m2,
     "RMSE" = sqrt(mean(e²)), "mean" = mean(e) (both in squared units, as published)."""
     d = np.asarray(d, dtype=np.float64).ravel()
     e = d * d
@@ -108,7 +111,7 @@ def paper_score(d, *, max_sq_err_m2: float = PAPER_MAX_SQ_ERR_M2) -> PaperScore:
     return PaperScore(float(np.sqrt(np.mean(ek * ek))), float(np.mean(ek)), int(ek.size), int(d.size - ek.size))
 
 
-def interpolate_xy(stamps_ns, xy, at_ns) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_xy(stamps_ns: ArrayLike, xy: ArrayLike, at_ns: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Trajectory (stamps_ns (N,) int increasing, xy (N, 2)) linearly interpolated at at_ns (K,).
 
     Returns (xy_at (K, 2), inside (K,) bool). Outside [stamps[0], stamps[-1]] the end pose is held
@@ -130,7 +133,8 @@ def interpolate_xy(stamps_ns, xy, at_ns) -> tuple[np.ndarray, np.ndarray]:
     return out, inside
 
 
-def scan_time_errors(stamps_ns, xy, scan_ns, scan_xy) -> tuple[np.ndarray, np.ndarray]:
+def scan_time_errors(stamps_ns: ArrayLike, xy: ArrayLike, scan_ns: ArrayLike,
+                     scan_xy: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Distance, m, between the trajectory interpolated at each scan stamp and the scan's true
     position: (d (K,), inside (K,) bool — False where the stamp lies outside the trajectory)."""
     truth = _xy("scan_xy", scan_xy)
@@ -151,7 +155,7 @@ class WalkScore:
     scan_m: Stats
     n_scans_outside: int
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "n_poses": self.n_poses, "paper": asdict(self.paper),
                 "route_m": self.route_m.as_dict(), "scan_m": self.scan_m.as_dict(),
                 "n_scans_outside": self.n_scans_outside}
@@ -166,10 +170,11 @@ class WalkErrors:
     scan_inside: np.ndarray
 
 
-def walk_errors(name: str, stamps_ns, xy, segments, scan_ns=None, scan_xy=None) -> WalkErrors:
+def walk_errors(name: str, stamps_ns: ArrayLike, xy: ArrayLike, segments: ArrayLike,
+                scan_ns: ArrayLike | None = None, scan_xy: ArrayLike | None = None) -> WalkErrors:
     """Route distance of every pose and, when scans are given, the scan-time errors."""
     route_d = point_segment_distance(xy, segments)
-    if scan_ns is None or len(np.asarray(scan_ns)) == 0:
+    if scan_ns is None or scan_xy is None or len(np.asarray(scan_ns)) == 0:
         scan_d, inside = np.zeros(0), np.zeros(0, dtype=bool)
     else:
         scan_d, inside = scan_time_errors(stamps_ns, xy, scan_ns, scan_xy)
@@ -186,6 +191,7 @@ def score(errs: WalkErrors, *, max_sq_err_m2: float = PAPER_MAX_SQ_ERR_M2) -> Wa
 
 def pool(errs: list[WalkErrors], name: str = "pooled") -> WalkErrors:
     """All walks' poses and scans as one set (the paper pools poses, not per-walk scores)."""
-    cat = (lambda xs, dt: np.concatenate(xs) if xs else np.zeros(0, dtype=dt))
+    def cat(xs: list[np.ndarray], dt: type) -> np.ndarray:
+        return np.concatenate(xs) if xs else np.zeros(0, dtype=dt)
     return WalkErrors(name, cat([e.route_d for e in errs], float), cat([e.scan_d for e in errs], float),
                       cat([e.scan_inside for e in errs], bool))

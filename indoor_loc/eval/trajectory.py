@@ -29,9 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from indoor_loc.errors import DatasetError
-from indoor_loc.eval.metrics import EvalError
+from indoor_loc.errors import DatasetError, EvalError
 
 CSV_HEADER = ("stamp_ns", "x", "y", "heading")
 
@@ -45,7 +45,8 @@ class Trajectory:
     heading: np.ndarray
 
     @staticmethod
-    def make(name: str, stamps_ns, xy, heading=None, *, sort: bool = True) -> "Trajectory":
+    def make(name: str, stamps_ns: ArrayLike, xy: ArrayLike, heading: ArrayLike | None = None, *,
+             sort: bool = True) -> "Trajectory":
         """Validated trajectory; rows sorted by stamp (stable) when ``sort``."""
         t = np.asarray(stamps_ns, dtype=np.int64).ravel()
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

@@ -1,1 +1,1 @@
-"""Fusion filters (seed 004 linear PDR Kalman filter, RTS smoother, EKF/UKF models). Pure numpy."""
+"""Fusion filters (Raitoharju et al. 2015 linear PDR Kalman filter, RTS smoother, EKF/UKF models). Pure numpy."""

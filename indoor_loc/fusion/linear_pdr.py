@@ -1,4 +1,4 @@
-"""Linear PDR Kalman filter and Rauch–Tung–Striebel smoother (seed 004, Raitoharju et al. 2015).
+"""Linear PDR Kalman filter and Rauch–Tung–Striebel smoother (Raitoharju et al. 2015, Sec. 4; docs/references.md).
 
 State ``x = [r1, r2, v1, v2]``: position (m, map frame) and *footstep vector* (m per step). One
 prediction covers ``steps`` footsteps during which the heading changed by ``dtheta`` (eq. 53)::
@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc.params import field, require
-from indoor_loc.errors import ConfigError, InvalidInputError
+from indoor_loc.errors import InvalidInputError
 from indoor_loc.measurements import Fix
 
 H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement matrix
@@ -34,7 +34,7 @@ H_POS = np.hstack([np.eye(2), np.zeros((2, 2))])  # (2, 4) position measurement 
 
 @dataclass(frozen=True)
 class LinearPdrParams:
-    """Parameters of the seed-004 linear PDR model and its WiFi update."""
+    """Parameters of the Raitoharju et al. 2015 linear PDR model and its WiFi update."""
     step_length_m: float = field(0.7, "nominal footstep length s (m), scales the heading noise")
     sigma_dtheta_rad: float = field(0.1, "heading-change noise per footstep (rad)")
     sigma_ds_m: float = field(0.07, "step-vector length change noise per footstep (m)")
@@ -175,12 +175,12 @@ class PositionFilter:
 
     def mahalanobis(self, points: np.ndarray) -> np.ndarray:
         """Squared Mahalanobis distance of candidate positions (N, 2) from the position estimate
-        (seed 004 integrity monitoring of a particle filter: ``(c_i - x)^T P^-1 (c_i - x)``) -> (N,)."""
+        (Raitoharju et al. 2015, Sec. 5.2, integrity monitoring of a particle filter: ``(c_i - x)^T P^-1 (c_i - x)``) -> (N,)."""
         return mahalanobis_sq(points, self.state.x[:2], self.state.P[:2, :2])
 
 
 class LinearPdrKf(PositionFilter):
-    """Online seed-004 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
+    """Online Raitoharju et al. 2015 linear PDR Kalman filter. ``predict(steps, dtheta)`` per PDR increment,
     ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
 
     def __init__(self, params: LinearPdrParams | None = None, *, xy0: np.ndarray | None = None,

@@ -1,4 +1,4 @@
-"""Traditional nonlinear PDR models with EKF and UKF, for comparison with the linear model (seed 004).
+"""Traditional nonlinear PDR models with EKF and UKF, for comparison with the linear model (Raitoharju et al. 2015).
 
 State ``x = [r1, r2, theta, s]`` (eq. 47): position (m), heading (rad, ENU, not wrapped — there
 are no angle measurements) and footstep length (m). One prediction covers ``steps`` footsteps::
@@ -23,7 +23,7 @@ from scipy.stats import chi2
 
 from indoor_loc.params import field, require
 from indoor_loc.errors import InvalidInputError
-from indoor_loc.fusion.linear_pdr import (H_POS, KfState, KfTrack, LinearPdrKf, PositionFilter)
+from indoor_loc.fusion.linear_pdr import (KfState, KfTrack, LinearPdrKf, PositionFilter)
 from indoor_loc.measurements import Fix
 
 

@@ -1,6 +1,6 @@
 """Adaptive error-state EKF for orientation (device→ENU) and gyroscope bias.
 
-Method (SPEC §1.2; seed 001 ref. [45]): the state is a unit quaternion ``q`` (device→ENU,
+Method (the AEKF of Nowicki & Skrzypczyński 2019, Sec. 3, after their ref. [45]): the state is a unit quaternion ``q`` (device→ENU,
 ``v_enu = R(q) v_dev``) and the gyroscope bias ``b`` (rad/s, device frame). The filter is
 multiplicative: its 6-D error state is ``δx = [δθ, δb]`` with ``q_true = exp(δθ) ⊗ q`` — δθ is a
 small rotation about the **ENU** axes, so ``P[0:3, 0:3]`` is directly the orientation covariance
@@ -39,8 +39,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.measurements import wrap_angle
@@ -59,7 +61,7 @@ class AekfParams:
     bias_init_std: float = field(0.5 * _DEG, "initial gyroscope bias standard deviation, rad/s")
     bias_walk: float = field(5e-5, "gyroscope bias random walk, rad/s/√s")
     gravity: float = field(9.81, "local gravity magnitude, m/s²")
-    acc_noise: float = field(1.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
+    acc_noise: float = field(2.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
                                   "per sample")
     acc_lp_tau_s: float = field(3.0, "time constant of the 2nd-order Butterworth low-pass applied to the "
                                      "accelerometer in the ENU frame before the tilt update (0 = raw), s")
@@ -82,6 +84,10 @@ class AekfParams:
     mag_ref_tau_s: float = field(30.0, "time constant of the online field-norm/dip reference, s")
     mag_relearn_s: float = field(30.0, "a disturbance lasting longer than this becomes the new "
                                        "reference (changed environment), s")
+    mag_relearn_first_s: float = field(5.0, "the same for the start-up reference (one sample, dipped through a "
+                                            "start-up tilt), until it is confirmed, s")
+    mag_ref_confirm_s: float = field(20.0, "the reference is confirmed once the field has agreed with it this "
+                                           "long, s")
     mag_gate_nis: float = field(9.0, "normalised innovation squared above which the magnetometer noise "
                                      "is inflated, 1")
     mag_declination: float = field(0.0, "magnetic declination (east of true north positive); 0 keeps "
@@ -99,7 +105,8 @@ class AekfParams:
             require(isinstance(v, (int, float)) and math.isfinite(v), owner, f.name, "a finite number", v)
         positive = ("gyro_noise", "bias_init_std", "gravity", "acc_noise", "acc_stat_tau_s",
                     "acc_reject_m_s2", "mag_noise", "mag_norm_tol", "mag_dip_tol", "mag_ref_tau_s",
-                    "mag_relearn_s", "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
+                    "mag_relearn_s", "mag_relearn_first_s", "mag_ref_confirm_s",
+                    "mag_gate_nis", "rest_gyro", "rest_acc_m_s2", "rest_gyro_noise",
                     "max_dt_s")
         for name in positive:
             v = getattr(self, name)
@@ -123,20 +130,22 @@ class AekfState:
 
     initialised: bool = False
     stamp_ns: int = 0
-    q: list = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
-    bias: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    P: list = dataclasses.field(default_factory=lambda: [0.0] * 36)
+    q: list[float] = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])
+    bias: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    P: list[float] = dataclasses.field(default_factory=lambda: [0.0] * 36)
     acc_mean: float = 0.0            # running mean of |a|, m/s²
     acc_var: float = 0.0             # running variance of |a|, (m/s²)²
-    gyro_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    acc_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    enu_lp: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])       # m/s², ENU
-    enu_lp_rate: list = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s³, ENU
+    gyro_lp: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    acc_lp: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    enu_lp: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])       # m/s², ENU
+    enu_lp_rate: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s³, ENU
     rest_s: float = 0.0              # how long the device has been still, s
     mag_ref_ok: bool = False
     mag_norm_ref: float = 0.0        # reference field norm (input unit)
     mag_dip_ref: float = 0.0         # reference dip angle, rad (positive = field points up)
     mag_dist_s: float = 0.0          # how long the field has been disturbed, s
+    mag_ok_s: float = 0.0            # how long the field has agreed with the reference, s
+    mag_stamp_ns: int = 0            # stamp of the previous magnetometer sample used
     mag_norm_anomaly: float = 0.0    # smoothed ‖m‖/ref − 1
     mag_dip_anomaly: float = 0.0     # smoothed dip − ref, rad
     n_acc_skipped: int = 0
@@ -148,7 +157,7 @@ class AekfState:
                                    enu_lp=list(self.enu_lp), enu_lp_rate=list(self.enu_lp_rate))
 
 
-def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
+def _initialise(st: AekfState, p: AekfParams, a: list[float], m: list[float] | None) -> None:
     """Tilt from the accelerometer (shortest arc a → e_z), heading from the magnetometer if any."""
     ax, ay, az = a
     n = math.sqrt(ax * ax + ay * ay + az * az)
@@ -191,7 +200,7 @@ def _initialise(st: AekfState, p: AekfParams, a: list, m: list | None) -> None:
     st.initialised = True
 
 
-def _rot(q: list, v: list) -> tuple[float, float, float]:
+def _rot(q: list[float], v: list[float]) -> tuple[float, float, float]:
     w, x, y, z = q
     vx, vy, vz = v
     return ((1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
@@ -199,8 +208,9 @@ def _rot(q: list, v: list) -> tuple[float, float, float]:
             2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz)
 
 
-def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None,
-         out_q: list | None, out_cov: list | None) -> None:
+def _run(st: AekfState, p: AekfParams, t: list[int], g: list[list[float]], a: list[list[float]],
+         m: list[list[float]] | None, out_q: list[Sequence[float]] | None,
+         out_cov: list[Sequence[float]] | None) -> None:
     """Process samples ``t[k]`` (int ns), ``g[k]``, ``a[k]``, ``m[k]`` (lists of 3 floats; ``m`` None
     or an entry None for no magnetometer) in place on ``st``. Appends (w,x,y,z) to ``out_q`` and
     the 9 entries of P[0:3,0:3] to ``out_cov`` per sample when given."""
@@ -223,6 +233,8 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
     dtol = p.mag_dip_tol
     tau_m = p.mag_ref_tau_s
     relearn = p.mag_relearn_s
+    relearn_first = p.mag_relearn_first_s
+    confirm = p.mag_ref_confirm_s
     gate = p.mag_gate_nis
     decl = p.mag_declination
     rest_g2 = p.rest_gyro ** 2
@@ -514,22 +526,33 @@ def _run(st: AekfState, p: AekfParams, t: list, g: list, a: list, m: list | None
                 if not st.mag_ref_ok:
                     st.mag_ref_ok = True
                     st.mag_norm_ref, st.mag_dip_ref = mn, dip
+                # the magnetometer's own clock: its timers and low-passes advance by the time since the
+                # previous magnetometer sample, not by the IMU's dt (a 50 Hz magnetometer beside a
+                # 200 Hz gyroscope would otherwise age 4x too slowly)
+                dtm = (tk - st.mag_stamp_ns) * 1e-9 if st.mag_stamp_ns else dt
+                dtm = min(dtm, max_dt)
+                st.mag_stamp_ns = tk
                 # anomalies, smoothed over mag_anomaly_tau_s (sensor noise alone should not trip them)
-                gam = dt / (tau_an + dt)
+                gam = dtm / (tau_an + dtm)
                 en_lp += gam * (mn / st.mag_norm_ref - 1.0 - en_lp)
                 ed_lp += gam * (dip - st.mag_dip_ref - ed_lp)
                 ed = dip - st.mag_dip_ref
                 rn, rd = en_lp / ntol, ed_lp / dtol
                 anomaly = rn * rn + rd * rd
                 if rn * rn <= 1.0 and rd * rd <= 1.0:
-                    beta = dt / (tau_m + dt)
+                    beta = dtm / (tau_m + dtm)
                     st.mag_norm_ref += beta * (mn - st.mag_norm_ref)
                     st.mag_dip_ref += beta * ed
                     st.mag_dist_s = 0.0
+                    st.mag_ok_s += dtm
                 else:
                     use = False
-                    st.mag_dist_s += dt
-                    if st.mag_dist_s > relearn:  # persistent: a new environment, not a disturbance
+                    st.mag_dist_s += dtm
+                    # persistent: a new environment, not a disturbance. The first reference comes from
+                    # one sample at start-up, dipped through a tilt that may be wrong while moving:
+                    # until the field has agreed with it for mag_ref_confirm_s, relearn after the shorter
+                    # mag_relearn_first_s
+                    if st.mag_dist_s > (relearn if st.mag_ok_s >= confirm else relearn_first):
                         st.mag_norm_ref, st.mag_dip_ref = mn, dip
                         st.mag_dist_s = 0.0
                         en_lp = ed_lp = 0.0
@@ -606,13 +629,14 @@ class Aekf:
         self.params = params if params is not None else AekfParams()
         self.params.validate()
         self._st = AekfState()
-        self._pending_mag: list | None = None
+        self._pending_mag: list[float] | None = None
 
-    def update(self, stamp_ns: int, gyro, acc, mag=None) -> None:
+    def update(self, stamp_ns: int, gyro: Sequence[float] | np.ndarray, acc: Sequence[float] | np.ndarray,
+               mag: Sequence[float] | np.ndarray | None = None) -> None:
         """One sample: ``gyro`` (3,) rad/s, ``acc`` (3,) m/s² (specific force, +g up at rest),
         ``mag`` (3,) any unit or None. dt comes from the stamps (irregular is fine); the first call
-        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or stamps that do not
-        increase (the state is then unchanged)."""
+        initialises from acc [+ mag]. Raises InvalidInputError (a ValueError) on non-finite input or
+        stamps that do not increase (the state is then unchanged)."""
         g = [float(v) for v in gyro]
         a = [float(v) for v in acc]
         mm = None if mag is None else [[float(v) for v in mag]]
@@ -621,13 +645,13 @@ class Aekf:
         # _run checks a sample before touching the state, so a rejected sample leaves it unchanged
         _run(self._st, self.params, [int(stamp_ns)], [g], [a], mm, None, None)
 
-    def update_imu(self, stamp_ns: int, gyro, acc) -> None:
+    def update_imu(self, stamp_ns: int, gyro: Sequence[float] | np.ndarray, acc: Sequence[float] | np.ndarray) -> None:
         """One IMU sample; a magnetometer sample given by :meth:`update_mag` since the previous IMU
         sample is applied with it (each magnetometer sample once)."""
         mag, self._pending_mag = self._pending_mag, None
         self.update(stamp_ns, gyro, acc, mag)
 
-    def update_mag(self, stamp_ns: int, mag) -> None:
+    def update_mag(self, stamp_ns: int, mag: Sequence[float] | np.ndarray) -> None:
         """One magnetometer sample at its own stamp, applied with the next IMU sample."""
         m = [float(v) for v in mag]
         if len(m) != 3 or not all(math.isfinite(v) for v in m):
@@ -676,7 +700,8 @@ class Aekf:
         self._st = state.copy()
 
 
-def aekf_batch(t_ns, gyro, acc, mag=None, params: AekfParams | None = None,
+def aekf_batch(t_ns: ArrayLike, gyro: ArrayLike, acc: ArrayLike, mag: ArrayLike | None = None,
+               params: AekfParams | None = None,
                state: AekfState | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Run the filter over whole arrays: ``t_ns`` (N,) int ns, ``gyro`` (N, 3) rad/s, ``acc`` (N, 3)
     m/s², ``mag`` (N, 3) or None (rows of NaN = no magnetometer sample). Returns ``quat`` (N, 4)
@@ -701,7 +726,7 @@ def aekf_batch(t_ns, gyro, acc, mag=None, params: AekfParams | None = None,
             for i in np.flatnonzero(~ok):
                 mlist[i] = None
     st = state if state is not None else AekfState()
-    out_q: list = []
-    out_c: list = []
+    out_q: list[Sequence[float]] = []
+    out_c: list[Sequence[float]] = []
     _run(st, params, t.tolist(), g.tolist(), a.tolist(), mlist, out_q, out_c)
     return np.array(out_q).reshape(n, 4), np.array(out_c).reshape(n, 3, 3)

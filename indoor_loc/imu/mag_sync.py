@@ -37,8 +37,8 @@ MAG = 1
 class MagSyncState:
     """Queues and counters of :class:`MagSync` (copy with :meth:`copy`)."""
 
-    imu: deque = field(default_factory=deque)      # (t_ns, payload)
-    mag: deque = field(default_factory=deque)      # (t_ns, payload)
+    imu: deque[tuple[int, Any]] = field(default_factory=deque)      # (t_ns, payload)
+    mag: deque[tuple[int, Any]] = field(default_factory=deque)      # (t_ns, payload)
     last_imu_in_ns: int | None = None
     last_mag_in_ns: int | None = None
     last_released_imu_ns: int | None = None
@@ -117,7 +117,7 @@ class MagSync:
             if st.imu:
                 t = st.imu[0][0]
                 ready = (not st.seen_mag or (newest_mag is not None and newest_mag >= t)
-                         or newest_imu - t >= self.max_delay_ns)
+                         or (newest_imu is not None and newest_imu - t >= self.max_delay_ns))
                 if ready:
                     t, p = st.imu.popleft()
                     st.last_released_imu_ns = t

@@ -1,8 +1,8 @@
-"""Pedestrian dead reckoning: stepometer hops × step length along the heading (SPEC §1.1, §6).
+"""Pedestrian dead reckoning: stepometer hops × step length along the heading (Nowicki & Skrzypczyński 2019, Sec. 3).
 
 Per stepometer hop ``i`` (``[t_start, t_end)``, ``n_i`` steps) and the heading ``ψ_i`` at the hop's
 end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading of the interval**
-``ψ̄_i = ψ_(i-1) + wrap(ψ_i − ψ_(i-1))/2`` (the paper's PDR edge, seed 001 eq. for ``e_p``):
+``ψ̄_i = ψ_(i-1) + wrap(ψ_i − ψ_(i-1))/2`` (the PDR edge ``e_p`` of Nowicki & Skrzypczyński 2019):
 ``x_i = x_(i-1) + d_i cos ψ̄_i``, ``y_i = y_(i-1) + d_i sin ψ̄_i``.
 
 ``pdr/odom`` contract (one nav_msgs/Odometry per stepometer hop, stamped at the hop's end, frame
@@ -20,6 +20,14 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
   accumulates, per hop, an along-track variance ``(step_length_rel_std · d_i)²`` and a cross-track
   variance ``d_i² · min(σ_ψ², 1)`` rotated into x, y (hops treated as independent), so it grows with
   the distance walked and with the heading uncertainty.
+- step confidence: a hop the stepometer is unsure of (a moving but not periodic window, see
+  :class:`indoor_loc.imu.stepometer.StepHop`) carries a count standard deviation ``σ_n`` (steps);
+  it adds ``(step_length_m · σ_n)²`` to that hop's along-track variance (so the decoded interval's
+  ``distance_var`` carries it), and ``twist.covariance[0]`` (variance of ``twist.linear.x``) is the
+  hop's walking-speed variance ``((step_length_rel_std · d_i)² + (step_length_m · σ_n)²) / Δt²``
+  (m²/s²): a consumer recovers the count's standard deviation as
+  ``σ_n = sqrt(var_v Δt² − (step_length_rel_std · d_i)²) / step_length_m``. A confident hop has
+  ``σ_n = 0``.
 
 Without a heading the yaw is held at its last value (0 at the start) and the track is a straight
 line whose length is still the walked distance.
@@ -32,6 +40,7 @@ from collections import deque
 from dataclasses import dataclass, field as dc_field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.measurements import OdomPose, wrap_angle
 from indoor_loc.params import field, require
@@ -85,9 +94,10 @@ class Pdr:
         self._st = state.copy()
 
     def update(self, t_start_ns: int, t_end_ns: int, steps: float, yaw: float | None,
-               yaw_var: float | None = None) -> OdomPose:
+               yaw_var: float | None = None, steps_std: float = 0.0) -> OdomPose:
         """Integrate one hop. ``yaw`` rad at the hop's end (None = unknown: the last yaw is held),
-        ``yaw_var`` rad² (None with a known yaw = 0)."""
+        ``yaw_var`` rad² (None with a known yaw = 0), ``steps_std`` the count's standard deviation
+        (steps; 0 = a confident count)."""
         st = self._st
         p = self.params
         if yaw is None or not math.isfinite(yaw):
@@ -103,7 +113,8 @@ class Pdr:
         st.y += d * s
         # heading uncertainty of the segment: the larger of the two ends' variances
         seg_var = max(var, float(st.cov[2, 2]) if st.stamp_ns is not None else var)
-        q_along = (p.step_length_rel_std * d) ** 2
+        n_std = float(steps_std) if math.isfinite(steps_std) and steps_std > 0 else 0.0
+        q_along = (p.step_length_rel_std * d) ** 2 + (p.step_length_m * n_std) ** 2
         q_cross = d * d * min(seg_var, 1.0)
         rot = np.array([[c, -s], [s, c]])
         st.cov[:2, :2] += rot @ np.diag([q_along, q_cross]) @ rot.T
@@ -113,15 +124,19 @@ class Pdr:
         st.stamp_ns = int(t_end_ns)
         st.total_steps += max(0.0, float(steps))
         st.distance_m += d
-        return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt)
+        return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
+                        speed_var=q_along / (dt * dt))
 
 
-def pdr_batch(t_start_ns, t_end_ns, steps, yaw, yaw_var=None, params: PdrParams | None = None) -> list[OdomPose]:
+def pdr_batch(t_start_ns: ArrayLike, t_end_ns: ArrayLike, steps: ArrayLike, yaw: ArrayLike,
+              yaw_var: ArrayLike | None = None, params: PdrParams | None = None) -> list[OdomPose]:
     """Integrate whole arrays of hops (N,) (``yaw`` NaN = unknown). Same as :meth:`Pdr.update` in a loop."""
     pdr = Pdr(params)
-    yv = np.zeros(len(steps)) if yaw_var is None else np.asarray(yaw_var, float)
+    n_ = np.asarray(steps, float)
+    yv = np.zeros(len(n_)) if yaw_var is None else np.asarray(yaw_var, float)
     return [pdr.update(int(a), int(b), float(n), None if not np.isfinite(y) else float(y), float(v))
-            for a, b, n, y, v in zip(t_start_ns, t_end_ns, steps, np.asarray(yaw, float), yv)]
+            for a, b, n, y, v in zip(np.asarray(t_start_ns, np.int64), np.asarray(t_end_ns, np.int64), n_,
+                                     np.asarray(yaw, float), yv)]
 
 
 class HeadingHistory:
@@ -131,9 +146,9 @@ class HeadingHistory:
 
     def __init__(self, horizon_s: float = 10.0) -> None:
         self.horizon_ns = int(horizon_s * 1e9)
-        self._t: deque = deque()
-        self._yaw: deque = deque()      # unwrapped
-        self._var: deque = deque()
+        self._t: deque[int] = deque()
+        self._yaw: deque[float] = deque()      # unwrapped
+        self._var: deque[float] = deque()
 
     def __len__(self) -> int:
         return len(self._t)

@@ -7,6 +7,7 @@ A quaternion ``q`` "device→ENU" rotates device-frame vectors into the ENU fram
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 
@@ -66,7 +67,7 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", quat_to_rotmat(q), np.asarray(v, dtype=float))
 
 
-def yaw_xyzw(q) -> float:
+def yaw_xyzw(q: Sequence[float] | np.ndarray) -> float:
     """Yaw (ZYX Euler, CCW from world x), rad, of one quaternion in ROS order x, y, z, w.
     Plain floats: this runs once per IMU sample, where numpy's per-call overhead is 5x the math."""
     x, y, z, w = (float(v) for v in q)

@@ -1,4 +1,4 @@
-"""FFT stepometer (SPEC §1.1, seed 001 §3.1): step frequency of the accelerometer magnitude.
+"""FFT stepometer (Nowicki & Skrzypczyński 2019, Sec. 3.1): step frequency of the accelerometer magnitude.
 
 The magnitude ``|a|`` (m/s²) is resampled onto a uniform grid from the sample stamps (linear
 interpolation, so 50–400 Hz and irregular sampling are all fine), and a window of ``window_s``
@@ -35,9 +35,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field as dc_field
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
 
 from indoor_loc.errors import InvalidInputError
@@ -57,22 +58,42 @@ class StepometerParams:
                                   "256 samples at 200 Hz = 1.28 s)")
     hop_s: float = field(0.32, "time between window evaluations = duration of one counted hop, s")
     f_min_hz: float = field(1.3, "lowest step frequency counted as walking, Hz")
-    f_max_hz: float = field(2.2, "highest step frequency counted as walking, Hz")
+    f_max_hz: float = field(2.45, "highest step frequency counted as walking, Hz (brisk walking and "
+                                    "short turning steps reach 2.3-2.4 Hz)")
     harmonics: int = field(8, "stride harmonics k f/2, k = 1..H, summed in the harmonic spectrum "
                               "(H = 8 reaches 4x the cadence); 1 = plain largest peak in the band")
     odd_harmonic_weight: float = field(0.5, "weight of the odd stride harmonics (f/2, 3f/2, ...) "
                                             "relative to the step harmonics, 0..1")
-    search_margin: float = field(1.15, "the harmonic-sum peak is searched over the band widened by "
+    search_margin: float = field(1.05, "the harmonic-sum peak is searched over the band widened by "
                                        "this factor on both ends; a peak outside the band = not walking")
     min_autocorr: float = field(0.3, "minimum normalised autocorrelation at the stride lag 2/f "
                                      "(±15 %) for walking, -1..1")
-    min_std_m_s2: float = field(0.5, "minimum standard deviation of |a| in the window for walking, m/s²")
+    min_std_m_s2: float = field(0.2, "minimum standard deviation of |a| in the window for walking, m/s² "
+                                      "(a hand-held phone on a soft floor can stay below 0.5)")
+    min_fundamental_share: float = field(0.15, "minimum share of the harmonic sum in the stride and "
+                                               "step fundamentals (f/2, f) for walking, 0..1")
     zero_pad: int = field(8, "FFT length >= zero_pad x window samples (power of two)")
     grid_hz: float = field(0.0, "resampling rate, Hz; 0 = the median input rate of the first "
                                 "rate_samples samples")
     rate_samples: int = field(32, "samples used to estimate the input rate when grid_hz = 0")
     max_gap_s: float = field(1.0, "a larger gap between samples ends the current segment (its tail "
                                   "is flushed) and starts a new one, s")
+    motion_window_s: float = field(1.0, "length of the span centred on a counted hop whose |a| standard "
+                                        "deviation decides moving vs still, s")
+    min_motion_std_m_s2: float = field(0.08, "minimum standard deviation of |a| over motion_window_s for "
+                                            "a hop to count as moving (below: still, 0 steps), m/s²")
+    coast_s: float = field(0.0, "after the last periodic walking window, hops that are still moving but "
+                                "not periodic (a turn, a bag bumping) are counted at the last walking "
+                                "cadence for up to this long, s; 0 = never")
+    coast_energy_ratio: float = field(0.8, "coasting also needs the hop's |a| standard deviation (over "
+                                           "motion_window_s) at least this fraction of the last walking "
+                                           "hop's: a turn keeps the gait's energy, a stop loses it, 1")
+    turn_coast_s: float = field(0.0, "with a heading (add_heading), a moving but not periodic hop within "
+                                     "this long of the last walking window is counted at the last cadence "
+                                     "while the heading turns (a corridor turn), s; 0 = never")
+    turn_min_rad: float = field(0.5, "heading change over the window span of such a hop that makes it a turn, rad")
+    coast_confidence: float = field(0.5, "confidence of a hop counted while coasting, or of a moving "
+                                         "hop counted as 0 steps, 0..1")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -88,6 +109,8 @@ class StepometerParams:
         require(1.0 <= self.search_margin <= 1.18, n, "search_margin",
                 "in [1, 1.18] (wider would reach the octave of the band)", self.search_margin)
         require(-1.0 <= self.min_autocorr <= 1.0, n, "min_autocorr", "in [-1, 1]", self.min_autocorr)
+        require(0.0 <= self.min_fundamental_share <= 1.0, n, "min_fundamental_share", "in [0, 1]",
+                self.min_fundamental_share)
         require(self.min_std_m_s2 >= 0, n, "min_std_m_s2", ">= 0", self.min_std_m_s2)
         require(isinstance(self.zero_pad, int) and 1 <= self.zero_pad <= 64, n, "zero_pad",
                 "an int in [1, 64]", self.zero_pad)
@@ -96,25 +119,42 @@ class StepometerParams:
         require(isinstance(self.rate_samples, int) and self.rate_samples >= 2, n, "rate_samples",
                 "an int >= 2", self.rate_samples)
         require(self.max_gap_s > 0, n, "max_gap_s", "> 0", self.max_gap_s)
+        require(0 < self.motion_window_s <= self.window_s, n, "motion_window_s", "in (0, window_s]",
+                self.motion_window_s)
+        require(self.min_motion_std_m_s2 >= 0, n, "min_motion_std_m_s2", ">= 0", self.min_motion_std_m_s2)
+        require(self.coast_s >= 0, n, "coast_s", ">= 0", self.coast_s)
+        require(self.turn_coast_s >= 0, n, "turn_coast_s", ">= 0", self.turn_coast_s)
+        require(self.turn_min_rad > 0, n, "turn_min_rad", "> 0", self.turn_min_rad)
+        require(self.coast_energy_ratio >= 0, n, "coast_energy_ratio", ">= 0", self.coast_energy_ratio)
+        require(0.0 <= self.coast_confidence <= 1.0, n, "coast_confidence", "in [0, 1]", self.coast_confidence)
 
 
 class StepHop(NamedTuple):
-    """Steps counted over ``[t_start_ns, t_end_ns)``: ``steps`` = ``freq_hz`` x duration when
-    ``walking`` (else 0); ``freq_hz`` is the window's step frequency estimate (also when not walking)."""
+    """Steps counted over ``[t_start_ns, t_end_ns)``: ``steps`` = cadence x duration when
+    ``walking`` (else 0); ``freq_hz`` is the window's step frequency estimate (also when not walking).
+
+    ``confidence`` (0..1) says how sure the count is: 1 for a periodic walking window and for a
+    still hop (0 steps), ``coast_confidence`` for a moving hop whose window is not periodic (counted
+    at the last walking cadence while coasting, else 0 steps). ``steps_std`` = (1 − confidence) x
+    the steps the hop would hold at that cadence: the standard deviation of the count (steps)."""
     t_start_ns: int
     t_end_ns: int
     steps: float
     freq_hz: float
     walking: bool
+    confidence: float = 1.0
+    steps_std: float = 0.0
 
 
 class WindowEstimate(NamedTuple):
-    """Spectral analysis of one window: refined step frequency (Hz), walking decision, the
-    stride-lag autocorrelation (1) and the standard deviation of |a| (m/s²)."""
+    """Spectral analysis of one window: refined step frequency (Hz), periodic-walking decision, the
+    stride-lag autocorrelation (1), the standard deviation of |a| over the window and over the
+    ``motion_window_s`` centred on the window's counted hop (m/s²)."""
     freq_hz: float
     walking: bool
     autocorr: float
     std_m_s2: float
+    motion_std_m_s2: float = 0.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -133,6 +173,9 @@ class _Design:
     i0: np.ndarray           # (H, C) lower FFT bin of each harmonic of each candidate
     frac: np.ndarray         # (H, C) interpolation fraction
     weight: np.ndarray       # (H, 1)
+    n_m: int                 # samples of the motion span (>= n_h)
+    m_lo: int                # motion span of the counted hop inside the window: [m_lo, m_hi)
+    m_hi: int
 
     @staticmethod
     def make(p: StepometerParams, fs: float) -> "_Design":
@@ -153,7 +196,10 @@ class _Design:
         idx = harm * n_fft / fs
         idx = np.minimum(idx, n_fft // 2 - 1.000001)      # harmonics beyond Nyquist read the last bin
         i0 = np.floor(idx).astype(np.int64)
-        return _Design(fs, n_w, n_h, offset, n_fft, taper, cand, i0, idx - i0, weight)
+        n_m = min(n_w, max(n_h, int(round(p.motion_window_s * fs))))
+        m_lo = max(0, offset - (n_m - n_h) // 2)
+        m_hi = min(n_w, m_lo + n_m)
+        return _Design(fs, n_w, n_h, offset, n_fft, taper, cand, i0, idx - i0, weight, n_m, m_lo, m_hi)
 
 
 def amplitude_spectrum(windows: np.ndarray, design: _Design) -> np.ndarray:
@@ -178,7 +224,22 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     power = amplitude_spectrum(windows, design) ** 2
     score = harmonic_score(power, design)
     c = len(design.cand)
-    j = np.clip(np.argmax(score, axis=1), 1, c - 2)
+    j = np.argmax(score, axis=1)
+    # A maximum on the lower edge of the search range is the flank of a peak below it. When that peak is
+    # the stride of a fast gait (a swinging arm or a bag at 2.3-2.4 Hz puts most power at the stride,
+    # 1.2 Hz, just below the band), the cadence is the largest interior local maximum: take it, and
+    # let the band and periodicity tests judge it.
+    interior = np.zeros_like(score, dtype=bool)
+    interior[:, 1:-1] = (score[:, 1:-1] >= score[:, :-2]) & (score[:, 1:-1] >= score[:, 2:])
+    has_interior = interior.any(axis=1)
+    j_int = np.argmax(np.where(interior, score, -np.inf), axis=1)
+    # Only when the strongest component below the search range sits at that maximum's stride f/2
+    # (within a bin of the unpadded window, 1/window_s): a slow sway elsewhere stays rejected.
+    below = int(np.floor(design.cand[0] * design.n_fft / design.fs))
+    f_pk = (np.argmax(power[:, 1:below + 1], axis=1) + 1) * (design.fs / design.n_fft)
+    stride_ok = np.abs(design.cand[j_int] / 2.0 - f_pk) <= 1.0 / p.window_s
+    j = np.where((j == 0) & has_interior & stride_ok, j_int, j)
+    j = np.clip(j, 1, c - 2)
     r = np.arange(n)
     a, b, cc = score[r, j - 1], score[r, j], score[r, j + 1]
     den = a - 2.0 * b + cc
@@ -186,6 +247,13 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     delta = np.where(den < 0, 0.5 * (a - cc) / safe, 0.0)
     f = design.cand[j] + np.clip(delta, -1.0, 1.0) * CANDIDATE_STEP_HZ
     in_band = (f >= p.f_min_hz) & (f <= p.f_max_hz)
+    # A gait puts a good share of its harmonic sum into the stride and step fundamentals (k = 1, 2);
+    # a machine vibration at 7 Hz fits "the 3rd step harmonic of 2.33 Hz" with nothing there.
+    if design.weight.shape[0] >= 2:
+        i0, fr = design.i0[:2, j], design.frac[:2, j]            # (2, N)
+        pw = power[r[None, :], i0] * (1.0 - fr) + power[r[None, :], i0 + 1] * fr
+        fund = (design.weight[:2, 0][:, None] * pw).sum(axis=0)
+        in_band &= fund >= p.min_fundamental_share * score[r, j]
     # Unbiased normalised autocorrelation (Wiener-Khinchin, zero-padded to avoid wrap-around).
     x = windows - windows.mean(axis=1, keepdims=True)
     n_w = design.n_w
@@ -202,8 +270,10 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     ac = np.where(mask, acf, -np.inf).max(axis=1)
     ac = np.where(np.isfinite(ac), ac, -1.0)
     std = x.std(axis=1)
-    walking = in_band & (ac >= p.min_autocorr) & (std >= p.min_std_m_s2)
-    return [WindowEstimate(float(f[i]), bool(walking[i]), float(ac[i]), float(std[i])) for i in range(n)]
+    mstd = windows[:, design.m_lo: design.m_hi].std(axis=1)
+    walking = in_band & (ac >= p.min_autocorr) & (std >= p.min_std_m_s2) & (mstd >= p.min_motion_std_m_s2)
+    return [WindowEstimate(float(f[i]), bool(walking[i]), float(ac[i]), float(std[i]), float(mstd[i]))
+            for i in range(n)]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -213,27 +283,36 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
 class StepometerState:
     """Everything :class:`Stepometer` needs to resume (save with :meth:`Stepometer.state`)."""
     grid_hz: float = 0.0                 # resampling rate in force (0 = not yet known)
-    pending_t: list = dc_field(default_factory=list)   # raw samples waiting for the rate estimate
-    pending_m: list = dc_field(default_factory=list)
+    pending_t: list[int] = dc_field(default_factory=list)   # raw samples waiting for the rate estimate
+    pending_m: list[float] = dc_field(default_factory=list)
     t0_ns: int | None = None             # stamp of grid index 0 of the current segment
     n_grid: int = 0                      # grid samples produced in the current segment
     last_t_ns: int | None = None         # last raw sample (for interpolation)
     last_m: float = 0.0
-    buffer: list = dc_field(default_factory=list)   # last grid samples of |a|, m/s²
+    buffer: list[float] = dc_field(default_factory=list)   # last grid samples of |a|, m/s²
     buffer_start: int = 0                # grid index of buffer[0]
     next_window: int = 0                 # index j of the next window to analyse
     last_freq_hz: float = 0.0
     last_walking: bool = False
+    walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
+    walk_end: int | None = None          # grid index where the last periodic walking hop ended
+    walk_motion_std: float = 0.0         # |a| std around the last periodic walking hop, m/s²
+    head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
+    head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
+    count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
+    count_confidence: float = 1.0
+    last_confidence: float = 1.0
     total_steps: float = 0.0
     walking_s: float = 0.0
     samples: int = 0
 
     def copy(self) -> "StepometerState":
         return dataclasses.replace(self, pending_t=list(self.pending_t), pending_m=list(self.pending_m),
-                                   buffer=list(self.buffer))
+                                   buffer=list(self.buffer), head_t=list(self.head_t),
+                                   head_yaw=list(self.head_yaw))
 
 
-def _magnitude(acc) -> np.ndarray:
+def _magnitude(acc: ArrayLike) -> np.ndarray:
     a = np.asarray(acc, dtype=float)
     return np.sqrt(np.sum(a * a, axis=-1))
 
@@ -270,6 +349,11 @@ class Stepometer:
         return self._st.last_freq_hz
 
     @property
+    def confidence(self) -> float:
+        """Confidence (0..1) of the last hop's count."""
+        return self._st.last_confidence
+
+    @property
     def rate_hz(self) -> float:
         """Resampling rate in force (Hz; 0 until estimated)."""
         return self._st.grid_hz
@@ -288,7 +372,41 @@ class Stepometer:
         return self._design
 
     # -- input ------------------------------------------------------------------------------------
-    def update(self, stamp_ns: int, acc) -> list[StepHop]:
+    def add_heading(self, stamp_ns: int, yaw_rad: float) -> None:
+        """A heading sample (rad, any frame; only its changes matter) for the turn test of
+        :meth:`_count`. Give headings up to a stamp before the accelerometer samples of that stamp
+        (live: as they arrive). Non-finite or out-of-order samples are ignored."""
+        st = self._st
+        t = int(stamp_ns)
+        if not math.isfinite(yaw_rad) or (st.head_t and t <= st.head_t[-1]):
+            return
+        y = float(yaw_rad)
+        if st.head_yaw:
+            y = st.head_yaw[-1] + (y - st.head_yaw[-1] + math.pi) % (2 * math.pi) - math.pi
+        st.head_t.append(t)
+        st.head_yaw.append(y)
+        keep_ns = int((2.0 * self.params.window_s + 2.0) * 1e9)
+        drop = 0
+        while drop < len(st.head_t) - 2 and st.head_t[drop] < t - keep_ns:
+            drop += 1
+        if drop:
+            del st.head_t[:drop], st.head_yaw[:drop]
+
+    def clear_headings(self) -> None:
+        """Forget the stored headings (the heading source changed its frame)."""
+        self._st.head_t, self._st.head_yaw = [], []
+
+    def _turned_rad(self, t0_ns: int, t1_ns: int) -> float:
+        """|heading change| over [t0, t1] from the stored headings (0 without any)."""
+        st = self._st
+        if len(st.head_t) < 2:
+            return 0.0
+        tt = np.asarray(st.head_t, dtype=np.int64)
+        yy = np.asarray(st.head_yaw, dtype=float)
+        y0, y1 = np.interp([float(t0_ns - tt[0]), float(t1_ns - tt[0])], (tt - tt[0]).astype(float), yy)
+        return abs(float(y1 - y0))
+
+    def update(self, stamp_ns: int, acc: Sequence[float] | np.ndarray) -> list[StepHop]:
         """One accelerometer sample: ``acc`` (3,) m/s² incl. gravity. Raises InvalidInputError
         (``"nan"``, ``"non_monotonic_stamp"``) with the state unchanged."""
         st = self._st
@@ -323,7 +441,7 @@ class Stepometer:
             raise InvalidInputError("shape", f"acc: expected 3 components, got {a.shape}")
         return self.update_many(np.array([t], dtype=np.int64), a[None, :])
 
-    def update_many(self, stamps_ns, acc) -> list[StepHop]:
+    def update_many(self, stamps_ns: ArrayLike, acc: ArrayLike) -> list[StepHop]:
         """A chunk of samples: ``stamps_ns`` (N,) int ns non-decreasing, ``acc`` (N, 3) m/s².
         Validated as a whole before any state change."""
         t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
@@ -398,7 +516,7 @@ class Stepometer:
                 continue
             # the run of samples up to the next big gap
             tt = t[start:]
-            prev_t = np.concatenate(([st.last_t_ns], tt[:-1]))
+            prev_t = np.concatenate((np.array([st.last_t_ns], np.int64), tt[:-1]))
             big = np.flatnonzero(tt - prev_t > gap_ns)
             stop = start + (int(big[0]) if len(big) else len(tt))
             if stop > start:
@@ -444,7 +562,9 @@ class Stepometer:
                 lo = j * d.n_h + d.offset
                 hi = lo + d.n_h
                 if j == 0:
-                    lo = 0                   # head of the segment: the first window covers it
+                    # head of the segment: the first window covers it, hop by hop (each with its own
+                    # moving/still test, so standing before the walk is not counted)
+                    out += self._count_span(0, lo, est.walking, est.freq_hz, 1.0)
                 out.append(self._count(lo, hi, est))
                 st.next_window += 1
         # drop grid samples no later window needs
@@ -455,14 +575,84 @@ class Stepometer:
         return out
 
     def _count(self, lo: int, hi: int, est: WindowEstimate) -> StepHop:
+        """The hop ``[lo, hi)`` (grid indices) centred in a window with estimate ``est``.
+
+        Periodic walking window: ``f x duration`` steps, confidence 1. Still (``|a|`` quiet around
+        the hop): 0 steps, confidence 1. Moving but not periodic — a corridor turn, a bag swinging
+        into the body, a soft floor smearing the impacts: within ``coast_s`` of the last periodic
+        walking window the walk is taken to go on at its last cadence (people do not stop
+        mid-turn), with confidence ``coast_confidence``; later, 0 steps with that confidence."""
+        st = self._st
+        p = self.params
+        dur = (hi - lo) / st.grid_hz
+        if est.walking:
+            st.walk_freq_hz = est.freq_hz
+            st.walk_end = hi
+            st.walk_motion_std = est.motion_std_m_s2
+            return self._emit(lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
+        if est.motion_std_m_s2 < p.min_motion_std_m_s2:
+            return self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)
+        c = p.coast_confidence
+        since_s = math.inf if st.walk_end is None else (lo - st.walk_end) / st.grid_hz
+        coast = (since_s < p.coast_s and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
+        if not coast and since_s < p.turn_coast_s and st.walk_freq_hz > 0:
+            # a corridor turn: the heading swings while the gait loses its periodicity
+            half = int(0.5 * p.window_s * 1e9)
+            mid = (self._grid_time(lo) + self._grid_time(hi)) // 2
+            coast = self._turned_rad(mid - half, mid + half) >= p.turn_min_rad
+        if st.walk_freq_hz > 0 and coast:
+            f = st.walk_freq_hz
+            return self._emit(lo, hi, est.freq_hz, f, True, c, (1.0 - c) * f * dur)
+        f_ref = min(max(est.freq_hz, p.f_min_hz), p.f_max_hz)
+        return self._emit(lo, hi, est.freq_hz, 0.0, False, c, (1.0 - c) * f_ref * dur)
+
+    def _emit(self, lo: int, hi: int, freq_hz: float, count_hz: float, walking: bool, confidence: float,
+              steps_std: float) -> StepHop:
         st = self._st
         dur = (hi - lo) / st.grid_hz
-        steps = est.freq_hz * dur if est.walking else 0.0
+        steps = count_hz * dur if walking else 0.0
         st.total_steps += steps
-        st.walking_s += dur if est.walking else 0.0
-        st.last_freq_hz = est.freq_hz
-        st.last_walking = est.walking
-        return StepHop(self._grid_time(lo), self._grid_time(hi), steps, est.freq_hz, est.walking)
+        st.walking_s += dur if walking else 0.0
+        st.last_freq_hz = freq_hz
+        st.last_walking = walking
+        st.last_confidence = confidence
+        st.count_freq_hz = count_hz if walking else 0.0
+        st.count_confidence = confidence
+        return StepHop(self._grid_time(lo), self._grid_time(hi), steps, freq_hz, walking, confidence, steps_std)
+
+    def _motion_std(self, lo: int, hi: int) -> float:
+        """Standard deviation of the grid samples over ``motion_window_s`` centred on ``[lo, hi)``
+        (clipped to the samples held), m/s²."""
+        st = self._st
+        d = self._get_design()
+        assert d is not None
+        pad = max(0, (d.n_m - (hi - lo)) // 2)
+        a = max(st.buffer_start, lo - pad) - st.buffer_start
+        b = min(st.n_grid, hi + pad) - st.buffer_start
+        seg = np.asarray(st.buffer[a:b], dtype=float)
+        return float(seg.std()) if len(seg) > 1 else 0.0
+
+    def _count_span(self, lo: int, hi: int, walking: bool, freq_hz: float, confidence: float) -> list[StepHop]:
+        """Head or tail of a segment ``[lo, hi)``, which no window is centred on: hop-sized pieces,
+        each counted at ``freq_hz`` (with ``confidence``) if ``walking`` and moving, else 0."""
+        d = self._get_design()
+        assert d is not None
+        out: list[StepHop] = []
+        p = self.params
+        k = lo
+        while k < hi:
+            e = min(hi, k + d.n_h)
+            if hi - e < d.n_h // 2:
+                e = hi                       # no sliver at the end
+            moving = self._motion_std(k, e) >= p.min_motion_std_m_s2
+            dur = (e - k) / self._st.grid_hz
+            if walking and moving:
+                out.append(self._emit(k, e, freq_hz, freq_hz, True, confidence, (1.0 - confidence) * freq_hz * dur))
+            else:
+                out.append(self._emit(k, e, freq_hz, 0.0, False, 1.0 if not moving else p.coast_confidence,
+                                      0.0 if not moving else (1.0 - p.coast_confidence) * freq_hz * dur))
+            k = e
+        return out
 
     def _flush_segment(self) -> list[StepHop]:
         st = self._st
@@ -473,8 +663,10 @@ class Stepometer:
                 lo = (st.next_window - 1) * d.n_h + d.offset + d.n_h
                 hi = st.n_grid
                 if hi > lo:
-                    est = WindowEstimate(st.last_freq_hz, st.last_walking, 0.0, 0.0)
-                    out.append(self._count(lo, hi, est))
+                    f = st.count_freq_hz if st.count_freq_hz > 0 else st.last_freq_hz
+                    out += self._count_span(lo, hi, st.count_freq_hz > 0, f, st.count_confidence)
+        st.walk_end = None
+        st.walk_freq_hz = 0.0
         st.t0_ns = None
         st.n_grid = 0
         st.buffer = []
@@ -483,11 +675,29 @@ class Stepometer:
         return out
 
 
-def stepometer_batch(stamps_ns, acc, params: StepometerParams | None = None) -> list[StepHop]:
-    """Whole recording at once: ``stamps_ns`` (N,) int ns, ``acc`` (N, 3) m/s². Returns the hops
-    (the same as feeding :class:`Stepometer` sample by sample and calling ``finish()``)."""
+def stepometer_batch(stamps_ns: ArrayLike, acc: ArrayLike, params: StepometerParams | None = None, *,
+                     heading_stamps_ns: ArrayLike | None = None, heading_rad: ArrayLike | None = None) -> list[StepHop]:
+    """Whole recording at once: ``stamps_ns`` (N,) int ns, ``acc`` (N, 3) m/s²; optionally headings
+    (M,) int ns / rad for the turn test. Returns the hops (the same as feeding :class:`Stepometer`
+    sample by sample, each heading before the accelerometer samples at or after its stamp, and
+    calling ``finish()``)."""
     s = Stepometer(params)
-    hops = s.update_many(stamps_ns, acc)
+    t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    a = np.asarray(acc, dtype=float)
+    if heading_stamps_ns is None or heading_rad is None:
+        return s.update_many(t, a) + s.finish()
+    ht = np.asarray(heading_stamps_ns, dtype=np.int64).reshape(-1)
+    hy = np.asarray(heading_rad, dtype=float).reshape(-1)
+    cut = np.searchsorted(t, ht, side="left")          # acc samples before each heading
+    hops: list[StepHop] = []
+    prev = 0
+    for k, c in enumerate(cut):
+        if c > prev:
+            hops += s.update_many(t[prev:c], a[prev:c])
+            prev = int(c)
+        s.add_heading(int(ht[k]), float(hy[k]))
+    if prev < len(t):
+        hops += s.update_many(t[prev:], a[prev:])
     return hops + s.finish()
 
 

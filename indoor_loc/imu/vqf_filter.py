@@ -29,8 +29,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import field, require
@@ -75,18 +77,18 @@ class VqfParams:
 class VqfFilterState:
     """Resumable state: VQF's own state dict and its sampling times, plus the wrapper's memory."""
 
-    vqf_state: dict | None = None
+    vqf_state: dict[str, Any] | None = None
     gyr_ts: float = 0.0
     mag_ts: float = 0.0
     mag_ts_measured: bool = False
     stamp_ns: int | None = None
-    first_imu: tuple | None = None          # (t_ns, gyr, acc) waiting for the IMU rate
+    first_imu: tuple[Any, ...] | None = None          # (t_ns, gyr, acc) waiting for the IMU rate
     mag_stamp_ns: int | None = None
     mag_seen: bool = False
     last_mag_ok_ns: int | None = None       # last magnetometer sample VQF accepted (not rejected)
     n_mag: int = 0
     n_mag_rejected: int = 0
-    q: tuple = (1.0, 0.0, 0.0, 0.0)         # last output, w x y z
+    q: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0)         # last output, w x y z
 
     def copy(self) -> "VqfFilterState":
         import copy
@@ -105,11 +107,11 @@ class VqfFilter:
         self.params = params if params is not None else VqfParams()
         self.params.validate()
         self._st = VqfFilterState()
-        self._vqf = None
+        self._vqf: Any = None                   # the vqf package's VQF object (untyped extension)
         self._q = np.array([1.0, 0.0, 0.0, 0.0])
 
     # -- construction ---------------------------------------------------------------------------------
-    def _make(self, gyr_ts: float, mag_ts: float, state: dict | None):
+    def _make(self, gyr_ts: float, mag_ts: float, state: dict[str, Any] | None) -> Any:
         from vqf import VQF
 
         p = self.params
@@ -131,7 +133,7 @@ class VqfFilter:
     def initialised(self) -> bool:
         return self._st.vqf_state is not None or self._vqf is not None
 
-    def update_imu(self, t_ns: int, gyr, acc) -> None:
+    def update_imu(self, t_ns: int, gyr: ArrayLike, acc: ArrayLike) -> None:
         """One IMU sample: ``gyr`` (3,) rad/s, ``acc`` (3,) m/s². Raises InvalidInputError on non-finite
         input or a stamp that does not increase (state unchanged)."""
         g = np.asarray(gyr, dtype=float).reshape(3)
@@ -171,6 +173,7 @@ class VqfFilter:
                 self._q = np.asarray(self._vqf.getQuat9D() if st.mag_seen else self._vqf.getQuat6D())
                 st.vqf_state = None
                 return
+        assert st.stamp_ns is not None           # set with the first sample
         dt = (t_ns - st.stamp_ns) * 1e-9
         v = self._vqf
         if dt <= self.params.max_dt_s:
@@ -184,7 +187,7 @@ class VqfFilter:
         self._q = np.asarray(v.getQuat9D() if st.mag_seen else v.getQuat6D())
         st.vqf_state = None
 
-    def update_mag(self, t_ns: int, mag) -> None:
+    def update_mag(self, t_ns: int, mag: ArrayLike) -> None:
         """One magnetometer sample (3,), any unit, at its own stamp (after the IMU samples up to it).
         Ignored before the first IMU sample. Raises InvalidInputError on non-finite input."""
         m = np.asarray(mag, dtype=float).reshape(3)
@@ -192,7 +195,8 @@ class VqfFilter:
             raise InvalidInputError("nan", f"non-finite magnetometer sample at stamp {t_ns} ns")
         st = self._st
         if st.mag_stamp_ns is not None and t_ns <= st.mag_stamp_ns:
-            raise InvalidInputError("non_monotonic_stamp", f"magnetometer stamps must increase: {t_ns} ns after {st.mag_stamp_ns} ns")
+            raise InvalidInputError("non_monotonic_stamp",
+                                    f"magnetometer stamps must increase: {t_ns} ns after {st.mag_stamp_ns} ns")
         self._ensure()
         prev = st.mag_stamp_ns
         st.mag_stamp_ns = t_ns
@@ -263,8 +267,8 @@ class VqfFilter:
         self._st.vqf_state = None
 
 
-def vqf_batch(t_ns, gyr, acc, mag_t_ns=None, mag=None, params: VqfParams | None = None
-              ) -> np.ndarray:
+def vqf_batch(t_ns: ArrayLike, gyr: ArrayLike, acc: ArrayLike, mag_t_ns: ArrayLike | None = None,
+              mag: ArrayLike | None = None, params: VqfParams | None = None) -> np.ndarray:
     """:class:`VqfFilter` over whole arrays, the magnetometer merged by stamp as online
     (:func:`indoor_loc.imu.mag_sync.merge_events`). Returns (N, 4) w x y z after each IMU sample."""
     from indoor_loc.imu.mag_sync import IMU, merge_events
@@ -281,5 +285,6 @@ def vqf_batch(t_ns, gyr, acc, mag_t_ns=None, mag=None, params: VqfParams | None 
             f.update_imu(int(t[i]), g[i], a[i])
             out[i] = f.quat_wxyz
         else:
+            assert mt is not None and mg is not None
             f.update_mag(int(mt[i]), mg[i])
     return out

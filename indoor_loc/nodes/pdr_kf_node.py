@@ -1,4 +1,4 @@
-"""``ros2 run indoor_loc pdr_kf_node``: seed-004 linear PDR Kalman filter + RTS smoother."""
+"""``ros2 run indoor_loc pdr_kf_node``: Raitoharju et al. 2015 linear PDR Kalman filter + RTS smoother."""
 from __future__ import annotations
 
 from indoor_loc.nodes.base import run_stage_node

@@ -210,6 +210,7 @@ class ImuStage(Stage):
             cov = self.filter.orientation_cov
             q_xyzw = np.array([q[1], q[2], q[3], q[0]])
             self.headings.add(stamp, yaw_xyzw(q_xyzw) + self.params.heading_offset_rad, float(cov[2, 2]))
+            self.stepometer.add_heading(stamp, yaw_xyzw(q_xyzw))
             outs.append(("imu/data", imu_to_msg(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
             if len(self._published_stamps) == self._published_stamps.maxlen:
                 self._published_set.discard(self._published_stamps[0])
@@ -237,11 +238,13 @@ class ImuStage(Stage):
         if s.quat_xyzw is not None:
             if not self._external_orientation:     # auto: drop AEKF headings (another world frame)
                 self.headings = HeadingHistory(horizon_s=self.headings.horizon_ns * 1e-9)
+                self.stepometer.clear_headings()
             self._external_orientation = True
             var = float(s.orientation_cov[2, 2]) if s.orientation_cov is not None else 0.0
             if not math.isfinite(var) or var <= 0.0:
                 var = self.params.default_yaw_std_rad ** 2
             self.headings.add(s.stamp_ns, yaw_xyzw(s.quat_xyzw) + self.params.heading_offset_rad, var)
+            self.stepometer.add_heading(s.stamp_ns, yaw_xyzw(s.quat_xyzw))
         return outs + self._hops(hops)
 
     def _hops(self, hops: list[StepHop]) -> list[Output]:
@@ -249,9 +252,9 @@ class ImuStage(Stage):
         for h in hops:
             head = self.headings.at(h.t_end_ns) if self.heading_mode != "none" else None
             yaw, var = (None, UNKNOWN_YAW_VAR) if head is None else head
-            pose = self.pdr.update(h.t_start_ns, h.t_end_ns, h.steps, yaw, var)
+            pose = self.pdr.update(h.t_start_ns, h.t_end_ns, h.steps, yaw, var, h.steps_std)
             outs.append(("pdr/odom", odom_to_msg(pose.stamp_ns, self.odom_frame, self.base_frame, pose.x, pose.y,
-                                                 pose.yaw, pose.cov, pose.speed, pose.yaw_rate)))
+                                                 pose.yaw, pose.cov, pose.speed, pose.yaw_rate, pose.speed_var)))
             self.counts["odom"] += 1
         return outs
 
@@ -265,6 +268,7 @@ class ImuStage(Stage):
             "steps": f"{self.stepometer.total_steps:.1f}",
             "walking": str(self.stepometer.walking).lower(),
             "step_freq_hz": f"{self.stepometer.freq_hz:.3f}",
+            "step_confidence": f"{self.stepometer.confidence:.2f}",
             "rate_hz": f"{self.stepometer.rate_hz:.1f}",
             "acc_source": self._acc_topic or "",
             "heading_source": self.heading_mode,

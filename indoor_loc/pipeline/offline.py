@@ -16,7 +16,7 @@ Replay order (``--order``):
   multi-user data on one clock);
 - ``sequential``: one bag after another, in command-line order; at the end of each bag the
   per-user stages of its namespaces finish (their last outputs reach the multi-user stages) and
-  every multi-user stage gets ``finish_user``. This is how the seed-001 paper's joint configuration
+  every multi-user stage gets ``finish_user``. This is how Nowicki & Skrzypczyński 2019's joint configuration
   processes its sequences 1…24 (each may match the map and all earlier sequences' scans), and the
   only meaningful order for walks recorded on separate clocks. Ticks restart with each bag;
 - ``auto`` (default): ``sequential`` if a multi-user stage asks for it in its parameters

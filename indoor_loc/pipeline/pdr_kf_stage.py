@@ -1,14 +1,16 @@
-"""PdrKfStage: the seed-004 linear PDR Kalman filter fusing ``pdr/odom`` with ``wifi/fix``.
+"""PdrKfStage: the linear PDR Kalman filter of Raitoharju, Nurminen and Piché (2015, Sec. 4; see
+docs/references.md) fusing ``pdr/odom`` with ``wifi/fix``.
 
 Per ``pdr/odom`` message the filter predicts with the interval's step count and heading change
-(decoded once by :class:`msg_adapters.odom.PdrOdomReader`, see :mod:`indoor_loc.measurements`) and publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a
-gated linear position update. ``pdr_kf/path`` is the RTS-smoothed history (seed 004's offline
-smoother), republished at most every ``smooth_period_s`` of stamp time and at the end of input.
-The filter starts at the first WiFi fix (position and covariance from the fix; step vector 0 with
-no heading needed). Integrity (seed 004): when ``max_rejected_fixes`` fixes in a row fail the
-innovation gate, the PDR track has left the truth (a wrong turn, a heading jump), so the filter
-restarts at the latest fix and a new smoother segment begins; the smoothed path is the
-concatenation of the segments. Later waves use it to initialise and monitor the particle filter.
+(decoded once by :class:`msg_adapters.odom.PdrOdomReader`, see :mod:`indoor_loc.measurements`) and
+publishes ``pdr_kf/pose``; per ``wifi/fix`` it applies a gated linear position update.
+``pdr_kf/path`` is the RTS-smoothed history (the paper's offline smoother), republished at most
+every ``smooth_period_s`` of stamp time and at the end of input. The filter starts at the first
+WiFi fix (position and covariance from the fix; step vector 0 with no heading needed). Integrity
+(the paper's Sec. 5.2): when ``max_rejected_fixes`` fixes in a row fail the innovation gate, the
+PDR track has left the truth (a wrong turn, a heading jump), so the filter restarts at the latest
+fix and a new smoother segment begins; the smoothed path is the concatenation of the segments.
+Later waves use it to initialise and monitor the particle filter.
 """
 from __future__ import annotations
 
@@ -66,7 +68,7 @@ class PdrKfStageParams:
 
 
 class PdrKfStage(Stage):
-    """Linear PDR Kalman filter + RTS smoother (seed 004): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
+    """Linear PDR Kalman filter + RTS smoother (Raitoharju et al. 2015): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
 

@@ -14,9 +14,10 @@ instance serves all bags (``indoor-loc run --order merged|sequential``, see ``pi
 live, ``StageNode`` subscribes to the users of its ``users`` parameter or discovers them from the
 graph and follows them as they come and go (``nodes/base.py``).
 ``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
-the contract, or input the core refuses) is counted under its reason and dropped; any other exception is counted as ``internal_error`` and reported in
-``last_error`` (the node logs it, throttled). Nothing else is lost: the stage state is unchanged
-by a rejected message because handlers validate (via msg_adapters) before touching state.
+the contract, or input the core refuses) is counted under its reason and dropped; any other
+exception is counted as ``internal_error`` and reported in ``last_error`` (the node logs it,
+throttled). Nothing else is lost: the stage state is unchanged by a rejected message because
+handlers validate (via msg_adapters) before touching state.
 """
 from __future__ import annotations
 

@@ -208,9 +208,9 @@ def make_sample_building() -> Building:
         return len(nodes) - 1
 
     for f in range(2):
-        def wall(x0, y0, x1, y1):
+        def wall(x0, y0, x1, y1, floor=f):
             walls.append(((x0, y0), (x1, y1)))
-            wall_floor.append(f)
+            wall_floor.append(floor)
         # outer shell, with the opening into the stairwell at the corridor's east end
         wall(0, 0, length, 0)
         wall(0, depth, length, depth)

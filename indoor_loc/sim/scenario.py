@@ -123,7 +123,7 @@ def simulate(building: Building, config: SimConfig | None = None) -> SimRun:
     srng = rngs[1]
     mean = fld.mean_rss(pts, pfl, 0.0)
     survey_scans, survey_xy, survey_floor = [], [], []
-    for k in range(cfg.survey_scans):
+    for _ in range(cfg.survey_scans):
         val = read_rss(mean, srng, fading_std_db=cfg.rf.fading_std_db, sensitivity_dbm=sc.sensitivity_dbm,
                        slope_db=sc.detection_slope_db)
         for i in range(len(pts)):

@@ -14,8 +14,9 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
 
 ``OUT/radiomap/`` the survey (radio map format v1), ``OUT/building.geojson`` the building (walls,
 rooms, APs, graph), ``OUT/graph.yaml`` its link graph in the map format of :mod:`indoor_loc.graph`,
-``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format), ``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the
-cumulative true step count), ``OUT/params.yaml`` configuring every node for this run
+``OUT/floor_plans/floor<k>.png|yaml`` an occupancy image per floor (nav2 map_server format),
+``OUT/truth/<walker>.csv`` dense truth (stamp_ns, x, y, z, floor, heading, steps — the cumulative
+true step count), ``OUT/params.yaml`` configuring every node for this run
 (``/**/node_name:`` keys, so it applies in any namespace, live and offline), ``OUT/scenario.yaml``
 (seed, walkers, their step length and cadence, AP events).
 """
@@ -164,7 +165,10 @@ def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
         "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
         # the particle filter on the building graph (its TLL table is cached beside graph.yaml)
-        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file)}},
+        # time_jump_s: live, a WiFi fix arrives about 2 s before the PDR hops of the same time (the
+        # stepometer reports half a window late), so "older than the newest stamp" must allow more
+        # than that; a bag played in a loop still jumps back by the whole run
+        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file), "time_jump_s": 10.0}},
         # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),

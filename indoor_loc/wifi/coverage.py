@@ -1,4 +1,4 @@
-"""Coverage-area (CA) WiFi positioning with the seed-004 modifications (Raitoharju et al. 2015, §3).
+"""Coverage-area (CA) WiFi positioning with the modifications of Raitoharju et al. 2015, Sec. 3.
 
 Each AP i has a Gaussian coverage area N(mu_i, Sigma_i) built from the n_i fingerprint positions
 z_ij where it was heard (eqs. 26–27, prior covariance B)::
@@ -39,7 +39,7 @@ from indoor_loc.wifi.types import ApIndex, Positioner, RadioMap, WifiScan
 
 @dataclass(frozen=True)
 class CoverageParams:
-    """Coverage-area positioning (seed 004 §3). The four booleans are the paper's ablation switches."""
+    """Coverage-area positioning (Raitoharju et al. 2015, Sec. 3). The four booleans are the paper's ablation switches."""
     two_level: bool = field(True, "use strong CAs (RSS >= strong_rssi_dbm) beside the weak ones")
     min_size: bool = field(True, "impose a minimum CA variance along the main axes (eq. 34)")
     outlier_removal: bool = field(True, "Mahalanobis outlier removal with down-dating (eqs. 35-37)")

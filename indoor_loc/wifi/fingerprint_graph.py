@@ -1,4 +1,4 @@
-"""Per-vertex Gaussian fingerprint map with linear interpolation along graph edges (seed 002, SPEC §2.4).
+"""Per-vertex Gaussian fingerprint map with linear interpolation along graph edges (Kim et al. 2012).
 
 Each graph vertex p stores, per AP a, a Gaussian of the RSS (mu_pa dBm, sigma_pa^2 dB^2) and a
 detection probability pdet_pa. At a point x on edge (i, j) at fraction ``pos`` from i (so
@@ -7,7 +7,7 @@ detection probability pdet_pa. At a point x on edge (i, j) at fraction ``pos`` f
     mu_x = (|x - x_j| mu_i + |x - x_i| mu_j) / |x_i - x_j| = (1 - pos) mu_i + pos mu_j
 
 (the nearer end weighs more) is applied to mu, sigma^2 and pdet alike. The likelihood of a scan
-is the product over the APs it heard that the map knows (SPEC §2.4)::
+is the product over the APs it heard that the map knows (Kim et al. 2012)::
 
     p(z | x) = prod_k  pdet_x,k [ (1 - eps) N(z_k | mu_x,k, sigma_x,k^2) + eps / range ]
 
@@ -159,7 +159,7 @@ class FingerprintGraph:
     def interpolate(self, link: np.ndarray, pos: np.ndarray, cols: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """mu, sigma^2, pdet at points (link (N,), pos (N,) in [0, 1] from the link's first vertex)
-        for AP columns ``cols`` (K,) (all if None) -> three (N, K) arrays (SPEC §2.4)."""
+        for AP columns ``cols`` (K,) (all if None) -> three (N, K) arrays (Kim et al. 2012)."""
         link = np.asarray(link, np.int64)
         t = np.clip(np.asarray(pos, float), 0.0, 1.0)[:, None]
         if link.shape != t.shape[:1]:

@@ -12,7 +12,8 @@ from typing import Any, Mapping
 
 from indoor_loc.errors import ConfigError
 from indoor_loc.params import params_from_dict
-from indoor_loc.wifi.types import Positioner
+from indoor_loc.measurements import Fix
+from indoor_loc.wifi.types import Positioner, RadioMap, WifiScan
 
 #: name -> (module, positioner class, params class)
 METHODS: dict[str, tuple[str, str, str]] = {
@@ -82,12 +83,12 @@ class FallbackPositioner(Positioner):
         self.fallback = fallback
         self.name = f"{primary.name}+{fallback.name}"
 
-    def fit(self, radio_map) -> "FallbackPositioner":
+    def fit(self, radio_map: RadioMap) -> "FallbackPositioner":
         self.primary.fit(radio_map)
         self.fallback.fit(radio_map)
         return self
 
-    def locate(self, scan):
+    def locate(self, scan: WifiScan) -> Fix:
         fix = self.primary.locate(scan)
         if fix.ok:
             return fix
@@ -109,7 +110,7 @@ def make_chain(name: str, params: Any = None, fallback: str = "",
     return FallbackPositioner(pos, make_positioner(fallback, fallback_params))
 
 
-def recommended_params(rm) -> dict:
+def recommended_params(rm: RadioMap) -> dict[str, Any]:
     """``wifi_fix_node`` parameters the importers and ``radiomap build`` write for radio map ``rm``:
     powed k-NN when the map carries reading ages or several floors (phone traces with cached
     results, multi-storey sites: ``indoor-loc bench wifi --dataset ms_site2``), else the best WKNN

@@ -50,11 +50,11 @@ class NormalizeParams:
     min_rssi_dbm: float = params.field(-120.0, "drop readings weaker than this, dBm (-120 keeps every "
                                                "reading the contract allows)")
     keep_random_macs: bool = params.field(False, "keep locally administered (randomised / hotspot) BSSIDs")
-    ssid_allow: list = params.field([], "SSID glob patterns to keep (empty = all), case-sensitive")
-    ssid_deny: list = params.field([], "SSID glob patterns to drop, e.g. ['*iPhone*', 'AndroidAP*']")
-    bssid_allow: list = params.field([], "BSSID glob patterns to keep (empty = all), e.g. ['00:1a:2b:*']")
-    bssid_deny: list = params.field([], "BSSID glob patterns to drop")
-    bands: list = params.field([], "frequency bands to keep, from '2.4', '5', '6' GHz (empty = all)")
+    ssid_allow: list[str] = params.field([], "SSID glob patterns to keep (empty = all), case-sensitive")
+    ssid_deny: list[str] = params.field([], "SSID glob patterns to drop, e.g. ['*iPhone*', 'AndroidAP*']")
+    bssid_allow: list[str] = params.field([], "BSSID glob patterns to keep (empty = all), e.g. ['00:1a:2b:*']")
+    bssid_deny: list[str] = params.field([], "BSSID glob patterns to drop")
+    bands: list[str] = params.field([], "frequency bands to keep, from '2.4', '5', '6' GHz (empty = all)")
     max_age_ms: float = params.field(0.0, "drop readings older than this at scan time, ms (0 = no limit)")
 
     def validate(self) -> None:
@@ -121,7 +121,7 @@ def band_of(freq_mhz: float) -> str:
     return ""
 
 
-def _matches(value: str, patterns: list, *, fold: bool) -> bool:
+def _matches(value: str, patterns: list[str], *, fold: bool) -> bool:
     if fold:
         value = value.lower()
         return any(fnmatch.fnmatchcase(value, p.lower()) for p in patterns)
@@ -172,7 +172,7 @@ def normalize_report(scan: WifiScan, p: NormalizeParams | None = None) -> Normal
     if not len(rssi) == len(freq) == len(ages) == n:
         raise InvalidInputError("bad_shape", f"scan has {n} BSSIDs but {len(rssi)} RSSIs, {len(freq)} "
                                                f"frequencies and {len(ages)} ages")
-    dropped: Counter = Counter()
+    dropped: Counter[str] = Counter()
     kept: dict[str, int] = {}          # bssid -> index of the reading kept so far
     order: list[str] = []
     for i in range(n):

@@ -1,4 +1,4 @@
-"""Log-distance path-loss WiFi positioning (seed 000, Koivisto-style; SPEC §2.2).
+"""Log-distance path-loss WiFi positioning (Nurminen et al. 2014).
 
 Per AP a the received power at position r (m) is modelled as::
 
@@ -48,7 +48,7 @@ class PathLossParams:
     prior_A_std_db: float = field(15.0, "prior std of A (dB)")
     prior_n: float = field(2.5, "prior mean of the path-loss exponent")
     prior_n_std: float = field(0.8, "prior std of the path-loss exponent")
-    n_bounds: list = field([1.0, 6.0], "path-loss exponent bounds [min, max]")
+    n_bounds: list[float] = field([1.0, 6.0], "path-loss exponent bounds [min, max]")
     prior_pos_std_m: float = field(15.0, "std of the AP-position prior around its initial guess (m)")
     init_top_k: int = field(3, "the AP position starts at the mean of its k strongest fingerprints")
     fit_iters: int = field(40, "Gauss-Newton iterations of the AP fit")
@@ -183,7 +183,7 @@ class PathLoss(Positioner):
             H, g = normal_eq(res[sel], J[sel], theta, sel)
             Hd = H + lam[:, None, None] * (np.einsum("aii->ai", H)[:, :, None] * eye4)
             cand = theta + np.linalg.solve(Hd, g[..., None])[..., 0]
-            cand[:, 1] = np.clip(cand[:, 1], *p.n_bounds)
+            cand[:, 1] = np.clip(cand[:, 1], p.n_bounds[0], p.n_bounds[1])
             cand[~active] = theta[~active]
             c2, res2, J2 = cost(cand, sel)
             better = (c2 < c) & active

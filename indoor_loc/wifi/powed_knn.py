@@ -58,8 +58,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
@@ -113,13 +115,13 @@ class PowedKnnParams:
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
 
 
-def powed(rssi_dbm, floor_dbm: float, beta: float) -> np.ndarray:
+def powed(rssi_dbm: ArrayLike, floor_dbm: float, beta: float) -> np.ndarray:
     """The powed representation of RSS values (dBm) -> [0, 1]; NaN -> 0."""
     r = np.nan_to_num(np.asarray(rssi_dbm, float), nan=-np.inf)
     return (np.clip(r - floor_dbm, 0.0, None) / -floor_dbm) ** beta
 
 
-def age_weight(age_ms, tau_ms: float) -> np.ndarray | float:
+def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
     """exp(-age / tau) (1 for unknown ages or tau = 0)."""
     if age_ms is None or tau_ms <= 0:
         return 1.0
@@ -145,7 +147,7 @@ class PowedKnn(Positioner):
         self._floor_names: dict[float, str] = {}
         self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
         self.sigma_line = (self.params.cov_floor_m * math.sqrt(math.pi / 2), 0.0)   # (a, b): mean error = a + b D
-        self.calibration: dict = {}
+        self.calibration: dict[str, Any] = {}
         self._last_query = (np.zeros(0, np.int64), np.zeros(0))
         self.offset_db = 0.0                          # online device RSS offset (state; reset() clears it)
 

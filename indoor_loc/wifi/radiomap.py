@@ -44,9 +44,10 @@ import datetime as _dt
 import math
 from collections import Counter
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 import yaml
 
 from indoor_loc.errors import MapError
@@ -101,7 +102,7 @@ def check_radiomap(rm: RadioMap) -> None:
             raise MapError(f"radio map: age_ms must be ({m}, {a}) with NaN or values >= 0 ms")
 
 
-def radiomap_summary(rm: RadioMap) -> dict:
+def radiomap_summary(rm: RadioMap) -> dict[str, Any]:
     """Counts, bounds and per-source scan counts (the manifest's descriptive part)."""
     heard = ~np.isnan(np.asarray(rm.rssi_dbm, float))
     pos = np.asarray(rm.positions, float)
@@ -152,7 +153,8 @@ def save_radiomap(rm: RadioMap, directory: str | Path, *, created_by: str = "ind
                 cols = np.flatnonzero(~np.isnan(rss[i]))
                 if len(cols) == 0:
                     w.writerow(head + ["", "", "", ""] + ([_num(z[i]), ""] if v2 else []))
-                for j in cols:
+                for col in cols:
+                    j = int(col)
                     row = head + [rm.bssids[j], rm.ssids[j], _num(rss[i, j]), _num(freq[j])]
                     if v2:
                         a = age[i, j] if age is not None else math.nan
@@ -175,7 +177,7 @@ def save_radiomap(rm: RadioMap, directory: str | Path, *, created_by: str = "ind
     return d
 
 
-def read_manifest(directory: str | Path) -> dict:
+def read_manifest(directory: str | Path) -> dict[str, Any]:
     """The checked manifest of a radio map directory (MapError if missing, foreign or too new)."""
     d = Path(directory)
     path = d / MANIFEST
@@ -201,7 +203,7 @@ def load_radiomap(directory: str | Path) -> RadioMap:
     files = man.get("files") or {}
     try:
         aps_path = d / files.get("aps", APS_FILE)
-        ap_rows: list[dict] = []
+        ap_rows: list[dict[str, Any]] = []
         if aps_path.exists():   # maps written before aps.csv existed derive columns from the readings
             with open(aps_path, newline="", encoding="utf-8") as fh:
                 ap_rows = list(csv.DictReader(fh))
@@ -215,7 +217,7 @@ def load_radiomap(directory: str | Path) -> RadioMap:
         raise MapError(f"cannot read radio map {d}: {err}") from err
     try:
         if not ap_rows:
-            seen: dict[str, dict] = {}
+            seen: dict[str, dict[str, Any]] = {}
             for r in fp_rows:
                 if r["bssid"] and r["bssid"] not in seen:
                     seen[r["bssid"]] = {"bssid": r["bssid"], "ssid": r["ssid"], "freq_mhz": r["freq_mhz"] or 0}
@@ -279,9 +281,10 @@ def empty_radiomap(frame_id: str = "map") -> RadioMap:
                     frame_id=frame_id)
 
 
-def add_fingerprints(rm: RadioMap, positions, scans: Sequence[WifiScan], source: str | Iterable[str] = "online",
-                     *, scan_ids: Iterable[int] | None = None, z_m=0.0,
-                     floors: dict | None = None) -> RadioMap:
+def add_fingerprints(rm: RadioMap, positions: ArrayLike, scans: Sequence[WifiScan],
+                     source: str | Iterable[str] = "online", *, scan_ids: Iterable[int] | None = None,
+                     z_m: float | ArrayLike = 0.0,
+                     floors: dict[str, float] | None = None) -> RadioMap:
     """A new map: ``rm`` plus one fingerprint per scan at ``positions`` (N, 2) m (map frame).
 
     New BSSIDs become new columns (NaN in the old rows). ``source`` is one label for all or one per
@@ -352,7 +355,8 @@ def map_scans(rm: RadioMap) -> list[WifiScan]:
     return out
 
 
-def interpolate_positions(stamps_ns, path_stamps_ns, path_xy) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_positions(stamps_ns: ArrayLike, path_stamps_ns: ArrayLike,
+                          path_xy: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Positions at ``stamps_ns`` (N,) linearly interpolated along a time-stamped path
     (T,) ns / (T, 2) m. Returns (xy (N, 2), inside (N,) bool); stamps outside the path's time span
     (or any stamp when T == 0) are not inside and get NaN. Path stamps need not be sorted."""

@@ -3,6 +3,7 @@ method's output, :class:`~indoor_loc.measurements.Fix`, is a measurement shared 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -54,12 +55,12 @@ class RadioMap:
     rssi_dbm: np.ndarray
     freq_mhz: np.ndarray
     ssids: list[str] = field(default_factory=list)
-    scan_ids: np.ndarray | None = None
-    stamps_ns: np.ndarray | None = None
+    scan_ids: np.ndarray = None  # type: ignore[assignment]  # None -> filled in by __post_init__
+    stamps_ns: np.ndarray = None  # type: ignore[assignment]  # None -> filled in by __post_init__
     source: list[str] = field(default_factory=list)
     frame_id: str = "map"
-    z_m: np.ndarray | None = None
-    floors: dict = field(default_factory=dict)
+    z_m: np.ndarray = None  # type: ignore[assignment]  # None -> filled in by __post_init__
+    floors: dict[str, float] = field(default_factory=dict)
     age_ms: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -100,14 +101,14 @@ class ApIndex:
     """BSSID -> column in a radio map's AP order, shared by the positioning methods; grows when a
     method learns new APs (``add``)."""
 
-    def __init__(self, bssids=()) -> None:
+    def __init__(self, bssids: Iterable[str] = ()) -> None:
         self.bssids: list[str] = list(bssids)
         self._col = {b: i for i, b in enumerate(self.bssids)}
 
     def __len__(self) -> int:
         return len(self.bssids)
 
-    def columns(self, bssids) -> np.ndarray:
+    def columns(self, bssids: Sequence[str]) -> np.ndarray:
         """Columns (K,) int64 of the given BSSIDs, -1 for APs not in the index."""
         get = self._col.get
         return np.fromiter((get(b, -1) for b in bssids), dtype=np.int64, count=len(bssids))

@@ -1,4 +1,4 @@
-"""Weighted k-nearest-neighbour WiFi fingerprinting (seed 001, Nowicki & Skrzypczyński 2019, §4.2).
+"""Weighted k-nearest-neighbour WiFi fingerprinting (Nowicki & Skrzypczyński 2019, Sec. 4.2).
 
 A scan X is compared with every map scan Y over the APs both heard at or above
 ``min_signal_dbm`` (readings below it are removed from both scans first):

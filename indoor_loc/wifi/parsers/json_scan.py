@@ -33,7 +33,7 @@ _JSON_AGE = ("age_ms", "last_seen_ms")
 _MAC_AT_END = re.compile(r"([0-9A-Fa-f]{2}(?:[:-][0-9A-Fa-f]{2}){5})$")
 
 
-def _first(d: dict, keys: tuple[str, ...]) -> Any:
+def _first(d: dict[str, Any], keys: tuple[str, ...]) -> Any:
     for k in keys:
         if k in d and d[k] is not None and d[k] != "":
             return d[k]
