@@ -221,6 +221,9 @@ def test_stop_in_dependency_order_keeps_the_final_outputs(ros_domain, tmp_path):
     up = bringup(cfg)
     try:
         assert up.wait_line(r"^\[rec\] .*recording \[geometry_msgs", 40), up.output()
+        with ros_node("probe") as (node, ex):      # the recorder's subscription is in the graph
+            assert spin_until(ex, lambda: node.count_subscribers("/alice/dummy/pose") >= 1, 20)
+            assert spin_until(ex, lambda: False, 1.0) is False            # let the match settle
         up.signal(signal.SIGINT)
         assert up.wait(timeout=40) == 0, up.output()
         out = up.output()
