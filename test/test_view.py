@@ -70,10 +70,16 @@ def test_websocket_client_receives_advertised_channels_and_messages(ros_domain, 
                 assert ch["encoding"] == "cdr" and ch["schemaName"] == "geometry_msgs/msg/PoseWithCovarianceStamped"
                 assert ch["schemaEncoding"] == "ros2msg" and "PoseWithCovariance pose" in ch["schema"]
                 assert channels["/view/building"]["schemaName"] == "visualization_msgs/msg/MarkerArray"
-                ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": ch["id"]}]}))
-                got = None
+                # a subscription sent right after the advertisement can reach the server before it has
+                # registered the channel ("unknown channel"): subscribe again (new id) until data flows
+                got, sub_ids, next_try = None, set(), 0.0
                 deadline = time.monotonic() + 30
                 while got is None and time.monotonic() < deadline:
+                    if time.monotonic() >= next_try:
+                        sub_ids.add(len(sub_ids) + 7)
+                        ws.send(json.dumps({"op": "subscribe",
+                                            "subscriptions": [{"id": max(sub_ids), "channelId": ch["id"]}]}))
+                        next_try = time.monotonic() + 3.0
                     spin_until(ex, lambda: False, 0.1)
                     try:
                         frame = ws.recv(timeout=0.5)
@@ -81,7 +87,7 @@ def test_websocket_client_receives_advertised_channels_and_messages(ros_domain, 
                         continue
                     if isinstance(frame, bytes) and frame[0] == 0x01:        # message data
                         sub_id, = struct.unpack_from("<I", frame, 1)
-                        if sub_id == 7:
+                        if sub_id in sub_ids:
                             got = deserialize_message(frame[13:], PoseWithCovarianceStamped)
                 assert got is not None, view.output()
                 assert (got.pose.pose.position.x, got.pose.pose.position.y) == (12.5, 10.0)

@@ -77,7 +77,7 @@ class ImuStageParams:
     base_frame: str = field("", "pdr/odom child frame; '' = '<namespace>/base_link'")
     mag_max_delay_s: float = field(0.1, "an imu/data_raw sample waits at most this long (stamp time) for "
                                         "imu/mag samples up to its stamp; later ones are dropped and counted, s")
-    mag_bias_x: float = field(0.0, "hard-iron bias subtracted from imu/mag x, T (indoor-loc mag-bias)")
+    mag_bias_x: float = field(0.0, "hard-iron bias subtracted from imu/mag x, T (README: how to estimate it)")
     mag_bias_y: float = field(0.0, "hard-iron bias subtracted from imu/mag y, T")
     mag_bias_z: float = field(0.0, "hard-iron bias subtracted from imu/mag z, T")
     stepometer: StepometerParams = group(StepometerParams, "FFT stepometer (indoor_loc/imu/stepometer.py)")
