@@ -16,6 +16,7 @@ NODES = {
     "pdr_kf_node": "indoor_loc.nodes.pdr_kf_node:main",
     "backend_node": "indoor_loc.nodes.backend_node:main",
     "view": "indoor_loc.nodes.view_node:main",
+    "tll_pf": "indoor_loc.nodes.tll_pf_node:main",
 }
 
 setup(

@@ -9,7 +9,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "indoor_loc"
 ADAPTERS = ROOT / "msg_adapters"                        # top-level import package beside indoor_loc/
-CORE = ("imu", "wifi", "eval", "graph", "fusion")       # pure numpy/scipy: no ROS at all
+CORE = ("imu", "wifi", "eval", "graph", "fusion", "pf")  # pure numpy/scipy: no ROS at all
 ROS_MSG_SUFFIX = "_msgs"
 
 

@@ -11,6 +11,7 @@ BENCHES = {
     "wifi": "indoor_loc.bench.wifi",
     "steps": "indoor_loc.bench.steps",
     "backend": "indoor_loc.bench.backend",
+    "pf": "indoor_loc.bench.pf",
 }
 
 
@@ -23,6 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                             "through backend_node at 1x and 10x")
     parser.add_argument("--dataset", default="", help="dataset of the benchmark when it has several "
                                                       "(wifi: putmc (default) or ms_site2)")
+    parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
+    parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay")
 
 
 def main(args: argparse.Namespace) -> int:

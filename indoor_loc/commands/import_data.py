@@ -83,6 +83,8 @@ def import_putmc(args: argparse.Namespace) -> int:
     rm_dir = out / "radiomap"
     save_radiomap(survey, rm_dir)
 
+    graph_file = putmc_graph(ds, survey, out)
+
     parsed = []
     for n in walks:
         parsed.append(ds.walk(n, keep_stale=args.keep_stale))
@@ -101,7 +103,8 @@ def import_putmc(args: argparse.Namespace) -> int:
               # Nowicki & Skrzypczyński 2019's joint + step-length configuration: walks one after another
               # (1…24), each matching the survey and all earlier walks' scans
               "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
-                               "estimate_step_length": True}}
+                               "estimate_step_length": True},
+              "tll_pf": {"graph_file": str(graph_file)}}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
         f"map frame (map yaw {math.degrees(map_yaw):.2f} deg), so the PDR heading is its yaw (offset 0).\n"
@@ -124,6 +127,22 @@ def import_putmc(args: argparse.Namespace) -> int:
     for o in oddities:
         print(f"  walk {o.walk:2d}  {o.kind:24s} {o.detail}")
     return 0
+
+
+def putmc_graph(ds, survey, out: Path) -> Path:
+    """The floor's building graph from ``map.png`` (skeleton of the free space inside the building
+    envelope, seeded at the survey scan positions), written to ``OUT/graph.yaml``."""
+    from indoor_loc.datasets.putmc import PUTMC_SCALE_PX_PER_M
+    from indoor_loc.graph.from_image import PlanParams, read_plan, skeleton_graph
+    from indoor_loc.graph.io import save_graph
+
+    params = PlanParams(px_per_m=PUTMC_SCALE_PX_PER_M)
+    g = skeleton_graph(read_plan(ds.map_png()), params, seeds_xy=survey.positions)
+    path = save_graph(g, out / "graph.yaml", source={
+        "tool": "indoor-loc import putmc", "image": "map.png", "px_per_m": PUTMC_SCALE_PX_PER_M,
+        "clearance_m": params.clearance_m, "envelope_gap_m": params.envelope_gap_m, "seeds": "survey scan positions"})
+    print(f"graph:     {path} ({g.n_nodes} nodes, {g.n_links} links, {g.link_len.sum():.0f} m)")
+    return path
 
 
 def _row(w, gt_len_m: float, counts: dict[str, int]) -> dict:

@@ -15,6 +15,7 @@ STAGES: dict[str, str] = {
     "wifi_scan": "indoor_loc.pipeline.wifi_scan_stage:WifiScanStage",
     "pdr_kf": "indoor_loc.pipeline.pdr_kf_stage:PdrKfStage",
     "backend": "indoor_loc.pipeline.backend_stage:BackendStage",
+    "pf": "indoor_loc.pipeline.pf_stage:PfStage",
 }
 
 

@@ -1,0 +1,1 @@
+"""Particle filtering on building graphs (pure numpy): the TLL particle filter and its smoother."""

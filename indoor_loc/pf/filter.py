@@ -1,0 +1,403 @@
+"""Particle filter on a building graph, vectorised over particles (struct of arrays).
+
+Koivisto et al., "Graph-based map matching for indoor positioning" (IPIN 2014, the TLL particle
+filter): particle state = (link, position on the link, direction, speed, mode); at a link end the
+next link is drawn from the link-transition probabilities (:mod:`indoor_loc.graph.tll`); WLAN
+positions are Gaussian measurements ``N(r | μ_k, Σ_k)`` (eq. 13); the point estimate is the
+constrained mean (Algorithm 3: the link point closest to the weighted mean); resampling when
+``N_eff = 1 / Σ W²`` falls below a threshold (systematic resampling).
+
+Two motion models:
+
+- **speed** (WiFi only, Algorithm 2 step 2): two-mode Markov chain (motion/static); in motion
+  ``[s, v] ~ N([Δt v, v], σ_v² [[Δt³/3, Δt²/2], [Δt²/2, Δt]])`` with ``v`` truncated to
+  ``[v_min, v_max]``; static → motion draws ``v ~ U(v_min, v_max)`` and a direction 50/50.
+- **pdr**: each PDR interval gives a walked distance and a heading; the particle walks
+  ``distance · scale_i + noise`` (``scale_i`` a per-particle step-length factor) along the graph.
+  The heading enters as a likelihood ``exp(κ (cos Δ − 1))`` (a von Mises density; Δ the angle
+  between the PDR heading, corrected by the particle's own heading offset, and the direction of
+  travel on the link), mixed with a small floor so an off-graph detour does not kill the filter.
+  Link choices at nodes and U-turns use this likelihood as a *guided proposal*: option ``j`` is
+  drawn with probability ``P_j L_j / Z`` and the weight is multiplied by ``Z = Σ_j P_j L_j`` (the
+  optimal-proposal correction), so a turn the walker really makes is followed even when its
+  prior probability is ``p_min``.
+
+Time is int nanoseconds; every stochastic call takes a ``np.random.Generator``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from enum import IntEnum
+
+import numpy as np
+from scipy.special import logsumexp
+
+from indoor_loc import params as P
+from indoor_loc.graph.model import BuildingGraph
+from indoor_loc.graph.tll import Transitions
+
+
+class Mode(IntEnum):
+    STATIC = 0
+    MOTION = 1
+
+
+@dataclass(frozen=True)
+class PfParams:
+    """Particle filter parameters (units in each field's doc)."""
+    n_particles: int = P.field(1000, "number of particles")
+    resample_threshold: float = P.field(0.5, "resample when N_eff < this fraction of the particle count")
+    # speed model (no PDR)
+    sigma_v: float = P.field(0.5, "speed random-walk noise sigma_v (m/s^1.5)")
+    v_min: float = P.field(0.3, "slowest walking speed in motion mode (m/s)")
+    v_max: float = P.field(1.8, "fastest walking speed (m/s)")
+    p_stop: float = P.field(0.05, "probability per second of motion -> static")
+    p_start: float = P.field(0.3, "probability per second of static -> motion")
+    # PDR model
+    step_scale_sigma: float = P.field(0.12, "spread of the per-particle step-length factor at start (1 = the PDR's distance)")
+    step_scale_walk: float = P.field(0.01, "random walk of the step-length factor per metre walked")
+    distance_sigma: float = P.field(0.1, "distance noise per metre walked (fraction)")
+    heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel: sigma of the von Mises likelihood (rad)")
+    heading_floor: float = P.field(0.05, "floor of the heading likelihood (mixture weight of 'any direction')")
+    yaw_offset_sigma_rad: float = P.field(3.2, "initial spread of the odom->map heading offset per particle (rad); >= pi means unknown")
+    yaw_offset_walk_rad: float = P.field(0.02, "random walk of the heading offset per PDR interval (rad)")
+    u_turn_prob: float = P.field(0.02, "prior probability of turning back on a link within one PDR interval")
+    # measurements
+    fix_sigma_extra_m: float = P.field(1.0, "added to each WiFi fix's standard deviation per axis (m): map and model error")
+    fix_outlier_prob: float = P.field(0.05, "probability that a WiFi fix is an outlier (robust mixture)")
+    init_sigma_extra_m: float = P.field(2.0, "initial cloud: fix covariance inflated by this std per axis (m)")
+    reinit_mahalanobis2: float = P.field(40.0, "re-initialise around a fix when every particle's squared Mahalanobis distance exceeds this")
+    reinit_fraction: float = P.field(0.5, "fraction of particles redrawn at a re-initialisation")
+    inject_fraction: float = P.field(0.15, "at every WiFi fix this fraction of the lowest-weight particles is "
+                                           "redrawn around the fix (sensor resetting)")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        P.require(self.n_particles >= 1, n, "n_particles", ">= 1", self.n_particles)
+        P.require(0 < self.resample_threshold <= 1, n, "resample_threshold", "in (0, 1]", self.resample_threshold)
+        P.require(0 < self.v_min < self.v_max, n, "v_min/v_max", "0 < v_min < v_max", (self.v_min, self.v_max))
+        for name in ("sigma_v", "step_scale_sigma", "step_scale_walk", "distance_sigma", "yaw_offset_walk_rad",
+                     "fix_sigma_extra_m", "init_sigma_extra_m", "yaw_offset_sigma_rad"):
+            P.require(getattr(self, name) >= 0, n, name, ">= 0", getattr(self, name))
+        P.require(self.heading_sigma_rad > 0, n, "heading_sigma_rad", "> 0", self.heading_sigma_rad)
+        for name in ("p_stop", "p_start", "heading_floor", "u_turn_prob", "fix_outlier_prob", "reinit_fraction",
+                     "inject_fraction"):
+            P.require(0 <= getattr(self, name) <= 1, n, name, "in [0, 1]", getattr(self, name))
+        P.require(self.reinit_mahalanobis2 > 0, n, "reinit_mahalanobis2", "> 0", self.reinit_mahalanobis2)
+
+
+@dataclass
+class Particles:
+    """Struct of arrays, N particles: ``link (N,) int32``, ``pos (N,)`` metres from the link's
+    end 0, ``direction (N,) int8`` (+1 towards end 1, -1 towards end 0), ``speed (N,)`` m/s,
+    ``mode (N,) int8`` (:class:`Mode`), ``scale (N,)`` step-length factor, ``yaw_offset (N,)``
+    rad (map heading = PDR heading + offset), ``log_w (N,)`` normalised log weights."""
+    link: np.ndarray
+    pos: np.ndarray
+    direction: np.ndarray
+    speed: np.ndarray
+    mode: np.ndarray
+    scale: np.ndarray
+    yaw_offset: np.ndarray
+    log_w: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.link)
+
+    def take(self, idx: np.ndarray) -> "Particles":
+        return Particles(**{f.name: getattr(self, f.name)[idx].copy() for f in fields(self)})
+
+    def copy(self) -> "Particles":
+        return self.take(np.arange(len(self)))
+
+    @property
+    def weights(self) -> np.ndarray:
+        return np.exp(self.log_w)
+
+
+# ----------------------------------------------------------------------------------------------
+# resampling and estimates
+# ----------------------------------------------------------------------------------------------
+def systematic_resample(weights: np.ndarray, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
+    """Indices of a systematic resampling of normalised ``weights`` (Kitagawa 1996): one uniform
+    offset, ``n`` evenly spaced points; the last cumulative sum is forced to 1 (round-off guard)."""
+    n = len(weights) if n is None else n
+    cum = np.cumsum(weights)
+    cum[-1] = 1.0
+    u = (rng.random() + np.arange(n)) / n
+    return np.minimum(np.searchsorted(cum, u, side="right"), len(weights) - 1)
+
+
+def effective_sample_size(log_w: np.ndarray) -> float:
+    """``N_eff = 1 / Σ W²`` of normalised log weights."""
+    return float(np.exp(-logsumexp(2.0 * log_w)))
+
+
+def normalise_log(log_w: np.ndarray) -> np.ndarray:
+    return log_w - logsumexp(log_w)
+
+
+def particle_xy(g: BuildingGraph, p: Particles) -> np.ndarray:
+    """(N, 2) map positions of the particles."""
+    length = g.link_len[p.link]
+    return g.point_at(p.link, np.divide(p.pos, length, out=np.zeros_like(p.pos), where=length > 0))
+
+
+def constrained_mean(g: BuildingGraph, xy: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """Koivisto et al. 2014, Algorithm 3: the weighted mean projected to the closest link point.
+    Returns (xy (2,), link, t in [0, 1])."""
+    mean = weights @ xy / weights.sum()
+    link, t, _ = g.project(mean[None, :])
+    return g.point_at(link, t)[0], int(link[0]), float(t[0])
+
+
+# ----------------------------------------------------------------------------------------------
+class GraphParticleFilter:
+    """The TLL particle filter (see the module docstring). Call :meth:`init_gaussian` (or
+    :meth:`init_uniform`), then :meth:`predict_pdr` / :meth:`predict_speed` and
+    :meth:`update_position` in time order; :meth:`estimate` gives the constrained mean."""
+
+    def __init__(self, graph: BuildingGraph, transitions: Transitions, params: PfParams | None = None) -> None:
+        self.g = graph
+        self.tr = transitions
+        self.params = params or PfParams()
+        self.params.validate()
+        self.p: Particles | None = None
+        self.n_resample = 0
+        self.n_reinit = 0
+        self._heading = graph.link_heading()
+        self._kappa = 1.0 / self.params.heading_sigma_rad ** 2
+        self._slot_owner = np.repeat(np.arange(graph.n_nodes), graph.degree)
+
+    # -- initialisation -------------------------------------------------------------------------
+    def _new(self, link: np.ndarray, t: np.ndarray, rng: np.random.Generator, *, yaw_offset_mean: float = 0.0) -> Particles:
+        n = len(link)
+        pp = self.params
+        if pp.yaw_offset_sigma_rad >= np.pi:
+            off = rng.uniform(-np.pi, np.pi, n)
+        else:
+            off = yaw_offset_mean + pp.yaw_offset_sigma_rad * rng.standard_normal(n)
+        return Particles(link=link.astype(np.int32), pos=t * self.g.link_len[link],
+                         direction=np.where(rng.random(n) < 0.5, 1, -1).astype(np.int8),
+                         speed=rng.uniform(pp.v_min, pp.v_max, n), mode=np.full(n, Mode.MOTION, np.int8),
+                         scale=1.0 + pp.step_scale_sigma * rng.standard_normal(n), yaw_offset=off,
+                         log_w=np.full(n, -np.log(n)))
+
+    def sample_gaussian(self, mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` points from N(mean, cov + extra²I) moved to their closest link points."""
+        cov = np.asarray(cov, float) + self.params.init_sigma_extra_m ** 2 * np.eye(2)
+        pts = rng.multivariate_normal(np.asarray(mean, float), cov, size=n, method="cholesky")
+        link, t, _ = self.g.project(pts)
+        return link, t
+
+    def init_gaussian(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> None:
+        """Particles from a Gaussian position prior (e.g. the first WiFi fix), projected on links."""
+        link, t = self.sample_gaussian(mean, cov, self.params.n_particles, rng)
+        self.p = self._new(link, t, rng)
+
+    def init_uniform(self, rng: np.random.Generator) -> None:
+        """Particles uniform over the link length (global localisation)."""
+        n = self.params.n_particles
+        cum = np.cumsum(self.g.link_len)
+        link = np.minimum(np.searchsorted(cum, rng.random(n) * cum[-1], side="right"), self.g.n_links - 1)
+        self.p = self._new(link, rng.random(n), rng)
+
+    @property
+    def initialised(self) -> bool:
+        return self.p is not None
+
+    # -- motion ---------------------------------------------------------------------------------
+    def _travel_heading(self, link: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        return self._heading[link] + np.where(direction > 0, 0.0, np.pi)
+
+    def _heading_lik(self, travel: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """Heading likelihood of travelling along ``travel`` when the walker's heading is ``heading``."""
+        f = self.params.heading_floor
+        return (1.0 - f) * np.exp(self._kappa * (np.cos(travel - heading) - 1.0)) + f
+
+    def _move(self, dist: np.ndarray, rng: np.random.Generator, heading: np.ndarray | None) -> np.ndarray:
+        """Move every particle ``dist`` (N,) metres along the graph in its direction, drawing the
+        next link at every node (guided by ``heading`` when given). Returns the log-weight
+        correction (N,) of the guided choices (0 without heading). Vectorised: each loop round
+        handles all particles that still have distance left; rounds = most nodes any particle
+        crosses in this step."""
+        g, p, tr = self.g, self.p, self.tr
+        assert p is not None
+        remaining = np.maximum(np.asarray(dist, float), 0.0).copy()
+        corr = np.zeros(len(p))
+        active = np.flatnonzero(remaining > 0)
+        for _ in range(10_000):
+            if len(active) == 0:
+                break
+            lk = p.link[active]
+            length = g.link_len[lk]
+            d = p.direction[active]
+            room = np.where(d > 0, length - p.pos[active], p.pos[active])
+            step = np.minimum(room, remaining[active])
+            p.pos[active] += d * step
+            remaining[active] -= step
+            arrive = active[remaining[active] > 1e-12]
+            if len(arrive) == 0:
+                break
+            # node reached: which end, which adjacency slot we arrive over
+            lk = p.link[arrive]
+            end = (p.direction[arrive] > 0).astype(np.intp)
+            node = g.link_nodes[lk, end]
+            start = g.adj_ptr[node]
+            deg = g.adj_ptr[node + 1] - start
+            # arriving slot: the slot at `node` whose link is lk (scan the node's few slots)
+            dmax = tr.probs.shape[1]
+            cols = np.arange(dmax)[None, :]
+            slots = np.minimum(start[:, None] + cols, len(g.adj_link) - 1)
+            match = (g.adj_link[slots] == lk[:, None]) & (cols < deg[:, None])
+            s_in = start + np.argmax(match, axis=1)
+            probs = tr.probs[s_in]                                   # (n, D)
+            cand_link = g.adj_link[slots]
+            cand_end = g.adj_end[slots]
+            if heading is not None:
+                travel = self._heading[cand_link] + np.where(cand_end == 0, 0.0, np.pi)
+                lik = self._heading_lik(travel, heading[arrive][:, None])
+                q = probs * lik
+                z = q.sum(axis=1)
+                corr[arrive] += np.log(np.maximum(z, 1e-300))
+                q /= np.maximum(z, 1e-300)[:, None]
+            else:
+                q = probs
+            cdf = np.cumsum(q, axis=1)
+            cdf[np.arange(len(arrive)), deg - 1] = 1.0
+            u = rng.random(len(arrive))
+            j = np.minimum((u[:, None] > cdf).sum(axis=1), deg - 1)
+            new_link = cand_link[np.arange(len(arrive)), j]
+            new_end = cand_end[np.arange(len(arrive)), j]            # the new link's end at `node`
+            p.link[arrive] = new_link
+            p.direction[arrive] = np.where(new_end == 0, 1, -1).astype(np.int8)
+            p.pos[arrive] = np.where(new_end == 0, 0.0, g.link_len[new_link])
+            active = arrive
+        return corr
+
+    def predict_pdr(self, distance_m: float, heading_rad: float, rng: np.random.Generator) -> None:
+        """One PDR interval: walked ``distance_m`` ending with walking heading ``heading_rad``
+        (odom frame; each particle adds its own offset). Zero distance: nothing moves."""
+        p, pp = self.p, self.params
+        assert p is not None
+        n = len(p)
+        p.yaw_offset += pp.yaw_offset_walk_rad * rng.standard_normal(n)
+        if distance_m <= 0:
+            return
+        p.scale += pp.step_scale_walk * np.sqrt(distance_m) * rng.standard_normal(n)
+        np.clip(p.scale, 0.5, 1.6, out=p.scale)
+        dist = distance_m * p.scale * (1.0 + pp.distance_sigma / np.sqrt(max(distance_m, 1e-3)) * rng.standard_normal(n))
+        heading = heading_rad + p.yaw_offset
+        # U-turn on the link, guided by the heading
+        here = self._heading_lik(self._travel_heading(p.link, p.direction), heading)
+        back = self._heading_lik(self._travel_heading(p.link, -p.direction), heading)
+        a, b = (1.0 - pp.u_turn_prob) * here, pp.u_turn_prob * back
+        z = a + b
+        turn = rng.random(n) < b / z
+        p.direction = np.where(turn, -p.direction, p.direction).astype(np.int8)
+        # guided choices: the direction on the current link (z) and the link at every node crossed
+        log_corr = np.log(z) + self._move(dist, rng, heading)
+        p.log_w = normalise_log(p.log_w + log_corr)
+        p.mode[:] = Mode.MOTION
+
+    def predict_speed(self, dt_s: float, rng: np.random.Generator) -> None:
+        """Two-mode speed model over ``dt_s`` seconds (Koivisto et al. 2014, eq. 10–11, Algorithm 2)."""
+        p, pp = self.p, self.params
+        assert p is not None
+        if dt_s <= 0:
+            return
+        n = len(p)
+        u = rng.random(n)
+        stop = (p.mode == Mode.MOTION) & (u < 1 - (1 - pp.p_stop) ** dt_s)
+        start = (p.mode == Mode.STATIC) & (u < 1 - (1 - pp.p_start) ** dt_s)
+        p.mode[stop] = Mode.STATIC
+        p.mode[start] = Mode.MOTION
+        p.speed[start] = rng.uniform(pp.v_min, pp.v_max, int(start.sum()))
+        p.direction[start] = np.where(rng.random(int(start.sum())) < 0.5, 1, -1).astype(np.int8)
+        moving = p.mode == Mode.MOTION
+        q = pp.sigma_v ** 2 * np.array([[dt_s ** 3 / 3, dt_s ** 2 / 2], [dt_s ** 2 / 2, dt_s]])
+        noise = rng.standard_normal((n, 2)) @ np.linalg.cholesky(q + 1e-12 * np.eye(2)).T
+        s = np.where(moving, dt_s * p.speed + noise[:, 0], 0.0)
+        p.speed = np.where(moving, np.clip(p.speed + noise[:, 1], pp.v_min, pp.v_max), 0.0)
+        self._move(np.maximum(s, 0.0), rng, None)
+
+    # -- measurement ----------------------------------------------------------------------------
+    def update_position(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> bool:
+        """WiFi position fix ``N(r | mean, cov + extra²I)`` with an outlier mixture (eq. 13).
+        When every particle is far from the fix (squared Mahalanobis distance above
+        ``reinit_mahalanobis2``) the filter has diverged: a ``reinit_fraction`` of the particles is
+        redrawn around the fix (Raitoharju et al. 2015 monitor divergence and re-initialise; here
+        the fix itself is the reference). Returns True if re-initialised."""
+        p, pp = self.p, self.params
+        assert p is not None
+        S = np.asarray(cov, float) + pp.fix_sigma_extra_m ** 2 * np.eye(2)
+        Si = np.linalg.inv(S)
+        d = particle_xy(self.g, p) - np.asarray(mean, float)
+        m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+        reinit = bool(m2.min() > pp.reinit_mahalanobis2)
+        if reinit:
+            self.n_reinit += 1
+            n = len(p)
+            k = int(round(pp.reinit_fraction * n))
+            idx = rng.choice(n, size=k, replace=False)
+            link, t = self.sample_gaussian(mean, cov, k, rng)
+            fresh = self._new(link, t, rng)
+            for f in fields(p):
+                if f.name != "log_w":
+                    getattr(p, f.name)[idx] = getattr(fresh, f.name)
+            if self.params.yaw_offset_sigma_rad < np.pi:
+                p.yaw_offset[idx] = rng.choice(p.yaw_offset, k)       # keep the learnt heading offsets
+            p.log_w = np.full(n, -np.log(n))
+            d = particle_xy(self.g, p) - np.asarray(mean, float)
+            m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+        elif pp.inject_fraction > 0:
+            # sensor resetting (Lenser & Veloso 2000; the augmented MCL of Thrun et al.,
+            # Probabilistic Robotics §8.3.5): the least likely particles are redrawn around the fix
+            # with an average weight, so a filter that started from an outlier fix or fell behind
+            # the walker can jump to where the WiFi says it is; the likelihood below weighs them.
+            n = len(p)
+            k = int(round(pp.inject_fraction * n))
+            if k:
+                idx = np.argpartition(p.log_w, k - 1)[:k]
+                link, t = self.sample_gaussian(mean, cov, k, rng)
+                donors = rng.integers(0, n, k)
+                p.link[idx] = link
+                p.pos[idx] = t * self.g.link_len[link]
+                p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
+                p.scale[idx] = p.scale[donors]
+                p.yaw_offset[idx] = p.yaw_offset[donors]
+                p.log_w[idx] = -np.log(n)
+                p.log_w = normalise_log(p.log_w)
+                d = particle_xy(self.g, p) - np.asarray(mean, float)
+                m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+        log_g = -0.5 * m2 - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
+        # outlier: uniform over a 50 m x 50 m area
+        log_l = np.logaddexp(np.log1p(-pp.fix_outlier_prob) + log_g, np.log(pp.fix_outlier_prob / 2500.0))
+        p.log_w = normalise_log(p.log_w + log_l)
+        return reinit
+
+    def maybe_resample(self, rng: np.random.Generator) -> bool:
+        p = self.p
+        assert p is not None
+        if effective_sample_size(p.log_w) >= self.params.resample_threshold * len(p):
+            return False
+        idx = systematic_resample(p.weights, rng)
+        self.p = p.take(idx)
+        self.p.log_w = np.full(len(idx), -np.log(len(idx)))
+        self.n_resample += 1
+        return True
+
+    # -- estimate ---------------------------------------------------------------------------------
+    def estimate(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Constrained mean (2,), the particle cloud's weighted covariance (2, 2) and the
+        weighted circular mean of the direction of travel (rad)."""
+        p = self.p
+        assert p is not None
+        w = p.weights
+        xy = particle_xy(self.g, p)
+        mean_xy, _, _ = constrained_mean(self.g, xy, w)
+        d = xy - w @ xy
+        cov = (w[:, None] * d).T @ d + 1e-6 * np.eye(2)
+        trav = self._travel_heading(p.link, p.direction)
+        yaw = float(np.arctan2(w @ np.sin(trav), w @ np.cos(trav)))
+        return mean_xy, cov, yaw

@@ -1,0 +1,236 @@
+"""PfStage: the TLL particle filter on the building graph (``tll_pf`` node, ``--nodes pf`` offline).
+
+Inputs: ``pdr/odom`` (distance and heading per stepometer hop: the particles walk it, the graph
+gates them), ``wifi/fix`` (Gaussian position likelihood), ``initialpose`` (re-initialise around a
+pose, as nav2_amcl). Without ``pdr/odom`` the particles move by the two-mode speed model between
+fixes. Outputs: ``pf/pose`` (constrained mean + particle covariance + direction of travel, per PDR
+hop and per fix), ``pf/particles`` (every ``particles_every`` outputs), ``pf/path`` (the filtered
+history every ``path_period_s`` of stamp time; at the end of input the backward-simulation
+smoothed path when ``smooth``), ``map/graph`` (latched, once).
+
+Fixes wait until PDR has reached their stamp (the stepometer publishes about half a window late),
+bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. A stamp more than
+``time_jump_s`` older than the newest seen (a bag played in a loop, a restarted recording) resets
+the filter instead of being rejected.
+"""
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from indoor_loc import params as P
+from indoor_loc.contract import Qos
+from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
+from indoor_loc.graph.io import load_graph
+from indoor_loc.graph.tll import TransitionParams, cached_transitions
+from msg_adapters.markers import graph_markers
+from msg_adapters.odom import odom_from_msg
+from msg_adapters.path import path_to_msg
+from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
+from indoor_loc.pf.filter import PfParams
+from indoor_loc.pf.tracker import Estimate, GraphTracker
+from indoor_loc.pipeline.stage import Output, Port, Stage
+
+POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
+
+
+@dataclass(frozen=True)
+class PfStageParams:
+    """Parameters of ``tll_pf`` (see config/tll_pf.yaml)."""
+    graph_file: str = P.field("", "building graph file (format indoor_loc.graph v1); its TLL table is cached beside it")
+    rule: str = P.field("tll", "link transition rule at nodes: tll, uniform or angle")
+    l_max_m: float = P.field(40.0, "TLL destination horizon l_MAX (m)")
+    p_min: float = P.field(0.02, "smallest transition probability at a junction")
+    p_max: float = P.field(0.98, "largest transition probability at a junction")
+    n_particles: int = P.field(1000, "number of particles")
+    heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel on the link (rad)")
+    yaw_offset_sigma_rad: float = P.field(3.2, "odom->map heading offset spread at start (rad); >= pi = unknown, learnt by the filter")
+    fix_sigma_extra_m: float = P.field(1.0, "added to each WiFi fix's standard deviation per axis (m)")
+    max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
+    time_jump_s: float = P.field(1.0, "a stamp this much older than the newest seen resets the filter (bag loops) (s)")
+    particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
+    path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
+    smooth: bool = P.field(True, "at the end of input publish the backward-simulation smoothed pf/path")
+    smooth_samples: int = P.field(50, "backward-simulated trajectories averaged by the smoother")
+    seed: int = P.field(0, "random seed of the filter (runs are reproducible)")
+    frame_id: str = P.field("map", "frame of the graph and the estimates")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        P.require(self.time_jump_s > 0, n, "time_jump_s", "> 0", self.time_jump_s)
+        P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
+        P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
+        P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
+        self.transition_params().validate()
+        self.pf_params().validate()
+
+    def transition_params(self) -> TransitionParams:
+        return TransitionParams(rule=self.rule, l_max_m=self.l_max_m, p_min=self.p_min, p_max=self.p_max)
+
+    def pf_params(self) -> PfParams:
+        return PfParams(n_particles=self.n_particles, heading_sigma_rad=self.heading_sigma_rad,
+                        yaw_offset_sigma_rad=self.yaw_offset_sigma_rad, fix_sigma_extra_m=self.fix_sigma_extra_m)
+
+
+class PfStage(Stage):
+    """TLL particle filter: pdr/odom + wifi/fix (+ initialpose) -> pf/pose, pf/particles, pf/path, map/graph."""
+    NODE_NAME = "tll_pf"
+    PARAMS = PfStageParams
+
+    def __init__(self, params: PfStageParams, *, namespace: str = "") -> None:
+        super().__init__(params, namespace=namespace)
+        self._pending: list[tuple[int, int, tuple]] = []
+        self.on("pdr/odom", self._on_odom)
+        self.on("wifi/fix", self._on_fix)
+        self.on("initialpose", self._on_initialpose)
+        if not params.graph_file:
+            # the node starts (so parameters can be inspected) but rejects every message, counted
+            # under "no_graph" in /diagnostics
+            self.graph = None
+            return
+        path = Path(params.graph_file)
+        try:
+            self.graph = load_graph(path)
+        except MapError as err:
+            raise ConfigError(f"tll_pf: graph_file: {err}") from err
+        self.transitions, self.cache_hit = cached_transitions(self.graph, path, params.transition_params())
+        self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
+                                    rng=np.random.default_rng(params.seed))
+        self._seq = 0
+        self._last_odom_ns: int | None = None
+        self._newest: dict[str, int] = {}
+        self._graph_sent = False
+        self._n_pose = 0
+        self._last_path_ns: int | None = None
+        self.time_jumps = 0
+
+    def inputs(self) -> list[Port]:
+        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
+                Port("wifi/fix", POSE_T, Qos.RELIABLE),
+                Port("initialpose", POSE_T, Qos.RELIABLE)]
+
+    def outputs(self) -> list[Port]:
+        return [Port("pf/pose", POSE_T, Qos.LATCHED),
+                Port("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT),
+                Port("pf/path", "nav_msgs/msg/Path", Qos.LATCHED),
+                Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
+
+    # ------------------------------------------------------------------------------------------
+    def _start(self, stamp_ns: int, topic: str = "") -> list[Output]:
+        """map/graph once; a backwards time jump resets the filter."""
+        if self.graph is None:
+            raise InvalidMessageError("no_graph", "graph_file is not set: give the tll_pf node a building graph "
+                                      "(format indoor_loc.graph v1; `indoor-loc import putmc` writes one)")
+        outs: list[Output] = []
+        if not self._graph_sent:
+            self._graph_sent = True
+            outs.append(("map/graph", graph_markers(self.graph.node_xyz[:, :2], self.graph.link_nodes.astype(np.int64),
+                                                    self.params.frame_id, stamp_ns, ns="map/graph")))
+        # per input topic: pdr/odom legitimately runs a second or two behind wifi/fix
+        newest = self._newest.get(topic)
+        if newest is not None and stamp_ns < newest - int(self.params.time_jump_s * 1e9):
+            self.time_jumps += 1
+            self.tracker.reset()
+            self._pending.clear()
+            self._last_odom_ns = None
+            self._newest = {}
+            self._last_path_ns = None
+        self._newest[topic] = stamp_ns if topic not in self._newest else max(self._newest[topic], stamp_ns)
+        return outs
+
+    def _on_odom(self, msg, recv_ns: int) -> list[Output]:
+        od = odom_from_msg(msg)
+        outs = self._start(od.stamp_ns, "pdr/odom")
+        if self._last_odom_ns is not None and od.stamp_ns <= self._last_odom_ns:
+            from indoor_loc.errors import InvalidMessageError
+            raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom_ns}")
+        outs += self._apply_pending(lambda s: s < od.stamp_ns)
+        self._last_odom_ns = od.stamp_ns
+        est = self.tracker.odom(od.stamp_ns, od.x, od.y)
+        if est is not None:
+            outs += self._publish(est)
+        return outs
+
+    def _on_fix(self, msg, recv_ns: int) -> list[Output]:
+        fix = fix_from_msg(msg)
+        outs = self._start(fix.stamp_ns, "wifi/fix")
+        self._seq += 1
+        bisect.insort(self._pending, (fix.stamp_ns, self._seq, (fix.xy, fix.cov)))
+        if self._last_odom_ns is None:                 # no PDR (yet): the speed model moves particles
+            return outs + self._apply_pending(lambda s: True, speed=True)
+        horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
+        last = self._last_odom_ns
+        return outs + self._apply_pending(lambda s: s <= horizon or s < last)
+
+    def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:
+        ps = pose_from_msg(msg)
+        outs = self._start(ps.stamp_ns, "initialpose")
+        cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
+        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov))
+
+    def global_localization(self, stamp_ns: int) -> list[Output]:
+        """Spread the particles over the whole graph (the ``~/global_localization`` service)."""
+        if self.graph is None:
+            return []
+        return self._publish(self.tracker.global_localization(stamp_ns))
+
+    def _apply_pending(self, due, *, speed: bool = False) -> list[Output]:
+        outs: list[Output] = []
+        while self._pending and due(self._pending[0][0]):
+            stamp, _, (xy, cov) = self._pending.pop(0)
+            outs += self._publish(self.tracker.fix(stamp, xy, cov, use_speed_model=speed))
+        return outs
+
+    # ------------------------------------------------------------------------------------------
+    def _publish(self, est: Estimate) -> list[Output]:
+        fid = self.params.frame_id
+        outs: list[Output] = [("pf/pose", pose_to_msg(est.stamp_ns, est.xy, est.yaw, est.cov, frame_id=fid,
+                                                        yaw_var=0.1))]
+        self._n_pose += 1
+        every = self.params.particles_every
+        p = self.tracker.pf.p
+        if every and p is not None and self._n_pose % every == 0:
+            from indoor_loc.pf.filter import particle_xy
+            xy = particle_xy(self.graph, p)
+            yaw = self.tracker.pf._travel_heading(p.link, p.direction)
+            outs.append(("pf/particles", pose_array_to_msg(est.stamp_ns, xy, yaw, frame_id=fid)))
+        period = self.params.path_period_s
+        if period > 0 and (self._last_path_ns is None or est.stamp_ns - self._last_path_ns >= period * 1e9):
+            self._last_path_ns = est.stamp_ns
+            outs += self._path(self.tracker.estimates)
+        return outs
+
+    def _path(self, ests: list[Estimate]) -> list[Output]:
+        if not ests:
+            return []
+        stamps = np.array([e.stamp_ns for e in ests], np.int64)
+        xy = np.array([e.xy for e in ests])
+        yaw = np.array([e.yaw if np.isfinite(e.yaw) else 0.0 for e in ests])
+        order = np.argsort(stamps, kind="stable")
+        return [("pf/path", path_to_msg(stamps[order], xy[order], yaw[order], frame_id=self.params.frame_id,
+                                        stamp_ns=int(stamps.max())))]
+
+    def finish(self) -> list[Output]:
+        outs = self._apply_pending(lambda s: True)
+        if self.params.smooth and self.tracker.initialised:
+            return outs + self._path(self.tracker.smooth(self.params.smooth_samples))
+        return outs + self._path(self.tracker.estimates)
+
+    def extra_diagnostics(self) -> dict[str, str]:
+        if self.graph is None:
+            return {"initialised": "false (graph_file not set)"}
+        pf = self.tracker.pf
+        d = {"graph": f"{self.graph.n_nodes} nodes, {self.graph.n_links} links", "rule": self.transitions.rule,
+             "tll_cache": "hit" if self.cache_hit else "computed", "time_jumps": str(self.time_jumps),
+             "pending_fixes": str(len(self._pending))}
+        if pf.p is None:
+            d["initialised"] = "false (waiting for the first wifi/fix or initialpose)"
+        else:
+            from indoor_loc.pf.filter import effective_sample_size
+            d.update(initialised="true", particles=str(len(pf.p)), n_eff=f"{effective_sample_size(pf.p.log_w):.0f}",
+                     resamples=str(pf.n_resample), reinitialisations=str(pf.n_reinit))
+        return d

@@ -1,0 +1,126 @@
+"""PfStage (tll_pf): contract messages in, pf/* out; unknown odom rotation, bad input, time jumps."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from indoor_loc.errors import ConfigError
+from indoor_loc.graph import build_graph, save_graph
+from indoor_loc.graph.tll import cache_path
+from indoor_loc.measurements import Fix
+from indoor_loc.params import params_from_dict
+from indoor_loc.pipeline.pf_stage import PfStage, PfStageParams
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.path import path_from_msg
+from msg_adapters.pose import fix_to_msg, pose_from_msg, pose_to_msg
+
+STEP = 0.65
+
+
+@pytest.fixture
+def graph_file(tmp_path):
+    # a 20 x 10 m rectangle of corridors with a 4 m stub (room door) in the middle of the long side
+    xy = np.array([[2, 2], [12, 2], [22, 2], [22, 12], [2, 12], [12, -2]], float)
+    g = build_graph(range(6), xy, [(0, 1), (1, 2), (2, 3), (3, 4), (4, 0), (1, 5)])
+    return save_graph(g, tmp_path / "rect.graph.yaml")
+
+
+def _walk(rng: np.random.Generator, n: int = 90):
+    """Clockwise... anticlockwise around the rectangle, 2 steps per 1 s interval; PDR in an odom
+    frame rotated by an unknown 1 rad with drifting heading; fixes (sigma 2 m) every 4th interval."""
+    t = np.arange(n) * 1_000_000_000 + 5_000_000_000
+    pos, yaw = np.array([2.0, 2.0]), 0.0
+    true_xy, yaws = [], []
+    walked = 0.0
+    for _ in range(n):
+        seg = walked % 60.0
+        yaw = 0.0 if seg < 20 else (math.pi / 2 if seg < 30 else (math.pi if seg < 50 else -math.pi / 2))
+        pos = pos + 2 * STEP * np.array([math.cos(yaw), math.sin(yaw)])
+        walked += 2 * STEP
+        true_xy.append(pos.copy())
+        yaws.append(yaw)
+    odom_yaw = np.array(yaws) + 1.0 + np.cumsum(rng.normal(0, 0.01, n))
+    ox = oy = 0.0
+    odoms, fixes = [], {}
+    for i in range(n):
+        ox += 2 * STEP * math.cos(odom_yaw[i])
+        oy += 2 * STEP * math.sin(odom_yaw[i])
+        odoms.append(odom_to_msg(int(t[i]), "u/odom", "u/base_link", ox, oy, odom_yaw[i], np.eye(3) * 0.1, 1.3, 0.0))
+        if i % 4 == 0:
+            fixes[i] = fix_to_msg(Fix(int(t[i]) + 1000, true_xy[i] + rng.normal(0, 2.0, 2), np.eye(2) * 4.0))
+    return t, np.array(true_xy), odoms, fixes
+
+
+def _stage(graph_file, **kw) -> PfStage:
+    return PfStage(params_from_dict(PfStageParams, {"graph_file": str(graph_file), "n_particles": 600, **kw}))
+
+
+def test_tracks_a_walk_with_unknown_odom_rotation_and_smooths_on_the_graph(graph_file):
+    rng = np.random.default_rng(7)
+    t, truth, odoms, fixes = _walk(rng)
+    st = _stage(graph_file)
+    assert cache_path(graph_file).exists()                      # TLL table cached beside the map
+    outs = []
+    for i, od in enumerate(odoms):
+        if i in fixes:
+            outs += st.process("wifi/fix", fixes[i], 0)
+        outs += st.process("pdr/odom", od, 0)
+    outs += st.finish()
+    assert st.diag.rejected.total() == 0
+    topics = [o[0] for o in outs]
+    assert topics.count("map/graph") == 1 and "pf/particles" in topics
+    poses = [pose_from_msg(m) for tp, m in outs if tp == "pf/pose"]
+    stamps = np.array([p.stamp_ns for p in poses])
+    est = np.array([p.xy for p in poses])
+    # after the first lap the filter has locked on: error at the last 30 intervals
+    late = stamps >= t[-30]
+    idx = np.searchsorted(t, stamps[late])
+    err = np.hypot(*(est[late] - truth[np.minimum(idx, len(t) - 1)]).T)
+    assert np.median(err) < 1.5
+    ts, xy, _ = path_from_msg([m for tp, m in outs if tp == "pf/path"][-1])
+    assert len(ts) > 50
+    assert st.graph.project(xy)[2].max() < 1e-6                 # every smoothed pose on the graph
+    # a second stage with the cache present starts from it
+    assert _stage(graph_file).cache_hit
+
+
+def test_bad_messages_are_counted_and_time_jumps_reset(graph_file):
+    rng = np.random.default_rng(1)
+    t, truth, odoms, fixes = _walk(rng, n=20)
+    st = _stage(graph_file)
+    for i, od in enumerate(odoms):
+        if i in fixes:
+            st.process("wifi/fix", fixes[i], 0)
+        st.process("pdr/odom", od, 0)
+    st.process("pdr/odom", odoms[5], 0)
+    # odoms[5] is 14 s older than the newest: a bag loop -> reset, not a rejection
+    assert st.time_jumps == 1
+    assert not st.tracker.initialised
+    bad = fix_to_msg(Fix(int(t[-1]), np.array([1.0, 1.0]), np.eye(2)))
+    bad.pose.pose.position.x = float("nan")
+    assert st.process("wifi/fix", bad, 0) == []
+    assert st.diag.rejected.total() == 1
+
+
+def test_initialpose_and_global_localization(graph_file):
+    st = _stage(graph_file)
+    outs = st.process("initialpose", pose_to_msg(1_000, np.array([22.0, 7.0]), 0.0, np.eye(2) * 0.1), 0)
+    p = pose_from_msg([m for tp, m in outs if tp == "pf/pose"][0])
+    assert np.hypot(*(p.xy - [22.0, 7.0])) < 1.5
+    outs = st.global_localization(2_000)
+    p = pose_from_msg([m for tp, m in outs if tp == "pf/pose"][0])
+    assert np.trace(p.cov_xy) > 20.0                            # spread over the whole rectangle
+
+
+def test_invalid_parameters(graph_file, tmp_path):
+    st = PfStage(params_from_dict(PfStageParams, {}))          # no graph: starts, rejects every message
+    assert st.process("wifi/fix", fix_to_msg(Fix(1, np.array([1.0, 1.0]), np.eye(2))), 0) == []
+    assert st.diag.rejected["no_graph"] == 1
+    with pytest.raises(ConfigError, match="rule"):
+        params_from_dict(PfStageParams, {"graph_file": str(graph_file), "rule": "nope"})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: indoor_loc.graph\nversion: 1\nnodes: [[0, 0, 0]]\nlinks: []\n")
+    with pytest.raises(ConfigError, match="node 0 is on no link"):
+        PfStage(params_from_dict(PfStageParams, {"graph_file": str(bad)}))
