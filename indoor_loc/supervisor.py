@@ -39,7 +39,12 @@ _NS_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _ENV_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _TOP_KEYS = {"env", "use_sim_time", "params_files", "stop_timeout_s", "nodes"}
 _NODE_KEYS = {"name", "executable", "module", "script", "namespace", "args", "params_files", "params",
-              "remap", "ros_args", "env", "use_sim_time", "respawn", "respawn_delay_s", "required"}
+              "remap", "ros_args", "env", "use_sim_time", "respawn", "respawn_delay_s", "required", "stop_order"}
+#: Default ``stop_order`` of the package's executables: data sources stop first, then the front
+#: ends, then the estimators (their end-of-input outputs, e.g. pdr_kf's final smoothed path, still
+#: reach the nodes after them), the recorder last so it holds all of it. Other nodes: 1.
+STOP_ORDER = {"player": 0, "wifi_scan_node": 1, "imu_node": 1, "wifi_fix_node": 2, "pdr_kf_node": 3,
+              "pf_node": 3, "backend_node": 4, "recorder": 9}
 #: Exit statuses of a child that was asked to stop and did so (0, or killed by the signal sent).
 _CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
 #: A child stopped within this many seconds of its start may not have installed its signal
@@ -66,6 +71,7 @@ class NodeSpec:
     respawn: bool = False
     respawn_delay_s: float = 1.0
     required: bool = False
+    stop_order: int = 1               # stopping goes by ascending stop_order, one wave at a time
 
     def command(self) -> list[str]:
         ros = ["--ros-args"]
@@ -196,6 +202,14 @@ def _program(i: int, node: dict, base: Path, exes: dict[str, str]) -> tuple[str,
     return (sys.executable, str(path.resolve()))
 
 
+def _stop_order(i: int, node: dict) -> int:
+    value = node.get("stop_order")
+    if value is None:
+        return STOP_ORDER.get(str(node.get("executable", "")), 1)
+    _expect(isinstance(value, int) and not isinstance(value, bool), _where(i, "stop_order"), "an integer", value)
+    return int(value)
+
+
 def parse_config(data: Any, base: Path, source: Path | None = None) -> BringupConfig:
     """Validate a bring-up mapping (see ``config/bringup_example.yaml``); relative paths are taken
     from ``base`` (the config file's directory). Raises ConfigError naming the bad key."""
@@ -252,7 +266,8 @@ def parse_config(data: Any, base: Path, source: Path | None = None) -> BringupCo
             use_sim_time=_bool(n.get("use_sim_time"), _where(i, "use_sim_time"), sim),
             respawn=bool(_bool(n.get("respawn"), _where(i, "respawn"), False)),
             respawn_delay_s=float(delay),
-            required=bool(_bool(n.get("required"), _where(i, "required"), False))))
+            required=bool(_bool(n.get("required"), _where(i, "required"), False)),
+            stop_order=_stop_order(i, n)))
     return BringupConfig(nodes=tuple(nodes), env=env, stop_timeout_s=float(stop), source=source)
 
 
@@ -331,7 +346,10 @@ class Bringup:
         Asked again while stopping (a second Ctrl-C): escalate to SIGTERM/SIGKILL at once."""
         if self._stop_requested is not None:
             self._stop_deadline = time.monotonic()
+            self._hurry = True                     # every wave at once
             return
+        self._wave: int | None = None
+        self._hurry = False
         self._stop_requested = signum
         self._stop_at = time.monotonic()
         self._stop_deadline = self._stop_at + self.config.stop_timeout_s
@@ -339,16 +357,25 @@ class Bringup:
         self._kill_sent = False
 
     def _escalate(self) -> None:
+        """Stop in waves of ascending ``stop_order``: SIGINT the lowest wave still running, and the
+        next only once it has exited (so the end-of-input outputs of producers and estimators reach
+        the nodes after them, the recorder last); SIGTERM / SIGKILL escalate per wave."""
         now = time.monotonic()
-        alive = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
+        running = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
         for c in self.children:
             c.restart_at = None
+        if not running:
+            return
+        wave = min(c.spec.stop_order for c in running)
+        alive = [c for c in running if c.spec.stop_order == wave or self._hurry]
+        if wave != self._wave:                     # a new wave: its own timeouts
+            self._wave = wave
+            self._stop_deadline = now + self.config.stop_timeout_s
+            self._term_sent = self._kill_sent = False
         for c in alive:
             if not c.signalled:
                 c.signalled = True
                 c.proc.send_signal(signal.SIGINT)
-        if not alive:
-            return
         if not self._term_sent and now > self._stop_deadline:
             self._term_sent = True
             self._stop_deadline = now + self.config.stop_timeout_s

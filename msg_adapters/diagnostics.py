@@ -18,27 +18,65 @@ class StatusSummary(NamedTuple):
     values: dict[str, str]
 
 
-def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
-    """One DiagnosticStatus for a stage: input counts/rates/last stamps, outputs, rejections.
+#: A rejection or a loss keeps the status at WARN (ERROR for internal errors) this long, ns;
+#: afterwards the status returns to OK and only the cumulative counters remember it.
+RECENT_NS = 10_000_000_000
 
-    Level: ERROR when a message raised an internal error or the stage reports a standing ``error``
-    (e.g. no radio map), WARN when any message was rejected, else OK.
+
+def status_array(name: str, level: int, message: str, values: dict[str, str], now_ns: int,
+                 hardware_id: str = "") -> DiagnosticArray:
+    """A DiagnosticArray with one status (level 0 OK, 1 WARN, 2 ERROR) for nodes without a stage
+    (recorder, player)."""
+    arr = DiagnosticArray()
+    arr.header.stamp = stamp_from_ns(now_ns)
+    st = DiagnosticStatus()
+    st.name, st.message, st.hardware_id = name, message, hardware_id or "/"
+    st.level = bytes([int(level)])
+    st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+    arr.status = [st]
+    return arr
+
+
+def _recent(event_ns: int | None, now_ns: int) -> bool:
+    return event_ns is not None and now_ns - event_ns <= RECENT_NS
+
+
+def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
+    """One DiagnosticStatus for a stage: input counts/rates/last stamps, outputs, rejections,
+    messages lost before reaching the stage (``lost.<topic>``).
+
+    Level: ERROR when the stage reports a standing ``error`` (e.g. no radio map) or a message
+    raised an internal error in the last ``RECENT_NS``; WARN when a message was rejected or lost in
+    that window; else OK (the counters stay cumulative). A rejection with no clock (offline without
+    a stamp) counts as recent.
     """
     arr = DiagnosticArray()
     arr.header.stamp = stamp_from_ns(now_ns)
     st = DiagnosticStatus()
     st.name = name
     st.hardware_id = stage.namespace or "/"
-    rejected = sum(stage.diag.rejected.values())
-    errors = stage.diag.rejected.get("internal_error", 0)
-    st.level = DiagnosticStatus.ERROR if errors else (DiagnosticStatus.WARN if rejected else DiagnosticStatus.OK)
-    st.message = f"{rejected} messages rejected (last: {stage.diag.last_error_reason})" if rejected else "ok"
-    kv = dict(stage.diag.summary())
+    d = stage.diag
+    rejected = sum(d.rejected.values())
+    lost = sum(d.lost.values()) if hasattr(d, "lost") else 0
+    recent_reject = rejected > 0 and (d.last_reject_ns is None or _recent(d.last_reject_ns, now_ns))
+    recent_loss = lost > 0 and _recent(d.last_loss_ns, now_ns)
+    errors = d.rejected.get("internal_error", 0)
+    st.level = DiagnosticStatus.OK
+    parts = []
+    if recent_reject:
+        internal = errors > 0 and (d.last_internal_ns is None or _recent(d.last_internal_ns, now_ns))
+        st.level = DiagnosticStatus.ERROR if internal else DiagnosticStatus.WARN
+        parts.append(f"{rejected} messages rejected (last: {d.last_error_reason})")
+    if recent_loss:
+        st.level = max(st.level, DiagnosticStatus.WARN)
+        parts.append(f"{lost} input messages lost (" + ", ".join(f"{t} {n}" for t, n in sorted(d.lost.items())) + ")")
+    st.message = "; ".join(parts) if parts else "ok"
+    kv = dict(d.summary())
     extra = stage.extra_diagnostics()
     kv.update(extra)
     if extra.get("error"):
         st.level = DiagnosticStatus.ERROR
-        st.message = str(extra["error"]) + (f"; {st.message}" if rejected else "")
+        st.message = str(extra["error"]) + (f"; {st.message}" if parts else "")
     st.values = [KeyValue(key=str(k), value=str(v)) for k, v in kv.items()]
     arr.status = [st]
     return arr

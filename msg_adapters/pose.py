@@ -75,9 +75,21 @@ def pose_from_msg(msg: PoseWithCovarianceStamped) -> PoseSample:
     return PoseSample(stamp, xy, yaw, full[:2, :2].copy(), msg.header.frame_id)
 
 
-def fix_from_msg(msg: PoseWithCovarianceStamped) -> Fix:
-    """A :class:`Fix` from a ``wifi/fix`` message (inverse of :func:`fix_to_msg`)."""
+def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None) -> Fix:
+    """A :class:`Fix` from a ``wifi/fix`` message (inverse of :func:`fix_to_msg`).
+
+    The x/y covariance must be a symmetric positive-definite 2x2 block (a fix is a Gaussian
+    measurement; a negative, singular or asymmetric one would corrupt any filter it reaches):
+    otherwise ``"bad_covariance"``. With ``frame_id`` given, a fix in another frame is
+    ``"wrong_frame"`` (it cannot be fused in this frame without a transform)."""
     s = pose_from_msg(msg)
+    if frame_id is not None and s.frame_id != frame_id:
+        raise InvalidMessageError("wrong_frame", f"fix in frame {s.frame_id!r}, expected {frame_id!r}")
+    c = s.cov_xy
+    if abs(c[0, 1] - c[1, 0]) > 1e-9 * max(1.0, abs(c[0, 1]), abs(c[1, 0])):
+        raise InvalidMessageError("bad_covariance", f"fix covariance not symmetric: {c.tolist()}")
+    if not (c[0, 0] > 0 and c[1, 1] > 0 and c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0):
+        raise InvalidMessageError("bad_covariance", f"fix covariance not positive definite: {c.tolist()}")
     return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=s.cov_xy, z=float(msg.pose.pose.position.z),
                z_var=float(msg.pose.covariance[14]))
 

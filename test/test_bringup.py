@@ -208,3 +208,28 @@ def test_program_that_cannot_start(tmp_path):
     assert Bringup(dataclasses.replace(cfg, nodes=(cfg.nodes[0], broken)), out=out).run() == 1
     text = out.getvalue()
     assert "[up] cannot start broken" in text and "[up] ok stopped (exit status" in text
+
+
+def test_stop_in_dependency_order_keeps_the_final_outputs(ros_domain, tmp_path):
+    """The recorder stops last (stop_order 9): the node's end-of-input output, published while it
+    stops, is in the bag; waves are logged in order."""
+    bag = tmp_path / "rec.mcap"
+    cfg = write(tmp_path, {"env": {"ROS_DOMAIN_ID": ros_domain}, "stop_timeout_s": 10, "nodes": [
+        {"name": "rec", "executable": "recorder", "args": ["-t", "/alice/dummy/pose", "-o", str(bag)]},
+        {"name": "alice", "script": DUMMY, "namespace": "/alice"}]})
+    assert [n.stop_order for n in load_config(cfg).nodes] == [9, 1]
+    up = bringup(cfg)
+    try:
+        assert up.wait_line(r"^\[rec\] .*recording \[geometry_msgs", 40), up.output()
+        with ros_node("probe") as (node, ex):      # the recorder's subscription is in the graph
+            assert spin_until(ex, lambda: node.count_subscribers("/alice/dummy/pose") >= 1, 20)
+            assert spin_until(ex, lambda: False, 1.0) is False            # let the match settle
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=40) == 0, up.output()
+        out = up.output()
+        assert out.index("[up] alice stopped") < out.index("[up] rec stopped")
+    finally:
+        up.stop()
+    from indoor_loc.bag import read_bag
+    poses = [m for m in read_bag([bag]) if m.topic == "/alice/dummy/pose"]
+    assert len(poses) == 1          # the finish() output (stamp = number of accepted messages, 0)

@@ -183,10 +183,35 @@ def test_stage_bugs_are_counted_not_fatal(ros_domain):
         node = StageNode(_BuggyStage, context=probe.context)
         try:
             cb = node._callback("imu/data_raw")
-            cb(imu_to_msg(5, "f", [0.0, 0.0, 9.8]))
-            cb(_bad("nan_acc", 6))
+            cb(imu_to_msg(5, "f", [0.0, 0.0, 9.8]), {})
+            cb(_bad("nan_acc", 6), {})
             assert node.stage.diag.rejected == {"internal_error": 2, "nan": 1}
             d = diagnostics_from_msg(node.diagnostics_msg(7))["/buggy_node"]
-            assert d.level == 2 and d.values["rejected.internal_error"] == "2"
+            assert d.values["rejected.internal_error"] == "2" and d.level == 2    # ERROR while recent
+        finally:
+            node.destroy_node()
+
+
+def test_lost_messages_are_counted_and_warnings_follow_a_recent_window(ros_domain):
+    with ros_node("probe") as (probe, _):
+        node = StageNode(DummyStage, context=probe.context)
+        try:
+            writers = [1]
+            node.count_publishers = lambda topic: writers[0]           # one publisher in the graph
+            node._gaps["imu/data_raw"].publishers = 1
+            cb = node._callback("imu/data_raw")
+            for seq in (1, 2, 6, 7):                                  # 3 messages never arrived
+                cb(imu_to_msg(seq, "f", [0.0, 0.0, 9.8]), {"publication_sequence_number": seq})
+            cb(_bad("nan_acc", 8), {"publication_sequence_number": 8})
+            now = node.get_clock().now().nanoseconds
+            d = diagnostics_from_msg(node.diagnostics_msg(now))["/dummy_node"]
+            assert d.values["lost.imu/data_raw"] == "3" and d.values["lost.total"] == "3"
+            assert d.level == 1 and "3 input messages lost" in d.message and "1 messages rejected" in d.message
+            later = diagnostics_from_msg(node.diagnostics_msg(now + 11_000_000_000))["/dummy_node"]
+            assert later.level == 0 and later.values["lost.total"] == "3"     # counters stay, WARN does not
+            writers[0] = 2                                                    # a second writer joined:
+            node._gaps["imu/data_raw"].publishers = 1                         # seen at the gap, no guessing
+            cb(imu_to_msg(9, "f", [0.0, 0.0, 9.8]), {"publication_sequence_number": 20})
+            assert node.stage.diag.lost["imu/data_raw"] == 3
         finally:
             node.destroy_node()

@@ -137,3 +137,72 @@ def test_fix_waits_at_most_max_fix_delay(rng):
     outs = [stage.process("wifi/fix", fixes[i], 0) for i in (0, 3, 6)]    # no PDR at all: stamps 0, 3, 6 s
     assert [len(o) for o in outs] == [0, 0, 1]                             # the 0 s fix goes once 6 s arrive
     assert stage.kf is not None
+
+
+def test_invalid_fixes_are_rejected_and_the_path_survives(rng):
+    """Negative, singular or asymmetric fix covariances and fixes in another frame are rejected at
+    the adapter with a counted reason; the final smoothed path still comes out."""
+    t, true_xy, odoms, fixes = _walk(rng, n=60)
+    bad = {}
+    for k, (i, msg) in enumerate(sorted(fixes.items())[3:7]):
+        cov = np.array(msg.pose.covariance).reshape(6, 6)
+        if k == 0:
+            cov[0, 0] = -4.0                      # negative variance
+        elif k == 1:
+            cov[:2, :2] = 0.0                     # singular
+        elif k == 2:
+            cov[0, 1] = 3.0                       # not symmetric
+        else:
+            msg.header.frame_id = "walk01/odom"   # wrong frame
+        msg.pose.covariance = cov.ravel().tolist()
+        bad[i] = msg
+    fixes = {**fixes, **bad}
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+    poses, paths = _run(stage, odoms, fixes)
+    assert stage.diag.rejected["bad_covariance"] == 3 and stage.diag.rejected["wrong_frame"] == 1
+    assert "internal_error" not in stage.diag.rejected
+    assert len(paths) == 1 and len(path_from_msg(paths[0])[0]) > 50
+
+
+def test_a_failing_smoother_keeps_the_filtered_track(rng, monkeypatch):
+    """An estimator error in the smoother must not lose what was estimated: the segment falls back
+    to the filtered estimates, the error is counted."""
+    from indoor_loc.pipeline import pdr_kf_stage
+
+    t, true_xy, odoms, fixes = _walk(rng, n=40)
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+
+    def broken(track):
+        raise np.linalg.LinAlgError("Singular matrix")
+    monkeypatch.setattr(pdr_kf_stage, "rts_smooth", broken)
+    poses, paths = _run(stage, odoms, fixes)
+    assert len(paths) == 1 and stage.diag.rejected["smoother_failed"] >= 1
+    stamps, xy, _ = path_from_msg(paths[0])
+    assert len(stamps) > 30 and np.all(np.isfinite(xy))
+
+
+def test_long_runs_have_bounded_window_and_path(rng):
+    """Fixed-lag smoothing: however long the input, the smoother window and the path stay bounded
+    (the 8 h figures are in `indoor-loc bench live`)."""
+    n, dt = 4_000, 320_000_000                  # ≈ 21 min of 0.32 s hops, lag 10 s
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 10.0, "smooth_lag_s": 10.0,
+                                                            "path_max_poses": 1000, "step_length_m": STEP}))
+    x = y = yaw = 0.0
+    max_window = 0
+    for i in range(n):
+        t = 5_000_000_000 + i * dt
+        if i % 200 == 0:
+            yaw += 0.5
+        x += STEP * math.cos(yaw)
+        y += STEP * math.sin(yaw)
+        stage.process("pdr/odom", odom_to_msg(t, "u/odom", "u/base_link", x, y, yaw, np.eye(3) * 0.1, 2.0, 0.0), 0)
+        if i % 10 == 0:
+            fix = Fix(t + 1000, np.array([x, y]) + rng.normal(0, 2.0, 2), np.eye(2) * 4.0)
+            stage.process("wifi/fix", fix_to_msg(fix), 0)
+        max_window = max(max_window, len(stage._epochs))
+    assert stage.diag.rejected.total() == 0
+    assert max_window <= 2 * 10 / 0.32 + 2 * 10 / 3.2 + 5      # 2 lags of epochs (odom + fix epochs)
+    stamps, xy, _ = stage.smoothed()
+    assert len(stamps) == 1000 and np.all(np.diff(stamps) > 0)
+    assert stamps[-1] == 5_000_000_000 + (n - 1) * dt           # the newest poses are the ones kept
+    assert stage.smoother_runs > 100

@@ -250,8 +250,12 @@ def fixes_to_arrays(fixes: Sequence[Fix | None]) -> tuple[np.ndarray, np.ndarray
 
 
 def filter_batch(params: LinearPdrParams, steps: np.ndarray, dtheta: np.ndarray, z: np.ndarray,
-                 R: np.ndarray, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None) -> KfTrack:
-    """Linear KF over T epochs: steps (T,), dtheta (T,) rad, z (T, 2) m (NaN = no fix), R (T, 2, 2) m^2."""
+                 R: np.ndarray, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None,
+                 x0: np.ndarray | None = None, P0: np.ndarray | None = None) -> KfTrack:
+    """Linear KF over T epochs: steps (T,), dtheta (T,) rad, z (T, 2) m (NaN = no fix), R (T, 2, 2) m^2.
+
+    The prior is the initial state from ``xy0``/``pos_cov0``, or the full state ``x0`` (4,) and
+    ``P0`` (4, 4) when given (a window of a longer run starting from its filtered state)."""
     params.validate()
     steps = np.asarray(steps, float)
     dtheta = np.asarray(dtheta, float)
@@ -263,6 +267,8 @@ def filter_batch(params: LinearPdrParams, steps: np.ndarray, dtheta: np.ndarray,
                           f"{steps.shape}, {dtheta.shape}, {z.shape}, {R.shape}")
     st = initial_state(params, xy0=xy0, pos_cov0=pos_cov0)
     x, Pm = st.x, st.P
+    if x0 is not None and P0 is not None:
+        x, Pm = np.asarray(x0, float).reshape(4).copy(), np.asarray(P0, float).reshape(4, 4).copy()
     out = KfTrack(np.zeros((T, 4)), np.zeros((T, 4, 4)), np.zeros((T, 4)), np.zeros((T, 4, 4)),
                   np.zeros((T, 4, 4)), np.zeros(T, bool), np.full(T, np.nan))
     thr = params.gate_threshold

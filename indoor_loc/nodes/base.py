@@ -31,6 +31,7 @@ from typing import Any, Callable
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -56,6 +57,8 @@ QOS_PROFILES: dict[Qos, QoSProfile] = {
 }
 
 DIAGNOSTICS_PERIOD_S = 1.0
+#: How long a stopping node waits for subscribers to acknowledge its last outputs (s).
+FINISH_ACK_TIMEOUT_S = 2.0
 #: How often a multi-user node polls the ROS graph for users joining and leaving (s).
 DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
@@ -64,8 +67,55 @@ _BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
 _SPIN_PERIOD_S = 0.1
 
 
+#: History depth of the nodes' *subscriptions*, sized for bursts rather than for the steady rate:
+#: a replay at 5x, a scheduler hiccup on a loaded machine or a slow first callback must not make
+#: DDS overwrite messages the node has not taken yet (2000 IMU samples = 10 s at 200 Hz, ~1 MB).
+SUB_DEPTH = {Qos.SENSOR: 2000, Qos.RELIABLE: 1000, Qos.BEST_EFFORT: 100}
+
+
 def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
+
+
+def subscription_qos(qos: Qos) -> QoSProfile:
+    """The contract QoS of an input, with the burst-sized depth of :data:`SUB_DEPTH`."""
+    base = QOS_PROFILES[qos]
+    depth = SUB_DEPTH.get(qos, base.depth)
+    return QoSProfile(history=base.history, depth=max(depth, base.depth), reliability=base.reliability,
+                      durability=base.durability)
+
+
+class SequenceGaps:
+    """Messages lost on the way to a subscription, from gaps in the publisher's sequence numbers
+    (``publication_sequence_number`` of the message info; DDS numbers each writer's samples 1, 2,
+    3...). rclpy does not say which publisher a message came from, so gaps are counted only while
+    the topic has a single publisher (``publishers`` is refreshed by the caller)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.publishers = 1
+
+    def gap(self, info: Any, recount: Callable[[], int] | None = None) -> int:
+        """Messages missing before this one; ``recount()`` (the topic's publisher count now) is
+        asked before a gap is reported, so a publisher that joined since the last refresh (its
+        numbers interleave) is not mistaken for a loss."""
+        n = self._gap(info)
+        if n and recount is not None:
+            self.publishers = recount()
+            if self.publishers != 1:
+                self.last = None
+                return 0
+        return n
+
+    def _gap(self, info: Any) -> int:
+        seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if not seq or self.publishers != 1:
+            self.last = None if self.publishers != 1 else self.last
+            return 0
+        last, self.last = self.last, seq
+        if last is None or seq <= last:          # first message, or a restarted publisher
+            return 0
+        return seq - last - 1
 
 
 def _ros_value(value: Any) -> Any:
@@ -90,6 +140,7 @@ class StageNode(Node):
     def __init__(self, stage_cls: type[Stage], **node_kwargs: Any) -> None:
         super().__init__(stage_cls.NODE_NAME, **node_kwargs)
         self._stage_cls = stage_cls
+        self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> sequence-gap counter
         values = self._declare_params(stage_cls.PARAMS)
         params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
         self.stage: Stage = stage_cls(params, namespace=self.get_namespace())
@@ -97,7 +148,7 @@ class StageNode(Node):
         self._pubs = {p.topic: self.create_publisher(msg_class(p.type), p.topic, qos_profile(p.qos))
                       for p in self.stage.outputs()}
         self._subs = [] if self.stage.MULTI_USER else [
-            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), qos_profile(p.qos))
+            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), subscription_qos(p.qos))
             for p in self.stage.inputs()]
         # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
         self.user_subs: dict[str, list] = {}
@@ -110,6 +161,7 @@ class StageNode(Node):
             self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
+        self._refresh_publisher_counts()
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
         self.get_logger().info(
             f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
@@ -195,7 +247,7 @@ class StageNode(Node):
         ns = namespace_of_user(user)
         self.user_subs[user] = [
             self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
-                                     qos_profile(p.qos)) for p in self.stage.inputs()]
+                                     subscription_qos(p.qos)) for p in self.stage.inputs()]
         for port in self.stage.user_outputs():      # ready (and matched) before the first output
             self._publisher(port.topic.format(user=user))
         self._user_seen[user] = self._monotonic()
@@ -236,12 +288,27 @@ class StageNode(Node):
                 self._user_seen.pop(user, None)
 
     # -- messages ----------------------------------------------------------------------------------
-    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any], None]:
-        def cb(msg: Any) -> None:
+    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
+        resolved = join_ns(namespace_of_user(user), topic) if user else topic
+        gaps = self._gaps.setdefault(resolved, SequenceGaps())
+
+        def recount() -> int:
+            return self.count_publishers(resolved)
+
+        def cb(msg: Any, info: Any) -> None:
             now_ns = self.get_clock().now().nanoseconds
+            lost = gaps.gap(info, recount)
+            if lost:
+                self.stage.diag.count_lost(topic, lost, now_ns)
+                self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
+                                          f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
             self._publish(self.stage.process(topic, msg, now_ns, user))
             self._log_rejections()
         return cb
+
+    def _refresh_publisher_counts(self) -> None:
+        for topic, gaps in self._gaps.items():
+            gaps.publishers = self.count_publishers(topic)
 
     def _publisher(self, topic: str):
         pub = self._pubs.get(topic)
@@ -274,6 +341,7 @@ class StageNode(Node):
                 throttle_duration_sec=5.0)
 
     def _on_timer(self) -> None:
+        self._refresh_publisher_counts()
         now_ns = self.get_clock().now().nanoseconds
         self._publish(self.stage.run_tick(now_ns))
         self._log_rejections()
@@ -285,6 +353,11 @@ class StageNode(Node):
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
         self._publish(self.stage.run_finish())
+        # the end-of-input outputs (a final smoothed path) must reach reliable subscribers before
+        # the process ends: wait (bounded) until every reliable publisher's messages are acked
+        for pub in self._pubs.values():
+            if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
+                pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S))
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:

@@ -37,6 +37,8 @@ from indoor_loc.errors import BagError, ConfigError
 from indoor_loc.nodes.base import run_option_node
 
 NODE_NAME = "player"
+#: --wait-for-subscribers: the subscriber counts must be stable this long before playing (s).
+SUBSCRIBERS_SETTLE_S = 0.5
 PUB_DEPTH = 1000
 
 
@@ -125,10 +127,17 @@ class PlayerNode(Node):
         self.published = 0
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
-        """Block until every played topic has at least one subscriber (or the timeout)."""
+        """Block until every played topic has at least one subscriber and the subscriber counts
+        have not changed for ``SUBSCRIBERS_SETTLE_S`` (a recorder with ``-a`` subscribes to the
+        topics one after another, after the nodes did), or until the timeout."""
         end = time.monotonic() + timeout_s
+        last: list[int] | None = None
+        since = time.monotonic()
         while time.monotonic() < end and rclpy.ok(context=self.context):
-            if all(p.get_subscription_count() > 0 for p in self._pubs.values()):
+            counts = [p.get_subscription_count() for p in self._pubs.values()]
+            if counts != last:
+                last, since = counts, time.monotonic()
+            elif all(c > 0 for c in counts) and time.monotonic() - since >= SUBSCRIBERS_SETTLE_S:
                 return True
             time.sleep(0.02)
         waiting = [t for t, p in self._pubs.items() if p.get_subscription_count() == 0]

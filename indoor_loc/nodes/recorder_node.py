@@ -20,11 +20,14 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -32,13 +35,16 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from indoor_loc.bag import BagWriter
 from indoor_loc.bag.writer import DEFAULT_CHUNK_SIZE
 from indoor_loc.bag.schemas import qos_dict
-from indoor_loc.contract import msg_class
+from indoor_loc.contract import Qos, msg_class
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.base import run_option_node
+from indoor_loc.nodes.base import DIAGNOSTICS_PERIOD_S, SequenceGaps, qos_profile, run_option_node
 from indoor_loc.output_paths import check_output
+from msg_adapters.diagnostics import RECENT_NS, status_array
 
 NODE_NAME = "recorder"
-SUB_DEPTH = 1000       # queue per subscription: a slow disk must not drop messages at 200 Hz
+SUB_DEPTH = 5000       # DDS history per subscription: bursts (replays at 5x, a busy CPU) are absorbed here
+#: The writer thread flushes the open chunk this often at most when asked (s); see --flush-interval.
+_WRITER_IDLE_S = 0.05
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,8 +109,63 @@ def is_hidden(topic: str) -> bool:
     return any(part.startswith("_") for part in topic.split("/") if part)
 
 
+class _WriterThread(threading.Thread):
+    """Owns the BagWriter: subscription callbacks only append to a deque (thread-safe, no lock,
+    no serialisation or compression on the DDS thread); this thread writes, flushes and closes."""
+
+    def __init__(self, writer: BagWriter) -> None:
+        super().__init__(name="recorder-writer", daemon=True)
+        self.writer = writer
+        self.queue: deque[tuple] = deque()
+        self.wake = threading.Event()
+        self.stopping = False
+        self.written = 0
+        self.max_backlog = 0
+        self.error: BaseException | None = None
+        self.topic_errors: list[str] = []
+
+    def put(self, item: tuple) -> None:
+        self.queue.append(item)
+        n = len(self.queue)
+        if n > self.max_backlog:
+            self.max_backlog = n
+        if n == 1:
+            self.wake.set()
+
+    def run(self) -> None:
+        q = self.queue
+        try:
+            while True:
+                while q:
+                    item = q.popleft()
+                    kind = item[0]
+                    if kind == "m":
+                        self.writer.write_raw(item[1], item[2], item[3], publish_ns=item[4])
+                        self.written += 1
+                    elif kind == "t":
+                        try:
+                            self.writer.add_topic(item[1], item[2], qos_profiles=item[3], topic_type_hash=item[4])
+                        except BagError as err:
+                            self.topic_errors.append(f"{item[1]}: cannot be recorded: {err}")
+                    elif kind == "f":
+                        self.writer.flush()
+                if self.stopping:
+                    return
+                self.wake.wait(_WRITER_IDLE_S)
+                self.wake.clear()
+        except BaseException as err:  # noqa: BLE001 - reported by the node, never silently
+            self.error = err
+
+    def stop(self) -> None:
+        self.stopping = True
+        self.wake.set()
+        self.join()
+
+
 class RecorderNode(Node):
-    """Subscribes (raw) to the selected topics and appends every message to a :class:`BagWriter`."""
+    """Subscribes (raw) to the selected topics and appends every message to a :class:`BagWriter`
+    through a writer thread. Messages lost before reaching the recorder are counted from the
+    publishers' sequence numbers and reported (log and ``/diagnostics`` WARN)."""
 
     def __init__(self, writer: BagWriter, *, topics: list[str] | None, poll_s: float = 1.0,
                  flush_interval_s: float = 1.0, exclude: str = "", include_hidden: bool = False,
@@ -117,10 +178,17 @@ class RecorderNode(Node):
         self._subs: dict[str, Any] = {}
         self._reported: set[tuple[str, str]] = set()
         self.received = 0
+        self.lost: dict[str, int] = {}
+        self._gaps: dict[str, SequenceGaps] = {}
+        self._thread = _WriterThread(writer)
+        self._thread.start()
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
+        self._last_loss_ns: int | None = None
         self._poll()
         self.create_timer(poll_s, self._poll)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         if flush_interval_s > 0:
-            self.create_timer(flush_interval_s, self.writer.flush)
+            self.create_timer(flush_interval_s, lambda: self._thread.put(("f",)))
         what = "all topics" if self._wanted is None else ", ".join(self._wanted)
         self.get_logger().info(f"recording {what} to {writer.path}")
 
@@ -130,6 +198,30 @@ class RecorderNode(Node):
             return
         self._reported.add((topic, text))
         (self.get_logger().warning if warn else self.get_logger().info)(f"{topic}: {text}")
+
+    def close(self) -> None:
+        """Write what is queued and stop the writer thread (the caller closes the BagWriter)."""
+        self._thread.stop()
+        if self._thread.error is not None:
+            raise BagError(f"writing {self.writer.path} failed: {self._thread.error}") from self._thread.error
+
+    def diagnostics(self, now_ns: int) -> DiagnosticArray:
+        """The recorder's DiagnosticStatus: messages received / written, writer backlog, losses."""
+        lost = sum(self.lost.values())
+        recent = lost and self._last_loss_ns is not None and now_ns - self._last_loss_ns <= RECENT_NS
+        values = {"topics": str(len(self._subs)), "received": str(self.received), "written": str(self._thread.written),
+                  "backlog": str(len(self._thread.queue)), "max_backlog": str(self._thread.max_backlog),
+                  "lost.total": str(lost), **{f"lost.{t}": str(n) for t, n in sorted(self.lost.items())},
+                  "file": str(self.writer.path)}
+        level = 2 if self._thread.error is not None else (1 if recent else 0)
+        message = (f"writer failed: {self._thread.error}" if self._thread.error is not None
+                   else f"{lost} messages lost before reaching the recorder" if recent else "ok")
+        return status_array(self.get_fully_qualified_name(), level, message, values, now_ns)
+
+    def _publish_diagnostics(self) -> None:
+        for topic in self._gaps:
+            self._gaps[topic].publishers = self.count_publishers(topic)
+        self._diag_pub.publish(self.diagnostics(self.get_clock().now().nanoseconds))
 
     def _poll(self) -> None:
         types = dict(self.get_topic_names_and_types())
@@ -183,23 +275,29 @@ class RecorderNode(Node):
             if h is not None and str(h).startswith("RIHS"):
                 type_hash = str(h)
                 break
-        try:
-            self.writer.add_topic(topic, type_name, qos_profiles=[offered_qos(p) for p in profiles],
-                                  topic_type_hash=type_hash or None)
-        except BagError as err:
-            self._report(topic, f"cannot be recorded: {err}", warn=True)
-            return
+        self._thread.put(("t", topic, type_name, [offered_qos(p) for p in profiles], type_hash or None))
         qos = subscription_qos(profiles)
         self._subs[topic] = self.create_subscription(cls, topic, self._callback(topic), qos, raw=True)
         self._report(topic, f"recording [{type_name}] ({_policy_name(qos.reliability)}, "
                             f"{_policy_name(qos.durability)}, {len(profiles)} publisher(s))")
 
     def _callback(self, topic: str) -> Callable[[bytes, Any], None]:
-        def cb(data: bytes, info: Any) -> None:
-            now = self.get_clock().now().nanoseconds
+        gaps = self._gaps.setdefault(topic, SequenceGaps())
+        gaps.publishers = self.count_publishers(topic)
+        put = self._thread.put
+        clock = self.get_clock()
+
+        def cb(data: bytes, info: Any) -> None:       # enqueue only: the writer thread does the rest
+            now = clock.now().nanoseconds
             src = info.get("source_timestamp") if isinstance(info, dict) else None
-            self.writer.write_raw(topic, data, now, publish_ns=src if src else now)
+            put(("m", topic, data, now, src if src else now))
             self.received += 1
+            lost = gaps.gap(info, lambda: self.count_publishers(topic))
+            if lost:
+                self.lost[topic] = self.lost.get(topic, 0) + lost
+                self._last_loss_ns = now
+                self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching the recorder "
+                                          f"({sum(self.lost.values())} so far)", throttle_duration_sec=5.0)
         return cb
 
 
@@ -231,10 +329,14 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
+            node.close()
         writer.close()
         rclpy.try_shutdown()
     counts = writer.topic_counts()
     print(f"recorded {sum(counts.values())} messages on {len(counts)} topics to {output}", file=sys.stderr)
+    if node is not None and node.lost:
+        print(f"LOST before reaching the recorder: {sum(node.lost.values())} messages ("
+              + ", ".join(f"{t} {n}" for t, n in sorted(node.lost.items())) + ")", file=sys.stderr)
     for topic, n in sorted(counts.items()):
         print(f"  {topic}: {n}", file=sys.stderr)
     return 0

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -23,7 +24,8 @@ import numpy as np
 from indoor_loc.params import field, require
 from indoor_loc.contract import Qos
 from indoor_loc.measurements import Fix
-from indoor_loc.fusion.linear_pdr import (LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
+from indoor_loc.errors import ConfigError
+from indoor_loc.fusion.linear_pdr import (KfTrack, LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           rts_smooth)
 from msg_adapters.odom import PdrOdomReader
 from msg_adapters.path import path_to_msg
@@ -42,12 +44,18 @@ class PdrKfStageParams:
     max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
     max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
     smooth_period_s: float = field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
+    smooth_lag_s: float = field(60.0, "fixed-lag smoother window (s of stamp time): poses older than this are final and "
+                                        "never re-smoothed, so the cost per update stays bounded in long runs")
+    path_max_poses: int = field(20000, "pdr_kf/path keeps the newest this many poses (≈ 1.8 h at 0.32 s hops); older "
+                                         "ones leave the message (bounded size and memory)")
     frame_id: str = field("map", "frame of the estimates")
 
     def validate(self) -> None:
         n = type(self).__name__
         require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
+        require(self.smooth_lag_s > 0, n, "smooth_lag_s", "> 0", self.smooth_lag_s)
+        require(self.path_max_poses >= 1, n, "path_max_poses", ">= 1", self.path_max_poses)
         require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
         require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
         require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
@@ -68,9 +76,15 @@ class PdrKfStage(Stage):
         super().__init__(params, namespace=namespace)
         self.kf: LinearPdrKf | None = None
         self._odom = PdrOdomReader(params.step_length_m)
-        # smoother segments, each (initial fix, epochs); an epoch is [stamp, steps, dtheta, fix or None]
-        self._segments: list[tuple[Fix, list[list]]] = []
+        # Fixed-lag smoothing of the current segment: the epochs still inside the window, each
+        # [stamp, steps, dtheta, fix or None, online state x (4,)], and the filtered state (x, P)
+        # just before the window's first epoch. Epochs leaving the window are final: their
+        # smoothed poses go to ``_final`` (stamp, x, y, yaw), bounded by path_max_poses.
         self._epochs: list[list] = []
+        self._prior: tuple[np.ndarray, np.ndarray] | None = None
+        self._final: deque[tuple[int, float, float, float]] = deque(maxlen=params.path_max_poses)
+        self.n_epochs = 0
+        self.smoother_runs = 0
         self._rejected_in_row = 0
         self.restarts = 0
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
@@ -94,15 +108,23 @@ class PdrKfStage(Stage):
         if interval is None or self.kf is None:
             return outs
         self.kf.predict(interval.steps, interval.dtheta, stamp_ns=od.stamp_ns)
-        self._epochs.append([od.stamp_ns, interval.steps, interval.dtheta, None])
+        self._add_epoch(od.stamp_ns, interval.steps, interval.dtheta)
         outs.append(("pdr_kf/pose", self._pose_msg(od.stamp_ns)))
         return outs + self._maybe_smooth(od.stamp_ns)
+
+    def _add_epoch(self, stamp_ns: int, steps: float, dtheta: float) -> None:
+        assert self.kf is not None
+        self._epochs.append([stamp_ns, steps, dtheta, None, self.kf.state.x.copy()])
+        self.n_epochs += 1
+        lag_ns = int(self.params.smooth_lag_s * 1e9)
+        if stamp_ns - self._epochs[0][0] > 2 * lag_ns:     # amortised: every lag, O(2 lag) work
+            self._smooth_window(finalize_before=stamp_ns - lag_ns)
 
     def _on_fix(self, msg, recv_ns: int) -> list[Output]:
         """Fixes wait until PDR has caught up with their stamp (the stepometer publishes each hop
         about half a window late), so each is applied at its place in stamp order; one older than
         the newest odom, or waiting longer than ``max_fix_delay_s``, is applied at once."""
-        fix = fix_from_msg(msg)
+        fix = fix_from_msg(msg, frame_id=self.params.frame_id)   # bad_covariance, wrong_frame
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
         last_odom = self._odom.last_stamp_ns
@@ -121,10 +143,11 @@ class PdrKfStage(Stage):
             return ("pdr_kf/pose", self._pose_msg(fix.stamp_ns))
         if self._epochs[-1][3] is not None:   # second fix in one PDR interval: a zero-step epoch
             self.kf.predict(0.0, 0.0, stamp_ns=fix.stamp_ns)
-            self._epochs.append([fix.stamp_ns, 0.0, 0.0, None])
+            self._add_epoch(fix.stamp_ns, 0.0, 0.0)
         if self.kf.update(fix):
             self._rejected_in_row = 0
             self._epochs[-1][3] = fix
+            self._epochs[-1][4] = self.kf.state.x.copy()
         else:
             self._rejected_in_row += 1
             limit = self.params.max_rejected_fixes
@@ -134,10 +157,14 @@ class PdrKfStage(Stage):
         return ("pdr_kf/pose", self._pose_msg(fix.stamp_ns))
 
     def _start(self, fix: Fix) -> None:
-        """(Re)start the filter at a fix: a new smoother segment."""
+        """(Re)start the filter at a fix: the previous segment becomes final, a new one begins."""
+        if self._epochs:
+            self._smooth_window(finalize_before=None)
         self.kf = LinearPdrKf(self.params.kf_params(), xy0=fix.xy, pos_cov0=fix.cov, stamp_ns=fix.stamp_ns)
-        self._epochs = [[fix.stamp_ns, 0.0, 0.0, None]]
-        self._segments.append((fix, self._epochs))
+        st = self.kf.state
+        self._prior = (st.x.copy(), st.P.copy())
+        self._epochs = [[fix.stamp_ns, 0.0, 0.0, None, st.x.copy()]]
+        self.n_epochs += 1
         self._rejected_in_row = 0
 
     def _pose_msg(self, stamp_ns: int):
@@ -154,23 +181,62 @@ class PdrKfStage(Stage):
         self._last_smooth_ns = now_ns
         return self._smoothed()
 
-    def smoothed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """RTS-smoothed history: stamps (T,), xy (T, 2), heading (T,) rad (from the step vector)."""
-        parts = []
-        for init, epochs in self._segments:
-            stamps = np.array([e[0] for e in epochs], np.int64)
-            steps = np.array([e[1] for e in epochs], float)
-            dtheta = np.array([e[2] for e in epochs], float)
-            z, R = fixes_to_arrays([e[3] for e in epochs])
-            # gate already decided online: the batch run applies exactly the fixes kept online
+    def _run_window(self) -> tuple[np.ndarray, KfTrack | None]:
+        """Smooth the window: filter from its prior with the fixes kept online (the gate already
+        decided), then RTS (seed 004, eqs. 23-25). Returns the smoothed states (T, 4) and the
+        track; if the estimator fails (a singular matrix...), the online filtered states are
+        returned instead and ``smoother_failed`` is counted: what was estimated is never lost."""
+        ep = self._epochs
+        try:
+            assert self._prior is not None
+            z, R = fixes_to_arrays([e[3] for e in ep])
             params = replace(self.params.kf_params(), gate=False)
-            track = filter_batch(params, steps, dtheta, z, R, xy0=init.xy, pos_cov0=init.cov)
+            track = filter_batch(params, np.array([e[1] for e in ep], float), np.array([e[2] for e in ep], float),
+                                 z, R, x0=self._prior[0], P0=self._prior[1])
             xs, _ = rts_smooth(track)
-            parts.append((stamps, xs[:, :2], np.arctan2(xs[:, 3], xs[:, 2])))
-        if not parts:
-            return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
-        return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                np.concatenate([p[2] for p in parts]))
+            if not np.all(np.isfinite(xs)):
+                raise np.linalg.LinAlgError("non-finite smoothed states")
+            self.smoother_runs += 1
+            return xs, track
+        except (np.linalg.LinAlgError, ValueError, ConfigError) as err:
+            self._reject("smoother_failed", f"RTS over {len(ep)} epochs: {type(err).__name__}: {err}; "
+                                            "the filtered estimates are kept")
+            return np.array([e[4] for e in ep], float).reshape(-1, 4), None
+
+    def _smooth_window(self, finalize_before: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """Smooth the window; epochs stamped before ``finalize_before`` (all if None) become final.
+        Returns the smoothed states and stamps of the epochs still in the window."""
+        if not self._epochs:
+            return np.zeros((0, 4)), np.zeros(0, np.int64)
+        xs, track = self._run_window()
+        stamps = np.array([e[0] for e in self._epochs], np.int64)
+        k = len(stamps) if finalize_before is None else int(np.searchsorted(stamps, finalize_before))
+        k = min(k, len(stamps) - 1) if finalize_before is not None else k   # keep >= 1 epoch as the window
+        for i in range(k):
+            self._final.append((int(stamps[i]), float(xs[i, 0]), float(xs[i, 1]),
+                                float(np.arctan2(xs[i, 3], xs[i, 2]))))
+        if k > 0:
+            if track is not None:
+                self._prior = (track.x_filt[k - 1].copy(), track.P_filt[k - 1].copy())
+            else:       # no batch track: restart the window from the online state (covariance kept)
+                assert self._prior is not None
+                self._prior = (np.asarray(self._epochs[k - 1][4], float).copy(), self._prior[1])
+            self._epochs = self._epochs[k:]
+        return xs[k:], stamps[k:]
+
+    def smoothed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The path: final poses (fixed-lag smoothed, at most ``path_max_poses``) then the window
+        smoothed now: stamps (T,), xy (T, 2), heading (T,) rad (from the step vector)."""
+        xs, stamps = self._smooth_window(finalize_before=-1) if self._epochs else (np.zeros((0, 4)),
+                                                                                     np.zeros(0, np.int64))
+        fin = list(self._final)
+        keep = max(0, self.params.path_max_poses - len(stamps))
+        fin = fin[len(fin) - keep:] if keep < len(fin) else fin
+        xs, stamps = xs[-self.params.path_max_poses:], stamps[-self.params.path_max_poses:]
+        f = np.array(fin, float).reshape(-1, 4)
+        return (np.concatenate([np.array([r[0] for r in fin], np.int64), stamps]),
+                np.concatenate([f[:, 1:3], xs[:, :2]]),
+                np.concatenate([f[:, 3], np.arctan2(xs[:, 3], xs[:, 2])]))
 
     def _smoothed(self) -> list[Output]:
         stamps, xy, yaw = self.smoothed()
@@ -186,7 +252,8 @@ class PdrKfStage(Stage):
         if self.kf is None:
             return {"initialised": "false (waiting for the first wifi/fix)"}
         st = self.kf.state
-        return {"initialised": "true", "epochs": str(sum(len(e) for _, e in self._segments)),
+        return {"initialised": "true", "epochs": str(self.n_epochs), "window_epochs": str(len(self._epochs)),
+                "path_poses": str(len(self._final) + len(self._epochs)),
                 "fixes_used_in_segment": str(st.n_updates), "fixes_gated_out_in_segment": str(st.n_rejected),
                 "restarts": str(self.restarts),
                 "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}"}

@@ -68,6 +68,16 @@ class StageDiagnostics:
     rejected: Counter = field(default_factory=Counter)   # reason -> count
     last_error: str = ""
     last_error_reason: str = ""
+    lost: Counter = field(default_factory=Counter)        # input topic -> messages lost before us
+    last_reject_ns: int | None = None   # node clock at the latest rejection (recent-window health)
+    last_loss_ns: int | None = None     # node clock when a loss was last seen
+    last_internal_ns: int | None = None  # node clock of the latest internal error
+    now_ns: int | None = None           # node clock of the message or tick being handled
+
+    def count_lost(self, topic: str, n: int, now_ns: int) -> None:
+        """``n`` messages on ``topic`` never reached the stage (publication sequence gap)."""
+        self.lost[topic] += n
+        self.last_loss_ns = now_ns
     #: wall-clock processing time of the latest messages, s (bounded window): the node's per-update latency
     process_s: deque = field(default_factory=lambda: deque(maxlen=20000))
 
@@ -83,6 +93,9 @@ class StageDiagnostics:
         for reason, n in sorted(self.rejected.items()):
             out[f"rejected.{reason}"] = str(n)
         out["rejected.total"] = str(sum(self.rejected.values()))
+        for topic, n in sorted(self.lost.items()):
+            out[f"lost.{topic}"] = str(n)
+        out["lost.total"] = str(sum(self.lost.values()))
         if self.process_s:
             t = np.fromiter(self.process_s, float) * 1e3
             out["process_ms.p50"] = f"{np.percentile(t, 50):.2f}"
@@ -186,6 +199,7 @@ class Stage:
         stats.count += 1
         stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns
         stats.last_ns = recv_ns
+        self.diag.now_ns = recv_ns
         t0 = time.perf_counter()
         try:
             outs = handler(msg, recv_ns)
@@ -204,6 +218,7 @@ class Stage:
     def run_tick(self, now_ns: int) -> list[Output]:
         """:meth:`tick` for drivers: an exception is counted as ``internal_error`` (never escapes
         the timer or aborts an offline run); what the stage published before is kept."""
+        self.diag.now_ns = now_ns
         return self._guarded("tick", lambda: self.tick(now_ns))
 
     def run_finish_user(self, user: str) -> list[Output]:
@@ -228,3 +243,6 @@ class Stage:
         self.diag.rejected[reason] += 1
         self.diag.last_error = detail
         self.diag.last_error_reason = reason
+        self.diag.last_reject_ns = self.diag.now_ns
+        if reason == "internal_error":
+            self.diag.last_internal_ns = self.diag.now_ns
