@@ -45,7 +45,8 @@ def ros_domain(monkeypatch) -> int:
     first = int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1"))
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     base = first + (int(worker[2:]) if worker[2:].isdigit() else 0) * 13
-    domain = base + random.Random(os.getpid() ^ id(monkeypatch)).randrange(13)
+    # Fast DDS refuses domain ids above 232 (its port numbers overflow): wrap into 1..232.
+    domain = 1 + (base - 1 + random.Random(os.getpid() ^ id(monkeypatch)).randrange(13)) % 232
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return domain
