@@ -126,6 +126,7 @@ class PlayerNode(Node):
         self._clock_pub = (self.create_publisher(Clock, "/clock", QoSProfile(depth=10)) if self.clock_hz > 0
                            else None)
         self.published = 0
+        self.play_s = 0.0                # wall time of the playback (after any waiting)
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Block until every played topic has at least one subscriber and the subscriber counts
@@ -188,8 +189,10 @@ class PlayerNode(Node):
         return True
 
     def play(self) -> None:
+        t0 = time.monotonic()
         while self.play_once() and self.loop:
             self.get_logger().info("looping")
+        self.play_s = time.monotonic() - t0
         for pub in list(self._pubs.values()) + ([self._clock_pub] if self._clock_pub else []):
             if rclpy.ok(context=self.context):
                 pub.wait_for_all_acked(Duration(seconds=2.0))
@@ -230,7 +233,7 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
                 check_stop()
                 time.sleep(min(left, 0.05))
         node.play()
-        print(f"played {node.published} messages", file=sys.stderr)
+        print(f"played {node.published} messages in {node.play_s:.2f} s", file=sys.stderr)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
