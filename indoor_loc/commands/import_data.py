@@ -132,7 +132,8 @@ def import_putmc(args: argparse.Namespace) -> int:
 
 def putmc_graph(ds, survey, out: Path) -> Path:
     """The floor's building graph from ``map.png`` (skeleton of the free space inside the building
-    envelope, seeded at the survey scan positions), written to ``OUT/graph.yaml``."""
+    envelope, seeded at the survey scan positions; the plan's light strokes — door leaves, glazing —
+    are passable, see :mod:`indoor_loc.graph.from_image`), written to ``OUT/graph.yaml``."""
     from indoor_loc.datasets.putmc import PUTMC_SCALE_PX_PER_M
     from indoor_loc.graph.from_image import PlanParams, read_plan, skeleton_graph
     from indoor_loc.graph.io import save_graph
@@ -141,7 +142,8 @@ def putmc_graph(ds, survey, out: Path) -> Path:
     g = skeleton_graph(read_plan(ds.map_png()), params, seeds_xy=survey.positions)
     path = save_graph(g, out / "graph.yaml", source={
         "tool": "indoor-loc import putmc", "image": "map.png", "px_per_m": PUTMC_SCALE_PX_PER_M,
-        "clearance_m": params.clearance_m, "envelope_gap_m": params.envelope_gap_m, "seeds": "survey scan positions"})
+        "wall_threshold": params.wall_threshold, "clearance_m": params.clearance_m,
+        "envelope_gap_m": params.envelope_gap_m, "seeds": "survey scan positions"})
     print(f"graph:     {path} ({g.n_nodes} nodes, {g.n_links} links, {g.link_len.sum():.0f} m)")
     return path
 

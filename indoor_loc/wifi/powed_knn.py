@@ -47,12 +47,21 @@ test walk enters a part of its floor the survey walks did not cover but the floo
 
 Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ(D₁)² I, where D₁ is the
 distance of the best match: a poor best match means a scan the map does not explain, and its
-error is larger (correlation 0.6–0.75 between D₁ and the error on three of four ms_site2 floors).
-σ(D) = max(cov_floor_m, a + b·D) / sqrt(π/2) is calibrated on the map itself at ``fit`` time by
-leave-one-source-out cross-validation (each map scan positioned against the map without its own
-walk; a, b = the least-squares line of those errors on D₁; for a 2-D isotropic Gaussian the mean
-error is σ·sqrt(π/2)). So the covariance follows each building's own accuracy instead of constants
-fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan out instead.
+error tends to be larger. σ(D) is calibrated on the map itself at ``fit`` time by
+leave-one-source-out cross-validation: each map scan is positioned against the map without its own
+walk, the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
+40 scans each), and in each bin σ is set so that the ``cov_quantile`` ellipse of an isotropic 2-D
+Gaussian holds that share of the bin's cross-validated errors: σ = q-quantile(error) /
+sqrt(−2 ln(1 − q)); σ is made non-decreasing in D₁ and interpolated between bin centres (constant
+beyond the end ones). Positioning errors are heavy-tailed (a scan matched to the wrong part of a
+mall is tens of metres off), so a σ fitted to the mean error — or a line in D₁ — leaves the 95 %
+ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
+covariance honest where a downstream filter gates on it, at the price of a 50 % ellipse that holds
+more than half of the truths. The calibration follows each building's own accuracy instead of
+constants fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan
+out instead. Cross-validation cannot see what the survey never covered: a user walking where no
+survey walk went is positioned on the nearest surveyed stretch and its error exceeds the ellipse
+(on ms_site2 F3 most test scans are more than 3 m from every map scan).
 """
 from __future__ import annotations
 
@@ -88,6 +97,9 @@ class PowedKnnParams:
                                           "cross-validation at fit time")
     cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
                                          "(bounds the fit time on large maps)")
+    cov_quantile: float = field(0.95, "the ellipse of this probability is calibrated on the cross-validated errors")
+    cov_bins: int = field(5, "at most this many bins of the best-match distance in the calibration (each of at "
+                             "least 40 cross-validated scans)")
     offset_gain: float = field(0.2, "online device RSS offset: after each fix the offset moves by this fraction "
                                     "of the median residual against the neighbours (0 = off)")
     offset_max_db: float = field(20.0, "bound on the device RSS offset (dB)")
@@ -110,6 +122,9 @@ class PowedKnnParams:
         require(int(self.offset_min_aps) >= 1, n, "offset_min_aps", "an integer >= 1", self.offset_min_aps)
         require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
                 self.cov_calibration_scans)
+        require(math.isfinite(self.cov_quantile) and 0.0 < self.cov_quantile < 1.0, n, "cov_quantile", "in (0, 1)",
+                self.cov_quantile)
+        require(int(self.cov_bins) >= 1, n, "cov_bins", "an integer >= 1", self.cov_bins)
         require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
         require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
@@ -146,7 +161,7 @@ class PowedKnn(Positioner):
         self._floors: np.ndarray = np.zeros(0)
         self._floor_names: dict[float, str] = {}
         self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
-        self.sigma_line = (self.params.cov_floor_m * math.sqrt(math.pi / 2), 0.0)   # (a, b): mean error = a + b D
+        self.sigma_table = (np.zeros(1), np.full(1, self.params.cov_floor_m))   # (D1 bin centres, sigma per bin)
         self.calibration: dict[str, Any] = {}
         self._last_query = (np.zeros(0, np.int64), np.zeros(0))
         self.offset_db = 0.0                          # online device RSS offset (state; reset() clears it)
@@ -181,14 +196,14 @@ class PowedKnn(Positioner):
         ceiling = np.array([val[self._z == z].max(axis=0) for z in self._floors]).reshape(len(self._floors), -1)
         self._home = np.where(ceiling.max(axis=0) > 0, ceiling.argmax(axis=0), -1) if len(ceiling) else \
             np.zeros(0, np.int64)
-        self.sigma_line = (p.cov_floor_m * math.sqrt(math.pi / 2), 0.0)
+        self.sigma_table = (np.zeros(1), np.full(1, p.cov_floor_m))
         self.calibration = {}
         if p.cov_calibration:
             self._calibrate(val, list(radio_map.source))
         return self
 
     def _calibrate(self, val: np.ndarray, source: list[str]) -> None:
-        """Leave-one-source-out errors of the map's own scans -> the line mean error = a + b D1."""
+        """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance."""
         p = self.params
         # leave one walk (source) out; a map from one source (a survey) leaves one scan out
         src = np.array(source) if len(set(source)) >= 2 else np.arange(len(source)).astype(str)
@@ -213,16 +228,21 @@ class PowedKnn(Positioner):
         ok = np.isfinite(err)
         if ok.sum() < 10:
             return
-        b, a = np.polyfit(d1[ok], err[ok], 1)
-        b = max(float(b), 0.0)
-        a = float(np.mean(err[ok]) - b * np.mean(d1[ok]))
-        self.sigma_line = (a, b)
-        self.calibration = {"scans": int(ok.sum()), "mean_error_m": float(np.mean(err[ok])), "a_m": a, "b_m": b}
+        d1, err = d1[ok], err[ok]
+        order = np.argsort(d1, kind="stable")
+        n_bins = int(np.clip(len(order) // 40, 1, int(p.cov_bins)))
+        bins = np.array_split(order, n_bins)
+        centres = np.array([float(np.mean(d1[b])) for b in bins])
+        scale = math.sqrt(-2.0 * math.log(1.0 - p.cov_quantile))
+        sig = np.maximum.accumulate(np.array([float(np.quantile(err[b], p.cov_quantile)) / scale for b in bins]))
+        self.sigma_table = (centres, np.maximum(sig, p.cov_floor_m))
+        self.calibration = {"scans": int(len(err)), "mean_error_m": float(np.mean(err)),
+                            "quantile": p.cov_quantile, "d1": centres.tolist(), "sigma_m": self.sigma_table[1].tolist()}
 
     def sigma_m(self, d1: float) -> float:
         """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m."""
-        a, b = self.sigma_line
-        return max(self.params.cov_floor_m, (a + b * d1) / math.sqrt(math.pi / 2))
+        centres, sig = self.sigma_table
+        return max(self.params.cov_floor_m, float(np.interp(d1, centres, sig)))
 
     # ------------------------------------------------------------------------------------------
     def distances(self, scan: WifiScan) -> tuple[np.ndarray, int, int]:
