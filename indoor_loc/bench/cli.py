@@ -1,4 +1,4 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -12,6 +12,7 @@ BENCHES = {
     "steps": "indoor_loc.bench.steps",
     "backend": "indoor_loc.bench.backend",
     "pf": "indoor_loc.bench.pf",
+    "throughput": "indoor_loc.bench.throughput",
 }
 
 
