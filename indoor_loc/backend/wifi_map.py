@@ -52,6 +52,14 @@ class EvolvingMap:
         self.fixed_xy = np.zeros((0, 2))
         self.fixed_source: list[str] = []
         self.dropped_rows = 0
+        # the fitted WKNN index is reused while the rows a query may use are unchanged: fixed rows
+        # and drops change every query's rows (epoch); a user's own appended rows never enter its
+        # own queries, so only other users' appends count (in the sequential order a walk's scans
+        # all use one index)
+        self._epoch = 0
+        self._appends = 0
+        self._own_appends: dict[int, int] = {}
+        self._fitted: tuple[tuple, np.ndarray, Wknn] | None = None
 
     # ------------------------------------------------------------------------------------------
     def _columns(self, scan: WifiScan) -> np.ndarray:
@@ -82,6 +90,11 @@ class EvolvingMap:
                 b[:self.n] = a[:self.n]
                 setattr(self, name, b)
         i = self.n
+        if user == SURVEY:
+            self._epoch += 1
+        else:
+            self._appends += 1
+            self._own_appends[user] = self._own_appends.get(user, 0) + 1
         self._rss[i] = np.nan
         self._rss[i, cols] = rssi
         self.ref[i], self.user[i], self.stamp[i] = ref, user, stamp
@@ -123,20 +136,27 @@ class EvolvingMap:
             a[:n] = a[:self.n][keep]
         self.n = n
         self.dropped_rows += 1
+        self._epoch += 1
 
     # ------------------------------------------------------------------------------------------
     def match(self, scan: WifiScan, *, user: int, joint: bool) -> Match | None:
         """WKNN of ``scan`` against the survey rows and, when ``joint``, other users' rows (never the
         user's own). None when WKNN declines (fewer candidates than k...)."""
-        u = self.user[:self.n]
-        rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
-        if len(rows) == 0:
-            return None
-        rm = RadioMap(positions=np.zeros((len(rows), 2)), bssids=list(self.bssids),
-                      rssi_dbm=self._rss[rows, :len(self.bssids)], freq_mhz=np.asarray(self.freq, float),
-                      ssids=list(self.ssids), scan_ids=rows.astype(np.int64), stamps_ns=self.stamp[rows].copy(),
-                      source=["map"] * len(rows))
-        fix = Wknn(self.wknn_params).fit(rm).locate(scan)
+        key = (user, self._epoch, self._appends - self._own_appends.get(user, 0)) if joint else (None, self._epoch)
+        if self._fitted is not None and self._fitted[0] == key:
+            rows, wknn = self._fitted[1], self._fitted[2]
+        else:
+            u = self.user[:self.n]
+            rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
+            if len(rows) == 0:
+                return None
+            rm = RadioMap(positions=np.zeros((len(rows), 2)), bssids=list(self.bssids),
+                          rssi_dbm=self._rss[rows, :len(self.bssids)], freq_mhz=np.asarray(self.freq, float),
+                          ssids=list(self.ssids), scan_ids=rows.astype(np.int64), stamps_ns=self.stamp[rows].copy(),
+                          source=["map"] * len(rows))
+            wknn = Wknn(self.wknn_params).fit(rm)
+            self._fitted = (key, rows, wknn)
+        fix = wknn.locate(scan)
         if not fix.ok:
             return None
         chosen = rows[np.asarray(fix.info["rows"], np.int64)]
