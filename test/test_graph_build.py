@@ -165,3 +165,17 @@ def test_putmc_graph_covers_every_true_route():
     d = g.project(route_points(np.concatenate([r.segments for r in ds.routes.values()])))[2]
     assert d.mean() < 0.4 and np.percentile(d, 95) < 1.0 and d.max() < 3.0, (d.mean(), d.max())
     assert g.node_xyz[:, 1].max() < 35.5, "nothing in the strip outside the north wall"
+
+
+def test_bench_route_sampling_holds_the_latest_estimate():
+    """The PF bench scores the route at the reference's sampling: a pose every ROUTE_SAMPLE_S and
+    at every scan inside the trajectory, each the latest estimate at or before it."""
+    from indoor_loc.bench.pf import ROUTE_SAMPLE_S, decimate, paper_sampling
+    t = np.array([0, 1_000_000_000, 2_000_000_000, 4_000_000_000], np.int64)
+    xy = np.array([[0.0, 0], [1, 0], [2, 0], [4, 0]])
+    q, p = paper_sampling(t, xy, np.array([1_500_000_000, 9_000_000_000]))
+    step = int(ROUTE_SAMPLE_S * 1e9)
+    assert list(q) == sorted({0, step, 2 * step, 3 * step, 1_500_000_000})
+    assert np.allclose(p[:, 0], [0, 1, 1, 2, 2])          # held, never interpolated ahead
+    kept = decimate([(0, None), (4 * 10**9, None), (10 * 10**9, None), (12 * 10**9, None), (21 * 10**9, None)], 10.0)
+    assert [k[0] for k in kept] == [0, 10 * 10**9, 21 * 10**9]

@@ -46,6 +46,7 @@ METHODS: list[tuple[str, str, dict, float]] = [
     ("WKNN k3 >0.6 RMS (best on PUTMC)", "wknn", {"k": 3, "shared_threshold": 0.6, "shared_strict": True,
                                                  "error_type": "rms"}, 0.0),
     ("powed k-NN (ages, AP weights, offset)", "powed", {}, 0.0),
+    ("powed, ages weighted only", "powed", {"age_views": "weighted"}, 0.0),
     ("powed, ages ignored", "powed", {"age_tau_ms": 0.0}, 0.0),
     ("powed, no AP weights", "powed", {"ap_weighting": "none"}, 0.0),
     ("positive repr. (beta 1)", "powed", {"beta": 1.0}, 0.0),

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.backend.putmc_events import PUTMC_GRAPH_PARAMS
 from indoor_loc.errors import ConfigError, DatasetError
 from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.output_paths import check_outputs
@@ -101,9 +102,9 @@ def import_putmc(args: argparse.Namespace) -> int:
     params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
               "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)},
               # Nowicki & Skrzypczyński 2019's joint + step-length configuration: walks one after another
-              # (1…24), each matching the survey and all earlier walks' scans
-              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
-                               "estimate_step_length": True},
+              # (1…24), each matching the survey and all earlier walks' scans; information from measured
+              # noise and a Huber kernel on the WKNN hyperedges (see PUTMC_GRAPH_PARAMS)
+              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", **PUTMC_GRAPH_PARAMS},
               "tll_pf": {"graph_file": str(graph_file)}}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
