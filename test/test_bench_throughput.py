@@ -21,10 +21,10 @@ def test_rates_count_every_message_of_the_same_bags(tmp_path):
             w.write("/u1/imu/data_raw", imu_to_msg(t, "u1/imu_link", acc, rng.normal(0, 0.01, 3)), t)
     rows = offline_stage_rates([bag], stages=("imu",), scratch=tmp_path)
     by = {r["what"]: r for r in rows}
-    assert set(by) == {"mcap raw", "rosbags decode", "run --nodes imu"}
+    assert set(by) == {"mcap raw", "rosbags decode", "run --nodes imu", "run --nodes imu --no-batch"}
     for r in rows:
         assert r["messages"] == n and r["imu_messages"] == n
-        assert r["wall_s"] > 0 and r["msgs_per_s"] > 0
+        assert r["wall_s"] > 0 and r["cpu_s"] > 0 and r["msgs_per_s"] > 0
     assert by["rosbags decode"]["vs_rosbags"] == 1.0
     assert "| run --nodes imu | 600 | 600 |" in format_rows(rows)
     assert not list(tmp_path.glob("tmp*"))     # the scratch outputs are removed

@@ -5,10 +5,12 @@ For the same bags, one after another in one process (one core):
 - ``rosbags decode``: the same, deserialising every message with ``rosbags``' CDR deserialiser (the
   plain-Python peer an offline replay is measured against);
 - ``run --nodes X``: :func:`indoor_loc.pipeline.offline.run_offline` for each stage (with the nodes
-  that feed it: ``pdr_kf`` needs ``imu`` and ``wifi``), writing its output bag to a scratch directory.
+  that feed it: ``pdr_kf`` needs ``imu`` and ``wifi``), writing its output bag to a scratch directory;
+  for ``imu`` also message by message (``--no-batch``, the live path).
 
-Rows give messages read, the IMU messages among them, wall time, messages/s, IMU messages/s and the
-wall time over the ``rosbags decode`` time. Default data: PUTMC walks 1–12 imported with the
+Rows give messages read, the IMU messages among them, CPU and wall time, messages/s and IMU
+messages/s (per CPU second: on a shared machine wall time measures the neighbours) and the CPU time
+over the ``rosbags decode`` CPU time. Default data: PUTMC walks 1–12 imported with the
 package's importer (cached in ``--work``), with the importer's ``params.yaml``.
 """
 from __future__ import annotations
@@ -38,13 +40,13 @@ def mcap_raw_rate(bags: Iterable[Path]) -> dict:
     """Iterate every stored message of ``bags`` (file order), no decoding."""
     from mcap.reader import make_reader
     n = n_imu = 0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for path in _files(bags):
         with open(path, "rb") as f:
             for schema, _, _ in make_reader(f).iter_messages(log_time_order=False):
                 n += 1
                 n_imu += schema is not None and schema.name in IMU_TYPES
-    return _row("mcap raw", "", n, n_imu, time.perf_counter() - t0)
+    return _row("mcap raw", "", n, n_imu, time.perf_counter() - t0, time.process_time() - c0)
 
 
 def rosbags_decode_rate(bags: Iterable[Path]) -> dict:
@@ -53,7 +55,7 @@ def rosbags_decode_rate(bags: Iterable[Path]) -> dict:
     from rosbags.typesys import Stores, get_typestore
     store = get_typestore(Stores.ROS2_JAZZY)
     n = n_imu = 0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for path in _files(bags):
         with open(path, "rb") as f:
             for schema, _, message in make_reader(f).iter_messages(log_time_order=False):
@@ -61,12 +63,12 @@ def rosbags_decode_rate(bags: Iterable[Path]) -> dict:
                 store.deserialize_cdr(message.data, name)
                 n += 1
                 n_imu += name in IMU_TYPES
-    return _row("rosbags decode", "", n, n_imu, time.perf_counter() - t0)
+    return _row("rosbags decode", "", n, n_imu, time.perf_counter() - t0, time.process_time() - c0)
 
 
-def _row(what: str, nodes: str, n: int, n_imu: int, wall_s: float) -> dict:
+def _row(what: str, nodes: str, n: int, n_imu: int, wall_s: float, cpu_s: float) -> dict:
     return {"what": what, "nodes": nodes, "messages": n, "imu_messages": n_imu, "wall_s": wall_s,
-            "msgs_per_s": n / max(wall_s, 1e-9), "imu_msgs_per_s": n_imu / max(wall_s, 1e-9)}
+            "cpu_s": cpu_s, "msgs_per_s": n / max(cpu_s, 1e-9), "imu_msgs_per_s": n_imu / max(cpu_s, 1e-9)}
 
 
 def offline_stage_rates(bags: Iterable[Path], *, params: Path | None = None,
@@ -75,8 +77,9 @@ def offline_stage_rates(bags: Iterable[Path], *, params: Path | None = None,
     """Messages/s of ``indoor-loc run`` per stage on ``bags``, after the two peers (``mcap raw``,
     ``rosbags decode``) measured on the same bags in the same process.
 
-    Each row: ``what``, ``nodes``, ``messages``, ``imu_messages``, ``wall_s``, ``msgs_per_s``,
-    ``imu_msgs_per_s`` and ``vs_rosbags`` (wall time ÷ the ``rosbags decode`` wall time).
+    Each row: ``what``, ``nodes``, ``messages``, ``imu_messages``, ``wall_s``, ``cpu_s``,
+    ``msgs_per_s`` and ``imu_msgs_per_s`` (per CPU second) and ``vs_rosbags`` (CPU time ÷ the
+    ``rosbags decode`` CPU time). ``imu`` is run twice: batch path, then message by message.
     """
     from indoor_loc.bag.reader import bag_topics
     from indoor_loc.errors import ConfigError
@@ -90,21 +93,23 @@ def offline_stage_rates(bags: Iterable[Path], *, params: Path | None = None,
             if stage not in STAGE_NODES:
                 raise ConfigError(f"bench throughput: unknown stage {stage!r}; expected one of {sorted(STAGE_NODES)}")
             nodes = list(STAGE_NODES[stage])
-            out = Path(tmp) / f"{stage}.mcap"
-            s = run_offline(bags, out, nodes=nodes, params=params, progress=False)
-            out.unlink()
-            rows.append(_row(f"run --nodes {','.join(nodes)}", stage, s.messages_in, n_imu, s.wall_s))
-    ref = rows[1]["wall_s"]
+            for batch in (True, False) if stage == "imu" else (True,):
+                out = Path(tmp) / f"{stage}.mcap"
+                s = run_offline(bags, out, nodes=nodes, params=params, progress=False, batch=batch)
+                out.unlink()
+                rows.append(_row(f"run --nodes {','.join(nodes)}" + ("" if batch else " --no-batch"), stage,
+                                 s.messages_in, n_imu, s.wall_s, s.cpu_s))
+    ref = rows[1]["cpu_s"]
     for r in rows:
-        r["vs_rosbags"] = r["wall_s"] / max(ref, 1e-9)
+        r["vs_rosbags"] = r["cpu_s"] / max(ref, 1e-9)
     return rows
 
 
 def format_rows(rows: list[dict]) -> str:
-    lines = ["| what | messages | IMU messages | wall s | messages/s | IMU messages/s | time ÷ rosbags decode |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| what | messages | IMU messages | CPU s | wall s | messages/s | IMU messages/s | CPU ÷ rosbags decode |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['what']} | {r['messages']} | {r['imu_messages']} | {r['wall_s']:.2f} | "
+        lines.append(f"| {r['what']} | {r['messages']} | {r['imu_messages']} | {r['cpu_s']:.2f} | {r['wall_s']:.2f} | "
                      f"{r['msgs_per_s']:.0f} | {r['imu_msgs_per_s']:.0f} | {r['vs_rosbags']:.2f} |")
     return "\n".join(lines)
 
