@@ -529,6 +529,12 @@ class MultiUserGraph:
         cols = np.concatenate([q[1] for q in parts])
         keep = np.concatenate([q[2] for q in parts])
         rows, cols = rows[keep], cols[keep]
+        # CSR structure built once: entries sorted row-major, duplicates (two neighbours of one
+        # hyperedge on the same pose) summed; each Jacobian evaluation only fills in the values
+        lin, slot = np.unique(rows * n_x + cols, return_inverse=True)
+        csr_indices = lin % n_x
+        csr_indptr = np.searchsorted(lin // n_x, np.arange(n_r + 1))
+        slot = slot.ravel()
 
         base_x = X.copy()
         base_l = self.step_len.copy()
@@ -587,7 +593,8 @@ class MultiUserGraph:
 
         def jac(z):
             _, v = evaluate(z, True)
-            return sp.csr_matrix((v, (rows, cols)), shape=(n_r, n_x))
+            data = np.bincount(slot, weights=v, minlength=len(lin))
+            return sp.csr_matrix((data, csr_indices, csr_indptr), shape=(n_r, n_x))
 
         z0 = np.concatenate([X[var].ravel(), self.step_len[var_users]])
         return fun, jac, z0, unpack, n_p + n_w + n_g + n_u
