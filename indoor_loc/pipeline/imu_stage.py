@@ -218,8 +218,9 @@ class ImuStage(Stage):
             q = self.filter.quat_wxyz
             cov = self.filter.orientation_cov
             q_xyzw = np.array([q[1], q[2], q[3], q[0]])
-            self.headings.add(stamp, yaw_xyzw(q_xyzw) + self.params.heading_offset_rad, float(cov[2, 2]))
-            self.stepometer.add_heading(stamp, yaw_xyzw(q_xyzw))
+            yaw = yaw_xyzw(q_xyzw)
+            self.headings.add(stamp, yaw + self.params.heading_offset_rad, float(cov[2, 2]))
+            self.stepometer.add_heading(stamp, yaw)
             outs.append(("imu/data", imu_to_msg(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
             if len(self._published_stamps) == self._published_stamps.maxlen:
                 self._published_set.discard(self._published_stamps[0])
@@ -254,8 +255,9 @@ class ImuStage(Stage):
             var = float(s.orientation_cov[2, 2]) if s.orientation_cov is not None else 0.0
             if not math.isfinite(var) or var <= 0.0:
                 var = self.params.default_yaw_std_rad ** 2
-            self.headings.add(s.stamp_ns, yaw_xyzw(s.quat_xyzw) + self.params.heading_offset_rad, var)
-            self.stepometer.add_heading(s.stamp_ns, yaw_xyzw(s.quat_xyzw))
+            yaw = yaw_xyzw(s.quat_xyzw)
+            self.headings.add(s.stamp_ns, yaw + self.params.heading_offset_rad, var)
+            self.stepometer.add_heading(s.stamp_ns, yaw)
         return outs + self._hops(hops)
 
     def _hops(self, hops: list[StepHop]) -> list[Output]:
