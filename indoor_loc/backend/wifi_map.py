@@ -51,6 +51,7 @@ class EvolvingMap:
         self.stamp = np.zeros(64, np.int64)
         self.fixed_xy = np.zeros((0, 2))
         self.fixed_source: list[str] = []
+        self.n_loaded_fixed = 0          # fixed positions from add_fixed (the rest: pinned poses)
         self.dropped_rows = 0
         # the fitted WKNN index is reused while the rows a query may use are unchanged: fixed rows
         # and drops change every query's rows (epoch); a user's own appended rows never enter its
@@ -107,6 +108,7 @@ class EvolvingMap:
         base = len(self.fixed_xy)
         self.fixed_xy = np.vstack([self.fixed_xy, pos])
         self.fixed_source += list(radio_map.source)
+        self.n_loaded_fixed = len(self.fixed_xy)
         rss = np.asarray(radio_map.rssi_dbm, float)
         scan = WifiScan(0, tuple(radio_map.bssids), np.zeros(len(radio_map.bssids)),
                         np.asarray(radio_map.freq_mhz, float), ssid=tuple(radio_map.ssids))
@@ -137,6 +139,46 @@ class EvolvingMap:
         self.n = n
         self.dropped_rows += 1
         self._epoch += 1
+
+    def pin(self, refs: np.ndarray, xy: np.ndarray, source: list[str]) -> np.ndarray:
+        """Rows whose position reference is one of the poses ``refs`` (R,) get that pose's final
+        position ``xy`` (R, 2) as a fixed (learnt) position; returns the fixed reference (< 0) of
+        each pose (used to rewrite hyperedges that named them)."""
+        refs = np.asarray(refs, np.int64)
+        base = len(self.fixed_xy)
+        self.fixed_xy = np.vstack([self.fixed_xy, np.asarray(xy, float).reshape(-1, 2)])
+        self.fixed_source += list(source)
+        new = -1 - (base + np.arange(len(refs)))
+        ref = self.ref[:self.n]
+        idx = np.flatnonzero(ref >= 0)
+        if len(refs) and len(idx):
+            order = np.argsort(refs)
+            k = np.minimum(np.searchsorted(refs[order], ref[idx]), len(refs) - 1)
+            hit = refs[order][k] == ref[idx]
+            ref[idx[hit]] = new[order[k[hit]]]
+        return new
+
+    def renumber(self, pose_map: np.ndarray) -> None:
+        """Pose references after the graph dropped poses: ``pose_map[old] = new`` (rows must not
+        name a dropped pose: :meth:`pin` them first)."""
+        ref = self.ref[:self.n]
+        ref[ref >= 0] = pose_map[ref[ref >= 0]]
+
+    def collect_fixed(self, in_use: np.ndarray, n_keep: int) -> np.ndarray:
+        """Drop learnt fixed positions (index ≥ ``n_keep``: those :meth:`pin` added) that neither a
+        row nor ``in_use`` (fixed references < 0 held elsewhere) names; returns the map old
+        reference -> new reference for fixed references (index ``-1 - ref``)."""
+        ref = self.ref[:self.n]
+        used = np.zeros(len(self.fixed_xy), bool)
+        used[:n_keep] = True
+        used[-1 - ref[ref < 0]] = True
+        in_use = np.asarray(in_use, np.int64)
+        used[-1 - in_use[in_use < 0]] = True
+        new_index = np.cumsum(used) - 1
+        self.fixed_xy = self.fixed_xy[used]
+        self.fixed_source = [src for src, u in zip(self.fixed_source, used) if u]
+        ref[ref < 0] = -1 - new_index[-1 - ref[ref < 0]]
+        return new_index
 
     # ------------------------------------------------------------------------------------------
     def match(self, scan: WifiScan, *, user: int, joint: bool) -> Match | None:

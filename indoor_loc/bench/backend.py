@@ -266,10 +266,10 @@ def run(args: argparse.Namespace) -> int:
     for name, r in results.items():
         ref = REF_TIME_S["joint" if "joint" in name else "separate"]
         print(f"| {name} | {r['wall_s']:.2f} | {r['wall_s'] + data.load_s:.2f} | {ref[0]}–{ref[1]} |")
-    live = replace(CONFIGS["joint, step-length est."], window_poses=30)
+    live = replace(CONFIGS[DEFAULT], window_poses=30)
     g_live, wall_live = run_graph(data, live)
     p_live = summary(list(errors(data, g_live).values()))
-    print(f"| joint + SLE, live mode (window of 30 poses optimised at every scan, then the final optimisation) "
+    print(f"| default, live mode (window of 30 poses optimised at every scan, then the final optimisation) "
           f"| {wall_live:.2f} | {wall_live + data.load_s:.2f} | – |")
     tracemalloc.start()
     run_graph(data, CONFIGS["joint, step-length est."])
