@@ -78,9 +78,32 @@ def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
              topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
     """Stored messages of one or more bags merged in log-time order (ties: file order, then sequence)."""
     wanted = set(topics) if topics is not None else None
-    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(bag_files(paths))]
+    files = bag_files(paths)
+    if len(files) == 1:
+        for _, _, m in _iter_file(files[0], wanted):
+            yield m
+        return
+    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(files)]
     for _, _, _, m in heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2])):
         yield m
+
+
+class MessageDecoder:
+    """Deserialise stored messages to rclpy message classes (classes looked up once per type)."""
+
+    def __init__(self) -> None:
+        from rclpy.serialization import deserialize_message
+        self._deserialize = deserialize_message
+        self._classes: dict[str, type] = {}
+
+    def __call__(self, m: RawMessage) -> BagMessage:
+        cls = self._classes.get(m.type)
+        if cls is None:
+            try:
+                cls = self._classes[m.type] = msg_class(m.type)
+            except (ImportError, AttributeError, ValueError) as err:
+                raise BagError(f"topic {m.topic}: message type {m.type!r} is not importable") from err
+        return BagMessage(m.topic, m.type, m.stamp_ns, self._deserialize(m.data, cls))
 
 
 def read_bag(paths: str | os.PathLike | Iterable[str | os.PathLike],
@@ -91,16 +114,9 @@ def read_bag(paths: str | os.PathLike | Iterable[str | os.PathLike],
         paths: one bag or several (merged, e.g. one per user).
         topics: full topic names to keep (default all).
     """
-    from rclpy.serialization import deserialize_message
-    classes: dict[str, type] = {}
+    decode = MessageDecoder()
     for m in read_raw(paths, topics):
-        cls = classes.get(m.type)
-        if cls is None:
-            try:
-                cls = classes[m.type] = msg_class(m.type)
-            except (ImportError, AttributeError, ValueError) as err:
-                raise BagError(f"topic {m.topic}: message type {m.type!r} is not importable") from err
-        yield BagMessage(m.topic, m.type, m.stamp_ns, deserialize_message(m.data, cls))
+        yield decode(m)
 
 
 def bag_info(paths: str | os.PathLike | Iterable[str | os.PathLike]) -> dict[str, TopicInfo]:

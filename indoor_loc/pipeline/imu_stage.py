@@ -50,7 +50,7 @@ from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
 from indoor_loc.imu.quaternion import yaw_xyzw
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
 from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams
-from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg
+from msg_adapters.imu import ImuSample, imu_from_msg, imu_to_msg, mag_from_msg
 from msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
@@ -131,6 +131,10 @@ class ImuStage(Stage):
         self.on("imu/data_raw", self._on_raw)
         self.on("imu/mag", self._on_mag)
         self.on("imu/data", self._on_orientation)
+        # offline runs: runs of messages decoded in bulk (indoor_loc.bag.bulk), same handlers
+        self.on_batch("imu/data_raw", self._raw_sample)
+        self.on_batch("imu/mag", self._mag_sample)
+        self.on_batch("imu/data", self._orientation_sample)
 
     # -- ports ------------------------------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -155,7 +159,10 @@ class ImuStage(Stage):
 
     # -- handlers ---------------------------------------------------------------------------------
     def _on_mag(self, msg, recv_ns: int) -> list[Output]:
-        stamp, field_t = mag_from_msg(msg)
+        return self._mag_sample(mag_from_msg(msg), recv_ns)
+
+    def _mag_sample(self, sample: tuple[int, np.ndarray], recv_ns: int) -> list[Output]:
+        stamp, field_t = sample
         if self._last_mag_ns is not None and stamp <= self._last_mag_ns:
             raise InvalidMessageError("non_monotonic_stamp", f"imu/mag stamp {stamp} <= previous {self._last_mag_ns}")
         if self._external_orientation:
@@ -169,7 +176,9 @@ class ImuStage(Stage):
         return self._run_events(events)
 
     def _on_raw(self, msg, recv_ns: int) -> list[Output]:
-        s = imu_from_msg(msg)
+        return self._raw_sample(imu_from_msg(msg), recv_ns)
+
+    def _raw_sample(self, s: ImuSample, recv_ns: int) -> list[Output]:
         if self._last_raw_ns is not None and s.stamp_ns <= self._last_raw_ns:
             raise InvalidMessageError("non_monotonic_stamp",
                                       f"imu/data_raw stamp {s.stamp_ns} <= previous {self._last_raw_ns}")
@@ -219,7 +228,9 @@ class ImuStage(Stage):
         return outs
 
     def _on_orientation(self, msg, recv_ns: int) -> list[Output]:
-        s = imu_from_msg(msg)
+        return self._orientation_sample(imu_from_msg(msg), recv_ns)
+
+    def _orientation_sample(self, s: ImuSample, recv_ns: int) -> list[Output]:
         if s.stamp_ns in self._published_set:
             return []                                   # our own AEKF output coming back
         if self.params.heading_source == "aekf":

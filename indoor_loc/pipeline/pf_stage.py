@@ -31,7 +31,7 @@ from msg_adapters.odom import odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from indoor_loc.pf.filter import PfParams
-from indoor_loc.pf.tracker import Estimate, GraphTracker
+from indoor_loc.pf.tracker import Estimate, GraphTracker, MonitorParams
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
 POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -45,7 +45,13 @@ class PfStageParams:
     l_max_m: float = P.field(40.0, "TLL destination horizon l_MAX (m)")
     p_min: float = P.field(0.02, "smallest transition probability at a junction")
     p_max: float = P.field(0.98, "largest transition probability at a junction")
-    n_particles: int = P.field(1000, "number of particles")
+    n_particles: int = P.field(1000, "number of particles (the initial count when adaptive)")
+    adaptive: bool = P.field(False, "adapt the particle count: KLD-sampling bound at resampling, covariance rule at "
+                                    "(re)initialisation")
+    n_min: int = P.field(200, "fewest particles when adaptive")
+    n_max: int = P.field(20000, "most particles when adaptive")
+    kld_epsilon: float = P.field(0.05, "KLD-sampling bound epsilon")
+    kld_bin_m: float = P.field(1.0, "KLD bin length along a link (m)")
     heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel on the link (rad)")
     yaw_offset_sigma_rad: float = P.field(3.2, "odom->map heading offset spread at start (rad); >= pi = unknown, learnt by the filter")
     fix_sigma_extra_m: float = P.field(1.0, "added to each WiFi fix's standard deviation per axis (m)")
@@ -57,6 +63,8 @@ class PfStageParams:
     smooth_samples: int = P.field(50, "backward-simulated trajectories averaged by the smoother")
     seed: int = P.field(0, "random seed of the filter (runs are reproducible)")
     frame_id: str = P.field("map", "frame of the graph and the estimates")
+    monitor: MonitorParams = P.group(MonitorParams, "divergence monitoring by the linear PDR Kalman filter "
+                                                    "(monitor.enabled, monitor.gate_prob, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -67,13 +75,16 @@ class PfStageParams:
         P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
         self.transition_params().validate()
         self.pf_params().validate()
+        self.monitor.validate()
 
     def transition_params(self) -> TransitionParams:
         return TransitionParams(rule=self.rule, l_max_m=self.l_max_m, p_min=self.p_min, p_max=self.p_max)
 
     def pf_params(self) -> PfParams:
         return PfParams(n_particles=self.n_particles, heading_sigma_rad=self.heading_sigma_rad,
-                        yaw_offset_sigma_rad=self.yaw_offset_sigma_rad, fix_sigma_extra_m=self.fix_sigma_extra_m)
+                        yaw_offset_sigma_rad=self.yaw_offset_sigma_rad, fix_sigma_extra_m=self.fix_sigma_extra_m,
+                        adaptive=self.adaptive, n_min=self.n_min, n_max=self.n_max, kld_epsilon=self.kld_epsilon,
+                        kld_bin_m=self.kld_bin_m)
 
 
 class PfStage(Stage):
@@ -99,7 +110,7 @@ class PfStage(Stage):
             raise ConfigError(f"tll_pf: graph_file: {err}") from err
         self.transitions, self.cache_hit = cached_transitions(self.graph, path, params.transition_params())
         self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
-                                    rng=np.random.default_rng(params.seed))
+                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)
         self._seq = 0
         self._last_odom_ns: int | None = None
         self._newest: dict[str, int] = {}
@@ -150,7 +161,7 @@ class PfStage(Stage):
             raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom_ns}")
         outs += self._apply_pending(lambda s: s < od.stamp_ns)
         self._last_odom_ns = od.stamp_ns
-        est = self.tracker.odom(od.stamp_ns, od.x, od.y)
+        est = self.tracker.odom(od.stamp_ns, od.x, od.y, od.yaw)
         if est is not None:
             outs += self._publish(est)
         return outs
@@ -194,8 +205,7 @@ class PfStage(Stage):
         every = self.params.particles_every
         p = self.tracker.pf.p
         if every and p is not None and self._n_pose % every == 0:
-            from indoor_loc.pf.filter import particle_xy
-            xy = particle_xy(self.graph, p)
+            xy = self.tracker.pf.xy()
             yaw = self.tracker.pf._travel_heading(p.link, p.direction)
             outs.append(("pf/particles", pose_array_to_msg(est.stamp_ns, xy, yaw, frame_id=fid)))
         period = self.params.path_period_s
@@ -231,6 +241,10 @@ class PfStage(Stage):
             d["initialised"] = "false (waiting for the first wifi/fix or initialpose)"
         else:
             from indoor_loc.pf.filter import effective_sample_size
+            mon = self.tracker.monitor
             d.update(initialised="true", particles=str(len(pf.p)), n_eff=f"{effective_sample_size(pf.p.log_w):.0f}",
-                     resamples=str(pf.n_resample), reinitialisations=str(pf.n_reinit))
+                     resamples=str(pf.n_resample), reinitialisations=str(pf.n_reinit),
+                     kf_reinitialisations=str(mon.reinits), kf_restarts=str(mon.kf_restarts),
+                     kf_deviance=f"{mon.last_deviance:.1f}",
+                     kf_disagreeing="true" if mon.disagree_since_ns is not None else "false")
         return d

@@ -129,6 +129,7 @@ class Stage:
         self.namespace = namespace
         self.diag = StageDiagnostics()
         self._handlers: dict[str, Callable[[Any, int], list[Output]]] = {}
+        self._batch: dict[str, Callable[[Any, int], list[Output]]] = {}
 
     # -- declared by subclasses ---------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -166,6 +167,29 @@ class Stage:
         multi-user stages: ``handler(msg, recv_ns, user)``."""
         self._handlers[topic] = handler
 
+    def on_batch(self, topic: str, handler: Callable[[Any, int], list[Output]]) -> None:
+        """Offer a batch path for ``topic`` (call in __init__; per-user stages only): ``handler(item,
+        recv_ns)`` does what the topic's message handler does after its adapter, on what the adapter
+        returns (an ``ImuSample`` for ``sensor_msgs/Imu``). See :meth:`process_batch`."""
+        self._batch[topic] = handler
+
+    def batch_handles(self, topic: str) -> bool:
+        """True if :meth:`process_batch` takes runs of messages on this input topic."""
+        return topic in self._batch and not self.MULTI_USER
+
+    def process_batch(self, topic: str, items: list, recv_ns: list[int]) -> list[tuple[int, str, Any]]:
+        """A run of messages on one topic, already decoded and validated in bulk into what the
+        topic's adapter returns (:func:`indoor_loc.bag.bulk.bulk_items`), handled exactly as
+        :meth:`process` handles the messages one after another: same counters, rejections by the
+        core, outputs and order. Returns ``[(recv_ns of the message that produced it, topic,
+        message), ...]``."""
+        handler = self._batch[topic]
+        out: list[tuple[int, str, Any]] = []
+        for item, recv in zip(items, recv_ns):
+            for o_topic, o_msg in self._dispatch(topic, handler, item, recv, None):
+                out.append((recv, o_topic, o_msg))
+        return out
+
     def handles(self, topic: str) -> bool:
         """True if the stage takes messages on this (relative) input topic."""
         return topic in self._handlers
@@ -195,6 +219,10 @@ class Stage:
                 self._reject("no_user", f"{topic}: a multi-user stage needs the message's user")
                 return []
             handler = functools.partial(handler, user=user)
+        return self._dispatch(topic, handler, msg, recv_ns, user)
+
+    def _dispatch(self, topic: str, handler: Callable[[Any, int], list[Output]], msg: Any, recv_ns: int,
+                  user: str | None) -> list[Output]:
         stats = self.diag.received[f"{user}/{topic}" if self.MULTI_USER else topic]
         stats.count += 1
         stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns
