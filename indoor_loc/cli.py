@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "import": ("indoor_loc.commands.import_data", "import a dataset into MCAP bags + params.yaml"),
     "eval": ("indoor_loc.commands.eval", "score trajectories against ground truth"),
     "radiomap": ("indoor_loc.commands.radiomap", "build / inspect WiFi radio maps"),
+    "map": ("indoor_loc.commands.map", "building graphs: from a floor-plan image or GeoJSON, draw over the plan"),
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),

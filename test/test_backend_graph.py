@@ -162,3 +162,86 @@ def test_bad_parameters_are_refused():
         GraphParams(pdr_info=[1.0, 1.0]).validate()
     with pytest.raises(ConfigError, match="k: expected an integer"):
         GraphParams(wknn={"k": 0}).validate()
+
+
+def test_reused_wknn_index_gives_the_same_matches_as_a_fresh_one():
+    """The evolving map reuses its fitted WKNN index while a query's candidate rows are unchanged:
+    two users' scans interleaved (merged order) and a row cap that drops rows match exactly as with
+    an index fitted afresh for every query."""
+    from indoor_loc.backend.graph import BackendWknnParams
+    from indoor_loc.backend.wifi_map import EvolvingMap
+
+    rng = np.random.default_rng(7)
+    cached, fresh = (EvolvingMap(BackendWknnParams(), max_rows=6) for _ in range(2))
+    s = survey(0, 30, rng, spacing=4.0)
+    cached.add_fixed(s)
+    fresh.add_fixed(s)
+    n_user_matches = 0
+    for i in range(30):
+        user = i % 3 if i < 20 else 0                      # interleaved, then one user alone
+        scan = scan_at(i * SEC, np.array([rng.uniform(0, 30), 0.0]), rng)
+        fresh._fitted = None
+        a = cached.match(scan, user=user, joint=True)
+        b = fresh.match(scan, user=user, joint=True)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert np.array_equal(a.refs, b.refs) and np.allclose(a.weights, b.weights)
+            n_user_matches += a.n_from_users > 0
+        cached.add_scan(scan, i, user)
+        fresh.add_scan(scan, i, user)
+    assert n_user_matches > 0 and cached.dropped_rows > 0
+
+
+def test_long_run_stays_flat():
+    """Thirty users one after another along the corridor (about 1500 poses in all) with small caps:
+    what the graph holds stops growing once the caps are reached — poses, edges, map rows and
+    pinned fixed positions — while later users still match the scans of dropped poses (pinned in
+    the map), and the newest user is still localised."""
+    rng = np.random.default_rng(11)
+    p = GraphParams(window_poses=10, max_active_poses=60, max_user_poses=40, max_frozen_poses=30, max_map_rows=50)
+    g = MultiUserGraph(p, survey(0, 30, rng, spacing=6.0))
+    sizes = []
+    for u in range(30):
+        x0, x1 = (2.0, 58.0) if u % 2 == 0 else (58.0, 2.0)
+        walk = corridor_walk(f"u{u:02d}", x0, x1, u * 100 * SEC, rng)
+        feed(g, walk)
+        g.finish_user(walk.name)
+        c = g.counts()
+        sizes.append((c["poses"], c["pdr_edges"], c["wifi_edges"], c["map_rows"], len(g.map.fixed_xy)))
+    sizes = np.array(sizes)
+    assert g.n_dropped > 1000                                            # ~ 50 poses per walk
+    cap = p.max_active_poses + p.max_frozen_poses + 30                   # + a kept frozen pose per user
+    assert sizes[:, 0].max() <= cap and sizes[:, 1].max() <= cap
+    assert np.all(sizes[10:].max(axis=0) <= sizes[:10].max(axis=0) * 1.5 + 5)   # flat after warm-up
+    assert sizes[:, 3].max() <= g.map.n_loaded_fixed + 50                # survey rows + capped user rows
+    assert sizes[:, 4].max() <= g.map.n_loaded_fixed + 50 + 4 * sizes[:, 2].max()   # survey + pinned rows + refs
+    assert g.users["u29"].scans_from_users > 0
+    g.optimize()
+    assert np.median(_err(g, walk)) < 3.0
+
+
+def test_dropping_frozen_poses_changes_no_estimate():
+    """Dropped poses were constants already: the same users with the same freezing, once keeping
+    every frozen pose and once dropping them at once, give the same trajectories (the pinned map
+    positions and the rewritten hyperedges are the same constants)."""
+    runs = []
+    for max_frozen in (100000, 0):
+        rng = np.random.default_rng(5)
+        g = MultiUserGraph(GraphParams(window_poses=10, max_active_poses=50, max_user_poses=30,
+                                       max_frozen_poses=max_frozen), survey(0, 30, rng, spacing=6.0))
+        walks = [corridor_walk(f"u{u}", 2.0, 58.0, u * 20 * SEC, rng, y=0.5 * u) for u in range(4)]
+        for w in walks:
+            feed(g, w)
+            g.finish_user(w.name)
+        g.optimize()
+        runs.append((g, [g.trajectory(w.name) for w in walks]))
+    (keep, tk), (drop, td) = runs
+    assert keep.n_dropped == 0 and drop.n_dropped > 100
+    assert drop.counts()["wifi_edges"] < keep.counts()["wifi_edges"]
+    n_compared = 0
+    for (sk, xk), (sd, xd) in zip(tk, td):           # the first users' poses are all gone when dropped
+        common, ik, id_ = np.intersect1d(sk, sd, return_indices=True)
+        assert len(common) == len(sd)
+        assert np.allclose(xk[ik], xd[id_], atol=1e-6)
+        n_compared += len(common)
+    assert n_compared >= 30

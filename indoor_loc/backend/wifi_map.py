@@ -51,7 +51,16 @@ class EvolvingMap:
         self.stamp = np.zeros(64, np.int64)
         self.fixed_xy = np.zeros((0, 2))
         self.fixed_source: list[str] = []
+        self.n_loaded_fixed = 0          # fixed positions from add_fixed (the rest: pinned poses)
         self.dropped_rows = 0
+        # the fitted WKNN index is reused while the rows a query may use are unchanged: fixed rows
+        # and drops change every query's rows (epoch); a user's own appended rows never enter its
+        # own queries, so only other users' appends count (in the sequential order a walk's scans
+        # all use one index)
+        self._epoch = 0
+        self._appends = 0
+        self._own_appends: dict[int, int] = {}
+        self._fitted: tuple[tuple, np.ndarray, Wknn] | None = None
 
     # ------------------------------------------------------------------------------------------
     def _columns(self, scan: WifiScan) -> np.ndarray:
@@ -82,6 +91,11 @@ class EvolvingMap:
                 b[:self.n] = a[:self.n]
                 setattr(self, name, b)
         i = self.n
+        if user == SURVEY:
+            self._epoch += 1
+        else:
+            self._appends += 1
+            self._own_appends[user] = self._own_appends.get(user, 0) + 1
         self._rss[i] = np.nan
         self._rss[i, cols] = rssi
         self.ref[i], self.user[i], self.stamp[i] = ref, user, stamp
@@ -94,6 +108,7 @@ class EvolvingMap:
         base = len(self.fixed_xy)
         self.fixed_xy = np.vstack([self.fixed_xy, pos])
         self.fixed_source += list(radio_map.source)
+        self.n_loaded_fixed = len(self.fixed_xy)
         rss = np.asarray(radio_map.rssi_dbm, float)
         scan = WifiScan(0, tuple(radio_map.bssids), np.zeros(len(radio_map.bssids)),
                         np.asarray(radio_map.freq_mhz, float), ssid=tuple(radio_map.ssids))
@@ -123,20 +138,67 @@ class EvolvingMap:
             a[:n] = a[:self.n][keep]
         self.n = n
         self.dropped_rows += 1
+        self._epoch += 1
+
+    def pin(self, refs: np.ndarray, xy: np.ndarray, source: list[str]) -> np.ndarray:
+        """Rows whose position reference is one of the poses ``refs`` (R,) get that pose's final
+        position ``xy`` (R, 2) as a fixed (learnt) position; returns the fixed reference (< 0) of
+        each pose (used to rewrite hyperedges that named them)."""
+        refs = np.asarray(refs, np.int64)
+        base = len(self.fixed_xy)
+        self.fixed_xy = np.vstack([self.fixed_xy, np.asarray(xy, float).reshape(-1, 2)])
+        self.fixed_source += list(source)
+        new = -1 - (base + np.arange(len(refs)))
+        ref = self.ref[:self.n]
+        idx = np.flatnonzero(ref >= 0)
+        if len(refs) and len(idx):
+            order = np.argsort(refs)
+            k = np.minimum(np.searchsorted(refs[order], ref[idx]), len(refs) - 1)
+            hit = refs[order][k] == ref[idx]
+            ref[idx[hit]] = new[order[k[hit]]]
+        return new
+
+    def renumber(self, pose_map: np.ndarray) -> None:
+        """Pose references after the graph dropped poses: ``pose_map[old] = new`` (rows must not
+        name a dropped pose: :meth:`pin` them first)."""
+        ref = self.ref[:self.n]
+        ref[ref >= 0] = pose_map[ref[ref >= 0]]
+
+    def collect_fixed(self, in_use: np.ndarray, n_keep: int) -> np.ndarray:
+        """Drop learnt fixed positions (index ≥ ``n_keep``: those :meth:`pin` added) that neither a
+        row nor ``in_use`` (fixed references < 0 held elsewhere) names; returns the map old
+        reference -> new reference for fixed references (index ``-1 - ref``)."""
+        ref = self.ref[:self.n]
+        used = np.zeros(len(self.fixed_xy), bool)
+        used[:n_keep] = True
+        used[-1 - ref[ref < 0]] = True
+        in_use = np.asarray(in_use, np.int64)
+        used[-1 - in_use[in_use < 0]] = True
+        new_index = np.cumsum(used) - 1
+        self.fixed_xy = self.fixed_xy[used]
+        self.fixed_source = [src for src, u in zip(self.fixed_source, used) if u]
+        ref[ref < 0] = -1 - new_index[-1 - ref[ref < 0]]
+        return new_index
 
     # ------------------------------------------------------------------------------------------
     def match(self, scan: WifiScan, *, user: int, joint: bool) -> Match | None:
         """WKNN of ``scan`` against the survey rows and, when ``joint``, other users' rows (never the
         user's own). None when WKNN declines (fewer candidates than k...)."""
-        u = self.user[:self.n]
-        rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
-        if len(rows) == 0:
-            return None
-        rm = RadioMap(positions=np.zeros((len(rows), 2)), bssids=list(self.bssids),
-                      rssi_dbm=self._rss[rows, :len(self.bssids)], freq_mhz=np.asarray(self.freq, float),
-                      ssids=list(self.ssids), scan_ids=rows.astype(np.int64), stamps_ns=self.stamp[rows].copy(),
-                      source=["map"] * len(rows))
-        fix = Wknn(self.wknn_params).fit(rm).locate(scan)
+        key = (user, self._epoch, self._appends - self._own_appends.get(user, 0)) if joint else (None, self._epoch)
+        if self._fitted is not None and self._fitted[0] == key:
+            rows, wknn = self._fitted[1], self._fitted[2]
+        else:
+            u = self.user[:self.n]
+            rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
+            if len(rows) == 0:
+                return None
+            rm = RadioMap(positions=np.zeros((len(rows), 2)), bssids=list(self.bssids),
+                          rssi_dbm=self._rss[rows, :len(self.bssids)], freq_mhz=np.asarray(self.freq, float),
+                          ssids=list(self.ssids), scan_ids=rows.astype(np.int64), stamps_ns=self.stamp[rows].copy(),
+                          source=["map"] * len(rows))
+            wknn = Wknn(self.wknn_params).fit(rm)
+            self._fitted = (key, rows, wknn)
+        fix = wknn.locate(scan)
         if not fix.ok:
             return None
         chosen = rows[np.asarray(fix.info["rows"], np.int64)]

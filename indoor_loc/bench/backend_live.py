@@ -21,9 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.backend.putmc_events import PUTMC_GRAPH_PARAMS
 from indoor_loc.bench.backend import Putmc
 from indoor_loc.eval.metrics import paper_score, point_segment_distance, scan_time_errors
 from indoor_loc.imu.pdr import Pdr, PdrParams
+from indoor_loc.params import params_file_text
 from indoor_loc.wifi.radiomap import save_radiomap
 
 START_NS = 1_000_000_000_000
@@ -183,14 +185,14 @@ def run_live(data: Putmc, msgs, rate: float, params_file: Path, domain: int) -> 
 
 def run(data: Putmc, rates=(1.0, 10.0)) -> None:
     msgs = merged_messages(data)
-    values = {"joint": True, "estimate_step_length": True}
     with tempfile.TemporaryDirectory() as tmp:
         rm = save_radiomap(data.survey, Path(tmp) / "survey")
+        values = dict(PUTMC_GRAPH_PARAMS, radiomap=str(rm))       # what `indoor-loc import putmc` writes
         params = Path(tmp) / "params.yaml"
-        params.write_text(f"/**/backend_node:\n  ros__parameters:\n    radiomap: {rm}\n    joint: true\n"
-                          "    estimate_step_length: true\n")
-        offline = score_paths(data, offline_reference(data, msgs, dict(values, radiomap=str(rm))))
-        print("\n## Live over DDS: 24 walks at once through one backend_node (joint + SLE, window 30)\n")
+        params.write_text(params_file_text({"backend_node": values}))
+        offline = score_paths(data, offline_reference(data, msgs, values))
+        print("\n## Live over DDS: 24 walks at once through one backend_node (the importer's configuration: "
+              "joint + SLE, measured noise, Huber; window 30)\n")
         print(f"{len(msgs)} messages, {(msgs[-1][0] - msgs[0][0]) * 1e-9:.0f} s of data on one clock\n")
         print("| run | replay s (node idle after s) | messages in / sent | processing ms p50 / p99 / max | paper RMSE / mean | "
               "true mean m | scan mean / p95 m |")

@@ -1,4 +1,4 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,live}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -12,6 +12,7 @@ BENCHES = {
     "steps": "indoor_loc.bench.steps",
     "backend": "indoor_loc.bench.backend",
     "pf": "indoor_loc.bench.pf",
+    "throughput": "indoor_loc.bench.throughput",
     "live": "indoor_loc.bench.live",
 }
 
@@ -27,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                       "(wifi: putmc (default) or ms_site2)")
     parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
     parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay")
+    parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
+    parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
+    parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
     parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4)")
     parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20,40)")
     parser.add_argument("--duration", type=float, default=0.0, help="live: simulated seconds per user (default 40)")

@@ -19,6 +19,9 @@ from indoor_loc.errors import DatasetError
 
 INTERVALS_S = (0.0, 5.0, 10.0, 20.0)
 RULES = ("tll", "uniform", "angle")
+#: The reference's pose sampling for the route metric: one pose every 256 accelerometer samples
+#: (~1.29 s) plus one at every WiFi scan (PUTMC README: sampling density changes the score).
+ROUTE_SAMPLE_S = 256 / 199.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--walks", default="all", help="comma-separated walk numbers (default all 24)")
     parser.add_argument("--quick", action="store_true", help="one run, PDR rows and the 10 s WiFi-only rows only")
     parser.add_argument("--no-perf", action="store_true", help="skip the performance section")
+    parser.add_argument("--json", type=Path, help="also write the figures as JSON here")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -136,18 +140,39 @@ def kf_wifi_only(inp: dict, interval_s: float) -> tuple[np.ndarray, np.ndarray, 
 
 
 # ----------------------------------------------------------------------------------------------
-def _score(trajs: dict, truths: dict) -> dict:
+def paper_sampling(stamps_ns: np.ndarray, xy: np.ndarray, scan_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The trajectory at the reference's sampling (a pose every :data:`ROUTE_SAMPLE_S` from its
+    first stamp, plus every scan stamp inside it), each the latest estimate at or before that time
+    (sample and hold: what a causal estimator had published)."""
+    t = np.asarray(stamps_ns, np.int64)
+    grid = np.arange(t[0], t[-1] + 1, int(ROUTE_SAMPLE_S * 1e9), dtype=np.int64)
+    sc = np.asarray(scan_ns, np.int64)
+    q = np.unique(np.concatenate([grid, sc[(sc >= t[0]) & (sc <= t[-1])]]))
+    idx = np.searchsorted(t, q, side="right") - 1
+    return q, np.asarray(xy)[np.clip(idx, 0, len(t) - 1)]
+
+
+def _score(trajs: dict, truths: dict, users: list[str] | None = None) -> dict:
+    """Pooled scores: scan-time errors on the estimates as given; route distance (metres, and the
+    paper's squared units) at the reference's sampling (:func:`paper_sampling`)."""
     from indoor_loc.commands.eval import evaluate
     from indoor_loc.eval.trajectory import Trajectory
-    tj = {u: Trajectory.make(u, t, xy) for u, (t, xy) in trajs.items() if len(t)}
+    users = [u for u in (users or sorted(trajs)) if u in trajs and len(trajs[u][0])]
+    tj = {u: Trajectory.make(u, *trajs[u]) for u in users}
     scores, _ = evaluate(tj, truths)
     p = scores[-1]
+    tr = {u: Trajectory.make(u, *paper_sampling(*trajs[u], truths[u].scan_ns)) for u in users}
+    rs, _ = evaluate(tr, truths)
+    r = rs[-1]
     return {"scan_mean": p.scan_m.mean, "scan_med": p.scan_m.median, "scan_p95": p.scan_m.p95,
-            "route_mean": p.route_m.mean, "route_rmse": p.route_m.rmse}
+            "route_mean": r.route_m.mean, "route_rmse": r.route_m.rmse,
+            "paper_rmse": r.paper.rmse, "paper_mean": r.paper.mean}
 
 
-def _fmt_runs(rows: list[dict]) -> str:
-    keys = ("scan_mean", "scan_med", "scan_p95", "route_mean", "route_rmse")
+KEYS = ("scan_mean", "scan_med", "scan_p95", "route_mean", "route_rmse", "paper_rmse", "paper_mean")
+
+
+def _fmt_runs(rows: list[dict], keys: tuple[str, ...] = KEYS) -> str:
     cells = []
     for k in keys:
         v = np.array([r[k] for r in rows])
@@ -167,7 +192,7 @@ def off_graph(graph, trajs: dict) -> float:
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``indoor-loc bench pf`` (options missing from the shared bench CLI default)."""
     for name, default in (("work", Path("out/bench_pf")), ("runs", 3), ("particles", 1000), ("walks", "all"),
-                          ("no_perf", False), ("quick", False)):
+                          ("no_perf", False), ("quick", False), ("json", None)):
         if not hasattr(args, name):
             setattr(args, name, default)
     return main(args)
@@ -198,8 +223,18 @@ def main(args: argparse.Namespace) -> int:
     print(f"PUTMC: {len(users)} walks, {sum(len(inputs[u]['fix']) for u in users)} WiFi fixes; graph "
           f"{graph.n_nodes} nodes / {graph.n_links} links / {graph.link_len.sum():.0f} m; {args.particles} particles; "
           f"{runs} run(s), seeds 0..{runs - 1}")
-    header = "| estimate | scan-time mean | median | p95 | route mean | route RMSE |\n|---|---|---|---|---|---|"
+    header = ("| estimate | scan-time mean | median | p95 | route mean | route RMSE | paper \"RMSE\" (m²) | "
+              "paper \"mean\" (m²) |\n|---|---|---|---|---|---|---|---|")
     lines = [header]
+    figures: dict[str, list[dict]] = {}
+    halves = {"odd walks": [u for u in users if int(u[4:]) % 2 == 1], "even walks": [u for u in users if int(u[4:]) % 2 == 0]}
+    split_rows: dict[str, dict[str, list[dict]]] = {}
+
+    def keep(label: str, rows: list[dict], trajs_per_run: list[dict] | None = None) -> str:
+        figures[label] = rows
+        if trajs_per_run is not None:
+            split_rows[label] = {h: [_score(tj, truths, us) for tj in trajs_per_run] for h, us in halves.items() if us}
+        return f"| {label} | {_fmt_runs(rows)} |"
 
     # -- with PDR -----------------------------------------------------------------------------
     t_pf = 0.0
@@ -207,6 +242,7 @@ def main(args: argparse.Namespace) -> int:
     smooth_off = 0.0
     for rule in RULES:
         rows, srows = [], []
+        f_runs, s_runs = [], []
         for r in range(runs):
             filt, sm = {}, {}
             t0 = time.perf_counter()
@@ -219,20 +255,30 @@ def main(args: argparse.Namespace) -> int:
             if rule == "tll":
                 t_pf += time.perf_counter() - t0
             rows.append(_score(filt, truths))
+            f_runs.append(filt)
             if sm:
                 srows.append(_score(sm, truths))
+                s_runs.append(sm)
                 smooth_off = max(smooth_off, off_graph(graph, sm))
-        lines.append(f"| PF {rule} + PDR, causal | {_fmt_runs(rows)} |")
+        lines.append(keep(f"PF {rule} + PDR, causal", rows, f_runs if rule == "tll" else None))
         if srows:
-            lines.append(f"| PF {rule} + PDR, backward-simulation smoothed | {_fmt_runs(srows)} |")
+            lines.append(keep(f"PF {rule} + PDR, backward-simulation smoothed", srows, s_runs))
     kf = trajectories_from_bags([run], "pdr_kf/pose")
     kfs = trajectories_from_bags([run], "pdr_kf/path")
-    kf_rows = _fmt_runs([_score({u: (kf[u].stamps_ns, kf[u].xy) for u in users}, truths)])
-    kfs_rows = _fmt_runs([_score({u: (kfs[u].stamps_ns, kfs[u].xy) for u in users}, truths)])
-    lines.append(f"| linear KF + PDR, causal (`pdr_kf/pose`) | {kf_rows} |")
-    lines.append(f"| linear KF + PDR, RTS-smoothed (`pdr_kf/path`) | {kfs_rows} |")
-    print("\nWith PDR (pdr/odom + wifi/fix):\n")
+    kf_t = {u: (kf[u].stamps_ns, kf[u].xy) for u in users}
+    kfs_t = {u: (kfs[u].stamps_ns, kfs[u].xy) for u in users}
+    lines.append(keep("linear KF + PDR, causal (`pdr_kf/pose`)", [_score(kf_t, truths)], [kf_t]))
+    lines.append(keep("linear KF + PDR, RTS-smoothed (`pdr_kf/path`)", [_score(kfs_t, truths)], [kfs_t]))
+    print("\nWith PDR (pdr/odom + wifi/fix). Scan-time error: estimate interpolated at each scan's stamp vs its true "
+          "position. Route: distance to the true route at the reference's sampling (a pose every "
+          f"{ROUTE_SAMPLE_S:.2f} s and at every scan, latest estimate held), in metres and in the paper's squared "
+          "units (e = d², e < 100 kept).\n")
     print("\n".join(lines))
+    print("\nThe same runs per half of the walks (scan-time mean / p95, route RMSE; m):\n")
+    print("| estimate | " + " | ".join(halves) + " |\n|---|" + "---|" * len(halves))
+    for label, per in split_rows.items():
+        print(f"| {label} | " + " | ".join(_fmt_runs(per[h], ("scan_mean", "scan_p95", "route_rmse")).replace(" | ", " / ")
+                                          for h in halves if h in per) + " |")
     print(f"\nsmoothed poses: farthest from the graph {smooth_off:.3f} m; PF TLL + PDR + smoother ran "
           f"{walk_s * runs / max(t_pf, 1e-9):.1f}x real time ({walk_s:.0f} s of walks per run)")
 
@@ -247,17 +293,23 @@ def main(args: argparse.Namespace) -> int:
                 filt = {u: run_walk(graph, tables[rule], pf_params, inputs[u], seed=1000 * r + i, pdr=False,
                                     interval_s=iv)[0] for i, u in enumerate(users)}
                 rows.append(_score(filt, truths))
-            lines.append(f"| {label}: PF {rule} | {_fmt_runs(rows)} |")
+            lines.append(keep(f"{label}: PF {rule}", rows))
         kff, kfsm = {}, {}
         for u in users:
             t, xf, t2, xs = kf_wifi_only(inputs[u], iv)
             kff[u], kfsm[u] = (t, xf), (t2, xs)
-        lines.append(f"| {label}: KF constant velocity, filtered | {_fmt_runs([_score(kff, truths)])} |")
-        lines.append(f"| {label}: KF constant velocity, RTS-smoothed | {_fmt_runs([_score(kfsm, truths)])} |")
+        lines.append(keep(f"{label}: KF constant velocity, filtered", [_score(kff, truths)]))
+        lines.append(keep(f"{label}: KF constant velocity, RTS-smoothed", [_score(kfsm, truths)]))
     print("\nWiFi only (wifi/fix at the given minimum interval; scored at every scan time):\n")
     print("\n".join(lines))
     if not args.no_perf:
         perf(graph, graph_file)
+    if args.json:
+        import json
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"walks": users, "runs": runs, "particles": args.particles,
+                                         "graph": {"nodes": graph.n_nodes, "links": graph.n_links},
+                                         "rows": figures}, indent=1))
     return 0
 
 
@@ -298,7 +350,7 @@ def perf(graph, graph_file: Path) -> None:
     t0 = time.perf_counter()
     total_link_lengths(graph, 40.0)
     t_putmc = time.perf_counter() - t0
-    side = 71
+    side = 72                                                     # 2 * 72 * 71 = 10 224 links
     ii, jj = np.meshgrid(np.arange(side), np.arange(side), indexing="ij")
     ids = (ii * side + jj).ravel()
     links = [(a, a + 1) for a in ids if a % side != side - 1] + [(a, a + side) for a in ids if a < side * (side - 1)]

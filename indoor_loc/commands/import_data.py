@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.backend.putmc_events import PUTMC_GRAPH_PARAMS
 from indoor_loc.errors import ConfigError, DatasetError
 from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.output_paths import check_outputs
@@ -101,9 +102,9 @@ def import_putmc(args: argparse.Namespace) -> int:
     params = {"imu_node": {"heading_source": "orientation", "step_length_m": 0.65},
               "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(survey)},
               # Nowicki & Skrzypczyński 2019's joint + step-length configuration: walks one after another
-              # (1…24), each matching the survey and all earlier walks' scans
-              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", "joint": True,
-                               "estimate_step_length": True},
+              # (1…24), each matching the survey and all earlier walks' scans; information from measured
+              # noise and a Huber kernel on the WKNN hyperedges (see PUTMC_GRAPH_PARAMS)
+              "backend_node": {"radiomap": str(rm_dir), "offline_order": "sequential", **PUTMC_GRAPH_PARAMS},
               "tll_pf": {"graph_file": str(graph_file)}}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import putmc`. imu/data carries the phone's orientation rotated into the\n"
@@ -131,7 +132,8 @@ def import_putmc(args: argparse.Namespace) -> int:
 
 def putmc_graph(ds, survey, out: Path) -> Path:
     """The floor's building graph from ``map.png`` (skeleton of the free space inside the building
-    envelope, seeded at the survey scan positions), written to ``OUT/graph.yaml``."""
+    envelope, seeded at the survey scan positions; the plan's light strokes — door leaves, glazing —
+    are passable, see :mod:`indoor_loc.graph.from_image`), written to ``OUT/graph.yaml``."""
     from indoor_loc.datasets.putmc import PUTMC_SCALE_PX_PER_M
     from indoor_loc.graph.from_image import PlanParams, read_plan, skeleton_graph
     from indoor_loc.graph.io import save_graph
@@ -140,7 +142,8 @@ def putmc_graph(ds, survey, out: Path) -> Path:
     g = skeleton_graph(read_plan(ds.map_png()), params, seeds_xy=survey.positions)
     path = save_graph(g, out / "graph.yaml", source={
         "tool": "indoor-loc import putmc", "image": "map.png", "px_per_m": PUTMC_SCALE_PX_PER_M,
-        "clearance_m": params.clearance_m, "envelope_gap_m": params.envelope_gap_m, "seeds": "survey scan positions"})
+        "wall_threshold": params.wall_threshold, "clearance_m": params.clearance_m,
+        "envelope_gap_m": params.envelope_gap_m, "seeds": "survey scan positions"})
     print(f"graph:     {path} ({g.n_nodes} nodes, {g.n_links} links, {g.link_len.sum():.0f} m)")
     return path
 

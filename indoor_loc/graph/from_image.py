@@ -4,10 +4,13 @@ Koivisto et al. 2014 (§II-A) build their link map by hand; the floor-plan-to-gr
 graph with random-walk transitions, backward-simulation smoothing) divide the walkable area into
 cells, drop the cells that touch walls and connect adjacent free cells. Both are offered:
 
-- :func:`skeleton_graph` — walls are the dark pixels; free space is what lies further than a
-  clearance (a person's half width) from any wall, so door gaps narrower than the person close and
-  wall lines with small drawing gaps stay shut; only the free-space components containing the
-  given seed points (or the largest one not touching the image border) are kept; the medial axis
+- :func:`skeleton_graph` — walls are the dark strokes (darker than mid-grey): architectural plans
+  draw walls in heavy dark lines and door leaves, glazing, furniture and hatching in light ones, so
+  a door drawn closed stays passable while a wall drawn with small gaps stays shut; free space is
+  what lies further than a clearance (a person's half width) from any wall, inside the building's
+  outline (the outside is what a flood fill from the image border reaches through outer-wall gaps
+  narrower than ``2 * envelope_gap_m``); only the free-space components containing the given seed
+  points (or the largest one not touching the image border) are kept; the medial axis
   (``skimage.morphology.skeletonize``) becomes the links: junction and end pixels become nodes,
   the pixel chains between them are simplified to straight links
   (``skimage.measure.approximate_polygon``, Douglas–Peucker) and spurs shorter than
@@ -37,8 +40,10 @@ from indoor_loc.graph.model import BuildingGraph, build_graph
 class PlanParams:
     """How a floor-plan bitmap is read."""
     px_per_m: float = P.field(20.0, "image scale (pixels per metre)")
-    wall_threshold: int = P.field(160, "grey level (0-255) below which a pixel is a wall")
-    clearance_m: float = P.field(0.12, "free space keeps at least this distance from walls (m)")
+    wall_threshold: int = P.field(140, "grey level (0-255) below which a pixel is a wall: dark strokes are "
+                                       "walls, lighter ones (door leaves, glazing, furniture) are not")
+    clearance_m: float = P.field(0.25, "free space keeps at least this distance from walls (m): half a "
+                                       "person's width")
     min_spur_m: float = P.field(1.0, "dead-end links shorter than this are pruned (m)")
     simplify_m: float = P.field(0.25, "Douglas-Peucker tolerance when straightening skeleton chains (m)")
     envelope_gap_m: float = P.field(2.5, "outer-wall gaps (windows, doors) up to twice this wide are closed "
@@ -122,9 +127,13 @@ def building_envelope(wall: np.ndarray, gap_px: float) -> np.ndarray:
     """Inside of the building's outline: walls closed over gaps up to ``2 * gap_px`` wide (windows,
     doors in the outer wall; closing = dilation then erosion, both from distance transforms), then
     every enclosed hole filled."""
-    dilated = ndimage.distance_transform_edt(~wall) <= gap_px
+    # pad with empty space wider than the gap: the image border is outside, not a wall, so the
+    # closing cannot glue a strip between the outer wall and the border to the building
+    pad = int(np.ceil(gap_px)) + 2
+    padded = np.pad(wall, pad, constant_values=False)
+    dilated = ndimage.distance_transform_edt(~padded) <= gap_px
     closed = ndimage.distance_transform_edt(dilated) > gap_px - 1.0
-    return ndimage.binary_fill_holes(closed)
+    return ndimage.binary_fill_holes(closed)[pad:-pad, pad:-pad]
 
 
 def _neighbour_count(mask: np.ndarray) -> np.ndarray:

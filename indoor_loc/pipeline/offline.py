@@ -7,6 +7,16 @@ namespace found in the inputs (a namespace is "a user": ``/walk07/imu/data`` -> 
 Outputs of one stage that another stage of the same namespace takes (``wifi/scan`` from the scan
 node into the fix node, say) are passed on at once, as DDS would.
 
+Runs of IMU messages (``sensor_msgs/Imu``, ``MagneticField``) of one namespace and topic, going
+to one per-user stage with a batch path (``Stage.on_batch``), are decoded in bulk into arrays
+(:mod:`indoor_loc.bag.bulk`) and handed over with :meth:`Stage.process_batch`, which handles them
+as :meth:`Stage.process` handles each message: same outputs, counters and order within the
+namespace. A run ends at the next message of another topic of that namespace, at a tick, or after
+:data:`MAX_RUN` messages; a run that does not decode in bulk, or holds a message the adapter
+rejects, is taken message by message. Messages no stage takes and ``--copy`` does not name are
+not deserialised. (Namespaces are independent, so the output bag may hold one user's outputs
+written a little later than another's; their stamps and contents are the same.)
+
 Multi-user stages (``Stage.MULTI_USER``, the back-end) are one instance across all bags in the root
 namespace: they receive every user's messages (from the bags and from the per-user stages) with the
 user's name, and their outputs are written under the root (``/backend/walk07/path``).
@@ -42,6 +52,8 @@ from indoor_loc.pipeline.stage import ORDERS, Stage, user_of_namespace
 TICK_NS = 1_000_000_000
 #: Ticks stop across a longer gap in the data and resume with it (1 Hz grid kept), ns.
 GAP_NS = 10 * TICK_NS
+#: Longest run of IMU messages decoded and handled as one batch.
+MAX_RUN = 2048
 
 
 @dataclass
@@ -53,6 +65,7 @@ class RunSummary:
     span_by_ns: dict[str, float] = field(default_factory=dict)
     ticks: int = 0
     wall_s: float = 0.0
+    cpu_s: float = 0.0                 # CPU time of this process during the run
     order: str = "merged"
 
 
@@ -69,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay several bags merged in stamp order or one after another (sequential); "
                              "auto: what the multi-user stages' params ask for (offline_order), else merged")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (none unless stderr is a terminal)")
+    parser.add_argument("--no-batch", action="store_true",
+                        help="hand every IMU message to its stage one by one, as live (default: runs of IMU "
+                             "messages decoded in bulk through the stage's batch path; same output)")
 
 
 def _warn_misplaced(params_file: dict | None, node_name: str, ns: str) -> None:
@@ -144,7 +160,7 @@ def resolve_order(order: str, multi: list[Stage]) -> str:
 
 def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path | None = None,
                 copy: Iterable[str] = ("ground_truth",), progress: bool = True, order: str = "auto",
-                overwrite: bool = False) -> RunSummary:
+                overwrite: bool = False, batch: bool = True) -> RunSummary:
     """Replay ``bags`` through the stages ``nodes`` into ``out`` (see the module doc).
 
     ``out`` must not be an input, and must not exist unless ``overwrite``; the bag is written to a
@@ -153,14 +169,17 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     in the data (recordings made days apart) they resume with the data instead of running once per
     second of the gap. A stage whose ``tick``/``finish`` raises counts ``internal_error`` and the
     run goes on. A requested node that no namespace can feed is a ConfigError (nothing to do).
+    ``batch=False`` hands every message to its stages one by one, as live (same output).
     """
     import time
 
-    from indoor_loc.bag import BagWriter, bag_topics, read_bag
+    from indoor_loc.bag import BagWriter, MessageDecoder, RawMessage, bag_topics, read_raw
+    from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
     from msg_adapters.diagnostics import stage_diagnostics
     from msg_adapters.time import header_ns
 
     t0 = time.perf_counter()
+    c0 = time.process_time()
     for b in bags:
         if not Path(b).is_file():
             raise ConfigError(f"input bag {b} does not exist")
@@ -243,11 +262,60 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                     emit("", s, s.run_tick(now_ns), now_ns)
                     writer.write("/diagnostics", stage_diagnostics(join_ns("", s.NODE_NAME), s, now_ns), now_ns)
 
+            decode = MessageDecoder()
+            split_cache: dict[str, tuple[str, str]] = {}
+            batch_ok: dict[tuple[str, str, str], bool] = {}
+            pending: dict[str, tuple[str, str, list[bytes], list[int]]] = {}   # ns -> run of one topic
+
+            def feeds_back(stage: Stage, ns: str) -> bool:
+                """True if the stage's outputs reach it again through other stages (``emit`` never
+                gives a stage its own outputs directly)."""
+                seen: set[tuple[str, int]] = set()
+                todo = [(p.topic, stage) for p in stage.outputs()]
+                while todo:
+                    rel, producer = todo.pop()
+                    if (rel, id(producer)) in seen:
+                        continue
+                    seen.add((rel, id(producer)))
+                    for s in takers.get((ns, rel), ()):
+                        if s is producer:
+                            continue
+                        if s is stage:
+                            return True
+                        todo += [(p.topic, s) for p in s.outputs()]
+                return False
+
+            def batchable(ns: str, rel: str, type_name: str) -> bool:
+                key = (ns, rel, type_name)
+                ok = batch_ok.get(key)
+                if ok is None:
+                    who = takers.get((ns, rel), [])
+                    ok = batch_ok[key] = (batch and not multi and type_name in BULK_TYPES and rel not in copy and len(who) == 1
+                                          and who[0].batch_handles(rel) and not feeds_back(who[0], ns))
+                return ok
+
+            def flush(ns: str) -> None:
+                rel, type_name, datas, stamps = pending.pop(ns)
+                stage = takers[(ns, rel)][0]
+                items = bulk_items(type_name, datas)
+                if items is None:                 # not one layout, or a message to reject: one by one
+                    topic = join_ns(ns, rel)
+                    for data, now in zip(datas, stamps):
+                        msg = decode(RawMessage(topic, type_name, now, data, now)).msg
+                        emit(ns, stage, stage.process(rel, msg, now), now)
+                    return
+                for now, out_rel, out_msg in stage.process_batch(rel, items, stamps):
+                    emit(ns, stage, [(out_rel, out_msg)], now)
+
+            def flush_all() -> None:
+                for ns in list(pending):
+                    flush(ns)
+
             def play(files: list[Path], namespaces: list[str]) -> int | None:
                 nonlocal last_ns
                 next_tick: int | None = None
                 start = end = None
-                for m in read_bag(files):
+                for m in read_raw(files):
                     summary.messages_in += 1
                     if bar is not None:
                         bar.update(1)
@@ -257,19 +325,44 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                     end = now
                     if next_tick is None:
                         next_tick = now + TICK_NS
+                    if now >= next_tick and pending:
+                        flush_all()
                     while now >= next_tick:
                         tick(next_tick, namespaces)
                         next_tick += TICK_NS
                         if now - next_tick >= GAP_NS:   # a gap in the data: skip the empty seconds
                             next_tick += (now - next_tick) // TICK_NS * TICK_NS
-                    ns, rel = split_ns(m.topic, relative_names)
+                    nsrel = split_cache.get(m.topic)
+                    if nsrel is None:
+                        nsrel = split_cache[m.topic] = split_ns(m.topic, relative_names)
+                    ns, rel = nsrel
                     sp = span.setdefault(ns, [now, now])
                     sp[1] = now
+                    if batchable(ns, rel, m.type):
+                        run = pending.get(ns)
+                        if run is not None and (run[0] != rel or run[1] != m.type):
+                            flush(ns)
+                            run = None
+                        if run is None:
+                            run = pending[ns] = (rel, m.type, [], [])
+                        run[2].append(m.data)
+                        run[3].append(now)
+                        if len(run[2]) >= MAX_RUN:
+                            flush(ns)
+                        continue
+                    if ns in pending:
+                        flush(ns)
+                    who = takers.get((ns, rel), ())
+                    to_multi = bool(user_of_namespace(ns)) and any(s.handles(rel) for s in multi)
+                    if not (who or to_multi or rel in copy):
+                        continue                     # nobody takes it: not deserialised
+                    msg = decode(m).msg
                     if rel in copy:
-                        writer.write(m.topic, m.msg, now)
-                    for s in takers.get((ns, rel), ()):
-                        emit(ns, s, s.process(rel, m.msg, now), now)
-                    feed_multi(ns, rel, m.msg, now)
+                        writer.write(m.topic, msg, now)
+                    for s in who:
+                        emit(ns, s, s.process(rel, msg, now), now)
+                    feed_multi(ns, rel, msg, now)
+                flush_all()
                 return end
 
             if order == "sequential":
@@ -311,6 +404,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     summary.bag_span_s = sum(summary.span_by_ns.values())
     summary.order = order
     summary.wall_s = time.perf_counter() - t0
+    summary.cpu_s = time.process_time() - c0
     return summary
 
 
@@ -320,10 +414,10 @@ def main(args: argparse.Namespace) -> int:
         stage_class(n)
     s = run_offline(list(args.bags), args.out, nodes=nodes, params=args.params,
                     copy=[c for c in args.copy.split(",") if c], progress=not args.no_progress,
-                    order=args.order, overwrite=args.overwrite)
+                    order=args.order, overwrite=args.overwrite, batch=not args.no_batch)
     per_ns = ", ".join(f"{ns} {v:.1f} s" for ns, v in s.span_by_ns.items())
     print(f"{s.messages_in} messages in, {s.messages_out} out; bag time {per_ns} ({s.bag_span_s:.1f} s in all) "
-          f"in {s.wall_s:.2f} s wall ({s.bag_span_s / max(s.wall_s, 1e-9):.0f}x real time, {s.order}) -> {args.out}")
+          f"in {s.wall_s:.2f} s wall, {s.cpu_s:.2f} s CPU ({s.bag_span_s / max(s.wall_s, 1e-9):.0f}x real time, {s.order}) -> {args.out}")
     clean = [n for n, kv in s.per_stage.items() if kv.get("rejected.total", "0") == "0"]
     print(f"  {len(s.per_stage)} node instances; {len(clean)} rejected nothing")
     for name, kv in s.per_stage.items():

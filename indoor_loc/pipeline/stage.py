@@ -129,6 +129,7 @@ class Stage:
         self.namespace = namespace
         self.diag = StageDiagnostics()
         self._handlers: dict[str, Callable[[Any, int], list[Output]]] = {}
+        self._batch: dict[str, Callable[[Any, int], list[Output]]] = {}
 
     # -- declared by subclasses ---------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -166,6 +167,50 @@ class Stage:
         multi-user stages: ``handler(msg, recv_ns, user)``."""
         self._handlers[topic] = handler
 
+    def on_batch(self, topic: str, handler: Callable[[Any, int], list[Output]]) -> None:
+        """Offer a batch path for ``topic`` (call in __init__; per-user stages only): ``handler(item,
+        recv_ns)`` does what the topic's message handler does after its adapter, on what the adapter
+        returns (an ``ImuSample`` for ``sensor_msgs/Imu``). See :meth:`process_batch`."""
+        self._batch[topic] = handler
+
+    def batch_handles(self, topic: str) -> bool:
+        """True if :meth:`process_batch` takes runs of messages on this input topic."""
+        return topic in self._batch and not self.MULTI_USER
+
+    def process_batch(self, topic: str, items: list, recv_ns: list[int]) -> list[tuple[int, str, Any]]:
+        """A run of messages on one topic, already decoded and validated in bulk into what the
+        topic's adapter returns (:func:`indoor_loc.bag.bulk.bulk_items`), handled exactly as
+        :meth:`process` handles the messages one after another: same counters, rejections by the
+        core, outputs and order. Returns ``[(recv_ns of the message that produced it, topic,
+        message), ...]``."""
+        handler = self._batch[topic]
+        diag = self.diag
+        published = diag.published
+        out: list[tuple[int, str, Any]] = []
+        if not items:
+            return out
+        stats = diag.received[topic]
+        t0 = time.perf_counter()
+        # counters as process() keeps them, updated once per batch (nothing reads them in between)
+        stats.count += len(items)
+        stats.first_ns = recv_ns[0] if stats.first_ns is None else stats.first_ns
+        stats.last_ns = recv_ns[len(items) - 1]
+        for item, recv in zip(items, recv_ns):
+            diag.now_ns = recv
+            try:
+                outs = handler(item, recv)
+            except InvalidInputError as err:
+                self._reject(err.reason, f"{topic}: {err}")
+                continue
+            except Exception as err:  # noqa: BLE001 - a node never dies on a message
+                self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+                continue
+            for o_topic, o_msg in outs:
+                published[o_topic] += 1
+                out.append((recv, o_topic, o_msg))
+        diag.process_s.extend([(time.perf_counter() - t0) / len(items)] * min(len(items), diag.process_s.maxlen or 0))
+        return out
+
     def handles(self, topic: str) -> bool:
         """True if the stage takes messages on this (relative) input topic."""
         return topic in self._handlers
@@ -195,6 +240,10 @@ class Stage:
                 self._reject("no_user", f"{topic}: a multi-user stage needs the message's user")
                 return []
             handler = functools.partial(handler, user=user)
+        return self._dispatch(topic, handler, msg, recv_ns, user)
+
+    def _dispatch(self, topic: str, handler: Callable[[Any, int], list[Output]], msg: Any, recv_ns: int,
+                  user: str | None) -> list[Output]:
         stats = self.diag.received[f"{user}/{topic}" if self.MULTI_USER else topic]
         stats.count += 1
         stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns

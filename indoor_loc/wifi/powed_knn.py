@@ -19,7 +19,12 @@ Two weights multiply each reading's value:
 - **age** — a cached result (``age_ms`` > 0: the phone reports an older measurement taken where
   the user was seconds ago) is a weaker witness of *this* position: weight ``exp(−age / age_tau_ms)``
   on the query's readings and on the map's (the map's positions are the scans' own; an old map
-  reading belongs elsewhere). Unknown ages (NaN, PUTMC) weigh 1.
+  reading belongs elsewhere). Unknown ages (NaN, PUTMC) weigh 1. How much a cached reading is still
+  worth depends on how fast the user walked and how often the phone sweeps, which a scan does not
+  say; with ``age_views`` 'both' the position is the mean of two k-NN estimates, one with the age
+  weights and one with ages ignored (an equal-weight average over the two hypotheses). On ms_site2
+  the age weights alone win on some walks and lose on others (B1: the walks of the second survey
+  day lose 2–5 m with them); the average is better than either on three floors of four.
 - **AP informativeness** — an AP heard by nearly every map scan (a mall-wide network) says little
   about where one is: ``w_a = sqrt(ln(1 + M / n_a))`` (n_a = map scans hearing AP a; the inverse
   document frequency of text retrieval, Sparck Jones 1972). APs unknown to the map are ignored.
@@ -47,12 +52,21 @@ test walk enters a part of its floor the survey walks did not cover but the floo
 
 Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ(D₁)² I, where D₁ is the
 distance of the best match: a poor best match means a scan the map does not explain, and its
-error is larger (correlation 0.6–0.75 between D₁ and the error on three of four ms_site2 floors).
-σ(D) = max(cov_floor_m, a + b·D) / sqrt(π/2) is calibrated on the map itself at ``fit`` time by
-leave-one-source-out cross-validation (each map scan positioned against the map without its own
-walk; a, b = the least-squares line of those errors on D₁; for a 2-D isotropic Gaussian the mean
-error is σ·sqrt(π/2)). So the covariance follows each building's own accuracy instead of constants
-fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan out instead.
+error tends to be larger. σ(D) is calibrated on the map itself at ``fit`` time by
+leave-one-source-out cross-validation: each map scan is positioned against the map without its own
+walk, the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
+40 scans each), and in each bin σ is set so that the ``cov_quantile`` ellipse of an isotropic 2-D
+Gaussian holds that share of the bin's cross-validated errors: σ = q-quantile(error) /
+sqrt(−2 ln(1 − q)); σ is made non-decreasing in D₁ and interpolated between bin centres (constant
+beyond the end ones). Positioning errors are heavy-tailed (a scan matched to the wrong part of a
+mall is tens of metres off), so a σ fitted to the mean error — or a line in D₁ — leaves the 95 %
+ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
+covariance honest where a downstream filter gates on it, at the price of a 50 % ellipse that holds
+more than half of the truths. The calibration follows each building's own accuracy instead of
+constants fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan
+out instead. Cross-validation cannot see what the survey never covered: a user walking where no
+survey walk went is positioned on the nearest surveyed stretch and its error exceeds the ellipse
+(on ms_site2 F3 most test scans are more than 3 m from every map scan).
 """
 from __future__ import annotations
 
@@ -69,6 +83,7 @@ from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
 
 AP_WEIGHTINGS = ("idf", "none")
+AGE_VIEWS = ("weighted", "both")
 
 
 @dataclass(frozen=True)
@@ -79,6 +94,8 @@ class PowedKnnParams:
                                        "treated as not heard (dBm)")
     beta: float = field(math.e, "exponent of the powed representation")
     age_tau_ms: float = field(5000.0, "readings weigh exp(-age_ms / age_tau_ms); 0 = ignore ages (ms)")
+    age_views: str = field("both", "'weighted': readings weigh by their age; 'both': the mean of that estimate "
+                                   "and the one with ages ignored (two hypotheses on what a cached reading is worth)")
     ap_weighting: str = field("idf", "'idf' (sqrt(ln(1 + M / n_a)): APs heard everywhere weigh less) or 'none'")
     epsilon: float = field(1e-4, "epsilon in the neighbour weight 1 / (D + epsilon)")
     cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
@@ -88,6 +105,9 @@ class PowedKnnParams:
                                           "cross-validation at fit time")
     cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
                                          "(bounds the fit time on large maps)")
+    cov_quantile: float = field(0.95, "the ellipse of this probability is calibrated on the cross-validated errors")
+    cov_bins: int = field(5, "at most this many bins of the best-match distance in the calibration (each of at "
+                             "least 40 cross-validated scans)")
     offset_gain: float = field(0.2, "online device RSS offset: after each fix the offset moves by this fraction "
                                     "of the median residual against the neighbours (0 = off)")
     offset_max_db: float = field(20.0, "bound on the device RSS offset (dB)")
@@ -100,6 +120,7 @@ class PowedKnnParams:
         require(math.isfinite(self.beta) and self.beta > 0, n, "beta", "> 0", self.beta)
         require(math.isfinite(self.age_tau_ms) and self.age_tau_ms >= 0, n, "age_tau_ms", ">= 0 ms",
                   self.age_tau_ms)
+        require(self.age_views in AGE_VIEWS, n, "age_views", f"one of {list(AGE_VIEWS)}", self.age_views)
         require(self.ap_weighting in AP_WEIGHTINGS, n, "ap_weighting", f"one of {list(AP_WEIGHTINGS)}",
                   self.ap_weighting)
         require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
@@ -110,6 +131,9 @@ class PowedKnnParams:
         require(int(self.offset_min_aps) >= 1, n, "offset_min_aps", "an integer >= 1", self.offset_min_aps)
         require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
                 self.cov_calibration_scans)
+        require(math.isfinite(self.cov_quantile) and 0.0 < self.cov_quantile < 1.0, n, "cov_quantile", "in (0, 1)",
+                self.cov_quantile)
+        require(int(self.cov_bins) >= 1, n, "cov_bins", "an integer >= 1", self.cov_bins)
         require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
         require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
@@ -141,12 +165,12 @@ class PowedKnn(Positioner):
         self._w = np.zeros(0)                        # (A,) AP weights
         self._pos = np.zeros((0, 2))
         self._z = np.zeros(0)
-        self._sum = np.zeros(0)                      # (M,) Σ_a value of each map scan
-        self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # powed values by AP
+        self._views: list[tuple[ApReadings, np.ndarray, bool]] = []   # (readings, sums, ages used) per view
+        self._map_views_equal = True                 # the map has no ages: every view holds the same readings
         self._floors: np.ndarray = np.zeros(0)
         self._floor_names: dict[float, str] = {}
         self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
-        self.sigma_line = (self.params.cov_floor_m * math.sqrt(math.pi / 2), 0.0)   # (a, b): mean error = a + b D
+        self.sigma_table = (np.zeros(1), np.full(1, self.params.cov_floor_m))   # (D1 bin centres, sigma per bin)
         self.calibration: dict[str, Any] = {}
         self._last_query = (np.zeros(0, np.int64), np.zeros(0))
         self.offset_db = 0.0                          # online device RSS offset (state; reset() clears it)
@@ -159,9 +183,9 @@ class PowedKnn(Positioner):
             raise MapError(f"powed: radio map expected positions (M, 2) and rssi (M, A), got {pos.shape}, {rss.shape}")
         if len(pos) == 0:
             raise MapError("powed: the radio map has no scans")
-        val = powed(rss, p.floor_dbm, p.beta)
-        if radio_map.age_ms is not None:
-            val = val * age_weight(radio_map.age_ms, p.age_tau_ms)
+        raw = powed(rss, p.floor_dbm, p.beta)
+        aged = p.age_tau_ms > 0                      # query readings weigh by their age (map's too, when known)
+        val = raw * age_weight(radio_map.age_ms, p.age_tau_ms) if radio_map.age_ms is not None else raw
         heard = val > 0
         n_a = heard.sum(axis=0)
         if p.ap_weighting == "idf":
@@ -169,26 +193,34 @@ class PowedKnn(Positioner):
         else:
             w = np.ones(len(n_a))
         val = val * w[None, :]
+        vals = [val]
+        self._views = [(ApReadings(heard, val), val.sum(axis=1), aged)]
+        self._map_views_equal = radio_map.age_ms is None
+        if aged and p.age_views == "both":
+            if self._map_views_equal:               # no map ages: the views differ by the query's ages only
+                self._views.append((self._views[0][0], self._views[0][1], False))
+            else:
+                raw = raw * w[None, :]
+                vals.append(raw)
+                self._views.append((ApReadings(heard, raw), raw.sum(axis=1), False))
         self.radio_map = radio_map
         self.aps = ApIndex(radio_map.bssids)
         self._w = w
         self._pos = pos
         self._z = np.asarray(radio_map.z_m, float)
-        self._sum = val.sum(axis=1)
-        self._readings = ApReadings(heard, val)
         self._floors = np.unique(self._z)
         self._floor_names = {float(z): str(name) for name, z in radio_map.floors.items()}
         ceiling = np.array([val[self._z == z].max(axis=0) for z in self._floors]).reshape(len(self._floors), -1)
         self._home = np.where(ceiling.max(axis=0) > 0, ceiling.argmax(axis=0), -1) if len(ceiling) else \
             np.zeros(0, np.int64)
-        self.sigma_line = (p.cov_floor_m * math.sqrt(math.pi / 2), 0.0)
+        self.sigma_table = (np.zeros(1), np.full(1, p.cov_floor_m))
         self.calibration = {}
         if p.cov_calibration:
-            self._calibrate(val, list(radio_map.source))
+            self._calibrate(vals, list(radio_map.source))
         return self
 
-    def _calibrate(self, val: np.ndarray, source: list[str]) -> None:
-        """Leave-one-source-out errors of the map's own scans -> the line mean error = a + b D1."""
+    def _calibrate(self, vals: list[np.ndarray], source: list[str]) -> None:
+        """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance."""
         p = self.params
         # leave one walk (source) out; a map from one source (a survey) leaves one scan out
         src = np.array(source) if len(set(source)) >= 2 else np.arange(len(source)).astype(str)
@@ -197,59 +229,95 @@ class PowedKnn(Positioner):
         err = np.full(m, np.nan)
         rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
         for i in rows:
-            c = np.flatnonzero(val[i] > 0)
+            c = np.flatnonzero(vals[0][i] > 0)
             if len(c) == 0:
                 continue
-            d = self._dist_cols(c, val[i, c])
-            cand = np.flatnonzero((src != src[i]) & (self._z == self._z[i]) & (d < 1.0))
-            if len(cand) == 0:
+            ds = [self._dist_cols(c, v[i, c], j) for j, v in enumerate(vals)]
+            est = self._estimate(ds, (src != src[i]) & (self._z == self._z[i]))
+            if est is None:
                 continue
-            k = min(p.k, len(cand))
-            best = cand[np.argsort(d[cand], kind="stable")[:k]]
-            w = 1.0 / (d[best] + p.epsilon)
-            xy = (w / w.sum()) @ self._pos[best]
-            d1[i] = d[best[0]]
-            err[i] = float(np.hypot(*(xy - self._pos[i])))
+            d1[i] = est[3]
+            err[i] = float(np.hypot(*(est[0] - self._pos[i])))
         ok = np.isfinite(err)
         if ok.sum() < 10:
             return
-        b, a = np.polyfit(d1[ok], err[ok], 1)
-        b = max(float(b), 0.0)
-        a = float(np.mean(err[ok]) - b * np.mean(d1[ok]))
-        self.sigma_line = (a, b)
-        self.calibration = {"scans": int(ok.sum()), "mean_error_m": float(np.mean(err[ok])), "a_m": a, "b_m": b}
+        d1, err = d1[ok], err[ok]
+        order = np.argsort(d1, kind="stable")
+        n_bins = int(np.clip(len(order) // 40, 1, int(p.cov_bins)))
+        bins = np.array_split(order, n_bins)
+        centres = np.array([float(np.mean(d1[b])) for b in bins])
+        scale = math.sqrt(-2.0 * math.log(1.0 - p.cov_quantile))
+        sig = np.maximum.accumulate(np.array([float(np.quantile(err[b], p.cov_quantile)) / scale for b in bins]))
+        self.sigma_table = (centres, np.maximum(sig, p.cov_floor_m))
+        self.calibration = {"scans": int(len(err)), "mean_error_m": float(np.mean(err)),
+                            "quantile": p.cov_quantile, "d1": centres.tolist(), "sigma_m": self.sigma_table[1].tolist()}
 
     def sigma_m(self, d1: float) -> float:
         """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m."""
-        a, b = self.sigma_line
-        return max(self.params.cov_floor_m, (a + b * d1) / math.sqrt(math.pi / 2))
+        centres, sig = self.sigma_table
+        return max(self.params.cov_floor_m, float(np.interp(d1, centres, sig)))
 
     # ------------------------------------------------------------------------------------------
     def distances(self, scan: WifiScan) -> tuple[np.ndarray, int, int]:
         """(D (M,) Sørensen distance to every map scan, usable readings, readings known to the map)."""
+        ds, n_usable, n_known = self.view_distances(scan)
+        return ds[0], n_usable, n_known
+
+    def view_distances(self, scan: WifiScan) -> tuple[list[np.ndarray], int, int]:
+        """Distances (M,) per view (ages weighted first; ages ignored second with ``age_views`` 'both',
+        unless neither the map nor the scan has ages), usable readings, readings known to the map."""
         p = self.params
-        v = powed(scan.rssi_dbm, p.floor_dbm, p.beta) * age_weight(scan.age_ms, p.age_tau_ms)
+        v = powed(scan.rssi_dbm, p.floor_dbm, p.beta)
         usable = v > 0
         cols = self.aps.columns(scan.bssid)
         keep = usable & (cols >= 0)
         m = len(self._pos)
         if not keep.any():
-            return np.ones(m), int(usable.sum()), 0
+            return [np.ones(m) for _ in self._views], int(usable.sum()), 0
         c = cols[keep]
-        q = v[keep] * self._w[c]
-        self._last_query = (c, q)
-        return self._dist_cols(c, q), int(usable.sum()), int(keep.sum())
+        raw = v[keep] * self._w[c]
+        ages = age_weight(None if scan.age_ms is None else np.asarray(scan.age_ms, float)[keep], p.age_tau_ms)
+        ds: list[np.ndarray] = []
+        for j, (_, _, aged) in enumerate(self._views):
+            if j > 0 and self._map_views_equal and np.all(ages == 1.0):
+                continue                             # no ages on either side: the views are the same
+            q = raw * ages if aged else raw
+            if j == 0:
+                self._last_query = (c, q)
+            ds.append(self._dist_cols(c, q, j))
+        return ds, int(usable.sum()), int(keep.sum())
 
-    def _dist_cols(self, c: np.ndarray, q: np.ndarray) -> np.ndarray:
+    def _dist_cols(self, c: np.ndarray, q: np.ndarray, view: int = 0) -> np.ndarray:
         """Sørensen distance (M,) of a query given as map columns c (q,) and weighted values q (q,)."""
         m = len(self._pos)
-        rows, map_vals, lens = self._readings.gather(c)
+        readings, sums, _ = self._views[view]
+        rows, map_vals, lens = readings.gather(c)
         if len(rows) == 0:
             return np.ones(m)
         mins = np.minimum(np.repeat(q, lens), map_vals)
         shared = np.bincount(rows, weights=mins, minlength=m)
-        d = 1.0 - 2.0 * shared / np.maximum(q.sum() + self._sum, 1e-300)
+        d = 1.0 - 2.0 * shared / np.maximum(q.sum() + sums, 1e-300)
         return np.clip(d, 0.0, 1.0)
+
+    def _estimate(self, ds: list[np.ndarray], allowed: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
+        """Per view the k nearest allowed map scans with D < 1, weights 1 / (D + epsilon); the position
+        is the mean of the views' weighted means. (xy, rows, weights summing to 1, D1 of the first
+        view, D of the rows) or None when no view has a candidate."""
+        p = self.params
+        parts = []
+        for d in ds:
+            cand = np.flatnonzero(allowed & (d < 1.0))
+            if len(cand) == 0:
+                continue
+            best = cand[np.argsort(d[cand], kind="stable")[:min(p.k, len(cand))]]
+            s = 1.0 / (d[best] + p.epsilon)
+            parts.append((best, s / s.sum(), d[best]))
+        if not parts:
+            return None
+        rows = np.concatenate([b for b, _, _ in parts])
+        w = np.concatenate([x for _, x, _ in parts]) / len(parts)
+        return w @ self._pos[rows], rows, w, float(parts[0][2][0]), np.concatenate([x for _, _, x in parts])
 
     def reset(self) -> None:
         """Forget the learnt device offset (a new phone)."""
@@ -292,13 +360,13 @@ class PowedKnn(Positioner):
     def _locate(self, scan: WifiScan) -> Fix:
         p = self.params
         nan_fix = (np.full(2, np.nan), np.full((2, 2), np.nan))
-        d, n_usable, n_known = self.distances(scan)
+        ds, n_usable, n_known = self.view_distances(scan)
         if n_usable == 0:
             return Fix(scan.stamp_ns, *nan_fix, ok=False, reason="no_usable_aps")
-        if n_known == 0 or not np.any(d < 1.0):
+        if n_known == 0 or not any(np.any(d < 1.0) for d in ds):
             return Fix(scan.stamp_ns, *nan_fix, ok=False, reason="no_shared_aps")
         floor_p: dict[float, float] = {}
-        cand = np.flatnonzero(d < 1.0)
+        allowed = np.ones(len(self._pos), bool)
         if len(self._floors) > 1:
             c, q = self._last_query
             h = self._home[c]
@@ -306,23 +374,23 @@ class PowedKnn(Positioner):
             share = score / max(float(score.sum()), 1e-300)
             floor_p = {float(z): float(x) for z, x in zip(self._floors, share)}
             z_best = float(self._floors[int(np.argmax(score))])
-            on_floor = cand[self._z[cand] == z_best]
-            cand = on_floor if len(on_floor) else cand
+            on_floor = self._z == z_best
+            if any(np.any(on_floor & (d < 1.0)) for d in ds):
+                allowed = on_floor
         else:
             z_best = float(self._floors[0]) if len(self._floors) else 0.0
             floor_p[z_best] = 1.0
-        k = min(p.k, len(cand))
-        best = cand[np.argsort(d[cand], kind="stable")[:k]]
-        s = 1.0 / (d[best] + p.epsilon)
-        w = s / s.sum()
+        est = self._estimate(ds, allowed)
+        assert est is not None                       # some view has a map scan with D < 1 among `allowed`
+        xy, best, w, d1, dist = est
         f = self._pos[best]
-        xy = w @ f
         dev = f - xy
         spread = (w[:, None] * dev).T @ dev
-        sigma = self.sigma_m(float(d[best[0]]))
+        sigma = self.sigma_m(d1)
         cov = p.cov_scale * spread + sigma ** 2 * np.eye(2)
-        info = {"rows": best, "weights": w, "distance": d[best], "positions": f, "candidates": int(len(cand)),
-                "sigma_m": sigma,
+        info = {"rows": best, "weights": w, "distance": dist, "positions": f,
+                "candidates": int(sum(np.count_nonzero(allowed & (d < 1.0)) for d in ds[:1])),
+                "sigma_m": sigma, "d1": d1,
                 "floor_p": floor_p, "floor": self._floor_names.get(z_best, "")}
         z_best = float(self._z[best[0]])
         return Fix(scan.stamp_ns, xy, cov, ok=True, info=info, z=z_best,

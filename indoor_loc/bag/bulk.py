@@ -1,0 +1,176 @@
+"""Bulk CDR decoding of runs of fixed-layout messages into arrays (``sensor_msgs/Imu``, ``MagneticField``).
+
+A ROS 2 message on the wire (and in an MCAP bag) is XCDR1: a 4-byte encapsulation header
+(``00 01 00 00`` = little-endian CDR) then the fields, each aligned to its size counted from the end
+of that header. ``std_msgs/Header`` is ``int32 sec, uint32 nanosec, string frame_id`` (uint32 length
+including the terminating NUL, then the bytes); what follows in ``Imu`` and ``MagneticField`` is only
+float64 (aligned to 8): quaternion (4) + covariance (9) + angular velocity (3) + covariance (9) +
+linear acceleration (3) + covariance (9) = 37 numbers, or field (3) + covariance (9) = 12.
+
+Messages of one sensor differ only in stamp and numbers, so a run of them has one size and one
+header prefix: it is decoded with one ``np.frombuffer`` over the joined bytes. A run that is not
+like that (another frame id inside it, big-endian CDR, a truncated record) is not decoded here
+(``None``): the caller deserialises those messages one by one, as before.
+"""
+from __future__ import annotations
+
+import struct
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from msg_adapters.imu import QUAT_NORM_TOL, ImuSample
+from msg_adapters.time import NS_PER_S
+
+#: float64 fields after the header
+IMU_DOUBLES = 37
+MAG_DOUBLES = 12
+_CDR_LE = b"\x00\x01"
+
+
+class ImuArrays(NamedTuple):
+    """A run of ``sensor_msgs/Imu`` messages as arrays (N rows; one frame id)."""
+    sec: np.ndarray                 # (N,) int64, header.stamp.sec
+    nanosec: np.ndarray             # (N,) int64, header.stamp.nanosec
+    frame_id: str
+    orientation_xyzw: np.ndarray    # (N, 4)
+    orientation_cov: np.ndarray     # (N, 9)
+    angular_velocity: np.ndarray    # (N, 3)
+    angular_velocity_cov: np.ndarray  # (N, 9)
+    linear_acceleration: np.ndarray  # (N, 3)
+    linear_acceleration_cov: np.ndarray  # (N, 9)
+
+    def __len__(self) -> int:       # type: ignore[override]
+        return len(self.sec)
+
+
+class MagArrays(NamedTuple):
+    """A run of ``sensor_msgs/MagneticField`` messages as arrays (N rows; one frame id)."""
+    sec: np.ndarray
+    nanosec: np.ndarray
+    frame_id: str
+    magnetic_field: np.ndarray      # (N, 3), T
+    magnetic_field_cov: np.ndarray  # (N, 9)
+
+    def __len__(self) -> int:       # type: ignore[override]
+        return len(self.sec)
+
+
+def _decode_fixed(datas: Sequence[bytes], n_doubles: int) -> tuple[np.ndarray, np.ndarray, str, np.ndarray] | None:
+    """(sec, nanosec, frame_id, doubles (N, n_doubles)) of CDR records ``header + n_doubles float64``
+    that share size and header prefix; None if they do not (or are not little-endian CDR)."""
+    if not datas:
+        return None
+    first = datas[0]
+    if len(first) < 16 or first[:2] != _CDR_LE:
+        return None
+    (slen,) = struct.unpack_from("<I", first, 12)
+    str_end = 16 + slen
+    off = 4 + (str_end - 4 + 7) // 8 * 8
+    size = off + 8 * n_doubles
+    rec = len(first)
+    if slen < 1 or rec != size:
+        return None
+    buf = b"".join(datas)
+    n = len(datas)
+    if len(buf) != n * rec:
+        return None                         # sizes differ within the run
+    a = np.frombuffer(buf, np.uint8).reshape(n, rec)
+    prefix = a[:, :4]
+    name = a[:, 12:str_end]
+    if n > 1 and (np.any(prefix != prefix[0]) or np.any(name != name[0])):
+        return None
+    if first[str_end - 1] != 0:
+        return None
+    try:
+        frame_id = first[16:str_end - 1].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    sec = np.ascontiguousarray(a[:, 4:8]).view("<i4").reshape(n).astype(np.int64)
+    nsec = np.ascontiguousarray(a[:, 8:12]).view("<u4").reshape(n).astype(np.int64)
+    vals = np.ascontiguousarray(a[:, off:size]).view("<f8").reshape(n, n_doubles)
+    return sec, nsec, frame_id, vals
+
+
+def decode_imu(datas: Sequence[bytes]) -> ImuArrays | None:
+    """CDR ``sensor_msgs/msg/Imu`` records -> :class:`ImuArrays` (None: decode them one by one)."""
+    r = _decode_fixed(datas, IMU_DOUBLES)
+    if r is None:
+        return None
+    sec, nsec, frame, v = r
+    return ImuArrays(sec, nsec, frame, v[:, 0:4], v[:, 4:13], v[:, 13:16], v[:, 16:25], v[:, 25:28], v[:, 28:37])
+
+
+def decode_mag(datas: Sequence[bytes]) -> MagArrays | None:
+    """CDR ``sensor_msgs/msg/MagneticField`` records -> :class:`MagArrays` (None: one by one)."""
+    r = _decode_fixed(datas, MAG_DOUBLES)
+    if r is None:
+        return None
+    sec, nsec, frame, v = r
+    return MagArrays(sec, nsec, frame, v[:, 0:3], v[:, 3:12])
+
+
+def _stamps_ok(sec: np.ndarray, nsec: np.ndarray) -> np.ndarray:
+    """Rows whose stamp ``msg_adapters.time.stamp_to_ns`` accepts (nanosec in [0, 1e9), not before 1970)."""
+    return (nsec >= 0) & (nsec < NS_PER_S) & (sec * NS_PER_S + nsec >= 0)
+
+
+def _finite(a: np.ndarray) -> np.ndarray:
+    return np.isfinite(a).all(axis=1)
+
+
+class SampleRun(list):
+    """The per-message items of a run (a list), with the arrays they were cut from (``arrays``) for
+    batch paths that work on whole columns."""
+    arrays: ImuArrays
+
+
+def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
+    """Validated samples of a decoded run, one per message, equal to ``imu_from_msg`` of each; None
+    when any message would be rejected (the caller then takes them one by one, so each is counted
+    under its own reason)."""
+    gyro_on = arr.angular_velocity_cov[:, 0] != -1.0
+    orient_on = arr.orientation_cov[:, 0] != -1.0
+    q = arr.orientation_xyzw
+    ok = (_stamps_ok(arr.sec, arr.nanosec) & _finite(arr.linear_acceleration) & _finite(arr.linear_acceleration_cov)
+          & (~gyro_on | (_finite(arr.angular_velocity) & _finite(arr.angular_velocity_cov)))
+          & (~orient_on | (_finite(q) & _finite(arr.orientation_cov)
+                           & (np.abs(np.sqrt((q * q).sum(axis=1)) - 1.0) <= QUAT_NORM_TOL))))
+    if not ok.all():
+        return None
+    stamps = (arr.sec * NS_PER_S + arr.nanosec).tolist()
+    frame = arr.frame_id
+    acc, gyro, cov = arr.linear_acceleration, arr.angular_velocity, arr.orientation_cov.reshape(-1, 3, 3)
+    g_on, o_on = gyro_on.tolist(), orient_on.tolist()
+    run = SampleRun(ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
+                              cov[i] if o_on[i] else None)
+                    for i, t in enumerate(stamps))
+    run.arrays = arr
+    return run
+
+
+def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
+    """``(stamp_ns, field T (3,))`` per message, as ``mag_from_msg``; None when any would be rejected."""
+    ok = _stamps_ok(arr.sec, arr.nanosec) & _finite(arr.magnetic_field) & _finite(arr.magnetic_field_cov)
+    if not ok.all():
+        return None
+    f = arr.magnetic_field
+    return [(t, f[i]) for i, t in enumerate((arr.sec * NS_PER_S + arr.nanosec).tolist())]
+
+
+def bulk_items(type_name: str, datas: Sequence[bytes]) -> list | None:
+    """CDR records of one message type -> what that type's adapter returns for each (``Imu``:
+    ``msg_adapters.imu.imu_from_msg``'s :class:`ImuSample`; ``MagneticField``: ``mag_from_msg``'s
+    ``(stamp_ns, field)``), for :meth:`indoor_loc.pipeline.stage.Stage.process_batch`. None for
+    another type, a run that does not decode in bulk, or one holding a message the adapter rejects."""
+    if type_name == "sensor_msgs/msg/Imu":
+        imu = decode_imu(datas)
+        return None if imu is None else imu_samples(imu)
+    if type_name == "sensor_msgs/msg/MagneticField":
+        mag = decode_mag(datas)
+        return None if mag is None else mag_samples(mag)
+    return None
+
+
+#: message types :func:`bulk_items` decodes
+BULK_TYPES = frozenset({"sensor_msgs/msg/Imu", "sensor_msgs/msg/MagneticField"})
