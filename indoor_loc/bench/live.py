@@ -15,6 +15,7 @@ The sensor inputs are reliable (``sensor_reliability: reliable``, as for any rep
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import re
 import signal
@@ -231,8 +232,6 @@ def run(args: argparse.Namespace) -> int:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     env.setdefault("ROS_DOMAIN_ID", str(1 + (int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1")) + 60) % 232))
     os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
-    import dataclasses
-
     from indoor_loc.sim.walker import ImuParams
     cfg = SimConfig(walkers=max(users), duration_s=duration, seed=7,
                     imu=dataclasses.replace(ImuParams(), rate_hz=200.0, mag_rate_hz=50.0))
@@ -261,18 +260,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{_rate(t.recorded, s)} ({t.recorder_missing}) | {where or t.note or 'none'} |", flush=True)
                 if t.lost or t.note:
                     break
-    _offline_stages(args)
+        from indoor_loc.bench.throughput import format_rows, offline_stage_rates
+        print(f"\n## The same bag offline ({max(users)} users), per stage: `indoor-loc run` on one core\n")
+        print(format_rows(offline_stage_rates([sim["bag"]], params=sim["params"], scratch=work)))
     return 0
-
-
-def _offline_stages(args: argparse.Namespace) -> None:
-    """The offline per-stage msgs/s table of :mod:`indoor_loc.bench.throughput`, when installed."""
-    try:
-        import importlib
-        mod = importlib.import_module("indoor_loc.bench.throughput")
-    except ImportError:
-        return
-    table = getattr(mod, "stage_table", None)
-    if callable(table):
-        print("\n## Offline, per stage\n")
-        print(table(args))
