@@ -462,6 +462,78 @@ class Stepometer:
             raise InvalidInputError("shape", f"acc: expected 3 components, got {a.shape}")
         return self.update_many(np.array([t], dtype=np.int64), a[None, :])
 
+    # -- batch entry points (offline runs): the arithmetic of update()'s scalar path, vectorised ----
+    def quiet_count(self, stamps_ns: np.ndarray) -> int | None:
+        """How many leading samples of ``stamps_ns`` (int64, increasing) :meth:`update` would take
+        without completing an analysis window (``len`` if none completes one): the next sample is
+        the one that does. None unless running steadily (rate known, a segment open, no gap longer
+        than ``max_gap_s`` before or between the samples)."""
+        st = self._st
+        d = self._get_design()
+        if d is None or st.grid_hz <= 0 or st.t0_ns is None or st.last_t_ns is None or not len(stamps_ns):
+            return None
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        prev = np.concatenate((np.array([st.last_t_ns], np.int64), t[:-1]))
+        if np.any(t < prev) or np.any((t - prev).astype(float) > self.params.max_gap_s * 1e9):
+            return None
+        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        n_grid = np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid)
+        ready = np.flatnonzero(n_grid >= st.next_window * d.n_h + d.n_w)
+        return int(ready[0]) if len(ready) else len(t)
+
+    def extend_steady(self, stamps_ns: np.ndarray, acc: np.ndarray) -> list[StepHop]:
+        """Samples of which at most the last completes a window (see :meth:`quiet_count`, which must
+        have allowed them): the same grid values, state and hops as :meth:`update` one by one —
+        the same floating-point operations in the same order, vectorised. ``acc`` (N, 3) finite."""
+        st = self._st
+        d = self._get_design()
+        assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        a = np.asarray(acc, dtype=float)
+        x, y, z = a[:, 0], a[:, 1], a[:, 2]
+        m = np.sqrt(x * x + y * y + z * z)
+        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        last_k = int(max(int(k_end.max()), st.n_grid - 1))
+        st.samples += len(t)
+        if last_k >= st.n_grid:
+            k = np.arange(st.n_grid, last_k + 1, dtype=np.int64)
+            # grid point k is filled by the first sample whose k_end reaches it, between that
+            # sample and the one before it (update(): last_m + (m - last_m) * ((tk - last_t) / dt))
+            i = np.searchsorted(np.maximum.accumulate(k_end), k, side="left")
+            t_prev = np.concatenate((np.array([st.last_t_ns], np.int64), t))[i]
+            m_prev = np.concatenate(([st.last_m], m))[i]
+            tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
+            dt = (t[i] - t_prev).astype(float)
+            st.buffer.extend((m_prev + (m[i] - m_prev) * ((tk - t_prev).astype(float) / dt)).tolist())
+            st.n_grid = last_k + 1
+        st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
+        if st.n_grid >= st.next_window * d.n_h + d.n_w:
+            return self._analyse_ready()
+        return []
+
+    def add_headings(self, stamps_ns: list[int], yaw_rad: list[float]) -> None:
+        """:meth:`add_heading` for each sample in order (same values and state)."""
+        st = self._st
+        head_t, head_yaw = st.head_t, st.head_yaw
+        two_pi, pi = 2 * math.pi, math.pi
+        for t, y in zip(stamps_ns, yaw_rad):
+            if not math.isfinite(y) or (head_t and t <= head_t[-1]):
+                continue
+            y = float(y)
+            if head_yaw:
+                y = head_yaw[-1] + (y - head_yaw[-1] + pi) % two_pi - pi
+            head_t.append(int(t))
+            head_yaw.append(y)
+        if not head_t:
+            return
+        keep_ns = int((2.0 * self.params.window_s + 2.0) * 1e9)
+        t_last = head_t[-1]
+        drop = 0
+        while drop < len(head_t) - 2 and head_t[drop] < t_last - keep_ns:
+            drop += 1
+        if drop:
+            del head_t[:drop], head_yaw[:drop]
+
     def update_many(self, stamps_ns: ArrayLike, acc: ArrayLike) -> list[StepHop]:
         """A chunk of samples: ``stamps_ns`` (N,) int ns non-decreasing, ``acc`` (N, 3) m/s².
         Validated as a whole before any state change."""
