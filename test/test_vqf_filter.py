@@ -132,16 +132,17 @@ def test_stage_counts_a_magnetometer_later_than_the_bound(rng):
     assert st.diag.rejected["mag_late"] == int(st.extra_diagnostics()["mag_late"])
 
 
-def test_stage_hard_iron_bias_parameter(rng):
+@pytest.mark.parametrize("source", ["vqf", "aekf"])
+def test_stage_hard_iron_bias_parameter(source, rng):
     """An uncalibrated magnetometer (a constant offset of 30 µT) with mag_bias_* set to that offset
-    gives exactly the calibrated result; without it the heading is wrong."""
+    gives the calibrated result; without it the heading is wrong."""
     d = turning_device(rng, duration_s=20.0)
     order = arrival_order(d["t"], d["mt"], 0)
     bias_ut = np.array([25.0, -12.0, 8.0])
-    clean = _drive(_stage(heading_source="vqf"), d, order)
-    corrected = _drive(_stage(heading_source="vqf", mag_bias_x=bias_ut[0] * 1e-6, mag_bias_y=bias_ut[1] * 1e-6,
+    clean = _drive(_stage(heading_source=source), d, order)
+    corrected = _drive(_stage(heading_source=source, mag_bias_x=bias_ut[0] * 1e-6, mag_bias_y=bias_ut[1] * 1e-6,
                               mag_bias_z=bias_ut[2] * 1e-6), d, order, bias_ut)
-    raw = _drive(_stage(heading_source="vqf"), d, order, bias_ut)
+    raw = _drive(_stage(heading_source=source), d, order, bias_ut)
     ks = sorted(clean)
     a = np.array([clean[k] for k in ks])
     np.testing.assert_allclose(np.array([corrected[k] for k in ks]), a, atol=1e-9)
