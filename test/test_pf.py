@@ -254,3 +254,11 @@ def test_link_index_projection_matches_the_exhaustive_one(rng):
     d = np.hypot(*(ix.xy(link, pos) - pts).T)
     assert np.all(d <= d_exact + 0.25 + 1e-9)                     # half the sample spacing
     assert np.all((pos >= 0) & (pos <= g.link_len[link] + 1e-9))
+
+
+def test_perf_command_prints_one_row_per_count(capsys):
+    from indoor_loc.pf.perf import grid_graph, main
+    assert main(["--counts", "50,100", "--reps", "3"]) == 0
+    rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| 50 ") or ln.startswith("| 100 ")]
+    assert len(rows) == 2
+    assert grid_graph(3, 2.0).n_links == 12

@@ -38,6 +38,8 @@ from indoor_loc.measurements import Fix, wrap_angle
 from indoor_loc.graph.model import BuildingGraph
 from indoor_loc.graph.tll import Transitions
 from indoor_loc.pf.filter import GraphParticleFilter, PfParams, constrained_mean
+from indoor_loc.pf.wifi_field import EdgeFingerprintField
+from indoor_loc.wifi.types import WifiScan
 
 
 @dataclass
@@ -203,6 +205,28 @@ class GraphTracker:
             dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
             self.elapse(stamp_ns)
         self.pf.update_log_likelihood(log_l)
+        return self._after_update(stamp_ns, dt)
+
+    def scan(self, stamp_ns: int, field: EdgeFingerprintField, scan: WifiScan, *,
+             use_speed_model: bool = False) -> Estimate | None:
+        """A WiFi scan weighed by the radio map interpolated on the links. Before initialisation
+        the particles are drawn over the links in proportion to the scan's likelihood. None when
+        the map knows none of the scan's APs (nothing learnt)."""
+        if field.known_aps(scan) == 0:
+            return None
+        if not self.pf.initialised:
+            self._close_segment()
+            link, t = field.sample_points(scan, self.pf.params.n_particles, self.rng)
+            self.pf.p = self.pf._new(link, t, self.rng)
+            self._last_stamp = stamp_ns
+            return self._record(stamp_ns, 0.0, np.nan, 0.0)
+        dt = 0.0
+        if use_speed_model:
+            dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
+            self.elapse(stamp_ns)
+        p = self.pf.p
+        assert p is not None
+        self.pf.update_log_likelihood(field.log_likelihood(p.link, p.pos, scan))
         return self._after_update(stamp_ns, dt)
 
     def _after_update(self, stamp_ns: int, dt: float) -> Estimate:
