@@ -179,3 +179,39 @@ def test_bench_route_sampling_holds_the_latest_estimate():
     assert np.allclose(p[:, 0], [0, 1, 1, 2, 2])          # held, never interpolated ahead
     kept = decimate([(0, None), (4 * 10**9, None), (10 * 10**9, None), (12 * 10**9, None), (21 * 10**9, None)], 10.0)
     assert [k[0] for k in kept] == [0, 10 * 10**9, 21 * 10**9]
+
+
+def test_map_learn_counts_the_choices_of_recorded_tracks(tmp_path):
+    """A T-junction: tracks that always turn left at the junction move that row's probability
+    towards left by the Dirichlet update (a = 10, 6 observations: (10 * 0.5 + 6) / 16)."""
+    from indoor_loc.bag.writer import BagWriter
+    from indoor_loc.cli import main
+    from indoor_loc.graph.model import build_graph
+    from indoor_loc.graph.io import save_graph
+    from indoor_loc.graph.tll import (TransitionParams, load_transitions, slot_nodes, transition_table)
+    from msg_adapters.path import path_to_msg
+
+    # 0 --- 1 (junction) --- 2 ; 1 --- 3 to the north.  Walking 0 -> 1 -> 3 is a left turn.
+    g = build_graph([0, 1, 2, 3], np.array([[0.0, 0], [10, 0], [20, 0], [10, 10]]), [(0, 1), (1, 2), (1, 3)])
+    gf = save_graph(g, tmp_path / "t.graph.yaml")
+    run = tmp_path / "run.mcap"
+    xy = np.vstack([np.column_stack([np.linspace(0, 10, 21), np.zeros(21)]),
+                    np.column_stack([np.full(20, 10.0), np.linspace(0.5, 10, 20)])])
+    t = np.arange(len(xy), dtype=np.int64) * 500_000_000
+    with BagWriter(run) as bag:
+        for k in range(6):
+            bag.write(f"/walk{k + 1:02d}/pf/path", path_to_msg(t, xy), int(t[-1]))
+    out = tmp_path / "learned.npz"
+    assert main(["map", "learn", str(gf), str(run), "-o", str(out)]) == 0
+    learned = load_transitions(out, g, gf)
+    prior = transition_table(g, TransitionParams(rule="tll"))
+    owner = slot_nodes(g)
+    link01 = int(np.flatnonzero((g.link_nodes == [0, 1]).all(axis=1))[0])
+    link13 = int(np.flatnonzero((g.link_nodes == [1, 3]).all(axis=1))[0])
+    s_in = int(np.flatnonzero((owner == 1) & (g.adj_link == link01))[0])
+    j = int(np.flatnonzero((owner == 1) & (g.adj_link == link13))[0] - g.adj_ptr[1])
+    assert np.isclose(learned.probs[s_in, j], (10 * prior.probs[s_in, j] + 6) / 16)
+    assert np.allclose(learned.probs.sum(axis=1), 1.0)
+    other = save_graph(build_graph([0, 1], np.array([[0.0, 0], [5, 0]]), [(0, 1)]), tmp_path / "o.graph.yaml")
+    with pytest.raises(MapError, match="another graph"):
+        load_transitions(out, g, other)

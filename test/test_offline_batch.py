@@ -8,7 +8,8 @@ from rclpy.serialization import serialize_message
 from indoor_loc.bag import BagWriter, read_bag
 from indoor_loc.bag.bulk import bulk_items, decode_imu, decode_mag
 from indoor_loc.pipeline.offline import run_offline
-from indoor_loc.pipeline.stage import Stage
+from indoor_loc.imu.stepometer import Stepometer
+from indoor_loc.pipeline.imu_stage import ImuStage
 from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg, mag_to_msg
 
 S = 1_000_000_000
@@ -94,15 +95,23 @@ def test_batch_path_gives_the_message_by_message_output(tmp_path, monkeypatch):
     params = tmp_path / "params.yaml"
     params.write_text("/u2/imu_node:\n  ros__parameters:\n    heading_source: orientation\n")
     calls = []
-    original = Stage.process_batch
+    original = ImuStage.process_batch
+    steady = []
+    extend = Stepometer.extend_steady
 
     def spy(self, topic, items, recv_ns):
         calls.append((self.namespace, topic, len(items)))
         return original(self, topic, items, recv_ns)
 
-    monkeypatch.setattr(Stage, "process_batch", spy)
+    def spy_extend(self, t, acc):
+        steady.append(len(t))
+        return extend(self, t, acc)
+
+    monkeypatch.setattr(ImuStage, "process_batch", spy)
+    monkeypatch.setattr(Stepometer, "extend_steady", spy_extend)
     a = run_offline([bag], tmp_path / "batch.mcap", nodes=["imu"], params=params, progress=False)
     assert {(ns, t) for ns, t, _ in calls} == {("/u1", "imu/data_raw"), ("/u1", "imu/mag"), ("/u2", "imu/data")}
+    assert sum(steady) > 1000                       # /u2's orientations went through the column path
     n_batched = sum(n for *_, n in calls)
     calls.clear()
     b = run_offline([bag], tmp_path / "single.mcap", nodes=["imu"], params=params, progress=False, batch=False)

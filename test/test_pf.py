@@ -7,9 +7,9 @@ import pytest
 from indoor_loc.errors import ConfigError
 from indoor_loc.graph import build_graph
 from indoor_loc.graph.tll import TransitionParams, transition_table
-from indoor_loc.pf.filter import (GraphParticleFilter, Particles, PfParams, constrained_mean, effective_sample_size,
-                                  particle_xy, systematic_resample)
-from indoor_loc.pf.tracker import GraphTracker
+from indoor_loc.pf.filter import (GraphParticleFilter, LinkIndex, Particles, PfParams, constrained_mean,
+                                  effective_sample_size, kld_bound, normalise_log, particle_xy, systematic_resample)
+from indoor_loc.pf.tracker import GraphTracker, MonitorParams
 
 
 def corridor_l():
@@ -152,3 +152,113 @@ def test_params_validation():
         PfParams(n_particles=0).validate()
     with pytest.raises(ConfigError, match="v_min/v_max"):
         PfParams(v_min=2.0, v_max=1.0).validate()
+
+
+# ----------------------------------------------------------------------------------------------
+# divergence monitoring, adaptive particle count, projection
+# ----------------------------------------------------------------------------------------------
+def ladder():
+    # two parallel 40 m corridors (y = 0 and y = 10) joined at both ends
+    xy = np.array([[0, 0], [20, 0], [40, 0], [0, 10], [20, 10], [40, 10]], float)
+    return build_graph(range(6), xy, [(0, 1), (1, 2), (3, 4), (4, 5), (0, 3), (2, 5)])
+
+
+def _diverged_walk(monitor_enabled):
+    g = ladder()
+    pp = PfParams(n_particles=400, yaw_offset_sigma_rad=0.0, inject_fraction=0.0, reinit_mahalanobis2=1e12)
+    tr = GraphTracker(g, transition_table(g, TransitionParams()), pp, rng=np.random.default_rng(5),
+                      monitor=MonitorParams(enabled=monitor_enabled))
+    noise = np.random.default_rng(6)
+    t = 0
+    tr.odom(t, 0.0, 0.0, 0.0)
+    tr.reset_at(t, np.array([3.0, 10.0]), np.eye(2) * 0.25)      # a wrong initial pose: the other corridor
+    x = 3.0
+    for k in range(1, 61):                                        # 30 s eastwards at 1 m/s
+        t += 500_000_000
+        x += 0.5
+        tr.odom(t, x - 3.0, 0.0, 0.0)
+        if k % 2 == 0:
+            tr.fix(t, np.array([x, 0.0]) + noise.normal(0, 0.7, 2), np.eye(2) * 0.5)
+    return tr, np.hypot(*(tr.estimates[-1].xy - [x, 0.0]))
+
+
+def test_kf_monitor_reinitialises_a_diverged_filter_around_the_kf():
+    tr, err = _diverged_walk(True)
+    assert tr.monitor.reinits >= 1
+    assert err < 2.0
+    tr_off, err_off = _diverged_walk(False)                        # the same walk unmonitored stays lost
+    assert tr_off.monitor.reinits == 0
+    assert err_off > 8.0
+
+
+def test_kf_monitor_leaves_an_agreeing_filter_alone():
+    g = corridor_l()
+    tr = GraphTracker(g, transition_table(g, TransitionParams()), PfParams(n_particles=300, yaw_offset_sigma_rad=0.0),
+                      rng=np.random.default_rng(3))
+    noise = np.random.default_rng(4)
+    t, s = 0, 0.0
+    tr.fix(t, np.array([0.0, 0.0]), np.eye(2))
+    tr.odom(t, 0.0, 0.0, 0.0)
+    for k in range(1, 28):
+        t += 320_000_000
+        s += 0.36
+        tr.odom(t, s, 0.0, 0.0)
+        if k % 3 == 0:
+            tr.fix(t, np.array([s, 0.0]) + noise.normal(0, 0.7, 2), np.eye(2))
+    assert tr.kf is not None and tr.kf.state.n_updates >= 3
+    assert np.isfinite(tr.monitor.last_deviance)
+    assert tr.monitor.reinits == 0
+
+
+def test_particle_count_rule_follows_the_covariance_volume():
+    g = ladder()
+    pf = _pf(g, n=1000, adaptive=True, n_min=50, n_max=100_000, init_sigma_extra_m=0.0, count_ref_sigma_m=5.0)
+    assert pf.count_for(np.eye(2) * 25.0) == 1000                  # the reference prior
+    assert pf.count_for(np.eye(2) * 100.0) == 4000                 # twice the std per axis: 4x the area
+    assert pf.count_for(np.diag([25.0, 100.0])) == 2000
+    assert pf.count_for(np.eye(2) * 1e-4) == 50                    # clamped to n_min
+    assert _pf(g, n=1000).count_for(np.eye(2) * 100.0) == 1000     # not adaptive: fixed count
+
+
+def test_kld_converged_cloud_uses_fewer_particles_than_a_spread_one(rng):
+    g = ladder()
+    pf = _pf(g, n=3000, adaptive=True, n_min=50, n_max=5000, kld_bin_m=1.0)
+    pf.init_uniform(rng)
+    pf.p.log_w[:] = normalise_log(np.log(np.linspace(0.5, 1.0, len(pf.p))))   # unequal: N_eff below threshold?
+    pf.p.log_w[0] += 5.0
+    pf.p.log_w = normalise_log(pf.p.log_w)
+    assert pf.maybe_resample(rng)
+    n_spread = len(pf.p)
+    # a converged cloud: every particle within 2 m on one link
+    pf.p.link[:] = 0
+    pf.p.pos[:] = 5.0 + 2.0 * rng.random(len(pf.p))
+    pf.p.log_w[:] = -50.0
+    pf.p.log_w[:10] = 0.0
+    pf.p.log_w = normalise_log(pf.p.log_w)
+    assert pf.maybe_resample(rng)
+    n_conv = len(pf.p)
+    assert n_conv < n_spread / 5
+    assert 50 <= n_conv and n_spread <= 5000
+    k = len(np.unique(np.floor(pf.p.pos)))                         # occupied 1 m bins of the kept set
+    assert k <= 3
+    assert n_conv >= max(50, kld_bound(np.array([k]), 0.05, 2.326)[0])
+    assert np.isclose(np.exp(pf.p.log_w).sum(), 1.0)
+
+
+def test_link_index_projection_matches_the_exhaustive_one(rng):
+    g = ladder()
+    ix = LinkIndex(g)
+    pts = rng.uniform([-5, -5], [45, 15], (500, 2))
+    link, pos = ix.project(pts)
+    _, _, d_exact = g.project(pts)
+    d = np.hypot(*(ix.xy(link, pos) - pts).T)
+    assert np.all(d <= d_exact + 0.25 + 1e-9)                     # half the sample spacing
+    assert np.all((pos >= 0) & (pos <= g.link_len[link] + 1e-9))
+
+
+def test_perf_command_prints_one_row_per_count(capsys):
+    from indoor_loc.pf.perf import grid_graph, main
+    assert main(["--counts", "50,100", "--reps", "3"]) == 0
+    rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| 50 ") or ln.startswith("| 100 ")]
+    assert len(rows) == 2
+    assert grid_graph(3, 2.0).n_links == 12

@@ -124,3 +124,51 @@ def test_invalid_parameters(graph_file, tmp_path):
     bad.write_text("format: indoor_loc.graph\nversion: 1\nnodes: [[0, 0, 0]]\nlinks: []\n")
     with pytest.raises(ConfigError, match="node 0 is on no link"):
         PfStage(params_from_dict(PfStageParams, {"graph_file": str(bad)}))
+
+
+def test_scan_update_from_wifi_scan_messages(graph_file, tmp_path):
+    """wifi_update: scan — the filter starts from the first scan and tracks with PDR and scans."""
+    from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
+    from indoor_loc.wifi.types import WifiScan
+    from msg_adapters.wifi_scan import scan_to_msg
+
+    aps = np.array([[0.0, -4.0], [24.0, 0.0], [12.0, 14.0], [0.0, 14.0], [24.0, 14.0], [12.0, 6.0]])
+    bssids = tuple(f"02:00:00:00:01:{i:02x}" for i in range(len(aps)))
+    rng = np.random.default_rng(2)
+
+    def scan(xy, stamp):
+        d = np.hypot(*(aps - xy).T)
+        return WifiScan(stamp, bssids, -35.0 - 25.0 * np.log10(d + 1.0) + rng.normal(0, 2.0, len(aps)),
+                        np.full(len(aps), 2412.0))
+
+    g_pts = np.concatenate([np.column_stack([np.linspace(2, 22, 14), np.full(14, 2.0)]),
+                            np.column_stack([np.full(7, 22.0), np.linspace(2, 12, 7)]),
+                            np.column_stack([np.linspace(2, 22, 14), np.full(14, 12.0)]),
+                            np.column_stack([np.full(7, 2.0), np.linspace(2, 12, 7)]),
+                            np.column_stack([np.full(3, 12.0), np.linspace(-2, 2, 3)])])
+    rm = add_fingerprints(empty_radiomap(), g_pts, [scan(p, 0) for p in g_pts], "survey")
+    rm_dir = save_radiomap(rm, tmp_path / "rm")
+    t, truth, odoms, _ = _walk(np.random.default_rng(7))
+    st = _stage(graph_file, wifi_update="scan", radiomap=str(rm_dir), **{"scan.sigma_db": 4.0})
+    assert [p.topic for p in st.inputs()][1] == "wifi/scan"
+    outs = []
+    for i, od in enumerate(odoms):
+        if i % 3 == 0:
+            outs += st.process("wifi/scan", scan_to_msg(scan(truth[i], int(t[i]) + 1000)), 0)
+        outs += st.process("pdr/odom", od, 0)
+    assert st.diag.rejected.total() == 0
+    poses = [pose_from_msg(m) for tp, m in outs if tp == "pf/pose"]
+    stamps = np.array([p.stamp_ns for p in poses])
+    est = np.array([p.xy for p in poses])
+    late = stamps >= t[-30]
+    idx = np.searchsorted(t, stamps[late])
+    err = np.hypot(*(est[late] - truth[np.minimum(idx, len(t) - 1)]).T)
+    assert np.median(err) < 2.0
+    assert st.extra_diagnostics()["wifi_update"] == "scan"
+    # a wifi/fix in scan mode and a scan of unknown APs are counted, not fatal
+    st.process("wifi/fix", fix_to_msg(Fix(int(t[-1]), np.zeros(2), np.eye(2))), 0)
+    st.process("wifi/scan", scan_to_msg(WifiScan(int(t[-1]), ("02:ff:00:00:00:01",), np.array([-60.0]),
+                                                 np.array([2412.0]))), 0)
+    assert st.diag.rejected["wrong_wifi_update"] == 1 and st.diag.rejected["no_known_ap"] == 1
+    with pytest.raises(ConfigError, match="radiomap"):
+        _stage(graph_file, wifi_update="scan")

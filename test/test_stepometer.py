@@ -355,15 +355,16 @@ def test_moving_but_not_walking_is_flagged_not_dropped_silently(rng):
 
 def test_coasting_counts_through_a_short_aperiodic_spell(rng):
     """Walk, 2 s of aperiodic motion (a turn with the bag bumping), walk: with coast_s the spell is
-    counted at the last cadence with reduced confidence; without, it is left out (and flagged)."""
+    counted at the last cadence with reduced confidence; without (and without bridging), it is left out
+    (and flagged)."""
     rate = 100.0
     stamps = 10**9 + np.round(np.arange(int(40 * rate)) * 1e9 / rate).astype(np.int64)
     acc = gait(rng, stamps, cadence_hz=1.8)
     spell = (stamps >= stamps[0] + 20 * 10**9) & (stamps < stamps[0] + 22 * 10**9)
     acc[spell] = aperiodic_motion(rng, stamps[spell], std=2.0)
     truth = true_count(stamps, 1.8)
-    off = stepometer_batch(stamps, acc)
-    on = stepometer_batch(stamps, acc, StepometerParams(coast_s=4.0))
+    off = stepometer_batch(stamps, acc, StepometerParams(bridge_s=0.0))
+    on = stepometer_batch(stamps, acc, StepometerParams(coast_s=4.0, bridge_s=0.0))
     assert total_steps(on) == pytest.approx(truth, rel=0.02)
     assert total_steps(off) < total_steps(on) - 2.0
     assert any(h.confidence == 0.5 and h.steps > 0 for h in on)
@@ -406,7 +407,7 @@ def test_pdr_step_uncertainty_grows_along_track_variance_and_speed_variance():
 def test_turn_coasting_counts_a_corridor_turn_only_with_a_turning_heading(rng):
     """Walk, a 2.5 s turn whose |a| loses its periodicity, walk. With turn_coast_s and a heading that
     swings by 90° during the spell the turn is counted (confidence 0.5); with a straight heading or
-    none it is not. Online (headings interleaved) = batch."""
+    none it is not (bridging off). Online (headings interleaved) = batch."""
     rate = 100.0
     stamps = 10**9 + np.round(np.arange(int(40 * rate)) * 1e9 / rate).astype(np.int64)
     acc = gait(rng, stamps, cadence_hz=1.8)
@@ -415,7 +416,7 @@ def test_turn_coasting_counts_a_corridor_turn_only_with_a_turning_heading(rng):
     acc[spell] = aperiodic_motion(rng, stamps[spell], std=2.0)
     hs = stamps[::5]
     turn = np.clip((t[::5] - 20.0) / 2.5, 0.0, 1.0) * (np.pi / 2)
-    p = StepometerParams(turn_coast_s=4.0)
+    p = StepometerParams(turn_coast_s=4.0, bridge_s=0.0)
     truth = true_count(stamps, 1.8)
     turned = stepometer_batch(stamps, acc, p, heading_stamps_ns=hs, heading_rad=turn)
     straight = stepometer_batch(stamps, acc, p, heading_stamps_ns=hs, heading_rad=np.zeros(len(hs)))
@@ -431,3 +432,70 @@ def test_turn_coasting_counts_a_corridor_turn_only_with_a_turning_heading(rng):
             k += 1
         online += s.update(int(stamps[i]), acc[i])
     assert online + s.finish() == turned
+
+
+def walk_turn_walk(rng, *, turn_s=3.0, rate_hz=100.0, resume=True):
+    """Walk 20 s at 1.8 Hz, then ``turn_s`` of irregular steps (intervals 0.4-0.75 s, impacts of
+    random height: a corridor turn, periodicity lost), then 20 s more walking (or, with ``resume``
+    False, standing still). Returns stamps, acc and the true step count."""
+    n = int((40.0 + turn_s) * rate_hz)
+    stamps = 10**9 + np.round(np.arange(n) * 1e9 / rate_hz).astype(np.int64)
+    t = (stamps - stamps[0]) * 1e-9
+    acc = gait(rng, stamps, cadence_hz=1.8)
+    spell = (t >= 20.0) & (t < 20.0 + turn_s)
+    steps, k = [], 20.0 + 0.2
+    while k < 20.0 + turn_s - 0.2:
+        steps.append(k)
+        k += rng.uniform(0.4, 0.75)
+    mag = G + 0.2 * rng.standard_normal(int(spell.sum()))
+    for s in steps:
+        mag += rng.uniform(1.5, 3.0) * np.exp(-0.5 * ((t[spell] - s) / 0.06) ** 2)
+    acc[spell] = mag[:, None] * np.array([0.0, 0.0, 1.0])[None, :]
+    after = t >= 20.0 + turn_s
+    truth = true_count(stamps[: int(20.0 * rate_hz)], 1.8) + len(steps)
+    if resume:
+        truth += true_count(stamps[after], 1.8)
+    else:
+        acc[after] = np.array([0.0, 0.0, G]) + 0.01 * rng.standard_normal((int(after.sum()), 3))
+    return stamps, acc, truth
+
+
+def test_bridge_counts_the_steps_of_a_turn_between_two_walking_spans(rng):
+    """The turn's windows are not periodic; the gait resumes, so the held span is counted step by
+    step (confidence 0.5). Without bridging those steps are lost."""
+    stamps, acc, truth = walk_turn_walk(rng)
+    on = stepometer_batch(stamps, acc)
+    off = stepometer_batch(stamps, acc, StepometerParams(bridge_s=0.0))
+    assert total_steps(on) == pytest.approx(truth, abs=1.5)
+    assert total_steps(off) < total_steps(on) - 2.0
+    assert any(h.confidence == 0.5 and h.steps > 0 for h in on)
+    assert all(a.t_end_ns == b.t_start_ns for a, b in zip(on, on[1:]))
+
+
+def test_bridge_does_not_count_handling_after_the_last_walk(rng):
+    """Walk, then handling (aperiodic motion) and a still phone: the gait never resumes, so the held
+    hops stay uncounted — the same count as without bridging."""
+    stamps, acc, _ = walk_turn_walk(rng, resume=False)
+    t = (stamps - stamps[0]) * 1e-9
+    spell = (t >= 20.0) & (t < 23.0)
+    acc[spell] = aperiodic_motion(rng, stamps[spell], std=2.0)
+    on = stepometer_batch(stamps, acc)
+    off = stepometer_batch(stamps, acc, StepometerParams(bridge_s=0.0))
+    assert total_steps(on) == total_steps(off)
+    assert total_steps(on) == pytest.approx(1.8 * 20.0, abs=1.5)
+
+
+def test_bridge_online_equals_batch_with_save_restore_inside_the_held_span(rng):
+    stamps, acc, _ = walk_turn_walk(rng)
+    batch = stepometer_batch(stamps, acc)
+    st = Stepometer()
+    online = []
+    for i, (t, a) in enumerate(zip(stamps, acc)):
+        if i == 2500:                          # 25 s: the turn's hops (about 2 s back) are held
+            saved = st.state()
+            assert saved.held
+            st = Stepometer()
+            st.set_state(saved)
+        online += st.update(int(t), a)
+    online += st.finish()
+    assert online == batch

@@ -119,6 +119,12 @@ def _finite(a: np.ndarray) -> np.ndarray:
     return np.isfinite(a).all(axis=1)
 
 
+class SampleRun(list):
+    """The per-message items of a run (a list), with the arrays they were cut from (``arrays``) for
+    batch paths that work on whole columns."""
+    arrays: ImuArrays
+
+
 def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
     """Validated samples of a decoded run, one per message, equal to ``imu_from_msg`` of each; None
     when any message would be rejected (the caller then takes them one by one, so each is counted
@@ -136,9 +142,11 @@ def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
     frame = arr.frame_id
     acc, gyro, cov = arr.linear_acceleration, arr.angular_velocity, arr.orientation_cov.reshape(-1, 3, 3)
     g_on, o_on = gyro_on.tolist(), orient_on.tolist()
-    return [ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
-                      cov[i] if o_on[i] else None)
-            for i, t in enumerate(stamps)]
+    run = SampleRun(ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
+                              cov[i] if o_on[i] else None)
+                    for i, t in enumerate(stamps))
+    run.arrays = arr
+    return run
 
 
 def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:

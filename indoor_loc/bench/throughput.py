@@ -2,8 +2,8 @@
 
 For the same bags, one after another in one process (one core):
 - ``mcap raw``: iterate every stored message with the ``mcap`` reader (no decoding);
-- ``rosbags decode``: the same, deserialising every message with ``rosbags``' CDR deserialiser (the
-  plain-Python peer an offline replay is measured against);
+- ``rosbags decode``: read and deserialise every message with ``rosbags`` alone (its reader and CDR
+  deserialiser: the plain-Python peer an offline replay is measured against);
 - ``run --nodes X``: :func:`indoor_loc.pipeline.offline.run_offline` for each stage (with the nodes
   that feed it: ``pdr_kf`` needs ``imu`` and ``wifi``), writing its output bag to a scratch directory;
   for ``imu`` also message by message (``--no-batch``, the live path).
@@ -50,19 +50,19 @@ def mcap_raw_rate(bags: Iterable[Path]) -> dict:
 
 
 def rosbags_decode_rate(bags: Iterable[Path]) -> dict:
-    """Iterate and deserialise every message of ``bags`` with ``rosbags`` (ROS 2 Jazzy types)."""
-    from mcap.reader import make_reader
+    """Read and deserialise every message of ``bags`` with ``rosbags`` alone (its rosbag2 reader on
+    each MCAP file, its CDR deserialiser with the ROS 2 Jazzy types)."""
+    from rosbags.rosbag2 import Reader
     from rosbags.typesys import Stores, get_typestore
     store = get_typestore(Stores.ROS2_JAZZY)
     n = n_imu = 0
     t0, c0 = time.perf_counter(), time.process_time()
     for path in _files(bags):
-        with open(path, "rb") as f:
-            for schema, _, message in make_reader(f).iter_messages(log_time_order=False):
-                name = schema.name if schema is not None else ""
-                store.deserialize_cdr(message.data, name)
+        with Reader(path) as reader:
+            for connection, _, raw in reader.messages():
+                store.deserialize_cdr(raw, connection.msgtype)
                 n += 1
-                n_imu += name in IMU_TYPES
+                n_imu += connection.msgtype in IMU_TYPES
     return _row("rosbags decode", "", n, n_imu, time.perf_counter() - t0, time.process_time() - c0)
 
 

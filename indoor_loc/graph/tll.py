@@ -349,3 +349,41 @@ def check_transitions(g: BuildingGraph, tr: Transitions) -> None:
                        f"{len(g.adj_link)} adjacency slots and max degree {int(g.degree.max())}")
     if not np.allclose(tr.probs.sum(axis=1), 1.0):
         raise MapError("transition table rows do not sum to 1")
+
+
+# ----------------------------------------------------------------------------------------------
+# learned tables on disk
+# ----------------------------------------------------------------------------------------------
+def link_sequence(g: BuildingGraph, xy: np.ndarray) -> np.ndarray:
+    """Links visited by a track of positions (N, 2) on (or near) the graph: the nearest link of
+    each position, consecutive repeats collapsed (what :func:`count_choices` reads)."""
+    if len(xy) == 0:
+        return np.zeros(0, np.int64)
+    links = g.project(np.asarray(xy, float))[0].astype(np.int64)
+    return links[np.concatenate([[True], links[1:] != links[:-1]])]
+
+
+def save_transitions(tr: Transitions, path: str | Path, graph_file: str | Path, *, note: str = "") -> Path:
+    """Write a transition table for the graph in ``graph_file`` (keyed by its SHA-256)."""
+    path = Path(path)
+    sha = hashlib.sha256(Path(graph_file).read_bytes()).hexdigest()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as fh:
+        np.savez(fh, probs=tr.probs, rule=np.array(tr.rule), graph_sha256=np.array(sha), note=np.array(note))
+    return path
+
+
+def load_transitions(path: str | Path, g: BuildingGraph, graph_file: str | Path) -> Transitions:
+    """Read a table written by :func:`save_transitions`; MapError unless it was made for this very
+    graph file and every row is a distribution."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            probs, rule, sha = z["probs"], str(z["rule"]), str(z["graph_sha256"])
+    except (OSError, KeyError, ValueError) as err:
+        raise MapError(f"cannot read transition table {path}: {err}") from err
+    if sha != hashlib.sha256(Path(graph_file).read_bytes()).hexdigest():
+        raise MapError(f"{path} was made for another graph than {graph_file}")
+    tr = Transitions.from_probs(probs, rule)
+    check_transitions(g, tr)
+    return tr

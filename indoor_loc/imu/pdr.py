@@ -167,6 +167,25 @@ class HeadingHistory:
             self._yaw.popleft()
             self._var.popleft()
 
+    def add_many(self, stamps_ns: list[int], yaw: list[float], var: list[float]) -> None:
+        """:meth:`add` for each sample in order (same values and state)."""
+        ts, ys, vs = self._t, self._yaw, self._var
+        for t, y, v in zip(stamps_ns, yaw, var):
+            if ts and t <= ts[-1]:
+                continue
+            y = float(y)
+            if ys:
+                y = ys[-1] + wrap_angle(y - ys[-1])
+            ts.append(int(t))
+            ys.append(y)
+            vs.append(float(v))
+        if ts:
+            last = ts[-1]
+            while len(ts) > 2 and ts[0] < last - self.horizon_ns:
+                ts.popleft()
+                ys.popleft()
+                vs.popleft()
+
     def at(self, stamp_ns: int) -> tuple[float, float] | None:
         """(yaw wrapped, var) at ``stamp_ns`` or None when empty."""
         if not self._t:

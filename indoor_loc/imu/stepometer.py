@@ -40,6 +40,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
+from scipy.signal import butter, find_peaks, sosfiltfilt
 
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import field, require
@@ -92,8 +93,19 @@ class StepometerParams:
                                      "this long of the last walking window is counted at the last cadence "
                                      "while the heading turns (a corridor turn), s; 0 = never")
     turn_min_rad: float = field(0.5, "heading change over the window span of such a hop that makes it a turn, rad")
-    coast_confidence: float = field(0.5, "confidence of a hop counted while coasting, or of a moving "
-                                         "hop counted as 0 steps, 0..1")
+    coast_confidence: float = field(0.5, "confidence of a hop counted while coasting or bridging, or of a "
+                                         "moving hop counted as 0 steps, 0..1")
+    bridge_s: float = field(8.0, "a moving but not periodic span after a periodic walking window (a corridor "
+                                 "turn, a bag bumping) is held back for up to this long: if the periodic gait "
+                                 "resumes it is counted step by step (confidence coast_confidence), else as 0 "
+                                 "steps; delays only those hops, s; 0 = never")
+    bridge_cutoff_hz: float = field(3.0, "low-pass cut-off of |a| for counting the steps of a bridged span one "
+                                         "by one, Hz")
+    bridge_prominence: float = field(1.0, "minimum prominence of a counted peak in a bridged span, relative to "
+                                          "the standard deviation of the low-passed |a| over the span, 1")
+    bridge_min_autocorr: float = field(0.5, "a bridge needs a clearly periodic gait on both sides: the largest "
+                                            "stride-lag autocorrelation of the walking run before it, and that "
+                                            "of the window that ends it, at least this, -1..1")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -127,6 +139,11 @@ class StepometerParams:
         require(self.turn_min_rad > 0, n, "turn_min_rad", "> 0", self.turn_min_rad)
         require(self.coast_energy_ratio >= 0, n, "coast_energy_ratio", ">= 0", self.coast_energy_ratio)
         require(0.0 <= self.coast_confidence <= 1.0, n, "coast_confidence", "in [0, 1]", self.coast_confidence)
+        require(self.bridge_s >= 0, n, "bridge_s", ">= 0", self.bridge_s)
+        require(self.bridge_cutoff_hz > 0, n, "bridge_cutoff_hz", "> 0", self.bridge_cutoff_hz)
+        require(self.bridge_prominence >= 0, n, "bridge_prominence", ">= 0", self.bridge_prominence)
+        require(-1.0 <= self.bridge_min_autocorr <= 1.0, n, "bridge_min_autocorr", "in [-1, 1]",
+                self.bridge_min_autocorr)
 
 
 class StepHop(NamedTuple):
@@ -297,8 +314,12 @@ class StepometerState:
     walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
     walk_end: int | None = None          # grid index where the last periodic walking hop ended
     walk_motion_std: float = 0.0         # |a| std around the last periodic walking hop, m/s²
+    walk_autocorr: float = 0.0           # largest stride-lag autocorrelation of the current walking run
     head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
     head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
+    held: list[tuple[int, int, float, float, bool, float, float]] = dc_field(default_factory=list)
+    # ^ hops held back while bridging: (lo, hi, freq_hz, count_hz, walking, confidence, steps_std) as
+    #   they are emitted if the gait does not resume
     count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
     count_confidence: float = 1.0
     last_confidence: float = 1.0
@@ -309,7 +330,7 @@ class StepometerState:
     def copy(self) -> "StepometerState":
         return dataclasses.replace(self, pending_t=list(self.pending_t), pending_m=list(self.pending_m),
                                    buffer=list(self.buffer), head_t=list(self.head_t),
-                                   head_yaw=list(self.head_yaw))
+                                   head_yaw=list(self.head_yaw), held=list(self.held))
 
 
 def _magnitude(acc: ArrayLike) -> np.ndarray:
@@ -441,6 +462,78 @@ class Stepometer:
             raise InvalidInputError("shape", f"acc: expected 3 components, got {a.shape}")
         return self.update_many(np.array([t], dtype=np.int64), a[None, :])
 
+    # -- batch entry points (offline runs): the arithmetic of update()'s scalar path, vectorised ----
+    def quiet_count(self, stamps_ns: np.ndarray) -> int | None:
+        """How many leading samples of ``stamps_ns`` (int64, increasing) :meth:`update` would take
+        without completing an analysis window (``len`` if none completes one): the next sample is
+        the one that does. None unless running steadily (rate known, a segment open, no gap longer
+        than ``max_gap_s`` before or between the samples)."""
+        st = self._st
+        d = self._get_design()
+        if d is None or st.grid_hz <= 0 or st.t0_ns is None or st.last_t_ns is None or not len(stamps_ns):
+            return None
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        prev = np.concatenate((np.array([st.last_t_ns], np.int64), t[:-1]))
+        if np.any(t < prev) or np.any((t - prev).astype(float) > self.params.max_gap_s * 1e9):
+            return None
+        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        n_grid = np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid)
+        ready = np.flatnonzero(n_grid >= st.next_window * d.n_h + d.n_w)
+        return int(ready[0]) if len(ready) else len(t)
+
+    def extend_steady(self, stamps_ns: np.ndarray, acc: np.ndarray) -> list[StepHop]:
+        """Samples of which at most the last completes a window (see :meth:`quiet_count`, which must
+        have allowed them): the same grid values, state and hops as :meth:`update` one by one —
+        the same floating-point operations in the same order, vectorised. ``acc`` (N, 3) finite."""
+        st = self._st
+        d = self._get_design()
+        assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        a = np.asarray(acc, dtype=float)
+        x, y, z = a[:, 0], a[:, 1], a[:, 2]
+        m = np.sqrt(x * x + y * y + z * z)
+        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        last_k = int(max(int(k_end.max()), st.n_grid - 1))
+        st.samples += len(t)
+        if last_k >= st.n_grid:
+            k = np.arange(st.n_grid, last_k + 1, dtype=np.int64)
+            # grid point k is filled by the first sample whose k_end reaches it, between that
+            # sample and the one before it (update(): last_m + (m - last_m) * ((tk - last_t) / dt))
+            i = np.searchsorted(np.maximum.accumulate(k_end), k, side="left")
+            t_prev = np.concatenate((np.array([st.last_t_ns], np.int64), t))[i]
+            m_prev = np.concatenate(([st.last_m], m))[i]
+            tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
+            dt = (t[i] - t_prev).astype(float)
+            st.buffer.extend((m_prev + (m[i] - m_prev) * ((tk - t_prev).astype(float) / dt)).tolist())
+            st.n_grid = last_k + 1
+        st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
+        if st.n_grid >= st.next_window * d.n_h + d.n_w:
+            return self._analyse_ready()
+        return []
+
+    def add_headings(self, stamps_ns: list[int], yaw_rad: list[float]) -> None:
+        """:meth:`add_heading` for each sample in order (same values and state)."""
+        st = self._st
+        head_t, head_yaw = st.head_t, st.head_yaw
+        two_pi, pi = 2 * math.pi, math.pi
+        for t, y in zip(stamps_ns, yaw_rad):
+            if not math.isfinite(y) or (head_t and t <= head_t[-1]):
+                continue
+            y = float(y)
+            if head_yaw:
+                y = head_yaw[-1] + (y - head_yaw[-1] + pi) % two_pi - pi
+            head_t.append(int(t))
+            head_yaw.append(y)
+        if not head_t:
+            return
+        keep_ns = int((2.0 * self.params.window_s + 2.0) * 1e9)
+        t_last = head_t[-1]
+        drop = 0
+        while drop < len(head_t) - 2 and head_t[drop] < t_last - keep_ns:
+            drop += 1
+        if drop:
+            del head_t[:drop], head_yaw[:drop]
+
     def update_many(self, stamps_ns: ArrayLike, acc: ArrayLike) -> list[StepHop]:
         """A chunk of samples: ``stamps_ns`` (N,) int ns non-decreasing, ``acc`` (N, 3) m/s².
         Validated as a whole before any state change."""
@@ -565,33 +658,50 @@ class Stepometer:
                     # head of the segment: the first window covers it, hop by hop (each with its own
                     # moving/still test, so standing before the walk is not counted)
                     out += self._count_span(0, lo, est.walking, est.freq_hz, 1.0)
-                out.append(self._count(lo, hi, est))
+                out += self._count(lo, hi, est)
                 st.next_window += 1
         # drop grid samples no later window needs
         keep_from = st.next_window * d.n_h
+        if st.held:     # a bridged span's steps are counted from its samples
+            keep_from = min(keep_from, st.held[0][0] - int(round(0.5 * st.grid_hz)))
         if keep_from > st.buffer_start:
             del st.buffer[: keep_from - st.buffer_start]
             st.buffer_start = keep_from
         return out
 
-    def _count(self, lo: int, hi: int, est: WindowEstimate) -> StepHop:
-        """The hop ``[lo, hi)`` (grid indices) centred in a window with estimate ``est``.
+    def _count(self, lo: int, hi: int, est: WindowEstimate) -> list[StepHop]:
+        """The hop ``[lo, hi)`` (grid indices) centred in a window with estimate ``est``, and any hops
+        held back before it that it resolves.
 
         Periodic walking window: ``f x duration`` steps, confidence 1. Still (``|a|`` quiet around
         the hop): 0 steps, confidence 1. Moving but not periodic — a corridor turn, a bag swinging
         into the body, a soft floor smearing the impacts: within ``coast_s`` of the last periodic
         walking window the walk is taken to go on at its last cadence (people do not stop
-        mid-turn), with confidence ``coast_confidence``; later, 0 steps with that confidence."""
+        mid-turn), with confidence ``coast_confidence``; otherwise, within ``bridge_s`` of it, the hop
+        is held back until the gait either resumes with a clearly periodic window (the span was
+        walking: its steps are counted one by one, :meth:`_release_held`) or does not (a still hop, or
+        ``bridge_s`` ran out: 0 steps with that confidence). A walking window that is only marginally
+        periodic while hops are held is held with them (counted at its own cadence if the gait does
+        not resume)."""
         st = self._st
         p = self.params
         dur = (hi - lo) / st.grid_hz
+        if est.walking and st.held and est.autocorr < p.bridge_min_autocorr:
+            # not clearly periodic yet: part of the held span (counted at its own cadence if the gait
+            # does not resume)
+            if (hi - st.walk_end) / st.grid_hz <= p.bridge_s if st.walk_end is not None else False:
+                st.held.append((lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0))
+                return []
         if est.walking:
+            run = bool(st.held) or (st.walk_end is not None and st.walk_end == lo)
+            out = self._release_held(est.freq_hz) if est.autocorr >= p.bridge_min_autocorr else self._drop_held()
             st.walk_freq_hz = est.freq_hz
             st.walk_end = hi
             st.walk_motion_std = est.motion_std_m_s2
-            return self._emit(lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
+            st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
+            return out + [self._emit(lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)]
         if est.motion_std_m_s2 < p.min_motion_std_m_s2:
-            return self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)
+            return self._drop_held() + [self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)]
         c = p.coast_confidence
         since_s = math.inf if st.walk_end is None else (lo - st.walk_end) / st.grid_hz
         coast = (since_s < p.coast_s and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
@@ -602,9 +712,56 @@ class Stepometer:
             coast = self._turned_rad(mid - half, mid + half) >= p.turn_min_rad
         if st.walk_freq_hz > 0 and coast:
             f = st.walk_freq_hz
-            return self._emit(lo, hi, est.freq_hz, f, True, c, (1.0 - c) * f * dur)
-        f_ref = min(max(est.freq_hz, p.f_min_hz), p.f_max_hz)
-        return self._emit(lo, hi, est.freq_hz, 0.0, False, c, (1.0 - c) * f_ref * dur)
+            hop = (lo, hi, est.freq_hz, f, True, c, (1.0 - c) * f * dur)
+        else:
+            f_ref = min(max(est.freq_hz, p.f_min_hz), p.f_max_hz)
+            hop = (lo, hi, est.freq_hz, 0.0, False, c, (1.0 - c) * f_ref * dur)
+        if (st.walk_end is not None and st.walk_freq_hz > 0 and st.walk_autocorr >= p.bridge_min_autocorr
+                and (hi - st.walk_end) / st.grid_hz <= p.bridge_s):
+            st.held.append(hop)
+            return []
+        return self._drop_held() + [self._emit(*hop)]
+
+    def _release_held(self, freq_hz: float) -> list[StepHop]:
+        """The gait resumed: the held span was walking, but not periodic enough for its cadence to be
+        read from the spectrum (a turn changes the step length and timing; a pause to pick something up
+        has fewer, slower steps). Its steps are counted one by one instead: peaks of ``|a|`` low-passed
+        at ``bridge_cutoff_hz`` (zero phase over the held span, padded by half a second each side), at
+        least ``1 / (1.5 f)`` apart for the walking cadences ``f`` either side, with a prominence of at
+        least ``bridge_prominence`` times the standard deviation of the low-passed signal; each hop
+        (walking, confidence ``coast_confidence``) gets the peaks inside it."""
+        st = self._st
+        if not st.held:
+            return []
+        p = self.params
+        c = p.coast_confidence
+        lo0, hi1 = st.held[0][0], st.held[-1][1]
+        pad = int(round(0.5 * st.grid_hz))
+        a = max(st.buffer_start, lo0 - pad)
+        b = min(st.n_grid, hi1 + pad)
+        seg = np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
+        peaks = np.zeros(0, dtype=np.int64)
+        sos = butter(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), fs=st.grid_hz, output="sos")
+        if len(seg) > 3 * (2 * len(sos) + 1):
+            y = sosfiltfilt(sos, seg - seg.mean())
+            f_hi = max(st.walk_freq_hz, freq_hz)
+            dist = max(1, int(round(st.grid_hz / (1.5 * f_hi))))
+            peaks, _ = find_peaks(y, distance=dist, prominence=p.bridge_prominence * float(y.std()))
+            peaks = peaks + a
+        out = []
+        for lo, hi, fq, *_ in st.held:
+            n = int(np.count_nonzero((peaks >= lo) & (peaks < hi)))
+            dur = (hi - lo) / st.grid_hz
+            out.append(self._emit(lo, hi, fq, n / dur, True, c, (1.0 - c) * max(n, 1.0)))
+        st.held = []
+        return out
+
+    def _drop_held(self) -> list[StepHop]:
+        """The gait did not resume: the held hops are emitted as they were judged on their own."""
+        st = self._st
+        out = [self._emit(*h) for h in st.held]
+        st.held = []
+        return out
 
     def _emit(self, lo: int, hi: int, freq_hz: float, count_hz: float, walking: bool, confidence: float,
               steps_std: float) -> StepHop:
@@ -657,7 +814,7 @@ class Stepometer:
     def _flush_segment(self) -> list[StepHop]:
         st = self._st
         d = self._get_design()
-        out: list[StepHop] = []
+        out: list[StepHop] = self._drop_held()
         if d is not None and st.t0_ns is not None:
             if st.next_window > 0:
                 lo = (st.next_window - 1) * d.n_h + d.offset + d.n_h
@@ -667,6 +824,7 @@ class Stepometer:
                     out += self._count_span(lo, hi, st.count_freq_hz > 0, f, st.count_confidence)
         st.walk_end = None
         st.walk_freq_hz = 0.0
+        st.walk_autocorr = 0.0
         st.t0_ns = None
         st.n_grid = 0
         st.buffer = []

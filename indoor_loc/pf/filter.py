@@ -22,6 +22,14 @@ Two motion models:
   optimal-proposal correction), so a turn the walker really makes is followed even when its
   prior probability is ``p_min``.
 
+Adaptive particle count (``adaptive``): at every resampling the number of particles follows the
+KLD-sampling bound of Fox ("Adapting the sample size in particle filters through KLD-sampling",
+IJRR 2003) over graph bins (link × ``kld_bin_m`` of position): with ``k`` occupied bins,
+``n = (k−1)/(2ε) · (1 − 2/(9(k−1)) + √(2/(9(k−1))) z_{1−δ})³``, clamped to [``n_min``, ``n_max``];
+a (re)initialisation from a Gaussian of covariance ``P`` draws ``n_particles · √det P / σ_ref²``
+particles (Raitoharju et al., "A linear state model for PDR+WLAN positioning", 2015, eq. 63 in two
+dimensions: the same particle density as ``n_particles`` over a prior of ``σ_ref`` per axis).
+
 Time is int nanoseconds; every stochastic call takes a ``np.random.Generator``.
 """
 from __future__ import annotations
@@ -30,7 +38,9 @@ from dataclasses import dataclass, fields
 from enum import IntEnum
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.special import logsumexp
+from scipy.stats import norm
 
 from indoor_loc import params as P
 from indoor_loc.graph.model import BuildingGraph
@@ -70,6 +80,17 @@ class PfParams:
     reinit_fraction: float = P.field(0.5, "fraction of particles redrawn at a re-initialisation")
     inject_fraction: float = P.field(0.15, "at every WiFi fix this fraction of the lowest-weight particles is "
                                            "redrawn around the fix (sensor resetting)")
+    # adaptive particle count
+    adaptive: bool = P.field(False, "adapt the particle count: KLD-sampling at resampling, the covariance rule at "
+                                    "(re)initialisation; False = always n_particles")
+    n_min: int = P.field(200, "fewest particles when adaptive")
+    n_max: int = P.field(20000, "most particles when adaptive")
+    kld_epsilon: float = P.field(0.05, "KLD-sampling bound epsilon (largest K-L divergence of the sample from the "
+                                       "binned posterior)")
+    kld_delta: float = P.field(0.01, "KLD-sampling bound delta (the bound holds with probability 1 - delta)")
+    kld_bin_m: float = P.field(1.0, "KLD bin length along each link (m); a bin is (link, position bin)")
+    count_ref_sigma_m: float = P.field(5.0, "covariance rule: n_particles suffice for a Gaussian prior of this std per "
+                                            "axis (m)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -84,6 +105,11 @@ class PfParams:
                      "inject_fraction"):
             P.require(0 <= getattr(self, name) <= 1, n, name, "in [0, 1]", getattr(self, name))
         P.require(self.reinit_mahalanobis2 > 0, n, "reinit_mahalanobis2", "> 0", self.reinit_mahalanobis2)
+        P.require(1 <= self.n_min <= self.n_max, n, "n_min/n_max", "1 <= n_min <= n_max", (self.n_min, self.n_max))
+        P.require(0 < self.kld_epsilon < 1, n, "kld_epsilon", "in (0, 1)", self.kld_epsilon)
+        P.require(0 < self.kld_delta < 1, n, "kld_delta", "in (0, 1)", self.kld_delta)
+        P.require(self.kld_bin_m > 0, n, "kld_bin_m", "> 0", self.kld_bin_m)
+        P.require(self.count_ref_sigma_m > 0, n, "count_ref_sigma_m", "> 0", self.count_ref_sigma_m)
 
 
 @dataclass
@@ -151,6 +177,58 @@ def constrained_mean(g: BuildingGraph, xy: np.ndarray, weights: np.ndarray) -> t
     return g.point_at(link, t)[0], int(link[0]), float(t[0])
 
 
+def kld_bound(k: np.ndarray, epsilon: float, z: float) -> np.ndarray:
+    """Fox 2003, eq. 12: particles needed so that, with probability 1 − δ (``z`` its standard
+    normal quantile), the K-L divergence between the sample-based and the true binned posterior
+    stays below ``epsilon`` when ``k`` bins are occupied (Wilson–Hilferty chi-square)."""
+    k1 = np.maximum(np.asarray(k, float) - 1.0, 1.0)
+    a = 2.0 / (9.0 * k1)
+    return np.where(np.asarray(k) > 1, k1 / (2.0 * epsilon) * (1.0 - a + np.sqrt(a) * z) ** 3, 1.0)
+
+
+class LinkIndex:
+    """Link geometry for fast particle positions and projections: end-0 points ``a`` (L, 2), unit
+    directions ``u`` (L, 2) and lengths; a k-d tree over points every ``spacing_m`` along every
+    link answers "closest link" by exact projection on the links of the ``k`` nearest points (the
+    result is the closest link up to half the spacing in distance; a point is never off a link)."""
+
+    def __init__(self, g: BuildingGraph, spacing_m: float = 0.5, k: int = 4) -> None:
+        self.a = g.node_xyz[g.link_nodes[:, 0], :2].astype(float)
+        ab = g.node_xyz[g.link_nodes[:, 1], :2] - self.a
+        self.length = g.link_len.astype(float)
+        self.u = np.divide(ab, self.length[:, None], out=np.zeros_like(ab), where=self.length[:, None] > 0)
+        per = np.maximum(np.ceil(self.length / spacing_m).astype(np.int64), 1) + 1
+        link = np.repeat(np.arange(g.n_links), per)
+        start = np.repeat(np.cumsum(per) - per, per)
+        frac = (np.arange(len(link)) - start) / (per[link] - 1)
+        self._sample_link = link
+        self._tree = cKDTree(self.a[link] + (frac * self.length[link])[:, None] * self.u[link])
+        self.k = int(min(k, len(link)))
+
+    def xy(self, link: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """(N, 2) map positions at ``pos`` metres from end 0 of ``link``."""
+        return self.a[link] + pos[:, None] * self.u[link]
+
+    def project(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest link (N,) int32 and position on it (N,) metres of points (N, 2)."""
+        pts = np.atleast_2d(np.asarray(pts, float))
+        _, idx = self._tree.query(pts, k=self.k)
+        cand = self._sample_link[np.asarray(idx).reshape(len(pts), -1)]            # (N, k)
+        ap = pts[:, None, :] - self.a[cand]
+        s = np.clip((ap * self.u[cand]).sum(axis=2), 0.0, self.length[cand])
+        d = ap - s[..., None] * self.u[cand]
+        j = np.argmin((d * d).sum(axis=2), axis=1)
+        r = np.arange(len(pts))
+        return cand[r, j].astype(np.int32), s[r, j]
+
+
+def mahalanobis2(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distances of offsets ``d`` (N, 2) under a 2 × 2 ``cov`` (closed form)."""
+    (a, b), (_, c) = np.linalg.inv(np.asarray(cov, float))
+    x, y = d[:, 0], d[:, 1]
+    return a * x * x + 2.0 * b * x * y + c * y * y
+
+
 # ----------------------------------------------------------------------------------------------
 class GraphParticleFilter:
     """The TLL particle filter (see the module docstring). Call :meth:`init_gaussian` (or
@@ -167,7 +245,8 @@ class GraphParticleFilter:
         self.n_reinit = 0
         self._heading = graph.link_heading()
         self._kappa = 1.0 / self.params.heading_sigma_rad ** 2
-        self._slot_owner = np.repeat(np.arange(graph.n_nodes), graph.degree)
+        self.ix = LinkIndex(graph)
+        self._kld_z = float(norm.ppf(1.0 - self.params.kld_delta))
 
     # -- initialisation -------------------------------------------------------------------------
     def _new(self, link: np.ndarray, t: np.ndarray, rng: np.random.Generator, *, yaw_offset_mean: float = 0.0) -> Particles:
@@ -184,16 +263,65 @@ class GraphParticleFilter:
                          log_w=np.full(n, -np.log(n)))
 
     def sample_gaussian(self, mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """``n`` points from N(mean, cov + extra²I) moved to their closest link points."""
+        """``n`` points from N(mean, cov + extra²I) moved to their closest link points: (link, t in [0, 1])."""
         cov = np.asarray(cov, float) + self.params.init_sigma_extra_m ** 2 * np.eye(2)
         pts = rng.multivariate_normal(np.asarray(mean, float), cov, size=n, method="cholesky")
-        link, t, _ = self.g.project(pts)
-        return link, t
+        link, pos = self.ix.project(pts)
+        length = self.ix.length[link]
+        return link, np.divide(pos, length, out=np.zeros_like(pos), where=length > 0)
+
+    def count_for(self, cov: np.ndarray) -> int:
+        """Particles for a (re)initialisation from a Gaussian of covariance ``cov`` (+ extra²I):
+        ``n_particles`` when not adaptive, else Raitoharju et al. 2015 eq. 63 in two dimensions,
+        ``n_particles · √det P / σ_ref²`` (equal particle density over the probability ellipse), clamped to
+        [n_min, n_max]."""
+        pp = self.params
+        if not pp.adaptive:
+            return pp.n_particles
+        c = np.asarray(cov, float) + pp.init_sigma_extra_m ** 2 * np.eye(2)
+        n = pp.n_particles * np.sqrt(max(np.linalg.det(c), 0.0)) / pp.count_ref_sigma_m ** 2
+        return int(np.clip(np.ceil(n - 1e-9), pp.n_min, pp.n_max))
 
     def init_gaussian(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> None:
         """Particles from a Gaussian position prior (e.g. the first WiFi fix), projected on links."""
-        link, t = self.sample_gaussian(mean, cov, self.params.n_particles, rng)
+        link, t = self.sample_gaussian(mean, cov, self.count_for(cov), rng)
         self.p = self._new(link, t, rng)
+
+    def reinit_gaussian(self, mean: np.ndarray, cov: np.ndarray, keep_fraction: float, rng: np.random.Generator) -> None:
+        """Re-initialise around a reference estimate N(mean, cov) (Raitoharju et al. 2015, Sec. 5.2):
+        ``keep_fraction`` of the new set are the old particles resampled by weight (in case the
+        reference is the one that is wrong), the rest are drawn from the reference and projected on
+        the graph; the count follows :meth:`count_for`; weights uniform."""
+        p = self.p
+        assert p is not None
+        n = self.count_for(cov)
+        k_keep = int(round(keep_fraction * n))
+        link, t = self.sample_gaussian(mean, cov, n - k_keep, rng)
+        fresh = self._new(link, t, rng)
+        if self.params.yaw_offset_sigma_rad < np.pi and len(fresh):
+            fresh.yaw_offset = rng.choice(p.yaw_offset, len(fresh))          # keep the learnt heading offsets
+        if k_keep:
+            old = p.take(systematic_resample(p.weights, rng, k_keep))
+            fresh = Particles(**{f.name: np.concatenate([getattr(old, f.name), getattr(fresh, f.name)])
+                                 for f in fields(p)})
+        fresh.log_w = np.full(len(fresh), -np.log(len(fresh)))
+        self.p = fresh
+        self.n_reinit += 1
+
+    def min_deviance(self, mean: np.ndarray, cov: np.ndarray, weight_floor: float = 1e-3) -> float:
+        """Raitoharju et al. 2015 eq. 64: the smallest squared Mahalanobis distance, under a
+        reference N(mean, cov), of the particles carrying weight (above ``weight_floor / N``)."""
+        p = self.p
+        assert p is not None
+        keep = p.log_w >= np.log(weight_floor / len(p))
+        d = self.xy()[keep] - np.asarray(mean, float)
+        return float(mahalanobis2(d, cov).min()) if len(d) else float("inf")
+
+    def xy(self) -> np.ndarray:
+        """(N, 2) map positions of the particles."""
+        p = self.p
+        assert p is not None
+        return self.ix.xy(p.link, p.pos)
 
     def init_uniform(self, rng: np.random.Generator) -> None:
         """Particles uniform over the link length (global localisation)."""
@@ -281,17 +409,19 @@ class GraphParticleFilter:
         p, pp = self.p, self.params
         assert p is not None
         n = len(p)
-        p.yaw_offset += pp.yaw_offset_walk_rad * rng.standard_normal(n)
+        z3 = rng.standard_normal((3, n))
+        p.yaw_offset += pp.yaw_offset_walk_rad * z3[0]
         if distance_m <= 0:
             return
-        p.scale += pp.step_scale_walk * np.sqrt(distance_m) * rng.standard_normal(n)
+        p.scale += pp.step_scale_walk * np.sqrt(distance_m) * z3[1]
         np.clip(p.scale, 0.5, 1.6, out=p.scale)
-        dist = distance_m * p.scale * (1.0 + pp.distance_sigma / np.sqrt(max(distance_m, 1e-3)) * rng.standard_normal(n))
+        dist = distance_m * p.scale * (1.0 + pp.distance_sigma / np.sqrt(max(distance_m, 1e-3)) * z3[2])
         heading = heading_rad + p.yaw_offset
-        # U-turn on the link, guided by the heading
-        here = self._heading_lik(self._travel_heading(p.link, p.direction), heading)
-        back = self._heading_lik(self._travel_heading(p.link, -p.direction), heading)
-        a, b = (1.0 - pp.u_turn_prob) * here, pp.u_turn_prob * back
+        # U-turn on the link, guided by the heading (travelling back: cos(Δ + π) = −cos Δ)
+        c = np.cos(self._travel_heading(p.link, p.direction) - heading)
+        f = pp.heading_floor
+        a = (1.0 - pp.u_turn_prob) * ((1.0 - f) * np.exp(self._kappa * (c - 1.0)) + f)
+        b = pp.u_turn_prob * ((1.0 - f) * np.exp(self._kappa * (-c - 1.0)) + f)
         z = a + b
         turn = rng.random(n) < b / z
         p.direction = np.where(turn, -p.direction, p.direction).astype(np.int8)
@@ -326,18 +456,17 @@ class GraphParticleFilter:
         """WiFi position fix ``N(r | mean, cov + extra²I)`` with an outlier mixture (eq. 13).
         When every particle is far from the fix (squared Mahalanobis distance above
         ``reinit_mahalanobis2``) the filter has diverged: a ``reinit_fraction`` of the particles is
-        redrawn around the fix (Raitoharju et al. 2015 monitor divergence and re-initialise; here
-        the fix itself is the reference). Returns True if re-initialised."""
+        redrawn around the fix. Returns True if re-initialised."""
         p, pp = self.p, self.params
         assert p is not None
+        mean = np.asarray(mean, float)
         S = np.asarray(cov, float) + pp.fix_sigma_extra_m ** 2 * np.eye(2)
-        Si = np.linalg.inv(S)
-        d = particle_xy(self.g, p) - np.asarray(mean, float)
-        m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+        xy = self.xy()
+        m2 = mahalanobis2(xy - mean, S)
+        n = len(p)
         reinit = bool(m2.min() > pp.reinit_mahalanobis2)
         if reinit:
             self.n_reinit += 1
-            n = len(p)
             k = int(round(pp.reinit_fraction * n))
             idx = rng.choice(n, size=k, replace=False)
             link, t = self.sample_gaussian(mean, cov, k, rng)
@@ -348,40 +477,77 @@ class GraphParticleFilter:
             if self.params.yaw_offset_sigma_rad < np.pi:
                 p.yaw_offset[idx] = rng.choice(p.yaw_offset, k)       # keep the learnt heading offsets
             p.log_w = np.full(n, -np.log(n))
-            d = particle_xy(self.g, p) - np.asarray(mean, float)
-            m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+            m2[idx] = mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, S)
         elif pp.inject_fraction > 0:
             # sensor resetting (Lenser & Veloso 2000; the augmented MCL of Thrun et al.,
             # Probabilistic Robotics §8.3.5): the least likely particles are redrawn around the fix
             # with an average weight, so a filter that started from an outlier fix or fell behind
             # the walker can jump to where the WiFi says it is; the likelihood below weighs them.
-            n = len(p)
-            k = int(round(pp.inject_fraction * n))
+            k = self.inject_count()
             if k:
-                idx = np.argpartition(p.log_w, k - 1)[:k]
-                link, t = self.sample_gaussian(mean, cov, k, rng)
-                donors = rng.integers(0, n, k)
-                p.link[idx] = link
-                p.pos[idx] = t * self.g.link_len[link]
-                p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
-                p.scale[idx] = p.scale[donors]
-                p.yaw_offset[idx] = p.yaw_offset[donors]
-                p.log_w[idx] = -np.log(n)
-                p.log_w = normalise_log(p.log_w)
-                d = particle_xy(self.g, p) - np.asarray(mean, float)
-                m2 = np.einsum("ni,ij,nj->n", d, Si, d)
+                idx = self.inject(*self.sample_gaussian(mean, cov, k, rng), rng)
+                m2[idx] = mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, S)
         log_g = -0.5 * m2 - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
         # outlier: uniform over a 50 m x 50 m area
         log_l = np.logaddexp(np.log1p(-pp.fix_outlier_prob) + log_g, np.log(pp.fix_outlier_prob / 2500.0))
         p.log_w = normalise_log(p.log_w + log_l)
         return reinit
 
-    def maybe_resample(self, rng: np.random.Generator) -> bool:
+    def inject_count(self) -> int:
+        """How many particles a sensor resetting redraws (``inject_fraction`` of them)."""
+        return int(round(self.params.inject_fraction * len(self.p))) if self.p is not None else 0
+
+    def inject(self, link: np.ndarray, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Sensor resetting: the ``len(link)`` lowest-weight particles move to the given link
+        positions (t in [0, 1]) with a random direction, another particle's step-length factor and
+        heading offset, and the average weight. Returns their indices."""
         p = self.p
         assert p is not None
-        if effective_sample_size(p.log_w) >= self.params.resample_threshold * len(p):
+        n, k = len(p), len(link)
+        idx = np.argpartition(p.log_w, k - 1)[:k]
+        donors = rng.integers(0, n, k)
+        p.link[idx] = link
+        p.pos[idx] = t * self.ix.length[link]
+        p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
+        p.scale[idx] = p.scale[donors]
+        p.yaw_offset[idx] = p.yaw_offset[donors]
+        p.log_w[idx] = -np.log(n)
+        p.log_w = normalise_log(p.log_w)
+        return idx
+
+    def update_log_likelihood(self, log_l: np.ndarray) -> None:
+        """Multiply the weights by a per-particle likelihood given as logs (N,)."""
+        p = self.p
+        assert p is not None
+        p.log_w = normalise_log(p.log_w + np.asarray(log_l, float))
+
+    def kld_count(self, idx: np.ndarray) -> int:
+        """How many of the resampled particles ``idx`` (in random order) the KLD bound asks for:
+        the first ``n`` such that ``n >= bound(k_n)``, ``k_n`` the bins occupied by the first ``n``
+        (Fox 2003, Table 1, evaluated for all prefixes at once); within [n_min, n_max]."""
+        p, pp = self.p, self.params
+        assert p is not None
+        nbin = np.ceil(self.ix.length.max() / pp.kld_bin_m) + 1
+        b = p.link[idx].astype(np.int64) * int(nbin) + (p.pos[idx] / pp.kld_bin_m).astype(np.int64)
+        _, first = np.unique(b, return_index=True)
+        new = np.zeros(len(b), np.int64)
+        new[first] = 1
+        k = np.cumsum(new)
+        ok = np.arange(1, len(b) + 1) >= np.maximum(kld_bound(k, pp.kld_epsilon, self._kld_z), pp.n_min)
+        return int(np.argmax(ok)) + 1 if ok.any() else len(b)
+
+    def maybe_resample(self, rng: np.random.Generator) -> bool:
+        """Systematic resampling when ``N_eff`` is below the threshold; with ``adaptive`` the new
+        count follows the KLD bound (:meth:`kld_count`)."""
+        p, pp = self.p, self.params
+        assert p is not None
+        if effective_sample_size(p.log_w) >= pp.resample_threshold * len(p):
             return False
-        idx = systematic_resample(p.weights, rng)
+        if pp.adaptive:
+            idx = rng.permutation(systematic_resample(p.weights, rng, pp.n_max))
+            idx = idx[:self.kld_count(idx)]
+        else:
+            idx = systematic_resample(p.weights, rng)
         self.p = p.take(idx)
         self.p.log_w = np.full(len(idx), -np.log(len(idx)))
         self.n_resample += 1
@@ -394,7 +560,7 @@ class GraphParticleFilter:
         p = self.p
         assert p is not None
         w = p.weights
-        xy = particle_xy(self.g, p)
+        xy = self.xy()
         mean_xy, _, _ = constrained_mean(self.g, xy, w)
         d = xy - w @ xy
         cov = (w[:, None] * d).T @ d + 1e-6 * np.eye(2)

@@ -12,16 +12,34 @@ state from the final weights, then for t = T-1 … 0 reweight the filter's parti
 displacement (the slides' step-length and turn factors); along-graph moves shorter than the chord
 (corners) are covered by ``σ_d``. Every smoothed pose is a particle position, so it lies on a link;
 the reported smoothed pose is the constrained mean of ``n_samples`` backward trajectories.
+
+Divergence monitoring (Raitoharju et al., "A linear state model for PDR+WLAN positioning", 2015,
+Sec. 5.2): the linear PDR Kalman filter of the same paper runs alongside on the same PDR intervals
+and WiFi fixes. After every event the smallest squared Mahalanobis distance of the weighted
+particles from the KF position (eq. 64) is compared with the chi-square gate ``kf_gate_prob``
+(2 degrees of freedom); when it stays above the gate for ``kf_persist_s`` seconds of stamp time
+the particles are re-initialised around the KF estimate (:meth:`GraphParticleFilter.reinit_gaussian`:
+part of the old particles are kept, in case the KF is the one that is wrong, and the count follows
+the covariance rule when adaptive). The monitor needs PDR (the KF's motion model) and trusts the KF
+after ``kf_min_updates`` accepted fixes; the KF restarts at a fix after two consecutive gated-out
+fixes, as the ``pdr_kf`` node does.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
+
+from indoor_loc import params as P
+from indoor_loc.fusion.linear_pdr import LinearPdrKf, LinearPdrParams
+from indoor_loc.measurements import Fix, wrap_angle
 
 from indoor_loc.graph.model import BuildingGraph
 from indoor_loc.graph.tll import Transitions
-from indoor_loc.pf.filter import GraphParticleFilter, PfParams, constrained_mean, particle_xy
+from indoor_loc.pf.filter import GraphParticleFilter, PfParams, constrained_mean
+from indoor_loc.pf.wifi_field import EdgeFingerprintField
+from indoor_loc.wifi.types import WifiScan
 
 
 @dataclass
@@ -44,13 +62,37 @@ class _Step:
     dt_s: float
 
 
+@dataclass(frozen=True)
+class MonitorParams:
+    """Divergence monitoring of the particle filter by the linear PDR Kalman filter."""
+    enabled: bool = P.field(True, "run the linear PDR KF alongside and re-initialise the particles when they "
+                                  "disagree with it (needs pdr/odom)")
+    gate_prob: float = P.field(0.999, "chi-square (2 dof) probability of the PF-vs-KF gate on the smallest particle "
+                                      "Mahalanobis distance")
+    persist_s: float = P.field(5.0, "re-initialise when the disagreement lasts this long (s of stamp time)")
+    keep_fraction: float = P.field(0.3, "fraction of the re-initialised set kept from the old particles")
+    min_updates: int = P.field(3, "the KF is trusted after this many accepted WiFi fixes since its (re)start")
+    step_length_m: float = P.field(0.7, "KF footstep length: steps = PDR distance / this (m)")
+    sigma_dtheta_rad: float = P.field(0.2, "KF heading-change noise per footstep (rad)")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        P.require(0 < self.gate_prob < 1, n, "gate_prob", "in (0, 1)", self.gate_prob)
+        P.require(self.persist_s >= 0, n, "persist_s", ">= 0", self.persist_s)
+        P.require(0 <= self.keep_fraction < 1, n, "keep_fraction", "in [0, 1)", self.keep_fraction)
+        P.require(self.min_updates >= 0, n, "min_updates", ">= 0", self.min_updates)
+        P.require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
+        P.require(self.sigma_dtheta_rad >= 0, n, "sigma_dtheta_rad", ">= 0", self.sigma_dtheta_rad)
+
+
 @dataclass
-class TrackerStats:
-    odom: int = 0
-    fixes: int = 0
-    reinits: int = 0
-    resamples: int = 0
-    steps: list = field(default_factory=list)
+class MonitorState:
+    """What the monitor counts (``/diagnostics``)."""
+    reinits: int = 0               # re-initialisations around the KF estimate
+    kf_restarts: int = 0           # KF restarted at a fix after consecutive gated-out fixes
+    disagree_since_ns: int | None = None
+    last_deviance: float = float("nan")
+    rejected_run: int = 0
 
 
 class GraphTracker:
@@ -58,8 +100,14 @@ class GraphTracker:
     :meth:`smooth` at the end. The filter starts at the first fix (or :meth:`reset_at`)."""
 
     def __init__(self, graph: BuildingGraph, transitions: Transitions, params: PfParams | None = None, *,
-                 rng: np.random.Generator, keep_history: bool = True) -> None:
+                 rng: np.random.Generator, keep_history: bool = True, monitor: MonitorParams | None = None) -> None:
         self.pf = GraphParticleFilter(graph, transitions, params)
+        self.monitor_params = monitor or MonitorParams()
+        self.monitor_params.validate()
+        self.monitor = MonitorState()
+        self.kf: LinearPdrKf | None = None
+        self._kf_yaw: float | None = None
+        self._gate = float(chi2.ppf(self.monitor_params.gate_prob, 2))
         self.g = graph
         self.rng = rng
         self.keep_history = keep_history
@@ -86,24 +134,33 @@ class GraphTracker:
         self.estimates.clear()
         self._last_odom = None
         self._last_stamp = None
+        self.kf = None
+        self._kf_yaw = None
+        self.monitor.disagree_since_ns = None
 
     def reset_at(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray) -> Estimate:
-        """(Re)initialise around a position (``initialpose``)."""
+        """(Re)initialise around a position (``initialpose``); the monitoring KF restarts at the next fix."""
         self._close_segment()
+        self.kf = None
+        self._kf_yaw = None
         self.pf.init_gaussian(xy, cov, self.rng)
         self._last_stamp = stamp_ns
         return self._record(stamp_ns, 0.0, np.nan, 0.0)
 
     def global_localization(self, stamp_ns: int) -> Estimate:
-        """Particles uniform over the whole graph."""
+        """Particles uniform over the whole graph; the monitoring KF restarts at the next fix."""
         self._close_segment()
+        self.kf = None
+        self._kf_yaw = None
         self.pf.init_uniform(self.rng)
         self._last_stamp = stamp_ns
         return self._record(stamp_ns, 0.0, np.nan, 0.0)
 
     # -- events -----------------------------------------------------------------------------
-    def odom(self, stamp_ns: int, x: float, y: float) -> Estimate | None:
-        """A PDR odometry sample (odom frame). The interval since the previous one is walked."""
+    def odom(self, stamp_ns: int, x: float, y: float, yaw: float | None = None) -> Estimate | None:
+        """A PDR odometry sample (odom frame; ``yaw`` its heading, rad, when known: the monitoring
+        KF's heading change, else the change of the walked direction). The interval since the
+        previous one is walked."""
         prev, self._last_odom = self._last_odom, (stamp_ns, x, y)
         if prev is None or not self.pf.initialised:
             return None
@@ -111,9 +168,11 @@ class GraphTracker:
         dist = float(np.hypot(dx, dy))
         heading = float(np.arctan2(dy, dx)) if dist > 1e-9 else np.nan
         self.pf.predict_pdr(dist, heading if dist > 1e-9 else 0.0, self.rng)
+        self._kf_predict(dist, yaw if yaw is not None else (heading if dist > 1e-9 else None), stamp_ns)
         dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
         self._last_stamp = stamp_ns
-        return self._record(stamp_ns, dist, heading, dt)
+        est = self._record(stamp_ns, dist, heading, dt)
+        return self._check(stamp_ns) or est
 
     def elapse(self, stamp_ns: int) -> None:
         """Without PDR: move the particles by the speed model up to ``stamp_ns``."""
@@ -124,24 +183,121 @@ class GraphTracker:
     def fix(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, *, use_speed_model: bool = False) -> Estimate:
         """A WiFi position fix (map frame, covariance m²)."""
         if not self.pf.initialised:
-            return self.reset_at(stamp_ns, xy, cov)
+            est = self.reset_at(stamp_ns, xy, cov)
+            self._kf_fix(stamp_ns, xy, cov, use_speed_model)
+            return est
         dt = 0.0
         if use_speed_model:
             dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
             self.elapse(stamp_ns)
         if self.pf.update_position(xy, cov, self.rng):
             self._close_segment()                   # a re-initialisation starts a new smoother segment
+        self._kf_fix(stamp_ns, xy, cov, use_speed_model)
+        return self._after_update(stamp_ns, dt)
+
+    def update_log_likelihood(self, stamp_ns: int, log_l: np.ndarray, *, use_speed_model: bool = False) -> Estimate | None:
+        """A measurement given as a per-particle log-likelihood (N,) at ``stamp_ns`` (e.g. a WiFi
+        scan against the radio map interpolated on the links). Ignored before initialisation."""
+        if not self.pf.initialised:
+            return None
+        dt = 0.0
+        if use_speed_model:
+            dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
+            self.elapse(stamp_ns)
+        self.pf.update_log_likelihood(log_l)
+        return self._after_update(stamp_ns, dt)
+
+    def scan(self, stamp_ns: int, field: EdgeFingerprintField, scan: WifiScan, *,
+             use_speed_model: bool = False) -> Estimate | None:
+        """A WiFi scan weighed by the radio map interpolated on the links. Before initialisation
+        the particles are drawn over the links in proportion to the scan's likelihood. None when
+        the map knows none of the scan's APs (nothing learnt)."""
+        if field.known_aps(scan) == 0:
+            return None
+        if not self.pf.initialised:
+            self._close_segment()
+            link, t = field.sample_points(scan, self.pf.params.n_particles, self.rng)
+            self.pf.p = self.pf._new(link, t, self.rng)
+            self._last_stamp = stamp_ns
+            return self._record(stamp_ns, 0.0, np.nan, 0.0)
+        dt = 0.0
+        if use_speed_model:
+            dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
+            self.elapse(stamp_ns)
+        k = self.pf.inject_count()
+        if k:                                       # sensor resetting, as for fixes, from the scan's likelihood
+            self.pf.inject(*field.sample_points(scan, k, self.rng), self.rng)
+        p = self.pf.p
+        assert p is not None
+        self.pf.update_log_likelihood(field.log_likelihood(p.link, p.pos, scan))
+        return self._after_update(stamp_ns, dt)
+
+    def _after_update(self, stamp_ns: int, dt: float) -> Estimate:
         est = self._record(stamp_ns, 0.0, np.nan, dt, update=True)
         self.pf.maybe_resample(self.rng)
         if self.keep_history and self.history:
             self._snapshot(self.history[-1])        # smoother uses the resampled set's positions too
-        return est
+        return self._check(stamp_ns) or est
+
+    # -- divergence monitoring ----------------------------------------------------------------
+    def _kf_predict(self, dist: float, yaw: float | None, stamp_ns: int) -> None:
+        if self.kf is None:
+            return
+        dtheta = 0.0
+        if yaw is not None and np.isfinite(yaw):
+            if self._kf_yaw is not None:
+                dtheta = float(wrap_angle(yaw - self._kf_yaw))
+            self._kf_yaw = yaw
+        self.kf.predict(dist / self.monitor_params.step_length_m, dtheta, stamp_ns=stamp_ns)
+
+    def _kf_fix(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, speed_model: bool) -> None:
+        mp = self.monitor_params
+        if not mp.enabled or speed_model:
+            return
+        if self.kf is None:
+            self._kf_start(stamp_ns, xy, cov)
+            return
+        if self.kf.update(Fix(stamp_ns=stamp_ns, xy=np.asarray(xy, float), cov=np.asarray(cov, float))):
+            self.monitor.rejected_run = 0
+            return
+        self.monitor.rejected_run += 1
+        if self.monitor.rejected_run >= 2:
+            self.monitor.kf_restarts += 1
+            self._kf_start(stamp_ns, xy, cov)
+
+    def _kf_start(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray) -> None:
+        mp = self.monitor_params
+        self.kf = LinearPdrKf(LinearPdrParams(step_length_m=mp.step_length_m, sigma_dtheta_rad=mp.sigma_dtheta_rad),
+                              xy0=np.asarray(xy, float), pos_cov0=np.asarray(cov, float), stamp_ns=stamp_ns)
+        self.monitor.rejected_run = 0
+        self.monitor.disagree_since_ns = None
+
+    def _check(self, stamp_ns: int) -> Estimate | None:
+        """The monitor's test after an event; returns the new estimate when it re-initialised."""
+        kf, mon, mp = self.kf, self.monitor, self.monitor_params
+        if kf is None or kf.state.n_updates < mp.min_updates or not self.pf.initialised:
+            return None
+        mon.last_deviance = self.pf.min_deviance(kf.position, kf.position_cov)
+        if mon.last_deviance <= self._gate:
+            mon.disagree_since_ns = None
+            return None
+        if mon.disagree_since_ns is None:
+            mon.disagree_since_ns = stamp_ns
+        if (stamp_ns - mon.disagree_since_ns) * 1e-9 < mp.persist_s:
+            return None
+        mon.reinits += 1
+        mon.disagree_since_ns = None
+        self._close_segment()
+        self.pf.reinit_gaussian(kf.position, kf.position_cov, mp.keep_fraction, self.rng)
+        if self.estimates and self.estimates[-1].stamp_ns == stamp_ns:
+            self.estimates.pop()                    # one estimate per event: the re-initialised one
+        return self._record(stamp_ns, 0.0, np.nan, 0.0)
 
     # -- bookkeeping ----------------------------------------------------------------------------
     def _snapshot(self, step: _Step) -> None:
         p = self.pf.p
         assert p is not None
-        step.xy = particle_xy(self.g, p)
+        step.xy = self.pf.xy()
         step.log_w = p.log_w.copy()
         step.scale = p.scale.copy()
         step.yaw_offset = p.yaw_offset.copy()
@@ -153,7 +309,7 @@ class GraphTracker:
         if self.keep_history:
             p = self.pf.p
             assert p is not None
-            self.history.append(_Step(stamp_ns, particle_xy(self.g, p), p.log_w.copy(), p.scale.copy(),
+            self.history.append(_Step(stamp_ns, self.pf.xy(), p.log_w.copy(), p.scale.copy(),
                                       p.yaw_offset.copy(), dist, heading, dt))
         return est
 

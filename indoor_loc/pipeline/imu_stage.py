@@ -36,8 +36,10 @@ any state changes: counted by reason and dropped.
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -218,8 +220,9 @@ class ImuStage(Stage):
             q = self.filter.quat_wxyz
             cov = self.filter.orientation_cov
             q_xyzw = np.array([q[1], q[2], q[3], q[0]])
-            self.headings.add(stamp, yaw_xyzw(q_xyzw) + self.params.heading_offset_rad, float(cov[2, 2]))
-            self.stepometer.add_heading(stamp, yaw_xyzw(q_xyzw))
+            yaw = yaw_xyzw(q_xyzw)
+            self.headings.add(stamp, yaw + self.params.heading_offset_rad, float(cov[2, 2]))
+            self.stepometer.add_heading(stamp, yaw)
             outs.append(("imu/data", imu_to_msg(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
             if len(self._published_stamps) == self._published_stamps.maxlen:
                 self._published_set.discard(self._published_stamps[0])
@@ -254,9 +257,78 @@ class ImuStage(Stage):
             var = float(s.orientation_cov[2, 2]) if s.orientation_cov is not None else 0.0
             if not math.isfinite(var) or var <= 0.0:
                 var = self.params.default_yaw_std_rad ** 2
-            self.headings.add(s.stamp_ns, yaw_xyzw(s.quat_xyzw) + self.params.heading_offset_rad, var)
-            self.stepometer.add_heading(s.stamp_ns, yaw_xyzw(s.quat_xyzw))
+            yaw = yaw_xyzw(s.quat_xyzw)
+            self.headings.add(s.stamp_ns, yaw + self.params.heading_offset_rad, var)
+            self.stepometer.add_heading(s.stamp_ns, yaw)
         return outs + self._hops(hops)
+
+    def process_batch(self, topic: str, items: list, recv_ns: list[int]) -> list[tuple[int, str, Any]]:
+        """:meth:`Stage.process_batch`; a run of phone orientations (``imu/data`` as the heading and
+        step source, the steady state of a PUTMC-style recording) goes through the stepometer and
+        the heading history in column operations between the samples that complete a window — the
+        same values, state and outputs as one sample at a time (``Stepometer.extend_steady``)."""
+        arrays = getattr(items, "arrays", None)
+        if topic != "imu/data" or arrays is None or not self._orientation_run_ok(items):
+            return super().process_batch(topic, items, recv_ns)
+        n = len(items)
+        t_all = arrays.sec * 1_000_000_000 + arrays.nanosec
+        q = arrays.orientation_xyzw.tolist()
+        yaw = [math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)) for x, y, z, w in q]  # yaw_xyzw
+        var_c = arrays.orientation_cov[:, 8]
+        default_var = self.params.default_yaw_std_rad ** 2
+        var = np.where(np.isfinite(var_c) & (var_c > 0.0), var_c, default_var).tolist()
+        offset = self.params.heading_offset_rad
+        yaw_off = [y + offset for y in yaw]
+        stamps = t_all.tolist()
+        acc = arrays.linear_acceleration
+        diag = self.diag
+        stats = diag.received[topic]
+        t0 = time.perf_counter()
+        out: list[tuple[int, str, Any]] = []
+        i = 0
+        while i < n:
+            quiet = self.stepometer.quiet_count(t_all[i:])
+            if quiet is None:
+                break
+            j = min(i + quiet, n - 1)               # the sample completing a window, or the last
+            trigger = i + quiet < n
+            diag.now_ns = recv_ns[j]
+            try:
+                self.stepometer.add_headings(stamps[i:j], yaw[i:j])
+                hops = self.stepometer.extend_steady(t_all[i:j + 1], acc[i:j + 1])
+                self.stepometer.add_headings(stamps[j:j + 1], yaw[j:j + 1])
+                self._last_orient_ns = stamps[j]
+                self.headings.add_many(stamps[i:j + 1], yaw_off[i:j + 1], var[i:j + 1])
+                outs = self._hops(hops)
+            except Exception as err:  # noqa: BLE001 - as process(): counted, the run goes on
+                self._reject("internal_error", f"{topic} (batch of {j + 1 - i}): {type(err).__name__}: {err}")
+                outs = []
+            for o_topic, o_msg in outs:
+                diag.published[o_topic] += 1
+                out.append((recv_ns[j], o_topic, o_msg))
+            i = j + 1
+            if not trigger:
+                break
+        if i:
+            stats.count += i
+            stats.first_ns = recv_ns[0] if stats.first_ns is None else stats.first_ns
+            stats.last_ns = recv_ns[i - 1]
+            diag.process_s.extend([(time.perf_counter() - t0) / i] * min(i, diag.process_s.maxlen or 0))
+        if i < n:                                   # not steady (a gap): the rest one by one
+            out += super().process_batch(topic, items[i:], recv_ns[i:])
+        return out
+
+    def _orientation_run_ok(self, items: list) -> bool:
+        """Whether :meth:`_orientation_sample` would take every item of the run the same plain way:
+        orientation already the heading source, its acceleration feeding the stepometer, every item
+        with an orientation, stamps increasing, none of them our own output echoed back."""
+        if not (self._external_orientation and self._acc_topic == "imu/data" and self.params.heading_source != "aekf"
+                and len(self.headings) and all(s.quat_xyzw is not None for s in items)):
+            return False
+        t = items.arrays.sec * 1_000_000_000 + items.arrays.nanosec
+        if (self._last_orient_ns is not None and int(t[0]) <= self._last_orient_ns) or np.any(np.diff(t) <= 0):
+            return False
+        return not self._published_set or not any(int(v) in self._published_set for v in t)
 
     def _hops(self, hops: list[StepHop]) -> list[Output]:
         outs: list[Output] = []

@@ -1,14 +1,16 @@
 """PfStage: the TLL particle filter on the building graph (``tll_pf`` node, ``--nodes pf`` offline).
 
 Inputs: ``pdr/odom`` (distance and heading per stepometer hop: the particles walk it, the graph
-gates them), ``wifi/fix`` (Gaussian position likelihood), ``initialpose`` (re-initialise around a
+gates them), ``wifi/fix`` (Gaussian position likelihood; ``wifi_update: fix``) or ``wifi/scan``
+(the radio map's fingerprints interpolated along the links, :mod:`indoor_loc.pf.wifi_field`;
+``wifi_update: scan``, with ``radiomap``), ``initialpose`` (re-initialise around a
 pose, as nav2_amcl). Without ``pdr/odom`` the particles move by the two-mode speed model between
 fixes. Outputs: ``pf/pose`` (constrained mean + particle covariance + direction of travel, per PDR
 hop and per fix), ``pf/particles`` (every ``particles_every`` outputs), ``pf/path`` (the filtered
 history every ``path_period_s`` of stamp time; at the end of input the backward-simulation
 smoothed path when ``smooth``), ``map/graph`` (latched, once).
 
-Fixes wait until PDR has reached their stamp (the stepometer publishes about half a window late),
+Fixes (and scans) wait until PDR has reached their stamp (the stepometer publishes about half a window late),
 bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. A stamp more than
 ``time_jump_s`` older than the newest seen (a bag played in a loop, a restarted recording) resets
 the filter instead of being rejected.
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +34,10 @@ from msg_adapters.odom import odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from indoor_loc.pf.filter import PfParams
-from indoor_loc.pf.tracker import Estimate, GraphTracker
+from indoor_loc.pf.tracker import Estimate, GraphTracker, MonitorParams
+from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
+from indoor_loc.wifi.radiomap import load_radiomap
+from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
 POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -41,11 +47,20 @@ POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
 class PfStageParams:
     """Parameters of ``tll_pf`` (see config/tll_pf.yaml)."""
     graph_file: str = P.field("", "building graph file (format indoor_loc.graph v1); its TLL table is cached beside it")
+    wifi_update: str = P.field("fix", "WiFi measurement: fix (wifi/fix, Gaussian) or scan (wifi/scan against the radio "
+                                      "map interpolated along the links)")
+    radiomap: str = P.field("", "radio map directory for wifi_update: scan")
     rule: str = P.field("tll", "link transition rule at nodes: tll, uniform or angle")
     l_max_m: float = P.field(40.0, "TLL destination horizon l_MAX (m)")
     p_min: float = P.field(0.02, "smallest transition probability at a junction")
     p_max: float = P.field(0.98, "largest transition probability at a junction")
-    n_particles: int = P.field(1000, "number of particles")
+    n_particles: int = P.field(1000, "number of particles (the initial count when adaptive)")
+    adaptive: bool = P.field(False, "adapt the particle count: KLD-sampling bound at resampling, covariance rule at "
+                                    "(re)initialisation")
+    n_min: int = P.field(200, "fewest particles when adaptive")
+    n_max: int = P.field(20000, "most particles when adaptive")
+    kld_epsilon: float = P.field(0.05, "KLD-sampling bound epsilon")
+    kld_bin_m: float = P.field(1.0, "KLD bin length along a link (m)")
     heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel on the link (rad)")
     yaw_offset_sigma_rad: float = P.field(3.2, "odom->map heading offset spread at start (rad); >= pi = unknown, learnt by the filter")
     fix_sigma_extra_m: float = P.field(1.0, "added to each WiFi fix's standard deviation per axis (m)")
@@ -57,6 +72,10 @@ class PfStageParams:
     smooth_samples: int = P.field(50, "backward-simulated trajectories averaged by the smoother")
     seed: int = P.field(0, "random seed of the filter (runs are reproducible)")
     frame_id: str = P.field("map", "frame of the graph and the estimates")
+    scan: ScanFieldParams = P.group(ScanFieldParams, "scan likelihood on the links for wifi_update: scan "
+                                                     "(scan.sigma_db, scan.kernel_m, ...)")
+    monitor: MonitorParams = P.group(MonitorParams, "divergence monitoring by the linear PDR Kalman filter "
+                                                    "(monitor.enabled, monitor.gate_prob, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -65,15 +84,22 @@ class PfStageParams:
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
+        P.require(self.wifi_update in ("fix", "scan"), n, "wifi_update", "fix or scan", self.wifi_update)
+        P.require(self.wifi_update != "scan" or bool(self.radiomap), n, "radiomap", "a radio map directory when "
+                  "wifi_update is scan", self.radiomap)
+        self.scan.validate()
         self.transition_params().validate()
         self.pf_params().validate()
+        self.monitor.validate()
 
     def transition_params(self) -> TransitionParams:
         return TransitionParams(rule=self.rule, l_max_m=self.l_max_m, p_min=self.p_min, p_max=self.p_max)
 
     def pf_params(self) -> PfParams:
         return PfParams(n_particles=self.n_particles, heading_sigma_rad=self.heading_sigma_rad,
-                        yaw_offset_sigma_rad=self.yaw_offset_sigma_rad, fix_sigma_extra_m=self.fix_sigma_extra_m)
+                        yaw_offset_sigma_rad=self.yaw_offset_sigma_rad, fix_sigma_extra_m=self.fix_sigma_extra_m,
+                        adaptive=self.adaptive, n_min=self.n_min, n_max=self.n_max, kld_epsilon=self.kld_epsilon,
+                        kld_bin_m=self.kld_bin_m)
 
 
 class PfStage(Stage):
@@ -83,9 +109,11 @@ class PfStage(Stage):
 
     def __init__(self, params: PfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
-        self._pending: list[tuple[int, int, tuple]] = []
+        self._pending: list[tuple[int, int, Any]] = []
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
+        self.on("wifi/scan", self._on_scan)
+        self.field: EdgeFingerprintField | None = None
         self.on("initialpose", self._on_initialpose)
         if not params.graph_file:
             # the node starts (so parameters can be inspected) but rejects every message, counted
@@ -98,8 +126,14 @@ class PfStage(Stage):
         except MapError as err:
             raise ConfigError(f"tll_pf: graph_file: {err}") from err
         self.transitions, self.cache_hit = cached_transitions(self.graph, path, params.transition_params())
+        if params.wifi_update == "scan":
+            try:
+                self.field = EdgeFingerprintField(self.graph, load_radiomap(Path(params.radiomap).expanduser()),
+                                                  params.scan)
+            except MapError as err:
+                raise ConfigError(f"tll_pf: radiomap: {err}") from err
         self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
-                                    rng=np.random.default_rng(params.seed))
+                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)
         self._seq = 0
         self._last_odom_ns: int | None = None
         self._newest: dict[str, int] = {}
@@ -109,8 +143,10 @@ class PfStage(Stage):
         self.time_jumps = 0
 
     def inputs(self) -> list[Port]:
+        wifi = (Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)
+                if self.params.wifi_update == "scan" else Port("wifi/fix", POSE_T, Qos.RELIABLE))
         return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
-                Port("wifi/fix", POSE_T, Qos.RELIABLE),
+                wifi,
                 Port("initialpose", POSE_T, Qos.RELIABLE)]
 
     def outputs(self) -> list[Port]:
@@ -150,16 +186,30 @@ class PfStage(Stage):
             raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom_ns}")
         outs += self._apply_pending(lambda s: s < od.stamp_ns)
         self._last_odom_ns = od.stamp_ns
-        est = self.tracker.odom(od.stamp_ns, od.x, od.y)
+        est = self.tracker.odom(od.stamp_ns, od.x, od.y, od.yaw)
         if est is not None:
             outs += self._publish(est)
         return outs
 
     def _on_fix(self, msg, recv_ns: int) -> list[Output]:
+        if self.params.wifi_update != "fix":
+            raise InvalidMessageError("wrong_wifi_update", "wifi/fix received but wifi_update is scan")
         fix = fix_from_msg(msg)
-        outs = self._start(fix.stamp_ns, "wifi/fix")
+        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, fix.cov))
+
+    def _on_scan(self, msg, recv_ns: int) -> list[Output]:
+        if self.graph is not None and self.field is None:
+            raise InvalidMessageError("wrong_wifi_update", "wifi/scan received but wifi_update is fix")
+        scan = scan_from_msg(msg)
+        if self.field is not None and self.field.known_aps(scan) == 0:
+            raise InvalidMessageError("no_known_ap", f"wifi/scan at {scan.stamp_ns}: none of its {len(scan)} APs is "
+                                      "in the radio map")
+        return self._queue(scan.stamp_ns, "wifi/scan", scan)
+
+    def _queue(self, stamp_ns: int, topic: str, payload) -> list[Output]:
+        outs = self._start(stamp_ns, topic)
         self._seq += 1
-        bisect.insort(self._pending, (fix.stamp_ns, self._seq, (fix.xy, fix.cov)))
+        bisect.insort(self._pending, (stamp_ns, self._seq, payload))
         if self._last_odom_ns is None:                 # no PDR (yet): the speed model moves particles
             return outs + self._apply_pending(lambda s: True, speed=True)
         horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
@@ -181,8 +231,14 @@ class PfStage(Stage):
     def _apply_pending(self, due, *, speed: bool = False) -> list[Output]:
         outs: list[Output] = []
         while self._pending and due(self._pending[0][0]):
-            stamp, _, (xy, cov) = self._pending.pop(0)
-            outs += self._publish(self.tracker.fix(stamp, xy, cov, use_speed_model=speed))
+            stamp, _, payload = self._pending.pop(0)
+            if isinstance(payload, tuple):
+                est = self.tracker.fix(stamp, payload[0], payload[1], use_speed_model=speed)
+            else:
+                assert self.field is not None
+                est = self.tracker.scan(stamp, self.field, payload, use_speed_model=speed)
+            if est is not None:
+                outs += self._publish(est)
         return outs
 
     # ------------------------------------------------------------------------------------------
@@ -194,8 +250,7 @@ class PfStage(Stage):
         every = self.params.particles_every
         p = self.tracker.pf.p
         if every and p is not None and self._n_pose % every == 0:
-            from indoor_loc.pf.filter import particle_xy
-            xy = particle_xy(self.graph, p)
+            xy = self.tracker.pf.xy()
             yaw = self.tracker.pf._travel_heading(p.link, p.direction)
             outs.append(("pf/particles", pose_array_to_msg(est.stamp_ns, xy, yaw, frame_id=fid)))
         period = self.params.path_period_s
@@ -225,12 +280,17 @@ class PfStage(Stage):
             return {"initialised": "false (graph_file not set)"}
         pf = self.tracker.pf
         d = {"graph": f"{self.graph.n_nodes} nodes, {self.graph.n_links} links", "rule": self.transitions.rule,
+             "wifi_update": self.params.wifi_update,
              "tll_cache": "hit" if self.cache_hit else "computed", "time_jumps": str(self.time_jumps),
              "pending_fixes": str(len(self._pending))}
         if pf.p is None:
             d["initialised"] = "false (waiting for the first wifi/fix or initialpose)"
         else:
             from indoor_loc.pf.filter import effective_sample_size
+            mon = self.tracker.monitor
             d.update(initialised="true", particles=str(len(pf.p)), n_eff=f"{effective_sample_size(pf.p.log_w):.0f}",
-                     resamples=str(pf.n_resample), reinitialisations=str(pf.n_reinit))
+                     resamples=str(pf.n_resample), reinitialisations=str(pf.n_reinit),
+                     kf_reinitialisations=str(mon.reinits), kf_restarts=str(mon.kf_restarts),
+                     kf_deviance=f"{mon.last_deviance:.1f}",
+                     kf_disagreeing="true" if mon.disagree_since_ns is not None else "false")
         return d

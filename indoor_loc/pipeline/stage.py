@@ -184,10 +184,31 @@ class Stage:
         core, outputs and order. Returns ``[(recv_ns of the message that produced it, topic,
         message), ...]``."""
         handler = self._batch[topic]
+        diag = self.diag
+        published = diag.published
         out: list[tuple[int, str, Any]] = []
+        if not items:
+            return out
+        stats = diag.received[topic]
+        t0 = time.perf_counter()
+        # counters as process() keeps them, updated once per batch (nothing reads them in between)
+        stats.count += len(items)
+        stats.first_ns = recv_ns[0] if stats.first_ns is None else stats.first_ns
+        stats.last_ns = recv_ns[len(items) - 1]
         for item, recv in zip(items, recv_ns):
-            for o_topic, o_msg in self._dispatch(topic, handler, item, recv, None):
+            diag.now_ns = recv
+            try:
+                outs = handler(item, recv)
+            except InvalidInputError as err:
+                self._reject(err.reason, f"{topic}: {err}")
+                continue
+            except Exception as err:  # noqa: BLE001 - a node never dies on a message
+                self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+                continue
+            for o_topic, o_msg in outs:
+                published[o_topic] += 1
                 out.append((recv, o_topic, o_msg))
+        diag.process_s.extend([(time.perf_counter() - t0) / len(items)] * min(len(items), diag.process_s.maxlen or 0))
         return out
 
     def handles(self, topic: str) -> bool:

@@ -166,6 +166,7 @@ class PowedKnn(Positioner):
         self._pos = np.zeros((0, 2))
         self._z = np.zeros(0)
         self._views: list[tuple[ApReadings, np.ndarray, bool]] = []   # (readings, sums, ages used) per view
+        self._map_views_equal = True                 # the map has no ages: every view holds the same readings
         self._floors: np.ndarray = np.zeros(0)
         self._floor_names: dict[float, str] = {}
         self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
@@ -194,10 +195,14 @@ class PowedKnn(Positioner):
         val = val * w[None, :]
         vals = [val]
         self._views = [(ApReadings(heard, val), val.sum(axis=1), aged)]
+        self._map_views_equal = radio_map.age_ms is None
         if aged and p.age_views == "both":
-            raw = raw * w[None, :]
-            vals.append(raw)
-            self._views.append((ApReadings(heard, raw), raw.sum(axis=1), False))
+            if self._map_views_equal:               # no map ages: the views differ by the query's ages only
+                self._views.append((self._views[0][0], self._views[0][1], False))
+            else:
+                raw = raw * w[None, :]
+                vals.append(raw)
+                self._views.append((ApReadings(heard, raw), raw.sum(axis=1), False))
         self.radio_map = radio_map
         self.aps = ApIndex(radio_map.bssids)
         self._w = w
@@ -259,8 +264,8 @@ class PowedKnn(Positioner):
         return ds[0], n_usable, n_known
 
     def view_distances(self, scan: WifiScan) -> tuple[list[np.ndarray], int, int]:
-        """Distances (M,) per view (ages weighted first; ages ignored second with ``age_views`` 'both'),
-        usable readings, readings known to the map."""
+        """Distances (M,) per view (ages weighted first; ages ignored second with ``age_views`` 'both',
+        unless neither the map nor the scan has ages), usable readings, readings known to the map."""
         p = self.params
         v = powed(scan.rssi_dbm, p.floor_dbm, p.beta)
         usable = v > 0
@@ -272,8 +277,10 @@ class PowedKnn(Positioner):
         c = cols[keep]
         raw = v[keep] * self._w[c]
         ages = age_weight(None if scan.age_ms is None else np.asarray(scan.age_ms, float)[keep], p.age_tau_ms)
-        ds = []
+        ds: list[np.ndarray] = []
         for j, (_, _, aged) in enumerate(self._views):
+            if j > 0 and self._map_views_equal and np.all(ages == 1.0):
+                continue                             # no ages on either side: the views are the same
             q = raw * ages if aged else raw
             if j == 0:
                 self._last_query = (c, q)
