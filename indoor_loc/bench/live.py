@@ -122,8 +122,10 @@ def _diagnostics_listener():
     return ex, last, close
 
 
-def _inputs_received(values: dict[str, str]) -> int:
-    return sum(int(v) for k, v in values.items() if k.startswith("in.") and k.endswith(".count"))
+def _inputs_received(values: dict[str, str], rels: tuple[str, ...] | None = None) -> int:
+    """Messages received on the inputs ``rels`` (all inputs when None) from a node's diagnostics."""
+    return sum(int(v) for k, v in values.items() if k.startswith("in.") and k.endswith(".count")
+               and (rels is None or k[3:-6] in rels))
 
 
 def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, env: dict[str, str],
@@ -178,7 +180,9 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
             prev = cur
         for kind in NODES:                       # dependency order, recorder last
             for u in users:
-                nodes[(u, kind)].stop()
+                rc = nodes[(u, kind)].stop()
+                if rc != 0:
+                    trial.note += f"{ns[u]}/{kind} exit {rc}: " + " / ".join(nodes[(u, kind)].lines[-3:])[-300:] + "; "
         for _ in range(int(2 / 0.05)):
             ex.spin_once(timeout_sec=0.05)
         rec.stop()
@@ -193,8 +197,12 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
     for u in users:
         for kind in NODES:
             d = diags.get(f"{ns[u]}/{kind}")
+            if d is None:
+                trial.note += f"no /diagnostics from {ns[u]}/{kind}; "
             values = d.values if d is not None else {}
-            got = _inputs_received(values)
+            # only the inputs sent to it (imu_node also hears its own imu/data)
+            rels = None if kind == "pdr_kf_node" else tuple(r for r in BAG_INPUTS[kind] if f"{ns[u]}/{r}" in info)
+            got = _inputs_received(values, rels)
             if kind == "pdr_kf_node":
                 imu = diags.get(f"{ns[u]}/imu_node")
                 wifi = diags.get(f"{ns[u]}/wifi_fix_node")
@@ -258,6 +266,8 @@ def run(args: argparse.Namespace) -> int:
                       f"({t.missing.get('imu_node', 0)}) | {t.missing.get('wifi_fix_node', 0)} | "
                       f"{_rate(t.received.get('pdr_kf_node', 0) // n, s)} ({t.missing.get('pdr_kf_node', 0)}) | "
                       f"{_rate(t.recorded, s)} ({t.recorder_missing}) | {where or t.note or 'none'} |", flush=True)
+                if t.note:
+                    print(f"  note: {t.note}", flush=True)
                 if t.lost or t.note:
                     break
         from indoor_loc.bench.throughput import format_rows, offline_stage_rates
