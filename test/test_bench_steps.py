@@ -63,3 +63,11 @@ def test_carpet_walk_holds_at_a_quarter_of_its_amplitude():
         assert abs(err) < 0.025
     old_gate = total_steps(stepometer_batch(w.stamps_ns, soft, StepometerParams(min_std_m_s2=0.5)))
     assert old_gate < 0.7 * w.true_steps
+
+
+def test_tuning_walks_are_development_walks():
+    """The walks named as tuned on exist among the development walks (a renamed folder would silently
+    move a walk into the held-out group)."""
+    from indoor_loc.bench.steps import TUNING_WALKS, dev_walk_dirs
+    names = {p.name for p in dev_walk_dirs(dataset("oxford_steps/optimisation_dev").parents[1])}
+    assert len(TUNING_WALKS) == 15 and TUNING_WALKS <= names and len(names - TUNING_WALKS) == 13

@@ -245,7 +245,7 @@ def main(args: argparse.Namespace) -> int:
         f_runs, s_runs = [], []
         for r in range(runs):
             filt, sm = {}, {}
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             for i, u in enumerate(users):
                 f, s = run_walk(graph, tables[rule], pf_params, inputs[u], seed=1000 * r + i, pdr=True,
                                 smooth=(rule == "tll"))
@@ -253,7 +253,7 @@ def main(args: argparse.Namespace) -> int:
                 if s is not None:
                     sm[u] = s
             if rule == "tll":
-                t_pf += time.perf_counter() - t0
+                t_pf += time.process_time() - t0
             rows.append(_score(filt, truths))
             f_runs.append(filt)
             if sm:
@@ -280,7 +280,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"| {label} | " + " | ".join(_fmt_runs(per[h], ("scan_mean", "scan_p95", "route_rmse")).replace(" | ", " / ")
                                           for h in halves if h in per) + " |")
     print(f"\nsmoothed poses: farthest from the graph {smooth_off:.3f} m; PF TLL + PDR + smoother ran "
-          f"{walk_s * runs / max(t_pf, 1e-9):.1f}x real time ({walk_s:.0f} s of walks per run)")
+          f"{walk_s * runs / max(t_pf, 1e-9):.1f}x real time (CPU time) ({walk_s:.0f} s of walks per run)")
 
     # -- WiFi only ----------------------------------------------------------------------------
     lines = [header]
@@ -321,7 +321,7 @@ def perf(graph, graph_file: Path) -> None:
 
     tables = transition_table(graph, TransitionParams())
     rng = np.random.default_rng(0)
-    print("\nPerformance (one core, this machine):\n")
+    print("\nPerformance: CPU time of this process (one core; robust to other load on the machine, which wall-clock time is not):\n")
     print("| particles | predict (PDR hop) | WiFi update | resample | total per step |\n|---|---|---|---|---|")
     centre = graph.node_xyz[:, :2].mean(axis=0)
     for n in (400, 4_000, 40_000):
@@ -330,34 +330,34 @@ def perf(graph, graph_file: Path) -> None:
         reps = max(3, int(2_000 / max(1, n // 100)))
         t = [0.0, 0.0, 0.0]
         for k in range(reps):
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             pf.predict_pdr(0.6, 0.3 * k, rng)
-            t1 = time.perf_counter()
+            t1 = time.process_time()
             pf.update_position(centre + rng.normal(0, 3, 2), np.eye(2) * 9.0, rng)
-            t2 = time.perf_counter()
+            t2 = time.process_time()
             pf.p.log_w = pf.p.log_w  # resample unconditionally to time it
             from indoor_loc.pf.filter import systematic_resample
             idx = systematic_resample(pf.p.weights, rng)
             pf.p = pf.p.take(idx)
             pf.p.log_w[:] = -np.log(n)
-            t3 = time.perf_counter()
+            t3 = time.process_time()
             t[0] += t1 - t0
             t[1] += t2 - t1
             t[2] += t3 - t2
         ms = [1e3 * x / reps for x in t]
         print(f"| {n} | {ms[0]:.2f} ms | {ms[1]:.2f} ms | {ms[2]:.2f} ms | {sum(ms):.2f} ms "
               f"({0.32e3 / sum(ms):.0f}x real time at one PDR hop per 0.32 s) |")
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     total_link_lengths(graph, 40.0)
-    t_putmc = time.perf_counter() - t0
+    t_putmc = time.process_time() - t0
     side = 72                                                     # 2 * 72 * 71 = 10 224 links
     ii, jj = np.meshgrid(np.arange(side), np.arange(side), indexing="ij")
     ids = (ii * side + jj).ravel()
     links = [(a, a + 1) for a in ids if a % side != side - 1] + [(a, a + side) for a in ids if a < side * (side - 1)]
     g2 = build_graph(ids, np.column_stack([jj.ravel(), ii.ravel()]).astype(float) * 2.0, links)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     total_link_lengths(g2, 40.0)
-    t_big = time.perf_counter() - t0
+    t_big = time.process_time() - t0
     print(f"\nTLL precomputation (l_MAX 40 m): PUTMC graph ({graph.n_links} links) {t_putmc:.2f} s; "
           f"synthetic 2 m grid ({g2.n_links} links) {t_big:.1f} s")
 

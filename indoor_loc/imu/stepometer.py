@@ -729,7 +729,7 @@ class Stepometer:
         at ``bridge_cutoff_hz`` (zero phase over the held span, padded by half a second each side), at
         least ``1 / (1.5 f)`` apart for the walking cadences ``f`` either side, with a prominence of at
         least ``bridge_prominence`` times the standard deviation of the low-passed signal; each hop
-        gets the peaks inside it, with confidence ``coast_confidence``."""
+        (walking, confidence ``coast_confidence``) gets the peaks inside it."""
         st = self._st
         if not st.held:
             return []
@@ -752,7 +752,7 @@ class Stepometer:
         for lo, hi, fq, *_ in st.held:
             n = int(np.count_nonzero((peaks >= lo) & (peaks < hi)))
             dur = (hi - lo) / st.grid_hz
-            out.append(self._emit(lo, hi, fq, n / dur, n > 0, c, (1.0 - c) * max(n, 1.0)))
+            out.append(self._emit(lo, hi, fq, n / dur, True, c, (1.0 - c) * max(n, 1.0)))
         st.held = []
         return out
 

@@ -483,24 +483,37 @@ class GraphParticleFilter:
             # Probabilistic Robotics §8.3.5): the least likely particles are redrawn around the fix
             # with an average weight, so a filter that started from an outlier fix or fell behind
             # the walker can jump to where the WiFi says it is; the likelihood below weighs them.
-            k = int(round(pp.inject_fraction * n))
+            k = self.inject_count()
             if k:
-                idx = np.argpartition(p.log_w, k - 1)[:k]
-                link, t = self.sample_gaussian(mean, cov, k, rng)
-                donors = rng.integers(0, n, k)
-                p.link[idx] = link
-                p.pos[idx] = t * self.ix.length[link]
-                p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
-                p.scale[idx] = p.scale[donors]
-                p.yaw_offset[idx] = p.yaw_offset[donors]
-                p.log_w[idx] = -np.log(n)
-                p.log_w = normalise_log(p.log_w)
-                m2[idx] = mahalanobis2(self.ix.xy(link, p.pos[idx]) - mean, S)
+                idx = self.inject(*self.sample_gaussian(mean, cov, k, rng), rng)
+                m2[idx] = mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, S)
         log_g = -0.5 * m2 - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
         # outlier: uniform over a 50 m x 50 m area
         log_l = np.logaddexp(np.log1p(-pp.fix_outlier_prob) + log_g, np.log(pp.fix_outlier_prob / 2500.0))
         p.log_w = normalise_log(p.log_w + log_l)
         return reinit
+
+    def inject_count(self) -> int:
+        """How many particles a sensor resetting redraws (``inject_fraction`` of them)."""
+        return int(round(self.params.inject_fraction * len(self.p))) if self.p is not None else 0
+
+    def inject(self, link: np.ndarray, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Sensor resetting: the ``len(link)`` lowest-weight particles move to the given link
+        positions (t in [0, 1]) with a random direction, another particle's step-length factor and
+        heading offset, and the average weight. Returns their indices."""
+        p = self.p
+        assert p is not None
+        n, k = len(p), len(link)
+        idx = np.argpartition(p.log_w, k - 1)[:k]
+        donors = rng.integers(0, n, k)
+        p.link[idx] = link
+        p.pos[idx] = t * self.ix.length[link]
+        p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
+        p.scale[idx] = p.scale[donors]
+        p.yaw_offset[idx] = p.yaw_offset[donors]
+        p.log_w[idx] = -np.log(n)
+        p.log_w = normalise_log(p.log_w)
+        return idx
 
     def update_log_likelihood(self, log_l: np.ndarray) -> None:
         """Multiply the weights by a per-particle likelihood given as logs (N,)."""

@@ -224,6 +224,9 @@ class GraphTracker:
         if use_speed_model:
             dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
             self.elapse(stamp_ns)
+        k = self.pf.inject_count()
+        if k:                                       # sensor resetting, as for fixes, from the scan's likelihood
+            self.pf.inject(*field.sample_points(scan, k, self.rng), self.rng)
         p = self.pf.p
         assert p is not None
         self.pf.update_log_likelihood(field.log_likelihood(p.link, p.pos, scan))

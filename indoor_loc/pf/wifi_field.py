@@ -14,7 +14,8 @@ sit at graph points and a particle's fingerprint is interpolated along its link)
   ``log L = Σ_k log((1 − ε) N(r_k | μ_k, σ²) + ε / 100 dB)`` (an outlier mixture per reading,
   ``ε = outlier_prob``), scaled by ``1 / temper`` (readings of one scan are not independent).
 
-Everything is vectorised: ``(N, K)`` arrays per scan, ``K ≤ max_aps``.
+Everything is vectorised: ``(N, K)`` arrays per scan, ``K ≤ max_aps``. :meth:`sample_points` draws
+positions in proportion to a scan's likelihood (initialisation and sensor resetting).
 """
 from __future__ import annotations
 
@@ -94,7 +95,7 @@ class EdgeFingerprintField:
             W = csr_matrix((w, (rows, cols)), shape=(len(q), len(rm.positions)))
             wsum = np.asarray(W @ heard.astype(float))                       # (q, A)
             vsum = np.asarray(W @ vals)
-            ok = wsum >= pp.min_weight
+            ok = (wsum > 0) & (wsum >= pp.min_weight)
             mu[s:s + chunk][ok] = vsum[ok] / wsum[ok]
         self.mu = mu                                                         # (S, A) dBm
 

@@ -264,8 +264,8 @@ class PowedKnn(Positioner):
         return ds[0], n_usable, n_known
 
     def view_distances(self, scan: WifiScan) -> tuple[list[np.ndarray], int, int]:
-        """Distances (M,) per view (ages weighted first; ages ignored second with ``age_views`` 'both'),
-        usable readings, readings known to the map."""
+        """Distances (M,) per view (ages weighted first; ages ignored second with ``age_views`` 'both',
+        unless neither the map nor the scan has ages), usable readings, readings known to the map."""
         p = self.params
         v = powed(scan.rssi_dbm, p.floor_dbm, p.beta)
         usable = v > 0
@@ -280,8 +280,7 @@ class PowedKnn(Positioner):
         ds: list[np.ndarray] = []
         for j, (_, _, aged) in enumerate(self._views):
             if j > 0 and self._map_views_equal and np.all(ages == 1.0):
-                ds.append(ds[0])                     # identical views: no ages on either side
-                continue
+                continue                             # no ages on either side: the views are the same
             q = raw * ages if aged else raw
             if j == 0:
                 self._last_query = (c, q)
