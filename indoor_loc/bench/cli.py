@@ -30,6 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
     parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
+    parser.add_argument("--learn", action="store_true", help="pf: also score transitions learned from the odd walks on the even walks")
 
 
 def main(args: argparse.Namespace) -> int:
