@@ -262,3 +262,28 @@ def test_perf_command_prints_one_row_per_count(capsys):
     rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| 50 ") or ln.startswith("| 100 ")]
     assert len(rows) == 2
     assert grid_graph(3, 2.0).n_links == 12
+
+
+def test_adaptive_tracker_shrinks_its_cloud_and_still_smooths_on_the_graph():
+    g = corridor_l()
+    pp = PfParams(n_particles=2000, adaptive=True, n_min=100, n_max=3000, yaw_offset_sigma_rad=0.0)
+    tr = GraphTracker(g, transition_table(g, TransitionParams()), pp, rng=np.random.default_rng(3))
+    truth = lambda s: np.array([s, 0.0]) if s <= 10 else np.array([10.0, s - 10])   # noqa: E731
+    noise = np.random.default_rng(4)
+    s, t, ox, oy = 0.0, 0, 0.0, 0.0
+    tr.fix(t, truth(0.0), np.eye(2))
+    n0 = len(tr.pf.p)
+    assert n0 == 400                                   # 2000 * sqrt(det((1 + 2^2) I)) / 5^2
+    tr.odom(t, 0.0, 0.0)
+    for k in range(1, 50):
+        t += 320_000_000
+        h = 0.0 if s < 10 else np.pi / 2
+        s += 0.36
+        ox, oy = ox + 0.36 * np.cos(h), oy + 0.36 * np.sin(h)
+        tr.odom(t, ox, oy)
+        if k % 6 == 0:
+            tr.fix(t, truth(s) + noise.normal(0, 1.0, 2), np.eye(2))
+    assert tr.pf.n_resample >= 1 and len(tr.pf.p) < n0
+    assert np.hypot(*(tr.estimates[-1].xy - truth(s))) < 1.5
+    sm = tr.smooth(20)
+    assert g.project(np.array([e.xy for e in sm]))[2].max() < 1e-9

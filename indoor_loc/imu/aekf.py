@@ -72,8 +72,9 @@ class AekfParams:
     gravity: float = field(9.81, "local gravity magnitude, m/s²")
     acc_noise: float = field(2.0, "accelerometer noise for the tilt update in smooth motion, m/s² "
                                   "per sample")
-    acc_lp_tau_s: float = field(3.0, "time constant of the 2nd-order Butterworth low-pass applied to the "
-                                     "accelerometer in the ENU frame before the tilt update (0 = raw), s")
+    acc_lp_tau_s: float = field(1.5, "time constant of the 2nd-order Butterworth low-pass applied to the "
+                                     "accelerometer in the ENU frame before the tilt update (0 = raw); the "
+                                     "Kalman gain smooths again, so this is half VQF's 3 s, s")
     acc_stat_tau_s: float = field(0.2, "time constant of the running mean/variance of |a|, s")
     acc_adapt_gain: float = field(0.05, "weight c of the motion terms in the tilt noise "
                                       "σ_a² + c·((|a|−g)² + var|a|), 1")
