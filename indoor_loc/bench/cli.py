@@ -31,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
     parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
+    parser.add_argument("--learn", action="store_true", help="pf: also score transitions learned from the odd walks on the even walks")
     parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4)")
     parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20,40)")
     parser.add_argument("--duration", type=float, default=0.0, help="live: simulated seconds per user (default 40)")
