@@ -540,7 +540,7 @@ def test_tentative_run_online_equals_batch_with_save_restore_inside_it():
     st = Stepometer()
     online = []
     saved_inside = False
-    for i, (t, a) in enumerate(zip(stamps, acc)):
+    for t, a in zip(stamps, acc):
         if not saved_inside and st.state().tentative:
             saved = st.state()
             st = Stepometer()
