@@ -250,6 +250,11 @@ def node_key_matches(key: str, node_name: str, namespace: str = "") -> bool:
     return _key_regex(key).match(fq) is not None
 
 
+#: Parameters of a live node rather than of its stage (rclpy's clock and QoS overrides, the
+#: sensor inputs' reliability): accepted in params files and ignored by offline runs.
+NODE_LEVEL_PARAMS = ("use_sim_time", "qos_overrides", "sensor_reliability")
+
+
 def params_for_node(files: Mapping[str, Mapping[str, Any]], node_name: str, namespace: str = "") -> dict[str, Any]:
     """Merge the entries of a params file that apply to ``namespace/node_name``, as rcl matches
     them (see :func:`node_key_matches`): wildcard entries first (``/**``, ``/**/node``), then exact
@@ -261,6 +266,8 @@ def params_for_node(files: Mapping[str, Mapping[str, Any]], node_name: str, name
             ranked.append((1 if "*" in key else 2, order, key))
     for _, _, key in sorted(ranked):
         _deep_update(merged, files[key])
+    for name in NODE_LEVEL_PARAMS:     # the live node's own parameters, not the stage's
+        merged.pop(name, None)
     return merged
 
 

@@ -215,3 +215,36 @@ def test_lost_messages_are_counted_and_warnings_follow_a_recent_window(ros_domai
             assert node.stage.diag.lost["imu/data_raw"] == 3
         finally:
             node.destroy_node()
+
+
+def test_sigint_processes_what_was_already_received(ros_domain):
+    """Messages DDS delivered before SIGINT are processed, not dropped: the node is stopped
+    (SIGSTOP) while 900 messages (within its 1000-deep queue) are sent, resumed, and told to stop as soon as they are
+    delivered; its finish() pose carries the count it accepted."""
+    n = 900
+    peer = python_peer("dummy_node.py", "--ros-args", "-r", "__ns:=/drain")
+    try:
+        with ros_node("probe") as (node, ex):
+            poses: list[PoseWithCovarianceStamped] = []
+            matched: list[int] = []
+            pub = node.create_publisher(Imu, "/drain/imu/data_raw", qos_profile(Qos.RELIABLE).__class__(
+                depth=n, reliability=ReliabilityPolicy.RELIABLE), event_callbacks=PublisherEventCallbacks(
+                    matched=lambda st: matched.append(st.current_count)))
+            node.create_subscription(PoseWithCovarianceStamped, "/drain/dummy/pose", poses.append,
+                                     qos_profile(Qos.RELIABLE).__class__(depth=n + 10,
+                                                                         reliability=ReliabilityPolicy.RELIABLE))
+            assert spin_until(ex, lambda: bool(matched) and matched[-1] > 0
+                              and node.count_publishers("/drain/dummy/pose") > 0, 30), peer.output()
+            assert spin_until(ex, lambda: any("dummy_node up" in ln for ln in peer.lines), 10)
+            peer.signal(signal.SIGSTOP)
+            for i in range(n):
+                pub.publish(imu_to_msg(1_000_000_000 + i, "f", np.array([0.1, 0.2, 9.8])))
+            peer.signal(signal.SIGCONT)
+            from rclpy.duration import Duration
+            assert pub.wait_for_all_acked(Duration(seconds=20))     # all in the node's queue
+            peer.signal(signal.SIGINT)
+            assert peer.wait(timeout=30) == 0, peer.output()
+            assert spin_until(ex, lambda: len(poses) >= n + 1, 10), (len(poses), peer.output()[-2000:])
+            assert pose_from_msg(poses[-1]).stamp_ns == n          # finish(): every message accepted
+    finally:
+        peer.stop()

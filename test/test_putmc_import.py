@@ -183,6 +183,14 @@ def test_import_read_back_with_rosbags(ds, tmp_path, capsys):
     assert params["/**/wifi_fix_node"]["ros__parameters"] == {
         "radiomap": str((out / "radiomap").resolve()), "method": "wknn", "fallback": "powed",
         "wknn": {"k": 3, "shared_threshold": 0.6, "shared_strict": True, "error_type": "rms"}}
+    from indoor_loc.backend.putmc_events import PUTMC_GRAPH_PARAMS
+    from indoor_loc.params import params_from_dict
+    from indoor_loc.pipeline.backend_stage import BackendParams
+    backend = params["/**/backend_node"]["ros__parameters"]
+    assert backend == {"radiomap": str((out / "radiomap").resolve()), "offline_order": "sequential",
+                       **PUTMC_GRAPH_PARAMS}
+    bp = params_from_dict(BackendParams, backend)          # the node takes them as written
+    assert bp.joint and bp.estimate_step_length and bp.robust_kernel == "huber" and bp.wifi_info == 0.28
     from indoor_loc.wifi.radiomap import load_radiomap
     rm, survey = load_radiomap(out / "radiomap"), ds.survey_map()
     assert rm.n_scans == 114 and rm.bssids == survey.bssids

@@ -161,8 +161,10 @@ def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
         for _, _, m in _iter_file(files[0], wanted):
             yield m
         return
-    streams = [((t, i, s, m) for t, s, m in _iter_file(p, wanted)) for i, p in enumerate(files)]
-    for _, _, _, m in heapq.merge(*streams, key=lambda x: (x[0], x[1], x[2])):
+    # (log time, file, position in the file): ties keep the file order, then each file's own order
+    # (the file's reader yields log-time order), with no key function for the heap to call
+    streams = [((t, i, k, m) for k, (t, _, m) in enumerate(_iter_file(p, wanted))) for i, p in enumerate(files)]
+    for _, _, _, m in heapq.merge(*streams):
         yield m
 
 

@@ -1,4 +1,4 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live}``: benchmarks print tables, side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -13,6 +13,7 @@ BENCHES = {
     "backend": "indoor_loc.bench.backend",
     "pf": "indoor_loc.bench.pf",
     "throughput": "indoor_loc.bench.throughput",
+    "live": "indoor_loc.bench.live",
 }
 
 
@@ -30,6 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
     parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
+    parser.add_argument("--learn", action="store_true", help="pf: also score transitions learned from the odd walks on the even walks")
+    parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4)")
+    parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20,40)")
+    parser.add_argument("--duration", type=float, default=0.0, help="live: simulated seconds per user (default 40)")
+    parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
+                        help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 
 
 def main(args: argparse.Namespace) -> int:

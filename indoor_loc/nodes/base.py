@@ -4,12 +4,19 @@
   invalid values, ill-typed values and unknown names (a typo in a params file) stop start-up with
   a clear error and exit status 2; later ``ros2 param set`` calls on them are refused (parameters
   are read at start-up).
-- Subscriptions/publishers come from the stage's ports with the contract's QoS.
+- Subscriptions/publishers come from the stage's ports with the contract's QoS, overridable the
+  standard ROS 2 way (``qos_overrides./<ns>/<topic>.subscription.reliability|depth|history`` and
+  ``….publisher.…`` parameters, rclpy ``QoSOverridingOptions``). Inputs of the *sensor* profile are
+  best effort, so they match real drivers' best-effort publishers; ``sensor_reliability: reliable``
+  (a node parameter, any namespace) makes them reliable, so a replay from the reliable player is
+  never dropped in DDS. A publisher whose QoS cannot match a subscription is logged as an ERROR and
+  counted (``rejected.incompatible_qos``, WARN in ``/diagnostics``), never a silent lack of input.
 - A bad message is logged (throttled), counted and dropped; the node keeps running.
 - ``/diagnostics`` gets one DiagnosticStatus about once a second (on the node's clock, so in bag
   time under ``use_sim_time``).
-- SIGINT and SIGTERM end the node cleanly: the stage's ``finish()`` outputs are published before
-  the context shuts down.
+- SIGINT and SIGTERM end the node cleanly: the messages DDS had delivered to the node before the
+  signal are processed first (bounded by ``DRAIN_TIMEOUT_S``; a second signal stops at once), then the
+  stage's ``finish()`` outputs are published before the context shuts down.
 - Multi-user stages (``Stage.MULTI_USER``): the node subscribes to the stage's inputs in every
   user namespace — those of the stage's ``users`` parameter, or, when it is empty, every namespace
   in which a publisher of one of the inputs appears (the ROS graph is polled every
@@ -35,7 +42,9 @@ from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
@@ -63,25 +72,50 @@ FINISH_ACK_TIMEOUT_S = 2.0
 DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
 _BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
+#: Node parameter (beside the stage's own): reliability of the subscriptions to *sensor* inputs.
+SENSOR_RELIABILITY_PARAM = "sensor_reliability"
+_RELIABILITY = {"best_effort": ReliabilityPolicy.BEST_EFFORT, "reliable": ReliabilityPolicy.RELIABLE}
 #: How often the spin loop returns to Python so SIGINT/SIGTERM are handled promptly (s).
 _SPIN_PERIOD_S = 0.1
+#: On SIGINT/SIGTERM a node processes what was queued for it before the signal for at most this
+#: long (s; below ``indoor-loc up``'s 10 s between SIGINT and SIGTERM).
+DRAIN_TIMEOUT_S = 8.0
 
 
 #: History depth of the nodes' *subscriptions*, sized for bursts rather than for the steady rate:
 #: a replay at 5x, a scheduler hiccup on a loaded machine or a slow first callback must not make
 #: DDS overwrite messages the node has not taken yet (2000 IMU samples = 10 s at 200 Hz, ~1 MB).
 SUB_DEPTH = {Qos.SENSOR: 2000, Qos.RELIABLE: 1000, Qos.BEST_EFFORT: 100}
+#: ... and of reliable sensor inputs (``sensor_reliability: reliable``, a replay): a replay faster than
+#: the node can follow on a busy machine queues the difference here (10 000 = 10 s of a 5x replay of a
+#: 200 Hz IMU, ~4 MB) instead of overwriting it.
+SUB_DEPTH_REPLAY = 10000
 
 
 def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
 
 
-def subscription_qos(qos: Qos) -> QoSProfile:
-    """The contract QoS of an input, with the burst-sized depth of :data:`SUB_DEPTH`."""
+def publisher_qos(qos: Qos) -> QoSProfile:
+    """The QoS an output is published with: the contract's, except that *sensor* outputs are
+    published reliable (a reliable writer serves best-effort and reliable readers alike, so a
+    node whose sensor inputs were made reliable still hears another node's ``imu/data``)."""
+    base = QOS_PROFILES[qos]
+    if qos != Qos.SENSOR:
+        return base
+    return QoSProfile(history=base.history, depth=base.depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=base.durability)
+
+
+def subscription_qos(qos: Qos, sensor_reliability: str = "best_effort") -> QoSProfile:
+    """The contract QoS of an input, with the burst-sized depth of :data:`SUB_DEPTH`; *sensor*
+    inputs get ``sensor_reliability`` (``best_effort``, the contract, or ``reliable``)."""
     base = QOS_PROFILES[qos]
     depth = SUB_DEPTH.get(qos, base.depth)
-    return QoSProfile(history=base.history, depth=max(depth, base.depth), reliability=base.reliability,
+    reliability = _RELIABILITY[sensor_reliability] if qos == Qos.SENSOR else base.reliability
+    if qos == Qos.SENSOR and reliability == ReliabilityPolicy.RELIABLE:
+        depth = SUB_DEPTH_REPLAY
+    return QoSProfile(history=base.history, depth=max(depth, base.depth), reliability=reliability,
                       durability=base.durability)
 
 
@@ -141,15 +175,19 @@ class StageNode(Node):
         super().__init__(stage_cls.NODE_NAME, **node_kwargs)
         self._stage_cls = stage_cls
         self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> sequence-gap counter
+        self.taken = 0                              # input messages handled (all topics)
+        self.last_rx_ns = 0                         # reception time (system clock) of the last one
+        self.sensor_reliability = self._declare_sensor_reliability()
         values = self._declare_params(stage_cls.PARAMS)
         params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
         self.stage: Stage = stage_cls(params, namespace=self.get_namespace())
         self.add_on_set_parameters_callback(self._on_set_params)
-        self._pubs = {p.topic: self.create_publisher(msg_class(p.type), p.topic, qos_profile(p.qos))
+        self._pubs = {p.topic: self._create_publisher(msg_class(p.type), p.topic, publisher_qos(p.qos))
                       for p in self.stage.outputs()}
         self._subs = [] if self.stage.MULTI_USER else [
-            self.create_subscription(msg_class(p.type), p.topic, self._callback(p.topic), subscription_qos(p.qos))
-            for p in self.stage.inputs()]
+            self._subscribe(p, p.topic, self._callback(p.topic)) for p in self.stage.inputs()]
+        if not self.stage.MULTI_USER:
+            self._check_qos_overrides()
         # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
         self.user_subs: dict[str, list] = {}
         self._user_seen: dict[str, float] = {}
@@ -187,6 +225,68 @@ class StageNode(Node):
         for m in msgs:
             self.get_logger().error(m)
         return msgs
+
+    # -- QoS -------------------------------------------------------------------------------------
+    def _declare_sensor_reliability(self) -> str:
+        desc = ParameterDescriptor(
+            description="reliability of the subscriptions to sensor inputs (imu/*): "
+                        "best_effort (matches every publisher, e.g. real drivers) or reliable (a replay: "
+                        "nothing dropped in DDS; a best-effort publisher then does not match)",
+            read_only=True)
+        value = self.declare_parameter(SENSOR_RELIABILITY_PARAM, "best_effort", desc).value
+        if value not in _RELIABILITY:
+            raise ConfigError(f"{SENSOR_RELIABILITY_PARAM}: expected one of {sorted(_RELIABILITY)}, got {value!r}")
+        return str(value)
+
+    def _subscribe(self, port: Any, topic: str, callback: Callable[[Any, Any], None]):
+        """A subscription to ``port`` on ``topic`` with its QoS (overridable by parameters)."""
+        events = SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible(topic, "publisher"))
+        try:
+            return self.create_subscription(
+                msg_class(port.type), topic, callback, subscription_qos(port.qos, self.sensor_reliability),
+                qos_overriding_options=QoSOverridingOptions.with_default_policies(), event_callbacks=events)
+        except (InvalidQosOverridesError, RuntimeError, ValueError) as err:
+            raise ConfigError(f"QoS of subscription {topic!r}: {err}") from err
+
+    def _create_publisher(self, cls: type, topic: str, qos: QoSProfile):
+        events = PublisherEventCallbacks(incompatible_qos=self._on_incompatible(topic, "subscription"),
+                                         matched=self._on_matched(topic))
+        try:
+            return self.create_publisher(cls, topic, qos, event_callbacks=events,
+                                         qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        except (InvalidQosOverridesError, RuntimeError, ValueError) as err:
+            raise ConfigError(f"QoS of publisher {topic!r}: {err}") from err
+
+    def _on_matched(self, topic: str) -> Callable[[Any], None]:
+        """Log each change of an output's matched subscriptions: DDS matches a new subscriber
+        asynchronously, and what is published before it matched never reaches it (volatile), so
+        a tool that must not miss the first outputs (a recorder) waits for this line."""
+        def cb(status: Any) -> None:
+            self.get_logger().info(f"{topic}: {status.current_count} matched subscription(s)")
+        return cb
+
+    def _on_incompatible(self, topic: str, other: str) -> Callable[[Any], None]:
+        def cb(event: Any) -> None:
+            policy = getattr(getattr(event, "last_policy_kind", None), "name", "?").lower()
+            reason = "incompatible_qos"
+            self.stage._reject(reason, f"{topic}: a {other} with incompatible QoS ({policy}) does not match")
+            self.get_logger().error(
+                f"{self.resolve_topic_name(topic)}: a {other} with incompatible QoS ({policy}) cannot be matched; "
+                f"its messages do NOT reach this node ({event.total_count} so far). "
+                f"{'Set sensor_reliability or ' if other == 'publisher' else ''}qos_overrides."
+                f"{self.resolve_topic_name(topic)}.{'subscription' if other == 'publisher' else 'publisher'}"
+                f".reliability to match", throttle_duration_sec=5.0)
+        return cb
+
+    def _check_qos_overrides(self) -> None:
+        """A ``qos_overrides.`` parameter naming no topic of this node (a typo, or a topic written
+        without the node's namespace) would be ignored by rclpy without a word: refuse it."""
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        stray = sorted(n for n in overrides if n.startswith("qos_overrides.") and not self.has_parameter(n))
+        if stray:
+            known = sorted(n for n in self._parameters if n.startswith("qos_overrides."))
+            raise ConfigError(f"{self.get_fully_qualified_name()}: QoS override(s) {stray} name no topic of this "
+                              f"node (topics are fully qualified, with the namespace); expected some of {known}")
 
     # -- parameters ------------------------------------------------------------------------------
     def _declare_params(self, params_cls: type) -> dict[str, Any]:
@@ -245,9 +345,8 @@ class StageNode(Node):
         if not user or user in self.user_subs:
             return
         ns = namespace_of_user(user)
-        self.user_subs[user] = [
-            self.create_subscription(msg_class(p.type), join_ns(ns, p.topic), self._callback(p.topic, user),
-                                     subscription_qos(p.qos)) for p in self.stage.inputs()]
+        self.user_subs[user] = [self._subscribe(p, join_ns(ns, p.topic), self._callback(p.topic, user))
+                                for p in self.stage.inputs()]
         for port in self.stage.user_outputs():      # ready (and matched) before the first output
             self._publisher(port.topic.format(user=user))
         self._user_seen[user] = self._monotonic()
@@ -296,6 +395,8 @@ class StageNode(Node):
             return self.count_publishers(resolved)
 
         def cb(msg: Any, info: Any) -> None:
+            self.taken += 1
+            self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
             now_ns = self.get_clock().now().nanoseconds
             lost = gaps.gap(info, recount)
             if lost:
@@ -315,7 +416,7 @@ class StageNode(Node):
         if pub is None and self.stage.MULTI_USER:
             port = self.stage.output_port(topic)
             if port is not None:
-                pub = self._pubs[topic] = self.create_publisher(msg_class(port.type), topic, qos_profile(port.qos))
+                pub = self._pubs[topic] = self._create_publisher(msg_class(port.type), topic, publisher_qos(port.qos))
         return pub
 
     def _publish(self, outs: list) -> None:
@@ -360,21 +461,91 @@ class StageNode(Node):
                 pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S))
 
 
-def _raise_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+#: Set by the first SIGINT/SIGTERM (a stop was asked for), and by the second (stop at once).
+_STOP = threading.Event()
+_STOP_NOW = threading.Event()
 
 
-def spin_node(node: Node) -> None:
+def _request_stop(signum: int, frame: Any) -> None:
+    # Only a flag: an exception raised from a signal handler can surface inside a pybind11 call
+    # (rclpy's take_message) as a RuntimeError ("Unable to convert call argument") instead of a
+    # KeyboardInterrupt and end the process with a traceback. The spin loops poll the flag.
+    (_STOP_NOW if _STOP.is_set() else _STOP).set()
+
+
+def stop_requested() -> bool:
+    """Whether SIGINT/SIGTERM asked this process to stop (see :func:`raise_on_signals`)."""
+    return _STOP.is_set()
+
+
+def raise_on_signals() -> dict[int, Any]:
+    """From now on SIGINT and SIGTERM set :func:`stop_requested`, which the spin loops turn into a
+    KeyboardInterrupt between two callbacks (rclpy's own handlers must be off:
+    ``rclpy.init(signal_handler_options=SignalHandlerOptions.NO)``, so the context stays valid for a
+    clean stop; SIGINT explicitly too: a child started in the background inherits it ignored).
+    Returns the previous handlers for :func:`restore_signals` (empty off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    _STOP.clear()
+    _STOP_NOW.clear()
+    return {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
+def check_stop() -> None:
+    """Raise KeyboardInterrupt if a signal asked to stop (call between two units of work)."""
+    if _STOP.is_set():
+        raise KeyboardInterrupt("stop requested by a signal")
+
+
+def ignore_signals(old: dict[int, Any]) -> None:
+    """During clean-up: a second signal must not cut it short."""
+    for sig in old:
+        signal.signal(sig, signal.SIG_IGN)
+
+
+def restore_signals(old: dict[int, Any]) -> None:
+    for sig, handler in old.items():
+        signal.signal(sig, handler)
+
+
+def drain(executor: SingleThreadedExecutor, node: Node, taken: Callable[[], int],
+          timeout_s: float = DRAIN_TIMEOUT_S) -> int:
+    """Run the callbacks of the messages DDS delivered before now until none is left (three idle
+    spins in a row), a message received after now was handled (``node.last_rx_ns``: a publisher
+    still running must not hold the node up), or ``timeout_s`` passes; ``taken()`` counts the
+    messages handled so far. Returns how many were handled here."""
+    start = taken()
+    stop_ns = time.time_ns()
+    deadline = time.monotonic() + timeout_s
+    idle = 0
+    while (idle < 3 and time.monotonic() < deadline and node.context.ok() and not _STOP_NOW.is_set()
+           and int(getattr(node, "last_rx_ns", 0)) <= stop_ns):
+        before = taken()
+        executor.spin_once(timeout_sec=0.02)
+        idle = idle + 1 if taken() == before else 0
+    return taken() - start
+
+
+def spin_node(node: Node, taken: Callable[[], int] | None = None) -> None:
     """Spin until SIGINT/SIGTERM (raised here as KeyboardInterrupt) or an external shutdown.
 
-    rclpy's own signal handlers are off (see :func:`run_stage_node`), so the executor wakes up every
-    ``_SPIN_PERIOD_S`` to let Python deliver the signal; the context stays valid afterwards.
+    rclpy's own signal handlers are off (see :func:`run_stage_node`); the executor wakes up every
+    ``_SPIN_PERIOD_S`` to look at :func:`stop_requested`; the context stays valid afterwards. On a
+    signal, what is already queued for the node is processed first (:func:`drain`, with
+    ``taken`` or the node's ``taken`` counter); a second signal interrupts that. Ends with
+    KeyboardInterrupt on a signal.
     """
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
+    count = taken or (lambda: int(getattr(node, "taken", 0)))
     try:
-        while node.context.ok():
+        while node.context.ok() and not _STOP.is_set():
             executor.spin_once(timeout_sec=_SPIN_PERIOD_S)
+        if _STOP.is_set():
+            n = drain(executor, node, count)
+            if n:
+                node.get_logger().info(f"stopping: processed the {n} message(s) already received")
+            raise KeyboardInterrupt("stop requested by a signal")
     finally:
         executor.remove_node(node)
         executor.shutdown(timeout_sec=0.0)
@@ -399,10 +570,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     except (RuntimeError, ValueError) as err:     # rclpy's RCLError is a RuntimeError
         print(f"[{name}] invalid arguments: {err}", file=sys.stderr)
         return 2
-    # Both signals end the spin as KeyboardInterrupt (SIGINT explicitly too: a child started from a
-    # non-interactive shell in the background inherits SIGINT ignored).
-    old = ({sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
-           if threading.current_thread() is threading.main_thread() else {})
+    old = raise_on_signals()      # both signals end the spin as KeyboardInterrupt
     node: StageNode | None = None
     status = 0
     try:
@@ -415,8 +583,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
         print(f"[{name}] configuration error: {err}", file=sys.stderr)
         status = 2
     finally:
-        for sig in old:                       # a second signal must not cut the clean-up short
-            signal.signal(sig, signal.SIG_IGN)
+        ignore_signals(old)
         if node is not None:
             if node.context.ok():
                 try:
@@ -426,8 +593,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
                     status = status or 1
             node.destroy_node()
         rclpy.try_shutdown()
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        restore_signals(old)
     return status
 
 

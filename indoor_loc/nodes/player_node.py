@@ -27,6 +27,7 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
 from indoor_loc.bag import bag_info, read_raw
@@ -34,7 +35,7 @@ from indoor_loc.bag.reader import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.base import run_option_node
+from indoor_loc.nodes.base import check_stop, ignore_signals, raise_on_signals, restore_signals, run_option_node
 
 NODE_NAME = "player"
 #: --wait-for-subscribers: the subscriber counts must be stable this long before playing (s).
@@ -125,6 +126,7 @@ class PlayerNode(Node):
         self._clock_pub = (self.create_publisher(Clock, "/clock", QoSProfile(depth=10)) if self.clock_hz > 0
                            else None)
         self.published = 0
+        self.play_s = 0.0                # wall time of the playback (after any waiting)
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Block until every played topic has at least one subscriber and the subscriber counts
@@ -134,6 +136,7 @@ class PlayerNode(Node):
         last: list[int] | None = None
         since = time.monotonic()
         while time.monotonic() < end and rclpy.ok(context=self.context):
+            check_stop()
             counts = [p.get_subscription_count() for p in self._pubs.values()]
             if counts != last:
                 last, since = counts, time.monotonic()
@@ -166,6 +169,7 @@ class PlayerNode(Node):
                 continue
             target = wall0 + (m.stamp_ns - first) * 1e-9 / self.rate
             while True:
+                check_stop()
                 if not rclpy.ok(context=self.context):
                     return False
                 now = time.monotonic()
@@ -185,8 +189,10 @@ class PlayerNode(Node):
         return True
 
     def play(self) -> None:
+        t0 = time.monotonic()
         while self.play_once() and self.loop:
             self.get_logger().info("looping")
+        self.play_s = time.monotonic() - t0
         for pub in list(self._pubs.values()) + ([self._clock_pub] if self._clock_pub else []):
             if rclpy.ok(context=self.context):
                 pub.wait_for_all_acked(Duration(seconds=2.0))
@@ -209,24 +215,33 @@ def check_options(options: argparse.Namespace) -> None:
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     check_options(options)
     remap = parse_remaps(options.remap)
-    # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps)
-    rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
+    # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps).
+    # rclpy's signal handlers are off: a signal sets a flag that playback checks between two
+    # messages (an exception raised by a signal handler inside an rclpy call can come out as a
+    # RuntimeError and a traceback instead of a clean stop).
+    rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1], signal_handler_options=SignalHandlerOptions.NO)
     node = None
+    old = raise_on_signals()
     try:
         node = PlayerNode(list(options.bags), rate=options.rate, loop=options.loop, clock_hz=options.clock,
                           topics=options.topics, remap=remap, start_offset_s=options.start_offset)
         if options.wait_for_subscribers > 0:
             node.wait_for_subscribers(options.wait_for_subscribers)
         if options.delay > 0:
-            time.sleep(options.delay)
+            end = time.monotonic() + options.delay
+            while (left := end - time.monotonic()) > 0:
+                check_stop()
+                time.sleep(min(left, 0.05))
         node.play()
-        print(f"played {node.published} messages", file=sys.stderr)
+        print(f"played {node.published} messages in {node.play_s:.2f} s", file=sys.stderr)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        ignore_signals(old)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        restore_signals(old)
     return 0
 
 

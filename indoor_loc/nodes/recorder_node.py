@@ -11,7 +11,8 @@
   topic added or left out is logged with the reason.
 - Log time = the node clock at reception (``use_sim_time`` gives bag time); publish time = the
   publisher's source timestamp.
-- SIGINT / SIGTERM close the bag cleanly (summary and rosbag2 metadata written). The open chunk is
+- SIGINT / SIGTERM close the bag cleanly (summary and rosbag2 metadata written) after the messages
+  DDS had delivered before the signal are written (a second signal stops at once). The open chunk is
   closed every ``--flush-interval`` seconds, so SIGKILL loses at most that much; ``indoor-loc bag
   recover`` turns such a file into a valid one.
 """
@@ -31,13 +32,15 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from indoor_loc.bag import BagWriter
 from indoor_loc.bag.writer import DEFAULT_CHUNK_SIZE
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import Qos, msg_class
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.base import DIAGNOSTICS_PERIOD_S, SequenceGaps, qos_profile, run_option_node
+from indoor_loc.nodes.base import (DIAGNOSTICS_PERIOD_S, SequenceGaps, ignore_signals, qos_profile, raise_on_signals,
+                                   restore_signals, run_option_node, spin_node)
 from indoor_loc.output_paths import check_output
 from msg_adapters.diagnostics import RECENT_NS, status_array
 
@@ -178,6 +181,7 @@ class RecorderNode(Node):
         self._subs: dict[str, Any] = {}
         self._reported: set[tuple[str, str]] = set()
         self.received = 0
+        self.last_rx_ns = 0            # reception time (system clock) of the last message
         self.lost: dict[str, int] = {}
         self._gaps: dict[str, SequenceGaps] = {}
         self._thread = _WriterThread(writer)
@@ -292,6 +296,7 @@ class RecorderNode(Node):
             src = info.get("source_timestamp") if isinstance(info, dict) else None
             put(("m", topic, data, now, src if src else now))
             self.received += 1
+            self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
             lost = gaps.gap(info, lambda: self.count_publishers(topic))
             if lost:
                 self.lost[topic] = self.lost.get(topic, 0) + lost
@@ -314,24 +319,27 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
         output = output.with_suffix(output.suffix + ".mcap") if output.suffix else output.with_suffix(".mcap")
     check_output(output, overwrite=options.overwrite, what="-o")
     # indoor-loc passes no ROS arguments: rcl must not parse the command line (OLD:=NEW remaps)
-    rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
+    rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1], signal_handler_options=SignalHandlerOptions.NO)
     node = None
     writer = BagWriter(output, chunk_size=options.chunk_size, compression=options.compression)
+    old = raise_on_signals()
     try:
         writer.open()
         kwargs = {"namespace": options.namespace} if options.namespace else {}
         node = RecorderNode(writer, topics=None if options.all else list(options.topics),
                             poll_s=options.poll, flush_interval_s=options.flush_interval,
                             exclude=options.exclude, include_hidden=options.include_hidden, **kwargs)
-        rclpy.spin(node)
+        spin_node(node, lambda: node.received if node is not None else 0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        ignore_signals(old)
         if node is not None:
             node.destroy_node()
             node.close()
         writer.close()
         rclpy.try_shutdown()
+        restore_signals(old)
     counts = writer.topic_counts()
     print(f"recorded {sum(counts.values())} messages on {len(counts)} topics to {output}", file=sys.stderr)
     if node is not None and node.lost:

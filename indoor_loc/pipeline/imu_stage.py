@@ -313,7 +313,7 @@ class ImuStage(Stage):
             stats.count += i
             stats.first_ns = recv_ns[0] if stats.first_ns is None else stats.first_ns
             stats.last_ns = recv_ns[i - 1]
-            diag.process_s.extend([(time.perf_counter() - t0) / i] * min(i, diag.process_s.maxlen or 0))
+            diag.process_s.append((time.perf_counter() - t0) / i)       # one entry per run: its mean
         if i < n:                                   # not steady (a gap): the rest one by one
             out += super().process_batch(topic, items[i:], recv_ns[i:])
         return out

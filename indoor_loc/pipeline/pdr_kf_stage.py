@@ -18,6 +18,7 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -43,6 +44,10 @@ class PdrKfStageParams:
     gate_prob: float = field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
     max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
     max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
+    odom_hold_s: float = field(0.0, "hold each pdr/odom hop this long (s of stamp time, on the odom stream) before "
+                                    "applying it, so a wifi/fix that reaches the node after later hops (a busy "
+                                    "machine, a replay faster than real time) is still applied in stamp order, as "
+                                    "offline; delays pdr_kf/pose by as much. 0 = apply at once")
     smooth_period_s: float = field(10.0, "republish the RTS-smoothed path at most this often (s of stamp time); 0 = only at the end")
     smooth_lag_s: float = field(60.0, "fixed-lag smoother window (s of stamp time): poses older than this are final and "
                                         "never re-smoothed, so the cost per update stays bounded in long runs")
@@ -57,6 +62,7 @@ class PdrKfStageParams:
         require(self.smooth_lag_s > 0, n, "smooth_lag_s", "> 0", self.smooth_lag_s)
         require(self.path_max_poses >= 1, n, "path_max_poses", ">= 1", self.path_max_poses)
         require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        require(self.odom_hold_s >= 0, n, "odom_hold_s", ">= 0", self.odom_hold_s)
         require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
         require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         self.kf_params().validate()
@@ -88,6 +94,9 @@ class PdrKfStage(Stage):
         self._rejected_in_row = 0
         self.restarts = 0
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
+        self._held: deque[tuple[int, Any, Any]] = deque()  # (stamp, odom, interval) held for odom_hold_s
+        self._last_odom_ns: int | None = None             # stamp of the last odom applied
+        self.late_fixes = 0                                # fixes that arrived after later hops were applied
         self._seq = 0
         self._last_smooth_ns: int | None = None
         self.on("pdr/odom", self._on_odom)
@@ -104,7 +113,21 @@ class PdrKfStage(Stage):
     # ------------------------------------------------------------------------------------------
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
         od, interval = self._odom.read(msg)
+        self._held.append((od.stamp_ns, od, interval))
+        hold_ns = int(self.params.odom_hold_s * 1e9)
+        return self._release(lambda s: s <= od.stamp_ns - hold_ns)
+
+    def _release(self, due) -> list[Output]:
+        """Apply the held hops whose stamp is ``due``, in order."""
+        outs: list[Output] = []
+        while self._held and due(self._held[0][0]):
+            _, od, interval = self._held.popleft()
+            outs += self._apply_odom(od, interval)
+        return outs
+
+    def _apply_odom(self, od, interval) -> list[Output]:
         outs = self._apply_pending(lambda s: s < od.stamp_ns)   # fixes inside the interval just closed
+        self._last_odom_ns = od.stamp_ns
         if interval is None or self.kf is None:
             return outs
         self.kf.predict(interval.steps, interval.dtheta, stamp_ns=od.stamp_ns)
@@ -127,14 +150,18 @@ class PdrKfStage(Stage):
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)   # bad_covariance, wrong_frame
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
-        last_odom = self._odom.last_stamp_ns
+        last_odom = self._last_odom_ns
+        if last_odom is not None and fix.stamp_ns < last_odom:
+            self.late_fixes += 1          # applied now, out of stamp order (see odom_hold_s)
         horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
         return self._apply_pending(lambda s: s <= horizon or (last_odom is not None and s < last_odom))
 
     def _apply_pending(self, due) -> list[Output]:
         outs: list[Output] = []
         while self._pending and due(self._pending[0][0]):
-            outs.append(self._apply_fix(self._pending.pop(0)[2]))
+            stamp, _, fix = self._pending.pop(0)
+            outs += self._release(lambda s, f=stamp: s < f)      # held hops before the fix come first
+            outs.append(self._apply_fix(fix))
         return outs
 
     def _apply_fix(self, fix: Fix) -> Output:
@@ -246,14 +273,16 @@ class PdrKfStage(Stage):
                                             stamp_ns=int(stamps[-1])))]
 
     def finish(self) -> list[Output]:
-        return self._apply_pending(lambda s: True) + self._smoothed()
+        outs = self._release(lambda s: True)
+        return outs + self._apply_pending(lambda s: True) + self._smoothed()
 
     def extra_diagnostics(self) -> dict[str, str]:
         if self.kf is None:
-            return {"initialised": "false (waiting for the first wifi/fix)"}
+            return {"initialised": "false (waiting for the first wifi/fix)", "late_fixes": str(self.late_fixes)}
         st = self.kf.state
         return {"initialised": "true", "epochs": str(self.n_epochs), "window_epochs": str(len(self._epochs)),
                 "path_poses": str(len(self._final) + len(self._epochs)),
                 "fixes_used_in_segment": str(st.n_updates), "fixes_gated_out_in_segment": str(st.n_rejected),
-                "restarts": str(self.restarts),
+                "restarts": str(self.restarts), "late_fixes": str(self.late_fixes),
+                "held_odom": str(len(self._held)),
                 "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}"}

@@ -107,9 +107,11 @@ class WifiScanStage(Stage):
     def inputs(self) -> list[Port]:
         if self.params.source != "topic":
             return []
-        # SENSOR (best effort) subscriptions match both reliable and best-effort drivers.
-        return [Port("wifi/scan_raw", "diagnostic_msgs/msg/DiagnosticArray", Qos.SENSOR),
-                Port("wifi/scan_json", "std_msgs/msg/String", Qos.SENSOR)]
+        # Scans are few and large (a 10 000-AP scan is ~1 MB, many UDP fragments): taken reliably, so
+        # none is lost in DDS. A best-effort driver does not match a reliable subscription; the node
+        # reports it (incompatible_qos) and qos_overrides.<topic>.subscription.reliability adapts.
+        return [Port("wifi/scan_raw", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE),
+                Port("wifi/scan_json", "std_msgs/msg/String", Qos.RELIABLE)]
 
     def outputs(self) -> list[Port]:
         return [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)]

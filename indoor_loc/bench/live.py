@@ -1,0 +1,266 @@
+"""``indoor-loc bench live``: where live replay over DDS starts to lose messages.
+
+For N users (simulated walkers from :mod:`indoor_loc.sim`, 200 Hz IMU + 50 Hz magnetometer + WiFi
+scans each) replayed at rate R, every user gets its own ``imu_node``, ``wifi_fix_node`` and
+``pdr_kf_node`` process in its namespace (the simulator's params), one ``recorder -a`` records
+everything, and ``player -r R --wait-for-subscribers`` plays the users' topics once the nodes'
+outputs are matched. Per trial: messages each kind of node received per second (per node), and
+messages lost on the way to it — the input messages that never arrived (sent − received, which also
+covers what sequence gaps cannot see) — and in the recorder (bag counts against what was sent). For
+each N the rate rises until the first loss anywhere; the table says where it happened.
+
+The sensor inputs are reliable (``sensor_reliability: reliable``, as for any replay) unless
+``--sensor-qos best_effort`` asks for the best-effort subscriptions real drivers are met with.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+NODES = ("imu_node", "wifi_fix_node", "pdr_kf_node")
+#: What each node must have matched before playing: output topic -> subscriptions (pdr_kf + recorder).
+MATCHED = {"imu_node": ("pdr/odom", 2), "wifi_fix_node": ("wifi/fix", 2), "pdr_kf_node": ("pdr_kf/pose", 1)}
+#: Inputs of each node kind among the bag's relative topics (pdr_kf's come from the other nodes).
+BAG_INPUTS = {"imu_node": ("imu/data_raw", "imu/mag", "imu/data"), "wifi_fix_node": ("wifi/scan",)}
+
+
+@dataclass
+class Trial:
+    users: int
+    rate: float
+    sent: int = 0                    # input messages played
+    play_s: float = 0.0              # wall time of the playback
+    received: dict[str, int] = field(default_factory=dict)   # node kind -> messages received (all users)
+    missing: dict[str, int] = field(default_factory=dict)    # node kind -> input messages that never arrived
+    recorder_missing: int = 0
+    recorded: int = 0
+    note: str = ""
+
+    @property
+    def lost(self) -> bool:
+        return any(self.missing.values()) or self.recorder_missing > 0
+
+
+class _Proc:
+    """A child process whose output lines are collected by a thread."""
+
+    def __init__(self, cmd: list[str], env: dict[str, str]) -> None:
+        import threading
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                                     bufsize=1)
+        self.lines: list[str] = []
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def has(self, pattern: str) -> bool:
+        rx = re.compile(pattern)
+        return any(rx.search(ln) for ln in list(self.lines))
+
+    def stop(self, timeout: float = 30.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            rc = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            rc = self.proc.wait(timeout=10)
+        self._t.join(timeout=2)
+        return rc
+
+
+def _wait(cond, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.1)
+    return cond()
+
+
+def _diagnostics_listener():
+    """An rclpy node on its own context keeping the last /diagnostics status of every node."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.base import qos_profile
+    from msg_adapters.diagnostics import diagnostics_from_msg
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = Node("bench_live", context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    last: dict[str, Any] = {}
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        last.update(diagnostics_from_msg(msg))
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
+
+    def close() -> None:
+        ex.shutdown(timeout_sec=0.0)
+        node.destroy_node()
+        ctx.try_shutdown()
+    return ex, last, close
+
+
+def _inputs_received(values: dict[str, str]) -> int:
+    return sum(int(v) for k, v in values.items() if k.startswith("in.") and k.endswith(".count"))
+
+
+def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, env: dict[str, str],
+              sensor_qos: str) -> Trial:
+    """One replay of ``users`` at ``rate``; see the module docstring."""
+    from indoor_loc.bag import bag_info
+    from indoor_loc.nodes.base import DIAGNOSTICS_PERIOD_S
+
+    info = bag_info([sim["bag"]])
+    ns = {u: f"/{u}" for u in users}
+    topics = sorted(t for t in info if any(t.startswith(ns[u] + "/") for u in users))
+    trial = Trial(len(users), rate, sent=sum(info[t].count for t in topics))
+    out = work / f"rec_{len(users)}u_{rate:g}x.mcap"
+    py = sys.executable
+    rec = _Proc([py, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(out), "--overwrite", "--poll", "0.2",
+                 "--exclude", "^/diagnostics$|^/rosout$|^/parameter_events$"], env)
+    nodes: dict[tuple[str, str], _Proc] = {}
+    ex, diags, close = _diagnostics_listener()
+    try:
+        for u in users:
+            for kind in NODES:
+                extra = ["-p", "odom_hold_s:=5.0"] if kind == "pdr_kf_node" else []
+                nodes[(u, kind)] = _Proc([py, "-m", f"indoor_loc.nodes.{kind}", "--ros-args", "-r", f"__ns:={ns[u]}",
+                                          "--params-file", str(sim["params"]), "-p",
+                                          f"sensor_reliability:={sensor_qos}", *extra], env)
+
+        def matched() -> bool:
+            ex.spin_once(timeout_sec=0.0)
+            return all(p.has(rf"{MATCHED[k][0]}: {MATCHED[k][1]} matched") for (u, k), p in nodes.items())
+        if not _wait(matched, 120):
+            trial.note = "nodes not matched within 120 s"
+            return trial
+        player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
+                        "--wait-for-subscribers", "60", "--topics", *topics], env)
+        while player.proc.poll() is None:
+            ex.spin_once(timeout_sec=0.1)
+        player.stop()
+        played = [re.search(r"played (\d+) messages in ([\d.]+) s", ln) for ln in player.lines]
+        got = [m for m in played if m]
+        if not got:
+            trial.note = "player failed: " + " / ".join(player.lines[-3:])
+            return trial
+        trial.play_s = float(got[-1].group(2))
+        # the nodes work off their queues: wait until no node's input count grows for 2 periods
+        still, prev, end = 0, None, time.monotonic() + 120
+        while still < 3 and time.monotonic() < end:
+            t_next = time.monotonic() + DIAGNOSTICS_PERIOD_S
+            while time.monotonic() < t_next:
+                ex.spin_once(timeout_sec=0.05)
+            cur = {k: _inputs_received(v.values) for k, v in diags.items()}
+            still = still + 1 if cur == prev else 0
+            prev = cur
+        for kind in NODES:                       # dependency order, recorder last
+            for u in users:
+                nodes[(u, kind)].stop()
+        for _ in range(int(2 / 0.05)):
+            ex.spin_once(timeout_sec=0.05)
+        rec.stop()
+    finally:
+        for p in [*nodes.values(), rec]:
+            if p.proc.poll() is None:
+                p.stop(timeout=10)
+        close()
+
+    # what each node received against what was sent to it
+    outs: dict[tuple[str, str], int] = {}
+    for u in users:
+        for kind in NODES:
+            d = diags.get(f"{ns[u]}/{kind}")
+            values = d.values if d is not None else {}
+            got = _inputs_received(values)
+            if kind == "pdr_kf_node":
+                imu = diags.get(f"{ns[u]}/imu_node")
+                wifi = diags.get(f"{ns[u]}/wifi_fix_node")
+                want = sum(int((x.values if x else {}).get(key, 0)) for x, key in
+                           ((imu, "out.pdr/odom.count"), (wifi, "out.wifi/fix.count")))
+            else:
+                want = sum(info[f"{ns[u]}/{rel}"].count for rel in BAG_INPUTS[kind] if f"{ns[u]}/{rel}" in info)
+            trial.received[kind] = trial.received.get(kind, 0) + got
+            trial.missing[kind] = trial.missing.get(kind, 0) + max(0, want - got)
+            for k, v in values.items():
+                if k.startswith("out.") and k.endswith(".count"):
+                    outs[(u, k[4:-6])] = int(v)
+    recorded = bag_info([out]) if out.exists() else {}
+    want_rec = {t: info[t].count for t in topics}
+    for (u, rel), n in outs.items():
+        want_rec[f"{ns[u]}/{rel}"] = want_rec.get(f"{ns[u]}/{rel}", 0) + n
+    trial.recorded = sum(t.count for name, t in recorded.items() if name in want_rec)
+    trial.recorder_missing = sum(max(0, n - (recorded[t].count if t in recorded else 0))
+                                 for t, n in want_rec.items() if not t.endswith("/path"))
+    return trial
+
+
+def _rate(n: int, s: float) -> str:
+    return f"{n / s:,.0f}" if s > 0 else "–"
+
+
+def run(args: argparse.Namespace) -> int:
+    from indoor_loc.commands.sim import generate
+    from indoor_loc.sim.scenario import SimConfig
+
+    users = [int(u) for u in str(getattr(args, "users", "") or ("1,2" if args.quick else "1,2,4")).split(",")]
+    rates = [float(r) for r in str(getattr(args, "rates", "") or ("5,20" if args.quick else "2,5,10,20,40")).split(",")]
+    duration = float(getattr(args, "duration", 0) or (20.0 if args.quick else 40.0))
+    sensor_qos = getattr(args, "sensor_qos", "reliable") or "reliable"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    env.setdefault("ROS_DOMAIN_ID", str(1 + (int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1")) + 60) % 232))
+    os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
+    from indoor_loc.sim.walker import ImuParams
+    cfg = SimConfig(walkers=max(users), duration_s=duration, seed=7,
+                    imu=dataclasses.replace(ImuParams(), rate_hz=200.0, mag_rate_hz=50.0))
+    cfg.validate()
+    with tempfile.TemporaryDirectory(prefix="bench_live_") as tmp:
+        work = Path(tmp)
+        sim = generate(work / "sim", cfg, quiet=True)
+        from indoor_loc.bag import bag_info
+        names = sorted({t.split("/")[1] for t in bag_info([sim["bag"]]) if t.count("/") >= 2
+                        and t.split("/")[1] != "map"})
+        print(f"\n## Live replay over DDS: first loss per node and in the recorder "
+              f"({duration:g} s of simulated walking per user, 200 Hz IMU + 50 Hz magnetometer + scans; "
+              f"sensor inputs {sensor_qos}; {os.cpu_count()} CPUs)\n")
+        print("| users | rate | sent msg/s (all users) | imu_node msg/s per node (lost) | wifi_fix_node (lost) | "
+              "pdr_kf_node msg/s per node (lost) | recorder msg/s (lost) | first loss |")
+        print("|---|---|---|---|---|---|---|---|")
+        for n in users:
+            for r in rates:
+                t = run_trial(sim, names[:n], r, work, env, sensor_qos)
+                s = t.play_s
+                where = ", ".join(k for k in NODES if t.missing.get(k)) + (
+                    (", " if any(t.missing.values()) else "") + "recorder" if t.recorder_missing else "")
+                print(f"| {n} | {r:g}× | {_rate(t.sent, s)} | {_rate(t.received.get('imu_node', 0) // n, s)} "
+                      f"({t.missing.get('imu_node', 0)}) | {t.missing.get('wifi_fix_node', 0)} | "
+                      f"{_rate(t.received.get('pdr_kf_node', 0) // n, s)} ({t.missing.get('pdr_kf_node', 0)}) | "
+                      f"{_rate(t.recorded, s)} ({t.recorder_missing}) | {where or t.note or 'none'} |", flush=True)
+                if t.lost or t.note:
+                    break
+        from indoor_loc.bench.throughput import format_rows, offline_stage_rates
+        print(f"\n## The same bag offline ({max(users)} users), per stage: `indoor-loc run` on one core\n")
+        print(format_rows(offline_stage_rates([sim["bag"]], params=sim["params"], scratch=work)))
+    return 0
