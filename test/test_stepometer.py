@@ -499,3 +499,54 @@ def test_bridge_online_equals_batch_with_save_restore_inside_the_held_span(rng):
         online += st.update(int(t), a)
     online += st.finish()
     assert online == batch
+
+
+def handling_then_walk(rng, rate_hz=100.0):
+    """The phone is picked up and put on (3 s of handling: random motion plus a few jiggles at
+    1.5 Hz, which the first window finds marginally periodic), then lies still until 8 s, then a
+    32-s walk at 1.8 Hz. Returns stamps, acc and the true step count (the walk's)."""
+    n = int(40 * rate_hz)
+    stamps = 10**9 + np.round(np.arange(n) * 1e9 / rate_hz).astype(np.int64)
+    t = (stamps - stamps[0]) * 1e-9
+    acc = np.array([0.0, 0.0, G]) + 0.01 * rng.standard_normal((n, 3))
+    h = t < 3.0
+    jig = aperiodic_motion(rng, stamps[h], std=1.0)
+    jig[:, 2] += 1.5 * np.sin(2 * np.pi * 1.5 * t[h]) * np.hanning(int(h.sum()))
+    acc[h] = jig
+    w = t >= 8.0
+    acc[w] = gait(rng, stamps[w], cadence_hz=1.8)
+    return stamps, acc, true_count(stamps[w], 1.8)
+
+
+def test_handling_before_the_walk_is_not_counted():
+    """A walking run that never becomes clearly periodic (handling at the start of the recording,
+    passing the periodicity test for a window or two) counts no steps: the count is the walk's.
+    Without holding such runs back (bridge_s = 0) the head of the recording gets the first window's
+    cadence."""
+    stamps, acc, truth = handling_then_walk(np.random.default_rng(1))
+    on = stepometer_batch(stamps, acc)
+    off = stepometer_batch(stamps, acc, StepometerParams(bridge_s=0.0))
+    assert total_steps(on) == pytest.approx(truth, abs=1.5)
+    assert total_steps(off) > total_steps(on) + 2.0
+    early = [h for h in on if h.t_end_ns <= stamps[0] + 6_000_000_000]
+    assert early and all(h.steps == 0.0 for h in early)
+    assert any(h.confidence == 0.5 and h.steps_std > 0 for h in early)      # flagged, not dropped
+    assert all(a.t_end_ns == b.t_start_ns for a, b in zip(on, on[1:]))
+
+
+def test_tentative_run_online_equals_batch_with_save_restore_inside_it():
+    stamps, acc, _ = handling_then_walk(np.random.default_rng(1))
+    batch = stepometer_batch(stamps, acc)
+    st = Stepometer()
+    online = []
+    saved_inside = False
+    for t, a in zip(stamps, acc):
+        if not saved_inside and st.state().tentative:
+            saved = st.state()
+            st = Stepometer()
+            st.set_state(saved)
+            saved_inside = True
+        online += st.update(int(t), a)
+    online += st.finish()
+    assert saved_inside
+    assert online == batch

@@ -99,6 +99,11 @@ class StepometerParams:
                                  "turn, a bag bumping) is held back for up to this long: if the periodic gait "
                                  "resumes it is counted step by step (confidence coast_confidence), else as 0 "
                                  "steps; delays only those hops, s; 0 = never")
+    tentative_gap_s: float = field(1.0, "a walking run whose windows are only marginally periodic (autocorrelation "
+                                        "below bridge_min_autocorr) is held back until a clearly periodic window "
+                                        "(or bridge_s of it): if a still hop, or moving but not walking hops for "
+                                        "longer than this, end it first, it was handling the phone and counts "
+                                        "0 steps, s")
     bridge_cutoff_hz: float = field(3.0, "low-pass cut-off of |a| for counting the steps of a bridged span one "
                                          "by one, Hz")
     bridge_prominence: float = field(1.0, "minimum prominence of a counted peak in a bridged span, relative to "
@@ -140,6 +145,7 @@ class StepometerParams:
         require(self.coast_energy_ratio >= 0, n, "coast_energy_ratio", ">= 0", self.coast_energy_ratio)
         require(0.0 <= self.coast_confidence <= 1.0, n, "coast_confidence", "in [0, 1]", self.coast_confidence)
         require(self.bridge_s >= 0, n, "bridge_s", ">= 0", self.bridge_s)
+        require(self.tentative_gap_s >= 0, n, "tentative_gap_s", ">= 0", self.tentative_gap_s)
         require(self.bridge_cutoff_hz > 0, n, "bridge_cutoff_hz", "> 0", self.bridge_cutoff_hz)
         require(self.bridge_prominence >= 0, n, "bridge_prominence", ">= 0", self.bridge_prominence)
         require(-1.0 <= self.bridge_min_autocorr <= 1.0, n, "bridge_min_autocorr", "in [-1, 1]",
@@ -320,6 +326,9 @@ class StepometerState:
     held: list[tuple[int, int, float, float, bool, float, float]] = dc_field(default_factory=list)
     # ^ hops held back while bridging: (lo, hi, freq_hz, count_hz, walking, confidence, steps_std) as
     #   they are emitted if the gait does not resume
+    tentative: list[tuple[int, int, float, float, bool, float, float]] = dc_field(default_factory=list)
+    # ^ hops of a walking run (and segment head) not yet clearly periodic, as they are emitted if it
+    #   becomes so; walking ones count 0 steps if it ends first
     count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
     count_confidence: float = 1.0
     last_confidence: float = 1.0
@@ -330,7 +339,8 @@ class StepometerState:
     def copy(self) -> "StepometerState":
         return dataclasses.replace(self, pending_t=list(self.pending_t), pending_m=list(self.pending_m),
                                    buffer=list(self.buffer), head_t=list(self.head_t),
-                                   head_yaw=list(self.head_yaw), held=list(self.held))
+                                   head_yaw=list(self.head_yaw), held=list(self.held),
+                                   tentative=list(self.tentative))
 
 
 def _magnitude(acc: ArrayLike) -> np.ndarray:
@@ -656,8 +666,13 @@ class Stepometer:
                 hi = lo + d.n_h
                 if j == 0:
                     # head of the segment: the first window covers it, hop by hop (each with its own
-                    # moving/still test, so standing before the walk is not counted)
-                    out += self._count_span(0, lo, est.walking, est.freq_hz, 1.0)
+                    # moving/still test, so standing before the walk is not counted); with a walking
+                    # but only marginally periodic first window it waits with that window's hop
+                    head = self._span_hops(0, lo, est.walking, est.freq_hz, 1.0)
+                    if est.walking and est.autocorr < self.params.bridge_min_autocorr:
+                        st.tentative += head
+                    else:
+                        out += [self._emit(*h) for h in head]
                 out += self._count(lo, hi, est)
                 st.next_window += 1
         # drop grid samples no later window needs
@@ -699,9 +714,17 @@ class Stepometer:
             st.walk_end = hi
             st.walk_motion_std = est.motion_std_m_s2
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
-            return out + [self._emit(lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)]
+            hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
+            if st.walk_autocorr < p.bridge_min_autocorr:
+                # a run that is not yet clearly periodic (handling the phone passes the periodicity
+                # test for a window or two): it waits until it is, or has lasted bridge_s
+                st.tentative.append(hop)
+                if (hi - st.tentative[0][0]) / st.grid_hz < p.bridge_s:
+                    return out
+                hop = st.tentative.pop()
+            return out + [self._emit(*h) for h in st.tentative] + [self._emit(*hop)] + self._clear_tentative()
         if est.motion_std_m_s2 < p.min_motion_std_m_s2:
-            return self._drop_held() + [self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)]
+            return self._drop_tentative() + self._drop_held() + [self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)]
         c = p.coast_confidence
         since_s = math.inf if st.walk_end is None else (lo - st.walk_end) / st.grid_hz
         coast = (since_s < p.coast_s and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
@@ -720,7 +743,30 @@ class Stepometer:
                 and (hi - st.walk_end) / st.grid_hz <= p.bridge_s):
             st.held.append(hop)
             return []
-        return self._drop_held() + [self._emit(*hop)]
+        if st.tentative:
+            last = max(h[1] for h in st.tentative if h[4])
+            if (hi - last) / st.grid_hz <= p.tentative_gap_s:
+                st.tentative.append(hop)      # a gait that is starting misses the test for a moment
+                return []
+        return self._drop_tentative() + self._drop_held() + [self._emit(*hop)]
+
+    def _clear_tentative(self) -> list[StepHop]:
+        self._st.tentative = []
+        return []
+
+    def _drop_tentative(self) -> list[StepHop]:
+        """A walking run ended before it became clearly periodic (or the recording ended): it was
+        handling, not gait, and its walking hops count 0 steps, confidence ``coast_confidence``."""
+        st = self._st
+        c = self.params.coast_confidence
+        out = []
+        for lo, hi, fq, f, walking, conf, sd in st.tentative:
+            if walking:
+                out.append(self._emit(lo, hi, fq, 0.0, False, c, (1.0 - c) * f * (hi - lo) / st.grid_hz))
+            else:
+                out.append(self._emit(lo, hi, fq, f, walking, conf, sd))
+        st.tentative = []
+        return out
 
     def _release_held(self, freq_hz: float) -> list[StepHop]:
         """The gait resumed: the held span was walking, but not periodic enough for its cadence to be
@@ -792,9 +838,14 @@ class Stepometer:
     def _count_span(self, lo: int, hi: int, walking: bool, freq_hz: float, confidence: float) -> list[StepHop]:
         """Head or tail of a segment ``[lo, hi)``, which no window is centred on: hop-sized pieces,
         each counted at ``freq_hz`` (with ``confidence``) if ``walking`` and moving, else 0."""
+        return [self._emit(*h) for h in self._span_hops(lo, hi, walking, freq_hz, confidence)]
+
+    def _span_hops(self, lo: int, hi: int, walking: bool, freq_hz: float,
+                   confidence: float) -> list[tuple[int, int, float, float, bool, float, float]]:
+        """The pieces of :meth:`_count_span`, as ``_emit`` arguments."""
         d = self._get_design()
         assert d is not None
-        out: list[StepHop] = []
+        out: list[tuple[int, int, float, float, bool, float, float]] = []
         p = self.params
         k = lo
         while k < hi:
@@ -804,17 +855,17 @@ class Stepometer:
             moving = self._motion_std(k, e) >= p.min_motion_std_m_s2
             dur = (e - k) / self._st.grid_hz
             if walking and moving:
-                out.append(self._emit(k, e, freq_hz, freq_hz, True, confidence, (1.0 - confidence) * freq_hz * dur))
+                out.append((k, e, freq_hz, freq_hz, True, confidence, (1.0 - confidence) * freq_hz * dur))
             else:
-                out.append(self._emit(k, e, freq_hz, 0.0, False, 1.0 if not moving else p.coast_confidence,
-                                      0.0 if not moving else (1.0 - p.coast_confidence) * freq_hz * dur))
+                out.append((k, e, freq_hz, 0.0, False, 1.0 if not moving else p.coast_confidence,
+                            0.0 if not moving else (1.0 - p.coast_confidence) * freq_hz * dur))
             k = e
         return out
 
     def _flush_segment(self) -> list[StepHop]:
         st = self._st
         d = self._get_design()
-        out: list[StepHop] = self._drop_held()
+        out: list[StepHop] = self._drop_held() + self._drop_tentative()
         if d is not None and st.t0_ns is not None:
             if st.next_window > 0:
                 lo = (st.next_window - 1) * d.n_h + d.offset + d.n_h
