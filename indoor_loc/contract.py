@@ -53,7 +53,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
           "WiFi-only position of one scan; covariance x/y in m^2, yaw variance set huge (unknown)"),
     Topic("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
-          "Linear PDR Kalman filter (Raitoharju et al. 2015) estimate: PDR + WiFi fixes, per PDR interval and fix"),
+          "Linear PDR Kalman filter (Raitoharju et al. 2015) estimate: PDR + WiFi fixes, per PDR interval and fix; "
+          "orientation = heading of the footstep vector, yaw variance its first-order variance (1e6 = unknown)"),
     Topic("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "RTS-smoothed history of the linear PDR Kalman filter (republished periodically and at the end)"),
     Topic("pf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.LATCHED, "map",

@@ -34,12 +34,12 @@ def bringup(cfg: Path, **env: str) -> Peer:
 def test_example_config_is_valid():
     cfg = load_config(ROOT / "config" / "bringup_example.yaml")
     names = [n.name for n in cfg.nodes]
-    assert names == ["player", "imu_walk01", "wifi_walk01", "recorder"]
+    assert names == ["player", "imu_walk01", "wifi_walk01", "pdr_kf_walk01", "recorder"]
     imu = cfg.nodes[1]
     cmd = imu.command()
     assert cmd[cmd.index("--ros-args"):][:3] == ["--ros-args", "-r", "__ns:=/walk01"]
     assert "--params-file" in cmd and str(ROOT / "config" / "imu_node.yaml") in cmd
-    assert cmd[-4:] == ["-p", "step_length_m:=0.7", "-p", "heading_source:=auto"]
+    assert cmd[-6:] == ["-p", "step_length_m:=0.7", "-p", "heading_source:=auto", "-p", "sensor_reliability:=reliable"]
     assert "use_sim_time:=true" in cmd and "use_sim_time:=false" in cfg.nodes[0].command()
     assert imu.respawn and cfg.nodes[0].required and cfg.env["ROS_DOMAIN_ID"] == "42"
 
@@ -193,7 +193,7 @@ def test_dry_run_prints_commands(capsys):
     from indoor_loc.cli import main
     assert main(["up", str(ROOT / "config" / "bringup_example.yaml"), "--dry-run"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert [line.split(":")[0] for line in lines] == ["player", "imu_walk01", "wifi_walk01", "recorder"]
+    assert [line.split(":")[0] for line in lines] == ["player", "imu_walk01", "wifi_walk01", "pdr_kf_walk01", "recorder"]
     assert "ROS_DOMAIN_ID=42" in lines[1] and "-r __ns:=/walk01" in lines[1] and "imu_node" in lines[1]
 
 

@@ -196,3 +196,29 @@ def test_bags_truth_and_trajectories_through_cli(tmp_path):
     assert res["pooled"]["paper"]["mean"] == pytest.approx((9 + 0 + 9) / 3)
     assert res["pooled"]["route_m"]["max"] == pytest.approx(3.0)
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/path"]) == 0
+
+
+def test_eval_warns_when_the_track_is_not_in_the_truth_frame(tmp_path, capsys):
+    """Scoring ``pdr/odom`` (frame ``<user>/odom``) against map truth gives numbers that are not
+    localisation errors: eval says so on stderr; a map-frame track gets no warning."""
+    pytest.importorskip("rclpy")
+    from indoor_loc.bag import BagWriter
+    from indoor_loc.cli import main as cli_main
+    from indoor_loc.datasets.putmc_bags import write_walk_bag
+    from msg_adapters.odom import odom_to_msg
+    from msg_adapters.pose import fix_to_msg
+    from indoor_loc.measurements import Fix
+
+    walk, route = _synthetic_walk()
+    write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)
+    run = tmp_path / "run.mcap"
+    with BagWriter(run) as bag:
+        for t, xy in zip(walk.scan_t, walk.scan_xy):
+            bag.write("/walk05/pdr/odom", odom_to_msg(int(t), "walk05/odom", "walk05/base_link", xy[0], xy[1], 0.0,
+                                                      np.eye(3), 1.0, 0.0), int(t))
+            bag.write("/walk05/wifi/fix", fix_to_msg(Fix(int(t), xy, np.eye(2))), int(t))
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr/odom"]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING: walk05: the track is in frame walk05/odom" in err and "'map'" in err
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "wifi/fix"]) == 0
+    assert "WARNING" not in capsys.readouterr().err

@@ -7,7 +7,7 @@ import numpy as np
 
 from msg_adapters.odom import odom_to_msg
 from msg_adapters.path import path_from_msg
-from msg_adapters.pose import fix_from_msg, fix_to_msg
+from msg_adapters.pose import fix_from_msg, fix_to_msg, pose_from_msg
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage, PdrKfStageParams
 from indoor_loc.measurements import Fix
@@ -242,3 +242,24 @@ def test_odom_hold_keeps_stamp_order_when_fixes_arrive_late(rng):
     assert _poses_xy(held) == _poses_xy(ref)
     paths = [path_from_msg([m for topic, m in o if topic == "pdr_kf/path"][-1]) for o in (ref, held)]
     np.testing.assert_array_equal(paths[0][1], paths[1][1])
+
+
+def test_pose_heading_from_the_step_vector(rng):
+    """pdr_kf/pose carries the heading of the KF's footstep vector with its first-order variance
+    (RViz arrows point along the walk), and 'unknown' (1e6) until fixes make it observable."""
+    t, true_xy, odoms, fixes = _walk(rng)
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+    poses, _ = _run(stage, odoms, fixes)
+    true_yaw = np.arctan2(*np.diff(true_xy, axis=0).T[::-1])
+    first = poses[0]
+    assert first.pose.covariance[35] == 1e6                       # at the first fix: no heading yet
+    known = err = 0
+    for m in poses:
+        p = pose_from_msg(m)
+        var = m.pose.covariance[35]
+        i = int(np.searchsorted(t, p.stamp_ns, side="right")) - 1
+        if var < 1e5 and 1 <= i < len(true_yaw):
+            known += 1
+            d = abs((p.yaw - true_yaw[i - 1] + math.pi) % (2 * math.pi) - math.pi)
+            err += d > 3 * math.sqrt(var) + 0.35                    # turns make the one-step lag differ
+    assert known > len(poses) // 2 and err <= 0.1 * known, (known, err, len(poses))

@@ -143,3 +143,41 @@ def test_player_loops_until_sigint(ros_domain: int, tmp_path: Path) -> None:
     assert ids[: 2 * n] == list(range(n)) * 2, (ids, out[-500:], log)
     assert "looping" in log
 
+
+
+@pytest.mark.timeout(60)
+def test_player_publishes_diagnostics(ros_domain: int, tmp_path: Path) -> None:
+    """The player reports on /diagnostics like every node: what it published, and a WARN for
+    topics played without a subscriber (here: nobody listens to the IMU)."""
+    import threading
+
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from helpers_dds import ros_node, spin_until
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.base import qos_profile
+    from indoor_loc.nodes.player_node import PlayerNode
+    from msg_adapters.diagnostics import diagnostics_from_msg
+
+    bag = tmp_path / "walk.mcap"
+    n = 30
+    _make_bag(bag, f"/{U}_9", n)
+    with ros_node("probe") as (probe, ex):
+        got: list = []
+        probe.create_subscription(DiagnosticArray, "/diagnostics",
+                                  lambda m: got.extend(diagnostics_from_msg(m).values()), qos_profile(Qos.RELIABLE))
+        player = PlayerNode([bag], rate=0.5, context=probe.context)       # 0.6 s of playback
+        try:
+            assert spin_until(ex, lambda: player._diag_pub.get_subscription_count() > 0, 20)
+            t = threading.Thread(target=player.play)
+            t.start()
+            assert spin_until(ex, lambda: not t.is_alive() and any(
+                s.values.get("published") == str(n + 1) for s in got if s.name == "/player"), 30)
+            t.join()
+        finally:
+            player.destroy_node()
+    mine = [s for s in got if s.name == "/player"]
+    assert len(mine) >= 2                                       # during playback and at the end
+    last = mine[-1]
+    assert last.level == 1 and f"/{U}_9/imu/data_raw" in last.values["without_subscribers"]
+    assert last.values["last_bag_stamp_ns"] == str(T0 + (n - 1) * DT)

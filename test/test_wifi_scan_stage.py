@@ -137,9 +137,10 @@ def test_scan_json_topic_cabot_and_receive_time():
     assert got.as_dict() == {"00:1a:2b:3c:4d:5e": -69.0, "3c:37:86:5e:a1:10": -52.0}
     assert got.frame_id == "alice/wifi_link" and got.source == "json"
     assert st.extra_diagnostics()["dropped.duplicate"] == "1"
-    outs = st.process("wifi/scan_json", String(data=(DATA / "variants_list.json").read_text()), T0 + 7)
+    later = 1_700_000_300_000_000_007          # received after the first scan's own stamp (else: stamp_backwards)
+    outs = st.process("wifi/scan_json", String(data=(DATA / "variants_list.json").read_text()), later)
     got = scan_from_msg(outs[0][1])
-    assert got.stamp_ns == T0 + 7 and len(got) == 3                  # no timestamp: receive time
+    assert got.stamp_ns == later and len(got) == 3                   # no timestamp: receive time
     assert st.extra_diagnostics()["entries_skipped"] == "2"
 
 
@@ -323,3 +324,12 @@ def test_cli_parse_and_scan(tmp_path, capsys):
 def parse_json_text(text: str) -> WifiScan:
     from indoor_loc.wifi.parsers import parse_json
     return parse_json(text).scan
+
+
+def test_scan_stamps_going_backwards_are_rejected_not_republished():
+    st = _stage()
+    ap = ["00:11:22:33:44:55", "00:11:22:33:44:66"]
+    assert len(st.process("wifi/scan_raw", scan_to_msg(_scan(ap, [-50.0, -60.0], stamp=T0 + 10)), T0)) == 1
+    assert st.process("wifi/scan_raw", scan_to_msg(_scan(ap, [-50.0, -60.0], stamp=T0 + 5)), T0) == []
+    assert dict(st.diag.rejected) == {"stamp_backwards": 1} and st.scans_published == 1
+    assert len(st.process("wifi/scan_raw", scan_to_msg(_scan(ap, [-51.0, -61.0], stamp=T0 + 20)), T0)) == 1

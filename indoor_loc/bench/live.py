@@ -4,7 +4,8 @@ For N users (simulated walkers from :mod:`indoor_loc.sim`, 200 Hz IMU + 50 Hz ma
 scans each) replayed at rate R, every user gets its own ``imu_node``, ``wifi_fix_node`` and
 ``pdr_kf_node`` process in its namespace (the simulator's params), one ``recorder -a`` records
 everything, and ``player -r R --wait-for-subscribers`` plays the users' topics once the nodes'
-outputs are matched. Per trial: messages each kind of node received per second (per node), and
+outputs are matched. Per trial: messages each kind of node handled per second (per node, over the
+playback and the time it then needed to work off its queue, to within the 1 s of /diagnostics), and
 messages lost on the way to it — the input messages that never arrived (sent − received, which also
 covers what sequence gaps cannot see) — and in the recorder (bag counts against what was sent). For
 each N the rate rises until the first loss anywhere; the table says where it happened.
@@ -40,6 +41,7 @@ class Trial:
     rate: float
     sent: int = 0                    # input messages played
     play_s: float = 0.0              # wall time of the playback
+    lag_s: float = 0.0               # after the playback, until the nodes had worked off their queues
     received: dict[str, int] = field(default_factory=dict)   # node kind -> messages received (all users)
     missing: dict[str, int] = field(default_factory=dict)    # node kind -> input messages that never arrived
     recorder_missing: int = 0
@@ -122,8 +124,10 @@ def _diagnostics_listener():
     return ex, last, close
 
 
-def _inputs_received(values: dict[str, str]) -> int:
-    return sum(int(v) for k, v in values.items() if k.startswith("in.") and k.endswith(".count"))
+def _inputs_received(values: dict[str, str], rels: tuple[str, ...] | None = None) -> int:
+    """Messages received on the inputs ``rels`` (all inputs when None) from a node's diagnostics."""
+    return sum(int(v) for k, v in values.items() if k.startswith("in.") and k.endswith(".count")
+               and (rels is None or k[3:-6] in rels))
 
 
 def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, env: dict[str, str],
@@ -169,16 +173,22 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
         trial.play_s = float(got[-1].group(2))
         # the nodes work off their queues: wait until no node's input count grows for 2 periods
         still, prev, end = 0, None, time.monotonic() + 120
+        t_end = last_change = time.monotonic()
         while still < 3 and time.monotonic() < end:
             t_next = time.monotonic() + DIAGNOSTICS_PERIOD_S
             while time.monotonic() < t_next:
                 ex.spin_once(timeout_sec=0.05)
             cur = {k: _inputs_received(v.values) for k, v in diags.items()}
+            if cur != prev:
+                last_change = time.monotonic()
             still = still + 1 if cur == prev else 0
             prev = cur
+        trial.lag_s = max(0.0, last_change - t_end - DIAGNOSTICS_PERIOD_S)   # diagnostics come once a second
         for kind in NODES:                       # dependency order, recorder last
             for u in users:
-                nodes[(u, kind)].stop()
+                rc = nodes[(u, kind)].stop()
+                if rc != 0:
+                    trial.note += f"{ns[u]}/{kind} exit {rc}: " + " / ".join(nodes[(u, kind)].lines[-3:])[-300:] + "; "
         for _ in range(int(2 / 0.05)):
             ex.spin_once(timeout_sec=0.05)
         rec.stop()
@@ -193,8 +203,12 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
     for u in users:
         for kind in NODES:
             d = diags.get(f"{ns[u]}/{kind}")
+            if d is None:
+                trial.note += f"no /diagnostics from {ns[u]}/{kind}; "
             values = d.values if d is not None else {}
-            got = _inputs_received(values)
+            # only the inputs sent to it (imu_node also hears its own imu/data)
+            rels = None if kind == "pdr_kf_node" else tuple(r for r in BAG_INPUTS[kind] if f"{ns[u]}/{r}" in info)
+            got = _inputs_received(values, rels)
             if kind == "pdr_kf_node":
                 imu = diags.get(f"{ns[u]}/imu_node")
                 wifi = diags.get(f"{ns[u]}/wifi_fix_node")
@@ -246,18 +260,23 @@ def run(args: argparse.Namespace) -> int:
               f"({duration:g} s of simulated walking per user, 200 Hz IMU + 50 Hz magnetometer + scans; "
               f"sensor inputs {sensor_qos}; {os.cpu_count()} CPUs)\n")
         print("| users | rate | sent msg/s (all users) | imu_node msg/s per node (lost) | wifi_fix_node (lost) | "
-              "pdr_kf_node msg/s per node (lost) | recorder msg/s (lost) | first loss |")
-        print("|---|---|---|---|---|---|---|---|")
+              "pdr_kf_node msg/s per node (lost) | recorder msg/s (lost) | queues worked off after | first loss |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for n in users:
             for r in rates:
                 t = run_trial(sim, names[:n], r, work, env, sensor_qos)
                 s = t.play_s
                 where = ", ".join(k for k in NODES if t.missing.get(k)) + (
                     (", " if any(t.missing.values()) else "") + "recorder" if t.recorder_missing else "")
-                print(f"| {n} | {r:g}× | {_rate(t.sent, s)} | {_rate(t.received.get('imu_node', 0) // n, s)} "
+                # node rates over the playback plus the time the nodes needed to work off their queues
+                busy = s + t.lag_s
+                print(f"| {n} | {r:g}× | {_rate(t.sent, s)} | {_rate(t.received.get('imu_node', 0) // n, busy)} "
                       f"({t.missing.get('imu_node', 0)}) | {t.missing.get('wifi_fix_node', 0)} | "
-                      f"{_rate(t.received.get('pdr_kf_node', 0) // n, s)} ({t.missing.get('pdr_kf_node', 0)}) | "
-                      f"{_rate(t.recorded, s)} ({t.recorder_missing}) | {where or t.note or 'none'} |", flush=True)
+                      f"{_rate(t.received.get('pdr_kf_node', 0) // n, busy)} ({t.missing.get('pdr_kf_node', 0)}) | "
+                      f"{_rate(t.recorded, s)} ({t.recorder_missing}) | {t.lag_s:.0f} s | "
+                      f"{where or t.note or 'none'} |", flush=True)
+                if t.note:
+                    print(f"  note: {t.note}", flush=True)
                 if t.lost or t.note:
                     break
         from indoor_loc.bench.throughput import format_rows, offline_stage_rates

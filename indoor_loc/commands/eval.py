@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -76,8 +77,10 @@ def _user_of(topic: str, rel: str, default: str) -> str:
     return (ns or "").strip("/") or default
 
 
-def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01") -> dict[str, Trajectory]:
-    """Trajectories per user from the bags' ``topic`` (Path: last message; poses/odometry: all)."""
+def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01",
+                           frames: dict[str, set[str]] | None = None) -> dict[str, Trajectory]:
+    """Trajectories per user from the bags' ``topic`` (Path: last message; poses/odometry: all).
+    ``frames``, when given, receives each user's ``header.frame_id`` values."""
     from indoor_loc.bag import read_bag
     from msg_adapters.odom import odom_from_msg
     from msg_adapters.path import path_from_msg
@@ -90,6 +93,8 @@ def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str =
     last_path: dict[str, tuple] = {}
     for m in read_bag(paths, topics=list(topics)):
         user = _user_of(m.topic, topic, default_user)
+        if frames is not None:
+            frames.setdefault(user, set()).add(str(getattr(getattr(m.msg, "header", None), "frame_id", "")))
         if m.type == "nav_msgs/msg/Path":
             last_path[user] = path_from_msg(m.msg)
         elif m.type == "geometry_msgs/msg/PoseWithCovarianceStamped":
@@ -108,6 +113,20 @@ def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str =
         a = np.array(rows, dtype=object)
         out[user] = Trajectory.make(user, np.array(a[:, 0], dtype=np.int64), np.array(a[:, 1:3], dtype=float),
                                     np.array(a[:, 3], dtype=float))
+    return out
+
+
+def frame_warnings(frames: dict[str, set[str]], truth_frame: str = "map") -> list[str]:
+    """A warning per user whose track is not in the truth's frame (``<user>/odom``: PDR odometry
+    starts at the origin with an arbitrary heading, so its distance to map truth means nothing)."""
+    out = []
+    for user, fs in sorted(frames.items()):
+        other = sorted(f for f in fs if f and f != truth_frame)
+        if other:
+            out.append(f"WARNING: {user}: the track is in frame {', '.join(other)} but the ground truth is in "
+                       f"{truth_frame!r}; the frames are not aligned (odometry starts at its own origin and "
+                       f"heading), so these errors are not localisation errors. Score a {truth_frame}-frame "
+                       f"topic (pdr_kf/path, pdr_kf/pose, wifi/fix, pf/path) instead.")
     return out
 
 
@@ -182,8 +201,11 @@ def evaluate(trajs: dict[str, Trajectory], truths: dict[str, Truth]) -> tuple[li
 
 def main(args: argparse.Namespace) -> int:
     trajs: dict[str, Trajectory] = {}
+    frames: dict[str, set[str]] = {}
     if args.bags:
-        trajs.update(trajectories_from_bags(list(args.bags), args.topic, default_user=args.user))
+        trajs.update(trajectories_from_bags(list(args.bags), args.topic, default_user=args.user, frames=frames))
+        for w in frame_warnings(frames):
+            print(w, file=sys.stderr)
     if args.csv_dir:
         trajs.update(read_csv_dir(args.csv_dir))
     if not trajs:

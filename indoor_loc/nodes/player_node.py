@@ -10,6 +10,8 @@
   transient_local for the contract's latched topics (``ground_truth``, ``map/graph``,
   ``backend/wifi_map``, ``pf/pose``, under any namespace) and for topics whose recorded
   publishers were all transient_local, so late subscribers still get the last message.
+- ``/diagnostics`` about once a second (wall clock): messages published, playback progress in bag
+  time, topics without a subscriber (WARN), rate, loop count.
 - ``--topics`` keeps only some topics, ``--remap OLD:=NEW`` renames them, ``--start-offset S``
   skips the first S seconds of the bag, ``--wait-for-subscribers`` holds playback until every
   topic has a subscriber, ``--loop`` repeats.
@@ -28,6 +30,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 
 from indoor_loc.bag import bag_info, read_raw
@@ -35,7 +38,9 @@ from indoor_loc.bag.reader import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.base import check_stop, ignore_signals, raise_on_signals, restore_signals, run_option_node
+from indoor_loc.nodes.base import (DIAGNOSTICS_PERIOD_S, check_stop, ignore_signals, qos_profile, raise_on_signals,
+                                   restore_signals, run_option_node)
+from msg_adapters.diagnostics import status_array
 
 NODE_NAME = "player"
 #: --wait-for-subscribers: the subscriber counts must be stable this long before playing (s).
@@ -126,6 +131,10 @@ class PlayerNode(Node):
         self._clock_pub = (self.create_publisher(Clock, "/clock", QoSProfile(depth=10)) if self.clock_hz > 0
                            else None)
         self.published = 0
+        self.loops = 0
+        self.last_bag_ns: int | None = None          # log time of the last message played
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
+        self._next_diag = 0.0
         self.play_s = 0.0                # wall time of the playback (after any waiting)
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
@@ -147,6 +156,21 @@ class PlayerNode(Node):
         if waiting:
             self.get_logger().warning(f"playing without subscribers on {waiting}")
         return not waiting
+
+    def diagnostics(self, now_ns: int) -> DiagnosticArray:
+        """The player's DiagnosticStatus: published count, progress, topics nobody subscribes to."""
+        alone = [t for t, p in self._pubs.items() if p.get_subscription_count() == 0]
+        values = {"published": str(self.published), "topics": str(len(self._pubs)), "rate": f"{self.rate:g}",
+                  "loops": str(self.loops), "last_bag_stamp_ns": str(self.last_bag_ns or ""),
+                  "without_subscribers": ", ".join(alone), "bags": ", ".join(str(b) for b in self.bags)}
+        level, message = (1, f"{len(alone)} topic(s) played without a subscriber") if alone else (0, "ok")
+        return status_array(self.get_fully_qualified_name(), level, message, values, now_ns)
+
+    def _maybe_diagnostics(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now >= self._next_diag:
+            self._next_diag = now + DIAGNOSTICS_PERIOD_S
+            self._diag_pub.publish(self.diagnostics(time.time_ns()))
 
     def _publish_clock(self, bag_ns: int) -> None:
         if self._clock_pub is not None:
@@ -180,10 +204,13 @@ class PlayerNode(Node):
                         next_clock = now + clock_period
                 if now >= target:
                     break
+                self._maybe_diagnostics()
                 wake = min(target, next_clock) if clock_period else target
                 time.sleep(max(0.0, min(wake - now, 0.05)))
             self._pubs[m.topic].publish(m.data)
             self.published += 1
+            self.last_bag_ns = m.stamp_ns
+            self._maybe_diagnostics()
         if first is None:
             self.get_logger().warning("no message at or after the start offset")
         return True
@@ -191,8 +218,10 @@ class PlayerNode(Node):
     def play(self) -> None:
         t0 = time.monotonic()
         while self.play_once() and self.loop:
+            self.loops += 1
             self.get_logger().info("looping")
         self.play_s = time.monotonic() - t0
+        self._maybe_diagnostics(force=True)
         for pub in list(self._pubs.values()) + ([self._clock_pub] if self._clock_pub else []):
             if rclpy.ok(context=self.context):
                 pub.wait_for_all_acked(Duration(seconds=2.0))

@@ -30,7 +30,7 @@ from indoor_loc.fusion.linear_pdr import (KfTrack, LinearPdrKf, LinearPdrParams,
                                           rts_smooth)
 from msg_adapters.odom import PdrOdomReader
 from msg_adapters.path import path_to_msg
-from msg_adapters.pose import fix_from_msg, fix_to_msg
+from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 
 
@@ -71,6 +71,21 @@ class PdrKfStageParams:
         gate = self.gate_prob < 1.0
         return LinearPdrParams(step_length_m=self.kf_step_length_m, sigma_dtheta_rad=self.sigma_dtheta_rad,
                                sigma_ds_m=self.sigma_ds_m, gate=gate, gate_prob=self.gate_prob if gate else 0.5)
+
+
+def step_heading(x: np.ndarray, P: np.ndarray) -> tuple[float, float]:
+    """Heading (rad, map frame) and its variance (rad^2) from the KF's footstep vector ``x[2:4]``:
+    ``atan2(v2, v1)``, variance ``J P_vv J^T`` with ``J = [-v2, v1] / |v|^2`` (first order). A step
+    vector within one standard deviation (along v) of zero -- not yet observed by fixes -- gives an
+    unknown heading: yaw 0 with variance ``YAW_VAR_UNKNOWN``. With WiFi fixes of a few metres the
+    variance is typically 0.3-1 rad^2: the filter's heading is weak, and the message says so."""
+    v = np.asarray(x[2:4], float)
+    Pv = np.asarray(P[2:4, 2:4], float)
+    n2 = float(v @ v)
+    if n2 <= 0.0 or not np.all(np.isfinite(v)) or n2 < float(v @ Pv @ v) / n2:
+        return 0.0, YAW_VAR_UNKNOWN
+    J = np.array([-v[1], v[0]]) / n2
+    return float(math.atan2(v[1], v[0])), float(min(J @ Pv @ J, YAW_VAR_UNKNOWN))
 
 
 class PdrKfStage(Stage):
@@ -196,8 +211,9 @@ class PdrKfStage(Stage):
 
     def _pose_msg(self, stamp_ns: int):
         assert self.kf is not None
-        return fix_to_msg(Fix(stamp_ns=stamp_ns, xy=self.kf.position, cov=self.kf.position_cov),
-                          frame_id=self.params.frame_id)
+        yaw, yaw_var = step_heading(self.kf.state.x, self.kf.state.P)
+        return pose_to_msg(stamp_ns, self.kf.position, yaw, self.kf.position_cov, frame_id=self.params.frame_id,
+                           yaw_var=yaw_var)
 
     def _maybe_smooth(self, now_ns: int) -> list[Output]:
         period = self.params.smooth_period_s

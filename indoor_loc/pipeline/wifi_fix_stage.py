@@ -104,6 +104,7 @@ class WifiFixStage(Stage):
             self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
         if self.radio_map is not None:
             self.positioner = params.make_positioner().fit(self.radio_map)
+        self._last_scan_ns: int | None = None     # stamp of the last scan accepted (older ones: stamp_backwards)
         self.on("wifi/scan", self._on_scan)
 
     def inputs(self) -> list[Port]:
@@ -121,6 +122,10 @@ class WifiFixStage(Stage):
         scan = scan_from_msg(msg)          # InvalidMessageError -> counted by reason
         if self.positioner is None:
             raise InvalidMessageError("no_map", "no radio map configured (parameter radiomap is '')")
+        if self._last_scan_ns is not None and scan.stamp_ns < self._last_scan_ns:
+            raise InvalidMessageError("stamp_backwards", f"scan stamp {scan.stamp_ns} ns is before the previous "
+                                                         f"scan's {self._last_scan_ns} ns")
+        self._last_scan_ns = scan.stamp_ns
         fix = self.positioner.locate(scan)
         if not fix.ok:
             self.declined[fix.reason or "declined"] += 1

@@ -154,6 +154,9 @@ class WifiScanStage(Stage):
         return f"{ns}/wifi_link" if ns else "wifi_link"
 
     def _publish(self, result: ParseResult, frame_id: str, stamp_ns: int) -> list[Output]:
+        if self._last_out_ns is not None and stamp_ns < self._last_out_ns:
+            raise InvalidMessageError("stamp_backwards", f"scan stamp {stamp_ns} ns is before the previous scan's "
+                                                         f"{self._last_out_ns} ns")
         self.scans_truncated += int(result.truncated)
         self.entries_skipped += result.skipped
         raw = result.scan
