@@ -75,31 +75,53 @@ class AekfOracle:
         self.y = self.y + np.cross(e, self.y)
         self.v = self.v + np.cross(e, self.v)
 
-    def step(self, t, g, a, m):
+    def _propagate(self, w, dt, integrate):
         p = self.p
-        g, a = np.asarray(g, float), np.asarray(a, float)
-        m = None if m is None else np.asarray(m, float)
-        if not self.init:
-            self._initialise(a, m)
-            self.t = t
-            self.gyro_lp = g.copy()
-            return self.out()
-        dt = (t - self.t) * 1e-9
-        self.t = t
-        # prediction
-        w = g - self.b
         wn2 = float(w @ w)
-        if dt <= p.max_dt_s:
+        if integrate:
             ang = math.sqrt(wn2) * dt
             dq = (np.array([math.cos(ang / 2), *(w * math.sin(ang / 2) / math.sqrt(wn2))])
                   if ang > 1e-12 else np.array([1.0, *(0.5 * w * dt)]))
             self.q = _qmul(self.q, dq)
             self.q /= np.linalg.norm(self.q)
-        R = _rotmat(self.q)
         F = np.eye(6)
-        F[:3, 3:] = -R * dt
+        F[:3, 3:] = -_rotmat(self.q) * dt
         Q = np.diag([(p.gyro_noise ** 2 + p.gyro_scale_error ** 2 * wn2) * dt] * 3 + [p.bias_walk ** 2 * dt] * 3)
         self.P = F @ self.P @ F.T + Q
+
+    def mag_at(self, t, m):
+        """A magnetometer sample at its own stamp: propagate from the attitude's time to ``t`` with the
+        last gyroscope sample, then the magnetometer update."""
+        m = np.asarray(m, float)
+        if not self.init:
+            self.pending = m
+            return
+        w = self.g_last - self.b
+        dt = (t - self.t_att) * 1e-9
+        if dt > 0:
+            self._propagate(w, dt, (t - self.t) * 1e-9 <= self.p.max_dt_s)
+            self.t_att = t
+        self._mag(t, m, float(w @ w), self.imu_dt)
+
+    def step(self, t, g, a, m):
+        p = self.p
+        g, a = np.asarray(g, float), np.asarray(a, float)
+        m = None if m is None else np.asarray(m, float)
+        if not self.init:
+            self._initialise(a, m if m is not None else getattr(self, "pending", None))
+            self.t = self.t_att = t
+            self.gyro_lp = g.copy()
+            self.g_last, self.imu_dt = g.copy(), 0.0
+            return self.out()
+        dt = (t - self.t) * 1e-9
+        dt_att = (t - self.t_att) * 1e-9
+        self.t = self.t_att = t
+        self.g_last, self.imu_dt = g.copy(), dt
+        # prediction
+        w = g - self.b
+        wn2 = float(w @ w)
+        self._propagate(w, dt_att, dt <= p.max_dt_s)
+        R = _rotmat(self.q)
         # motion statistics and rest detection
         an = float(np.linalg.norm(a))
         alpha = dt / (p.acc_stat_tau_s + dt)
@@ -142,50 +164,54 @@ class AekfOracle:
             self._correct(K @ w)
         # magnetometer: heading only
         if m is not None:
-            mn = float(np.linalg.norm(m))
-            me = _rotmat(self.q) @ m
-            use = mn > 0.0 and math.hypot(me[0], me[1]) > 1e-3 * mn
-            anomaly = 0.0
-            if use:
-                dip = math.asin(max(-1.0, min(1.0, me[2] / mn)))
-                if not self.ref_ok:
-                    self.ref_ok, self.norm_ref, self.dip_ref = True, mn, dip
-                dtm = min((t - self.mag_t) * 1e-9 if self.mag_t else dt, p.max_dt_s)
-                self.mag_t = t
-                gam = dtm / (p.mag_anomaly_tau_s + dtm)
-                self.en += gam * (mn / self.norm_ref - 1.0 - self.en)
-                self.ed += gam * (dip - self.dip_ref - self.ed)
-                rn, rd = self.en / p.mag_norm_tol, self.ed / p.mag_dip_tol
-                anomaly = rn * rn + rd * rd
-                if rn * rn <= 1.0 and rd * rd <= 1.0:
-                    beta = dtm / (p.mag_ref_tau_s + dtm)
-                    ed = dip - self.dip_ref
-                    self.norm_ref += beta * (mn - self.norm_ref)
-                    self.dip_ref += beta * ed
-                    self.dist_s = 0.0
-                    self.ok_s += dtm
-                else:
-                    use = False
-                    self.dist_s += dtm
-                    if self.dist_s > (p.mag_relearn_s if self.ok_s >= p.mag_ref_confirm_s else p.mag_relearn_first_s):
-                        self.norm_ref, self.dip_ref = mn, dip
-                        self.dist_s = 0.0
-                        self.en = self.ed = 0.0
-            if use:
-                rm = p.mag_noise ** 2 * (1.0 + 4.0 * anomaly) + p.mag_rate_noise_s ** 2 * wn2
-                zy = _wrap(math.atan2(me[0], me[1]) - p.mag_declination)
-                s = self.P[2, 2] + rm
-                if zy * zy / s > p.mag_gate_nis:
-                    rm += s * (zy * zy / s / p.mag_gate_nis - 1.0)
-                    s = self.P[2, 2] + rm
-                K = np.zeros(6)
-                K[2:] = self.P[2, 2:] / s                        # no gain on tilt
-                H = np.zeros(6)
-                H[2] = 1.0
-                A = np.eye(6) - np.outer(K, H)
-                self.P = A @ self.P @ A.T + rm * np.outer(K, K)   # Joseph form (any gain)
-                self._correct(K * zy)
+            self._mag(t, m, wn2, dt)
         return self.out()
+
+    def _mag(self, t, m, wn2, dt):
+        p = self.p
+        mn = float(np.linalg.norm(m))
+        me = _rotmat(self.q) @ m
+        use = mn > 0.0 and math.hypot(me[0], me[1]) > 1e-3 * mn
+        anomaly = 0.0
+        if use:
+            dip = math.asin(max(-1.0, min(1.0, me[2] / mn)))
+            if not self.ref_ok:
+                self.ref_ok, self.norm_ref, self.dip_ref = True, mn, dip
+            dtm = min((t - self.mag_t) * 1e-9 if self.mag_t else dt, p.max_dt_s)
+            self.mag_t = t
+            gam = dtm / (p.mag_anomaly_tau_s + dtm) if dtm > 0 else float(p.mag_anomaly_tau_s == 0)
+            self.en += gam * (mn / self.norm_ref - 1.0 - self.en)
+            self.ed += gam * (dip - self.dip_ref - self.ed)
+            rn, rd = self.en / p.mag_norm_tol, self.ed / p.mag_dip_tol
+            anomaly = rn * rn + rd * rd
+            if rn * rn <= 1.0 and rd * rd <= 1.0:
+                beta = dtm / (p.mag_ref_tau_s + dtm)
+                ed = dip - self.dip_ref
+                self.norm_ref += beta * (mn - self.norm_ref)
+                self.dip_ref += beta * ed
+                self.dist_s = 0.0
+                self.ok_s += dtm
+            else:
+                use = False
+                self.dist_s += dtm
+                if self.dist_s > (p.mag_relearn_s if self.ok_s >= p.mag_ref_confirm_s else p.mag_relearn_first_s):
+                    self.norm_ref, self.dip_ref = mn, dip
+                    self.dist_s = 0.0
+                    self.en = self.ed = 0.0
+        if use:
+            rm = p.mag_noise ** 2 * (1.0 + 4.0 * anomaly) + p.mag_rate_noise_s ** 2 * wn2
+            zy = _wrap(math.atan2(me[0], me[1]) - p.mag_declination)
+            s = self.P[2, 2] + rm
+            if zy * zy / s > p.mag_gate_nis:
+                rm += s * (zy * zy / s / p.mag_gate_nis - 1.0)
+                s = self.P[2, 2] + rm
+            K = np.zeros(6)
+            K[2:] = self.P[2, 2:] / s                        # no gain on tilt
+            H = np.zeros(6)
+            H[2] = 1.0
+            A = np.eye(6) - np.outer(K, H)
+            self.P = A @ self.P @ A.T + rm * np.outer(K, K)   # Joseph form (any gain)
+            self._correct(K * zy)
 
     def out(self):
         cov = self.P[:3, :3].copy()

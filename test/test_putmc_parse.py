@@ -92,3 +92,19 @@ def test_well_formed_files_take_the_compiled_path(tmp_path, monkeypatch):
     monkeypatch.setattr(P, "parse_table_lines", refuse)
     stamps, values = P.read_table(path, 4)
     assert stamps.tobytes() == expected[0].tobytes() and values.tobytes() == expected[1].tobytes()
+
+
+def test_walk_events_two_chunk_feed_matches_one_call():
+    """walk_events feeds the stepometer in two chunks (cheaper); the hops are those of one call."""
+    from indoor_loc.backend.putmc_events import walk_events
+    from indoor_loc.imu.stepometer import Stepometer
+
+    ds = P.Putmc(dataset("putmc"))
+    w = ds.walk(16)
+    sm = Stepometer()
+    hops = sm.update_many(w.acc_t, w.acc) + sm.finish()
+    ev = walk_events(w)
+    assert len(hops) > 10
+    assert ev.t_start.tolist() == [h.t_start_ns for h in hops]
+    assert ev.t_end.tolist() == [h.t_end_ns for h in hops]
+    assert ev.steps.tolist() == [float(h.steps) for h in hops]
