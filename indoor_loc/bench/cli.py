@@ -33,8 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
     parser.add_argument("--learn", action="store_true", help="pf: also score transitions learned from the odd walks on the even walks")
     parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4)")
-    parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20,40)")
-    parser.add_argument("--duration", type=float, default=0.0, help="live: simulated seconds per user (default 40)")
+    parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20)")
+    parser.add_argument("--duration", type=float, default=0.0, help="live: simulated seconds per user (default 60)")
     parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
                         help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 
