@@ -12,7 +12,7 @@ from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
 from indoor_loc.measurements import pdr_intervals
 from indoor_loc.imu.stepometer import (CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
                                        amplitude_spectrum, analyse_windows, harmonic_score,
-                                       stepometer_batch, total_steps)
+                                       normalised_autocorr, power_spectrum, stepometer_batch, total_steps)
 from indoor_loc.params import params_from_dict
 
 G = 9.81
@@ -49,6 +49,33 @@ def test_amplitude_spectrum_matches_plain_fft(rng):
         padded[: d.n_w] = x
         plain = np.abs(np.fft.fft(padded))[: d.n_fft // 2 + 1] * 2 / np.hanning(d.n_w + 2)[1:-1].sum()
         np.testing.assert_allclose(ours[i], plain, rtol=1e-9, atol=1e-12)
+
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 222.5])
+def test_blocked_power_spectrum_and_fast_autocorr_equal_the_direct_formulation(rng, rate_hz):
+    """The blocked, truncated power spectrum and the autocorrelation at a fast FFT length give what the
+    plain formulation gives (full-length |rfft|², autocorrelation zero-padded to exactly 2 n_w), on a
+    number of windows that is not a multiple of the FFT block."""
+    d = _Design.make(StepometerParams(), rate_hz)
+    n = 37
+    t = np.arange(d.n_w) / rate_hz
+    w = G + 2.0 * np.sin(2 * np.pi * 1.8 * t)[None, :] + rng.normal(0.0, 0.5, size=(n, d.n_w))
+    x = w - w.mean(axis=1, keepdims=True)
+    taper = np.hanning(d.n_w + 2)[1:-1]
+    direct = (np.abs(np.fft.rfft(x * taper, d.n_fft, axis=1)) * (2.0 / taper.sum())) ** 2
+    ours = power_spectrum(x, d)
+    assert ours.shape == (n, d.n_bins)
+    # every bin the analysis reads is inside the computed range
+    assert d.i0.max() + 1 < d.n_bins and int(np.floor(d.cand[0] * d.n_fft / d.fs)) < d.n_bins
+    np.testing.assert_allclose(ours, direct[:, : d.n_bins], rtol=1e-9, atol=1e-9 * direct.max())
+    np.testing.assert_allclose(power_spectrum(x, d, d.n_fft // 2 + 1), direct, rtol=1e-9, atol=1e-9 * direct.max())
+    spec = np.fft.rfft(x, 2 * d.n_w, axis=1)
+    acf = np.fft.irfft(np.abs(spec) ** 2, 2 * d.n_w, axis=1)[:, : d.n_w] / (d.n_w - np.arange(d.n_w))
+    np.testing.assert_allclose(normalised_autocorr(x, d), acf / acf[:, :1], rtol=1e-9, atol=1e-9)
+    lag = int(round(rate_hz / 1.8))
+    plain = np.dot(x[0, :-lag], x[0, lag:]) / (d.n_w - lag) / (np.dot(x[0], x[0]) / d.n_w)
+    assert normalised_autocorr(x[:1], d)[0, lag] == pytest.approx(plain, rel=1e-9)
 
 
 def test_harmonic_score_matches_explicit_sum(rng):

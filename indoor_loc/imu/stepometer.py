@@ -33,6 +33,7 @@ stride from the step harmonics; a 3.84 s window (768 samples at 200 Hz) with a 0
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field as dc_field
 from typing import NamedTuple, Sequence
@@ -40,6 +41,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
+from scipy.fft import next_fast_len
 from scipy.signal import butter, find_peaks, sosfiltfilt
 
 from indoor_loc.errors import InvalidInputError
@@ -191,7 +193,10 @@ class _Design:
     n_h: int
     offset: int              # first grid index of the hop counted by window 0
     n_fft: int
+    n_bins: int              # spectrum bins the analysis reads: [0, n_bins)
+    n_acf: int               # FFT length of the linear autocorrelation (>= 2 n_w - 1, a fast size)
     taper: np.ndarray        # (n_w,)
+    scale: float             # 2 / sum(taper): one-sided sinusoid amplitude
     cand: np.ndarray         # (C,) candidate step frequencies, Hz
     i0: np.ndarray           # (H, C) lower FFT bin of each harmonic of each candidate
     frac: np.ndarray         # (H, C) interpolation fraction
@@ -222,14 +227,62 @@ class _Design:
         n_m = min(n_w, max(n_h, int(round(p.motion_window_s * fs))))
         m_lo = max(0, offset - (n_m - n_h) // 2)
         m_hi = min(n_w, m_lo + n_m)
-        return _Design(fs, n_w, n_h, offset, n_fft, taper, cand, i0, idx - i0, weight, n_m, m_lo, m_hi)
+        below = int(math.floor(cand[0] * n_fft / fs))
+        n_bins = min(n_fft // 2 + 1, max(int(i0.max()) + 2, below + 1))
+        n_acf = next_fast_len(2 * n_w - 1, real=True)
+        return _Design(fs, n_w, n_h, offset, n_fft, n_bins, n_acf, taper, 2.0 / float(taper.sum()), cand, i0, idx - i0,
+                       weight, n_m, m_lo, m_hi)
+
+
+@functools.lru_cache(maxsize=16)
+def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
+    sos = butter(order, cutoff_hz, fs=fs, output="sos")
+    sos.setflags(write=False)
+    return sos
+
+
+def _lowpass_sos(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
+    """Butterworth low-pass sections, designed once per (order, cutoff, rate); a writable copy (scipy's
+    ``sosfilt`` needs one) of the cached design."""
+    return _lowpass_design(order, cutoff_hz, fs).copy()
 
 
 def amplitude_spectrum(windows: np.ndarray, design: _Design) -> np.ndarray:
     """Amplitude spectrum (m/s², one-sided sinusoid amplitude) of mean-removed, Hann-tapered,
     zero-padded windows. ``windows`` (N, n_w) -> (N, n_fft//2 + 1); bin spacing fs/n_fft Hz."""
     x = windows - windows.mean(axis=1, keepdims=True)
-    return np.abs(np.fft.rfft(x * design.taper, design.n_fft, axis=1)) * (2.0 / design.taper.sum())
+    return np.sqrt(power_spectrum(x, design, design.n_fft // 2 + 1))
+
+
+#: Windows transformed per FFT call: the zero-padded spectra of a block stay in cache.
+_FFT_BLOCK = 16
+
+
+def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) -> np.ndarray:
+    """Squared :func:`amplitude_spectrum` of already mean-removed windows ``x`` (N, n_w), bins
+    ``[0, n_bins)`` (default ``design.n_bins``, all the analysis reads), from the real and imaginary
+    parts (no square root): (N, n_bins)."""
+    nb = design.n_bins if n_bins is None else n_bins
+    power = np.empty((len(x), nb))
+    for i in range(0, len(x), _FFT_BLOCK):
+        spec = np.fft.rfft(x[i: i + _FFT_BLOCK] * design.taper, design.n_fft, axis=1)[:, :nb]
+        blk = power[i: i + _FFT_BLOCK]
+        np.square(spec.real, out=blk)
+        blk += np.square(spec.imag)
+    power *= design.scale ** 2
+    return power
+
+
+def normalised_autocorr(x: np.ndarray, design: _Design) -> np.ndarray:
+    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags 0..n_w-1, normalised by
+    lag 0 (all zero for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= 2 n_w - 1`` so
+    nothing wraps around."""
+    n_w = design.n_w
+    spec = np.fft.rfft(x, design.n_acf, axis=1)
+    acf = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)[:, :n_w]
+    acf /= n_w - np.arange(n_w)
+    acf0 = acf[:, :1]
+    return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
 def harmonic_score(power: np.ndarray, design: _Design) -> np.ndarray:
@@ -244,7 +297,8 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     n = len(windows)
     if n == 0:
         return []
-    power = amplitude_spectrum(windows, design) ** 2
+    x = windows - windows.mean(axis=1, keepdims=True)
+    power = power_spectrum(x, design)
     score = harmonic_score(power, design)
     c = len(design.cand)
     j = np.argmax(score, axis=1)
@@ -277,14 +331,9 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
         pw = power[r[None, :], i0] * (1.0 - fr) + power[r[None, :], i0 + 1] * fr
         fund = (design.weight[:2, 0][:, None] * pw).sum(axis=0)
         in_band &= fund >= p.min_fundamental_share * score[r, j]
-    # Unbiased normalised autocorrelation (Wiener-Khinchin, zero-padded to avoid wrap-around).
-    x = windows - windows.mean(axis=1, keepdims=True)
+    # Periodicity: the normalised autocorrelation at the stride lag 2/f.
     n_w = design.n_w
-    spec = np.fft.rfft(x, 2 * n_w, axis=1)
-    acf = np.fft.irfft(spec.real ** 2 + spec.imag ** 2, 2 * n_w, axis=1)[:, :n_w]
-    acf = acf / (n_w - np.arange(n_w))
-    acf0 = acf[:, :1]
-    acf = np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
+    acf = normalised_autocorr(x, design)
     lag = 2.0 / np.maximum(f, 1e-6) * design.fs
     lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, n_w - 1)
     hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, n_w)
@@ -787,7 +836,7 @@ class Stepometer:
         b = min(st.n_grid, hi1 + pad)
         seg = np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
         peaks = np.zeros(0, dtype=np.int64)
-        sos = butter(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), fs=st.grid_hz, output="sos")
+        sos = _lowpass_sos(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
         if len(seg) > 3 * (2 * len(sos) + 1):
             y = sosfiltfilt(sos, seg - seg.mean())
             f_hi = max(st.walk_freq_hz, freq_hz)
