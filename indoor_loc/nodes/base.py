@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import array
 import argparse
+import heapq
 import signal
+import struct
 import sys
 import threading
 import time
@@ -45,7 +47,10 @@ from rclpy.node import Node
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
+from rclpy.serialization import deserialize_message
 from rclpy.signals import SignalHandlerOptions
+
+from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
@@ -90,6 +95,9 @@ SUB_DEPTH = {Qos.SENSOR: 2000, Qos.RELIABLE: 1000, Qos.BEST_EFFORT: 100}
 #: the node can follow on a busy machine queues the difference here (10 000 = 10 s of a 5x replay of a
 #: 200 Hz IMU, ~4 MB) instead of overwriting it.
 SUB_DEPTH_REPLAY = 10000
+#: Raw sensor inputs (see ``StageNode`` "Fast path"): at most this many messages are taken from the
+#: subscriptions per callback, so one burst cannot hold up timers and other inputs for long.
+TAKE_MAX = 2048
 
 
 def qos_profile(qos: Qos) -> QoSProfile:
@@ -184,8 +192,11 @@ class StageNode(Node):
         self.add_on_set_parameters_callback(self._on_set_params)
         self._pubs = {p.topic: self._create_publisher(msg_class(p.type), p.topic, publisher_qos(p.qos))
                       for p in self.stage.outputs()}
+        # inputs the stage takes in runs (raw CDR, decoded in bulk): topic -> (subscription, gaps, type)
+        self._raw: dict[str, tuple[Any, SequenceGaps, str]] = {}
         self._subs = [] if self.stage.MULTI_USER else [
-            self._subscribe(p, p.topic, self._callback(p.topic)) for p in self.stage.inputs()]
+            self._subscribe_raw(p) if self._batchable(p) else self._subscribe(p, p.topic, self._callback(p.topic))
+            for p in self.stage.inputs()]
         if not self.stage.MULTI_USER:
             self._check_qos_overrides()
         # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
@@ -238,13 +249,14 @@ class StageNode(Node):
             raise ConfigError(f"{SENSOR_RELIABILITY_PARAM}: expected one of {sorted(_RELIABILITY)}, got {value!r}")
         return str(value)
 
-    def _subscribe(self, port: Any, topic: str, callback: Callable[[Any, Any], None]):
+    def _subscribe(self, port: Any, topic: str, callback: Callable[[Any, Any], None], raw: bool = False):
         """A subscription to ``port`` on ``topic`` with its QoS (overridable by parameters)."""
         events = SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible(topic, "publisher"))
         try:
             return self.create_subscription(
                 msg_class(port.type), topic, callback, subscription_qos(port.qos, self.sensor_reliability),
-                qos_overriding_options=QoSOverridingOptions.with_default_policies(), event_callbacks=events)
+                qos_overriding_options=QoSOverridingOptions.with_default_policies(), event_callbacks=events,
+                raw=raw)
         except (InvalidQosOverridesError, RuntimeError, ValueError) as err:
             raise ConfigError(f"QoS of subscription {topic!r}: {err}") from err
 
@@ -407,6 +419,84 @@ class StageNode(Node):
             self._log_rejections()
         return cb
 
+    # -- fast path: raw sensor inputs handled in runs ----------------------------------------------
+    def _batchable(self, port: Any) -> bool:
+        """Whether ``port`` is taken raw and handled in runs: a per-user stage with a batch path for
+        it (:meth:`Stage.batch_handles`) and a message type :func:`indoor_loc.bag.bulk.bulk_items` decodes."""
+        return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
+
+    def _subscribe_raw(self, port: Any):
+        gaps = self._gaps.setdefault(port.topic, SequenceGaps())
+        sub = self._subscribe(port, port.topic, self._raw_callback(port.topic), raw=True)
+        self._raw[port.topic] = (sub, gaps, port.type)
+        return sub
+
+    def _raw_callback(self, topic: str) -> Callable[[bytes, Any], None]:
+        def cb(data: bytes, info: Any) -> None:
+            self._take_raw({topic: [self._received(topic, data, info)]})
+        return cb
+
+    def _received(self, topic: str, data: bytes, info: Any) -> tuple[int, int, bytes]:
+        """Book one raw message as the per-message callback does (count, reception time, sequence
+        gaps); returns ``(header stamp ns, node-clock receive ns, data)``."""
+        self.taken += 1
+        self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
+        now_ns = self.get_clock().now().nanoseconds
+        gaps = self._raw[topic][1]
+        lost = gaps.gap(info, lambda: self.count_publishers(topic))
+        if lost:
+            self.stage.diag.count_lost(topic, lost, now_ns)
+            self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
+                                      f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
+        return _cdr_stamp_ns(data), now_ns, data
+
+    def _take_raw(self, pending: dict[str, list[tuple[int, int, bytes]]]) -> None:
+        """Take every message already queued on the raw inputs (at most :data:`TAKE_MAX`), merge the
+        topics in header-stamp order (each topic keeps its arrival order) and hand each run of one
+        topic to the stage's batch path, decoded in bulk; a run that does not decode in bulk (or
+        holds a message the adapter rejects) is deserialised and processed message by message, so
+        every rejection is counted under its own reason as before."""
+        n = sum(len(v) for v in pending.values())
+        for topic, (sub, _gaps, _type) in self._raw.items():
+            queue = pending.setdefault(topic, [])
+            while n < TAKE_MAX:
+                with sub.handle:
+                    got = sub.handle.take_message(sub.msg_type, True)
+                if got is None:
+                    break
+                queue.append(self._received(topic, got[0], got[1]))
+                n += 1
+        merged = heapq.merge(*([(stamp, topic, recv, data) for stamp, recv, data in q]
+                               for topic, q in pending.items() if q), key=lambda m: m[0])
+        run_topic: str | None = None
+        run: list[tuple[int, bytes]] = []
+        for _stamp, topic, recv, data in merged:
+            if topic != run_topic and run:
+                self._process_run(run_topic, run)   # type: ignore[arg-type]
+                run = []
+            run_topic = topic
+            run.append((recv, data))
+        if run:
+            self._process_run(run_topic, run)       # type: ignore[arg-type]
+        self._log_rejections()
+
+    def _process_run(self, topic: str, run: list[tuple[int, bytes]]) -> None:
+        type_name = self._raw[topic][2]
+        recv = [r for r, _ in run]
+        items = bulk_items(type_name, [d for _, d in run])
+        if items is not None:
+            self._publish([(t, m) for _, t, m in self.stage.process_batch(topic, items, recv)])
+            return
+        cls = msg_class(type_name)
+        for recv_ns, data in run:
+            try:
+                msg = deserialize_message(data, cls)
+            except Exception as err:  # noqa: BLE001 - a node never dies on a message
+                self.stage.diag.now_ns = recv_ns
+                self.stage._reject("undecodable", f"{topic}: {type(err).__name__}: {err}")
+                continue
+            self._publish(self.stage.process(topic, msg, recv_ns))
+
     def _refresh_publisher_counts(self) -> None:
         for topic, gaps in self._gaps.items():
             gaps.publishers = self.count_publishers(topic)
@@ -459,6 +549,16 @@ class StageNode(Node):
         for pub in self._pubs.values():
             if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
                 pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S))
+
+
+def _cdr_stamp_ns(data: bytes) -> int:
+    """``header.stamp`` (ns) of a little-endian CDR message that starts with a ``std_msgs/Header``
+    (every bulk-decoded type); 0 when it cannot be read (the message then sorts first; the stage
+    judges it)."""
+    if len(data) < 12 or data[:2] != b"\x00\x01":
+        return 0
+    sec, nsec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 #: Set by the first SIGINT/SIGTERM (a stop was asked for), and by the second (stop at once).
