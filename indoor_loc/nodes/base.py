@@ -12,6 +12,14 @@
   never dropped in DDS. A publisher whose QoS cannot match a subscription is logged as an ERROR and
   counted (``rejected.incompatible_qos``, WARN in ``/diagnostics``), never a silent lack of input.
 - A bad message is logged (throttled), counted and dropped; the node keeps running.
+- Fast path: an input the stage takes in runs (``Stage.batch_handles``) of a type
+  :mod:`indoor_loc.bag.bulk` decodes (``sensor_msgs/Imu``, ``MagneticField``) is subscribed raw (CDR
+  bytes, no Python message per sample). Each callback also takes whatever is already queued on the
+  node's raw inputs (up to ``TAKE_MAX``), merges the topics in header-stamp order (each topic in its
+  arrival order) and hands each run of one topic to ``Stage.process_batch``, decoded in bulk with the
+  adapters' checks; a run that does not decode in bulk, or holds a message the adapter would reject,
+  is deserialised and processed message by message, so each rejection keeps its reason. Nothing is
+  held back for later: a timer tick sees every message taken before it, as before.
 - ``/diagnostics`` gets one DiagnosticStatus about once a second (on the node's clock, so in bag
   time under ``use_sim_time``).
 - SIGINT and SIGTERM end the node cleanly: the messages DDS had delivered to the node before the
