@@ -49,7 +49,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "steps = |p_i - p_(i-1)| / step_length_m (each hop is laid straight along its mean heading), "
           "heading change = wrap(yaw_i - yaw_(i-1)); twist.linear.x = walking speed m/s, twist.angular.z "
           "= yaw rate rad/s; yaw variance 1e6 rad^2 = heading unknown; twist.covariance[0] = walking-speed "
-          "variance m^2/s^2, which carries the step-count confidence of the hop (see imu/pdr.py)"),
+          "variance m^2/s^2, which carries the step-count confidence of the hop (see imu/pdr.py); "
+          "twist.covariance[35] = yaw-rate variance rad^2/s^2 (1e6 = unknown)"),
     Topic("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
           "WiFi-only position of one scan; covariance x/y in m^2, yaw variance set huge (unknown)"),
     Topic("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",

@@ -84,6 +84,7 @@ class OdomPose(NamedTuple):
     frame_id: str = ""
     child_frame_id: str = ""
     speed_var: float = 0.0          # variance of speed (twist.covariance[0]), m²/s²; 0 = not given
+    yaw_rate_var: float = 0.0       # variance of yaw_rate (twist.covariance[35]), rad²/s²; 0 = not given
 
 
 class PdrInterval(NamedTuple):

@@ -49,14 +49,16 @@ def planar_cov_from_6x6(cov36, what: str = "pose.covariance") -> np.ndarray:
 
 
 def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: float, yaw: float,
-                cov_xyyaw, speed_mps: float, yaw_rate: float, speed_var: float = 0.0) -> Odometry:
+                cov_xyyaw, speed_mps: float, yaw_rate: float, speed_var: float = 0.0,
+                yaw_rate_var: float = 0.0) -> Odometry:
     """Build a planar Odometry message (see module doc for the covariance layout);
-    ``speed_var`` (m²/s², >= 0) goes to ``twist.covariance[0]`` (the rest of it stays 0)."""
+    ``speed_var`` (m²/s², >= 0) goes to ``twist.covariance[0]`` and ``yaw_rate_var`` (rad²/s², >= 0)
+    to ``twist.covariance[35]`` (the rest of it stays 0)."""
     for name, v in (("x", x), ("y", y), ("yaw", yaw), ("speed_mps", speed_mps), ("yaw_rate", yaw_rate),
-                    ("speed_var", speed_var)):
+                    ("speed_var", speed_var), ("yaw_rate_var", yaw_rate_var)):
         require_finite(name, float(v))
-    if speed_var < 0:
-        raise InvalidMessageError("bad_covariance", f"speed_var must be >= 0, got {speed_var}")
+    if speed_var < 0 or yaw_rate_var < 0:
+        raise InvalidMessageError("bad_covariance", f"twist variances must be >= 0, got {speed_var}, {yaw_rate_var}")
     msg = Odometry()
     msg.header.stamp = stamp_from_ns(stamp_ns)
     msg.header.frame_id = frame_id
@@ -68,6 +70,7 @@ def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: 
     msg.twist.twist.linear.x = float(speed_mps)
     msg.twist.twist.angular.z = float(yaw_rate)
     msg.twist.covariance[0] = float(speed_var)
+    msg.twist.covariance[35] = float(yaw_rate_var)
     return msg
 
 
@@ -82,7 +85,8 @@ def odom_from_msg(msg: Odometry) -> OdomPose:
     require_finite("twist", [t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z])
     require_finite("twist.covariance", msg.twist.covariance)
     return OdomPose(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
-                    msg.header.frame_id, msg.child_frame_id, float(msg.twist.covariance[0]))
+                    msg.header.frame_id, msg.child_frame_id, float(msg.twist.covariance[0]),
+                    float(msg.twist.covariance[35]))
 
 
 class PdrOdomReader:

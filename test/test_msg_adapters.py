@@ -428,3 +428,23 @@ def test_standing_stage_error_makes_diagnostics_level_error():
     st = stage_diagnostics("/alice/wifi_fix_node", stage, 1_000_000_000).status[0]
     assert st.level == DiagnosticStatus.ERROR
     assert "no radio map" in st.message
+
+
+def test_pdr_odom_twist_covariance_carries_speed_and_yaw_rate_variances():
+    """pdr/odom's twist covariance is filled: [0] the walking-speed variance, [35] the yaw-rate
+    variance (the two ends' heading variances over the hop; unknown heading -> 1e6)."""
+    from indoor_loc.imu.pdr import Pdr, PdrParams
+
+    pdr = Pdr(PdrParams(step_length_m=0.65))
+    hop = 320_000_000
+    poses = [pdr.update(i * hop, (i + 1) * hop, 0.6, 0.1 * i, 0.01) for i in range(3)]
+    poses.append(pdr.update(3 * hop, 4 * hop, 0.6, None))                     # heading lost
+    msgs = [odom_to_msg(p.stamp_ns, "u/odom", "u/base_link", p.x, p.y, p.yaw, p.cov, p.speed, p.yaw_rate,
+                        p.speed_var, p.yaw_rate_var) for p in poses]
+    dt = hop * 1e-9
+    assert msgs[1].twist.covariance[35] == pytest.approx(0.02 / dt**2)
+    assert msgs[1].twist.covariance[0] > 0
+    assert msgs[3].twist.covariance[35] == 1e6
+    assert odom_from_msg(msgs[1]).yaw_rate_var == pytest.approx(0.02 / dt**2)
+    with pytest.raises(InvalidMessageError, match="bad_covariance|twist variances"):
+        odom_to_msg(0, "a", "b", 0, 0, 0, np.eye(3), 0, 0, 0.0, -1.0)

@@ -118,14 +118,20 @@ class Pdr:
         q_cross = d * d * min(seg_var, 1.0)
         rot = np.array([[c, -s], [s, c]])
         st.cov[:2, :2] += rot @ np.diag([q_along, q_cross]) @ rot.T
+        prev_var = float(st.cov[2, 2]) if st.stamp_ns is not None else var
         st.cov[2, 2] = var
         dt = max(1e-9, (int(t_end_ns) - int(t_start_ns)) * 1e-9)
         st.yaw = yaw_new
         st.stamp_ns = int(t_end_ns)
         st.total_steps += max(0.0, float(steps))
         st.distance_m += d
+        # yaw rate = the heading change over the hop: the two ends' heading variances add (their errors
+        # are treated as independent -- an upper bound for a slowly drifting heading); an unknown end
+        # leaves the rate unknown (the unknown-yaw variance, like the pose's yaw)
+        ends = var + prev_var
+        rate_var = p.unknown_yaw_var if ends >= p.unknown_yaw_var else min(ends / (dt * dt), p.unknown_yaw_var)
         return OdomPose(st.stamp_ns, st.x, st.y, st.yaw, st.cov.copy(), d / dt, dpsi / dt,
-                        speed_var=q_along / (dt * dt))
+                        speed_var=q_along / (dt * dt), yaw_rate_var=rate_var)
 
 
 def pdr_batch(t_start_ns: ArrayLike, t_end_ns: ArrayLike, steps: ArrayLike, yaw: ArrayLike,

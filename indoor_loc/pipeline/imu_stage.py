@@ -337,7 +337,8 @@ class ImuStage(Stage):
             yaw, var = (None, UNKNOWN_YAW_VAR) if head is None else head
             pose = self.pdr.update(h.t_start_ns, h.t_end_ns, h.steps, yaw, var, h.steps_std)
             outs.append(("pdr/odom", odom_to_msg(pose.stamp_ns, self.odom_frame, self.base_frame, pose.x, pose.y,
-                                                 pose.yaw, pose.cov, pose.speed, pose.yaw_rate, pose.speed_var)))
+                                                 pose.yaw, pose.cov, pose.speed, pose.yaw_rate, pose.speed_var,
+                                                 pose.yaw_rate_var)))
             self.counts["odom"] += 1
         return outs
 
