@@ -45,14 +45,22 @@ def _run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
 
 def _probe(site_dir: Path, cwd: Path) -> list[str]:
     """Import both packages in a fresh interpreter whose only extra site dir is ``site_dir``."""
-    code = f"import site; site.addsitedir({str(site_dir)!r}); {PROBE}"
+    # the environment running the tests may hold its own editable install of the package (make test's
+    # venv): its import finder is dropped and the site dir under test goes first, so only the install
+    # under test can answer
+    code = ("import site, sys; "
+            "sys.meta_path[:] = [f for f in sys.meta_path if not str(getattr(f, '__module__', '')).startswith('__editable__')]; "
+            "[sys.modules.pop(m) for m in list(sys.modules) if m.startswith('__editable__')]; "
+            f"sys.path.insert(0, {str(site_dir)!r}); site.addsitedir({str(site_dir)!r}); {PROBE}")
     r = _run([sys.executable, "-c", code], cwd)
     assert r.returncode == 0, r.stderr
     return r.stdout.split()
 
 
 def _pip(args: list[str], cwd: Path) -> None:
-    r = _run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", *args], cwd)
+    # --ignore-installed: without it pip first uninstalls the package from the environment running the
+    # tests (the user's own `pip install -e .`, with its `indoor-loc` script) before installing elsewhere
+    r = _run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--ignore-installed", *args], cwd)
     if r.returncode != 0 and "No matching distribution found for setuptools" in r.stderr:
         pytest.skip("pip's isolated build cannot fetch setuptools on this machine (no package index)")
     assert r.returncode == 0, r.stderr[-3000:]
@@ -73,10 +81,19 @@ def test_pip_install(tmp_path):
     assert (target / "share" / "indoor_loc" / "config" / "imu_node.yaml").is_file()
 
 
+def _env_has_package(cwd: Path) -> bool:
+    """Whether the environment running the tests has indoor_loc installed (as `make test`'s venv does)."""
+    probe = "import importlib.metadata as m; m.distribution('indoor_loc')"
+    return subprocess.run([sys.executable, "-c", probe], cwd=cwd, capture_output=True, timeout=60).returncode == 0
+
+
 def test_pip_install_editable(tmp_path):
     src = _copy_tree(tmp_path)
     prefix = tmp_path / "prefix"
+    installed_before = _env_has_package(tmp_path)
     _pip(["--prefix", str(prefix), "-e", "."], src)
+    # installing elsewhere must leave the running environment's own install (and its scripts) alone
+    assert _env_has_package(tmp_path) == installed_before
     files = _probe(_site_packages(prefix), tmp_path)
     # editable: the imports resolve to the source tree itself, both packages
     assert files[0] == str(src / "indoor_loc" / "__init__.py")
