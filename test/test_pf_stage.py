@@ -8,7 +8,7 @@ import pytest
 
 from indoor_loc.errors import ConfigError
 from indoor_loc.graph import build_graph, save_graph
-from indoor_loc.graph.tll import cache_path
+from indoor_loc.graph.tll import Transitions, cache_path, save_transitions, transition_table
 from indoor_loc.measurements import Fix
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.pf_stage import PfStage, PfStageParams
@@ -172,3 +172,56 @@ def test_scan_update_from_wifi_scan_messages(graph_file, tmp_path):
     assert st.diag.rejected["wrong_wifi_update"] == 1 and st.diag.rejected["no_known_ap"] == 1
     with pytest.raises(ConfigError, match="radiomap"):
         _stage(graph_file, wifi_update="scan")
+
+
+
+@pytest.fixture
+def tee_file(tmp_path):
+    # a 40 m corridor along y = 0 with a 4 m room stub going south at x = 20 (node 1, link 2)
+    g = build_graph(range(4), np.array([[0, 0], [20, 0], [40, 0], [20, -4]], float), [(0, 1), (1, 2), (1, 3)])
+    return save_graph(g, tmp_path / "tee.graph.yaml")
+
+
+def _turn_into_stub(stage: PfStage) -> int:
+    """Start at (2, 0) heading east, walk 18 m east then 3 m south (into the stub) in 0.65 m
+    hops; return the most particles ever seen on the stub link."""
+    stage.process("initialpose", pose_to_msg(1_000_000_000, np.array([2.0, 0.0]), 0.0, np.eye(2) * 0.05), 0)
+    assert not np.any(stage.tracker.pf.p.link == 2)             # none starts there
+    pos, most, t = np.array([2.0, 0.0]), 0, 2_000_000_000
+    heads = [0.0] * round(18 / STEP) + [-math.pi / 2] * round(3 / STEP)
+    stage.process("pdr/odom", odom_to_msg(t, "u/odom", "u/base_link", *pos, 0.0, np.eye(3) * 0.1, 1.3, 0.0), 0)
+    for yaw in heads:
+        t += 500_000_000
+        pos = pos + STEP * np.array([math.cos(yaw), math.sin(yaw)])
+        stage.process("pdr/odom", odom_to_msg(t, "u/odom", "u/base_link", *pos, yaw, np.eye(3) * 0.1, 1.3, 0.0), 0)
+        most = max(most, int(np.sum(stage.tracker.pf.p.link == 2)))
+    return most
+
+
+def test_a_learned_transition_table_is_used_and_must_match_the_graph(tee_file, tmp_path):
+    quiet = {"yaw_offset_sigma_rad": 0.05, "monitor.enabled": False, "smooth": False}
+    # the rule's own table lets the particles follow the walker into the stub
+    assert _turn_into_stub(_stage(tee_file, **quiet)) > 50
+    # a hand-made table for this graph that never enters the stub from the corridor (at node 1)
+    g = _stage(tee_file).graph
+    probs = np.array(transition_table(g).probs)
+    slots = np.arange(g.adj_ptr[1], g.adj_ptr[2])
+    stub_col = int(np.flatnonzero(g.adj_link[slots] == 2)[0])
+    rows = slots[g.adj_link[slots] != 2]                        # arriving over the corridor
+    probs[rows, stub_col] = 0.0
+    probs[rows] /= probs[rows].sum(axis=1, keepdims=True)
+    table = save_transitions(Transitions.from_probs(probs, "hand"), tmp_path / "no_stub.npz", tee_file)
+    st = _stage(tee_file, transitions_file=str(table), **quiet)
+    assert st.transitions.rule == "hand" and st.extra_diagnostics()["tll_cache"] == f"loaded {table}"
+    assert _turn_into_stub(st) == 0
+    # a table made for another graph, or an unreadable file, stops the start-up
+    other = tmp_path / "other.graph.yaml"
+    other.write_text(tee_file.read_text() + "\n# another revision of the map\n")
+    with pytest.raises(ConfigError, match="transitions_file: .* was made for another graph"):
+        PfStage(params_from_dict(PfStageParams, {"graph_file": str(other), "transitions_file": str(table)}))
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"not a table")
+    with pytest.raises(ConfigError, match="transitions_file: cannot read transition table"):
+        _stage(tee_file, transitions_file=str(broken))
+    with pytest.raises(ConfigError, match="transitions_file: cannot read transition table"):
+        _stage(tee_file, transitions_file=str(tmp_path / "missing.npz"))

@@ -10,6 +10,10 @@ hop and per fix), ``pf/particles`` (every ``particles_every`` outputs), ``pf/pat
 history every ``path_period_s`` of stamp time; at the end of input the backward-simulation
 smoothed path when ``smooth``), ``map/graph`` (latched, once).
 
+Link choices at nodes follow the ``rule`` table computed from the graph, or a learned table
+(``transitions_file``, written by ``indoor-loc map learn``; refused, as a ConfigError, unless it
+was made for this very graph file).
+
 Fixes (and scans) wait until PDR has reached their stamp (the stepometer publishes about half a window late),
 bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. A stamp more than
 ``time_jump_s`` older than the newest seen (a bag played in a loop, a restarted recording) resets
@@ -28,7 +32,7 @@ from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
 from indoor_loc.graph.io import load_graph
-from indoor_loc.graph.tll import TransitionParams, cached_transitions
+from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
 from msg_adapters.markers import graph_markers
 from msg_adapters.odom import odom_from_msg
 from msg_adapters.path import path_to_msg
@@ -50,6 +54,8 @@ class PfStageParams:
     wifi_update: str = P.field("fix", "WiFi measurement: fix (wifi/fix, Gaussian) or scan (wifi/scan against the radio "
                                       "map interpolated along the links)")
     radiomap: str = P.field("", "radio map directory for wifi_update: scan")
+    transitions_file: str = P.field("", "learned transition table for graph_file (`indoor-loc map learn`); "
+                                        "empty = the table of rule from the graph")
     rule: str = P.field("tll", "link transition rule at nodes: tll, uniform or angle")
     l_max_m: float = P.field(40.0, "TLL destination horizon l_MAX (m)")
     p_min: float = P.field(0.02, "smallest transition probability at a junction")
@@ -125,7 +131,17 @@ class PfStage(Stage):
             self.graph = load_graph(path)
         except MapError as err:
             raise ConfigError(f"tll_pf: graph_file: {err}") from err
-        self.transitions, self.cache_hit = cached_transitions(self.graph, path, params.transition_params())
+        if params.transitions_file:
+            # a learned table (Dirichlet-updated link choices) replaces the rule's: it must have been
+            # made for this very graph file, else the start-up fails (exit 2) rather than run on a
+            # table whose rows belong to other junctions
+            try:
+                self.transitions = load_transitions(Path(params.transitions_file).expanduser(), self.graph, path)
+            except MapError as err:
+                raise ConfigError(f"tll_pf: transitions_file: {err}") from err
+            self.cache_hit = False
+        else:
+            self.transitions, self.cache_hit = cached_transitions(self.graph, path, params.transition_params())
         if params.wifi_update == "scan":
             try:
                 self.field = EdgeFingerprintField(self.graph, load_radiomap(Path(params.radiomap).expanduser()),
@@ -281,7 +297,8 @@ class PfStage(Stage):
         pf = self.tracker.pf
         d = {"graph": f"{self.graph.n_nodes} nodes, {self.graph.n_links} links", "rule": self.transitions.rule,
              "wifi_update": self.params.wifi_update,
-             "tll_cache": "hit" if self.cache_hit else "computed", "time_jumps": str(self.time_jumps),
+             "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
+                           else "hit" if self.cache_hit else "computed"), "time_jumps": str(self.time_jumps),
              "pending_fixes": str(len(self._pending))}
         if pf.p is None:
             d["initialised"] = "false (waiting for the first wifi/fix or initialpose)"
