@@ -80,7 +80,7 @@ QOS_PROFILES: dict[Qos, QoSProfile] = {
 
 DIAGNOSTICS_PERIOD_S = 1.0
 #: How long a stopping node waits for subscribers to acknowledge its last outputs (s).
-FINISH_ACK_TIMEOUT_S = 2.0
+FINISH_ACK_TIMEOUT_S = 8.0
 #: How often a multi-user node polls the ROS graph for users joining and leaving (s).
 DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
@@ -554,9 +554,13 @@ class StageNode(Node):
         self._publish(self.stage.run_finish())
         # the end-of-input outputs (a final smoothed path) must reach reliable subscribers before
         # the process ends: wait (bounded) until every reliable publisher's messages are acked
-        for pub in self._pubs.values():
-            if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE:
-                pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S))
+        # (a loaded machine can take seconds); what is still unacknowledged then is said, not lost silently
+        for topic, pub in self._pubs.items():
+            if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count() > 0:
+                if not pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S)):
+                    self.get_logger().warning(
+                        f"stopping: {topic}: not every subscriber acknowledged the last messages within "
+                        f"{FINISH_ACK_TIMEOUT_S:g} s; they may have missed the end of the output")
 
 
 def _cdr_stamp_ns(data: bytes) -> int:
