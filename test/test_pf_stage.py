@@ -57,6 +57,16 @@ def _stage(graph_file, **kw) -> PfStage:
     return PfStage(params_from_dict(PfStageParams, {"graph_file": str(graph_file), "n_particles": 600, **kw}))
 
 
+
+def _late_median_error(outs, t, truth) -> float:
+    """Median error (m) of the `pf/pose` outputs stamped within the last 30 truth intervals."""
+    poses = [pose_from_msg(m) for tp, m in outs if tp == "pf/pose"]
+    stamps = np.array([p.stamp_ns for p in poses])
+    est = np.array([p.xy for p in poses])
+    late = stamps >= t[-30]
+    idx = np.searchsorted(t, stamps[late])
+    return float(np.median(np.hypot(*(est[late] - truth[np.minimum(idx, len(t) - 1)]).T)))
+
 def test_tracks_a_walk_with_unknown_odom_rotation_and_smooths_on_the_graph(graph_file):
     rng = np.random.default_rng(7)
     t, truth, odoms, fixes = _walk(rng)
@@ -71,14 +81,8 @@ def test_tracks_a_walk_with_unknown_odom_rotation_and_smooths_on_the_graph(graph
     assert st.diag.rejected.total() == 0
     topics = [o[0] for o in outs]
     assert topics.count("map/graph") == 1 and "pf/particles" in topics
-    poses = [pose_from_msg(m) for tp, m in outs if tp == "pf/pose"]
-    stamps = np.array([p.stamp_ns for p in poses])
-    est = np.array([p.xy for p in poses])
     # after the first lap the filter has locked on: error at the last 30 intervals
-    late = stamps >= t[-30]
-    idx = np.searchsorted(t, stamps[late])
-    err = np.hypot(*(est[late] - truth[np.minimum(idx, len(t) - 1)]).T)
-    assert np.median(err) < 1.5
+    assert _late_median_error(outs, t, truth) < 1.5
     ts, xy, _ = path_from_msg([m for tp, m in outs if tp == "pf/path"][-1])
     assert len(ts) > 50
     assert st.graph.project(xy)[2].max() < 1e-6                 # every smoothed pose on the graph
@@ -157,13 +161,7 @@ def test_scan_update_from_wifi_scan_messages(graph_file, tmp_path):
             outs += st.process("wifi/scan", scan_to_msg(scan(truth[i], int(t[i]) + 1000)), 0)
         outs += st.process("pdr/odom", od, 0)
     assert st.diag.rejected.total() == 0
-    poses = [pose_from_msg(m) for tp, m in outs if tp == "pf/pose"]
-    stamps = np.array([p.stamp_ns for p in poses])
-    est = np.array([p.xy for p in poses])
-    late = stamps >= t[-30]
-    idx = np.searchsorted(t, stamps[late])
-    err = np.hypot(*(est[late] - truth[np.minimum(idx, len(t) - 1)]).T)
-    assert np.median(err) < 2.0
+    assert _late_median_error(outs, t, truth) < 2.0
     assert st.extra_diagnostics()["wifi_update"] == "scan"
     # a wifi/fix in scan mode and a scan of unknown APs are counted, not fatal
     st.process("wifi/fix", fix_to_msg(Fix(int(t[-1]), np.zeros(2), np.eye(2))), 0)
