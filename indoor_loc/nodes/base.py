@@ -576,13 +576,23 @@ def _cdr_stamp_ns(data: bytes) -> int:
 #: Set by the first SIGINT/SIGTERM (a stop was asked for), and by the second (stop at once).
 _STOP = threading.Event()
 _STOP_NOW = threading.Event()
+#: When the first SIGINT/SIGTERM came (system clock, ns; 0 before).
+_STOP_AT_NS = [0]
 
 
 def _request_stop(signum: int, frame: Any) -> None:
     # Only a flag: an exception raised from a signal handler can surface inside a pybind11 call
     # (rclpy's take_message) as a RuntimeError ("Unable to convert call argument") instead of a
     # KeyboardInterrupt and end the process with a traceback. The spin loops poll the flag.
+    if not _STOP.is_set():
+        _STOP_AT_NS[0] = time.time_ns()
     (_STOP_NOW if _STOP.is_set() else _STOP).set()
+
+
+def stop_time_ns() -> int:
+    """When the first SIGINT/SIGTERM arrived (system clock, ns), or now if none did: messages DDS
+    received before it are the ones a stopping node still handles."""
+    return _STOP_AT_NS[0] if _STOP.is_set() and _STOP_AT_NS[0] else time.time_ns()
 
 
 def stop_requested() -> bool:
@@ -600,6 +610,7 @@ def raise_on_signals() -> dict[int, Any]:
         return {}
     _STOP.clear()
     _STOP_NOW.clear()
+    _STOP_AT_NS[0] = 0
     return {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
@@ -622,12 +633,12 @@ def restore_signals(old: dict[int, Any]) -> None:
 
 def drain(executor: SingleThreadedExecutor, node: Node, taken: Callable[[], int],
           timeout_s: float = DRAIN_TIMEOUT_S) -> int:
-    """Run the callbacks of the messages DDS delivered before now until none is left (three idle
-    spins in a row), a message received after now was handled (``node.last_rx_ns``: a publisher
+    """Run the callbacks of the messages DDS delivered before the stop signal (:func:`stop_time_ns`)
+    until none is left (three idle spins in a row), a message received after it was handled (``node.last_rx_ns``: a publisher
     still running must not hold the node up), or ``timeout_s`` passes; ``taken()`` counts the
     messages handled so far. Returns how many were handled here."""
     start = taken()
-    stop_ns = time.time_ns()
+    stop_ns = stop_time_ns()
     deadline = time.monotonic() + timeout_s
     idle = 0
     while (idle < 3 and time.monotonic() < deadline and node.context.ok() and not _STOP_NOW.is_set()
