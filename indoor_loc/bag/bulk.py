@@ -15,12 +15,13 @@ like that (another frame id inside it, big-endian CDR, a truncated record) is no
 from __future__ import annotations
 
 import struct
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from msg_adapters.imu import QUAT_NORM_TOL, ImuSample
-from msg_adapters.time import NS_PER_S
+from msg_adapters.time import MAX_STAMP_NS, NS_PER_S
 
 #: float64 fields after the header
 IMU_DOUBLES = 37
@@ -119,13 +120,41 @@ def _finite(a: np.ndarray) -> np.ndarray:
     return np.isfinite(a).all(axis=1)
 
 
-class SampleRun(list):
-    """The per-message items of a run (a list), with the arrays they were cut from (``arrays``) for
-    batch paths that work on whole columns."""
-    arrays: ImuArrays
+class SampleRun(Sequence):
+    """The per-message items of a run, :class:`ImuSample` each, made when first read (a batch path
+    that works on whole columns reads ``arrays`` and never makes them); ``all_oriented``: every
+    message carries an orientation."""
+
+    def __init__(self, arrays: ImuArrays, stamps: list[int], gyro_on: list[bool], orient_on: list[bool]) -> None:
+        self.arrays = arrays
+        self.stamps = stamps
+        self._gyro_on = gyro_on
+        self._orient_on = orient_on
+        self.all_oriented = all(orient_on)
+        self._cov = arrays.orientation_cov.reshape(-1, 3, 3)
+        self._items: list[ImuSample] | None = None
+
+    def _make(self) -> list[ImuSample]:
+        if self._items is None:
+            arr, frame, cov = self.arrays, self.arrays.frame_id, self._cov
+            acc, gyro, q = arr.linear_acceleration, arr.angular_velocity, arr.orientation_xyzw
+            g_on, o_on = self._gyro_on, self._orient_on
+            self._items = [ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
+                                     cov[i] if o_on[i] else None)
+                           for i, t in enumerate(self.stamps)]
+        return self._items
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        return self._make()[i]
+
+    def __iter__(self):  # type: ignore[override]
+        return iter(self._make())
 
 
-def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
+def imu_samples(arr: ImuArrays) -> SampleRun | None:
     """Validated samples of a decoded run, one per message, equal to ``imu_from_msg`` of each; None
     when any message would be rejected (the caller then takes them one by one, so each is counted
     under its own reason)."""
@@ -138,15 +167,7 @@ def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
                            & (np.abs(np.sqrt((q * q).sum(axis=1)) - 1.0) <= QUAT_NORM_TOL))))
     if not ok.all():
         return None
-    stamps = (arr.sec * NS_PER_S + arr.nanosec).tolist()
-    frame = arr.frame_id
-    acc, gyro, cov = arr.linear_acceleration, arr.angular_velocity, arr.orientation_cov.reshape(-1, 3, 3)
-    g_on, o_on = gyro_on.tolist(), orient_on.tolist()
-    run = SampleRun(ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
-                              cov[i] if o_on[i] else None)
-                    for i, t in enumerate(stamps))
-    run.arrays = arr
-    return run
+    return SampleRun(arr, (arr.sec * NS_PER_S + arr.nanosec).tolist(), gyro_on.tolist(), orient_on.tolist())
 
 
 def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
@@ -158,7 +179,7 @@ def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
     return [(t, f[i]) for i, t in enumerate((arr.sec * NS_PER_S + arr.nanosec).tolist())]
 
 
-def bulk_items(type_name: str, datas: Sequence[bytes]) -> list | None:
+def bulk_items(type_name: str, datas: Sequence[bytes]) -> Sequence | None:
     """CDR records of one message type -> what that type's adapter returns for each (``Imu``:
     ``msg_adapters.imu.imu_from_msg``'s :class:`ImuSample`; ``MagneticField``: ``mag_from_msg``'s
     ``(stamp_ns, field)``), for :meth:`indoor_loc.pipeline.stage.Stage.process_batch`. None for
@@ -170,6 +191,20 @@ def bulk_items(type_name: str, datas: Sequence[bytes]) -> list | None:
         mag = decode_mag(datas)
         return None if mag is None else mag_samples(mag)
     return None
+
+
+_STAMP = struct.Struct("<iI")
+
+
+def with_header_stamp(data: bytes, stamp_ns: int) -> bytes | None:
+    """A little-endian CDR message that starts with a ``std_msgs/Header`` (``DiagnosticArray``,
+    ``Odometry``, ...) with its ``header.stamp`` set to ``stamp_ns``, everything else as it was;
+    None if ``data`` is not little-endian CDR or the stamp does not fit ``builtin_interfaces/Time``."""
+    if len(data) < 12 or data[:2] != _CDR_LE or not 0 <= stamp_ns <= MAX_STAMP_NS:
+        return None
+    out = bytearray(data)
+    _STAMP.pack_into(out, 4, *divmod(stamp_ns, NS_PER_S))     # sec, nanosec after the 4-byte CDR header
+    return bytes(out)
 
 
 #: message types :func:`bulk_items` decodes
