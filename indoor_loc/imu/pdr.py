@@ -34,6 +34,7 @@ line whose length is still the walked distance.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from collections import deque
@@ -196,8 +197,8 @@ class HeadingHistory:
         """(yaw wrapped, var) at ``stamp_ns`` or None when empty."""
         if not self._t:
             return None
-        t = np.fromiter(self._t, np.int64, len(self._t))
-        i = int(np.searchsorted(t, stamp_ns))
+        t = self._t
+        i = bisect.bisect_left(t, stamp_ns)        # as np.searchsorted (side left), without a copy
         if i <= 0:
             return wrap_angle(self._yaw[0]), self._var[0]
         if i >= len(t):

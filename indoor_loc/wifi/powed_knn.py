@@ -35,7 +35,19 @@ its weighted neighbours over the APs they all heard nudges a per-phone offset (`
 it per scan), which corrects the next scans. On ms_site2 (one phone model) test scans shifted by
 8 dB lose 1–3 m of mean error without it and recover most of it with it.
 
-Position: the similarity-weighted mean of the k nearest map scans, weights 1 / (D + epsilon)
+**Interpolated radio map** (``smooth_m`` > 0, the default): survey walks leave gaps between them
+and every single scan is noisy (body shadowing, orientation, a cached reading repeated from the
+previous scan), so the matching runs against a grid of candidate positions (``smooth_grid_m``
+apart, within ``smooth_reach_m`` of a map scan of the same floor) whose values are the
+Nadaraya–Watson kernel regression of the map scans' weighted powed values (Nadaraya, "On estimating
+regression", 1964; Watson, "Smooth regression analysis", 1964) with a Gaussian kernel of bandwidth
+``smooth_m`` over the same floor's scans — the mean of a Gaussian-process radio map with a
+squared-exponential kernel in the limit of large noise (Ferris, Hähnel & Fox, "Gaussian processes
+for signal strength-based location estimation", RSS 2006). Nearby walks are averaged, and a test
+walk between two survey walks finds candidates between them. A bandwidth of a few metres is the
+decorrelation distance of indoor shadowing. The ``smooth_k`` best grid candidates are averaged.
+
+Position: the similarity-weighted mean of the k nearest map scans (or grid candidates), weights 1 / (D + epsilon)
 (as WKNN, Nowicki & Skrzypczyński 2019, eq. 13). A scan that shares no AP with the map gets no fix
 (reason ``no_shared_aps``); one with no usable reading ``no_usable_aps``.
 
@@ -108,6 +120,13 @@ class PowedKnnParams:
     cov_quantile: float = field(0.95, "the ellipse of this probability is calibrated on the cross-validated errors")
     cov_bins: int = field(5, "at most this many bins of the best-match distance in the calibration (each of at "
                              "least 40 cross-validated scans)")
+    smooth_m: float = field(4.0, "bandwidth of the Gaussian kernel regression that interpolates the map's readings "
+                                 "over a grid of candidate positions per floor (m); 0 = match the map scans themselves")
+    smooth_grid_m: float = field(1.0, "spacing of the candidate grid (m)")
+    smooth_reach_m: float = field(2.0, "grid points farther than this from every map scan of their floor are no "
+                                       "candidates (m)")
+    smooth_k: int = field(20, "number of nearest grid candidates averaged (with smooth_m > 0; k counts map scans "
+                              "otherwise)")
     offset_gain: float = field(0.2, "online device RSS offset: after each fix the offset moves by this fraction "
                                     "of the median residual against the neighbours (0 = off)")
     offset_max_db: float = field(20.0, "bound on the device RSS offset (dB)")
@@ -133,6 +152,14 @@ class PowedKnnParams:
                 self.cov_calibration_scans)
         require(math.isfinite(self.cov_quantile) and 0.0 < self.cov_quantile < 1.0, n, "cov_quantile", "in (0, 1)",
                 self.cov_quantile)
+        require(math.isfinite(self.smooth_m) and self.smooth_m >= 0, n, "smooth_m", ">= 0 m", self.smooth_m)
+        require(math.isfinite(self.smooth_grid_m) and self.smooth_grid_m > 0, n, "smooth_grid_m", "> 0 m",
+                self.smooth_grid_m)
+        require(math.isfinite(self.smooth_reach_m) and self.smooth_reach_m >= 0, n, "smooth_reach_m", ">= 0 m",
+                self.smooth_reach_m)
+        require(int(self.smooth_k) >= 1, n, "smooth_k", "an integer >= 1", self.smooth_k)
+        require(self.smooth_m == 0 or self.smooth_grid_m <= 10 * self.smooth_m, n, "smooth_grid_m",
+                "at most 10 x smooth_m", self.smooth_grid_m)
         require(int(self.cov_bins) >= 1, n, "cov_bins", "an integer >= 1", self.cov_bins)
         require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
         require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
@@ -143,6 +170,40 @@ def powed(rssi_dbm: ArrayLike, floor_dbm: float, beta: float) -> np.ndarray:
     """The powed representation of RSS values (dBm) -> [0, 1]; NaN -> 0."""
     r = np.nan_to_num(np.asarray(rssi_dbm, float), nan=-np.inf)
     return (np.clip(r - floor_dbm, 0.0, None) / -floor_dbm) ** beta
+
+
+def smoothing_grid(pos: np.ndarray, z: np.ndarray, step_m: float, reach_m: float, bandwidth_m: float
+                   ) -> tuple[np.ndarray, np.ndarray, Any, Any]:
+    """Candidate grid of a map: per floor height, the points of a square grid of spacing ``step_m`` lying
+    within ``reach_m`` of one of that floor's map scans. Returns (positions (C, 2), heights (C,),
+    Gaussian kernel weights (C, M) sparse, exp(-d^2 / 2 h^2) for the same floor's map scans within 3 h,
+    and a sparse (C, M) boolean of the map scans within ``reach_m``)."""
+    from scipy import sparse
+    from scipy.spatial import cKDTree
+    grids, heights = [], []
+    for zf in np.unique(z):
+        p = pos[z == zf]
+        lo = np.floor((p.min(axis=0) - reach_m) / step_m) * step_m
+        hi = p.max(axis=0) + reach_m
+        gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, step_m), np.arange(lo[1], hi[1] + 1e-9, step_m))
+        g = np.column_stack([gx.ravel(), gy.ravel()])
+        d, _ = cKDTree(p).query(g, distance_upper_bound=reach_m + 1e-9)
+        grids.append(g[np.isfinite(d)])
+        heights.append(np.full(int(np.isfinite(d).sum()), float(zf)))
+    g = np.vstack(grids)
+    gz = np.concatenate(heights)
+    sep = 1e6                                       # floors never within a kernel of each other
+    tree_g, tree_m = cKDTree(np.column_stack([g, gz * sep])), cKDTree(np.column_stack([pos, z * sep]))
+    shape = (len(g), len(pos))
+
+    def pairs(radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        coo = tree_g.sparse_distance_matrix(tree_m, radius, output_type="coo_matrix")
+        return coo.row, coo.col, coo.data
+    r, c, d = pairs(3.0 * bandwidth_m)
+    w = sparse.csr_matrix((np.exp(-0.5 * (d / bandwidth_m) ** 2), (r, c)), shape=shape)
+    r, c, _ = pairs(reach_m + 1e-9)
+    near = sparse.csr_matrix((np.ones(len(r), bool), (r, c)), shape=shape)
+    return g, gz, w, near
 
 
 def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
@@ -163,8 +224,12 @@ class PowedKnn(Positioner):
         self.radio_map: RadioMap | None = None
         self.aps = ApIndex()
         self._w = np.zeros(0)                        # (A,) AP weights
-        self._pos = np.zeros((0, 2))
+        self._pos = np.zeros((0, 2))                # (C, 2) candidate positions: map scans, or the smoothing grid
         self._z = np.zeros(0)
+        self._map_pos = np.zeros((0, 2))            # (M, 2) map scans
+        self._kernel: Any = None                     # (C, M) sparse smoothing weights (None: candidates = map scans)
+        self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
+        self._vals: list[np.ndarray] = []            # (M, A) weighted map values per view
         self._views: list[tuple[ApReadings, np.ndarray, bool]] = []   # (readings, sums, ages used) per view
         self._map_views_equal = True                 # the map has no ages: every view holds the same readings
         self._floors: np.ndarray = np.zeros(0)
@@ -199,6 +264,7 @@ class PowedKnn(Positioner):
         if aged and p.age_views == "both":
             if self._map_views_equal:               # no map ages: the views differ by the query's ages only
                 self._views.append((self._views[0][0], self._views[0][1], False))
+                vals.append(val)
             else:
                 raw = raw * w[None, :]
                 vals.append(raw)
@@ -206,38 +272,87 @@ class PowedKnn(Positioner):
         self.radio_map = radio_map
         self.aps = ApIndex(radio_map.bssids)
         self._w = w
-        self._pos = pos
-        self._z = np.asarray(radio_map.z_m, float)
-        self._floors = np.unique(self._z)
+        map_z = np.asarray(radio_map.z_m, float)
+        self._floors = np.unique(map_z)
         self._floor_names = {float(z): str(name) for name, z in radio_map.floors.items()}
-        ceiling = np.array([val[self._z == z].max(axis=0) for z in self._floors]).reshape(len(self._floors), -1)
+        ceiling = np.array([val[map_z == z].max(axis=0) for z in self._floors]).reshape(len(self._floors), -1)
         self._home = np.where(ceiling.max(axis=0) > 0, ceiling.argmax(axis=0), -1) if len(ceiling) else \
             np.zeros(0, np.int64)
+        self._map_pos, self._vals = pos, vals
+        self._pos, self._z, self._kernel, self._near = pos, map_z, None, None
+        if p.smooth_m > 0:
+            self._pos, self._z, self._kernel, self._near = smoothing_grid(
+                pos, map_z, p.smooth_grid_m, p.smooth_reach_m, p.smooth_m)
+            readings, sums, _ = self._smoothed(np.ones(len(pos), bool))
+            self._views = [(r, sm, v[2]) for r, sm, v in zip(readings, sums, self._views)]
         self.sigma_table = (np.zeros(1), np.full(1, p.cov_floor_m))
         self.calibration = {}
         if p.cov_calibration:
             self._calibrate(vals, list(radio_map.source))
         return self
 
+    def _smoothed(self, keep: np.ndarray) -> tuple[list[ApReadings], list[np.ndarray], np.ndarray]:
+        """The grid candidates interpolated from the map scans ``keep`` (M,) bool: per view the readings
+        and their sums over the candidates within reach of a kept scan, and those candidates' rows."""
+        from scipy import sparse
+        rows = np.flatnonzero(np.asarray(self._near[:, keep].sum(axis=1)).ravel() > 0)
+        k = self._kernel[rows][:, keep]
+        norm = sparse.diags(1.0 / np.maximum(np.asarray(k.sum(axis=1)).ravel(), 1e-300)) @ k
+        readings: list[ApReadings] = []
+        sums: list[np.ndarray] = []
+        for j, v in enumerate(self._vals):
+            if j > 0 and v is self._vals[0]:
+                readings.append(readings[0])
+                sums.append(sums[0])
+                continue
+            g = sparse.csr_matrix(norm @ sparse.csr_matrix(v[keep]))
+            readings.append(ApReadings.from_sparse(g))
+            sums.append(np.asarray(g.sum(axis=1)).ravel())
+        return readings, sums, rows
+
     def _calibrate(self, vals: list[np.ndarray], source: list[str]) -> None:
-        """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance."""
+        """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance.
+        With smoothing the grid is interpolated again without the left-out source's scans."""
         p = self.params
-        # leave one walk (source) out; a map from one source (a survey) leaves one scan out
-        src = np.array(source) if len(set(source)) >= 2 else np.arange(len(source)).astype(str)
-        m = len(self._pos)
+        m = len(self._map_pos)
+        map_z = np.asarray(self.radio_map.z_m, float) if self.radio_map is not None else np.zeros(m)
+        # leave one walk (source) out; a map from one source (a survey) leaves one scan out, or with
+        # smoothing one of 20 interleaved folds (every 20th scan: the grid is rebuilt once per fold)
+        if len(set(source)) >= 2:
+            src = np.array(source)
+        elif self._kernel is None:
+            src = np.arange(m).astype(str)
+        else:
+            src = (np.arange(m) % min(m, 20)).astype(str)
         d1 = np.full(m, np.nan)
         err = np.full(m, np.nan)
         rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
-        for i in rows:
-            c = np.flatnonzero(vals[0][i] > 0)
-            if len(c) == 0:
+        views = [j for j, v in enumerate(vals) if j == 0 or v is not vals[0]]
+        for fold in np.unique(src[rows]):
+            keep = src != fold
+            if self._kernel is None:
+                cand = np.flatnonzero(keep)
+                readings = [self._views[j][0] for j in views]
+                sums = [self._views[j][1] for j in views]
+                cand_all = np.arange(m)
+            else:
+                rs, ss, cand = self._smoothed(keep)
+                readings, sums = [rs[j] for j in views], [ss[j] for j in views]
+                cand_all = cand
+            if len(cand) == 0:
                 continue
-            ds = [self._dist_cols(c, v[i, c], j) for j, v in enumerate(vals)]
-            est = self._estimate(ds, (src != src[i]) & (self._z == self._z[i]))
-            if est is None:
-                continue
-            d1[i] = est[3]
-            err[i] = float(np.hypot(*(est[0] - self._pos[i])))
+            pos_c, z_c = self._pos[cand_all], self._z[cand_all]
+            allowed_base = np.isin(cand_all, cand)
+            for i in rows[src[rows] == fold]:
+                c = np.flatnonzero(vals[0][i] > 0)
+                if len(c) == 0:
+                    continue
+                ds = [_sorensen(c, vals[j][i, c], r, sm, len(pos_c)) for j, r, sm in zip(views, readings, sums)]
+                est = self._estimate(ds, allowed_base & (z_c == map_z[i]), pos_c)
+                if est is None:
+                    continue
+                d1[i] = est[3]
+                err[i] = float(np.hypot(*(est[0] - self._map_pos[i])))
         ok = np.isfinite(err)
         if ok.sum() < 10:
             return
@@ -288,36 +403,32 @@ class PowedKnn(Positioner):
         return ds, int(usable.sum()), int(keep.sum())
 
     def _dist_cols(self, c: np.ndarray, q: np.ndarray, view: int = 0) -> np.ndarray:
-        """Sørensen distance (M,) of a query given as map columns c (q,) and weighted values q (q,)."""
-        m = len(self._pos)
+        """Sørensen distance (C,) to every candidate of a query given as map columns c (q,) and weighted
+        values q (q,)."""
         readings, sums, _ = self._views[view]
-        rows, map_vals, lens = readings.gather(c)
-        if len(rows) == 0:
-            return np.ones(m)
-        mins = np.minimum(np.repeat(q, lens), map_vals)
-        shared = np.bincount(rows, weights=mins, minlength=m)
-        d = 1.0 - 2.0 * shared / np.maximum(q.sum() + sums, 1e-300)
-        return np.clip(d, 0.0, 1.0)
+        return _sorensen(c, q, readings, sums, len(self._pos))
 
-    def _estimate(self, ds: list[np.ndarray], allowed: np.ndarray
+    def _estimate(self, ds: list[np.ndarray], allowed: np.ndarray, pos: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
         """Per view the k nearest allowed map scans with D < 1, weights 1 / (D + epsilon); the position
         is the mean of the views' weighted means. (xy, rows, weights summing to 1, D1 of the first
         view, D of the rows) or None when no view has a candidate."""
         p = self.params
+        k = int(p.smooth_k) if self._kernel is not None else int(p.k)
         parts = []
         for d in ds:
             cand = np.flatnonzero(allowed & (d < 1.0))
             if len(cand) == 0:
                 continue
-            best = cand[np.argsort(d[cand], kind="stable")[:min(p.k, len(cand))]]
+            best = cand[np.argsort(d[cand], kind="stable")[:min(k, len(cand))]]
             s = 1.0 / (d[best] + p.epsilon)
             parts.append((best, s / s.sum(), d[best]))
         if not parts:
             return None
         rows = np.concatenate([b for b, _, _ in parts])
         w = np.concatenate([x for _, x, _ in parts]) / len(parts)
-        return w @ self._pos[rows], rows, w, float(parts[0][2][0]), np.concatenate([x for _, _, x in parts])
+        return (w @ (self._pos if pos is None else pos)[rows], rows, w, float(parts[0][2][0]),
+                np.concatenate([x for _, _, x in parts]))
 
     def reset(self) -> None:
         """Forget the learnt device offset (a new phone)."""
@@ -349,14 +460,27 @@ class PowedKnn(Positioner):
         k = cols >= 0
         if k.sum() < p.offset_min_aps:
             return
-        m = np.asarray(rm.rssi_dbm, float)[np.ix_(fix.info["rows"], cols[k])]
+        wm = self.map_weights(fix.info["rows"], fix.info["weights"])
+        support = np.flatnonzero(wm >= 0.01 * wm.max())      # the map scans behind the fix
+        m = np.asarray(rm.rssi_dbm, float)[np.ix_(support, cols[k])]
         shared = ~np.isnan(m).any(axis=0)
         if shared.sum() < p.offset_min_aps:
             return
-        ref = fix.info["weights"] @ m[:, shared]
+        wts = wm[support] / wm[support].sum()
+        ref = wts @ m[:, shared]
         r = float(np.median(np.asarray(scan.rssi_dbm, float)[k][shared] - ref))
         self.offset_db = float(np.clip(self.offset_db + p.offset_gain * r, -p.offset_max_db, p.offset_max_db))
 
+    def map_weights(self, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(M,) weights of the map scans behind a fix of candidates ``rows`` with ``weights``: the
+        candidates' own with no smoothing, else spread over the scans each grid point interpolates."""
+        out = np.zeros(len(self._map_pos))
+        if self._kernel is None:
+            np.add.at(out, rows, weights)
+            return out
+        k = self._kernel[rows]
+        k = k.multiply(1.0 / np.maximum(np.asarray(k.sum(axis=1)), 1e-300))
+        return np.asarray(k.T @ weights).ravel()
     def _locate(self, scan: WifiScan) -> Fix:
         p = self.params
         nan_fix = (np.full(2, np.nan), np.full((2, 2), np.nan))
@@ -395,3 +519,15 @@ class PowedKnn(Positioner):
         z_best = float(self._z[best[0]])
         return Fix(scan.stamp_ns, xy, cov, ok=True, info=info, z=z_best,
                    z_var=float(sum(pp * (z - z_best) ** 2 for z, pp in floor_p.items())))
+
+
+def _sorensen(c: np.ndarray, q: np.ndarray, readings: ApReadings, sums: np.ndarray, m: int) -> np.ndarray:
+    """Sørensen distance (m,) of a query given as columns c (q,) and values q (q,) to the rows of
+    ``readings`` (their value sums ``sums`` (m,))."""
+    rows, map_vals, lens = readings.gather(c)
+    if len(rows) == 0:
+        return np.ones(m)
+    mins = np.minimum(np.repeat(q, lens), map_vals)
+    shared = np.bincount(rows, weights=mins, minlength=m)
+    d = 1.0 - 2.0 * shared / np.maximum(q.sum() + sums, 1e-300)
+    return np.clip(d, 0.0, 1.0)
