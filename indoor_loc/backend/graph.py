@@ -543,6 +543,9 @@ class MultiUserGraph:
 
         base_x = X.copy()
         base_l = self.step_len.copy()
+        # the closures below hold no reference to the graph (the last solve's jac outlives the
+        # solve in _last_J; a graph -> jac -> graph cycle would only be freed by the cyclic GC)
+        sqrt_pdr, sqrt_step, n_nbr = self._sqrt_pdr, self._sqrt_step, self.k
 
         def unpack(z):
             Xc = base_x.copy()
@@ -568,7 +571,7 @@ class MultiUserGraph:
             if want_jac:
                 ep, (jp, jc, jl) = ep
                 ew, (jwp, jwn) = ew
-            res[r_p:r_w] = (ep * self._sqrt_pdr).ravel()
+            res[r_p:r_w] = (ep * sqrt_pdr).ravel()
             ewh = np.einsum("nab,nb->na", wL, ew)
             if want_jac:
                 jwp = np.einsum("nab,nbc->nac", wL, jwp)
@@ -581,15 +584,15 @@ class MultiUserGraph:
             eg = Xc[gpose] - gx
             eg[:, 2] = F.wrap(eg[:, 2])
             res[r_g:r_u] = (eg * sqrt_g).ravel()
-            res[r_u:] = (L[var_users] - p.step_prior_m) * self._sqrt_step
+            res[r_u:] = (L[var_users] - p.step_prior_m) * sqrt_step
             if not want_jac:
                 return res
-            s = self._sqrt_pdr[None, :, None]
+            s = sqrt_pdr[None, :, None]
             vals = [(jp * s).ravel(), (jc * s).ravel(), (jl[:, :, None] * s).ravel(), jwp.ravel()]
-            for j in range(self.k):
+            for j in range(n_nbr):
                 vals.append(jwn[:, j].ravel())
             vals.append(np.broadcast_to(np.diag(sqrt_g), (n_g, 3, 3)).ravel())
-            vals.append(np.full(n_u, self._sqrt_step))
+            vals.append(np.full(n_u, sqrt_step))
             v = np.concatenate(vals)[keep]
             return res, v
 
