@@ -57,26 +57,36 @@ class MagArrays(NamedTuple):
         return len(self.sec)
 
 
-def _decode_fixed(datas: Sequence[bytes], n_doubles: int) -> tuple[np.ndarray, np.ndarray, str, np.ndarray] | None:
+def _decode_fixed(datas: Sequence[bytes] | np.ndarray, n_doubles: int
+                  ) -> tuple[np.ndarray, np.ndarray, str, np.ndarray] | None:
     """(sec, nanosec, frame_id, doubles (N, n_doubles)) of CDR records ``header + n_doubles float64``
-    that share size and header prefix; None if they do not (or are not little-endian CDR)."""
-    if not datas:
-        return None
-    first = datas[0]
+    that share size and header prefix; None if they do not (or are not little-endian CDR).
+    ``datas``: the records, or an (N, size) uint8 array of them."""
+    if isinstance(datas, np.ndarray):
+        if datas.ndim != 2 or not len(datas):
+            return None
+        a = datas
+        n, rec = a.shape
+        first = a[0].tobytes()
+    else:
+        if not datas:
+            return None
+        first = datas[0]
+        n, rec = len(datas), len(first)
+        a = None
     if len(first) < 16 or first[:2] != _CDR_LE:
         return None
     (slen,) = struct.unpack_from("<I", first, 12)
     str_end = 16 + slen
     off = 4 + (str_end - 4 + 7) // 8 * 8
     size = off + 8 * n_doubles
-    rec = len(first)
     if slen < 1 or rec != size:
         return None
-    buf = b"".join(datas)
-    n = len(datas)
-    if len(buf) != n * rec:
-        return None                         # sizes differ within the run
-    a = np.frombuffer(buf, np.uint8).reshape(n, rec)
+    if a is None:
+        buf = b"".join(datas)
+        if len(buf) != n * rec:
+            return None                         # sizes differ within the run
+        a = np.frombuffer(buf, np.uint8).reshape(n, rec)
     prefix = a[:, :4]
     name = a[:, 12:str_end]
     if n > 1 and (np.any(prefix != prefix[0]) or np.any(name != name[0])):
@@ -93,8 +103,9 @@ def _decode_fixed(datas: Sequence[bytes], n_doubles: int) -> tuple[np.ndarray, n
     return sec, nsec, frame_id, vals
 
 
-def decode_imu(datas: Sequence[bytes]) -> ImuArrays | None:
-    """CDR ``sensor_msgs/msg/Imu`` records -> :class:`ImuArrays` (None: decode them one by one)."""
+def decode_imu(datas: Sequence[bytes] | np.ndarray) -> ImuArrays | None:
+    """CDR ``sensor_msgs/msg/Imu`` records (or an (N, size) uint8 array of them) -> :class:`ImuArrays`
+    (None: decode them one by one)."""
     r = _decode_fixed(datas, IMU_DOUBLES)
     if r is None:
         return None
@@ -102,7 +113,7 @@ def decode_imu(datas: Sequence[bytes]) -> ImuArrays | None:
     return ImuArrays(sec, nsec, frame, v[:, 0:4], v[:, 4:13], v[:, 13:16], v[:, 16:25], v[:, 25:28], v[:, 28:37])
 
 
-def decode_mag(datas: Sequence[bytes]) -> MagArrays | None:
+def decode_mag(datas: Sequence[bytes] | np.ndarray) -> MagArrays | None:
     """CDR ``sensor_msgs/msg/MagneticField`` records -> :class:`MagArrays` (None: one by one)."""
     r = _decode_fixed(datas, MAG_DOUBLES)
     if r is None:
@@ -179,10 +190,10 @@ def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
     return [(t, f[i]) for i, t in enumerate((arr.sec * NS_PER_S + arr.nanosec).tolist())]
 
 
-def bulk_items(type_name: str, datas: Sequence[bytes]) -> Sequence | None:
-    """CDR records of one message type -> what that type's adapter returns for each (``Imu``:
-    ``msg_adapters.imu.imu_from_msg``'s :class:`ImuSample`; ``MagneticField``: ``mag_from_msg``'s
-    ``(stamp_ns, field)``), for :meth:`indoor_loc.pipeline.stage.Stage.process_batch`. None for
+def bulk_items(type_name: str, datas: Sequence[bytes] | np.ndarray) -> Sequence | None:
+    """CDR records of one message type (or an (N, size) uint8 array of them) -> what that type's
+    adapter returns for each (``Imu``: ``msg_adapters.imu.imu_from_msg``'s :class:`ImuSample`;
+    ``MagneticField``: ``mag_from_msg``'s ``(stamp_ns, field)``), for :meth:`indoor_loc.pipeline.stage.Stage.process_batch`. None for
     another type, a run that does not decode in bulk, or one holding a message the adapter rejects."""
     if type_name == "sensor_msgs/msg/Imu":
         imu = decode_imu(datas)
