@@ -202,3 +202,33 @@ def test_with_header_stamp_changes_only_the_stamp():
     assert with_header_stamp(serialize_message(arr), -1) is None
     assert with_header_stamp(serialize_message(arr), 2**31 * S) is None
     assert with_header_stamp(b"\x01\x00" + serialize_message(arr)[2:], S) is None     # big-endian CDR
+
+
+def test_heading_history_add_many_and_at_equal_one_sample_at_a_time():
+    from indoor_loc.imu.pdr import HeadingHistory
+    from indoor_loc.measurements import wrap_angle
+
+    rng = np.random.default_rng(11)
+    t = np.cumsum(rng.integers(1, 30_000_000, 3000)).tolist()
+    t[500] = t[499]                                             # a repeated stamp is skipped by both
+    yaw = wrap_angle(np.cumsum(rng.normal(0, 0.3, 3000))).tolist()   # crosses +-pi many times
+    var = rng.uniform(0.01, 0.1, 3000).tolist()
+    one, many = HeadingHistory(horizon_s=10.0), HeadingHistory(horizon_s=10.0)
+    for k in range(3000):
+        one.add(t[k], yaw[k], var[k])
+    for a, b in [(0, 1), (1, 700), (700, 2999), (2999, 3000)]:
+        many.add_many(t[a:b], yaw[a:b], var[a:b])
+    assert list(one._t) == list(many._t) and list(one._yaw) == list(many._yaw) and list(one._var) == list(many._var)
+    for q in [t[0] - 5, t[-1] + 5] + rng.integers(t[-1] - 12 * S, t[-1], 200).tolist():
+        got = many.at(q)
+        # reference: np.searchsorted over a copy, linear interpolation of the unwrapped yaw
+        ts = np.array(one._t)
+        i = int(np.searchsorted(ts, q))
+        if i <= 0:
+            want = (wrap_angle(one._yaw[0]), one._var[0])
+        elif i >= len(ts):
+            want = (wrap_angle(one._yaw[-1]), one._var[-1])
+        else:
+            w = (q - ts[i - 1]) / float(ts[i] - ts[i - 1])
+            want = (wrap_angle(one._yaw[i - 1] + w * (one._yaw[i] - one._yaw[i - 1])), max(one._var[i - 1], one._var[i]))
+        assert got == want

@@ -177,13 +177,17 @@ class HeadingHistory:
     def add_many(self, stamps_ns: list[int], yaw: list[float], var: list[float]) -> None:
         """:meth:`add` for each sample in order (same values and state)."""
         ts, ys, vs = self._t, self._yaw, self._var
+        pi, two_pi = math.pi, 2.0 * math.pi
+        last_t = ts[-1] if ts else None
+        last_y = ys[-1] if ys else None
         for t, y, v in zip(stamps_ns, yaw, var):
-            if ts and t <= ts[-1]:
+            if last_t is not None and t <= last_t:
                 continue
             y = float(y)
-            if ys:
-                y = ys[-1] + wrap_angle(y - ys[-1])
-            ts.append(int(t))
+            if last_y is not None:
+                y = last_y + ((y - last_y + pi) % two_pi - pi)      # wrap_angle, inline
+            last_t, last_y = int(t), y
+            ts.append(last_t)
             ys.append(y)
             vs.append(float(v))
         if ts:
