@@ -245,3 +245,34 @@ def test_dropping_frozen_poses_changes_no_estimate():
         assert np.allclose(xk[ik], xd[id_], atol=1e-6)
         n_compared += len(common)
     assert n_compared >= 30
+
+
+def test_a_solved_graph_is_freed_without_the_cycle_collector():
+    """The last solve's Jacobian (kept for covariances) holds no reference back to its graph, so a
+    dropped graph is freed at once (many short-lived graphs, as in the reduced-map bench, would
+    otherwise pile up until the cyclic GC ran); the covariance still comes from the last solve."""
+    import gc
+    import weakref
+
+    def solved():
+        rng = np.random.default_rng(5)
+        g = MultiUserGraph(GraphParams(window_poses=0), survey(0, 24, rng))
+        feed(g, corridor_walk("a", 2, 22, 0, rng, scan_period_s=1.0))
+        assert g.optimize() is not None
+        return g
+
+    g = solved()
+    pose = g.users["a"].poses[len(g.users["a"].poses) // 2]
+    cov = g.marginal_cov(pose)
+    assert cov is not None and cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(0.5 * (cov + cov.T)) > 0)
+    np.testing.assert_array_equal(g.marginal_cov(pose), cov)       # J evaluated once, reused
+    g = solved()                                                    # no covariance asked: J not evaluated
+    ref = weakref.ref(g)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        del g
+        assert ref() is None
+    finally:
+        if enabled:
+            gc.enable()

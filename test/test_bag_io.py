@@ -302,3 +302,50 @@ def test_recover_skips_a_damaged_chunk_and_keeps_the_rest(tmp_path: Path) -> Non
     assert lost and ids == [i for i in range(60) if i not in lost]
     with pytest.raises(BagError, match="cannot be read"):      # an ordinary read stops there
         list(read_bag(damaged))
+
+
+def test_read_runs_gives_read_raws_order_and_bytes(tmp_path: Path) -> None:
+    """Runs (:func:`read_runs`) hold the messages of :func:`read_raw` in the same order, ties across
+    files in file order, from chunked files (one with a chunk written out of order, one whose chunks
+    overlap in time so it is read through the mcap reader), and ``records_of`` joins them."""
+    from indoor_loc.bag.reader import read_raw, read_runs, records_of
+    from msg_adapters.imu import imu_to_msg
+    from rclpy.serialization import serialize_message
+
+    s = 1_000_000_000
+    rng = np.random.default_rng(5)
+    paths = []
+    for f in range(3):
+        p = tmp_path / f"u{f}.mcap"
+        with BagWriter(p, chunk_size=4000) as w:
+            stamps = sorted(int(v) for v in rng.integers(0, 400, 300))     # many equal stamps across files
+            if f == 1:
+                stamps[100:110] = stamps[100:110][::-1]                        # out of order inside a chunk
+            if f == 2:
+                stamps[200:] = [t - 300 for t in stamps[200:]]                 # chunks overlap in time
+            stamps = [t + 1000 for t in stamps]
+            for k, t in enumerate(stamps):
+                frame = f"u{f}" if k % 7 else f"u{f}/other"
+                msg = imu_to_msg(t * s // 100 + 1, frame, [0.0, 0.1 * k, 9.8])
+                w.write(f"/u{f}/imu/data" if k % 7 else f"/u{f}/imu/other", msg, t * s // 100 + 1)
+        paths.append(p)
+    want = [(m.topic, m.stamp_ns, m.data) for m in read_raw(paths)]
+    # the reference: each file in log-time order by the mcap reader, merged by (time, file, position)
+    ref = []
+    for i, p in enumerate(paths):
+        with open(p, "rb") as fh:
+            ref += [(mm.log_time, i, k, ch.topic, bytes(mm.data))
+                    for k, (_, ch, mm) in enumerate(make_reader(fh).iter_messages(log_time_order=True))]
+    assert [(t, ts, d) for ts, _, _, t, d in sorted(ref)] == want and len(want) == 900
+    runs = list(read_runs(paths))
+    got = [(r.topic, t, r.data(k)) for r in runs for k, t in enumerate(r.stamps)]
+    assert got == want
+    assert all(len({r.topic}) == 1 and len(r) for r in runs) and len(runs) < len(want)
+    same = [r for r in runs if r.topic == "/u0/imu/data"]
+    mat = records_of(same)
+    assert mat is not None and mat.tobytes() == b"".join(r.data(k) for r in same for k in range(len(r)))
+    longest = max(same, key=len)
+    assert len(longest) > 2 and bytes(longest.part(1, 2).records()[0]) == longest.data(1)
+    other = [r for r in runs if r.topic == "/u0/imu/other"]
+    assert records_of([same[0], other[0]]) is None                      # two sizes: no array
+    assert len(serialize_message(imu_to_msg(s, "u0/other", [0.0, 0.0, 9.8]))) == len(other[0].data(0))

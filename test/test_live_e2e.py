@@ -1,8 +1,8 @@
 """Done as the README says, over DDS in separate processes: import one PUTMC walk, start imu_node,
 wifi_fix_node and pdr_kf_node in the walk's namespace with the importer's params.yaml, `recorder -a`
-and `player -r 5 --wait-for-subscribers`; the recorded outputs equal the offline `indoor-loc run` of
-the same bag (message counts per topic, positions within float tolerance) and the recorder holds
-every input message."""
+and `player -r 5 --wait-for-subscribers --min-subscribers imu/data=2 wifi/scan=2`; the recorded
+outputs equal the offline `indoor-loc run` of the same bag (message counts per topic, positions
+within float tolerance) and the recorder holds every input message."""
 from __future__ import annotations
 
 import signal
@@ -73,10 +73,14 @@ def test_live_nodes_over_dds_equal_the_offline_run(ros_domain, tmp_path):
             time.sleep(0.1)
         assert all(any(w + "matched" in line for line in nodes[n].lines) for n, ws in matched.items() for w in ws), \
             [nodes[n].output() for n in matched]
+        # the nodes' inputs each have two subscribers (the node and the recorder): a stable non-zero
+        # count can be the recorder alone while imu_node's subscription is still being matched
         player = Peer([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "-r", "5",
-                       "--wait-for-subscribers", "30"], env=env)
+                       "--wait-for-subscribers", "30", "--min-subscribers", "imu/data=2", "wifi/scan=2"], env=env)
         assert player.wait(timeout=120) == 0, player.output()
-        assert "without subscribers" not in player.output()
+        assert "without subscribers" not in player.output() and "fewer subscribers" not in player.output(), \
+            player.output()
+        assert f"{NS}/imu/data 2" in player.output(), player.output()
         for name in ("imu_node", "wifi_fix_node", "pdr_kf_node"):       # dependency order, recorder last
             nodes[name].signal(signal.SIGINT)
             assert nodes[name].wait(timeout=30) == 0, nodes[name].output()

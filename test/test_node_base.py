@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import signal
 import sys
 import time
@@ -16,7 +17,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from sensor_msgs.msg import Imu
 
-from helpers_dds import PEERS, python_peer, ros_node, spin_until
+from helpers_dds import PEERS, Peer, python_peer, ros_node, spin_until
 from indoor_loc.contract import TOPICS, Qos
 from indoor_loc.errors import ConfigError
 from msg_adapters.diagnostics import diagnostics_from_msg
@@ -95,6 +96,28 @@ def test_invalid_parameters_stop_the_process(tmp_path):
             peer.stop()
         assert rc == 2, f"{k}: rc {rc}\n{peer.output()}"
         assert cases[k][1] in peer.output(), f"{k}: {peer.output()}"
+
+
+def test_startup_error_is_an_error_in_diagnostics(ros_domain, tmp_path):
+    """A node that cannot start (here: its radio map does not exist) exits 2 and says so in
+    /diagnostics as ERROR under its own name, not only on stderr."""
+    ns = f"/badstart{os.getpid()}"
+    got: list[tuple[int, str, str]] = []
+    with ros_node("monitor") as (mon, ex):
+        def on_diag(msg: DiagnosticArray) -> None:
+            got.extend((st.level[0], st.name, st.message) for st in msg.status)
+        mon.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
+        peer = Peer([sys.executable, "-m", "indoor_loc.nodes.wifi_fix_node", "--ros-args", "-r", f"__ns:={ns}",
+                     "-p", f"radiomap:={tmp_path / 'missing'}"])
+        try:
+            assert spin_until(ex, lambda: any(name == f"{ns}/wifi_fix_node" for _, name, _ in got), 40), \
+                (got, peer.output())
+            assert peer.wait(timeout=30) == 2, peer.output()
+        finally:
+            peer.stop()
+    level, name, message = next(g for g in got if g[1] == f"{ns}/wifi_fix_node")
+    assert level == 2 and "configuration error" in message and "missing" in message, (level, message)
+    assert "configuration error" in peer.output()                     # and on stderr, as before
 
 
 def _bad(kind: str, stamp_ns: int) -> Imu:

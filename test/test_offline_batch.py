@@ -137,3 +137,98 @@ def test_bulk_decode_handles_frame_id_lengths(frame):
     arr = decode_imu([serialize_message(m) for m in msgs])
     assert arr is not None and arr.frame_id == frame
     np.testing.assert_array_equal(arr.linear_acceleration[:, 1], [0.0, 0.1, 0.2])
+
+
+def test_unchanged_statuses_are_written_again_with_the_new_stamp(tmp_path, monkeypatch):
+    """/diagnostics of a stage that did nothing since its last status is that status restamped: the
+    output equals building every status afresh, including a WARN that ends while the user is idle."""
+    import msg_adapters.diagnostics as diagnostics
+    from indoor_loc.pipeline import offline
+
+    bag = tmp_path / "in.mcap"
+    rng = np.random.default_rng(3)
+    with BagWriter(bag) as w:
+        for k in range(3000):                              # 50 Hz: /a for 30 s (a NaN at 24 s), /b for 60 s
+            t = 5 * S + k * 20_000_000
+            for ns, end in (("/a", 1500), ("/b", 3000)):
+                if k >= end:
+                    continue
+                acc = np.array([0.0, 0.2, 9.81 + 2.0 * np.sin(2 * np.pi * 1.8 * k / 50)]) + rng.normal(0, 0.05, 3)
+                msg = imu_to_msg(t, ns[1:] + "/imu", acc, None, _quat_z(0.01 * k), np.diag([0.01, 0.01, 0.02]))
+                if ns == "/a" and k == 1200:
+                    msg.linear_acceleration.y = float("nan")
+                w.write(ns + "/imu/data", msg, t)
+    params = tmp_path / "params.yaml"
+    params.write_text("/**/imu_node:\n  ros__parameters:\n    heading_source: orientation\n")
+    built = []
+    original = diagnostics.stage_diagnostics
+
+    def spy(name, stage, now_ns):
+        built.append(name)
+        return original(name, stage, now_ns)
+
+    monkeypatch.setattr(diagnostics, "stage_diagnostics", spy)
+    a = run_offline([bag], tmp_path / "reuse.mcap", nodes=["imu"], params=params, progress=False)
+    n_reused = a.ticks * 2 - len(built)
+    monkeypatch.setattr(offline, "REUSE_DIAGNOSTICS", False)
+    built.clear()
+    b = run_offline([bag], tmp_path / "fresh.mcap", nodes=["imu"], params=params, progress=False)
+    assert len(built) == b.ticks * 2 and n_reused > 20       # /a idle for 30 ticks
+    raw_a, diag_a = _content(tmp_path / "reuse.mcap")
+    raw_b, diag_b = _content(tmp_path / "fresh.mcap")
+    assert raw_a == raw_b and len(raw_b["/a/pdr/odom"]) > 10
+    assert diag_a == diag_b
+    levels_a = [int.from_bytes(level, "little") for t, name, level, *_ in diag_b if name == "/a/imu_node"]
+    assert levels_a[-1] == 0 and 1 in levels_a[-35:]       # the WARN of the NaN ends while /a is idle
+    restamped = [(m.msg.header.stamp.sec * S + m.msg.header.stamp.nanosec, m.stamp_ns)
+                 for m in read_bag([tmp_path / "reuse.mcap"]) if m.topic == "/diagnostics"]
+    assert len(restamped) == 2 * a.ticks and all(h == t for h, t in restamped)
+
+
+def test_with_header_stamp_changes_only_the_stamp():
+    from rclpy.serialization import deserialize_message
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from indoor_loc.bag.bulk import with_header_stamp
+    from msg_adapters.diagnostics import status_array
+
+    arr = status_array("/u1/imu_node", 1, "1 messages rejected", {"in.imu/data.count": "12"}, 7 * S + 5)
+    data = with_header_stamp(serialize_message(arr), 2_000_000_000 * S + 999_999_999)
+    assert data is not None
+    got = deserialize_message(data, DiagnosticArray)
+    assert (got.header.stamp.sec, got.header.stamp.nanosec) == (2_000_000_000, 999_999_999)
+    arr.header.stamp = got.header.stamp
+    assert got == arr
+    assert with_header_stamp(serialize_message(arr), -1) is None
+    assert with_header_stamp(serialize_message(arr), 2**31 * S) is None
+    assert with_header_stamp(b"\x01\x00" + serialize_message(arr)[2:], S) is None     # big-endian CDR
+
+
+def test_heading_history_add_many_and_at_equal_one_sample_at_a_time():
+    from indoor_loc.imu.pdr import HeadingHistory
+    from indoor_loc.measurements import wrap_angle
+
+    rng = np.random.default_rng(11)
+    t = np.cumsum(rng.integers(1, 30_000_000, 3000)).tolist()
+    t[500] = t[499]                                             # a repeated stamp is skipped by both
+    yaw = wrap_angle(np.cumsum(rng.normal(0, 0.3, 3000))).tolist()   # crosses +-pi many times
+    var = rng.uniform(0.01, 0.1, 3000).tolist()
+    one, many = HeadingHistory(horizon_s=10.0), HeadingHistory(horizon_s=10.0)
+    for k in range(3000):
+        one.add(t[k], yaw[k], var[k])
+    for a, b in [(0, 1), (1, 700), (700, 2999), (2999, 3000)]:
+        many.add_many(t[a:b], yaw[a:b], var[a:b])
+    assert list(one._t) == list(many._t) and list(one._yaw) == list(many._yaw) and list(one._var) == list(many._var)
+    for q in [t[0] - 5, t[-1] + 5] + rng.integers(t[-1] - 12 * S, t[-1], 200).tolist():
+        got = many.at(q)
+        # reference: np.searchsorted over a copy, linear interpolation of the unwrapped yaw
+        ts = np.array(one._t)
+        i = int(np.searchsorted(ts, q))
+        if i <= 0:
+            want = (wrap_angle(one._yaw[0]), one._var[0])
+        elif i >= len(ts):
+            want = (wrap_angle(one._yaw[-1]), one._var[-1])
+        else:
+            w = (q - ts[i - 1]) / float(ts[i] - ts[i - 1])
+            want = (wrap_angle(one._yaw[i - 1] + w * (one._yaw[i] - one._yaw[i - 1])), max(one._var[i - 1], one._var[i]))
+        assert got == want

@@ -181,3 +181,52 @@ def test_player_publishes_diagnostics(ros_domain: int, tmp_path: Path) -> None:
     last = mine[-1]
     assert last.level == 1 and f"/{U}_9/imu/data_raw" in last.values["without_subscribers"]
     assert last.values["last_bag_stamp_ns"] == str(T0 + (n - 1) * DT)
+
+
+def test_min_subscribers_parsing() -> None:
+    from indoor_loc.nodes.player_node import MinSubscribers
+    m = MinSubscribers(["2", "imu/mag=3", "/walk16/imu/mag=4", "data_raw=0"])
+    assert m("/walk16/imu/data_raw") == 0 and m("/alice/imu/data_raw") == 0
+    assert m("/walk16/imu/mag") == 4 and m("/alice/imu/mag") == 3          # a full name beats a relative one
+    assert m("/alice/wifi/scan") == 2 and m("/alice/xyzimu/mag") == 2     # relative names match whole elements
+    assert MinSubscribers()("/x") == 1
+    assert m.unused(["/alice/imu/mag", "/alice/imu/data_raw"]) == ["/walk16/imu/mag"]
+    for bad in ("x", "-1", "imu/mag=", "=2", "/=1", "imu/mag=two"):
+        with pytest.raises(ConfigError, match="min_subscribers"):
+            MinSubscribers([bad])
+
+
+@pytest.mark.timeout(90)
+def test_player_waits_for_the_subscribers_it_is_told_of(ros_domain: int, tmp_path: Path) -> None:
+    """Two processes subscribe to a topic; one matches late. With ``--min-subscribers TOPIC=2`` the
+    player waits for both (a stable count of one is not enough), so neither misses a message."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from helpers_dds import Peer, ros_node, spin_for, spin_until
+
+    ns = f"/{U}_m"
+    bag = tmp_path / "walk.mcap"
+    n = 40
+    _make_bag(bag, ns, n)
+    got: dict[str, list[int]] = {"first": [], "late": []}
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    with ros_node("probe") as (probe, ex):
+        probe.create_subscription(Imu, f"{ns}/imu/data_raw", lambda m: got["first"].append(int(m.header.frame_id)),
+                                  qos)
+        player = Peer([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--rate", "4",
+                       "--topics", f"{ns}/imu/data_raw", "--wait-for-subscribers", "40",
+                       "--min-subscribers", "imu/data_raw=2"])
+        try:
+            assert player.wait_line("imu/data_raw", 30), player.output()     # publisher created
+            spin_for(ex, 2.5)                      # the first subscriber alone: well past the settle time
+            assert got["first"] == [], player.output()
+            probe.create_subscription(Imu, f"{ns}/imu/data_raw",
+                                      lambda m: got["late"].append(int(m.header.frame_id)), qos)
+            assert spin_until(ex, lambda: len(got["first"]) == n and len(got["late"]) == n, 40), \
+                (len(got["first"]), len(got["late"]), player.output())
+            assert player.wait(timeout=30) == 0, player.output()
+        finally:
+            player.stop()
+    assert got["first"] == got["late"] == list(range(n))
+    assert f"subscribers when playing starts: {ns}/imu/data_raw 2" in player.output()
+    assert "fewer subscribers" not in player.output()

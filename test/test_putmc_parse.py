@@ -51,6 +51,16 @@ EDGE_CASES = [
     "1 \u0663 3 4\n", "1\u00a02 3 4\n", "1 2 3 4\u2028",   # non-ASCII digits, spaces, line breaks
     "1 0.1000000000000000055511151231257827 2.2250738585072011e-308 4.9e-324\n",
     "", "\n\n", "   \n",
+    # the decimal fast path's borders: Java exponents, signs, points, 2**53, 10**±22, field widths
+    "1 8.8500977E-4 -2.746582E-4 1.5E3\n2 -0.0 -0 0.0\n", "1 -.5 .5 5.\n", "-5 1 2 3\n",
+    "1 2 3 -\n", "1 2 3 5E-\n", "1 2 3 -.\n", "1 -. 3 4\n", "1 . 3 4\n", "1 1.2.3 3 4\n",
+    "1E3 2 3 4\n", "1 1.5E3.2 3 4\n", "1 15E3.2 3 4\n", "1 6E-1.5 3 4\n", "1 1E5E6 3 4\n", "1 -E5 3 4\n",
+    "1 E5 3 4\n", "1 5E 3 4\n",
+    "1 --5 3 4\n", "1 5- 3 4\n", "1 1-2 3 4\n", "1 2 - 4\n", "1 2 3 4\n- 2 3 4\n",
+    "1 9007199254740992 9007199254740993 -9007199254740993\n", "1 0.9007199254740993 3 4\n",
+    "1 1E22 1E-22 1.5E21\n", "1 1E23 1E-23 0.0000000000000000000001\n", "1 2E-0000000004 3 4\n",
+    "123456789012345678 2 3 4\n", "1234567890123456789 2 3 4\n", "-123456789012345678 2 3 4\n",
+    "1 2 3 4 \n", "1 2 3 4\n\n\n", "1 2  3 4\n", "1 2 3 4\n 5 6 7 8\n", "1 2 3\n4\n",
 ]
 
 
@@ -79,6 +89,56 @@ def test_real_files_match_the_reference_parser(tmp_path):
         text = (folder / name).read_text()
         _assert_same(tmp_path, text, ncols)
     _assert_same(tmp_path, (root / P.MAP_DIR / "positions.map").read_text(), 3)
+
+
+_PIECES = ["0", "7", "12", "9007199254740993", "-", ".", "E", "E-", "-0.", "3.25", "E22", "E-23", " ", "  ", "\n"]
+
+
+def test_decimal_fast_path_accepts_only_what_it_parses_exactly():
+    """Seeded texts spliced from number fragments, separators and misplaced signs, points and
+    exponents: wherever the fast path returns arrays, the reference parser accepts the text and
+    gives the same arrays bit for bit; it declines (None) everything else."""
+    rng = np.random.default_rng(20261123)
+    taken = declined = 0
+    for _ in range(3000):
+        fields = []                         # Java-style decimals (upper-case E, no '+'), as published
+        for _ in range(int(rng.integers(1, 4))):
+            fields.append(str(int(rng.integers(0, 10 ** 12))))
+            for _ in range(3):
+                v = rng.normal(0, 10) * 10.0 ** int(rng.integers(-12, 12))
+                fmt = ["{:.9g}", "{:.7g}", "{:.3E}", "{!r}", "{:.0f}"][int(rng.integers(0, 5))]
+                fields.append(fmt.format(v).upper().replace("E+", "E"))
+        if rng.random() < 0.6:              # one field spliced from fragments
+            fields[int(rng.integers(0, len(fields)))] = "".join(rng.choice(_PIECES, int(rng.integers(1, 4))))
+        text = "\n".join(" ".join(fields[i:i + 4]) for i in range(0, len(fields), 4)) + "\n"
+        fast = P._parse_table_fast(text.encode(), 4)
+        ref = _outcome(lambda t=text: P.parse_table_lines(t, 4))
+        if fast is None:
+            declined += 1
+            continue
+        taken += 1
+        assert not isinstance(ref, str), f"{text!r}: fast path accepted what the reference refuses: {ref}"
+        for a, b in zip(fast, ref):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), repr(text)
+    assert taken > 500 and declined > 500, (taken, declined)
+
+
+def test_all_walks_take_the_fast_path_with_loadtxts_arrays():
+    """Every acc.map / orient.map of the 24 walks takes the fast path; on every third walk its
+    arrays are numpy loadtxt's, bit for bit."""
+    root = dataset("putmc")
+    for n, folder in P.walk_folders(root).items():
+        for name, ncols in (("acc.map", 4), ("orient.map", 6)):
+            raw = (folder / name).read_bytes()
+            fast = P._parse_table_fast(raw, ncols)
+            assert fast is not None, folder / name
+            if n % 3:
+                continue
+            dtype = np.dtype([("t", np.int64), ("v", np.float64, (ncols - 1,))])
+            rows = np.loadtxt(raw.decode().splitlines(), dtype=dtype, comments=None)
+            assert fast[0].tobytes() == np.ascontiguousarray(rows["t"]).tobytes(), folder / name
+            assert fast[1].tobytes() == np.ascontiguousarray(rows["v"]).tobytes(), folder / name
+            assert fast[1].shape == (len(rows), ncols - 1) and fast[1].flags.c_contiguous
 
 
 def test_well_formed_files_take_the_compiled_path(tmp_path, monkeypatch):

@@ -182,3 +182,75 @@ def test_recorder_refuses_to_overwrite(tmp_path: Path) -> None:
         run(p.parse_args(["-t", "/x", "-o", str(out)]))
     assert out.read_bytes() == b"an earlier recording"
     assert p.parse_args(["-t", "/x", "-o", str(out), "--overwrite"]).overwrite
+
+
+def _imu(k: int):
+    from sensor_msgs.msg import Imu
+    m = Imu()
+    m.header.stamp.sec, m.header.stamp.nanosec = 1 + k // 200, (k % 200) * 5_000_000
+    m.header.frame_id = str(k)
+    return m
+
+
+@pytest.mark.timeout(60)
+def test_recorder_takes_bursts_and_counts_what_it_lost(ros_domain: int, tmp_path: Path, monkeypatch) -> None:
+    """One callback takes everything already queued on every subscription (rclpy's per-callback
+    cost is paid per burst, not per message); the bag keeps each topic's order; a message DDS
+    overwrote before it was taken is counted; what is still queued at the end is taken too."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Imu
+
+    from helpers_dds import ros_node, spin_until
+    from indoor_loc.bag import BagWriter, read_raw
+    from indoor_loc.nodes import recorder_node
+
+    a, b = f"/{U}_b/imu/a", f"/{U}_b/imu/b"
+    writer = BagWriter(tmp_path / "burst.mcap")
+    writer.open()
+    with ros_node("probe") as (probe, ex):
+        qos = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = {t: probe.create_publisher(Imu, t, qos) for t in (a, b)}
+        monkeypatch.setattr(recorder_node, "SUB_DEPTH", 2000)       # DDS keeps 2000 per topic here
+        rec = recorder_node.RecorderNode(writer, topics=[a, b], context=probe.context, flush_interval_s=0)
+        rex = SingleThreadedExecutor(context=probe.context)
+        rex.add_node(rec)
+        try:
+            assert set(rec._subs) == {a, b}
+            assert spin_until(ex, lambda: all(p.get_subscription_count() == 1 for p in pubs.values()), 20)
+            sent = {a: 0, b: 0}
+
+            def publish(topic: str, n: int) -> None:
+                for _ in range(n):
+                    pubs[topic].publish(_imu(sent[topic]))
+                    sent[topic] += 1
+                assert pubs[topic].wait_for_all_acked(rclpy_duration(10))    # all in the recorder's queue
+
+            publish(a, 1500)
+            publish(b, 1500)
+            rex.spin_once(timeout_sec=5.0)                  # one callback: the whole burst of both topics
+            assert rec.received == 3000, rec.received
+            publish(a, 2500)                                # 500 more than DDS keeps: overwritten, counted
+            assert spin_until(rex, lambda: rec.received >= 5000, 10)
+            assert rec.received == 5000 and rec.lost == {a: 500}, (rec.received, rec.lost)
+            publish(b, 300)                                 # queued when the spin ends: the last pass
+            assert rec.take_remaining() == 300
+        finally:
+            rex.remove_node(rec)
+            rec.destroy_node()
+            rec.close()
+            writer.close()
+    got: dict[str, list[int]] = {a: [], b: []}
+    log = []
+    from rclpy.serialization import deserialize_message
+    for m in read_raw([tmp_path / "burst.mcap"]):
+        got[m.topic].append(int(deserialize_message(m.data, Imu).header.frame_id))
+        log.append(m.stamp_ns)
+    assert got[a] == list(range(1500)) + list(range(2000, 4000))      # the 500 oldest of the burst lost
+    assert got[b] == list(range(1800))
+    assert log == sorted(log)
+
+
+def rclpy_duration(seconds: float):
+    from rclpy.duration import Duration
+    return Duration(seconds=seconds)

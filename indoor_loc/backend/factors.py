@@ -27,6 +27,8 @@ Cauchy ``ρ(s) = c² log(1 + s/c²)``. :func:`robustify` rescales the whitened e
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: Paper values (Nowicki & Skrzypczyński 2019, Sec. 5): PDR information diag(1, 1, 15), WiFi 10 I, step-length prior 200.
@@ -41,6 +43,13 @@ ROBUST_KERNELS = ("none", "huber", "cauchy")
 def wrap(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to [-π, π)."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def wrap_scalar(a: float) -> float:
+    """:func:`wrap` of one angle in plain floats (the same operations, so the same bits: Python's
+    float ``%`` and numpy's both take ``fmod`` and add the divisor to a remainder of the other
+    sign), without numpy's per-call overhead in per-event code."""
+    return (float(a) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def pdr_error(prev: np.ndarray, cur: np.ndarray, step_len: np.ndarray, steps: np.ndarray, dtheta: np.ndarray,

@@ -182,20 +182,24 @@ class _Growing:
     def __init__(self, **cols: tuple[tuple, Any]) -> None:
         self._spec = cols
         self.n = 0
+        self._cap = 16
         for name, (shape, dtype) in cols.items():
             setattr(self, name, np.zeros((16,) + shape, dtype))
 
     def append(self, **vals: Any) -> int:
-        if self.n == len(getattr(self, next(iter(self._spec)))):
+        n = self.n
+        if n == self._cap:
+            self._cap *= 2
             for name in self._spec:
                 a = getattr(self, name)
-                b = np.zeros((2 * len(a),) + a.shape[1:], a.dtype)
-                b[:self.n] = a[:self.n]
+                b = np.zeros((self._cap,) + a.shape[1:], a.dtype)
+                b[:n] = a[:n]
                 setattr(self, name, b)
+        d = self.__dict__
         for name, v in vals.items():
-            getattr(self, name)[self.n] = v
-        self.n += 1
-        return self.n - 1
+            d[name][n] = v
+        self.n = n + 1
+        return n
 
     def view(self, name: str) -> np.ndarray:
         return getattr(self, name)[:self.n]
@@ -229,10 +233,11 @@ class MultiUserGraph:
         self.gauge = _Growing(pose=((), np.int64), x=((3,), float))
         self.n_frozen = 0
         self.n_dropped = 0
-        self._last_J: tuple | None = None
+        self._last_J: tuple | None = None        # (jac, z, var, col) of the last solve
         self.last_solve: SolveReport | None = None
         self._sqrt_pdr = np.sqrt(np.asarray(params.pdr_info, float))
         self._sqrt_wifi = math.sqrt(params.wifi_info)
+        self._sqrt_wifi_eye = self._sqrt_wifi * np.eye(2)      # copied into the hyperedge table
         self._sqrt_step = math.sqrt(params.step_prior_info)
 
     # -- users and events ------------------------------------------------------------------------
@@ -255,7 +260,7 @@ class MultiUserGraph:
         self._check_order(tr, t_end_ns, "hop")
         if tr.last_hop_end_ns is not None and t_end_ns <= tr.last_hop_end_ns:
             raise ValueError(f"{name}: hop end {t_end_ns} not after the previous hop end {tr.last_hop_end_ns}")
-        dtheta = float(F.wrap(yaw - tr.last_yaw)) if tr.last_hop_end_ns is not None else 0.0
+        dtheta = F.wrap_scalar(yaw - tr.last_yaw) if tr.last_hop_end_ns is not None else 0.0
         dur = max((t_end_ns - t_start_ns) * 1e-9, 1e-3)
         tr.step_rate = max(float(steps), 0.0) / dur
         tr.last_hop_end_ns, tr.last_yaw, tr.last_event_ns = int(t_end_ns), float(yaw), int(t_end_ns)
@@ -317,7 +322,7 @@ class MultiUserGraph:
     def _wifi_sqrt_info(self, match: Match) -> np.ndarray:
         """Square root L (Lᵀ L = Ω) of a hyperedge's information."""
         if not self.params.wifi_info_from_fix:
-            return self._sqrt_wifi * np.eye(2)
+            return self._sqrt_wifi_eye
         info = self.params.wifi_info * np.linalg.inv(np.asarray(match.fix.cov, float))
         return np.linalg.cholesky(info).T
 
@@ -332,7 +337,7 @@ class MultiUserGraph:
         p = self.poses.x[last]
         d = self.step_len[tr.index] * tr.acc_steps
         mean = p[2] + 0.5 * tr.acc_dtheta
-        x = np.array([p[0] + d * math.cos(mean), p[1] + d * math.sin(mean), float(F.wrap(p[2] + tr.acc_dtheta))])
+        x = np.array([p[0] + d * math.cos(mean), p[1] + d * math.sin(mean), F.wrap_scalar(p[2] + tr.acc_dtheta)])
         if xy is not None:
             x[:2] = xy
         i = self._add_pose(tr, stamp_ns, x)
@@ -458,7 +463,7 @@ class MultiUserGraph:
         self.step_len = L
         col = np.full(self.poses.n, -1, np.int64)
         col[var] = 3 * np.arange(len(var))
-        self._last_J = (jac(sol.x), var, col)
+        self._last_J = (jac, sol.x.copy(), var, col)     # J at the optimum: evaluated by marginal_cov
         rep = SolveReport(len(var), n_factors, int(sol.nfev), 0.5 * float(r0 @ r0), float(sol.cost),
                           time.perf_counter() - t0)
         self.last_solve = rep
@@ -538,6 +543,9 @@ class MultiUserGraph:
 
         base_x = X.copy()
         base_l = self.step_len.copy()
+        # the closures below hold no reference to the graph (the last solve's jac outlives the
+        # solve in _last_J; a graph -> jac -> graph cycle would only be freed by the cyclic GC)
+        sqrt_pdr, sqrt_step, n_nbr = self._sqrt_pdr, self._sqrt_step, self.k
 
         def unpack(z):
             Xc = base_x.copy()
@@ -563,7 +571,7 @@ class MultiUserGraph:
             if want_jac:
                 ep, (jp, jc, jl) = ep
                 ew, (jwp, jwn) = ew
-            res[r_p:r_w] = (ep * self._sqrt_pdr).ravel()
+            res[r_p:r_w] = (ep * sqrt_pdr).ravel()
             ewh = np.einsum("nab,nb->na", wL, ew)
             if want_jac:
                 jwp = np.einsum("nab,nbc->nac", wL, jwp)
@@ -576,15 +584,15 @@ class MultiUserGraph:
             eg = Xc[gpose] - gx
             eg[:, 2] = F.wrap(eg[:, 2])
             res[r_g:r_u] = (eg * sqrt_g).ravel()
-            res[r_u:] = (L[var_users] - p.step_prior_m) * self._sqrt_step
+            res[r_u:] = (L[var_users] - p.step_prior_m) * sqrt_step
             if not want_jac:
                 return res
-            s = self._sqrt_pdr[None, :, None]
+            s = sqrt_pdr[None, :, None]
             vals = [(jp * s).ravel(), (jc * s).ravel(), (jl[:, :, None] * s).ravel(), jwp.ravel()]
-            for j in range(self.k):
+            for j in range(n_nbr):
                 vals.append(jwn[:, j].ravel())
             vals.append(np.broadcast_to(np.diag(sqrt_g), (n_g, 3, 3)).ravel())
-            vals.append(np.full(n_u, self._sqrt_step))
+            vals.append(np.full(n_u, sqrt_step))
             v = np.concatenate(vals)[keep]
             return res, v
 
@@ -605,10 +613,13 @@ class MultiUserGraph:
         last = self._last_J
         if last is None:
             return None
-        J, var, col = last
+        J, z, var, col = last
         c = int(col[pose]) if pose < len(col) else -1
         if c < 0:
             return None
+        if callable(J):                  # the first call since the solve evaluates J, once
+            J = J(z)
+            self._last_J = (J, z, var, col)
         J = sp.csr_matrix(J)
         H = (J.T @ J).tocsc()
         try:

@@ -15,12 +15,13 @@ like that (another frame id inside it, big-endian CDR, a truncated record) is no
 from __future__ import annotations
 
 import struct
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from msg_adapters.imu import QUAT_NORM_TOL, ImuSample
-from msg_adapters.time import NS_PER_S
+from msg_adapters.time import MAX_STAMP_NS, NS_PER_S
 
 #: float64 fields after the header
 IMU_DOUBLES = 37
@@ -56,26 +57,36 @@ class MagArrays(NamedTuple):
         return len(self.sec)
 
 
-def _decode_fixed(datas: Sequence[bytes], n_doubles: int) -> tuple[np.ndarray, np.ndarray, str, np.ndarray] | None:
+def _decode_fixed(datas: Sequence[bytes] | np.ndarray, n_doubles: int
+                  ) -> tuple[np.ndarray, np.ndarray, str, np.ndarray] | None:
     """(sec, nanosec, frame_id, doubles (N, n_doubles)) of CDR records ``header + n_doubles float64``
-    that share size and header prefix; None if they do not (or are not little-endian CDR)."""
-    if not datas:
-        return None
-    first = datas[0]
+    that share size and header prefix; None if they do not (or are not little-endian CDR).
+    ``datas``: the records, or an (N, size) uint8 array of them."""
+    if isinstance(datas, np.ndarray):
+        if datas.ndim != 2 or not len(datas):
+            return None
+        a = datas
+        n, rec = a.shape
+        first = a[0].tobytes()
+    else:
+        if not datas:
+            return None
+        first = datas[0]
+        n, rec = len(datas), len(first)
+        a = None
     if len(first) < 16 or first[:2] != _CDR_LE:
         return None
     (slen,) = struct.unpack_from("<I", first, 12)
     str_end = 16 + slen
     off = 4 + (str_end - 4 + 7) // 8 * 8
     size = off + 8 * n_doubles
-    rec = len(first)
     if slen < 1 or rec != size:
         return None
-    buf = b"".join(datas)
-    n = len(datas)
-    if len(buf) != n * rec:
-        return None                         # sizes differ within the run
-    a = np.frombuffer(buf, np.uint8).reshape(n, rec)
+    if a is None:
+        buf = b"".join(datas)
+        if len(buf) != n * rec:
+            return None                         # sizes differ within the run
+        a = np.frombuffer(buf, np.uint8).reshape(n, rec)
     prefix = a[:, :4]
     name = a[:, 12:str_end]
     if n > 1 and (np.any(prefix != prefix[0]) or np.any(name != name[0])):
@@ -92,8 +103,9 @@ def _decode_fixed(datas: Sequence[bytes], n_doubles: int) -> tuple[np.ndarray, n
     return sec, nsec, frame_id, vals
 
 
-def decode_imu(datas: Sequence[bytes]) -> ImuArrays | None:
-    """CDR ``sensor_msgs/msg/Imu`` records -> :class:`ImuArrays` (None: decode them one by one)."""
+def decode_imu(datas: Sequence[bytes] | np.ndarray) -> ImuArrays | None:
+    """CDR ``sensor_msgs/msg/Imu`` records (or an (N, size) uint8 array of them) -> :class:`ImuArrays`
+    (None: decode them one by one)."""
     r = _decode_fixed(datas, IMU_DOUBLES)
     if r is None:
         return None
@@ -101,7 +113,7 @@ def decode_imu(datas: Sequence[bytes]) -> ImuArrays | None:
     return ImuArrays(sec, nsec, frame, v[:, 0:4], v[:, 4:13], v[:, 13:16], v[:, 16:25], v[:, 25:28], v[:, 28:37])
 
 
-def decode_mag(datas: Sequence[bytes]) -> MagArrays | None:
+def decode_mag(datas: Sequence[bytes] | np.ndarray) -> MagArrays | None:
     """CDR ``sensor_msgs/msg/MagneticField`` records -> :class:`MagArrays` (None: one by one)."""
     r = _decode_fixed(datas, MAG_DOUBLES)
     if r is None:
@@ -119,13 +131,41 @@ def _finite(a: np.ndarray) -> np.ndarray:
     return np.isfinite(a).all(axis=1)
 
 
-class SampleRun(list):
-    """The per-message items of a run (a list), with the arrays they were cut from (``arrays``) for
-    batch paths that work on whole columns."""
-    arrays: ImuArrays
+class SampleRun(Sequence):
+    """The per-message items of a run, :class:`ImuSample` each, made when first read (a batch path
+    that works on whole columns reads ``arrays`` and never makes them); ``all_oriented``: every
+    message carries an orientation."""
+
+    def __init__(self, arrays: ImuArrays, stamps: list[int], gyro_on: list[bool], orient_on: list[bool]) -> None:
+        self.arrays = arrays
+        self.stamps = stamps
+        self._gyro_on = gyro_on
+        self._orient_on = orient_on
+        self.all_oriented = all(orient_on)
+        self._cov = arrays.orientation_cov.reshape(-1, 3, 3)
+        self._items: list[ImuSample] | None = None
+
+    def _make(self) -> list[ImuSample]:
+        if self._items is None:
+            arr, frame, cov = self.arrays, self.arrays.frame_id, self._cov
+            acc, gyro, q = arr.linear_acceleration, arr.angular_velocity, arr.orientation_xyzw
+            g_on, o_on = self._gyro_on, self._orient_on
+            self._items = [ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
+                                     cov[i] if o_on[i] else None)
+                           for i, t in enumerate(self.stamps)]
+        return self._items
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        return self._make()[i]
+
+    def __iter__(self):  # type: ignore[override]
+        return iter(self._make())
 
 
-def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
+def imu_samples(arr: ImuArrays) -> SampleRun | None:
     """Validated samples of a decoded run, one per message, equal to ``imu_from_msg`` of each; None
     when any message would be rejected (the caller then takes them one by one, so each is counted
     under its own reason)."""
@@ -138,15 +178,7 @@ def imu_samples(arr: ImuArrays) -> list[ImuSample] | None:
                            & (np.abs(np.sqrt((q * q).sum(axis=1)) - 1.0) <= QUAT_NORM_TOL))))
     if not ok.all():
         return None
-    stamps = (arr.sec * NS_PER_S + arr.nanosec).tolist()
-    frame = arr.frame_id
-    acc, gyro, cov = arr.linear_acceleration, arr.angular_velocity, arr.orientation_cov.reshape(-1, 3, 3)
-    g_on, o_on = gyro_on.tolist(), orient_on.tolist()
-    run = SampleRun(ImuSample(t, frame, acc[i], gyro[i] if g_on[i] else None, q[i] if o_on[i] else None,
-                              cov[i] if o_on[i] else None)
-                    for i, t in enumerate(stamps))
-    run.arrays = arr
-    return run
+    return SampleRun(arr, (arr.sec * NS_PER_S + arr.nanosec).tolist(), gyro_on.tolist(), orient_on.tolist())
 
 
 def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
@@ -158,10 +190,10 @@ def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
     return [(t, f[i]) for i, t in enumerate((arr.sec * NS_PER_S + arr.nanosec).tolist())]
 
 
-def bulk_items(type_name: str, datas: Sequence[bytes]) -> list | None:
-    """CDR records of one message type -> what that type's adapter returns for each (``Imu``:
-    ``msg_adapters.imu.imu_from_msg``'s :class:`ImuSample`; ``MagneticField``: ``mag_from_msg``'s
-    ``(stamp_ns, field)``), for :meth:`indoor_loc.pipeline.stage.Stage.process_batch`. None for
+def bulk_items(type_name: str, datas: Sequence[bytes] | np.ndarray) -> Sequence | None:
+    """CDR records of one message type (or an (N, size) uint8 array of them) -> what that type's
+    adapter returns for each (``Imu``: ``msg_adapters.imu.imu_from_msg``'s :class:`ImuSample`;
+    ``MagneticField``: ``mag_from_msg``'s ``(stamp_ns, field)``), for :meth:`indoor_loc.pipeline.stage.Stage.process_batch`. None for
     another type, a run that does not decode in bulk, or one holding a message the adapter rejects."""
     if type_name == "sensor_msgs/msg/Imu":
         imu = decode_imu(datas)
@@ -170,6 +202,20 @@ def bulk_items(type_name: str, datas: Sequence[bytes]) -> list | None:
         mag = decode_mag(datas)
         return None if mag is None else mag_samples(mag)
     return None
+
+
+_STAMP = struct.Struct("<iI")
+
+
+def with_header_stamp(data: bytes, stamp_ns: int) -> bytes | None:
+    """A little-endian CDR message that starts with a ``std_msgs/Header`` (``DiagnosticArray``,
+    ``Odometry``, ...) with its ``header.stamp`` set to ``stamp_ns``, everything else as it was;
+    None if ``data`` is not little-endian CDR or the stamp does not fit ``builtin_interfaces/Time``."""
+    if len(data) < 12 or data[:2] != _CDR_LE or not 0 <= stamp_ns <= MAX_STAMP_NS:
+        return None
+    out = bytearray(data)
+    _STAMP.pack_into(out, 4, *divmod(stamp_ns, NS_PER_S))     # sec, nanosec after the 4-byte CDR header
+    return bytes(out)
 
 
 #: message types :func:`bulk_items` decodes

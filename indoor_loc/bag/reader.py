@@ -1,7 +1,9 @@
 """Read MCAP bags (one or several, merged in log-time order): messages, raw CDR, topics and counts."""
 from __future__ import annotations
 
+import bisect
 import heapq
+import itertools
 import os
 import struct
 from dataclasses import dataclass
@@ -80,20 +82,36 @@ def _chunks_in_order(summary: Any, wanted: set[str] | None) -> list | None:
     return chunks
 
 
-def _iter_chunks(f: Any, summary: Any, chunks: list, wanted: set[str] | None) -> Iterator[tuple[int, int, RawMessage]]:
-    """Messages chunk by chunk, each chunk's sorted by log time (ties: position), parsed straight
-    from the decompressed chunk: the order of the ``mcap`` reader's ``log_time_order`` without its
+class _Block(NamedTuple):
+    """Stored messages of one file in log-time order, in parallel lists: the CDR bytes of message
+    ``i`` are ``buf[starts[i]:ends[i]]`` (a decompressed chunk, or the joined records)."""
+    buf: bytes
+    times: list[int]
+    cids: list[int]
+    starts: list[int]
+    ends: list[int]
+    pubs: list[int]
+    names: dict[int, tuple[str, str]]        # channel -> (topic, type)
+
+
+#: messages per block when a file is read through the ``mcap`` reader
+_READER_BLOCK = 4096
+
+
+def _chunk_blocks(f: Any, summary: Any, chunks: list, wanted: set[str] | None) -> Iterator[_Block]:
+    """One block per chunk, its messages sorted by log time (ties: position), parsed straight from
+    the decompressed chunk: the order of the ``mcap`` reader's ``log_time_order`` without its
     per-message heap."""
     from mcap.data_stream import ReadDataStream
     from mcap.records import Chunk
 
-    names: dict[int, tuple[str, str] | None] = {}
+    names: dict[int, tuple[str, str]] = {}
     for cid, c in summary.channels.items():
         if wanted is None or c.topic in wanted:
             schema = summary.schemas.get(c.schema_id) if c.schema_id else None
             names[cid] = (c.topic, schema.name if schema is not None else "")
-        else:
-            names[cid] = None
+    known = set(summary.channels)
+    record, message = _RECORD.unpack_from, _MESSAGE.unpack_from
     for index in chunks:
         f.seek(index.chunk_start_offset + 1 + 8)
         chunk = Chunk.read(ReadDataStream(f))
@@ -105,30 +123,69 @@ def _iter_chunks(f: Any, summary: Any, chunks: list, wanted: set[str] | None) ->
             buf = lz4.frame.decompress(chunk.data)
         else:
             buf = chunk.data
-        out: list[tuple[int, int, RawMessage]] = []
+        times: list[int] = []
+        cids: list[int] = []
+        starts: list[int] = []
+        ends: list[int] = []
+        pubs: list[int] = []
         pos, end, last, ordered = 0, len(buf), -1, True
         while pos < end:
-            op, length = _RECORD.unpack_from(buf, pos)
+            op, length = record(buf, pos)
             pos += 9
             if op == _OP_MESSAGE:
-                cid, seq, log_time, pub_time = _MESSAGE.unpack_from(buf, pos)
-                name = names.get(cid, ("", ""))
-                if name is not None:
-                    if cid not in names:
-                        raise ValueError(f"message on unknown channel {cid}")
-                    out.append((log_time, seq, RawMessage(name[0], name[1], log_time, buf[pos + 22:pos + length],
-                                                          pub_time)))
+                cid, _seq, log_time, pub_time = message(buf, pos)
+                if cid in names:
+                    times.append(log_time)
+                    cids.append(cid)
+                    starts.append(pos + 22)
+                    ends.append(pos + length)
+                    pubs.append(pub_time)
                     ordered = ordered and log_time >= last
                     last = log_time
+                elif cid not in known:
+                    raise ValueError(f"message on unknown channel {cid}")
             pos += length
         if pos != end:
             raise ValueError("chunk ends inside a record")
-        if not ordered:
-            out.sort(key=lambda x: x[0])        # stable: ties keep their position
-        yield from out
+        if not ordered:                         # stable: ties keep their position
+            order = sorted(range(len(times)), key=times.__getitem__)
+            times, cids, starts, ends, pubs = ([v[k] for k in order] for v in (times, cids, starts, ends, pubs))
+        if times:
+            yield _Block(buf, times, cids, starts, ends, pubs, names)
 
 
-def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, RawMessage]]:
+def _reader_blocks(reader: Any, wanted: set[str] | None) -> Iterator[_Block]:
+    """Blocks of the ``mcap`` reader's messages in log-time order (files without a usable chunk index)."""
+    ids: dict[tuple[str, str], int] = {}
+    names: dict[int, tuple[str, str]] = {}
+    parts: list[bytes] = []
+    times: list[int] = []
+    cids: list[int] = []
+    pubs: list[int] = []
+
+    def block() -> _Block:
+        ends = list(itertools.accumulate(len(d) for d in parts))
+        return _Block(b"".join(parts), times, cids, [e - len(d) for e, d in zip(ends, parts)], ends, pubs, dict(names))
+
+    for schema, channel, message in reader.iter_messages(
+            topics=sorted(wanted) if wanted is not None else None, log_time_order=True):
+        name = (channel.topic, schema.name if schema else "")
+        cid = ids.get(name)
+        if cid is None:
+            cid = ids[name] = len(ids)
+            names[cid] = name
+        parts.append(message.data)
+        times.append(message.log_time)
+        cids.append(cid)
+        pubs.append(message.publish_time)
+        if len(parts) >= _READER_BLOCK:
+            yield block()
+            parts, times, cids, pubs = [], [], [], []
+    if parts:
+        yield block()
+
+
+def _file_blocks(path: Path, topics: set[str] | None) -> Iterator[_Block]:
     try:
         with open(path, "rb") as f:
             reader = make_reader(f)
@@ -138,18 +195,22 @@ def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, 
                 summary = None
             chunks = _chunks_in_order(summary, topics)
             if chunks is not None:
-                yield from _iter_chunks(f, summary, chunks, topics)
-                return
-            for schema, channel, message in reader.iter_messages(
-                    topics=sorted(topics) if topics is not None else None, log_time_order=True):
-                yield (message.log_time, message.sequence,
-                       RawMessage(channel.topic, schema.name if schema else "", message.log_time,
-                                  message.data, message.publish_time))
+                yield from _chunk_blocks(f, summary, chunks, topics)
+            else:
+                yield from _reader_blocks(reader, topics)
     except FileNotFoundError as err:
         raise BagError(f"bag {path} does not exist") from err
     except (McapError, ZstdError, struct.error, ValueError, EOFError) as err:
         raise BagError(f"bag {path} cannot be read ({type(err).__name__}: {err}); if its writer was "
                        f"killed, run `indoor-loc bag recover {path} FIXED.mcap`") from err
+
+
+def _iter_file(path: Path, topics: set[str] | None) -> Iterator[tuple[int, int, RawMessage]]:
+    for b in _file_blocks(path, topics):
+        buf, names = b.buf, b.names
+        for t, cid, a, e, pub in zip(b.times, b.cids, b.starts, b.ends, b.pubs):
+            topic, type_name = names[cid]
+            yield t, 0, RawMessage(topic, type_name, t, buf[a:e], pub)
 
 
 def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
@@ -163,9 +224,110 @@ def read_raw(paths: str | os.PathLike | Iterable[str | os.PathLike],
         return
     # (log time, file, position in the file): ties keep the file order, then each file's own order
     # (the file's reader yields log-time order), with no key function for the heap to call
-    streams = [((t, i, k, m) for k, (t, _, m) in enumerate(_iter_file(p, wanted))) for i, p in enumerate(files)]
-    for _, _, _, m in heapq.merge(*streams):
+    def stream(i: int, p: Path) -> Iterator[tuple[int, int, int, RawMessage]]:
+        return ((t, i, k, m) for k, (t, _, m) in enumerate(_iter_file(p, wanted)))
+
+    for _, _, _, m in heapq.merge(*(stream(i, p) for i, p in enumerate(files))):
         yield m
+
+
+class RawRun:
+    """Consecutive stored messages of one topic in replay order (:func:`read_runs`): log times
+    (``stamps``, ns) and CDR bytes, kept in the buffer they were read into until asked for."""
+    __slots__ = ("topic", "type", "stamps", "_buf", "_starts", "_ends")
+
+    def __init__(self, topic: str, type_name: str, stamps: list[int], buf: bytes, starts: list[int],
+                 ends: list[int]) -> None:
+        self.topic, self.type, self.stamps = topic, type_name, stamps
+        self._buf, self._starts, self._ends = buf, starts, ends
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def part(self, a: int, b: int) -> RawRun:
+        """Messages ``a`` to ``b - 1``."""
+        return RawRun(self.topic, self.type, self.stamps[a:b], self._buf, self._starts[a:b], self._ends[a:b])
+
+    def data(self, i: int) -> bytes:
+        """CDR bytes of message ``i``."""
+        return self._buf[self._starts[i]:self._ends[i]]
+
+    def records(self) -> Any:
+        """The messages as an (N, size) uint8 array when they all have one size (a view of the
+        buffer when they lie evenly spaced in it), else None."""
+        return _records(self._buf, self._starts, self._ends)
+
+
+def _records(buf: bytes, starts: list[int], ends: list[int]) -> Any:
+    import numpy as np
+    n = len(starts)
+    if not n:
+        return None
+    size = ends[0] - starts[0]
+    s = np.asarray(starts, np.int64)
+    if n > 1 and np.any(np.asarray(ends, np.int64) - s != size):
+        return None
+    a = np.frombuffer(buf, np.uint8)
+    stride = starts[1] - starts[0] if n > 1 else size
+    if stride >= size and (n == 1 or starts[-1] - starts[0] == stride * (n - 1)) and np.all(s[1:] - s[:-1] == stride):
+        return np.lib.stride_tricks.as_strided(a[starts[0]:], shape=(n, size), strides=(stride, 1), writeable=False)
+    return a[s[:, None] + np.arange(size)]
+
+
+def records_of(runs: list[RawRun]) -> Any:
+    """The messages of consecutive runs of one topic as one (N, size) uint8 array, or None when
+    they do not all have one size (:meth:`RawRun.records`)."""
+    import numpy as np
+    groups: list[tuple[bytes, list[int], list[int]]] = []
+    for r in runs:                      # runs read from one buffer (chunk) are gathered together
+        if groups and groups[-1][0] is r._buf:
+            groups[-1][1].extend(r._starts)
+            groups[-1][2].extend(r._ends)
+        else:
+            groups.append((r._buf, list(r._starts), list(r._ends)))
+    mats = [_records(*g) for g in groups]
+    if any(m is None for m in mats) or len({m.shape[1] for m in mats}) != 1:
+        return None
+    return mats[0] if len(mats) == 1 else np.concatenate(mats)
+
+
+def read_runs(paths: str | os.PathLike | Iterable[str | os.PathLike],
+              topics: Iterable[str] | None = None) -> Iterator[RawRun]:
+    """:func:`read_raw`'s messages, in the same order, as runs of consecutive messages of one topic
+    (a run may end at a chunk boundary even if the topic goes on): no object per message."""
+    wanted = set(topics) if topics is not None else None
+    files = bag_files(paths)
+    streams = [_file_blocks(p, wanted) for p in files]
+    heads: list[tuple[int, int, _Block, int]] = []    # (time of the next message, file, block, position)
+    for i, st in enumerate(streams):
+        b = next(st, None)
+        if b is not None:
+            heads.append((b.times[0], i, b, 0))
+    heapq.heapify(heads)
+    while heads:
+        # the file whose next message comes first (ties: file order) gives every message before the
+        # next message of any other file (at the same time: only if it comes first in file order)
+        _, i, b, pos = heapq.heappop(heads)
+        times, cids, names = b.times, b.cids, b.names
+        stop = len(times)
+        if heads:
+            t_o, j = heads[0][0], heads[0][1]
+            stop = (bisect.bisect_right if i < j else bisect.bisect_left)(times, t_o, pos, stop)
+        a = pos
+        while a < stop:
+            cid = cids[a]
+            e = a + 1
+            while e < stop and cids[e] == cid:
+                e += 1
+            topic, type_name = names[cid]
+            yield RawRun(topic, type_name, times[a:e], b.buf, b.starts[a:e], b.ends[a:e])
+            a = e
+        if stop < len(times):
+            heapq.heappush(heads, (times[stop], i, b, stop))
+            continue
+        nb = next(streams[i], None)
+        if nb is not None:
+            heapq.heappush(heads, (nb.times[0], i, nb, 0))
 
 
 class MessageDecoder:

@@ -183,15 +183,18 @@ class BagWriter:
                                             {"offered_qos_profiles": qtext, "topic_type_hash": thash})
         self._topics[topic] = _Topic(cid, type_name, qtext, thash)
 
-    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        """Serialise an rclpy message and append it with log time ``stamp_ns`` (int ns)."""
+    def write(self, topic: str, msg: Any, stamp_ns: int) -> bytes:
+        """Serialise an rclpy message and append it with log time ``stamp_ns`` (int ns); returns
+        the CDR bytes written."""
         from rclpy.serialization import serialize_message
         type_name = type_name_of(msg)
         if topic not in self._topics:
             self.add_topic(topic, type_name)
         elif self._topics[topic].type != type_name:
             raise BagError(f"topic {topic}: bag holds {self._topics[topic].type}, got a {type_name}")
-        self.write_raw(topic, serialize_message(msg), stamp_ns)
+        data = serialize_message(msg)
+        self.write_raw(topic, data, stamp_ns)
+        return data
 
     def write_raw(self, topic: str, data: bytes, stamp_ns: int, *, publish_ns: int | None = None) -> None:
         """Append CDR bytes on a topic declared with :meth:`add_topic` (or written before)."""

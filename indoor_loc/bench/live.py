@@ -3,8 +3,9 @@
 For N users (simulated walkers from :mod:`indoor_loc.sim`, 200 Hz IMU + 50 Hz magnetometer + WiFi
 scans each) replayed at rate R, every user gets its own ``imu_node``, ``wifi_fix_node`` and
 ``pdr_kf_node`` process in its namespace (the simulator's params), one ``recorder -a`` records
-everything, and ``player -r R --wait-for-subscribers`` plays the users' topics once the nodes'
-outputs are matched. Per trial: messages each kind of node handled per second (per node, over the
+everything, and ``player -r R --wait-for-subscribers --min-subscribers imu/data_raw=2 …`` plays
+the users' topics once the nodes' outputs are matched and every node input has both its subscribers
+(the node and the recorder). Per trial: messages each kind of node handled per second (per node, over the
 playback and the time it then needed to work off its queue, to within the 1 s of /diagnostics), and
 messages lost on the way to it — the input messages that never arrived (sent − received, which also
 covers what sequence gaps cannot see) — and in the recorder (bag counts against what was sent). For
@@ -164,8 +165,11 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
         if not _wait(matched, 120):
             trial.note = "nodes not matched within 120 s"
             return trial
+        # every input a node takes has two subscribers, the node and the recorder: wait for both
+        # (a non-zero count can be the recorder alone, and the node would miss the first messages)
+        need = [f"{rel}=2" for rel in sorted({r for rels in BAG_INPUTS.values() for r in rels})]
         player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
-                        "--wait-for-subscribers", "60", "--topics", *topics], env)
+                        "--wait-for-subscribers", "60", "--min-subscribers", *need, "--topics", *topics], env)
         while player.proc.poll() is None:
             ex.spin_once(timeout_sec=0.1)
         player.stop()

@@ -34,6 +34,7 @@ line whose length is still the walked distance.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from collections import deque
@@ -176,13 +177,17 @@ class HeadingHistory:
     def add_many(self, stamps_ns: list[int], yaw: list[float], var: list[float]) -> None:
         """:meth:`add` for each sample in order (same values and state)."""
         ts, ys, vs = self._t, self._yaw, self._var
+        pi, two_pi = math.pi, 2.0 * math.pi
+        last_t = ts[-1] if ts else None
+        last_y = ys[-1] if ys else None
         for t, y, v in zip(stamps_ns, yaw, var):
-            if ts and t <= ts[-1]:
+            if last_t is not None and t <= last_t:
                 continue
             y = float(y)
-            if ys:
-                y = ys[-1] + wrap_angle(y - ys[-1])
-            ts.append(int(t))
+            if last_y is not None:
+                y = last_y + ((y - last_y + pi) % two_pi - pi)      # wrap_angle, inline
+            last_t, last_y = int(t), y
+            ts.append(last_t)
             ys.append(y)
             vs.append(float(v))
         if ts:
@@ -196,8 +201,8 @@ class HeadingHistory:
         """(yaw wrapped, var) at ``stamp_ns`` or None when empty."""
         if not self._t:
             return None
-        t = np.fromiter(self._t, np.int64, len(self._t))
-        i = int(np.searchsorted(t, stamp_ns))
+        t = self._t
+        i = bisect.bisect_left(t, stamp_ns)        # as np.searchsorted (side left), without a copy
         if i <= 0:
             return wrap_angle(self._yaw[0]), self._var[0]
         if i >= len(t):

@@ -62,7 +62,7 @@ from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import BagError, ConfigError, IndoorLocError
-from msg_adapters.diagnostics import stage_diagnostics
+from msg_adapters.diagnostics import stage_diagnostics, status_array
 from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
                                params_from_dict, params_to_dict)
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
@@ -189,6 +189,15 @@ class StageNode(Node):
 
     def __init__(self, stage_cls: type[Stage], **node_kwargs: Any) -> None:
         super().__init__(stage_cls.NODE_NAME, **node_kwargs)
+        try:
+            self._build(stage_cls)
+        except BaseException:
+            # a node that cannot start leaves nothing behind in the graph (its name is free for the
+            # start-up error report, see :func:`report_startup_error`)
+            self.destroy_node()
+            raise
+
+    def _build(self, stage_cls: type[Stage]) -> None:
         self._stage_cls = stage_cls
         self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> sequence-gap counter
         self.taken = 0                              # input messages handled (all topics)
@@ -576,13 +585,23 @@ def _cdr_stamp_ns(data: bytes) -> int:
 #: Set by the first SIGINT/SIGTERM (a stop was asked for), and by the second (stop at once).
 _STOP = threading.Event()
 _STOP_NOW = threading.Event()
+#: When the first SIGINT/SIGTERM came (system clock, ns; 0 before).
+_STOP_AT_NS = [0]
 
 
 def _request_stop(signum: int, frame: Any) -> None:
     # Only a flag: an exception raised from a signal handler can surface inside a pybind11 call
     # (rclpy's take_message) as a RuntimeError ("Unable to convert call argument") instead of a
     # KeyboardInterrupt and end the process with a traceback. The spin loops poll the flag.
+    if not _STOP.is_set():
+        _STOP_AT_NS[0] = time.time_ns()
     (_STOP_NOW if _STOP.is_set() else _STOP).set()
+
+
+def stop_time_ns() -> int:
+    """When the first SIGINT/SIGTERM arrived (system clock, ns), or now if none did: messages DDS
+    received before it are the ones a stopping node still handles."""
+    return _STOP_AT_NS[0] if _STOP.is_set() and _STOP_AT_NS[0] else time.time_ns()
 
 
 def stop_requested() -> bool:
@@ -600,6 +619,7 @@ def raise_on_signals() -> dict[int, Any]:
         return {}
     _STOP.clear()
     _STOP_NOW.clear()
+    _STOP_AT_NS[0] = 0
     return {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
@@ -622,12 +642,12 @@ def restore_signals(old: dict[int, Any]) -> None:
 
 def drain(executor: SingleThreadedExecutor, node: Node, taken: Callable[[], int],
           timeout_s: float = DRAIN_TIMEOUT_S) -> int:
-    """Run the callbacks of the messages DDS delivered before now until none is left (three idle
-    spins in a row), a message received after now was handled (``node.last_rx_ns``: a publisher
+    """Run the callbacks of the messages DDS delivered before the stop signal (:func:`stop_time_ns`)
+    until none is left (three idle spins in a row), a message received after it was handled (``node.last_rx_ns``: a publisher
     still running must not hold the node up), or ``timeout_s`` passes; ``taken()`` counts the
     messages handled so far. Returns how many were handled here."""
     start = taken()
-    stop_ns = time.time_ns()
+    stop_ns = stop_time_ns()
     deadline = time.monotonic() + timeout_s
     idle = 0
     while (idle < 3 and time.monotonic() < deadline and node.context.ok() and not _STOP_NOW.is_set()
@@ -694,6 +714,8 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     except (IndoorLocError, ParameterException) as err:
         print(f"[{name}] configuration error: {err}", file=sys.stderr)
         status = 2
+        if node is None:          # start-up failed: say so in /diagnostics too, not only on stderr
+            report_startup_error(name, f"configuration error: {err}")
     finally:
         ignore_signals(old)
         if node is not None:
@@ -707,6 +729,44 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
         rclpy.try_shutdown()
         restore_signals(old)
     return status
+
+
+#: A node that cannot start waits this long at most for a /diagnostics subscriber to match (s).
+STARTUP_ERROR_WAIT_S = 3.0
+#: ... and for the subscribers it found to acknowledge its ERROR (s).
+STARTUP_ERROR_ACK_S = 1.0
+
+
+def report_startup_error(node_name: str, message: str, *, wait_s: float = STARTUP_ERROR_WAIT_S) -> bool:
+    """Publish one ``/diagnostics`` ERROR for a node that cannot start (name and namespace from the
+    command line's ``--ros-args``, as the node would have had), so a monitor sees it beside the
+    running nodes and not only the terminal. Waits up to ``wait_s`` for subscribers to match (a
+    new participant is discovered asynchronously; the count must then hold still for a moment, since
+    several monitors match one after another), publishes, and waits up to
+    :data:`STARTUP_ERROR_ACK_S` for their acknowledgement. Returns whether a subscriber acknowledged
+    it; never raises (the caller is already reporting an error)."""
+    try:
+        node = Node(node_name)
+    except Exception:  # noqa: BLE001 - the node itself cannot be made: stderr has said it all
+        return False
+    try:
+        pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
+        end = time.monotonic() + wait_s
+        last, since = -1, time.monotonic()
+        while time.monotonic() < end and not _STOP.is_set():
+            n = pub.get_subscription_count()
+            if n != last:
+                last, since = n, time.monotonic()
+            elif n > 0 and time.monotonic() - since >= 0.3:
+                break
+            time.sleep(0.02)
+        pub.publish(status_array(node.get_fully_qualified_name(), 2, message, {"error": message}, time.time_ns()))
+        return bool(pub.get_subscription_count() > 0
+                    and pub.wait_for_all_acked(Duration(seconds=STARTUP_ERROR_ACK_S)))
+    except Exception:  # noqa: BLE001 - best effort: the error is on stderr already
+        return False
+    finally:
+        node.destroy_node()
 
 
 def params_file_args(argv: list[str]) -> list[str]:

@@ -13,8 +13,14 @@
 - ``/diagnostics`` about once a second (wall clock): messages published, playback progress in bag
   time, topics without a subscriber (WARN), rate, loop count.
 - ``--topics`` keeps only some topics, ``--remap OLD:=NEW`` renames them, ``--start-offset S``
-  skips the first S seconds of the bag, ``--wait-for-subscribers`` holds playback until every
-  topic has a subscriber, ``--loop`` repeats.
+  skips the first S seconds of the bag, ``--loop`` repeats.
+- ``--wait-for-subscribers`` holds playback until every topic has its subscribers: at least one,
+  or as many as ``--min-subscribers`` says (``N`` for every topic, ``TOPIC=N`` for one: a full name,
+  or a name relative to any namespace such as ``imu/data_raw=2``). Say how many there are when
+  several processes subscribe to a topic: each subscription is matched on its own, so a count that
+  is merely non-zero and stable can be the recorder alone while a node's subscription is still
+  being matched, and the node would miss the first messages. The counts are logged when playing
+  starts; topics below their count when the wait runs out are a WARN (log and ``/diagnostics``).
 """
 from __future__ import annotations
 
@@ -62,7 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--delay", type=float, default=0.0, metavar="S",
                         help="wait S seconds after creating publishers before playing (discovery)")
     parser.add_argument("--wait-for-subscribers", type=float, nargs="?", const=30.0, default=0.0, metavar="S",
-                        help="before playing, wait up to S s (default 30) until every topic has a subscriber")
+                        help="before playing, wait up to S s (default 30) until every topic has its subscribers "
+                             "(see --min-subscribers)")
+    parser.add_argument("--min-subscribers", nargs="+", default=[], metavar="N|TOPIC=N",
+                        help="subscribers to wait for: N for every topic (default 1), TOPIC=N for one topic (a "
+                             "full name, or relative to any namespace: imu/data_raw=2); implies "
+                             "--wait-for-subscribers")
 
 
 def parse_remaps(items: list[str]) -> dict[str, str]:
@@ -73,6 +84,42 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
             raise ConfigError(f"play.remap: expected OLD:=NEW, got {item!r}")
         out["/" + old.lstrip("/")] = "/" + new.lstrip("/")
     return out
+
+
+class MinSubscribers:
+    """How many subscribers ``--wait-for-subscribers`` waits for on a topic: a default for every
+    topic and per-topic counts, each given by its full name or by a name relative to any namespace
+    (``imu/data_raw`` matches ``/walk16/imu/data_raw``; the longest match wins)."""
+
+    def __init__(self, items: list[str] | tuple[str, ...] = ()) -> None:
+        self.default = 1
+        self.per_topic: dict[str, int] = {}
+        for item in items:
+            name, sep, value = str(item).rpartition("=")
+            try:
+                n = int(value)
+            except ValueError:
+                n = -1
+            if n < 0 or (sep and not name.strip("/")):
+                raise ConfigError(f"play.min_subscribers: expected N or TOPIC=N with N >= 0, got {item!r}")
+            if sep:
+                self.per_topic[name if name.startswith("/") else name.strip("/")] = n
+            else:
+                self.default = n
+
+    def __call__(self, topic: str) -> int:
+        if topic in self.per_topic:
+            return self.per_topic[topic]
+        best = None
+        for name, n in self.per_topic.items():
+            if not name.startswith("/") and topic.endswith("/" + name) and (best is None or len(name) > len(best[0])):
+                best = (name, n)
+        return best[1] if best is not None else self.default
+
+    def unused(self, topics: list[str]) -> list[str]:
+        """Per-topic entries that match none of ``topics`` (a typo would otherwise wait for nothing)."""
+        return sorted(name for name in self.per_topic
+                      if not any(t == name or (not name.startswith("/") and t.endswith("/" + name)) for t in topics))
 
 
 def latched(topic: str, recorded_qos: str) -> bool:
@@ -136,11 +183,17 @@ class PlayerNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._next_diag = 0.0
         self.play_s = 0.0                # wall time of the playback (after any waiting)
+        self.short: dict[str, tuple[int, int]] = {}   # topic -> (subscribers, asked for) when playing started
 
-    def wait_for_subscribers(self, timeout_s: float) -> bool:
-        """Block until every played topic has at least one subscriber and the subscriber counts
-        have not changed for ``SUBSCRIBERS_SETTLE_S`` (a recorder with ``-a`` subscribes to the
-        topics one after another, after the nodes did), or until the timeout."""
+    def wait_for_subscribers(self, timeout_s: float, minimum: MinSubscribers | None = None) -> bool:
+        """Block until every played topic has its subscribers (``minimum(topic)``, by default one)
+        and the counts have not changed for ``SUBSCRIBERS_SETTLE_S`` (a recorder with ``-a``
+        subscribes to the topics one after another, after the nodes did), or until the timeout.
+        Logs the count of every topic when it returns; topics still short are a WARN."""
+        need = minimum or MinSubscribers()
+        for name in need.unused(self.out_topics()):
+            self.get_logger().warning(f"--min-subscribers {name}: no played topic has that name")
+        want = {t: need(self._pubs[t].topic_name) for t in self._pubs}
         end = time.monotonic() + timeout_s
         last: list[int] | None = None
         since = time.monotonic()
@@ -149,21 +202,36 @@ class PlayerNode(Node):
             counts = [p.get_subscription_count() for p in self._pubs.values()]
             if counts != last:
                 last, since = counts, time.monotonic()
-            elif all(c > 0 for c in counts) and time.monotonic() - since >= SUBSCRIBERS_SETTLE_S:
-                return True
+            elif (all(c >= want[t] for t, c in zip(self._pubs, counts))
+                  and time.monotonic() - since >= SUBSCRIBERS_SETTLE_S):
+                break
             time.sleep(0.02)
-        waiting = [t for t, p in self._pubs.items() if p.get_subscription_count() == 0]
-        if waiting:
-            self.get_logger().warning(f"playing without subscribers on {waiting}")
-        return not waiting
+        counts = {t: p.get_subscription_count() for t, p in self._pubs.items()}
+        self.get_logger().info("subscribers when playing starts: " + ", ".join(
+            f"{self._pubs[t].topic_name} {n}" + (f" (of {want[t]})" if n < want[t] else "") for t, n in counts.items()))
+        self.short = {self._pubs[t].topic_name: (n, want[t]) for t, n in counts.items() if n < want[t]}
+        if self.short:
+            self.get_logger().warning(
+                "playing with fewer subscribers than asked on " + ", ".join(
+                    f"{t} ({n} of {w})" for t, (n, w) in self.short.items())
+                + ": a subscriber that matches later misses the first messages")
+        return not self.short
+
+    def out_topics(self) -> list[str]:
+        """The played topics under the names they are published as (after ``--remap``)."""
+        return [p.topic_name for p in self._pubs.values()]
 
     def diagnostics(self, now_ns: int) -> DiagnosticArray:
         """The player's DiagnosticStatus: published count, progress, topics nobody subscribes to."""
         alone = [t for t, p in self._pubs.items() if p.get_subscription_count() == 0]
         values = {"published": str(self.published), "topics": str(len(self._pubs)), "rate": f"{self.rate:g}",
                   "loops": str(self.loops), "last_bag_stamp_ns": str(self.last_bag_ns or ""),
-                  "without_subscribers": ", ".join(alone), "bags": ", ".join(str(b) for b in self.bags)}
-        level, message = (1, f"{len(alone)} topic(s) played without a subscriber") if alone else (0, "ok")
+                  "without_subscribers": ", ".join(alone),
+                  "started_short_of_subscribers": ", ".join(f"{t} ({n} of {w})" for t, (n, w) in self.short.items()),
+                  "bags": ", ".join(str(b) for b in self.bags)}
+        level, message = ((1, f"{len(alone)} topic(s) played without a subscriber") if alone else
+                          (1, f"{len(self.short)} topic(s) started with fewer subscribers than asked") if self.short
+                          else (0, "ok"))
         return status_array(self.get_fully_qualified_name(), level, message, values, now_ns)
 
     def _maybe_diagnostics(self, force: bool = False) -> None:
@@ -239,6 +307,7 @@ def check_options(options: argparse.Namespace) -> None:
         if not bag.is_file():
             raise BagError(f"bag {bag} does not exist")
     parse_remaps(options.remap)
+    MinSubscribers(options.min_subscribers)
 
 
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
@@ -254,8 +323,8 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     try:
         node = PlayerNode(list(options.bags), rate=options.rate, loop=options.loop, clock_hz=options.clock,
                           topics=options.topics, remap=remap, start_offset_s=options.start_offset)
-        if options.wait_for_subscribers > 0:
-            node.wait_for_subscribers(options.wait_for_subscribers)
+        if options.wait_for_subscribers > 0 or options.min_subscribers:
+            node.wait_for_subscribers(options.wait_for_subscribers or 30.0, MinSubscribers(options.min_subscribers))
         if options.delay > 0:
             end = time.monotonic() + options.delay
             while (left := end - time.monotonic()) > 0:

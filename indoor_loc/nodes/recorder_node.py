@@ -4,15 +4,25 @@
 ``ros2 run indoor_loc recorder -a -o all.mcap``
 
 - Serialised messages go straight into the bag (``raw=True`` subscriptions: no deserialisation).
+- Bursts, not messages: when the executor hands one message to a callback, the callback also takes
+  every message already queued on every subscription (``take_message``, at most ``TAKE_MAX`` per
+  subscription) and hands the burst to the writer thread as one item, so rclpy's per-callback cost
+  (rebuilding the wait set) is paid once per burst. On the executor thread a message costs its take,
+  its log time and its sequence-gap count; sorting by log time, serialising and compressing happen
+  on the writer thread. DDS keeps up to ``SUB_DEPTH`` messages per topic for bursts.
 - QoS of each subscription matches the publishers found: best effort if any publisher is best
   effort, transient_local if every publisher is (latched topics: their last message is received
   even when it was published before the recorder started).
 - ``-a`` polls the ROS graph every ``--poll`` seconds and adds new topics as they appear; every
   topic added or left out is logged with the reason.
-- Log time = the node clock at reception (``use_sim_time`` gives bag time); publish time = the
+- Log time = the node clock at reception: the DDS reception time (system clock), or under
+  ``use_sim_time`` the simulated time when the burst is taken (bag time); publish time = the
   publisher's source timestamp.
+- Loss is counted, never silent: gaps in each publisher's sequence numbers (while a topic has one
+  publisher) are logged (WARN), summed in ``/diagnostics`` (WARN) and printed as ``LOST`` at exit.
 - SIGINT / SIGTERM close the bag cleanly (summary and rosbag2 metadata written) after the messages
-  DDS had delivered before the signal are written (a second signal stops at once). The open chunk is
+  DDS had delivered before the signal are written (a second signal stops at once; what is still
+  queued when the spin ends is taken in one last pass). The open chunk is
   closed every ``--flush-interval`` seconds, so SIGKILL loses at most that much; ``indoor-loc bag
   recover`` turns such a file into a valid one.
 """
@@ -45,7 +55,12 @@ from indoor_loc.output_paths import check_output
 from msg_adapters.diagnostics import RECENT_NS, status_array
 
 NODE_NAME = "recorder"
-SUB_DEPTH = 5000       # DDS history per subscription: bursts (replays at 5x, a busy CPU) are absorbed here
+#: DDS history per subscription: bursts (a replay at 5x, a busy CPU) wait here until they are taken
+#: (10 000 = 10 s of a 5x replay of a 200 Hz IMU, ~4 MB per topic).
+SUB_DEPTH = 10000
+#: At most this many messages are taken from one subscription per burst, so one busy topic cannot
+#: hold up the timers (graph polling, flushing, /diagnostics) for long.
+TAKE_MAX = 2048
 #: The writer thread flushes the open chunk this often at most when asked (s); see --flush-interval.
 _WRITER_IDLE_S = 0.05
 
@@ -72,6 +87,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exclude", default="", help="regex of topics not to record with -a")
     parser.add_argument("--include-hidden", action="store_true",
                         help="with -a, also record hidden topics (a path element starting with '_')")
+
+
+def _log_time(item: tuple) -> int:
+    return item[2]
 
 
 def default_output() -> Path:
@@ -137,14 +156,18 @@ class _WriterThread(threading.Thread):
 
     def run(self) -> None:
         q = self.queue
+        write = self.writer.write_raw
         try:
             while True:
                 while q:
                     item = q.popleft()
                     kind = item[0]
-                    if kind == "m":
-                        self.writer.write_raw(item[1], item[2], item[3], publish_ns=item[4])
-                        self.written += 1
+                    if kind == "b":           # a burst: (topic, data, log ns, publish ns) in arrival order
+                        burst = item[1]
+                        burst.sort(key=_log_time)  # stable: each topic keeps its order
+                        for topic, data, log_ns, pub_ns in burst:
+                            write(topic, data, log_ns, publish_ns=pub_ns)
+                        self.written += len(burst)
                     elif kind == "t":
                         try:
                             self.writer.add_topic(item[1], item[2], qos_profiles=item[3], topic_type_hash=item[4])
@@ -288,22 +311,91 @@ class RecorderNode(Node):
     def _callback(self, topic: str) -> Callable[[bytes, Any], None]:
         gaps = self._gaps.setdefault(topic, SequenceGaps())
         gaps.publishers = self.count_publishers(topic)
-        put = self._thread.put
-        clock = self.get_clock()
 
-        def cb(data: bytes, info: Any) -> None:       # enqueue only: the writer thread does the rest
-            now = clock.now().nanoseconds
-            src = info.get("source_timestamp") if isinstance(info, dict) else None
-            put(("m", topic, data, now, src if src else now))
-            self.received += 1
-            self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
-            lost = gaps.gap(info, lambda: self.count_publishers(topic))
-            if lost:
-                self.lost[topic] = self.lost.get(topic, 0) + lost
-                self._last_loss_ns = now
-                self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching the recorder "
-                                          f"({sum(self.lost.values())} so far)", throttle_duration_sec=5.0)
+        def cb(data: bytes, info: Any) -> None:   # the executor took one message: take the rest of the burst
+            self._take_burst(topic, data, info)
         return cb
+
+    def _take_burst(self, topic: str, data: bytes, info: Any) -> None:
+        """Book the message the executor took on ``topic`` and take every message already queued on
+        every subscription (at most :data:`TAKE_MAX` per subscription), then hand the whole burst to
+        the writer thread as one item. The executor's wait-set rebuild (most of the cost of a
+        message handled by a callback of its own) is paid once per burst, and the per-message work
+        here is the take, the log time and the sequence-gap count; sorting, serialising and
+        compressing happen on the writer thread."""
+        clock = self.get_clock()
+        sim_ns = clock.now().nanoseconds if clock.ros_time_is_active else 0
+        burst: list[tuple[str, bytes, int, int]] = []
+        lost_now = 0
+
+        def book(t: str, gaps: SequenceGaps, data: bytes, info: dict) -> int:
+            rx = info.get("received_timestamp") or 0
+            # log time = the node clock at reception: DDS's reception time on the system clock, or
+            # (use_sim_time) the simulated time now, when the burst is taken
+            log = sim_ns or rx or time.time_ns()
+            burst.append((t, data, log, info.get("source_timestamp") or log))
+            self.last_rx_ns = rx
+            return gaps.gap(info, lambda: self.count_publishers(t))
+
+        gaps = self._gaps[topic]
+        if isinstance(info, dict):
+            lost = book(topic, gaps, data, info)
+        else:
+            lost = 0
+            now = sim_ns or time.time_ns()
+            burst.append((topic, data, now, now))
+        if lost:
+            self._count_lost(topic, lost)
+            lost_now += lost
+        for t, sub in list(self._subs.items()):
+            g = self._gaps[t]
+            take = sub.handle.take_message
+            cls = sub.msg_type
+            with sub.handle:
+                for _ in range(TAKE_MAX):
+                    got = take(cls, True)
+                    if got is None:
+                        break
+                    lost = book(t, g, got[0], got[1])
+                    if lost:
+                        self._count_lost(t, lost)
+                        lost_now += lost
+        self.received += len(burst)
+        self._thread.put(("b", burst))
+        if lost_now:
+            self.get_logger().warning(f"{lost_now} message(s) lost before reaching the recorder "
+                                      f"({sum(self.lost.values())} so far: "
+                                      + ", ".join(f"{t} {n}" for t, n in sorted(self.lost.items())) + ")",
+                                      throttle_duration_sec=5.0)
+
+    def take_remaining(self) -> int:
+        """After the spin has stopped: one pass over every subscription recording what DDS still
+        holds (at most its history depth, so this ends even while publishers go on). Returns how
+        many messages it recorded."""
+        clock = self.get_clock()
+        sim_ns = clock.now().nanoseconds if clock.ros_time_is_active else 0
+        burst: list[tuple[str, bytes, int, int]] = []
+        for t, sub in list(self._subs.items()):
+            g = self._gaps[t]
+            with sub.handle:
+                for _ in range(int(sub.qos_profile.depth)):
+                    got = sub.handle.take_message(sub.msg_type, True)
+                    if got is None:
+                        break
+                    data, info = got
+                    log = sim_ns or int(info.get("received_timestamp") or 0) or time.time_ns()
+                    burst.append((t, data, log, info.get("source_timestamp") or log))
+                    lost = g.gap(info)
+                    if lost:
+                        self._count_lost(t, lost)
+        if burst:
+            self.received += len(burst)
+            self._thread.put(("b", burst))
+        return len(burst)
+
+    def _count_lost(self, topic: str, n: int) -> None:
+        self.lost[topic] = self.lost.get(topic, 0) + n
+        self._last_loss_ns = self.get_clock().now().nanoseconds
 
 
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
@@ -335,6 +427,12 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     finally:
         ignore_signals(old)
         if node is not None:
+            if node.context.ok():
+                # what the drain did not reach (a long backlog) is still in DDS: take it before the
+                # subscriptions go, so nothing received before the signal is dropped unseen
+                kept = node.take_remaining()
+                if kept:
+                    node.get_logger().info(f"stopping: recorded the {kept} message(s) still queued")
             node.destroy_node()
             node.close()
         writer.close()

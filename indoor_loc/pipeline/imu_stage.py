@@ -323,7 +323,7 @@ class ImuStage(Stage):
         orientation already the heading source, its acceleration feeding the stepometer, every item
         with an orientation, stamps increasing, none of them our own output echoed back."""
         if not (self._external_orientation and self._acc_topic == "imu/data" and self.params.heading_source != "aekf"
-                and len(self.headings) and all(s.quat_xyzw is not None for s in items)):
+                and len(self.headings) and getattr(items, "all_oriented", False)):
             return False
         t = items.arrays.sec * 1_000_000_000 + items.arrays.nanosec
         if (self._last_orient_ns is not None and int(t[0]) <= self._last_orient_ns) or np.any(np.diff(t) <= 0):

@@ -35,6 +35,7 @@ Replay order (``--order``):
 from __future__ import annotations
 
 import argparse
+import bisect
 import os
 import sys
 from collections import defaultdict
@@ -54,6 +55,10 @@ TICK_NS = 1_000_000_000
 GAP_NS = 10 * TICK_NS
 #: Longest run of IMU messages decoded and handled as one batch.
 MAX_RUN = 2048
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+#: Write an unchanged stage's last ``/diagnostics`` status again with the new stamp instead of
+#: building it afresh (same message; False builds every one, for comparison).
+REUSE_DIAGNOSTICS = True
 
 
 @dataclass
@@ -173,9 +178,10 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     """
     import time
 
-    from indoor_loc.bag import BagWriter, MessageDecoder, RawMessage, bag_topics, read_raw
-    from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
-    from msg_adapters.diagnostics import stage_diagnostics
+    from indoor_loc.bag import BagWriter, MessageDecoder, RawMessage, bag_topics
+    from indoor_loc.bag.reader import read_runs, records_of
+    from indoor_loc.bag.bulk import BULK_TYPES, bulk_items, with_header_stamp
+    from msg_adapters.diagnostics import RECENT_NS, stage_diagnostics
     from msg_adapters.time import header_ns
 
     t0 = time.perf_counter()
@@ -241,6 +247,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                         continue      # multi-user outputs go to the root namespace, not to per-user stages
                     for s in takers.get((ns, rel), ()):
                         if s is not producer:
+                            touched(s)
                             emit(ns, s, s.process(rel, msg, now_ns), now_ns)
                     feed_multi(ns, rel, msg, now_ns)
 
@@ -250,22 +257,49 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                     return
                 for s in multi:
                     if s.handles(rel):
+                        touched(s)
                         emit("", s, s.process(rel, msg, now_ns, user), now_ns)
+
+            # /diagnostics: a stage's status changes only through the calls this runner makes on it
+            # (messages, batches, its own tick, finish) and, at a given state, through the recent
+            # windows of its rejections and losses. While neither changed since its last status,
+            # the status written is that one's CDR with the new stamp (the same message).
+            diag_cdr: dict[Stage, tuple[tuple[bool, ...], bytes]] = {}
+
+            def touched(s: Stage) -> None:
+                diag_cdr.pop(s, None)
+
+            def write_diagnostics(ns: str, s: Stage, now_ns: int) -> None:
+                d = s.diag
+                recent = tuple(ev is not None and now_ns - ev <= RECENT_NS
+                               for ev in (d.last_reject_ns, d.last_loss_ns, d.last_internal_ns))
+                known = diag_cdr.get(s)
+                if known is not None and known[0] == recent and REUSE_DIAGNOSTICS:
+                    data = with_header_stamp(known[1], now_ns)
+                    if data is not None:
+                        writer.write_raw("/diagnostics", data, now_ns)
+                        return
+                data = writer.write("/diagnostics", stage_diagnostics(join_ns(ns, s.NODE_NAME), s, now_ns), now_ns)
+                diag_cdr[s] = (recent, data)
 
             def tick(now_ns: int, namespaces: Iterable[str]) -> None:
                 summary.ticks += 1
                 for ns in namespaces:
                     for s in stages.get(ns, []):
+                        if type(s).tick is not Stage.tick:
+                            touched(s)
                         emit(ns, s, s.run_tick(now_ns), now_ns)
-                        writer.write("/diagnostics", stage_diagnostics(join_ns(ns, s.NODE_NAME), s, now_ns), now_ns)
+                        write_diagnostics(ns, s, now_ns)
                 for s in multi:
+                    if type(s).tick is not Stage.tick:
+                        touched(s)
                     emit("", s, s.run_tick(now_ns), now_ns)
-                    writer.write("/diagnostics", stage_diagnostics(join_ns("", s.NODE_NAME), s, now_ns), now_ns)
+                    write_diagnostics("", s, now_ns)
 
             decode = MessageDecoder()
             split_cache: dict[str, tuple[str, str]] = {}
             batch_ok: dict[tuple[str, str, str], bool] = {}
-            pending: dict[str, tuple[str, str, list[bytes], list[int]]] = {}   # ns -> run of one topic
+            pending: dict[str, list] = {}   # ns -> [topic, type, [RawRun, ...], messages]: a run of one topic
 
             def feeds_back(stage: Stage, ns: str) -> bool:
                 """True if the stage's outputs reach it again through other stages (``emit`` never
@@ -295,14 +329,18 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                 return ok
 
             def flush(ns: str) -> None:
-                rel, type_name, datas, stamps = pending.pop(ns)
+                rel, type_name, parts, _ = pending.pop(ns)
                 stage = takers[(ns, rel)][0]
-                items = bulk_items(type_name, datas)
+                touched(stage)
+                stamps = parts[0].stamps if len(parts) == 1 else [t for p in parts for t in p.stamps]
+                records = records_of(parts)
+                items = None if records is None else bulk_items(type_name, records)
                 if items is None:                 # not one layout, or a message to reject: one by one
                     topic = join_ns(ns, rel)
-                    for data, now in zip(datas, stamps):
-                        msg = decode(RawMessage(topic, type_name, now, data, now)).msg
-                        emit(ns, stage, stage.process(rel, msg, now), now)
+                    for p in parts:
+                        for k, now in enumerate(p.stamps):
+                            msg = decode(RawMessage(topic, type_name, now, p.data(k), now)).msg
+                            emit(ns, stage, stage.process(rel, msg, now), now)
                     return
                 for now, out_rel, out_msg in stage.process_batch(rel, items, stamps):
                     emit(ns, stage, [(out_rel, out_msg)], now)
@@ -312,56 +350,74 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                     flush(ns)
 
             def play(files: list[Path], namespaces: list[str]) -> int | None:
+                """Replay ``files`` run by run (consecutive messages of one topic): every message is
+                handled as if it came alone (ticks, runs for the batch path, flushes)."""
                 nonlocal last_ns
                 next_tick: int | None = None
                 start = end = None
-                for m in read_raw(files):
-                    summary.messages_in += 1
+                for r in read_runs(files):
+                    stamps = r.stamps
+                    n = len(stamps)
+                    summary.messages_in += n
                     if bar is not None:
-                        bar.update(1)
-                    now = m.stamp_ns
-                    last_ns = now if last_ns is None else max(last_ns, now)
-                    start = now if start is None else start
-                    end = now
-                    if next_tick is None:
-                        next_tick = now + TICK_NS
-                    if now >= next_tick and pending:
-                        flush_all()
-                    while now >= next_tick:
-                        tick(next_tick, namespaces)
-                        next_tick += TICK_NS
-                        if now - next_tick >= GAP_NS:   # a gap in the data: skip the empty seconds
-                            next_tick += (now - next_tick) // TICK_NS * TICK_NS
-                    nsrel = split_cache.get(m.topic)
+                        bar.update(n)
+                    last_ns = stamps[-1] if last_ns is None else max(last_ns, stamps[-1])
+                    start = stamps[0] if start is None else start
+                    end = stamps[-1]
+                    nsrel = split_cache.get(r.topic)
                     if nsrel is None:
-                        nsrel = split_cache[m.topic] = split_ns(m.topic, relative_names)
+                        nsrel = split_cache[r.topic] = split_ns(r.topic, relative_names)
                     ns, rel = nsrel
-                    sp = span.setdefault(ns, [now, now])
-                    sp[1] = now
-                    if batchable(ns, rel, m.type):
-                        run = pending.get(ns)
-                        if run is not None and (run[0] != rel or run[1] != m.type):
+                    sp = span.setdefault(ns, [stamps[0], stamps[0]])
+                    sp[1] = end
+                    batched = batchable(ns, rel, r.type)
+                    i = 0
+                    while i < n:
+                        now = stamps[i]
+                        if next_tick is None:
+                            next_tick = now + TICK_NS
+                        if now >= next_tick:
+                            if pending:
+                                flush_all()
+                            while now >= next_tick:
+                                tick(next_tick, namespaces)
+                                next_tick += TICK_NS
+                                if now - next_tick >= GAP_NS:   # a gap in the data: skip the empty seconds
+                                    next_tick += (now - next_tick) // TICK_NS * TICK_NS
+                        k = n if stamps[-1] < next_tick else bisect.bisect_left(stamps, next_tick, i + 1, n)
+                        if batched:                  # messages i..k-1 join the namespace's run
+                            run = pending.get(ns)
+                            if run is not None and (run[0] != rel or run[1] != r.type):
+                                flush(ns)
+                                run = None
+                            while i < k:
+                                if run is None:
+                                    run = pending[ns] = [rel, r.type, [], 0]
+                                take = min(k - i, MAX_RUN - run[3])
+                                run[2].append(r if take == n else r.part(i, i + take))
+                                run[3] += take
+                                i += take
+                                if run[3] >= MAX_RUN:
+                                    flush(ns)
+                                    run = None
+                            continue
+                        if ns in pending:
                             flush(ns)
-                            run = None
-                        if run is None:
-                            run = pending[ns] = (rel, m.type, [], [])
-                        run[2].append(m.data)
-                        run[3].append(now)
-                        if len(run[2]) >= MAX_RUN:
-                            flush(ns)
-                        continue
-                    if ns in pending:
-                        flush(ns)
-                    who = takers.get((ns, rel), ())
-                    to_multi = bool(user_of_namespace(ns)) and any(s.handles(rel) for s in multi)
-                    if not (who or to_multi or rel in copy):
-                        continue                     # nobody takes it: not deserialised
-                    msg = decode(m).msg
-                    if rel in copy:
-                        writer.write(m.topic, msg, now)
-                    for s in who:
-                        emit(ns, s, s.process(rel, msg, now), now)
-                    feed_multi(ns, rel, msg, now)
+                        who = takers.get((ns, rel), ())
+                        to_multi = bool(user_of_namespace(ns)) and any(s.handles(rel) for s in multi)
+                        if not (who or to_multi or rel in copy):
+                            i = k
+                            continue                     # nobody takes them: not deserialised
+                        for j in range(i, k):
+                            now = stamps[j]
+                            msg = decode(RawMessage(r.topic, r.type, now, r.data(j), now)).msg
+                            if rel in copy:
+                                writer.write(r.topic, msg, now)
+                            for s in who:
+                                touched(s)
+                                emit(ns, s, s.process(rel, msg, now), now)
+                            feed_multi(ns, rel, msg, now)
+                        i = k
                 flush_all()
                 return end
 
@@ -373,20 +429,25 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                     end = end if end is not None else (last_ns or 0)
                     for ns in bag_ns:          # this bag's users are done: flush their stages, then tell
                         for s in stages.get(ns, []):
+                            touched(s)
                             emit(ns, s, s.run_finish(), end)
                         for s in multi:
                             if user_of_namespace(ns):
+                                touched(s)
                                 emit("", s, s.run_finish_user(user_of_namespace(ns)), end)
                     tick(end, bag_ns)
                 for s in multi:
+                    touched(s)
                     emit("", s, s.run_finish(), end or 0)
                 tick(end or 0, [])
             else:
                 end = play(list(bags), sorted(stages)) or 0
                 for ns, lst in stages.items():
                     for s in lst:
+                        touched(s)
                         emit(ns, s, s.run_finish(), end)
                 for s in multi:
+                    touched(s)
                     emit("", s, s.run_finish(), end)
                 tick(end, sorted(stages))
         os.replace(partial, out)

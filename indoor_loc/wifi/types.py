@@ -3,7 +3,7 @@ method's output, :class:`~indoor_loc.measurements.Fix`, is a measurement shared 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -134,6 +134,19 @@ class ApReadings:
         self.ptr = np.searchsorted(cols, np.arange(mask.shape[1] + 1)).astype(np.int64)
         self.row = rows.astype(np.int64)
         self.val = np.asarray(values, float)[rows, cols]
+
+    @classmethod
+    def from_sparse(cls, matrix: Any) -> "ApReadings":
+        """From a scipy sparse (M, A) matrix whose stored non-zero entries are the readings."""
+        from scipy import sparse
+        csc = sparse.csc_matrix(matrix)
+        csc.eliminate_zeros()
+        csc.sort_indices()
+        out = cls.__new__(cls)
+        out.ptr = csc.indptr.astype(np.int64)
+        out.row = csc.indices.astype(np.int64)
+        out.val = csc.data.astype(float)
+        return out
 
     def gather(self, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The readings of columns ``cols`` (q,): map rows (R',), values (R',) and per-column counts
