@@ -399,6 +399,13 @@ class StepometerState:
                                    walk_motion_recent=list(self.walk_motion_recent))
 
 
+def _median(values: list[float]) -> float:
+    """Median of a short list (what ``np.median`` gives: the mean of the two middle values when even)."""
+    v = sorted(values)
+    k = len(v) // 2
+    return v[k] if len(v) % 2 else (v[k - 1] + v[k]) / 2.0
+
+
 def _magnitude(acc: ArrayLike) -> np.ndarray:
     a = np.asarray(acc, dtype=float)
     return np.sqrt(np.sum(a * a, axis=-1))
@@ -619,17 +626,15 @@ class Stepometer:
         st = self._st
         st.samples += len(t)
         if st.grid_hz <= 0:
-            st.pending_t.extend(int(v) for v in t)
-            st.pending_m.extend(float(v) for v in m)
-            if len(st.pending_t) <= self.params.rate_samples:
-                return []
-            dt = np.diff(np.asarray(st.pending_t[: self.params.rate_samples + 1], dtype=np.int64))
+            # the samples so far, as arrays (a whole recording at once is not turned into Python lists)
+            t = np.concatenate((np.asarray(st.pending_t, dtype=np.int64), t))
+            m = np.concatenate((np.asarray(st.pending_m, dtype=float), m))
+            dt = np.diff(t[: self.params.rate_samples + 1])
             dt = dt[dt > 0]
-            if len(dt) == 0:
+            if len(t) <= self.params.rate_samples or len(dt) == 0:
+                st.pending_t, st.pending_m = t.tolist(), m.tolist()
                 return []
             st.grid_hz = float(min(2000.0, max(10.0, 1e9 / float(np.median(dt)))))
-            t = np.asarray(st.pending_t, dtype=np.int64)
-            m = np.asarray(st.pending_m, dtype=float)
             st.pending_t, st.pending_m = [], []
         return self._ingest(t, m)
 
@@ -776,7 +781,7 @@ class Stepometer:
             n_recent = max(1, int(round(0.5 * p.window_s / p.hop_s)))
             st.walk_motion_recent = (st.walk_motion_recent if run else [])[max(0, len(st.walk_motion_recent) - n_recent + 1):]
             st.walk_motion_recent.append(est.motion_std_m_s2)
-            st.walk_motion_std = float(np.median(st.walk_motion_recent))
+            st.walk_motion_std = _median(st.walk_motion_recent)
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
             hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
             if st.walk_autocorr < p.bridge_min_autocorr:

@@ -71,8 +71,9 @@ test walk enters a part of its floor the survey walks did not cover but the floo
 Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ(D₁)² I, where D₁ is the
 distance of the best match: a poor best match means a scan the map does not explain, and its
 error tends to be larger. σ(D) is calibrated on the map itself at ``fit`` time by
-leave-one-source-out cross-validation: each map scan is positioned against the map without its own
-walk, the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
+leaving walks out: the map's sources (walks) are dealt into at most ``cov_folds`` folds and each map
+scan is positioned against the map without its fold's walks (the grid interpolated again without
+them), the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
 40 scans each), and in each bin σ is set so that the ``cov_quantile`` ellipse of an isotropic 2-D
 Gaussian holds that share of the bin's cross-validated errors: σ = q-quantile(error) /
 sqrt(−2 ln(1 − q)); σ is made non-decreasing in D₁ and interpolated between bin centres (constant
@@ -81,10 +82,11 @@ mall is tens of metres off), so a σ fitted to the mean error — or a line in D
 ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
 covariance honest where a downstream filter gates on it, at the price of a 50 % ellipse that holds
 more than half of the truths. The calibration follows each building's own accuracy instead of
-constants fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan
-out instead. Cross-validation cannot see what the survey never covered: a user walking where no
-survey walk went is positioned on the nearest surveyed stretch and its error exceeds the ellipse
-(on ms_site2 F3 most test scans are more than 3 m from every map scan).
+constants fitted to one building; a map with a single source (a pre-surveyed map) deals its scans
+into the folds instead (without a grid: leaves one scan out). Cross-validation cannot see what the
+survey never covered: a user walking where no survey walk went is positioned on the nearest
+surveyed stretch and its error exceeds the ellipse (on ms_site2 F3 most test scans are more than
+3 m from every map scan).
 """
 from __future__ import annotations
 
@@ -121,9 +123,9 @@ class PowedKnnParams:
     cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
                                     "covariance (0: the cross-validated sigma already holds it)")
     cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
-    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
+    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-walks-out "
                                           "cross-validation at fit time")
-    cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
+    cov_calibration_scans: int = field(1000, "at most this many map scans (evenly spaced) are cross-validated "
                                          "(bounds the fit time on large maps)")
     cov_quantile: float = field(0.95, "the ellipse of this probability is calibrated on the cross-validated errors")
     cov_folds: int = field(10, "the map's sources (walks) are dealt into at most this many folds, each left out in "
