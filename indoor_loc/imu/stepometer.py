@@ -276,15 +276,16 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
     return power
 
 
-def normalised_autocorr(x: np.ndarray, design: _Design) -> np.ndarray:
-    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags 0..n_w-1, normalised by
-    lag 0 (all zero for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= 2 n_w - 1`` so
-    nothing wraps around."""
+def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
+    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
+    (default 0..n_w-1), normalised by lag 0 (all zero for a constant window); Wiener-Khinchin,
+    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around."""
     n_w = design.n_w
+    hi = n_w if lag_hi is None else lag_hi
     spec = np.fft.rfft(x, design.n_acf, axis=1)
-    acf = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)[:, :n_w]
-    acf /= n_w - np.arange(n_w)
-    acf0 = acf[:, :1]
+    full = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
+    acf = full[:, lag_lo:hi] / (n_w - np.arange(lag_lo, hi))
+    acf0 = full[:, :1] / n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
@@ -336,11 +337,11 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
         in_band &= fund >= p.min_fundamental_share * score[r, j]
     # Periodicity: the normalised autocorrelation at the stride lag 2/f.
     n_w = design.n_w
-    acf = normalised_autocorr(x, design)
     lag = 2.0 / np.maximum(f, 1e-6) * design.fs
     lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, n_w - 1)
     hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, n_w)
-    lags = np.arange(n_w)
+    lags = np.arange(int(lo.min()), int(hi.max()))          # only the lags some window reads
+    acf = normalised_autocorr(x, design, int(lags[0]), int(lags[-1]) + 1)
     mask = (lags[None, :] >= lo[:, None]) & (lags[None, :] < hi[:, None])
     ac = np.where(mask, acf, -np.inf).max(axis=1)
     ac = np.where(np.isfinite(ac), ac, -1.0)

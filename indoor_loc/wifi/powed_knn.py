@@ -258,6 +258,7 @@ class PowedKnn(Positioner):
         self._grid_pos = np.zeros((0, 2))           # (C, 2) smoothing grid (empty without smoothing)
         self._kernel: Any = None                     # (C, M) sparse smoothing weights (None: no grid)
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
+        self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
         self._vals: list[np.ndarray] = []            # (M, A) weighted map values: ages weighted, ages ignored
         self._views: list[_View] = []
         self._map_views_equal = True                 # the map has no ages: its values are the same in every view
@@ -310,6 +311,7 @@ class PowedKnn(Positioner):
                 v = self._vals[j]
                 self._views.append(_View(ApReadings(v > 0, v), v.sum(axis=1), a, j, False, twin))
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
+        self._kernel_sums = None
         if p.smooth_m > 0:
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
                 pos, map_z, p.smooth_grid_m, p.smooth_reach_m, p.smooth_m)
@@ -326,15 +328,26 @@ class PowedKnn(Positioner):
 
     def _smoothed(self, keep: np.ndarray) -> tuple[list[ApReadings], list[np.ndarray], np.ndarray]:
         """The grid interpolated from the map scans ``keep`` (M,) bool: per map values (``_vals``) the
-        readings and their sums over the grid points within reach of a kept scan, and those points' rows."""
+        readings and their sums over the grid points within reach of a kept scan, and those points' rows.
+        The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs."""
         from scipy import sparse
+        if self._kernel_sums is None:
+            self._kernel_sums = ([sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals],
+                                 np.asarray(self._kernel.sum(axis=1)).ravel())
+        nums, den = self._kernel_sums
+        drop = ~np.asarray(keep, bool)
         rows = np.flatnonzero(np.asarray(self._near[:, keep].sum(axis=1)).ravel() > 0)
-        k = self._kernel[rows][:, keep]
-        norm = sparse.diags(1.0 / np.maximum(np.asarray(k.sum(axis=1)).ravel(), 1e-300)) @ k
+        if drop.any():
+            k_drop = sparse.csc_matrix(self._kernel)[:, drop]
+            den = den - np.asarray(k_drop.sum(axis=1)).ravel()
+            nums = [n - sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop])) for n, v in zip(nums, self._vals)]
+        scale = sparse.diags(1.0 / np.maximum(den[rows], 1e-300))
         readings: list[ApReadings] = []
         sums: list[np.ndarray] = []
-        for v in self._vals:
-            g = sparse.csr_matrix(norm @ sparse.csr_matrix(v[keep]))
+        for n in nums:
+            g = sparse.csr_matrix(scale @ n[rows])
+            g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
+            g.eliminate_zeros()
             readings.append(ApReadings.from_sparse(g))
             sums.append(np.asarray(g.sum(axis=1)).ravel())
         return readings, sums, rows
