@@ -287,3 +287,65 @@ def test_adaptive_tracker_shrinks_its_cloud_and_still_smooths_on_the_graph():
     assert np.hypot(*(tr.estimates[-1].xy - truth(s))) < 1.5
     sm = tr.smooth(20)
     assert g.project(np.array([e.xy for e in sm]))[2].max() < 1e-9
+
+
+def test_fix_density_gaussian_and_student_t_integrate_to_one_and_t_has_heavier_tails():
+    g = corridor_l()
+    S = np.array([[2.0, 0.3], [0.3, 1.0]])
+    xs = np.linspace(-60, 60, 1201)
+    X, Y = np.meshgrid(xs, xs)
+    d = np.column_stack([X.ravel(), Y.ravel()])
+    m2 = np.einsum("ni,ij,nj->n", d, np.linalg.inv(S), d)
+    cell = (xs[1] - xs[0]) ** 2
+    gauss = _pf(g, fix_dof=0.0)._fix_log_density(m2, S)
+    t = _pf(g, fix_dof=5.0)._fix_log_density(m2, S)
+    assert np.exp(gauss).sum() * cell == pytest.approx(1.0, abs=1e-6)
+    assert np.exp(t).sum() * cell == pytest.approx(1.0, abs=2e-3)          # tails beyond 60 m carry ~1e-3
+    # Gaussian: exactly the bivariate normal density
+    want = -0.5 * m2 - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
+    np.testing.assert_allclose(gauss, want, atol=1e-12)
+    # 5 sigma away the t density is far above the Gaussian's (in two dimensions both peak at 1 / (2 pi sqrt det S))
+    at = np.array([0.0, 25.0])
+    lt, lg = _pf(g, fix_dof=5.0)._fix_log_density(at, S), _pf(g, fix_dof=0.0)._fix_log_density(at, S)
+    assert lt[0] == pytest.approx(lg[0])
+    assert lt[1] > lg[1] + 5
+
+
+def test_redrawn_particles_carry_the_inject_mass_and_the_others_keep_their_relative_weights(rng):
+    g = corridor_l()
+    pf = _pf(g, n=100, inject_mass=0.05)
+    _place(pf, np.zeros(100), np.linspace(0, 10, 100), np.ones(100))
+    w = rng.random(100)
+    pf.p.log_w = normalise_log(np.log(w))
+    idx = pf.inject(np.full(10, 2, np.int32), np.full(10, 0.5), rng)
+    assert set(idx.tolist()) == set(np.argsort(w)[:10].tolist())           # the lowest weights are redrawn
+    wn = pf.p.weights
+    assert wn[idx].sum() == pytest.approx(0.05)
+    kept = np.setdiff1d(np.arange(100), idx)
+    np.testing.assert_allclose(wn[kept] / wn[kept].sum(), w[kept] / w[kept].sum(), rtol=1e-12)
+    np.testing.assert_allclose(particle_xy(g, pf.p)[idx], np.tile([10.0, 7.5], (10, 1)))
+
+
+def test_one_outlying_fix_moves_the_estimate_only_as_far_as_the_inject_mass_allows(rng):
+    # a walker standing at (3, 0) on a long corridor; the WiFi matcher's wrong match puts one fix 9 m
+    # along the corridor. With a small prior mass for the redrawn particles the estimate stays and
+    # only fixes that keep agreeing on the new place move it; with the default it follows at once.
+    g = build_graph([0, 1], np.array([[0, 0], [40, 0]], float), [(0, 1)])
+    cov = np.eye(2) * 4.0
+
+    def settled(mass):
+        pf = _pf(g, n=1000, yaw_offset_sigma_rad=0.0, inject_mass=mass)
+        pf.init_gaussian(np.array([3.0, 0.0]), cov, rng)
+        for _ in range(5):
+            pf.update_position(np.array([3.0, 0.0]), cov, rng)
+            pf.maybe_resample(rng)
+        pf.update_position(np.array([12.0, 0.0]), cov, rng)
+        return pf
+
+    pf = settled(1e-4)
+    assert abs(pf.estimate()[0][0] - 3.0) < 1.0
+    for _ in range(4):
+        pf.maybe_resample(rng)
+        pf.update_position(np.array([12.0, 0.0]), cov, rng)
+    assert abs(pf.estimate()[0][0] - 12.0) < 1.5
+    assert settled(PfParams().inject_mass).estimate()[0][0] > 8.0

@@ -3,7 +3,10 @@
 Koivisto et al., "Graph-based map matching for indoor positioning" (IPIN 2014, the TLL particle
 filter): particle state = (link, position on the link, direction, speed, mode); at a link end the
 next link is drawn from the link-transition probabilities (:mod:`indoor_loc.graph.tll`); WLAN
-positions are Gaussian measurements ``N(r | μ_k, Σ_k)`` (eq. 13); the point estimate is the
+positions are Gaussian measurements ``N(r | μ_k, Σ_k)`` (eq. 13) — here optionally a bivariate
+Student-t of the same scale (``fix_dof``), with ``Σ_k`` calibrated against the fixes' measured
+errors (``fix_cov_scale``, ``fix_sigma_extra_m``), because a fingerprint matcher's wrong matches
+make the error's tails heavy; the point estimate is the
 constrained mean (Algorithm 3: the link point closest to the weighted mean); resampling when
 ``N_eff = 1 / Σ W²`` falls below a threshold (systematic resampling).
 
@@ -39,7 +42,7 @@ from enum import IntEnum
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.special import logsumexp
+from scipy.special import gammaln, logsumexp
 from scipy.stats import norm
 
 from indoor_loc import params as P
@@ -73,13 +76,20 @@ class PfParams:
     yaw_offset_walk_rad: float = P.field(0.02, "random walk of the heading offset per PDR interval (rad)")
     u_turn_prob: float = P.field(0.02, "prior probability of turning back on a link within one PDR interval")
     # measurements
-    fix_sigma_extra_m: float = P.field(1.0, "added to each WiFi fix's standard deviation per axis (m): map and model error")
+    fix_sigma_extra_m: float = P.field(0.76, "added to each WiFi fix's standard deviation per axis (m): map and model error")
+    fix_cov_scale: float = P.field(0.73, "each WiFi fix's covariance is multiplied by this (its calibration against "
+                                        "measured errors) before fix_sigma_extra_m is added")
+    fix_dof: float = P.field(6.0, "degrees of freedom of the WiFi fix likelihood: 0 = Gaussian, > 0 = Student-t "
+                                  "(heavy tails for the fingerprint matcher's wrong matches)")
     fix_outlier_prob: float = P.field(0.05, "probability that a WiFi fix is an outlier (robust mixture)")
     init_sigma_extra_m: float = P.field(2.0, "initial cloud: fix covariance inflated by this std per axis (m)")
     reinit_mahalanobis2: float = P.field(40.0, "re-initialise around a fix when every particle's squared Mahalanobis distance exceeds this")
     reinit_fraction: float = P.field(0.5, "fraction of particles redrawn at a re-initialisation")
     inject_fraction: float = P.field(0.15, "at every WiFi fix this fraction of the lowest-weight particles is "
                                            "redrawn around the fix (sensor resetting)")
+    inject_mass: float = P.field(0.15, "prior probability mass of the redrawn particles before the fix weighs them "
+                                       "(the chance, per fix, that the walker is near the fix rather than where the "
+                                       "particles are); the rest keep their relative weights")
     # adaptive particle count
     adaptive: bool = P.field(False, "adapt the particle count: KLD-sampling at resampling, the covariance rule at "
                                     "(re)initialisation; False = always n_particles")
@@ -104,6 +114,9 @@ class PfParams:
         for name in ("p_stop", "p_start", "heading_floor", "u_turn_prob", "fix_outlier_prob", "reinit_fraction",
                      "inject_fraction"):
             P.require(0 <= getattr(self, name) <= 1, n, name, "in [0, 1]", getattr(self, name))
+        P.require(self.fix_cov_scale > 0, n, "fix_cov_scale", "> 0", self.fix_cov_scale)
+        P.require(self.fix_dof >= 0, n, "fix_dof", ">= 0", self.fix_dof)
+        P.require(0 < self.inject_mass < 1, n, "inject_mass", "in (0, 1)", self.inject_mass)
         P.require(self.reinit_mahalanobis2 > 0, n, "reinit_mahalanobis2", "> 0", self.reinit_mahalanobis2)
         P.require(1 <= self.n_min <= self.n_max, n, "n_min/n_max", "1 <= n_min <= n_max", (self.n_min, self.n_max))
         P.require(0 < self.kld_epsilon < 1, n, "kld_epsilon", "in (0, 1)", self.kld_epsilon)
@@ -460,7 +473,7 @@ class GraphParticleFilter:
         p, pp = self.p, self.params
         assert p is not None
         mean = np.asarray(mean, float)
-        S = np.asarray(cov, float) + pp.fix_sigma_extra_m ** 2 * np.eye(2)
+        S = pp.fix_cov_scale * np.asarray(cov, float) + pp.fix_sigma_extra_m ** 2 * np.eye(2)
         xy = self.xy()
         m2 = mahalanobis2(xy - mean, S)
         n = len(p)
@@ -481,26 +494,45 @@ class GraphParticleFilter:
         elif pp.inject_fraction > 0:
             # sensor resetting (Lenser & Veloso 2000; the augmented MCL of Thrun et al.,
             # Probabilistic Robotics §8.3.5): the least likely particles are redrawn around the fix
-            # with an average weight, so a filter that started from an outlier fix or fell behind
-            # the walker can jump to where the WiFi says it is; the likelihood below weighs them.
+            # so a filter that started from an outlier fix or fell behind the walker can jump to
+            # where the WiFi says it is; the likelihood below weighs them (their prior mass is
+            # inject_mass, see inject()).
             k = self.inject_count()
             if k:
                 idx = self.inject(*self.sample_gaussian(mean, cov, k, rng), rng)
                 m2[idx] = mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, S)
-        log_g = -0.5 * m2 - 0.5 * np.log(np.linalg.det(2 * np.pi * S))
-        # outlier: uniform over a 50 m x 50 m area
-        log_l = np.logaddexp(np.log1p(-pp.fix_outlier_prob) + log_g, np.log(pp.fix_outlier_prob / 2500.0))
+        log_l = self._fix_log_likelihood(m2, S)
         p.log_w = normalise_log(p.log_w + log_l)
         return reinit
+
+    def _fix_log_likelihood(self, m2: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """Robust fix likelihood: the density below mixed with an outlier uniform over 50 m x 50 m."""
+        pp = self.params
+        return np.logaddexp(np.log1p(-pp.fix_outlier_prob) + self._fix_log_density(m2, S),
+                            np.log(pp.fix_outlier_prob / 2500.0))
+
+    def _fix_log_density(self, m2: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """Log density of a fix at squared Mahalanobis distances ``m2`` under ``S``: Gaussian, or the
+        bivariate Student-t of ``fix_dof`` degrees of freedom and scale matrix ``S``."""
+        nu = self.params.fix_dof
+        half_logdet = 0.5 * np.log(np.linalg.det(S))
+        if nu <= 0:
+            return -0.5 * m2 - np.log(2 * np.pi) - half_logdet
+        return (gammaln(0.5 * (nu + 2)) - gammaln(0.5 * nu) - np.log(nu * np.pi) - half_logdet
+                - 0.5 * (nu + 2) * np.log1p(m2 / nu))
 
     def inject_count(self) -> int:
         """How many particles a sensor resetting redraws (``inject_fraction`` of them)."""
         return int(round(self.params.inject_fraction * len(self.p))) if self.p is not None else 0
 
-    def inject(self, link: np.ndarray, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def inject(self, link: np.ndarray, t: np.ndarray, rng: np.random.Generator, *, mass: float | None = None) -> np.ndarray:
         """Sensor resetting: the ``len(link)`` lowest-weight particles move to the given link
         positions (t in [0, 1]) with a random direction, another particle's step-length factor and
-        heading offset, and the average weight. Returns their indices."""
+        heading offset. Together they carry the prior mass ``inject_mass`` (a mixture prior:
+        "tracked" with 1 − mass, "near the measurement" with mass), so one outlying measurement
+        cannot move the estimate by itself: the redrawn particles win only when the measurement
+        is far more likely there than at the tracked particles, and consecutive measurements that
+        agree compound. Returns their indices."""
         p = self.p
         assert p is not None
         n, k = len(p), len(link)
@@ -511,8 +543,14 @@ class GraphParticleFilter:
         p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
         p.scale[idx] = p.scale[donors]
         p.yaw_offset[idx] = p.yaw_offset[donors]
-        p.log_w[idx] = -np.log(n)
-        p.log_w = normalise_log(p.log_w)
+        mass = self.params.inject_mass if mass is None else mass
+        if k < n:
+            kept = np.ones(n, bool)
+            kept[idx] = False
+            p.log_w[kept] = normalise_log(p.log_w[kept]) + np.log1p(-mass)
+            p.log_w[idx] = np.log(mass / k)
+        else:
+            p.log_w[:] = -np.log(n)
         return idx
 
     def update_log_likelihood(self, log_l: np.ndarray) -> None:

@@ -69,7 +69,11 @@ class PfStageParams:
     kld_bin_m: float = P.field(1.0, "KLD bin length along a link (m)")
     heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel on the link (rad)")
     yaw_offset_sigma_rad: float = P.field(3.2, "odom->map heading offset spread at start (rad); >= pi = unknown, learnt by the filter")
-    fix_sigma_extra_m: float = P.field(1.0, "added to each WiFi fix's standard deviation per axis (m)")
+    fix_sigma_extra_m: float = P.field(0.76, "added to each WiFi fix's standard deviation per axis (m)")
+    fix_cov_scale: float = P.field(0.73, "each WiFi fix's covariance is multiplied by this before fix_sigma_extra_m is "
+                                         "added (its calibration against measured errors)")
+    fix_dof: float = P.field(6.0, "WiFi fix likelihood: 0 = Gaussian, > 0 = Student-t with this many degrees of freedom")
+    inject_mass: float = P.field(0.15, "prior probability mass of the particles redrawn around each WiFi fix")
     max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
     time_jump_s: float = P.field(1.0, "a stamp this much older than the newest seen resets the filter (bag loops) (s)")
     particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
@@ -104,6 +108,7 @@ class PfStageParams:
     def pf_params(self) -> PfParams:
         return PfParams(n_particles=self.n_particles, heading_sigma_rad=self.heading_sigma_rad,
                         yaw_offset_sigma_rad=self.yaw_offset_sigma_rad, fix_sigma_extra_m=self.fix_sigma_extra_m,
+                        fix_cov_scale=self.fix_cov_scale, fix_dof=self.fix_dof, inject_mass=self.inject_mass,
                         adaptive=self.adaptive, n_min=self.n_min, n_max=self.n_max, kld_epsilon=self.kld_epsilon,
                         kld_bin_m=self.kld_bin_m)
 
