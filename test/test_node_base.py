@@ -98,6 +98,21 @@ def test_invalid_parameters_stop_the_process(tmp_path):
         assert cases[k][1] in peer.output(), f"{k}: {peer.output()}"
 
 
+def test_a_subscription_that_matched_late_says_so():
+    """The first message taken is not its publisher's first: what was published before the
+    subscription matched is said once (not counted as a loss: the topic is volatile)."""
+    from indoor_loc.nodes.base import SequenceGaps
+    said: list[int] = []
+    gaps = SequenceGaps(said.append)
+    assert gaps.gap({"publication_sequence_number": 478}) == 0
+    assert gaps.gap({"publication_sequence_number": 479}) == 0
+    assert gaps.gap({"publication_sequence_number": 482}) == 2          # a real gap is a loss
+    assert said == [477]
+    on_time: list[int] = []
+    fresh = SequenceGaps(on_time.append)
+    assert fresh.gap({"publication_sequence_number": 1}) == 0 and on_time == []
+
+
 def test_startup_error_is_an_error_in_diagnostics(ros_domain, tmp_path):
     """A node that cannot start (here: its radio map does not exist) exits 2 and says so in
     /diagnostics as ERROR under its own name, not only on stderr."""

@@ -68,7 +68,7 @@ def test_powed_representation_and_age_weight():
 
 def test_floor_detection_on_a_synthetic_two_floor_field(rng):
     rm, rss, bssids, zs = _two_floor_map(rng)
-    pos = PowedKnn().fit(rm)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False)).fit(rm)      # the covariance is tested below
     right = total = 0
     err = []
     for fi, z in enumerate(zs):
@@ -87,7 +87,7 @@ def test_floor_detection_on_a_synthetic_two_floor_field(rng):
 
 def test_ages_make_stale_readings_weigh_less(rng):
     rm, rss, bssids, _ = _two_floor_map(rng)
-    pos = PowedKnn().fit(rm)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False)).fit(rm)
     p = np.array([[20.0, 10.0]])
     row = rss(p, np.zeros(1, int), 0.0)[0]
     far = rss(np.array([[55.0, 25.0]]), np.zeros(1, int), 0.0)[0]
@@ -98,7 +98,7 @@ def test_ages_make_stale_readings_weigh_less(rng):
     mixed[stale] = far[stale]
     ages = np.where(stale, 20_000.0, 100.0)
     with_age = pos.locate(_scans([mixed], bssids, ages=[ages])[0])
-    without = PowedKnn(PowedKnnParams(age_tau_ms=0.0)).fit(rm).locate(_scans([mixed], bssids, ages=[ages])[0])
+    without = PowedKnn(PowedKnnParams(age_tau_ms=0.0, cov_calibration=False)).fit(rm).locate(_scans([mixed], bssids, ages=[ages])[0])
     assert np.hypot(*(with_age.xy - p[0])) < np.hypot(*(without.xy - p[0]))
 
 
@@ -225,3 +225,57 @@ def test_online_device_offset_recovers_a_phone_that_reads_8_db_low():
     assert err[0] < 0.8 * err[1]
     fixed.reset()
     assert fixed.offset_db == 0.0
+
+
+def _walk_map(rng, noise_db, n_aps=40):
+    """Survey walks along y = 6, 15, 24 m (a scan every metre, one source per walk) over the synthetic
+    field, and the field itself."""
+    rss = _field(rng, n_aps, [0.0])
+    bssids = [f"02:00:00:00:01:{i:02x}" for i in range(n_aps)]
+    xs = np.arange(1.0, SIZE[0], 1.0)
+    rm = empty_radiomap()
+    for j, y in enumerate((6.0, 15.0, 24.0)):
+        pts = np.column_stack([xs, np.full(len(xs), y)])
+        rm = add_fingerprints(rm, pts, _scans(rss(pts, np.zeros(len(pts), int), noise_db), bssids), f"walk{j}")
+    return rm, rss, bssids
+
+
+def test_interpolated_grid_is_the_kernel_regression_of_the_kept_scans():
+    """The grid's values are the Gaussian-kernel (Nadaraya-Watson) mean of the map scans' values, and
+    a grid rebuilt without a walk (the calibration's folds) neither uses its scans nor keeps grid points
+    only it reached."""
+    rm, _, _ = _walk_map(np.random.default_rng(5), 4.0)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, age_tau_ms=0.0)).fit(rm)
+    h = pos.params.smooth_m
+    src = np.array(rm.source)
+    for keep in (np.ones(rm.n_scans, bool), src != "walk1"):
+        readings, sums, rows = pos._smoothed(keep)
+        g = pos._grid_pos[rows]
+        d_keep = np.linalg.norm(g[:, None, :] - rm.positions[keep][None], axis=2)
+        assert np.all(d_keep.min(axis=1) <= pos.params.smooth_reach_m + 1e-6)
+        w = np.exp(-0.5 * (d_keep / h) ** 2) * (d_keep <= 3 * h)
+        expect = (w / w.sum(axis=1, keepdims=True)) @ pos._vals[0][keep]
+        got = np.zeros_like(expect)
+        for col in range(expect.shape[1]):
+            r, v, _ = readings[0].gather(np.array([col]))
+            got[r, col] = v
+        np.testing.assert_allclose(got, expect, atol=1e-12)
+        np.testing.assert_allclose(sums[0], expect.sum(axis=1), atol=1e-12)
+    assert len(pos._smoothed(src != "walk1")[2]) < len(pos._grid_pos)       # the middle walk's own points go
+
+
+def test_interpolated_map_beats_single_noisy_scans():
+    """With 8 dB of independent shadowing per survey scan, matching against the interpolated grid (mean of
+    the map-scan and grid estimates, the default) is more accurate than the map scans alone. Measured
+    (seed 9): 1.7 m against 2.3 m mean."""
+    rng = np.random.default_rng(9)
+    rm, rss, bssids = _walk_map(rng, 8.0)
+    pts = np.column_stack([rng.uniform(3, SIZE[0] - 3, 200), rng.choice([6.0, 15.0, 24.0], 200) +
+                           rng.uniform(-1.5, 1.5, 200)])
+    scans = _scans(rss(pts, np.zeros(len(pts), int), 4.0), bssids)
+    err = {}
+    for label, params in (("both", {}), ("map", {"smooth_m": 0.0})):
+        fixes = PowedKnn(PowedKnnParams(cov_calibration=False, **params)).fit(rm).locate_many(scans)
+        assert all(f.ok for f in fixes)
+        err[label] = float(np.mean([np.hypot(*(f.xy - p)) for f, p in zip(fixes, pts)]))
+    assert err["both"] < 0.9 * err["map"], err

@@ -9,7 +9,9 @@ the users' topics once the nodes' outputs are matched and every node input has b
 playback and the time it then needed to work off its queue, to within the 1 s of /diagnostics), and
 messages lost on the way to it — the input messages that never arrived (sent − received, which also
 covers what sequence gaps cannot see) — and in the recorder (bag counts against what was sent). For
-each N the rate rises until the first loss anywhere; the table says where it happened.
+each N the rate rises until the first loss anywhere; the table says where it happened. Then the
+recorder alone: all N users played straight into ``recorder -a`` at rising rates until it loses a
+message (its own limit, without the CPU the nodes take), with how much of that loss it counted.
 
 Choose ``--duration`` so that a user's messages outnumber the nodes' queues (10 000 reliable IMU
 messages: 40 s of 250 msg/s), else a fast replay is only absorbed by them. Then the offline
@@ -239,6 +241,62 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
     return trial
 
 
+#: Rates of the recorder-alone trials (all users at once), rising until the first loss.
+RECORDER_RATES = (5.0, 10.0, 20.0, 40.0, 80.0)
+
+
+@dataclass
+class RecorderTrial:
+    users: int
+    rate: float
+    sent: int = 0
+    play_s: float = 0.0
+    recorded: int = 0
+    counted: int = 0                 # loss the recorder itself counted (LOST line)
+    note: str = ""
+
+    @property
+    def missing(self) -> int:
+        return max(0, self.sent - self.recorded)
+
+
+def run_recorder_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path,
+                       env: dict[str, str]) -> RecorderTrial:
+    """The recorder alone: ``player -r R`` plays the users' topics straight into ``recorder -a``
+    (no nodes), so its own limit shows and not the CPU the nodes take."""
+    from indoor_loc.bag import bag_info
+
+    info = bag_info([sim["bag"]])
+    topics = sorted(t for t in info if any(t.startswith(f"/{u}/") for u in users))
+    trial = RecorderTrial(len(users), rate, sent=sum(info[t].count for t in topics))
+    out = work / f"rec_alone_{len(users)}u_{rate:g}x.mcap"
+    py = sys.executable
+    rec = _Proc([py, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(out), "--overwrite", "--poll", "0.2",
+                 "--exclude", "^/diagnostics$|^/rosout$|^/parameter_events$"], env)
+    try:
+        if not _wait(lambda: rec.has("recording all topics"), 60):
+            trial.note = "recorder did not start"
+            return trial
+        player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
+                        "--wait-for-subscribers", "60", "--topics", *topics], env)
+        player.proc.wait()
+        player.stop()
+        got = [m for m in (re.search(r"played (\d+) messages in ([\d.]+) s", ln) for ln in player.lines) if m]
+        if not got:
+            trial.note = "player failed: " + " / ".join(player.lines[-3:])
+            return trial
+        trial.play_s = float(got[-1].group(2))
+        rec.stop()
+    finally:
+        if rec.proc.poll() is None:
+            rec.stop(timeout=10)
+    lost = [m for m in (re.search(r"LOST before reaching the recorder: (\d+)", ln) for ln in rec.lines) if m]
+    trial.counted = int(lost[-1].group(1)) if lost else 0
+    recorded = bag_info([out]) if out.exists() else {}
+    trial.recorded = sum(recorded[t].count for t in topics if t in recorded)
+    return trial
+
+
 def _rate(n: int, s: float) -> str:
     return f"{n / s:,.0f}" if s > 0 else "–"
 
@@ -287,6 +345,17 @@ def run(args: argparse.Namespace) -> int:
                     print(f"  note: {t.note}", flush=True)
                 if t.lost or t.note:
                     break
+        print(f"\n## The recorder alone ({max(users)} users, `player -r R` straight into `recorder -a`, no nodes)\n")
+        print("| users | rate | sent msg/s | recorder msg/s | not recorded | of which counted (LOST) |")
+        print("|---|---|---|---|---|---|")
+        for r in RECORDER_RATES:
+            rt = run_recorder_trial(sim, names[:max(users)], r, work, env)
+            print(f"| {rt.users} | {r:g}× | {_rate(rt.sent, rt.play_s)} | {_rate(rt.recorded, rt.play_s)} | "
+                  f"{rt.missing} | {rt.counted} |", flush=True)
+            if rt.note:
+                print(f"  note: {rt.note}", flush=True)
+            if rt.missing or rt.note:
+                break
         from indoor_loc.bench.throughput import format_rows, offline_stage_rates
         print(f"\n## The same bag offline ({max(users)} users), per stage: `indoor-loc run` on one core\n")
         print(format_rows(offline_stage_rates([sim["bag"]], params=sim["params"], scratch=work)))

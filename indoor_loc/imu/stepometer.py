@@ -85,12 +85,15 @@ class StepometerParams:
                                         "deviation decides moving vs still, s")
     min_motion_std_m_s2: float = field(0.08, "minimum standard deviation of |a| over motion_window_s for "
                                             "a hop to count as moving (below: still, 0 steps), m/s²")
-    coast_s: float = field(0.0, "after the last periodic walking window, hops that are still moving but "
-                                "not periodic (a turn, a bag bumping) are counted at the last walking "
-                                "cadence for up to this long, s; 0 = never")
-    coast_energy_ratio: float = field(0.8, "coasting also needs the hop's |a| standard deviation (over "
-                                           "motion_window_s) at least this fraction of the last walking "
-                                           "hop's: a turn keeps the gait's energy, a stop loses it, 1")
+    coast_s: float = field(0.6, "after a clearly periodic walking run, the moving but not periodic hops "
+                                "that follow it without a break and start within this long of its end are "
+                                "counted at its last cadence (the last steps of a stop, which the windows "
+                                "already see as not periodic; longer values also coast through turns), s; "
+                                "0 = never")
+    coast_energy_ratio: float = field(0.65, "coasting also needs the hop's |a| standard deviation (over "
+                                            "motion_window_s) at least this fraction of the median over the "
+                                            "walking run's last window_s/2: the steps of a stop keep most of "
+                                            "the gait's energy, a still phone does not, 1")
     turn_coast_s: float = field(0.0, "with a heading (add_heading), a moving but not periodic hop within "
                                      "this long of the last walking window is counted at the last cadence "
                                      "while the heading turns (a corridor turn), s; 0 = never")
@@ -273,15 +276,16 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
     return power
 
 
-def normalised_autocorr(x: np.ndarray, design: _Design) -> np.ndarray:
-    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags 0..n_w-1, normalised by
-    lag 0 (all zero for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= 2 n_w - 1`` so
-    nothing wraps around."""
+def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
+    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
+    (default 0..n_w-1), normalised by lag 0 (all zero for a constant window); Wiener-Khinchin,
+    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around."""
     n_w = design.n_w
+    hi = n_w if lag_hi is None else lag_hi
     spec = np.fft.rfft(x, design.n_acf, axis=1)
-    acf = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)[:, :n_w]
-    acf /= n_w - np.arange(n_w)
-    acf0 = acf[:, :1]
+    full = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
+    acf = full[:, lag_lo:hi] / (n_w - np.arange(lag_lo, hi))
+    acf0 = full[:, :1] / n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
@@ -333,11 +337,11 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
         in_band &= fund >= p.min_fundamental_share * score[r, j]
     # Periodicity: the normalised autocorrelation at the stride lag 2/f.
     n_w = design.n_w
-    acf = normalised_autocorr(x, design)
     lag = 2.0 / np.maximum(f, 1e-6) * design.fs
     lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, n_w - 1)
     hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, n_w)
-    lags = np.arange(n_w)
+    lags = np.arange(int(lo.min()), int(hi.max()))          # only the lags some window reads
+    acf = normalised_autocorr(x, design, int(lags[0]), int(lags[-1]) + 1)
     mask = (lags[None, :] >= lo[:, None]) & (lags[None, :] < hi[:, None])
     ac = np.where(mask, acf, -np.inf).max(axis=1)
     ac = np.where(np.isfinite(ac), ac, -1.0)
@@ -368,7 +372,10 @@ class StepometerState:
     last_walking: bool = False
     walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
     walk_end: int | None = None          # grid index where the last periodic walking hop ended
-    walk_motion_std: float = 0.0         # |a| std around the last periodic walking hop, m/s²
+    walk_motion_std: float = 0.0         # median |a| std around the walking run's last hops, m/s²
+    walk_motion_recent: list[float] = dc_field(default_factory=list)
+    coast_end: int | None = None         # grid index where the last coasted hop ended
+    # ^ |a| std around each of the walking run's hops over its last window_s/2, m/s²
     walk_autocorr: float = 0.0           # largest stride-lag autocorrelation of the current walking run
     head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
     head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
@@ -389,7 +396,15 @@ class StepometerState:
         return dataclasses.replace(self, pending_t=list(self.pending_t), pending_m=list(self.pending_m),
                                    buffer=list(self.buffer), head_t=list(self.head_t),
                                    head_yaw=list(self.head_yaw), held=list(self.held),
-                                   tentative=list(self.tentative))
+                                   tentative=list(self.tentative),
+                                   walk_motion_recent=list(self.walk_motion_recent))
+
+
+def _median(values: list[float]) -> float:
+    """Median of a short list (what ``np.median`` gives: the mean of the two middle values when even)."""
+    v = sorted(values)
+    k = len(v) // 2
+    return v[k] if len(v) % 2 else (v[k - 1] + v[k]) / 2.0
 
 
 def _magnitude(acc: ArrayLike) -> np.ndarray:
@@ -612,17 +627,15 @@ class Stepometer:
         st = self._st
         st.samples += len(t)
         if st.grid_hz <= 0:
-            st.pending_t.extend(int(v) for v in t)
-            st.pending_m.extend(float(v) for v in m)
-            if len(st.pending_t) <= self.params.rate_samples:
-                return []
-            dt = np.diff(np.asarray(st.pending_t[: self.params.rate_samples + 1], dtype=np.int64))
+            # the samples so far, as arrays (a whole recording at once is not turned into Python lists)
+            t = np.concatenate((np.asarray(st.pending_t, dtype=np.int64), t))
+            m = np.concatenate((np.asarray(st.pending_m, dtype=float), m))
+            dt = np.diff(t[: self.params.rate_samples + 1])
             dt = dt[dt > 0]
-            if len(dt) == 0:
+            if len(t) <= self.params.rate_samples or len(dt) == 0:
+                st.pending_t, st.pending_m = t.tolist(), m.tolist()
                 return []
             st.grid_hz = float(min(2000.0, max(10.0, 1e9 / float(np.median(dt)))))
-            t = np.asarray(st.pending_t, dtype=np.int64)
-            m = np.asarray(st.pending_m, dtype=float)
             st.pending_t, st.pending_m = [], []
         return self._ingest(t, m)
 
@@ -739,9 +752,13 @@ class Stepometer:
 
         Periodic walking window: ``f x duration`` steps, confidence 1. Still (``|a|`` quiet around
         the hop): 0 steps, confidence 1. Moving but not periodic — a corridor turn, a bag swinging
-        into the body, a soft floor smearing the impacts: within ``coast_s`` of the last periodic
-        walking window the walk is taken to go on at its last cadence (people do not stop
-        mid-turn), with confidence ``coast_confidence``; otherwise, within ``bridge_s`` of it, the hop
+        into the body, a soft floor smearing the impacts, the last steps of a stop: right after a clearly
+        periodic walking run (without a break, starting within ``coast_s`` of its end) a hop that keeps
+        ``coast_energy_ratio`` of the run's recent ``|a|`` energy is counted at its last cadence, with
+        confidence ``coast_confidence`` (a window centred before a stop already holds the still phone
+        after it and loses its periodicity while the last steps are still being taken; the steps of a
+        stop decay in amplitude, the still phone has none); within ``bridge_s`` of it, the hop (coasted
+        or not)
         is held back until the gait either resumes with a clearly periodic window (the span was
         walking: its steps are counted one by one, :meth:`_release_held`) or does not (a still hop, or
         ``bridge_s`` ran out: 0 steps with that confidence). A walking window that is only marginally
@@ -761,7 +778,11 @@ class Stepometer:
             out = self._release_held(est.freq_hz) if est.autocorr >= p.bridge_min_autocorr else self._drop_held()
             st.walk_freq_hz = est.freq_hz
             st.walk_end = hi
-            st.walk_motion_std = est.motion_std_m_s2
+            # the gait's energy: median over the run's last half window (a stop's steps decay from it)
+            n_recent = max(1, int(round(0.5 * p.window_s / p.hop_s)))
+            st.walk_motion_recent = (st.walk_motion_recent if run else [])[max(0, len(st.walk_motion_recent) - n_recent + 1):]
+            st.walk_motion_recent.append(est.motion_std_m_s2)
+            st.walk_motion_std = _median(st.walk_motion_recent)
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
             hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
             if st.walk_autocorr < p.bridge_min_autocorr:
@@ -776,13 +797,18 @@ class Stepometer:
             return self._drop_tentative() + self._drop_held() + [self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)]
         c = p.coast_confidence
         since_s = math.inf if st.walk_end is None else (lo - st.walk_end) / st.grid_hz
-        coast = (since_s < p.coast_s and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
+        # a stop's last steps: contiguous hops right after a clearly periodic walk that keep its energy
+        contiguous = (st.walk_end is not None and lo in (st.walk_end, st.coast_end)
+                      and st.walk_autocorr >= p.bridge_min_autocorr)
+        coast = (since_s < p.coast_s and contiguous
+                 and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
         if not coast and since_s < p.turn_coast_s and st.walk_freq_hz > 0:
             # a corridor turn: the heading swings while the gait loses its periodicity
             half = int(0.5 * p.window_s * 1e9)
             mid = (self._grid_time(lo) + self._grid_time(hi)) // 2
             coast = self._turned_rad(mid - half, mid + half) >= p.turn_min_rad
         if st.walk_freq_hz > 0 and coast:
+            st.coast_end = hi
             f = st.walk_freq_hz
             hop = (lo, hi, est.freq_hz, f, True, c, (1.0 - c) * f * dur)
         else:
@@ -920,9 +946,13 @@ class Stepometer:
                 lo = (st.next_window - 1) * d.n_h + d.offset + d.n_h
                 hi = st.n_grid
                 if hi > lo:
+                    # counted at the last cadence only after a hop counted from its own walking
+                    # window (confidence 1), not after a coasted one: the segment ends inside a stop
                     f = st.count_freq_hz if st.count_freq_hz > 0 else st.last_freq_hz
-                    out += self._count_span(lo, hi, st.count_freq_hz > 0, f, st.count_confidence)
+                    walking = st.count_freq_hz > 0 and st.count_confidence >= 1.0
+                    out += self._count_span(lo, hi, walking, f, st.count_confidence)
         st.walk_end = None
+        st.coast_end = None
         st.walk_freq_hz = 0.0
         st.walk_autocorr = 0.0
         st.t0_ns = None

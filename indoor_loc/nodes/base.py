@@ -141,9 +141,14 @@ class SequenceGaps:
     3...). rclpy does not say which publisher a message came from, so gaps are counted only while
     the topic has a single publisher (``publishers`` is refreshed by the caller)."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_late_start: Callable[[int], None] | None = None) -> None:
         self.last: int | None = None
         self.publishers = 1
+        self._started = False
+        #: called once if the first message taken is not its publisher's first (``seq - 1`` were
+        #: published before this subscription matched: not a loss on a volatile topic, but what a
+        #: replay started too early looks like)
+        self.on_late_start = on_late_start
 
     def gap(self, info: Any, recount: Callable[[], int] | None = None) -> int:
         """Messages missing before this one; ``recount()`` (the topic's publisher count now) is
@@ -163,6 +168,10 @@ class SequenceGaps:
             self.last = None if self.publishers != 1 else self.last
             return 0
         last, self.last = self.last, seq
+        if not self._started:
+            self._started = True
+            if seq > 1 and self.on_late_start is not None:
+                self.on_late_start(seq - 1)
         if last is None or seq <= last:          # first message, or a restarted publisher
             return 0
         return seq - last - 1
@@ -418,7 +427,7 @@ class StageNode(Node):
     # -- messages ----------------------------------------------------------------------------------
     def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
         resolved = join_ns(namespace_of_user(user), topic) if user else topic
-        gaps = self._gaps.setdefault(resolved, SequenceGaps())
+        gaps = self._gaps.setdefault(resolved, SequenceGaps(self._late_start(resolved)))
 
         def recount() -> int:
             return self.count_publishers(resolved)
@@ -436,6 +445,12 @@ class StageNode(Node):
             self._log_rejections()
         return cb
 
+    def _late_start(self, topic: str) -> Callable[[int], None]:
+        def said(n: int) -> None:
+            self.get_logger().info(f"{self.resolve_topic_name(topic)}: the first message received is its publisher's "
+                                   f"#{n + 1}: {n} were published before this subscription matched")
+        return said
+
     # -- fast path: raw sensor inputs handled in runs ----------------------------------------------
     def _batchable(self, port: Any) -> bool:
         """Whether ``port`` is taken raw and handled in runs: a per-user stage with a batch path for
@@ -443,7 +458,7 @@ class StageNode(Node):
         return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
 
     def _subscribe_raw(self, port: Any):
-        gaps = self._gaps.setdefault(port.topic, SequenceGaps())
+        gaps = self._gaps.setdefault(port.topic, SequenceGaps(self._late_start(port.topic)))
         sub = self._subscribe(port, port.topic, self._raw_callback(port.topic), raw=True)
         self._raw[port.topic] = (sub, gaps, port.type)
         return sub

@@ -51,7 +51,10 @@ from msg_adapters.diagnostics import status_array
 NODE_NAME = "player"
 #: --wait-for-subscribers: the subscriber counts must be stable this long before playing (s).
 SUBSCRIBERS_SETTLE_S = 0.5
-PUB_DEPTH = 1000
+#: History of each (volatile) publisher: a reliable writer keeps what its slowest subscriber has not
+#: acknowledged yet, and overwrites the oldest beyond this (a loss for that subscriber, counted there
+#: as a sequence gap). 10 000 = 5 s of a 10x replay of a 200 Hz IMU for a subscriber starved of CPU.
+PUB_DEPTH = 10000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -309,7 +309,9 @@ class RecorderNode(Node):
                             f"{_policy_name(qos.durability)}, {len(profiles)} publisher(s))")
 
     def _callback(self, topic: str) -> Callable[[bytes, Any], None]:
-        gaps = self._gaps.setdefault(topic, SequenceGaps())
+        gaps = self._gaps.setdefault(topic, SequenceGaps(
+            lambda n: self.get_logger().info(f"{topic}: the first message received is its publisher's #{n + 1}: "
+                                             f"{n} were published before this subscription matched")))
         gaps.publishers = self.count_publishers(topic)
 
         def cb(data: bytes, info: Any) -> None:   # the executor took one message: take the rest of the burst
