@@ -453,9 +453,14 @@ class StageNode(Node):
         return cb
 
     def _late_start(self, topic: str) -> Callable[[int], None]:
+        """Said once when an input's first message is not its publisher's first: normal when a node
+        joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
+        WARN; start the player once every subscriber has matched, see ``--min-subscribers``)."""
         def said(n: int) -> None:
-            self.get_logger().info(f"{self.resolve_topic_name(topic)}: the first message received is its publisher's "
-                                   f"#{n + 1}: {n} were published before this subscription matched")
+            replay = self.sensor_reliability == "reliable"
+            (self.get_logger().warning if replay else self.get_logger().info)(
+                f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
+                f"published before this subscription matched" + ("; a replay started too early" if replay else ""))
         return said
 
     # -- fast path: raw sensor inputs handled in runs ----------------------------------------------
