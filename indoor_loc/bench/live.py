@@ -170,7 +170,8 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
             return trial
         # every input a node takes has two subscribers, the node and the recorder: wait for both
         # (a non-zero count can be the recorder alone, and the node would miss the first messages)
-        need = [f"{rel}=2" for rel in sorted({r for rels in BAG_INPUTS.values() for r in rels})]
+        need = [f"{rel}=2" for rel in sorted({r for rels in BAG_INPUTS.values() for r in rels})
+                if any(t.endswith("/" + rel) for t in topics)]
         player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
                         "--wait-for-subscribers", "60", "--min-subscribers", *need, "--topics", *topics], env)
         while player.proc.poll() is None:
