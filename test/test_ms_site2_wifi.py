@@ -32,8 +32,8 @@ def test_f8_powed_locates_every_scan_and_beats_plain_wknn():
     p_ok, p_e, _ = errors(make_positioner("wknn", PLAIN).fit(rm).locate_many(scans), truth)
     ok, e, m2 = errors(make_positioner("powed", {}).fit(rm).locate_many(scans), truth)
     assert ok.all() and p_ok.mean() < 0.95                                    # bench: 100 % vs 88.7 %
-    assert e[p_ok].mean() < 0.8 * p_e[p_ok].mean()                            # bench: 11.77 vs 16.30 m
-    assert 0.4 < np.mean(m2 <= 2 * np.log(2)) < 0.7 and np.mean(m2 <= 5.991) > 0.85   # bench: 50 / 95
+    assert e[p_ok].mean() < 0.8 * p_e[p_ok].mean()                            # bench: 11.49 vs 16.30 m
+    assert 0.4 < np.mean(m2 <= 2 * np.log(2)) < 0.7 and np.mean(m2 <= 5.991) > 0.85   # bench: 67 / 100
 
 
 def test_floor_detection_between_adjacent_floors_f7_f8():
@@ -49,7 +49,7 @@ def test_floor_detection_between_adjacent_floors_f7_f8():
             rm = add_fingerprints(rm, xy, sc, tid, z_m=z, floors={name: z})
         for tid in test[:4]:
             tests += [(s, z) for s in scans_with_truth(read_trace(ids[tid], imu=False))[0]]
-    pos = make_positioner("powed", {}).fit(rm)
+    pos = make_positioner("powed", {"cov_calibration": False}).fit(rm)      # floors only: no covariance needed
     fixes = pos.locate_many([s for s, _ in tests])
     right = np.mean([f.ok and f.z == z for f, (_, z) in zip(fixes, tests)])
     assert len(tests) > 80 and right >= 0.98

@@ -140,6 +140,31 @@ def test_online_equals_batch(rng):
     assert batch[0].t_start_ns == stamps[0]
 
 
+def test_whole_recording_at_once_equals_sample_by_sample_and_small_chunks(rng):
+    """The batch path (a whole recording in one call: the rate is estimated inside the chunk) gives the
+    hops of the per-sample online path and of small chunks (the rate estimate spanning calls) — the same
+    hop bounds, walking flags and confidences, counts to 1e-12 — across a walk, an irregular stop, a
+    still phone, a gap and a second walk."""
+    s1, a1, _ = walk_turn_walk(rng, turn_s=2.0, resume=False)
+    s2, a2 = walk_signal(rng, duration_s=25.0, rate_hz=100.0)
+    stamps = np.concatenate((s1, s2 - s2[0] + s1[-1] + 3 * 10**9))
+    acc = np.concatenate((a1, a2))
+    batch = stepometer_batch(stamps, acc)
+    one = Stepometer()
+    online = [h for t, a in zip(stamps, acc) for h in one.update(int(t), a)] + one.finish()
+    small = Stepometer()
+    chunks = [h for k in range(0, len(stamps), 7) for h in small.update_many(stamps[k: k + 7], acc[k: k + 7])]
+    chunks += small.finish()
+    fixed = stepometer_batch(stamps, acc, StepometerParams(grid_hz=100.0))     # no rate estimate at all
+    assert one.rate_hz == small.rate_hz == 100.0                              # stamps exactly 10 ms apart
+    assert sum(h.steps for h in batch) > 60
+    for other in (online, chunks, fixed):
+        assert [(h.t_start_ns, h.t_end_ns, h.walking, h.confidence) for h in other] == \
+            [(h.t_start_ns, h.t_end_ns, h.walking, h.confidence) for h in batch]
+        np.testing.assert_allclose([h.steps for h in other], [h.steps for h in batch], rtol=0, atol=1e-12)
+        np.testing.assert_allclose([h.steps_std for h in other], [h.steps_std for h in batch], rtol=0, atol=1e-12)
+
+
 def test_save_restore_resumes_exactly(rng):
     stamps, acc = walk_signal(rng, duration_s=30.0)
     ref = Stepometer()

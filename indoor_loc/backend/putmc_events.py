@@ -53,11 +53,7 @@ def walk_events(walk: Walk, *, stepometer: StepometerParams | None = None,
                 map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> WalkEvents:
     """Stepometer hops and headings of a walk (see module docstring)."""
     sm = Stepometer(stepometer)
-    # Fed in two chunks, as a live stream may be: the first one's samples fix the input rate, the
-    # rest then go in as arrays (one chunk would be buffered sample by sample until the rate is known).
-    n0 = sm.params.rate_samples + 1
-    hops = sm.update_many(walk.acc_t[:n0], walk.acc[:n0]) + sm.update_many(walk.acc_t[n0:], walk.acc[n0:])
-    hops += sm.finish()
+    hops = sm.update_many(walk.acc_t, walk.acc) + sm.finish()      # the whole walk in one call
     yaw = quat_yaw(to_map_quat(walk.quat_xyzw, map_yaw_rad))
     # linear interpolation of the unwrapped yaw at each hop's end (as HeadingHistory.at in imu_node)
     t_end = np.array([h.t_end_ns for h in hops], np.int64)

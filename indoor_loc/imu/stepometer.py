@@ -276,15 +276,16 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
     return power
 
 
-def normalised_autocorr(x: np.ndarray, design: _Design) -> np.ndarray:
-    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags 0..n_w-1, normalised by
-    lag 0 (all zero for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= 2 n_w - 1`` so
-    nothing wraps around."""
+def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
+    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
+    (default 0..n_w-1), normalised by lag 0 (all zero for a constant window); Wiener-Khinchin,
+    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around."""
     n_w = design.n_w
+    hi = n_w if lag_hi is None else lag_hi
     spec = np.fft.rfft(x, design.n_acf, axis=1)
-    acf = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)[:, :n_w]
-    acf /= n_w - np.arange(n_w)
-    acf0 = acf[:, :1]
+    full = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
+    acf = full[:, lag_lo:hi] / (n_w - np.arange(lag_lo, hi))
+    acf0 = full[:, :1] / n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
@@ -336,11 +337,11 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
         in_band &= fund >= p.min_fundamental_share * score[r, j]
     # Periodicity: the normalised autocorrelation at the stride lag 2/f.
     n_w = design.n_w
-    acf = normalised_autocorr(x, design)
     lag = 2.0 / np.maximum(f, 1e-6) * design.fs
     lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, n_w - 1)
     hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, n_w)
-    lags = np.arange(n_w)
+    lags = np.arange(int(lo.min()), int(hi.max()))          # only the lags some window reads
+    acf = normalised_autocorr(x, design, int(lags[0]), int(lags[-1]) + 1)
     mask = (lags[None, :] >= lo[:, None]) & (lags[None, :] < hi[:, None])
     ac = np.where(mask, acf, -np.inf).max(axis=1)
     ac = np.where(np.isfinite(ac), ac, -1.0)
@@ -397,6 +398,13 @@ class StepometerState:
                                    head_yaw=list(self.head_yaw), held=list(self.held),
                                    tentative=list(self.tentative),
                                    walk_motion_recent=list(self.walk_motion_recent))
+
+
+def _median(values: list[float]) -> float:
+    """Median of a short list (what ``np.median`` gives: the mean of the two middle values when even)."""
+    v = sorted(values)
+    k = len(v) // 2
+    return v[k] if len(v) % 2 else (v[k - 1] + v[k]) / 2.0
 
 
 def _magnitude(acc: ArrayLike) -> np.ndarray:
@@ -619,17 +627,15 @@ class Stepometer:
         st = self._st
         st.samples += len(t)
         if st.grid_hz <= 0:
-            st.pending_t.extend(int(v) for v in t)
-            st.pending_m.extend(float(v) for v in m)
-            if len(st.pending_t) <= self.params.rate_samples:
-                return []
-            dt = np.diff(np.asarray(st.pending_t[: self.params.rate_samples + 1], dtype=np.int64))
+            # the samples so far, as arrays (a whole recording at once is not turned into Python lists)
+            t = np.concatenate((np.asarray(st.pending_t, dtype=np.int64), t))
+            m = np.concatenate((np.asarray(st.pending_m, dtype=float), m))
+            dt = np.diff(t[: self.params.rate_samples + 1])
             dt = dt[dt > 0]
-            if len(dt) == 0:
+            if len(t) <= self.params.rate_samples or len(dt) == 0:
+                st.pending_t, st.pending_m = t.tolist(), m.tolist()
                 return []
             st.grid_hz = float(min(2000.0, max(10.0, 1e9 / float(np.median(dt)))))
-            t = np.asarray(st.pending_t, dtype=np.int64)
-            m = np.asarray(st.pending_m, dtype=float)
             st.pending_t, st.pending_m = [], []
         return self._ingest(t, m)
 
@@ -776,7 +782,7 @@ class Stepometer:
             n_recent = max(1, int(round(0.5 * p.window_s / p.hop_s)))
             st.walk_motion_recent = (st.walk_motion_recent if run else [])[max(0, len(st.walk_motion_recent) - n_recent + 1):]
             st.walk_motion_recent.append(est.motion_std_m_s2)
-            st.walk_motion_std = float(np.median(st.walk_motion_recent))
+            st.walk_motion_std = _median(st.walk_motion_recent)
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
             hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
             if st.walk_autocorr < p.bridge_min_autocorr:

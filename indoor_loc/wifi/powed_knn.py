@@ -71,8 +71,9 @@ test walk enters a part of its floor the survey walks did not cover but the floo
 Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ(D₁)² I, where D₁ is the
 distance of the best match: a poor best match means a scan the map does not explain, and its
 error tends to be larger. σ(D) is calibrated on the map itself at ``fit`` time by
-leave-one-source-out cross-validation: each map scan is positioned against the map without its own
-walk, the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
+leaving walks out: the map's sources (walks) are dealt into at most ``cov_folds`` folds and each map
+scan is positioned against the map without its fold's walks (the grid interpolated again without
+them), the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
 40 scans each), and in each bin σ is set so that the ``cov_quantile`` ellipse of an isotropic 2-D
 Gaussian holds that share of the bin's cross-validated errors: σ = q-quantile(error) /
 sqrt(−2 ln(1 − q)); σ is made non-decreasing in D₁ and interpolated between bin centres (constant
@@ -81,10 +82,11 @@ mall is tens of metres off), so a σ fitted to the mean error — or a line in D
 ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
 covariance honest where a downstream filter gates on it, at the price of a 50 % ellipse that holds
 more than half of the truths. The calibration follows each building's own accuracy instead of
-constants fitted to one building; a map with a single source (a pre-surveyed map) leaves one scan
-out instead. Cross-validation cannot see what the survey never covered: a user walking where no
-survey walk went is positioned on the nearest surveyed stretch and its error exceeds the ellipse
-(on ms_site2 F3 most test scans are more than 3 m from every map scan).
+constants fitted to one building; a map with a single source (a pre-surveyed map) deals its scans
+into the folds instead (without a grid: leaves one scan out). Cross-validation cannot see what the
+survey never covered: a user walking where no survey walk went is positioned on the nearest
+surveyed stretch and its error exceeds the ellipse (on ms_site2 F3 most test scans are more than
+3 m from every map scan).
 """
 from __future__ import annotations
 
@@ -121,9 +123,9 @@ class PowedKnnParams:
     cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
                                     "covariance (0: the cross-validated sigma already holds it)")
     cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
-    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-one-source-out "
+    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-walks-out "
                                           "cross-validation at fit time")
-    cov_calibration_scans: int = field(2000, "at most this many map scans (evenly spaced) are cross-validated "
+    cov_calibration_scans: int = field(1000, "at most this many map scans (evenly spaced) are cross-validated "
                                          "(bounds the fit time on large maps)")
     cov_quantile: float = field(0.95, "the ellipse of this probability is calibrated on the cross-validated errors")
     cov_folds: int = field(10, "the map's sources (walks) are dealt into at most this many folds, each left out in "
@@ -256,6 +258,7 @@ class PowedKnn(Positioner):
         self._grid_pos = np.zeros((0, 2))           # (C, 2) smoothing grid (empty without smoothing)
         self._kernel: Any = None                     # (C, M) sparse smoothing weights (None: no grid)
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
+        self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
         self._vals: list[np.ndarray] = []            # (M, A) weighted map values: ages weighted, ages ignored
         self._views: list[_View] = []
         self._map_views_equal = True                 # the map has no ages: its values are the same in every view
@@ -308,6 +311,7 @@ class PowedKnn(Positioner):
                 v = self._vals[j]
                 self._views.append(_View(ApReadings(v > 0, v), v.sum(axis=1), a, j, False, twin))
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
+        self._kernel_sums = None
         if p.smooth_m > 0:
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
                 pos, map_z, p.smooth_grid_m, p.smooth_reach_m, p.smooth_m)
@@ -324,15 +328,26 @@ class PowedKnn(Positioner):
 
     def _smoothed(self, keep: np.ndarray) -> tuple[list[ApReadings], list[np.ndarray], np.ndarray]:
         """The grid interpolated from the map scans ``keep`` (M,) bool: per map values (``_vals``) the
-        readings and their sums over the grid points within reach of a kept scan, and those points' rows."""
+        readings and their sums over the grid points within reach of a kept scan, and those points' rows.
+        The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs."""
         from scipy import sparse
+        if self._kernel_sums is None:
+            self._kernel_sums = ([sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals],
+                                 np.asarray(self._kernel.sum(axis=1)).ravel())
+        nums, den = self._kernel_sums
+        drop = ~np.asarray(keep, bool)
         rows = np.flatnonzero(np.asarray(self._near[:, keep].sum(axis=1)).ravel() > 0)
-        k = self._kernel[rows][:, keep]
-        norm = sparse.diags(1.0 / np.maximum(np.asarray(k.sum(axis=1)).ravel(), 1e-300)) @ k
+        if drop.any():
+            k_drop = sparse.csc_matrix(self._kernel)[:, drop]
+            den = den - np.asarray(k_drop.sum(axis=1)).ravel()
+            nums = [n - sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop])) for n, v in zip(nums, self._vals)]
+        scale = sparse.diags(1.0 / np.maximum(den[rows], 1e-300))
         readings: list[ApReadings] = []
         sums: list[np.ndarray] = []
-        for v in self._vals:
-            g = sparse.csr_matrix(norm @ sparse.csr_matrix(v[keep]))
+        for n in nums:
+            g = sparse.csr_matrix(scale @ n[rows])
+            g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
+            g.eliminate_zeros()
             readings.append(ApReadings.from_sparse(g))
             sums.append(np.asarray(g.sum(axis=1)).ravel())
         return readings, sums, rows
