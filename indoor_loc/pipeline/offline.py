@@ -14,7 +14,11 @@ as :meth:`Stage.process` handles each message: same outputs, counters and order 
 namespace. A run ends at the next message of another topic of that namespace, at a tick, or after
 :data:`MAX_RUN` messages; a run that does not decode in bulk, or holds a message the adapter
 rejects, is taken message by message. Messages no stage takes and ``--copy`` does not name are
-not deserialised. (Namespaces are independent, so the output bag may hold one user's outputs
+not deserialised. The bags are read as runs of one topic (:func:`indoor_loc.bag.reader.read_runs`,
+no object per message), each message handled as if it came alone. A stage's ``/diagnostics``
+status is rebuilt only when the runner called the stage since its last one or a recent-rejection or
+recent-loss window changed; otherwise that status is written again with the new stamp (the same
+message, :data:`REUSE_DIAGNOSTICS`). (Namespaces are independent, so the output bag may hold one user's outputs
 written a little later than another's; their stamps and contents are the same.)
 
 Multi-user stages (``Stage.MULTI_USER``, the back-end) are one instance across all bags in the root
