@@ -222,3 +222,28 @@ def test_eval_warns_when_the_track_is_not_in_the_truth_frame(tmp_path, capsys):
     assert "WARNING: walk05: the track is in frame walk05/odom" in err and "'map'" in err
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "wifi/fix"]) == 0
     assert "WARNING" not in capsys.readouterr().err
+
+
+def test_eval_of_a_missing_topic_lists_the_trajectory_topics(tmp_path, capsys):
+    """A mistyped ``--topic`` (or an input bag given instead of a run's output) names what is there."""
+    pytest.importorskip("rclpy")
+    from indoor_loc.bag import BagWriter
+    from indoor_loc.cli import main as cli_main
+    from indoor_loc.datasets.putmc_bags import write_walk_bag
+    from msg_adapters.pose import fix_to_msg
+    from indoor_loc.measurements import Fix
+
+    walk, route = _synthetic_walk()
+    write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)
+    run = tmp_path / "run.mcap"
+    with BagWriter(run) as bag:
+        for t, xy in zip(walk.scan_t, walk.scan_xy):
+            bag.write("/walk05/wifi/fix", fix_to_msg(Fix(int(t), xy, np.eye(2))), int(t))
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/pathx"]) == 2
+    err = capsys.readouterr().err
+    assert "no topic named */pdr_kf/pathx" in err and "trajectory topics there: /walk05/wifi/fix" in err
+    # the imported input bag: only its ground truth is a trajectory, the IMU and scan topics are not listed
+    bag = str(tmp_path / "imp" / "walk05.mcap")
+    assert cli_main(["eval", bag, "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/path"]) == 2
+    err = capsys.readouterr().err
+    assert "trajectory topics there: /walk05/ground_truth" in err and "imu/data" not in err.split("there:")[1]

@@ -52,6 +52,7 @@ class Trial:
     received: dict[str, int] = field(default_factory=dict)   # node kind -> messages received (all users)
     missing: dict[str, int] = field(default_factory=dict)    # node kind -> input messages that never arrived
     recorder_missing: int = 0
+    recorder_lost: str = ""          # the recorder's own LOST line (topics and counts), if any
     recorded: int = 0
     note: str = ""
 
@@ -169,7 +170,8 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
             return trial
         # every input a node takes has two subscribers, the node and the recorder: wait for both
         # (a non-zero count can be the recorder alone, and the node would miss the first messages)
-        need = [f"{rel}=2" for rel in sorted({r for rels in BAG_INPUTS.values() for r in rels})]
+        need = [f"{rel}=2" for rel in sorted({r for rels in BAG_INPUTS.values() for r in rels})
+                if any(t.endswith("/" + rel) for t in topics)]
         player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
                         "--wait-for-subscribers", "60", "--min-subscribers", *need, "--topics", *topics], env)
         while player.proc.poll() is None:
@@ -238,6 +240,7 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
     trial.recorded = sum(t.count for name, t in recorded.items() if name in want_rec)
     trial.recorder_missing = sum(max(0, n - (recorded[t].count if t in recorded else 0))
                                  for t, n in want_rec.items() if not t.endswith("/path"))
+    trial.recorder_lost = next((ln.strip() for ln in reversed(rec.lines) if "LOST" in ln), "")
     return trial
 
 
@@ -343,6 +346,8 @@ def run(args: argparse.Namespace) -> int:
                       f"{where or t.note or 'none'} |", flush=True)
                 if t.note:
                     print(f"  note: {t.note}", flush=True)
+                if t.recorder_lost:
+                    print(f"  recorder: {t.recorder_lost[:400]}", flush=True)
                 if t.lost or t.note:
                     break
         print(f"\n## The recorder alone ({max(users)} users, `player -r R` straight into `recorder -a`, no nodes)\n")

@@ -77,6 +77,10 @@ def _user_of(topic: str, rel: str, default: str) -> str:
     return (ns or "").strip("/") or default
 
 
+#: Message types a trajectory is read from (Path: its last message; the others: every message).
+TRAJECTORY_TYPES = ("nav_msgs/msg/Path", "geometry_msgs/msg/PoseWithCovarianceStamped", "nav_msgs/msg/Odometry")
+
+
 def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01",
                            frames: dict[str, set[str]] | None = None) -> dict[str, Trajectory]:
     """Trajectories per user from the bags' ``topic`` (Path: last message; poses/odometry: all).
@@ -88,7 +92,10 @@ def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str =
 
     topics = _matching_topics(paths, topic)
     if not topics:
-        raise DatasetError(f"no topic named */{topic} in {[str(p) for p in paths]}")
+        from indoor_loc.bag import bag_topics
+        usable = sorted(t for t, (ty, _) in bag_topics(paths).items() if ty in TRAJECTORY_TYPES)
+        raise DatasetError(f"no topic named */{topic} in {[str(p) for p in paths]}; trajectory topics there: "
+                           + (", ".join(usable) if usable else "none (is this an output of `indoor-loc run`?)"))
     acc: dict[str, list] = {}
     last_path: dict[str, tuple] = {}
     for m in read_bag(paths, topics=list(topics)):

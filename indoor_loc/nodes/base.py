@@ -112,15 +112,22 @@ def qos_profile(qos: Qos) -> QoSProfile:
     return QOS_PROFILES[qos]
 
 
+#: History of a *sensor* output's publisher (``imu/data``): being reliable, it keeps what a subscriber
+#: has not acknowledged yet, and overwrites the oldest beyond this — a loss for a subscriber starved of
+#: CPU for a moment (the recorder during a fast replay). 2000 = 10 s at 200 Hz, 2 s of a 5x replay.
+PUB_DEPTH_SENSOR = 2000
+
+
 def publisher_qos(qos: Qos) -> QoSProfile:
     """The QoS an output is published with: the contract's, except that *sensor* outputs are
     published reliable (a reliable writer serves best-effort and reliable readers alike, so a
-    node whose sensor inputs were made reliable still hears another node's ``imu/data``)."""
+    node whose sensor inputs were made reliable still hears another node's ``imu/data``), with a
+    history of :data:`PUB_DEPTH_SENSOR`."""
     base = QOS_PROFILES[qos]
     if qos != Qos.SENSOR:
         return base
-    return QoSProfile(history=base.history, depth=base.depth, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=base.durability)
+    return QoSProfile(history=base.history, depth=max(base.depth, PUB_DEPTH_SENSOR),
+                      reliability=ReliabilityPolicy.RELIABLE, durability=base.durability)
 
 
 def subscription_qos(qos: Qos, sensor_reliability: str = "best_effort") -> QoSProfile:
@@ -446,9 +453,14 @@ class StageNode(Node):
         return cb
 
     def _late_start(self, topic: str) -> Callable[[int], None]:
+        """Said once when an input's first message is not its publisher's first: normal when a node
+        joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
+        WARN; start the player once every subscriber has matched, see ``--min-subscribers``)."""
         def said(n: int) -> None:
-            self.get_logger().info(f"{self.resolve_topic_name(topic)}: the first message received is its publisher's "
-                                   f"#{n + 1}: {n} were published before this subscription matched")
+            replay = self.sensor_reliability == "reliable"
+            (self.get_logger().warning if replay else self.get_logger().info)(
+                f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
+                f"published before this subscription matched" + ("; a replay started too early" if replay else ""))
         return said
 
     # -- fast path: raw sensor inputs handled in runs ----------------------------------------------

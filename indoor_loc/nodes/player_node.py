@@ -49,8 +49,11 @@ from indoor_loc.nodes.base import (DIAGNOSTICS_PERIOD_S, check_stop, ignore_sign
 from msg_adapters.diagnostics import status_array
 
 NODE_NAME = "player"
-#: --wait-for-subscribers: the subscriber counts must be stable this long before playing (s).
-SUBSCRIBERS_SETTLE_S = 0.5
+#: --wait-for-subscribers: the subscriber counts must be stable this long before playing (s). The
+#: count is the player's side of each match; a subscriber's side can complete a moment later on a
+#: busy machine (a volatile subscriber then starts at the first message sent after it matched), which
+#: this margin also covers.
+SUBSCRIBERS_SETTLE_S = 1.0
 #: History of each (volatile) publisher: a reliable writer keeps what its slowest subscriber has not
 #: acknowledged yet, and overwrites the oldest beyond this (a loss for that subscriber, counted there
 #: as a sequence gap). 10 000 = 5 s of a 10x replay of a 200 Hz IMU for a subscriber starved of CPU.
