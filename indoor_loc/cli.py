@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from indoor_loc.errors import IndoorLocError
@@ -61,6 +62,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:          # output piped into a reader that stopped early (``| head``)
+        try:                         # no second error when the interpreter flushes stdout at exit
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141                   # 128 + SIGPIPE, as a shell reports it
 
 
 if __name__ == "__main__":
