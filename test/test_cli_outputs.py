@@ -104,7 +104,10 @@ def test_the_bringup_example_plays_only_once_its_nodes_subscribe():
     subscribe."""
     from indoor_loc.supervisor import load_config
     root = Path(__file__).resolve().parents[1]
-    player = load_config(root / "config" / "bringup_example.yaml").nodes[0]
+    nodes = load_config(root / "config" / "bringup_example.yaml").nodes
+    player = nodes[0]
+    # the recorder refuses an existing output (a second run of the example): then nothing runs in vain
+    assert [n.required for n in nodes if n.name == "recorder"] == [True]
     cmd = player.command()
     assert "--wait-for-subscribers" in cmd
     i = cmd.index("--min-subscribers")
