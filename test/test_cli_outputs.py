@@ -114,3 +114,14 @@ def test_the_bringup_example_plays_only_once_its_nodes_subscribe():
     assert {"imu/data=2", "wifi/scan=2"} <= set(cmd[i + 1:cmd.index("--ros-args")])
     launch = (root / "launch" / "indoor_loc.launch.py").read_text()
     assert '"--wait-for-subscribers"' in launch and '"imu/data=2", "wifi/scan=2"' in launch
+
+
+def test_import_ms_indoor_with_a_bad_option_leaves_no_directory(tmp_path, capsys):
+    site = Path(__file__).parent / "data" / "ms_site"
+    out = tmp_path / "o"
+    assert main(["import", "ms-indoor", str(site), str(out), "--walks", "zzz"]) == 2
+    assert "--walks: 'zzz' matches 0" in capsys.readouterr().err
+    assert not out.exists()
+    (tmp_path / "f").write_text("x")
+    assert main(["import", "ms-indoor", str(site), str(tmp_path / "f")]) == 2
+    assert "not a directory" in capsys.readouterr().err
