@@ -190,7 +190,8 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
 def format_table(scores: list[WalkScore]) -> str:
     """Plain-text table: paper convention ("RMSE"/"mean" in m², as published), route distance and
     scan-time error in metres."""
-    head = (f"{'walk':8s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
+    w = max([8, *(len(s.name) for s in scores)])        # long user names (ms-indoor trace ids) stay aligned
+    head = (f"{'walk':{w}s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
             f"{'rmed':>5s} {'rp95':>5s} {'rmax':>5s} | {'scans':>5s} {'smean':>6s} {'smed':>5s} {'sp95':>5s} "
             f"{'smax':>5s} {'sRMSE':>6s}")
     sub = ("paper: e=d² (m²) over poses with e<100 ('cut' = poses dropped) | route distance (m), same poses | "
@@ -198,7 +199,7 @@ def format_table(scores: list[WalkScore]) -> str:
     lines = [sub, head, "-" * len(head)]
     for s in scores:
         r, c, p = s.route_m, s.scan_m, s.paper
-        lines.append(f"{s.name:8s} {s.n_poses:5d} {p.n_cut:3d} | {p.rmse:6.2f} {p.mean:6.2f} | {r.rmse:6.3f} "
+        lines.append(f"{s.name:{w}s} {s.n_poses:5d} {p.n_cut:3d} | {p.rmse:6.2f} {p.mean:6.2f} | {r.rmse:6.3f} "
                      f"{r.mean:6.3f} {r.median:5.2f} {r.p95:5.2f} {r.max:5.2f} | {c.n:5d} {c.mean:6.3f} "
                      f"{c.median:5.2f} {c.p95:5.2f} {c.max:5.2f} {c.rmse:6.3f}")
     return "\n".join(lines)
