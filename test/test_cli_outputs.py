@@ -78,3 +78,50 @@ def test_radiomap_build_says_what_the_bags_lack(tmp_path, capsys):
     assert main(["radiomap", "build", str(no_truth), "--out", str(tmp_path / "b")]) == 2
     assert "/alice: 9 scans, 0 outside the truth's time span, 9 without */ground_truth" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_output_into_a_closed_pipe_ends_quietly(monkeypatch, capsys):
+    """``indoor-loc contract | head -1``: the reader goes away; no traceback, the shell's 141."""
+    class ClosedPipe:
+        def write(self, text: str) -> int:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self) -> None:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def fileno(self) -> int:
+            raise ValueError("not a real file")
+
+    monkeypatch.setattr("sys.stdout", ClosedPipe())
+    assert main(["contract"]) == 141
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_bringup_example_plays_only_once_its_nodes_subscribe():
+    """Started side by side, a node can take seconds longer than the player to come up on a busy
+    machine; what is played before it subscribes never reaches it. The shipped example (and the
+    launch file that mirrors it) hold the player until imu_node, wifi_fix_node and the recorder
+    subscribe."""
+    from indoor_loc.supervisor import load_config
+    root = Path(__file__).resolve().parents[1]
+    nodes = load_config(root / "config" / "bringup_example.yaml").nodes
+    player = nodes[0]
+    # the recorder refuses an existing output (a second run of the example): then nothing runs in vain
+    assert [n.required for n in nodes if n.name == "recorder"] == [True]
+    cmd = player.command()
+    assert "--wait-for-subscribers" in cmd
+    i = cmd.index("--min-subscribers")
+    assert {"imu/data=2", "wifi/scan=2"} <= set(cmd[i + 1:cmd.index("--ros-args")])
+    launch = (root / "launch" / "indoor_loc.launch.py").read_text()
+    assert '"--wait-for-subscribers"' in launch and '"imu/data=2", "wifi/scan=2"' in launch
+
+
+def test_import_ms_indoor_with_a_bad_option_leaves_no_directory(tmp_path, capsys):
+    site = Path(__file__).parent / "data" / "ms_site"
+    out = tmp_path / "o"
+    assert main(["import", "ms-indoor", str(site), str(out), "--walks", "zzz"]) == 2
+    assert "--walks: 'zzz' matches 0" in capsys.readouterr().err
+    assert not out.exists()
+    (tmp_path / "f").write_text("x")
+    assert main(["import", "ms-indoor", str(site), str(tmp_path / "f")]) == 2
+    assert "not a directory" in capsys.readouterr().err
