@@ -111,6 +111,16 @@ def test_a_node_with_nothing_to_do_is_an_error(tmp_path, capsys):
     assert cli_main(["run", str(bag), "--nodes", "pdr_kf", "--out", str(tmp_path / "o.mcap")]) == 2
     err = capsys.readouterr().err
     assert "nothing to do for node(s) pdr_kf" in err and "pdr/odom" in err and not (tmp_path / "o.mcap").exists()
+    assert "(e.g. wifi,wifi_scan,pdr_kf)" in err          # pdr/odom has no producer here; wifi/fix does
+    assert cli_main(["run", str(bag), "--nodes", "pf", "--out", str(tmp_path / "o.mcap")]) == 2
+    assert "(e.g. wifi,wifi_scan,pf)" in capsys.readouterr().err        # the hint names pf's producers
+
+
+def test_a_stage_missing_its_radio_map_says_so_at_start(tmp_path, capsys):
+    bag, _ = _scan_bag(tmp_path, [2 * S, 3 * S])
+    assert cli_main(["run", str(bag), "--nodes", "wifi_scan,wifi", "--out", str(tmp_path / "o.mcap")]) == 0
+    err = capsys.readouterr().err
+    assert "wifi_fix_node in /alice cannot work: no radio map configured" in err and "no --params given" in err
 
 
 def test_bag_time_is_reported_per_namespace(tmp_path, capsys):
@@ -119,3 +129,14 @@ def test_bag_time_is_reported_per_namespace(tmp_path, capsys):
     assert cli_main(["run", str(a), str(b), "--nodes", "wifi_scan,wifi", "--params", str(params),
                      "--out", str(tmp_path / "o.mcap")]) == 0
     assert "bag time /alice 10.0 s, /bob 5.0 s (15.0 s in all)" in capsys.readouterr().out
+
+
+def test_topics_no_node_takes_count_for_their_user_not_a_root_namespace(tmp_path, capsys):
+    bag, params = _scan_bag(tmp_path, [2 * S, 3 * S])
+    extra = tmp_path / "extra.mcap"
+    with BagWriter(extra) as w:          # the user's truth (taken by no node) outlasts the scans
+        for t in (1 * S, 9 * S):
+            w.write("/alice/ground_truth_debug", imu_to_msg(t, "map", [0.0, 0.0, 9.8]), t)
+    assert cli_main(["run", str(bag), str(extra), "--nodes", "wifi_scan,wifi", "--params", str(params),
+                     "--out", str(tmp_path / "o.mcap")]) == 0
+    assert "bag time /alice 8.0 s (8.0 s in all)" in capsys.readouterr().out

@@ -78,6 +78,48 @@ class RunSummary:
     order: str = "merged"
 
 
+def with_producers(nodes: list[str], idle: list[str], available: set[str]) -> list[str]:
+    """``nodes`` plus the nodes that produce what the ``idle`` ones take, followed back to the
+    topics the input has (``available``, full names), preferring producers the input can feed:
+    the ``--nodes`` to suggest when nothing feeds them (``pf`` on a raw walk -> ``imu,wifi,pf``)."""
+    io: dict[str, tuple[set[str], set[str]]] = {}
+    for name in STAGES:
+        cls = stage_class(name)
+        st = cls(cls.PARAMS(), namespace="")
+        io[name] = ({p.topic for p in st.inputs()}, {p.topic for p in st.outputs()})
+    in_bag = {r for ins, outs in io.values() for r in ins | outs
+              if any(t.lstrip("/") == r or t.endswith("/" + r) for t in available)}
+    have = set(in_bag)
+    feedable: set[str] = set()
+    while True:                                     # what the input can drive, producers included
+        more = {n for n, (ins, outs) in io.items() if n not in feedable and ins & have}
+        if not more:
+            break
+        feedable |= more
+        have |= {r for n in more for r in io[n][1]}
+    chosen, todo = set(nodes), list(idle)
+    while todo:
+        needed = io[todo.pop()][0] - in_bag
+        makers = [n for n, (ins, outs) in io.items() if n not in chosen and needed & (outs - ins)]
+        for name in [n for n in makers if n in feedable] or makers:
+            chosen.add(name)
+            todo.append(name)
+    return [n for n in STAGES if n in chosen] + [n for n in nodes if n not in STAGES]
+
+
+def span_namespace(ns: str, rel: str, user_namespaces: Iterable[str]) -> tuple[str] | tuple[()]:
+    """The user whose bag time a topic counts towards: its own namespace when the topic is one the
+    nodes know; any other topic (``/walk16/ground_truth``, ``/tf``) counts for the user namespace it
+    lies under, or for none, so that topics no node uses do not appear as a namespace of their own."""
+    if ns or not rel.startswith("/"):
+        return (ns,)
+    users = set(user_namespaces)
+    under = [u for u in users if u and rel.startswith(u + "/")]
+    if under:
+        return (max(under, key=len),)
+    return ("",) if "" in users else ()
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bags", nargs="+", type=Path, help="input MCAP bag(s)")
     parser.add_argument("--nodes", default="imu,wifi",
@@ -219,7 +261,12 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
             "nothing to do for node(s) " + ", ".join(f"{n} (needs one of {inputs_of[n]})" for n in idle)
             + f": no namespace of the input has these topics, and no other node given produces them "
               f"(inputs: {sorted(topics)[:8]}{' ...' if len(topics) > 8 else ''}); add the producing "
-              f"nodes to --nodes (e.g. imu,wifi,pdr_kf)")
+              f"nodes to --nodes (e.g. {','.join(with_producers(nodes, idle, set(topics)))})")
+    for ns, st in [(ns, st) for ns, lst in stages.items() for st in lst] + [("", st) for st in multi]:
+        standing = st.extra_diagnostics().get("error")
+        if standing:   # a required input (radio map, graph) is missing: say so once, as a live node does
+            print(f"{st.NODE_NAME}{' in ' + ns if ns else ''} cannot work: {standing}"
+                  + ("" if params else " (no --params given; an importer writes OUT/params.yaml)"), file=sys.stderr)
     # (namespace, relative topic) -> per-user stages that take it, resolved once
     takers: dict[tuple[str, str], list[Stage]] = {}
     for ns, lst in stages.items():
@@ -228,6 +275,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                 if s.handles(p.topic):
                     takers.setdefault((ns, p.topic), []).append(s)
     span: dict[str, list[int]] = {}
+    span_owner: dict[str, tuple[str] | tuple[()]] = {}   # full topic -> (namespace,) or () if no user's
     order = resolve_order(order, multi)
     copy = set(copy)
     total = sum(c for _, c in topics.values())
@@ -372,8 +420,12 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                     if nsrel is None:
                         nsrel = split_cache[r.topic] = split_ns(r.topic, relative_names)
                     ns, rel = nsrel
-                    sp = span.setdefault(ns, [stamps[0], stamps[0]])
-                    sp[1] = end
+                    owner = span_owner.get(r.topic)
+                    if owner is None:
+                        owner = span_owner[r.topic] = span_namespace(ns, rel, stages.keys())
+                    if owner:
+                        sp = span.setdefault(owner[0], [stamps[0], stamps[0]])
+                        sp[1] = end
                     batched = batchable(ns, rel, r.type)
                     i = 0
                     while i < n:

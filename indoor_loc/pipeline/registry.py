@@ -1,7 +1,7 @@
 """Which stages exist: ``--nodes`` names of ``indoor-loc run`` / bring-up -> stage classes.
 
 Each entry is ``name: "module:Class"`` (imported lazily so a missing optional dependency of one
-stage does not break the others). Later waves add ``pf`` and ``backend`` here.
+stage does not break the others).
 """
 from __future__ import annotations
 
