@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from indoor_loc.errors import IndoorLocError
@@ -25,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "radiomap": ("indoor_loc.commands.radiomap", "build / inspect WiFi radio maps"),
     "map": ("indoor_loc.commands.map", "building graphs: from a floor-plan image or GeoJSON, draw over the plan"),
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
-    "bench": ("indoor_loc.bench.cli", "benchmarks (imu, wifi): tables side by side with peers"),
+    "bench": ("indoor_loc.bench.cli", "benchmarks: heading, imu, steps, wifi, pf, backend, throughput, live"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
     "view": ("indoor_loc.commands.view", "live view of a running system over Foxglove WebSocket (foxglove-sdk)"),
     "sim": ("indoor_loc.commands.sim", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
@@ -61,6 +62,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:          # output piped into a reader that stopped early (``| head``)
+        try:                         # no second error when the interpreter flushes stdout at exit
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141                   # 128 + SIGPIPE, as a shell reports it
 
 
 if __name__ == "__main__":

@@ -31,7 +31,10 @@ def generate_launch_description():
     sim_time = {"use_sim_time": True}
 
     player = Node(package="indoor_loc", executable="player", name="player", output="screen",
-                  arguments=[bag, "--clock", "--delay", "2.0"], parameters=[{"use_sim_time": False}])
+                  # play once imu_node, wifi_fix_node and the recorder subscribe, then 2 s more for pdr_kf_node
+                  arguments=[bag, "--clock", "--wait-for-subscribers", "60",
+                             "--min-subscribers", "imu/data=2", "wifi/scan=2", "--delay", "2.0"],
+                  parameters=[{"use_sim_time": False}])
     imu = Node(package="indoor_loc", executable="imu_node", namespace=ns, output="screen", respawn=True,
                respawn_delay=1.0,
                parameters=[os.path.join(config, "imu_node.yaml"), sim_time,

@@ -222,3 +222,64 @@ def test_eval_warns_when_the_track_is_not_in_the_truth_frame(tmp_path, capsys):
     assert "WARNING: walk05: the track is in frame walk05/odom" in err and "'map'" in err
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "wifi/fix"]) == 0
     assert "WARNING" not in capsys.readouterr().err
+
+
+def test_eval_of_a_missing_topic_lists_the_trajectory_topics(tmp_path, capsys):
+    """A mistyped ``--topic`` (or an input bag given instead of a run's output) names what is there."""
+    pytest.importorskip("rclpy")
+    from indoor_loc.bag import BagWriter
+    from indoor_loc.cli import main as cli_main
+    from indoor_loc.datasets.putmc_bags import write_walk_bag
+    from msg_adapters.pose import fix_to_msg
+    from indoor_loc.measurements import Fix
+
+    walk, route = _synthetic_walk()
+    write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)
+    run = tmp_path / "run.mcap"
+    with BagWriter(run) as bag:
+        for t, xy in zip(walk.scan_t, walk.scan_xy):
+            bag.write("/walk05/wifi/fix", fix_to_msg(Fix(int(t), xy, np.eye(2))), int(t))
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/pathx"]) == 2
+    err = capsys.readouterr().err
+    assert "no topic named */pdr_kf/pathx" in err and "trajectory topics there: /walk05/wifi/fix" in err
+    # the imported input bag: only its ground truth is a trajectory, the IMU and scan topics are not listed
+    bag = str(tmp_path / "imp" / "walk05.mcap")
+    assert cli_main(["eval", bag, "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/path"]) == 2
+    err = capsys.readouterr().err
+    assert "trajectory topics there: /walk05/ground_truth" in err and "imu/data" not in err.split("there:")[1]
+
+
+def test_eval_of_an_import_with_floor_directories_and_no_route_markers(tmp_path, capsys):
+    """``import ms-indoor`` writes ``OUT/<floor>/<id>.mcap`` with ``ground_truth`` = the waypoints
+    (the walk is linear between them) and no route markers: the waypoints' segments are the route."""
+    pytest.importorskip("rclpy")
+    import json
+
+    from indoor_loc.bag import BagWriter
+    from indoor_loc.cli import main as cli_main
+    from indoor_loc.commands.eval import truth_from_import
+    from indoor_loc.measurements import Fix
+    from msg_adapters.path import path_to_msg
+    from msg_adapters.pose import fix_to_msg
+
+    s = 10**9
+    t_wp = np.array([10, 20, 30], dtype=np.int64) * s
+    wp = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    (tmp_path / "imp" / "F3").mkdir(parents=True)
+    with BagWriter(tmp_path / "imp" / "F3" / "abc.mcap") as bag:
+        bag.write("/f3_5dd38ffd27889b0006b76aca/ground_truth", path_to_msg(t_wp, wp), int(t_wp[0]))
+    truth = truth_from_import(tmp_path / "imp")["f3_5dd38ffd27889b0006b76aca"]
+    np.testing.assert_allclose(truth.segments, [[[0, 0], [10, 0]], [[10, 0], [10, 10]]])
+    run = tmp_path / "run.mcap"
+    with BagWriter(run) as bag:       # 1 m beside the route at each waypoint, 2 m off at 15 s
+        for t, xy in zip([10 * s, 15 * s, 20 * s, 30 * s], [[0.0, 1.0], [5.0, 2.0], [11.0, 0.0], [11.0, 10.0]]):
+            bag.write("/f3_5dd38ffd27889b0006b76aca/wifi/fix", fix_to_msg(Fix(int(t), np.array(xy), np.eye(2))), int(t))
+    out = tmp_path / "scores.json"
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--json", str(out)]) == 0
+    table = [ln for ln in capsys.readouterr().out.splitlines() if ln.count("|") == 3]
+    assert len(table) == 3 and len({ln.index("|") for ln in table}) == 1   # header, walk, pooled aligned
+    pooled = json.loads(out.read_text())["pooled"]
+    assert pooled["route_m"]["max"] == pytest.approx(2.0) and pooled["route_m"]["mean"] == pytest.approx(5 / 4)
+    assert pooled["scan_m"]["mean"] == pytest.approx(1.0)            # at the three waypoint stamps
+    assert cli_main(["eval", str(run), "--truth", str(run)]) == 2
+    assert "is not a directory" in capsys.readouterr().err

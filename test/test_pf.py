@@ -61,7 +61,7 @@ def test_distance_along_graph_is_preserved_on_a_branching_graph(rng):
 
 def test_pdr_heading_chooses_the_branch(rng):
     g = build_graph(range(4), np.array([[0, 0], [10, 0], [20, 0], [10, 10]], float), [(0, 1), (1, 2), (1, 3)])
-    pf = _pf(g, n=400, yaw_offset_sigma_rad=0.0, u_turn_prob=0.0)
+    pf = _pf(g, n=400, yaw_offset_sigma_rad=0.0, u_turn_prob=0.0, heading_sigma_rad=0.35)   # an accurate heading
     _place(pf, np.zeros(400), np.full(400, 9.0), np.ones(400))
     pf.predict_pdr(3.0, np.pi / 2, rng)               # walking north: the branch to node 3
     w = pf.p.weights
@@ -165,7 +165,8 @@ def ladder():
 
 def _diverged_walk(monitor_enabled):
     g = ladder()
-    pp = PfParams(n_particles=400, yaw_offset_sigma_rad=0.0, inject_fraction=0.0, reinit_mahalanobis2=1e12)
+    pp = PfParams(n_particles=400, yaw_offset_sigma_rad=0.0, inject_fraction=0.0, reinit_mahalanobis2=1e12,
+                  heading_sigma_rad=0.35)                         # the synthetic PDR heading is exact
     tr = GraphTracker(g, transition_table(g, TransitionParams()), pp, rng=np.random.default_rng(5),
                       monitor=MonitorParams(enabled=monitor_enabled))
     noise = np.random.default_rng(6)

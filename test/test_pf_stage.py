@@ -70,8 +70,9 @@ def _late_median_error(outs, t, truth) -> float:
 def test_tracks_a_walk_with_unknown_odom_rotation_and_smooths_on_the_graph(graph_file):
     rng = np.random.default_rng(7)
     t, truth, odoms, fixes = _walk(rng)
-    # these fixes are drawn from exactly their covariance: no calibration (the defaults are PUTMC's WKNN's)
-    st = _stage(graph_file, fix_cov_scale=1.0, fix_sigma_extra_m=0.0)
+    # these fixes are drawn from exactly their covariance and the PDR heading drifts by 0.01 rad per
+    # step: no fix calibration and a sharp heading likelihood (the defaults are PUTMC's)
+    st = _stage(graph_file, fix_cov_scale=1.0, fix_sigma_extra_m=0.0, heading_sigma_rad=0.35)
     assert cache_path(graph_file).exists()                      # TLL table cached beside the map
     outs = []
     for i, od in enumerate(odoms):

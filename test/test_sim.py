@@ -285,3 +285,22 @@ def test_putmc_demo_without_the_dataset_says_where_it_looked(tmp_path, capsys):
     from indoor_loc.cli import main
     assert main(["demo", "--dataset", "putmc", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "PUTMC dataset not found" in capsys.readouterr().err
+
+
+def test_sim_command_refuses_an_earlier_run_unless_overwrite(tmp_path, capsys):
+    from indoor_loc.cli import main
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "params.yaml").write_text("earlier run\n")
+    (out / "notes.txt").write_text("the user's own file\n")
+    assert main(["sim", str(out), "--walkers", "1", "--duration", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "params.yaml" in err and "--overwrite" in err
+    assert (out / "params.yaml").read_text() == "earlier run\n"      # nothing replaced
+    assert not (out / "sim.mcap").exists()
+    assert main(["sim", str(out), "--walkers", "1", "--duration", "10", "--overwrite"]) == 0
+    assert (out / "sim.mcap").is_file() and "earlier run" not in (out / "params.yaml").read_text()
+    assert (out / "notes.txt").read_text() == "the user's own file\n"   # other files are left alone
+    (tmp_path / "file").write_text("x")
+    assert main(["sim", str(tmp_path / "file")]) == 2
+    assert "not a directory" in capsys.readouterr().err

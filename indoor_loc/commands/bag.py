@@ -1,4 +1,5 @@
-"""``indoor-loc bag info FILE...`` and ``indoor-loc bag recover IN OUT``."""
+"""``indoor-loc bag info FILE...`` and ``indoor-loc bag recover IN OUT`` (an existing OUT is refused
+unless ``--overwrite``)."""
 from __future__ import annotations
 
 import argparse
@@ -17,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rec.add_argument("src", type=Path, help="damaged MCAP bag")
     rec.add_argument("dst", type=Path, help="output MCAP bag (must differ from the input)")
     rec.add_argument("--chunk-size", type=int, default=1 << 20, help="output chunk size in bytes (default 1 MiB)")
+    rec.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
     rec.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
                      help="output chunk compression (default zstd)")
 
@@ -80,6 +82,10 @@ def info(paths: list[Path]) -> int:
 
 def recover_cmd(args: argparse.Namespace) -> int:
     from indoor_loc.bag.recover import recover
+    from indoor_loc.output_paths import check_output
+    if not args.src.is_file():
+        raise BagError(f"bag {args.src} does not exist")
+    check_output(args.dst, inputs=[args.src], overwrite=args.overwrite, what="recover: output")
     r = recover(args.src, args.dst, chunk_size=args.chunk_size, compression=args.compression)
     state = "truncated" if r.truncated else "complete"
     print(f"{args.src} ({state}): kept {r.messages} messages on {r.topics} topics from {r.chunks} chunks"

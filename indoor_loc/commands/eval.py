@@ -40,7 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "'{user}' marks the user in a multi-user node's topics (backend/{user}/path)")
     parser.add_argument("--csv-dir", type=Path, help="directory of <user>.csv trajectories")
     src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--truth", type=Path, help="import directory (walkNN.mcap with ground_truth + route)")
+    src.add_argument("--truth", type=Path,
+                     help="import directory: its bags (or those one level down, as `import ms-indoor` writes "
+                          "them per floor) with ground_truth (+ ground_truth/route; without it the ground_truth "
+                          "path's own segments are the route)")
     src.add_argument("--dataset", type=Path, help="the PUTMC dataset directory (truth read from the files)")
     parser.add_argument("--user", default="walk01", help="user name for a topic without namespace (default walk01)")
     parser.add_argument("--json", type=Path, help="write the scores as JSON here")
@@ -77,6 +80,10 @@ def _user_of(topic: str, rel: str, default: str) -> str:
     return (ns or "").strip("/") or default
 
 
+#: Message types a trajectory is read from (Path: its last message; the others: every message).
+TRAJECTORY_TYPES = ("nav_msgs/msg/Path", "geometry_msgs/msg/PoseWithCovarianceStamped", "nav_msgs/msg/Odometry")
+
+
 def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str = "walk01",
                            frames: dict[str, set[str]] | None = None) -> dict[str, Trajectory]:
     """Trajectories per user from the bags' ``topic`` (Path: last message; poses/odometry: all).
@@ -88,7 +95,10 @@ def trajectories_from_bags(paths: list[Path], topic: str, *, default_user: str =
 
     topics = _matching_topics(paths, topic)
     if not topics:
-        raise DatasetError(f"no topic named */{topic} in {[str(p) for p in paths]}")
+        from indoor_loc.bag import bag_topics
+        usable = sorted(t for t, (ty, _) in bag_topics(paths).items() if ty in TRAJECTORY_TYPES)
+        raise DatasetError(f"no topic named */{topic} in {[str(p) for p in paths]}; trajectory topics there: "
+                           + (", ".join(usable) if usable else "none (is this an output of `indoor-loc run`?)"))
     acc: dict[str, list] = {}
     last_path: dict[str, tuple] = {}
     for m in read_bag(paths, topics=list(topics)):
@@ -131,13 +141,20 @@ def frame_warnings(frames: dict[str, set[str]], truth_frame: str = "map") -> lis
 
 
 def truth_from_import(import_dir: Path) -> dict[str, Truth]:
-    """Truth per user from imported bags: ``ground_truth`` (time-stamped scan positions) and the
-    LINE_LIST markers of ``ground_truth/route`` (consecutive point pairs = segments)."""
+    """Truth per user from imported bags: ``ground_truth`` (time-stamped true positions: PUTMC's
+    scan positions, the simulator's samples, the Microsoft traces' waypoints) and the LINE_LIST
+    markers of ``ground_truth/route`` (consecutive point pairs = segments). A user without route
+    markers (``import ms-indoor``: the walk is linear between its waypoints) gets the segments
+    between consecutive ``ground_truth`` points as its route. The bags are ``import_dir/*.mcap`` or,
+    when there are none, ``import_dir/*/*.mcap`` (``import ms-indoor``'s ``OUT/<floor>/``)."""
     from indoor_loc.bag import read_bag
     from msg_adapters.markers import marker_points
     from msg_adapters.path import path_from_msg
 
-    bags = sorted(Path(import_dir).glob("*.mcap"))
+    if not Path(import_dir).is_dir():
+        raise DatasetError(f"--truth {import_dir} is not a directory (give the output directory of "
+                           "`indoor-loc import` or `indoor-loc sim`)")
+    bags = sorted(Path(import_dir).glob("*.mcap")) or sorted(Path(import_dir).glob("*/*.mcap"))
     if not bags:
         raise DatasetError(f"{import_dir}: no .mcap bags (run `indoor-loc import` first)")
     from indoor_loc.bag import bag_topics
@@ -157,9 +174,12 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
             gt[user] = (t, xy)
     out = {}
     for user in sorted(set(gt) | set(segs)):
-        if user not in segs:
-            raise DatasetError(f"{import_dir}: {user} has ground_truth but no {ROUTE_TOPIC} markers")
         t, xy = gt.get(user, (np.zeros(0, dtype=np.int64), np.zeros((0, 2))))
+        if user not in segs:
+            if len(xy) < 2:
+                raise DatasetError(f"{import_dir}: {user} has no {ROUTE_TOPIC} markers and fewer than two "
+                                   "ground_truth points to draw its route from")
+            segs[user] = np.stack([xy[:-1], xy[1:]], axis=1)
         out[user] = Truth(user, segs[user], t, xy)
     return out
 
@@ -170,7 +190,8 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
 def format_table(scores: list[WalkScore]) -> str:
     """Plain-text table: paper convention ("RMSE"/"mean" in m², as published), route distance and
     scan-time error in metres."""
-    head = (f"{'walk':8s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
+    w = max([8, *(len(s.name) for s in scores)])        # long user names (ms-indoor trace ids) stay aligned
+    head = (f"{'walk':{w}s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
             f"{'rmed':>5s} {'rp95':>5s} {'rmax':>5s} | {'scans':>5s} {'smean':>6s} {'smed':>5s} {'sp95':>5s} "
             f"{'smax':>5s} {'sRMSE':>6s}")
     sub = ("paper: e=d² (m²) over poses with e<100 ('cut' = poses dropped) | route distance (m), same poses | "
@@ -178,7 +199,7 @@ def format_table(scores: list[WalkScore]) -> str:
     lines = [sub, head, "-" * len(head)]
     for s in scores:
         r, c, p = s.route_m, s.scan_m, s.paper
-        lines.append(f"{s.name:8s} {s.n_poses:5d} {p.n_cut:3d} | {p.rmse:6.2f} {p.mean:6.2f} | {r.rmse:6.3f} "
+        lines.append(f"{s.name:{w}s} {s.n_poses:5d} {p.n_cut:3d} | {p.rmse:6.2f} {p.mean:6.2f} | {r.rmse:6.3f} "
                      f"{r.mean:6.3f} {r.median:5.2f} {r.p95:5.2f} {r.max:5.2f} | {c.n:5d} {c.mean:6.3f} "
                      f"{c.median:5.2f} {c.p95:5.2f} {c.max:5.2f} {c.rmse:6.3f}")
     return "\n".join(lines)

@@ -85,7 +85,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     src = Path(args.dataset_dir).resolve()
     if out == src or src in out.parents:
         raise ConfigError(f"OUT_DIR {out} is inside the dataset directory {src}: refusing to write there")
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"OUT_DIR {out} exists and is not a directory")
     all_ids = {f.name: [p.name.split(".")[0] for p in f.trace_files] for f in floors}
     flat = sorted(i for v in all_ids.values() for i in v)
     walks = set(_select(args.walks, flat, "--walks"))
@@ -93,6 +94,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     bag_of = {i: out / f.name / f"{i}.mcap" for f in floors for i in all_ids[f.name] if i in walks}
     check_outputs([*bag_of.values(), out / "radiomap", out / "params.yaml", out / "split.yaml",
                    out / "import_report.md"], overwrite=args.overwrite, what="import ms-indoor")
+    out.mkdir(parents=True, exist_ok=True)             # only once the options are known to be good
 
     rm = empty_radiomap()
     rows, oddities, split = [], [], {}

@@ -1,7 +1,7 @@
 """``indoor-loc radiomap build|info``: make and inspect radio maps (format: :mod:`indoor_loc.wifi.radiomap`).
 
 ``indoor-loc radiomap build BAG... --out DIR [--topic-scan wifi/scan] [--topic-truth ground_truth]
-[--putmc DATASET_DIR] [--method wknn]``
+[--putmc DATASET_DIR] [--method wknn] [--overwrite]``
 
 - From bags: every ``wifi/scan`` becomes a fingerprint at the ground-truth position linearly
   interpolated at the scan's stamp, the truth being the time-stamped ``nav_msgs/Path`` on
@@ -18,6 +18,8 @@ It also writes ``DIR/params.yaml`` configuring ``wifi_fix_node`` for the map
 
 ``indoor-loc radiomap info DIR`` prints the manifest's figures, per-source counts, the AP count
 distribution and the map spacing.
+
+An existing map (or ``params.yaml``) in DIR is refused unless ``--overwrite``.
 """
 from __future__ import annotations
 
@@ -47,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("--method", default="auto",
                    help="method written to DIR/params.yaml (default auto: powed k-NN for maps with reading ages or "
                         "several floors, else the best measured WKNN with a powed fallback)")
+    b.add_argument("--overwrite", action="store_true", help="replace an existing radio map in --out")
     i = sub.add_parser("info", help="summarise a radio map directory")
     i.add_argument("directory", type=Path)
 
@@ -113,13 +116,21 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
 
 
 def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan: str = "wifi/scan",
-          topic_truth: str = "ground_truth", method: str = "auto") -> tuple[RadioMap, dict]:
-    """Build, save and write params.yaml; returns (map, report)."""
+          topic_truth: str = "ground_truth", method: str = "auto",
+          overwrite: bool = False) -> tuple[RadioMap, dict]:
+    """Build, save and write params.yaml; returns (map, report). An existing map in ``out`` is
+    refused (ConfigError) unless ``overwrite``."""
+    from indoor_loc.output_paths import check_outputs
     from indoor_loc.wifi.methods import METHODS, recommended_params
     if method != "auto" and method not in METHODS:
         raise ConfigError(f"--method: expected one of {sorted(METHODS)}, got {method!r}")
     if not bags and putmc is None:
         raise ConfigError("nothing to build from: give bags and/or --putmc DATASET_DIR")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a directory")
+    check_outputs([out / name for name in ("radiomap.yaml", "aps.csv", "fingerprints.csv", "params.yaml")],
+                  overwrite=overwrite, what=f"radio map {out}")
     report: dict = {}
     rm = empty_radiomap()
     if putmc is not None:
@@ -136,8 +147,14 @@ def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan:
             z_of = {rep["label"]: rep["z_m"] for rep in per_ns.values() if "label" in rep}
             rm = add_fingerprints(rm, pos, scans, src, z_m=[z_of.get(s, 0.0) for s in src])
     if rm.n_scans == 0:
-        raise MapError("no fingerprint could be built (no scans within a ground-truth time span); "
-                       f"report: {report}")
+        per_ns = report.get("bags", {})
+        if not any(rep["scans"] for rep in per_ns.values()):
+            raise MapError(f"no fingerprint could be built: the bags hold no */{topic_scan} messages "
+                           "(give the recordings with WiFi scans and ground truth, e.g. an importer's walkNN.mcap)")
+        raise MapError("no fingerprint could be built (no scan within a ground-truth time span): "
+                       + "; ".join(f"{ns}: {rep['scans']} scans, {rep['outside_truth']} outside the truth's time "
+                                   f"span, {rep['no_truth']} without */{topic_truth}, "
+                                   f"{sum(rep['invalid'].values())} invalid" for ns, rep in per_ns.items()))
     inputs = [str(p) for p in bags] + ([f"putmc:{putmc}"] if putmc is not None else [])
     save_radiomap(rm, out, created_by="indoor-loc radiomap build", inputs=inputs)
     chosen = recommended_params(rm) if method == "auto" else {"method": method}
@@ -182,7 +199,7 @@ def main(args: argparse.Namespace) -> int:
         print("\n".join(info_lines(args.directory)))
         return 0
     rm, report = build(list(args.bags), args.out, putmc=args.putmc, topic_scan=args.topic_scan,
-                       topic_truth=args.topic_truth, method=args.method)
+                       topic_truth=args.topic_truth, method=args.method, overwrite=args.overwrite)
     if "putmc_survey" in report:
         print(f"PUTMC survey map: {report['putmc_survey']['scans']} scans, {report['putmc_survey']['aps']} APs")
     for ns, rep in report.get("bags", {}).items():

@@ -2,7 +2,8 @@
 
 Writes ``OUT_DIR/sim.mcap`` (every walker under its own namespace), ``radiomap/``,
 ``building.geojson``, ``truth/<walker>.csv``, ``params.yaml`` and ``scenario.yaml`` (see
-:mod:`indoor_loc.sim.write`), then prints a summary. The same seed writes the same run.
+:mod:`indoor_loc.sim.write`), then prints a summary. The same seed writes the same run. Outputs of an earlier run in OUT_DIR are
+refused unless ``--overwrite``.
 """
 from __future__ import annotations
 
@@ -24,6 +25,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--imu-hz", type=float, default=100.0, help="IMU rate, Hz (default 100)")
     parser.add_argument("--mag-hz", type=float, default=50.0, help="magnetometer rate, Hz (default 50)")
     parser.add_argument("--scan-period", type=float, default=4.0, help="WiFi scan period, s (default 4)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the outputs of an earlier run in OUT_DIR (refused otherwise)")
+
+
+#: What ``indoor-loc sim`` writes into OUT_DIR (:func:`indoor_loc.sim.write.write_run`).
+OUTPUTS = ("sim.mcap", "radiomap", "building.geojson", "graph.yaml", "floor_plans", "truth",
+           "params.yaml", "scenario.yaml")
 
 
 def config_from_args(args: argparse.Namespace):
@@ -62,5 +70,11 @@ def generate(out_dir: Path, cfg, building_path: Path | None = None, *, quiet: bo
 
 
 def main(args: argparse.Namespace) -> int:
-    generate(args.out_dir, config_from_args(args), args.building)
+    from indoor_loc.output_paths import check_outputs
+    out = Path(args.out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"OUT_DIR {out} exists and is not a directory")
+    check_outputs([out / name for name in OUTPUTS], overwrite=args.overwrite, what=f"sim into {out}")
+    cfg = config_from_args(args)
+    generate(args.out_dir, cfg, args.building)
     return 0

@@ -70,7 +70,7 @@ class PfParams:
     step_scale_sigma: float = P.field(0.12, "spread of the per-particle step-length factor at start (1 = the PDR's distance)")
     step_scale_walk: float = P.field(0.01, "random walk of the step-length factor per metre walked")
     distance_sigma: float = P.field(0.1, "distance noise per metre walked (fraction)")
-    heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel: sigma of the von Mises likelihood (rad)")
+    heading_sigma_rad: float = P.field(1.2, "PDR heading vs direction of travel: sigma of the von Mises likelihood (rad)")
     heading_floor: float = P.field(0.05, "floor of the heading likelihood (mixture weight of 'any direction')")
     yaw_offset_sigma_rad: float = P.field(3.2, "initial spread of the odom->map heading offset per particle (rad); >= pi means unknown")
     yaw_offset_walk_rad: float = P.field(0.02, "random walk of the heading offset per PDR interval (rad)")

@@ -67,7 +67,7 @@ class PfStageParams:
     n_max: int = P.field(20000, "most particles when adaptive")
     kld_epsilon: float = P.field(0.05, "KLD-sampling bound epsilon")
     kld_bin_m: float = P.field(1.0, "KLD bin length along a link (m)")
-    heading_sigma_rad: float = P.field(0.35, "PDR heading vs direction of travel on the link (rad)")
+    heading_sigma_rad: float = P.field(1.2, "PDR heading vs direction of travel on the link (rad)")
     yaw_offset_sigma_rad: float = P.field(3.2, "odom->map heading offset spread at start (rad); >= pi = unknown, learnt by the filter")
     fix_sigma_extra_m: float = P.field(0.76, "added to each WiFi fix's standard deviation per axis (m)")
     fix_cov_scale: float = P.field(0.73, "each WiFi fix's covariance is multiplied by this before fix_sigma_extra_m is "
