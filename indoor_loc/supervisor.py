@@ -7,7 +7,8 @@ Each node runs as a child process::
               [--params-file F ...] [-p NAME:=VALUE ...] [ros_args...]
 
 with its output (stdout and stderr) prefixed by ``[name]``. SIGINT/SIGTERM are forwarded to the
-children (SIGINT first; SIGTERM after ``stop_timeout_s``, SIGKILL after as long again). The
+children (SIGINT first — SIGTERM to a child that has printed nothing yet, so one still starting
+ends without a traceback; SIGTERM after ``stop_timeout_s``, SIGKILL after as long again). The
 bring-up ends when every child has exited, or when one dies (exits non-zero, or exits at all with
 ``required: true``) and has no ``respawn``: then the others are stopped too. Exit status: 0 when
 every child ended cleanly, 1 otherwise. ``config/bringup_example.yaml`` documents every key.
@@ -289,6 +290,7 @@ class _Child:
         self.starts = 0
         self.started_at = 0.0
         self.signalled = False
+        self.spoke = False          # printed a line since its start (our nodes: signal handlers are in place)
         self.restart_at: float | None = None
         self.last_rc: int | None = None
 
@@ -333,13 +335,15 @@ class Bringup:
         child.restart_at = None
         child.signalled = False
         self.log(PREFIX, f"started {child.spec.name} (pid {child.proc.pid}): {child.spec.display()}")
-        child.reader = threading.Thread(target=self._pump, args=(child.spec.name, child.proc), daemon=True)
+        child.spoke = False
+        child.reader = threading.Thread(target=self._pump, args=(child, child.proc), daemon=True)
         child.reader.start()
 
-    def _pump(self, name: str, proc: subprocess.Popen) -> None:
+    def _pump(self, child: _Child, proc: subprocess.Popen) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            self.log(name, line.rstrip("\n"))
+            child.spoke = True
+            self.log(child.spec.name, line.rstrip("\n"))
 
     def request_stop(self, signum: int = signal.SIGINT) -> None:
         """Ask every child to stop (safe from a signal handler: the loop sends the signals).
@@ -375,7 +379,10 @@ class Bringup:
         for c in alive:
             if not c.signalled:
                 c.signalled = True
-                c.proc.send_signal(signal.SIGINT)
+                # A child that has printed nothing yet is still starting (importing, before its
+                # handlers exist): SIGINT would end it with a KeyboardInterrupt traceback, SIGTERM
+                # ends it quietly. Our nodes handle both alike once running.
+                c.proc.send_signal(signal.SIGINT if c.spoke else signal.SIGTERM)
         if not self._term_sent and now > self._stop_deadline:
             self._term_sent = True
             self._stop_deadline = now + self.config.stop_timeout_s

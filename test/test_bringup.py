@@ -173,6 +173,24 @@ def test_all_children_exiting_ends_the_bringup(tmp_path):
         up.stop()
 
 
+def test_a_child_still_starting_is_stopped_without_a_traceback(tmp_path):
+    """A node still importing when a required sibling ends gets SIGTERM (ends quietly), not SIGINT
+    (a KeyboardInterrupt traceback from whatever it was importing)."""
+    slow = tmp_path / "slow_start.py"
+    slow.write_text("import time\ntime.sleep(30)\nprint('up', flush=True)\n")   # no handlers, no output yet
+    cfg = write(tmp_path, {"stop_timeout_s": 5, "nodes": [
+        {"name": "slow", "script": str(slow)},
+        {"name": "main", "script": EXIT, "args": ["--after", "1.0"], "required": True}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait(timeout=30) == 0, up.output()
+        out = up.output()
+        assert "[up] slow stopped (exit status -15)" in out, out
+        assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
+    finally:
+        up.stop()
+
+
 def test_stubborn_child_is_terminated(tmp_path):
     """A child that ignores SIGINT gets SIGTERM after stop_timeout_s."""
     stubborn = tmp_path / "stubborn.py"

@@ -79,7 +79,7 @@ def test_invalid_parameters_raise_config_error(ros_domain, overrides, match):
             StageNode(DummyStage, context=probe.context, parameter_overrides=overrides)
 
 
-def test_invalid_parameters_stop_the_process(tmp_path):
+def test_invalid_parameters_stop_the_process(tmp_path, ros_domain):
     typo = tmp_path / "typo.yaml"
     typo.write_text("/**:\n  ros__parameters:\n    gain: 2.0\n    step_lenght: 0.7\n")
     cases = {
