@@ -408,8 +408,20 @@ def _median(values: list[float]) -> float:
 
 
 def _magnitude(acc: ArrayLike) -> np.ndarray:
+    """|a| of (..., 3) samples: the arithmetic of :meth:`Stepometer.update`'s scalar path."""
     a = np.asarray(acc, dtype=float)
-    return np.sqrt(np.sum(a * a, axis=-1))
+    x, y, z = a[..., 0], a[..., 1], a[..., 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
+class _LookAhead(NamedTuple):
+    """Windows analysed ahead of their samples (:meth:`Stepometer.prefetch`): segment (``t0_ns``,
+    ``grid_hz``), index of the first window, the grid samples from its start, the estimates."""
+    t0_ns: int
+    grid_hz: float
+    window: int
+    span: np.ndarray
+    estimates: list[WindowEstimate]
 
 
 class Stepometer:
@@ -422,6 +434,7 @@ class Stepometer:
         self.params.validate()
         self._st = StepometerState(grid_hz=float(self.params.grid_hz))
         self._design: _Design | None = None
+        self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
 
     # -- state ------------------------------------------------------------------------------------
     def state(self) -> StepometerState:
@@ -430,6 +443,7 @@ class Stepometer:
     def set_state(self, state: StepometerState) -> None:
         self._st = state.copy()
         self._design = None
+        self._ahead = None
 
     @property
     def total_steps(self) -> float:
@@ -563,27 +577,86 @@ class Stepometer:
         d = self._get_design()
         assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
         t = np.asarray(stamps_ns, dtype=np.int64)
-        a = np.asarray(acc, dtype=float)
-        x, y, z = a[:, 0], a[:, 1], a[:, 2]
-        m = np.sqrt(x * x + y * y + z * z)
-        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
-        last_k = int(max(int(k_end.max()), st.n_grid - 1))
+        m = _magnitude(acc)
+        new = self._steady_grid(t, m)
         st.samples += len(t)
-        if last_k >= st.n_grid:
-            k = np.arange(st.n_grid, last_k + 1, dtype=np.int64)
-            # grid point k is filled by the first sample whose k_end reaches it, between that
-            # sample and the one before it (update(): last_m + (m - last_m) * ((tk - last_t) / dt))
-            i = np.searchsorted(np.maximum.accumulate(k_end), k, side="left")
-            t_prev = np.concatenate((np.array([st.last_t_ns], np.int64), t))[i]
-            m_prev = np.concatenate(([st.last_m], m))[i]
-            tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
-            dt = (t[i] - t_prev).astype(float)
-            st.buffer.extend((m_prev + (m[i] - m_prev) * ((tk - t_prev).astype(float) / dt)).tolist())
-            st.n_grid = last_k + 1
+        if len(new):
+            st.buffer.extend(new.tolist())
+            st.n_grid += len(new)
         st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
         if st.n_grid >= st.next_window * d.n_h + d.n_w:
             return self._analyse_ready()
         return []
+
+    def _steady_grid(self, t: np.ndarray, m: np.ndarray) -> np.ndarray:
+        """The grid values from ``n_grid`` on completed by the samples ``t`` (int64, non-decreasing,
+        no gap) / ``m`` (|a|) that follow the last one taken: the arithmetic of :meth:`update`'s
+        scalar path, vectorised (the same floating-point operations in the same order, so any cut
+        of the samples into calls gives the same grid). The state is not changed."""
+        st = self._st
+        assert st.t0_ns is not None and st.last_t_ns is not None
+        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        last_k = int(max(int(k_end.max()), st.n_grid - 1))
+        if last_k < st.n_grid:
+            return np.zeros(0)
+        k = np.arange(st.n_grid, last_k + 1, dtype=np.int64)
+        # grid point k is filled by the first sample whose k_end reaches it, between that
+        # sample and the one before it (update(): last_m + (m - last_m) * ((tk - last_t) / dt))
+        i = np.searchsorted(np.maximum.accumulate(k_end), k, side="left")
+        t_prev = np.concatenate((np.array([st.last_t_ns], np.int64), t))[i]
+        m_prev = np.concatenate(([st.last_m], m))[i]
+        tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
+        dt = (t[i] - t_prev).astype(float)
+        return m_prev + (m[i] - m_prev) * ((tk - t_prev).astype(float) / dt)
+
+    def prefetch(self, stamps_ns: np.ndarray, acc: np.ndarray) -> int:
+        """Offline look-ahead: ``stamps_ns`` (N,) int64 / ``acc`` (N, 3) are the samples the caller is
+        about to feed (in the same order, by any calls). The analysis windows their steady leading
+        part completes are analysed now, all together (one vectorised call instead of one per window);
+        a later window analysis reuses such an estimate only when its window holds exactly the same
+        grid values, so the hops and state are those of feeding the samples without it. Changes
+        no state; returns the number of windows analysed ahead (0: nothing to gain)."""
+        st = self._st
+        d = self._get_design()
+        self._ahead = None
+        if d is None or st.grid_hz <= 0 or st.t0_ns is None or st.last_t_ns is None:
+            return 0
+        t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        a = np.asarray(acc, dtype=float)
+        if a.ndim != 2 or a.shape != (len(t), 3) or not len(t):
+            return 0
+        # the steady leading part: finite, no stamp going back, no gap longer than max_gap_s
+        prev = np.concatenate((np.array([st.last_t_ns], np.int64), t[:-1]))
+        bad = np.flatnonzero((t < prev) | ((t - prev).astype(float) > self.params.max_gap_s * 1e9)
+                             | ~np.isfinite(a).all(axis=1))
+        n = int(bad[0]) if len(bad) else len(t)
+        if n == 0:
+            return 0
+        n_grid = max(int(math.floor((int(t[n - 1]) - st.t0_ns) * 1e-9 * st.grid_hz + 1e-9)) + 1, st.n_grid)
+        n_win = (n_grid - d.n_w) // d.n_h + 1 - st.next_window if n_grid >= d.n_w else 0
+        if n_win < 2:           # one window or none: analysed when it completes, as without look-ahead
+            return 0
+        new = self._steady_grid(t[:n], _magnitude(a[:n]))
+        first = st.next_window * d.n_h
+        span = np.concatenate((np.asarray(st.buffer[first - st.buffer_start:], dtype=float), new))
+        span = span[: (n_win - 1) * d.n_h + d.n_w]
+        wins = sliding_window_view(span, d.n_w)[:: d.n_h]
+        self._ahead = _LookAhead(st.t0_ns, st.grid_hz, st.next_window, span,
+                                 analyse_windows(wins, d, self.params))
+        return n_win
+
+    def _analysed(self, span: np.ndarray, d: _Design) -> list[WindowEstimate]:
+        """Estimates of the windows of ``span`` (grid samples from window ``next_window`` on): from the
+        look-ahead when it holds exactly these windows, else analysed now."""
+        st = self._st
+        ah = self._ahead
+        wins = sliding_window_view(span, d.n_w)[:: d.n_h]
+        if ah is not None and ah.t0_ns == st.t0_ns and ah.grid_hz == st.grid_hz:
+            k = st.next_window - ah.window
+            lo = k * d.n_h
+            if 0 <= k and k + len(wins) <= len(ah.estimates) and np.array_equal(ah.span[lo: lo + len(span)], span):
+                return ah.estimates[k: k + len(wins)]
+        return analyse_windows(wins, d, self.params)
 
     def add_headings(self, stamps_ns: list[int], yaw_rad: list[float]) -> None:
         """:meth:`add_heading` for each sample in order (same values and state)."""
@@ -695,19 +768,11 @@ class Stepometer:
         st = self._st
         d = self._get_design()
         assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
-        t_all = np.concatenate(([st.last_t_ns], t)).astype(np.int64)
-        m_all = np.concatenate(([st.last_m], m))
-        # grid indices k with last_t < t_k <= t[-1]; t_k = t0 + k/fs
-        rel_end = (int(t[-1]) - st.t0_ns) * 1e-9 * st.grid_hz
-        k_end = int(math.floor(rel_end + 1e-9))
-        if k_end >= st.n_grid:
-            k = np.arange(st.n_grid, k_end + 1)
-            tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
-            # relative times (float seconds from last_t) keep the interpolation exact enough
-            base = t_all[0]
-            new = np.interp((tk - base).astype(float), (t_all - base).astype(float), m_all)
+        # grid indices k with last_t < t_k <= t[-1]; t_k = t0 + k/fs, linear between the samples
+        new = self._steady_grid(t, m)
+        if len(new):
             st.buffer.extend(new.tolist())
-            st.n_grid = k_end + 1
+            st.n_grid += len(new)
         # keep the last sample with the largest stamp (equal stamps: the latest value)
         st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
         return self._analyse_ready()
@@ -721,8 +786,7 @@ class Stepometer:
         if n_ready > 0:
             first = st.next_window * d.n_h - st.buffer_start
             span = np.asarray(st.buffer[first: first + (n_ready - 1) * d.n_h + d.n_w], dtype=float)
-            wins = sliding_window_view(span, d.n_w)[:: d.n_h]
-            for est in analyse_windows(wins, d, self.params):
+            for est in self._analysed(span, d):
                 j = st.next_window
                 lo = j * d.n_h + d.offset
                 hi = lo + d.n_h
@@ -951,6 +1015,7 @@ class Stepometer:
                     f = st.count_freq_hz if st.count_freq_hz > 0 else st.last_freq_hz
                     walking = st.count_freq_hz > 0 and st.count_confidence >= 1.0
                     out += self._count_span(lo, hi, walking, f, st.count_confidence)
+        self._ahead = None
         st.walk_end = None
         st.coast_end = None
         st.walk_freq_hz = 0.0

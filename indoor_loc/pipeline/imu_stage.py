@@ -285,6 +285,7 @@ class ImuStage(Stage):
         stats = diag.received[topic]
         t0 = time.perf_counter()
         out: list[tuple[int, str, Any]] = []
+        self.stepometer.prefetch(t_all, acc)        # the run's windows analysed together
         i = 0
         while i < n:
             quiet = self.stepometer.quiet_count(t_all[i:])
