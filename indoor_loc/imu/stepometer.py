@@ -484,7 +484,10 @@ class Stepometer:
     def add_heading(self, stamp_ns: int, yaw_rad: float) -> None:
         """A heading sample (rad, any frame; only its changes matter) for the turn test of
         :meth:`_count`. Give headings up to a stamp before the accelerometer samples of that stamp
-        (live: as they arrive). Non-finite or out-of-order samples are ignored."""
+        (live: as they arrive). Non-finite or out-of-order samples are ignored. With the turn test off
+        (``turn_coast_s`` = 0, the default) nothing reads them and they are not stored."""
+        if self.params.turn_coast_s <= 0:
+            return
         st = self._st
         t = int(stamp_ns)
         if not math.isfinite(yaw_rad) or (st.head_t and t <= st.head_t[-1]):
@@ -650,16 +653,18 @@ class Stepometer:
         look-ahead when it holds exactly these windows, else analysed now."""
         st = self._st
         ah = self._ahead
-        wins = sliding_window_view(span, d.n_w)[:: d.n_h]
         if ah is not None and ah.t0_ns == st.t0_ns and ah.grid_hz == st.grid_hz:
             k = st.next_window - ah.window
+            n = (len(span) - d.n_w) // d.n_h + 1
             lo = k * d.n_h
-            if 0 <= k and k + len(wins) <= len(ah.estimates) and np.array_equal(ah.span[lo: lo + len(span)], span):
-                return ah.estimates[k: k + len(wins)]
-        return analyse_windows(wins, d, self.params)
+            if 0 <= k and k + n <= len(ah.estimates) and np.array_equal(ah.span[lo: lo + len(span)], span):
+                return ah.estimates[k: k + n]
+        return analyse_windows(sliding_window_view(span, d.n_w)[:: d.n_h], d, self.params)
 
     def add_headings(self, stamps_ns: list[int], yaw_rad: list[float]) -> None:
         """:meth:`add_heading` for each sample in order (same values and state)."""
+        if self.params.turn_coast_s <= 0:
+            return
         st = self._st
         head_t, head_yaw = st.head_t, st.head_yaw
         two_pi, pi = 2 * math.pi, math.pi
