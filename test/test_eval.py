@@ -198,25 +198,33 @@ def test_bags_truth_and_trajectories_through_cli(tmp_path):
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/path"]) == 0
 
 
-def test_eval_warns_when_the_track_is_not_in_the_truth_frame(tmp_path, capsys):
-    """Scoring ``pdr/odom`` (frame ``<user>/odom``) against map truth gives numbers that are not
-    localisation errors: eval says so on stderr; a map-frame track gets no warning."""
+def _imported_walk_and_run(tmp_path, *, with_odom: bool):
+    """An imported synthetic walk (``tmp_path/imp/walk05.mcap``) and a run bag with its ``wifi/fix``
+    (and, if asked, ``pdr/odom`` in the odometry frame) at the scan stamps; returns the run bag."""
     pytest.importorskip("rclpy")
     from indoor_loc.bag import BagWriter
-    from indoor_loc.cli import main as cli_main
     from indoor_loc.datasets.putmc_bags import write_walk_bag
+    from indoor_loc.measurements import Fix
     from msg_adapters.odom import odom_to_msg
     from msg_adapters.pose import fix_to_msg
-    from indoor_loc.measurements import Fix
 
     walk, route = _synthetic_walk()
     write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)
     run = tmp_path / "run.mcap"
     with BagWriter(run) as bag:
         for t, xy in zip(walk.scan_t, walk.scan_xy):
-            bag.write("/walk05/pdr/odom", odom_to_msg(int(t), "walk05/odom", "walk05/base_link", xy[0], xy[1], 0.0,
-                                                      np.eye(3), 1.0, 0.0), int(t))
+            if with_odom:
+                bag.write("/walk05/pdr/odom", odom_to_msg(int(t), "walk05/odom", "walk05/base_link", xy[0], xy[1],
+                                                          0.0, np.eye(3), 1.0, 0.0), int(t))
             bag.write("/walk05/wifi/fix", fix_to_msg(Fix(int(t), xy, np.eye(2))), int(t))
+    return run
+
+
+def test_eval_warns_when_the_track_is_not_in_the_truth_frame(tmp_path, capsys):
+    """Scoring ``pdr/odom`` (frame ``<user>/odom``) against map truth gives numbers that are not
+    localisation errors: eval says so on stderr; a map-frame track gets no warning."""
+    from indoor_loc.cli import main as cli_main
+    run = _imported_walk_and_run(tmp_path, with_odom=True)
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr/odom"]) == 0
     err = capsys.readouterr().err
     assert "WARNING: walk05: the track is in frame walk05/odom" in err and "'map'" in err
@@ -226,19 +234,8 @@ def test_eval_warns_when_the_track_is_not_in_the_truth_frame(tmp_path, capsys):
 
 def test_eval_of_a_missing_topic_lists_the_trajectory_topics(tmp_path, capsys):
     """A mistyped ``--topic`` (or an input bag given instead of a run's output) names what is there."""
-    pytest.importorskip("rclpy")
-    from indoor_loc.bag import BagWriter
     from indoor_loc.cli import main as cli_main
-    from indoor_loc.datasets.putmc_bags import write_walk_bag
-    from msg_adapters.pose import fix_to_msg
-    from indoor_loc.measurements import Fix
-
-    walk, route = _synthetic_walk()
-    write_walk_bag(walk, route, tmp_path / "imp" / "walk05.mcap", map_yaw_rad=0.0)
-    run = tmp_path / "run.mcap"
-    with BagWriter(run) as bag:
-        for t, xy in zip(walk.scan_t, walk.scan_xy):
-            bag.write("/walk05/wifi/fix", fix_to_msg(Fix(int(t), xy, np.eye(2))), int(t))
+    run = _imported_walk_and_run(tmp_path, with_odom=False)
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--topic", "pdr_kf/pathx"]) == 2
     err = capsys.readouterr().err
     assert "no topic named */pdr_kf/pathx" in err and "trajectory topics there: /walk05/wifi/fix" in err

@@ -325,43 +325,15 @@ class RecorderNode(Node):
         message handled by a callback of its own) is paid once per burst, and the per-message work
         here is the take, the log time and the sequence-gap count; sorting, serialising and
         compressing happen on the writer thread."""
-        clock = self.get_clock()
-        sim_ns = clock.now().nanoseconds if clock.ros_time_is_active else 0
+        sim_ns = self._sim_now_ns()
         burst: list[tuple[str, bytes, int, int]] = []
-        lost_now = 0
-
-        def book(t: str, gaps: SequenceGaps, data: bytes, info: dict) -> int:
-            rx = info.get("received_timestamp") or 0
-            # log time = the node clock at reception: DDS's reception time on the system clock, or
-            # (use_sim_time) the simulated time now, when the burst is taken
-            log = sim_ns or rx or time.time_ns()
-            burst.append((t, data, log, info.get("source_timestamp") or log))
-            self.last_rx_ns = rx
-            return gaps.gap(info, lambda: self.count_publishers(t))
-
-        gaps = self._gaps[topic]
         if isinstance(info, dict):
-            lost = book(topic, gaps, data, info)
+            lost_now = self._book(burst, sim_ns, topic, data, info)
         else:
-            lost = 0
+            lost_now = 0
             now = sim_ns or time.time_ns()
             burst.append((topic, data, now, now))
-        if lost:
-            self._count_lost(topic, lost)
-            lost_now += lost
-        for t, sub in list(self._subs.items()):
-            g = self._gaps[t]
-            take = sub.handle.take_message
-            cls = sub.msg_type
-            with sub.handle:
-                for _ in range(TAKE_MAX):
-                    got = take(cls, True)
-                    if got is None:
-                        break
-                    lost = book(t, g, got[0], got[1])
-                    if lost:
-                        self._count_lost(t, lost)
-                        lost_now += lost
+        lost_now += self._take_queued(burst, sim_ns, TAKE_MAX)
         self.received += len(burst)
         self._thread.put(("b", burst))
         if lost_now:
@@ -374,26 +346,46 @@ class RecorderNode(Node):
         """After the spin has stopped: one pass over every subscription recording what DDS still
         holds (at most its history depth, so this ends even while publishers go on). Returns how
         many messages it recorded."""
-        clock = self.get_clock()
-        sim_ns = clock.now().nanoseconds if clock.ros_time_is_active else 0
         burst: list[tuple[str, bytes, int, int]] = []
-        for t, sub in list(self._subs.items()):
-            g = self._gaps[t]
-            with sub.handle:
-                for _ in range(int(sub.qos_profile.depth)):
-                    got = sub.handle.take_message(sub.msg_type, True)
-                    if got is None:
-                        break
-                    data, info = got
-                    log = sim_ns or int(info.get("received_timestamp") or 0) or time.time_ns()
-                    burst.append((t, data, log, info.get("source_timestamp") or log))
-                    lost = g.gap(info)
-                    if lost:
-                        self._count_lost(t, lost)
+        self._take_queued(burst, self._sim_now_ns(), None)
         if burst:
             self.received += len(burst)
             self._thread.put(("b", burst))
         return len(burst)
+
+    def _sim_now_ns(self) -> int:
+        """The simulated time under ``use_sim_time`` (the log time of a burst), else 0."""
+        clock = self.get_clock()
+        return clock.now().nanoseconds if clock.ros_time_is_active else 0
+
+    def _take_queued(self, burst: list[tuple[str, bytes, int, int]], sim_ns: int, limit: int | None) -> int:
+        """Take what DDS holds on every subscription into ``burst`` (at most ``limit`` messages per
+        subscription, or its history depth); returns how many were counted lost on the way."""
+        lost = 0
+        for t, sub in list(self._subs.items()):
+            take = sub.handle.take_message
+            cls = sub.msg_type
+            with sub.handle:
+                for _ in range(limit or int(sub.qos_profile.depth)):
+                    got = take(cls, True)
+                    if got is None:
+                        break
+                    lost += self._book(burst, sim_ns, t, got[0], got[1])
+        return lost
+
+    def _book(self, burst: list[tuple[str, bytes, int, int]], sim_ns: int, topic: str, data: bytes,
+              info: dict) -> int:
+        """Append one taken message with its log time -- the node clock at reception: DDS's
+        reception time on the system clock, or (``use_sim_time``) ``sim_ns`` -- and count the
+        sequence gap before it; returns the messages counted lost."""
+        rx = info.get("received_timestamp") or 0
+        log = sim_ns or rx or time.time_ns()
+        burst.append((topic, data, log, info.get("source_timestamp") or log))
+        self.last_rx_ns = rx
+        lost = self._gaps[topic].gap(info, lambda: self.count_publishers(topic))
+        if lost:
+            self._count_lost(topic, lost)
+        return lost
 
     def _count_lost(self, topic: str, n: int) -> None:
         self.lost[topic] = self.lost.get(topic, 0) + n
