@@ -127,3 +127,41 @@ def test_look_ahead_stops_at_a_gap_or_bad_sample(rng):
     gap[2:] += 2 * 10**9
     assert s.prefetch(gap, acc[100:]) == 0
     assert s.prefetch(stamps[100:], acc[100:]) > 10
+
+
+@pytest.mark.parametrize("run_len", [(20, 200), (300, 2000)])
+def test_quiet_plan_counts_equal_quiet_count(rng, run_len):
+    """quiet_plan (one look at a run) answers each quiet_count of the run's steady feed exactly,
+    from its lookup (not by falling back to quiet_count), and the hops stay those of update()."""
+    stamps, acc = _recording(rng)
+    cuts = [0]
+    while cuts[-1] < len(stamps):
+        cuts.append(min(len(stamps), cuts[-1] + int(rng.integers(*run_len))))
+    one = Stepometer()
+    ref = [h for t, a in zip(stamps, acc) for h in one.update(int(t), a)] + one.finish()
+    s = Stepometer()
+    fallbacks = []
+    s.quiet_count = lambda t: fallbacks.append(len(t)) or Stepometer.quiet_count(s, t)   # type: ignore[method-assign]
+    hops, checked = [], 0
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        t, x = stamps[a:b], acc[a:b]
+        s.prefetch(t, x)
+        plan = s.quiet_plan(t)
+        i = 0
+        while i < len(t):
+            quiet = Stepometer.quiet_count(s, t[i:])
+            if plan is not None:
+                n_fallbacks = len(fallbacks)
+                assert plan.count(i) == quiet
+                assert len(fallbacks) == n_fallbacks
+                checked += 1
+            if quiet is None:
+                hops += s.update(int(t[i]), x[i])
+                i += 1
+                continue
+            j = min(i + quiet, len(t) - 1)
+            hops += s.extend_steady(t[i:j + 1], x[i:j + 1])
+            i = j + 1
+    assert checked > 50
+    assert _key(hops + s.finish()) == _key(ref)
+    assert s.state() == one.state()

@@ -424,6 +424,32 @@ class _LookAhead(NamedTuple):
     estimates: list[WindowEstimate]
 
 
+class QuietPlan:
+    """:meth:`Stepometer.quiet_plan`: the grid length after each sample of a run (``n_grid``, as
+    :meth:`Stepometer.quiet_count` computes it), so the count from sample ``i`` on is one lookup.
+    Used only while the stepometer's grid (t0, rate) is the one planned for and its last sample is
+    ``stamps[i - 1]``; otherwise :meth:`Stepometer.quiet_count` answers."""
+
+    def __init__(self, owner: Stepometer, stamps: np.ndarray, first: int, t0_ns: int, grid_hz: float,
+                 n_grid: np.ndarray) -> None:
+        self._owner, self._t, self._first = owner, stamps, first
+        self._t0_ns, self._grid_hz, self._n_grid = t0_ns, grid_hz, n_grid
+
+    def count(self, i: int) -> int | None:
+        """``quiet_count(stamps[i:])`` once ``stamps[:i]`` have been fed (``i`` = 0: before any)."""
+        if i == 0:
+            return self._first
+        o = self._owner
+        st = o._st
+        d = o._get_design()
+        if (d is None or i < 0 or i >= len(self._t) or st.t0_ns != self._t0_ns or st.grid_hz != self._grid_hz
+                or st.last_t_ns != int(self._t[i - 1]) or st.n_grid != int(self._n_grid[i - 1])):
+            return o.quiet_count(self._t[i:])
+        # n_grid is non-decreasing: the first sample from i on reaching the next window's end
+        k = int(np.searchsorted(self._n_grid, st.next_window * d.n_h + d.n_w, side="left"))
+        return max(k, i) - i
+
+
 class Stepometer:
     """Online FFT stepometer. Feed samples with :meth:`update` (one) or :meth:`update_many` (a
     chunk); each returns the :class:`StepHop` s completed so far, in time order. :meth:`finish`
@@ -571,6 +597,21 @@ class Stepometer:
         n_grid = np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid)
         ready = np.flatnonzero(n_grid >= st.next_window * d.n_h + d.n_w)
         return int(ready[0]) if len(ready) else len(t)
+
+    def quiet_plan(self, stamps_ns: np.ndarray) -> QuietPlan | None:
+        """:meth:`quiet_count` for a run the caller then feeds from its start in cuts that each end
+        on the sample completing a window: ``plan.count(i)`` equals ``quiet_count(stamps_ns[i:])``
+        once ``stamps_ns[:i]`` have been fed, from one look at the whole run. None when
+        ``quiet_count(stamps_ns)`` is None."""
+        st = self._st
+        first = self.quiet_count(stamps_ns)
+        if first is None:
+            return None
+        assert st.t0_ns is not None
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        return QuietPlan(self, t, first, st.t0_ns, st.grid_hz,
+                         np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid))
 
     def extend_steady(self, stamps_ns: np.ndarray, acc: np.ndarray) -> list[StepHop]:
         """Samples of which at most the last completes a window (see :meth:`quiet_count`, which must

@@ -272,8 +272,9 @@ class ImuStage(Stage):
             return super().process_batch(topic, items, recv_ns)
         n = len(items)
         t_all = arrays.sec * 1_000_000_000 + arrays.nanosec
-        q = arrays.orientation_xyzw.tolist()
-        yaw = [math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)) for x, y, z, w in q]  # yaw_xyzw
+        x, y, z, w = np.asarray(arrays.orientation_xyzw, dtype=float).T
+        # yaw_xyzw: the same float operations column-wise, math.atan2 per sample
+        yaw = list(map(math.atan2, (2.0 * (w * z + x * y)).tolist(), (1.0 - 2.0 * (y * y + z * z)).tolist()))
         var_c = arrays.orientation_cov[:, 8]
         default_var = self.params.default_yaw_std_rad ** 2
         var = np.where(np.isfinite(var_c) & (var_c > 0.0), var_c, default_var).tolist()
@@ -286,9 +287,10 @@ class ImuStage(Stage):
         t0 = time.perf_counter()
         out: list[tuple[int, str, Any]] = []
         self.stepometer.prefetch(t_all, acc)        # the run's windows analysed together
+        plan = self.stepometer.quiet_plan(t_all)
         i = 0
         while i < n:
-            quiet = self.stepometer.quiet_count(t_all[i:])
+            quiet = None if plan is None else plan.count(i)
             if quiet is None:
                 break
             j = min(i + quiet, n - 1)               # the sample completing a window, or the last
