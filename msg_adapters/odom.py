@@ -19,6 +19,7 @@ from indoor_loc.measurements import OdomPose, PdrInterval, PdrIntervalDecoder, P
 from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
 
 PLANAR_IDX = (0, 1, 5)          # x, y, yaw in a 6x6 ROS covariance
+_PLANAR_FLAT = np.array([6 * i + j for i in PLANAR_IDX for j in PLANAR_IDX])     # their row-major places
 
 
 def yaw_to_quat(yaw: float) -> Quaternion:
@@ -37,10 +38,14 @@ def quat_to_yaw(q: Quaternion, what: str = "orientation") -> float:
 
 
 def planar_cov_to_6x6(cov3, what: str = "cov_xyyaw") -> list[float]:
-    c = as_matrix(what, cov3, 3)
-    full = np.zeros((6, 6))
-    full[np.ix_(PLANAR_IDX, PLANAR_IDX)] = c
-    return full.ravel().tolist()
+    return _planar_cov_36(cov3, what).tolist()
+
+
+def _planar_cov_36(cov3, what: str = "cov_xyyaw") -> np.ndarray:
+    """The (36,) row-major 6x6 covariance holding the planar 3x3 ``cov3`` (validated), zeros elsewhere."""
+    full = np.zeros(36)
+    full[_PLANAR_FLAT] = as_matrix(what, cov3, 3).ravel()
+    return full
 
 
 def planar_cov_from_6x6(cov36, what: str = "pose.covariance") -> np.ndarray:
@@ -66,7 +71,7 @@ def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: 
     msg.pose.pose.position.x = float(x)
     msg.pose.pose.position.y = float(y)
     msg.pose.pose.orientation = yaw_to_quat(float(yaw))
-    msg.pose.covariance = planar_cov_to_6x6(cov_xyyaw)
+    msg.pose.covariance = _planar_cov_36(cov_xyyaw)
     msg.twist.twist.linear.x = float(speed_mps)
     msg.twist.twist.angular.z = float(yaw_rate)
     msg.twist.covariance[0] = float(speed_var)
