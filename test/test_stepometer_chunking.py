@@ -165,3 +165,34 @@ def test_quiet_plan_counts_equal_quiet_count(rng, run_len):
     assert checked > 50
     assert _key(hops + s.finish()) == _key(ref)
     assert s.state() == one.state()
+
+
+def test_grid_ahead_used_only_for_the_samples_announced(rng):
+    """extend_steady takes its grid values from the look-ahead only when fed exactly the samples
+    announced: with other values announced it computes them (no hit), with the same it reuses
+    them (hits); the hops are those of update() either way."""
+    stamps, acc = walk_signal(rng, duration_s=30.0)
+    one = Stepometer()
+    ref = [h for t, a in zip(stamps, acc) for h in one.update(int(t), a)] + one.finish()
+    for announced, want_hits in ((acc[500:] * 1.5, False), (acc[500:], True)):
+        s = Stepometer()
+        hits = []
+
+        def counted(t, a, s=s, hits=hits):
+            got = Stepometer._grid_from_ahead(s, t, a)
+            hits.append(got is not None)
+            return got
+        s._grid_from_ahead = counted  # type: ignore[method-assign]
+        hops = [h for t, a in zip(stamps[:500], acc[:500]) for h in s.update(int(t), a)]
+        assert s.prefetch(stamps[500:], announced) > 2
+        t, x = stamps[500:], acc[500:]
+        i = 0
+        while i < len(t):
+            quiet = s.quiet_count(t[i:])
+            assert quiet is not None
+            j = min(i + quiet, len(t) - 1)
+            hops += s.extend_steady(t[i:j + 1], x[i:j + 1])
+            i = j + 1
+        assert _key(hops + s.finish()) == _key(ref)
+        assert s.state() == one.state()
+        assert len(hits) > 10 and (all(hits) if want_hits else not any(hits))

@@ -424,6 +424,22 @@ class _LookAhead(NamedTuple):
     estimates: list[WindowEstimate]
 
 
+class _GridAhead(NamedTuple):
+    """The grid values of a run's steady part computed ahead (:meth:`Stepometer.prefetch`): segment
+    (``t0_ns``, ``grid_hz``), the state before the run (``n_grid``, ``last_t_ns``, ``last_m``), the
+    samples (stamps, acc, |a|), the grid length after each sample and the grid values from ``n_grid``."""
+    t0_ns: int
+    grid_hz: float
+    n_grid: int
+    last_t_ns: int
+    last_m: float
+    t: np.ndarray
+    acc: np.ndarray
+    m: np.ndarray
+    reach: np.ndarray
+    grid: np.ndarray
+
+
 class QuietPlan:
     """:meth:`Stepometer.quiet_plan`: the grid length after each sample of a run (``n_grid``, as
     :meth:`Stepometer.quiet_count` computes it), so the count from sample ``i`` on is one lookup.
@@ -461,6 +477,7 @@ class Stepometer:
         self._st = StepometerState(grid_hz=float(self.params.grid_hz))
         self._design: _Design | None = None
         self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
+        self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
 
     # -- state ------------------------------------------------------------------------------------
     def state(self) -> StepometerState:
@@ -470,6 +487,7 @@ class Stepometer:
         self._st = state.copy()
         self._design = None
         self._ahead = None
+        self._grid_ahead = None
 
     @property
     def total_steps(self) -> float:
@@ -621,16 +639,39 @@ class Stepometer:
         d = self._get_design()
         assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
         t = np.asarray(stamps_ns, dtype=np.int64)
-        m = _magnitude(acc)
-        new = self._steady_grid(t, m)
+        ahead = self._grid_from_ahead(t, acc)
+        if ahead is None:
+            m = _magnitude(acc)
+            new, last_m = self._steady_grid(t, m), float(m[-1])
+        else:
+            new, last_m = ahead
         st.samples += len(t)
         if len(new):
             st.buffer.extend(new.tolist())
             st.n_grid += len(new)
-        st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
+        st.last_t_ns, st.last_m = int(t[-1]), last_m
         if st.n_grid >= st.next_window * d.n_h + d.n_w:
             return self._analyse_ready()
         return []
+
+    def _grid_from_ahead(self, t: np.ndarray, acc: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """The grid values (and the last |a|) that :meth:`_steady_grid` gives for these samples, taken
+        from the look-ahead when it holds exactly these samples, in the same segment, following the
+        sample last taken (any cut gives the same grid values); else None."""
+        g = self._grid_ahead
+        st = self._st
+        if g is None or g.t0_ns != st.t0_ns or g.grid_hz != st.grid_hz or not len(t):
+            return None
+        o = int(np.searchsorted(g.t, t[0]))
+        end = o + len(t)
+        if end > len(g.t):
+            return None
+        prev = (g.last_t_ns, g.last_m, g.n_grid) if o == 0 else (int(g.t[o - 1]), float(g.m[o - 1]), int(g.reach[o - 1]))
+        if prev != (st.last_t_ns, st.last_m, st.n_grid):
+            return None
+        if not (np.array_equal(g.t[o:end], t) and np.array_equal(g.acc[o:end], acc)):
+            return None
+        return g.grid[st.n_grid - g.n_grid: int(g.reach[end - 1]) - g.n_grid], float(g.m[end - 1])
 
     def _steady_grid(self, t: np.ndarray, m: np.ndarray) -> np.ndarray:
         """The grid values from ``n_grid`` on completed by the samples ``t`` (int64, non-decreasing,
@@ -663,6 +704,7 @@ class Stepometer:
         st = self._st
         d = self._get_design()
         self._ahead = None
+        self._grid_ahead = None
         if d is None or st.grid_hz <= 0 or st.t0_ns is None or st.last_t_ns is None:
             return 0
         t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
@@ -680,7 +722,11 @@ class Stepometer:
         n_win = (n_grid - d.n_w) // d.n_h + 1 - st.next_window if n_grid >= d.n_w else 0
         if n_win < 2:           # one window or none: analysed when it completes, as without look-ahead
             return 0
-        new = self._steady_grid(t[:n], _magnitude(a[:n]))
+        mags = _magnitude(a[:n])
+        new = self._steady_grid(t[:n], mags)
+        k_end = np.floor((t[:n] - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
+        self._grid_ahead = _GridAhead(st.t0_ns, st.grid_hz, st.n_grid, st.last_t_ns, st.last_m, t[:n], a[:n], mags,
+                                      np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid), new)
         first = st.next_window * d.n_h
         span = np.concatenate((np.asarray(st.buffer[first - st.buffer_start:], dtype=float), new))
         span = span[: (n_win - 1) * d.n_h + d.n_w]
@@ -1062,6 +1108,7 @@ class Stepometer:
                     walking = st.count_freq_hz > 0 and st.count_confidence >= 1.0
                     out += self._count_span(lo, hi, walking, f, st.count_confidence)
         self._ahead = None
+        self._grid_ahead = None
         st.walk_end = None
         st.coast_end = None
         st.walk_freq_hz = 0.0
