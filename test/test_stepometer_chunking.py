@@ -21,18 +21,23 @@ def _recording(rng):
     return np.concatenate((s1, s2 - s2[0] + s1[-1] + 3 * 10**9)), np.concatenate((a1, a2))
 
 
-def _steady_feed(s: Stepometer, stamps, acc, cuts, *, look_ahead: bool):
+def _steady_feed(s: Stepometer, stamps, acc, cuts, *, look_ahead: bool, on_run=None, on_quiet=None):
     """Feed as the offline IMU stage does: per run (``cuts``), the steady part through
     quiet_count/extend_steady (one window-completing sample at a time), optionally announced first
-    with prefetch; whatever is not steady (start, gaps) through update()."""
+    with prefetch; whatever is not steady (start, gaps) through update(). ``on_run(t)`` is called
+    after each run's prefetch and ``on_quiet(i, quiet)`` with each quiet_count answer."""
     hops = []
     for a, b in zip(cuts[:-1], cuts[1:]):
         t, x = stamps[a:b], acc[a:b]
         if look_ahead:
             s.prefetch(t, x)
+        if on_run is not None:
+            on_run(t)
         i = 0
         while i < len(t):
-            quiet = s.quiet_count(t[i:])
+            quiet = Stepometer.quiet_count(s, t[i:])
+            if on_quiet is not None:
+                on_quiet(i, quiet)
             if quiet is None:
                 hops += s.update(int(t[i]), x[i])
                 i += 1
@@ -142,28 +147,19 @@ def test_quiet_plan_counts_equal_quiet_count(rng, run_len):
     s = Stepometer()
     fallbacks = []
     s.quiet_count = lambda t: fallbacks.append(len(t)) or Stepometer.quiet_count(s, t)   # type: ignore[method-assign]
-    hops, checked = [], 0
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        t, x = stamps[a:b], acc[a:b]
-        s.prefetch(t, x)
-        plan = s.quiet_plan(t)
-        i = 0
-        while i < len(t):
-            quiet = Stepometer.quiet_count(s, t[i:])
-            if plan is not None:
-                n_fallbacks = len(fallbacks)
-                assert plan.count(i) == quiet
-                assert len(fallbacks) == n_fallbacks
-                checked += 1
-            if quiet is None:
-                hops += s.update(int(t[i]), x[i])
-                i += 1
-                continue
-            j = min(i + quiet, len(t) - 1)
-            hops += s.extend_steady(t[i:j + 1], x[i:j + 1])
-            i = j + 1
-    assert checked > 50
-    assert _key(hops + s.finish()) == _key(ref)
+    plans, checked = [None], [0]
+
+    def check(i, quiet):
+        n_fallbacks = len(fallbacks)
+        assert plans[0].count(i) == quiet
+        assert len(fallbacks) == n_fallbacks
+        checked[0] += 1
+
+    hops = _steady_feed(s, stamps, acc, cuts, look_ahead=True,
+                        on_run=lambda t: plans.__setitem__(0, s.quiet_plan(t)),
+                        on_quiet=lambda i, quiet: plans[0] is not None and check(i, quiet))
+    assert checked[0] > 50
+    assert _key(hops) == _key(ref)
     assert s.state() == one.state()
 
 
