@@ -21,6 +21,18 @@ def _recording(rng):
     return np.concatenate((s1, s2 - s2[0] + s1[-1] + 3 * 10**9)), np.concatenate((a1, a2))
 
 
+def _runs_and_reference(rng, run_len):
+    """The test recording cut into runs of ``run_len`` (low, high) samples, and the stepometer fed
+    by update() sample by sample with its hops (the reference)."""
+    stamps, acc = _recording(rng)
+    cuts = [0]
+    while cuts[-1] < len(stamps):
+        cuts.append(min(len(stamps), cuts[-1] + int(rng.integers(*run_len))))
+    one = Stepometer()
+    ref = [h for t, a in zip(stamps, acc) for h in one.update(int(t), a)] + one.finish()
+    return stamps, acc, cuts, one, ref
+
+
 def _steady_feed(s: Stepometer, stamps, acc, cuts, *, look_ahead: bool, on_run=None, on_quiet=None):
     """Feed as the offline IMU stage does: per run (``cuts``), the steady part through
     quiet_count/extend_steady (one window-completing sample at a time), optionally announced first
@@ -87,12 +99,7 @@ def test_look_ahead_changes_nothing(rng, run_len):
     """The steady path with prefetch (windows analysed together) equals it without, and equals
     update() sample by sample: the same hops and final state, bit for bit, for runs of 1-3 samples
     (no window analysed ahead), of a few windows and of many."""
-    stamps, acc = _recording(rng)
-    cuts = [0]
-    while cuts[-1] < len(stamps):
-        cuts.append(min(len(stamps), cuts[-1] + int(rng.integers(*run_len))))
-    one = Stepometer()
-    ref = [h for t, a in zip(stamps, acc) for h in one.update(int(t), a)] + one.finish()
+    stamps, acc, cuts, one, ref = _runs_and_reference(rng, run_len)
     plain, ahead = Stepometer(), Stepometer()
     assert _key(_steady_feed(plain, stamps, acc, cuts, look_ahead=False)) == _key(ref)
     assert _key(_steady_feed(ahead, stamps, acc, cuts, look_ahead=True)) == _key(ref)
@@ -138,12 +145,7 @@ def test_look_ahead_stops_at_a_gap_or_bad_sample(rng):
 def test_quiet_plan_counts_equal_quiet_count(rng, run_len):
     """quiet_plan (one look at a run) answers each quiet_count of the run's steady feed exactly,
     from its lookup (not by falling back to quiet_count), and the hops stay those of update()."""
-    stamps, acc = _recording(rng)
-    cuts = [0]
-    while cuts[-1] < len(stamps):
-        cuts.append(min(len(stamps), cuts[-1] + int(rng.integers(*run_len))))
-    one = Stepometer()
-    ref = [h for t, a in zip(stamps, acc) for h in one.update(int(t), a)] + one.finish()
+    stamps, acc, cuts, one, ref = _runs_and_reference(rng, run_len)
     s = Stepometer()
     fallbacks = []
     s.quiet_count = lambda t: fallbacks.append(len(t)) or Stepometer.quiet_count(s, t)   # type: ignore[method-assign]
