@@ -264,12 +264,17 @@ _FFT_BLOCK = 16
 def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) -> np.ndarray:
     """Squared :func:`amplitude_spectrum` of already mean-removed windows ``x`` (N, n_w), bins
     ``[0, n_bins)`` (default ``design.n_bins``, all the analysis reads), from the real and imaginary
-    parts (no square root): (N, n_bins)."""
+    parts (no square root): (N, n_bins). The tapered windows are written into a zeroed block of
+    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call."""
     nb = design.n_bins if n_bins is None else n_bins
-    power = np.empty((len(x), nb))
-    for i in range(0, len(x), _FFT_BLOCK):
-        spec = np.fft.rfft(x[i: i + _FFT_BLOCK] * design.taper, design.n_fft, axis=1)[:, :nb]
-        blk = power[i: i + _FFT_BLOCK]
+    n = len(x)
+    power = np.empty((n, nb))
+    buf = np.zeros((min(_FFT_BLOCK, n), design.n_fft))
+    for i in range(0, n, _FFT_BLOCK):
+        m = min(_FFT_BLOCK, n - i)
+        np.multiply(x[i: i + m], design.taper, out=buf[:m, : design.n_w])
+        spec = np.fft.rfft(buf[:m], axis=1)[:, :nb]
+        blk = power[i: i + m]
         np.square(spec.real, out=blk)
         blk += np.square(spec.imag)
     power *= design.scale ** 2
@@ -279,20 +284,36 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
 def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
     """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
     (default 0..n_w-1), normalised by lag 0 (all zero for a constant window); Wiener-Khinchin,
-    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around."""
+    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around (a block of windows per call)."""
     n_w = design.n_w
     hi = n_w if lag_hi is None else lag_hi
-    spec = np.fft.rfft(x, design.n_acf, axis=1)
-    full = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
-    acf = full[:, lag_lo:hi] / (n_w - np.arange(lag_lo, hi))
-    acf0 = full[:, :1] / n_w
+    n = len(x)
+    full = np.empty((n, hi - lag_lo))
+    acf0 = np.empty((n, 1))
+    buf = np.zeros((min(_FFT_BLOCK, n), design.n_acf))
+    for i in range(0, n, _FFT_BLOCK):
+        m = min(_FFT_BLOCK, n - i)
+        buf[:m, :n_w] = x[i: i + m]
+        spec = np.fft.rfft(buf[:m], axis=1)
+        blk = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
+        full[i: i + m] = blk[:, lag_lo:hi]
+        acf0[i: i + m] = blk[:, :1]
+    acf = full / (n_w - np.arange(lag_lo, hi))
+    acf0 /= n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
 def harmonic_score(power: np.ndarray, design: _Design) -> np.ndarray:
-    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, n_bins) -> (N, C)."""
-    vals = power[:, design.i0] * (1.0 - design.frac) + power[:, design.i0 + 1] * design.frac
-    return np.einsum("nhc,hk->nc", vals, design.weight)
+    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, n_bins) -> (N, C), summed
+    over k in order (the bins of each harmonic are gathered as rows of the transposed spectrum)."""
+    pt = np.ascontiguousarray(power.T)
+    total = np.zeros((design.i0.shape[1], len(power)))
+    for i0, fr, w in zip(design.i0, design.frac[:, :, None], design.weight[:, 0]):
+        vals = pt[i0] * (1.0 - fr)
+        vals += pt[i0 + 1] * fr
+        vals *= w
+        total += vals
+    return np.ascontiguousarray(total.T)
 
 
 def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
@@ -478,6 +499,7 @@ class Stepometer:
         self._design: _Design | None = None
         self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
         self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
+        self._grid_now: np.ndarray | None = None    # the grid from buffer_start while analysing; not state
 
     # -- state ------------------------------------------------------------------------------------
     def state(self) -> StepometerState:
@@ -862,22 +884,31 @@ class Stepometer:
         assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
         # grid indices k with last_t < t_k <= t[-1]; t_k = t0 + k/fs, linear between the samples
         new = self._steady_grid(t, m)
-        if len(new):
-            st.buffer.extend(new.tolist())
-            st.n_grid += len(new)
+        st.n_grid += len(new)
         # keep the last sample with the largest stamp (equal stamps: the latest value)
         st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
-        return self._analyse_ready()
+        return self._analyse_ready(new)
 
-    def _analyse_ready(self) -> list[StepHop]:
+    def _analyse_ready(self, new: np.ndarray | None = None) -> list[StepHop]:
+        """Analyse the windows the grid completes. ``new``: grid values already counted in ``n_grid``
+        but not yet appended to the buffer (a long chunk: only the part later windows need is kept
+        as a list; the analysis reads the values as one array)."""
         st = self._st
         d = self._get_design()
         assert d is not None
         n_ready = (st.n_grid - d.n_w) // d.n_h + 1 - st.next_window if st.n_grid >= d.n_w else 0
         out: list[StepHop] = []
-        if n_ready > 0:
+        if n_ready <= 0:
+            if new is not None:
+                st.buffer.extend(new.tolist())
+            return out
+        grid = np.asarray(st.buffer, dtype=float)
+        if new is not None:
+            grid = np.concatenate((grid, new))
+        self._grid_now = grid
+        try:
             first = st.next_window * d.n_h - st.buffer_start
-            span = np.asarray(st.buffer[first: first + (n_ready - 1) * d.n_h + d.n_w], dtype=float)
+            span = grid[first: first + (n_ready - 1) * d.n_h + d.n_w]
             for est in self._analysed(span, d):
                 j = st.next_window
                 lo = j * d.n_h + d.offset
@@ -893,14 +924,23 @@ class Stepometer:
                         out += [self._emit(*h) for h in head]
                 out += self._count(lo, hi, est)
                 st.next_window += 1
-        # drop grid samples no later window needs
-        keep_from = st.next_window * d.n_h
-        if st.held:     # a bridged span's steps are counted from its samples
-            keep_from = min(keep_from, st.held[0][0] - int(round(0.5 * st.grid_hz)))
-        if keep_from > st.buffer_start:
-            del st.buffer[: keep_from - st.buffer_start]
+        finally:
+            self._grid_now = None
+            # keep the grid samples later windows (or a bridged span's step count) need
+            keep_from = st.next_window * d.n_h
+            if st.held:
+                keep_from = min(keep_from, st.held[0][0] - int(round(0.5 * st.grid_hz)))
+            keep_from = max(keep_from, st.buffer_start)
+            st.buffer = grid[keep_from - st.buffer_start:].tolist()
             st.buffer_start = keep_from
         return out
+
+    def _grid_values(self, a: int, b: int) -> np.ndarray:
+        """Grid samples ``[a, b)`` (indices of the segment, at least ``buffer_start``)."""
+        st = self._st
+        if self._grid_now is not None:
+            return self._grid_now[a - st.buffer_start: b - st.buffer_start]
+        return np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
 
     def _count(self, lo: int, hi: int, est: WindowEstimate) -> list[StepHop]:
         """The hop ``[lo, hi)`` (grid indices) centred in a window with estimate ``est``, and any hops
@@ -1016,7 +1056,7 @@ class Stepometer:
         pad = int(round(0.5 * st.grid_hz))
         a = max(st.buffer_start, lo0 - pad)
         b = min(st.n_grid, hi1 + pad)
-        seg = np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
+        seg = self._grid_values(a, b)
         peaks = np.zeros(0, dtype=np.int64)
         sos = _lowpass_sos(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
         if len(seg) > 3 * (2 * len(sos) + 1):
@@ -1061,9 +1101,7 @@ class Stepometer:
         d = self._get_design()
         assert d is not None
         pad = max(0, (d.n_m - (hi - lo)) // 2)
-        a = max(st.buffer_start, lo - pad) - st.buffer_start
-        b = min(st.n_grid, hi + pad) - st.buffer_start
-        seg = np.asarray(st.buffer[a:b], dtype=float)
+        seg = self._grid_values(max(st.buffer_start, lo - pad), min(st.n_grid, hi + pad))
         return float(seg.std()) if len(seg) > 1 else 0.0
 
     def _count_span(self, lo: int, hi: int, walking: bool, freq_hz: float, confidence: float) -> list[StepHop]:
