@@ -10,7 +10,8 @@ positioned and scored against their interpolated true positions.
 Tables, all methods on the same scans in one run:
 1. per floor (floor known: that floor's map) — each method's located count, mean / median / 75 % /
    95 % / max error over located scans, 50 % / 95 % ellipse consistency, scans/s, and the mean on
-   the scans the plain WKNN baseline located, with its ratio to the baseline's mean there;
+   the scans the plain WKNN baseline located, with its ratio to the baseline's mean there; below it,
+   the default's and the baseline's means per UTC date of the test scans;
 2. pooled over floors (the same per-floor runs);
 3. floor detection against the pooled four-floor map: accuracy per floor and the error of the
    positions of that run;
@@ -198,6 +199,11 @@ def run(args) -> int:
             pooled[label].append((ok, e, m2, ref_ok, ref_e))
             print(row(label, s, rate))
             report["floors"][name]["methods"][label] = s
+        days = by_day(scans, rm, pooled[OURS][-1])
+        report["floors"][name]["by_day"] = days
+        print("   by the UTC date of the test scans (map scans that day): " + "; ".join(
+            f"{d['date']} ({d['map_scans']}): {d['scans']} scans, baseline {d['ref_mean']:.2f}, ours {d['mean']:.2f} "
+            f"({d['ratio']:.2f})" for d in days))
         print()
     print("2. pooled over the four floors (floor known)")
     print(HEAD)
@@ -243,6 +249,25 @@ def run(args) -> int:
     if getattr(args, "json", None):
         Path(args.json).write_text(json.dumps(report, indent=1, default=_jsonable))
     return 0
+
+
+def by_day(scans: list[WifiScan], rm: RadioMap, errs: tuple) -> list[dict[str, Any]]:
+    """Mean errors of a method and of the baseline per UTC date of the test scans, on the scans both located,
+    with the number of map scans taken that date (a site surveyed on several days: the radio environment and
+    the map's coverage can differ between them). ``errs`` = (ok, e, m2, ref_ok, ref_e) of the method."""
+    ok, e, _, ref_ok, ref_e = errs
+    day = np.asarray([s.stamp_ns for s in scans], np.int64) // (86400 * 10**9)
+    map_day = np.asarray(rm.stamps_ns, np.int64) // (86400 * 10**9)
+    out = []
+    for d in np.unique(day):
+        both = ok & ref_ok & (day == d)
+        if not both.any():
+            continue
+        date = time.strftime("%Y-%m-%d", time.gmtime(int(d) * 86400))
+        out.append({"date": date, "scans": int(both.sum()), "map_scans": int(np.sum(map_day == d)),
+                    "mean": float(e[both].mean()), "ref_mean": float(ref_e[both].mean()),
+                    "ratio": float(e[both].mean() / ref_e[both].mean())})
+    return out
 
 
 def _reasons(fixes: list[Fix]) -> dict[str, int]:
