@@ -10,7 +10,8 @@ positioned and scored against their interpolated true positions.
 Tables, all methods on the same scans in one run:
 1. per floor (floor known: that floor's map) — each method's located count, mean / median / 75 % /
    95 % / max error over located scans, 50 % / 95 % ellipse consistency, scans/s, and the mean on
-   the scans the plain WKNN baseline located, with its ratio to the baseline's mean there;
+   the scans the plain WKNN baseline located, with its ratio to the baseline's mean there; below it,
+   the default's and the baseline's means per UTC date of the test scans, with the test walks' speed;
 2. pooled over floors (the same per-floor runs);
 3. floor detection against the pooled four-floor map: accuracy per floor and the error of the
    positions of that run;
@@ -202,6 +203,11 @@ def run(args) -> int:
             pooled[label].append((ok, e, m2, ref_ok, ref_e))
             print(row(label, s, rate))
             report["floors"][name]["methods"][label] = s
+        days = by_day(scans, truth, rm, pooled[OURS][-1])
+        report["floors"][name]["by_day"] = days
+        print("   by the UTC date of the test scans (map scans that date; test walks' median speed): " + "; ".join(
+            f"{d['date']} ({d['map_scans']}; {d['speed_m_s']:.2f} m/s): {d['scans']} scans, baseline "
+            f"{d['ref_mean']:.2f}, ours {d['mean']:.2f} ({d['ratio']:.2f})" for d in days))
         print()
     print("2. pooled over the four floors (floor known)")
     print(HEAD)
@@ -247,6 +253,35 @@ def run(args) -> int:
     if getattr(args, "json", None):
         Path(args.json).write_text(json.dumps(report, indent=1, default=_jsonable))
     return 0
+
+
+def by_day(scans: list[WifiScan], truth: np.ndarray, rm: RadioMap, errs: tuple) -> list[dict[str, Any]]:
+    """Mean errors of a method and of the baseline per UTC date of the test scans, on the scans both located,
+    with the number of map scans taken that date and the test walks' median walking speed between
+    consecutive scans of a walk (from the true positions: how far back along the walk a cached reading was
+    measured). ``errs`` = (ok, e, m2, ref_ok, ref_e) of the method."""
+    ok, e, _, ref_ok, ref_e = errs
+    stamps = np.asarray([s.stamp_ns for s in scans], np.int64)
+    day = stamps // (86400 * 10**9)
+    map_day = np.asarray(rm.stamps_ns, np.int64) // (86400 * 10**9)
+    src = [s.source for s in scans]
+    step = np.hypot(*np.diff(np.asarray(truth, float), axis=0).T)
+    dt = np.diff(stamps) / 1e9
+    same = np.array([a == b for a, b in zip(src[:-1], src[1:])], bool) & (dt > 0)
+    speed = np.full(len(scans), np.nan)
+    speed[1:][same] = step[same] / dt[same]
+    out = []
+    for d in np.unique(day):
+        both = ok & ref_ok & (day == d)
+        if not both.any():
+            continue
+        v = speed[day == d]
+        date = time.strftime("%Y-%m-%d", time.gmtime(int(d) * 86400))
+        out.append({"date": date, "scans": int(both.sum()), "map_scans": int(np.sum(map_day == d)),
+                    "mean": float(e[both].mean()), "ref_mean": float(ref_e[both].mean()),
+                    "ratio": float(e[both].mean() / ref_e[both].mean()),
+                    "speed_m_s": float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else float("nan")})
+    return out
 
 
 def _reasons(fixes: list[Fix]) -> dict[str, int]:

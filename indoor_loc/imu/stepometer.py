@@ -43,6 +43,7 @@ from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import next_fast_len
 from scipy.signal import butter, find_peaks, sosfiltfilt
+from scipy.sparse import csr_array
 
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import field, require
@@ -197,13 +198,15 @@ class _Design:
     offset: int              # first grid index of the hop counted by window 0
     n_fft: int
     n_bins: int              # spectrum bins the analysis reads: [0, n_bins)
-    n_acf: int               # FFT length of the linear autocorrelation (>= 2 n_w - 1, a fast size)
+    n_lags: int              # autocorrelation lags the analysis reads: [0, n_lags) (<= n_w)
+    n_acf: int               # FFT length of the linear autocorrelation (>= n_w + n_lags - 1, a fast size)
     taper: np.ndarray        # (n_w,)
     scale: float             # 2 / sum(taper): one-sided sinusoid amplitude
     cand: np.ndarray         # (C,) candidate step frequencies, Hz
     i0: np.ndarray           # (H, C) lower FFT bin of each harmonic of each candidate
     frac: np.ndarray         # (H, C) interpolation fraction
     weight: np.ndarray       # (H, 1)
+    harmonic_map: csr_array  # (C, n_bins): S = harmonic_map @ P, the weighted, interpolated harmonic bins
     n_m: int                 # samples of the motion span (>= n_h)
     m_lo: int                # motion span of the counted hop inside the window: [m_lo, m_hi)
     m_hi: int
@@ -232,9 +235,17 @@ class _Design:
         m_hi = min(n_w, m_lo + n_m)
         below = int(math.floor(cand[0] * n_fft / fs))
         n_bins = min(n_fft // 2 + 1, max(int(i0.max()) + 2, below + 1))
-        n_acf = next_fast_len(2 * n_w - 1, real=True)
-        return _Design(fs, n_w, n_h, offset, n_fft, n_bins, n_acf, taper, 2.0 / float(taper.sum()), cand, i0, idx - i0,
-                       weight, n_m, m_lo, m_hi)
+        # the longest stride lag the periodicity check reads: 2/f (+ ACF_LAG_TOL) at the lowest
+        # refined frequency, the first candidate (a hair lower for rounding)
+        n_lags = min(n_w, int(math.ceil(2.0 * fs / (cand[0] * (1.0 - 1e-9)) * (1.0 + ACF_LAG_TOL))) + 2)
+        n_acf = next_fast_len(n_w + n_lags - 1, real=True)
+        frac = idx - i0
+        c = np.broadcast_to(np.arange(len(cand)), i0.shape)
+        harmonic_map = csr_array((np.concatenate(((1.0 - frac) * weight, frac * weight), axis=None),
+                                  (np.concatenate((c, c), axis=None), np.concatenate((i0, i0 + 1), axis=None))),
+                                 shape=(len(cand), n_bins))
+        return _Design(fs, n_w, n_h, offset, n_fft, n_bins, n_lags, n_acf, taper, 2.0 / float(taper.sum()), cand, i0, frac,
+                       weight, harmonic_map, n_m, m_lo, m_hi)
 
 
 @functools.lru_cache(maxsize=16)
@@ -264,12 +275,17 @@ _FFT_BLOCK = 16
 def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) -> np.ndarray:
     """Squared :func:`amplitude_spectrum` of already mean-removed windows ``x`` (N, n_w), bins
     ``[0, n_bins)`` (default ``design.n_bins``, all the analysis reads), from the real and imaginary
-    parts (no square root): (N, n_bins)."""
+    parts (no square root): (N, n_bins). The tapered windows are written into a zeroed block of
+    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call."""
     nb = design.n_bins if n_bins is None else n_bins
-    power = np.empty((len(x), nb))
-    for i in range(0, len(x), _FFT_BLOCK):
-        spec = np.fft.rfft(x[i: i + _FFT_BLOCK] * design.taper, design.n_fft, axis=1)[:, :nb]
-        blk = power[i: i + _FFT_BLOCK]
+    n = len(x)
+    power = np.empty((n, nb))
+    buf = np.zeros((min(_FFT_BLOCK, n), design.n_fft))
+    for i in range(0, n, _FFT_BLOCK):
+        m = min(_FFT_BLOCK, n - i)
+        np.multiply(x[i: i + m], design.taper, out=buf[:m, : design.n_w])
+        spec = np.fft.rfft(buf[:m], axis=1)[:, :nb]
+        blk = power[i: i + m]
         np.square(spec.real, out=blk)
         blk += np.square(spec.imag)
     power *= design.scale ** 2
@@ -278,21 +294,33 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
 
 def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
     """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
-    (default 0..n_w-1), normalised by lag 0 (all zero for a constant window); Wiener-Khinchin,
-    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around."""
+    (default, and at most, 0..n_lags-1: the lags the analysis reads), normalised by lag 0 (all zero
+    for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= n_w + n_lags - 1`` so that
+    nothing wraps around onto these lags (a block of windows per call)."""
     n_w = design.n_w
-    hi = n_w if lag_hi is None else lag_hi
-    spec = np.fft.rfft(x, design.n_acf, axis=1)
-    full = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
-    acf = full[:, lag_lo:hi] / (n_w - np.arange(lag_lo, hi))
-    acf0 = full[:, :1] / n_w
+    hi = design.n_lags if lag_hi is None else lag_hi
+    if not 0 <= lag_lo < hi <= design.n_lags:
+        raise InvalidInputError("lags", f"lags [{lag_lo}, {hi}) outside [0, {design.n_lags}): they would wrap around")
+    n = len(x)
+    full = np.empty((n, hi - lag_lo))
+    acf0 = np.empty((n, 1))
+    buf = np.zeros((min(_FFT_BLOCK, n), design.n_acf))
+    for i in range(0, n, _FFT_BLOCK):
+        m = min(_FFT_BLOCK, n - i)
+        buf[:m, :n_w] = x[i: i + m]
+        spec = np.fft.rfft(buf[:m], axis=1)
+        blk = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
+        full[i: i + m] = blk[:, lag_lo:hi]
+        acf0[i: i + m] = blk[:, :1]
+    acf = full / (n_w - np.arange(lag_lo, hi))
+    acf0 /= n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
 def harmonic_score(power: np.ndarray, design: _Design) -> np.ndarray:
-    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, n_bins) -> (N, C)."""
-    vals = power[:, design.i0] * (1.0 - design.frac) + power[:, design.i0 + 1] * design.frac
-    return np.einsum("nhc,hk->nc", vals, design.weight)
+    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, >= n_bins) -> (N, C), as
+    one sparse product (each candidate reads two bins per harmonic, :attr:`_Design.harmonic_map`)."""
+    return np.ascontiguousarray((design.harmonic_map @ np.ascontiguousarray(power[:, : design.n_bins].T)).T)
 
 
 def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
@@ -336,10 +364,9 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
         fund = (design.weight[:2, 0][:, None] * pw).sum(axis=0)
         in_band &= fund >= p.min_fundamental_share * score[r, j]
     # Periodicity: the normalised autocorrelation at the stride lag 2/f.
-    n_w = design.n_w
     lag = 2.0 / np.maximum(f, 1e-6) * design.fs
-    lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, n_w - 1)
-    hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, n_w)
+    lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, design.n_lags - 1)
+    hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, design.n_lags)
     lags = np.arange(int(lo.min()), int(hi.max()))          # only the lags some window reads
     acf = normalised_autocorr(x, design, int(lags[0]), int(lags[-1]) + 1)
     mask = (lags[None, :] >= lo[:, None]) & (lags[None, :] < hi[:, None])
@@ -478,6 +505,9 @@ class Stepometer:
         self._design: _Design | None = None
         self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
         self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
+        self._grid_now: np.ndarray | None = None    # the grid from buffer_start while analysing; not state
+        #: walking hops over which the gait's energy is a median: the run's last half window
+        self._n_recent = max(1, int(round(0.5 * self.params.window_s / self.params.hop_s)))
 
     # -- state ------------------------------------------------------------------------------------
     def state(self) -> StepometerState:
@@ -687,7 +717,9 @@ class Stepometer:
         k = np.arange(st.n_grid, last_k + 1, dtype=np.int64)
         # grid point k is filled by the first sample whose k_end reaches it, between that
         # sample and the one before it (update(): last_m + (m - last_m) * ((tk - last_t) / dt))
-        i = np.searchsorted(np.maximum.accumulate(k_end), k, side="left")
+        # (sample j fills the points above the previous samples' reach, up to its own: np.repeat)
+        reach = np.maximum(np.maximum.accumulate(k_end), st.n_grid - 1)
+        i = np.repeat(np.arange(len(t)), np.diff(reach, prepend=st.n_grid - 1))
         t_prev = np.concatenate((np.array([st.last_t_ns], np.int64), t))[i]
         m_prev = np.concatenate(([st.last_m], m))[i]
         tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
@@ -862,22 +894,31 @@ class Stepometer:
         assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
         # grid indices k with last_t < t_k <= t[-1]; t_k = t0 + k/fs, linear between the samples
         new = self._steady_grid(t, m)
-        if len(new):
-            st.buffer.extend(new.tolist())
-            st.n_grid += len(new)
+        st.n_grid += len(new)
         # keep the last sample with the largest stamp (equal stamps: the latest value)
         st.last_t_ns, st.last_m = int(t[-1]), float(m[-1])
-        return self._analyse_ready()
+        return self._analyse_ready(new)
 
-    def _analyse_ready(self) -> list[StepHop]:
+    def _analyse_ready(self, new: np.ndarray | None = None) -> list[StepHop]:
+        """Analyse the windows the grid completes. ``new``: grid values already counted in ``n_grid``
+        but not yet appended to the buffer (a long chunk: only the part later windows need is kept
+        as a list; the analysis reads the values as one array)."""
         st = self._st
         d = self._get_design()
         assert d is not None
         n_ready = (st.n_grid - d.n_w) // d.n_h + 1 - st.next_window if st.n_grid >= d.n_w else 0
         out: list[StepHop] = []
-        if n_ready > 0:
+        if n_ready <= 0:
+            if new is not None:
+                st.buffer.extend(new.tolist())
+            return out
+        grid = np.asarray(st.buffer, dtype=float)
+        if new is not None:
+            grid = np.concatenate((grid, new))
+        self._grid_now = grid
+        try:
             first = st.next_window * d.n_h - st.buffer_start
-            span = np.asarray(st.buffer[first: first + (n_ready - 1) * d.n_h + d.n_w], dtype=float)
+            span = grid[first: first + (n_ready - 1) * d.n_h + d.n_w]
             for est in self._analysed(span, d):
                 j = st.next_window
                 lo = j * d.n_h + d.offset
@@ -893,14 +934,23 @@ class Stepometer:
                         out += [self._emit(*h) for h in head]
                 out += self._count(lo, hi, est)
                 st.next_window += 1
-        # drop grid samples no later window needs
-        keep_from = st.next_window * d.n_h
-        if st.held:     # a bridged span's steps are counted from its samples
-            keep_from = min(keep_from, st.held[0][0] - int(round(0.5 * st.grid_hz)))
-        if keep_from > st.buffer_start:
-            del st.buffer[: keep_from - st.buffer_start]
+        finally:
+            self._grid_now = None
+            # keep the grid samples later windows (or a bridged span's step count) need
+            keep_from = st.next_window * d.n_h
+            if st.held:
+                keep_from = min(keep_from, st.held[0][0] - int(round(0.5 * st.grid_hz)))
+            keep_from = max(keep_from, st.buffer_start)
+            st.buffer = grid[keep_from - st.buffer_start:].tolist()
             st.buffer_start = keep_from
         return out
+
+    def _grid_values(self, a: int, b: int) -> np.ndarray:
+        """Grid samples ``[a, b)`` (indices of the segment, at least ``buffer_start``)."""
+        st = self._st
+        if self._grid_now is not None:
+            return self._grid_now[a - st.buffer_start: b - st.buffer_start]
+        return np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
 
     def _count(self, lo: int, hi: int, est: WindowEstimate) -> list[StepHop]:
         """The hop ``[lo, hi)`` (grid indices) centred in a window with estimate ``est``, and any hops
@@ -930,15 +980,21 @@ class Stepometer:
                 st.held.append((lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0))
                 return []
         if est.walking:
-            run = bool(st.held) or (st.walk_end is not None and st.walk_end == lo)
-            out = self._release_held(est.freq_hz) if est.autocorr >= p.bridge_min_autocorr else self._drop_held()
+            out: list[StepHop] = []
+            run = st.walk_end == lo and st.walk_end is not None
+            if st.held:
+                run = True
+                out = self._release_held(est.freq_hz) if est.autocorr >= p.bridge_min_autocorr else self._drop_held()
             st.walk_freq_hz = est.freq_hz
             st.walk_end = hi
             # the gait's energy: median over the run's last half window (a stop's steps decay from it)
-            n_recent = max(1, int(round(0.5 * p.window_s / p.hop_s)))
-            st.walk_motion_recent = (st.walk_motion_recent if run else [])[max(0, len(st.walk_motion_recent) - n_recent + 1):]
-            st.walk_motion_recent.append(est.motion_std_m_s2)
-            st.walk_motion_std = _median(st.walk_motion_recent)
+            recent = st.walk_motion_recent
+            if not run:
+                recent = st.walk_motion_recent = []
+            elif len(recent) >= self._n_recent:
+                del recent[: len(recent) - self._n_recent + 1]
+            recent.append(est.motion_std_m_s2)
+            st.walk_motion_std = _median(recent)
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
             hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
             if st.walk_autocorr < p.bridge_min_autocorr:
@@ -948,7 +1004,11 @@ class Stepometer:
                 if (hi - st.tentative[0][0]) / st.grid_hz < p.bridge_s:
                     return out
                 hop = st.tentative.pop()
-            return out + [self._emit(*h) for h in st.tentative] + [self._emit(*hop)] + self._clear_tentative()
+            if st.tentative:
+                out += [self._emit(*h) for h in st.tentative]
+                st.tentative = []
+            out.append(self._emit(*hop))
+            return out
         if est.motion_std_m_s2 < p.min_motion_std_m_s2:
             return self._drop_tentative() + self._drop_held() + [self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)]
         c = p.coast_confidence
@@ -981,10 +1041,6 @@ class Stepometer:
                 return []
         return self._drop_tentative() + self._drop_held() + [self._emit(*hop)]
 
-    def _clear_tentative(self) -> list[StepHop]:
-        self._st.tentative = []
-        return []
-
     def _drop_tentative(self) -> list[StepHop]:
         """A walking run ended before it became clearly periodic (or the recording ended): it was
         handling, not gait, and its walking hops count 0 steps, confidence ``coast_confidence``."""
@@ -1016,7 +1072,7 @@ class Stepometer:
         pad = int(round(0.5 * st.grid_hz))
         a = max(st.buffer_start, lo0 - pad)
         b = min(st.n_grid, hi1 + pad)
-        seg = np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
+        seg = self._grid_values(a, b)
         peaks = np.zeros(0, dtype=np.int64)
         sos = _lowpass_sos(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
         if len(seg) > 3 * (2 * len(sos) + 1):
@@ -1052,7 +1108,10 @@ class Stepometer:
         st.last_confidence = confidence
         st.count_freq_hz = count_hz if walking else 0.0
         st.count_confidence = confidence
-        return StepHop(self._grid_time(lo), self._grid_time(hi), steps, freq_hz, walking, confidence, steps_std)
+        t0, fs = st.t0_ns, st.grid_hz      # _grid_time, inline
+        assert t0 is not None
+        return StepHop(t0 + int(round(lo * 1e9 / fs)), t0 + int(round(hi * 1e9 / fs)), steps, freq_hz, walking,
+                       confidence, steps_std)
 
     def _motion_std(self, lo: int, hi: int) -> float:
         """Standard deviation of the grid samples over ``motion_window_s`` centred on ``[lo, hi)``
@@ -1061,9 +1120,7 @@ class Stepometer:
         d = self._get_design()
         assert d is not None
         pad = max(0, (d.n_m - (hi - lo)) // 2)
-        a = max(st.buffer_start, lo - pad) - st.buffer_start
-        b = min(st.n_grid, hi + pad) - st.buffer_start
-        seg = np.asarray(st.buffer[a:b], dtype=float)
+        seg = self._grid_values(max(st.buffer_start, lo - pad), min(st.n_grid, hi + pad))
         return float(seg.std()) if len(seg) > 1 else 0.0
 
     def _count_span(self, lo: int, hi: int, walking: bool, freq_hz: float, confidence: float) -> list[StepHop]:

@@ -24,11 +24,22 @@ An unreadable radio map is a configuration error at start-up. With ``radiomap: "
 starts, drops every scan with reason ``no_map`` and says so under ``error`` in its diagnostics.
 A scan the method declines (too few shared APs, outlier conflict...) publishes nothing and is
 counted under ``declined.<reason>``; invalid scans are counted by the adapters' reasons.
+
+Fitting the positioner to a large map takes seconds (the pooled four-floor ms_site2 map: about
+15 s with the powed k-NN grid). Offline (``indoor-loc run``) and by default the stage fits it at
+construction. The live node constructs it with ``fit_now=False`` and fits in a worker thread
+(:meth:`WifiFixStage.begin_fit` / :meth:`fit_positioner` / :meth:`end_fit`): meanwhile each scan is
+validated as usual and kept in a queue of at most ``pending_max`` scans (the oldest beyond it is
+dropped and counted as ``rejected.fit_queue_full``); when the fit ends the queued scans are located
+in arrival order, so the fixes are exactly those of the synchronous stage. A failed fit is a standing
+``error`` (ERROR in ``/diagnostics``) with its cause; the queued scans are then counted as
+``rejected.fit_failed``. While a new map (:meth:`set_radio_map`, or ``begin_fit`` live) is being
+fitted, the previous one keeps answering.
 """
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,10 +56,13 @@ from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
 from indoor_loc.wifi.powed_knn import PowedKnnParams
 from indoor_loc.wifi.radiomap import load_radiomap
-from indoor_loc.wifi.types import Positioner, RadioMap
+from indoor_loc.wifi.types import Positioner, RadioMap, WifiScan
 from indoor_loc.wifi.wknn import WknnParams
 
 NODE_NAME = "wifi_fix_node"
+#: Scans kept while the radio map is being fitted with no earlier map to answer them (live start-up):
+#: 1000 scans = 17 min of one phone scanning every second. Beyond it the oldest is dropped and counted.
+PENDING_MAX = 1000
 
 
 @dataclass(frozen=True)
@@ -89,7 +103,7 @@ class WifiFixStage(Stage):
     PARAMS = WifiFixParams
 
     def __init__(self, params: WifiFixParams, *, namespace: str = "",
-                 radio_map: RadioMap | None = None) -> None:
+                 radio_map: RadioMap | None = None, fit_now: bool = True, pending_max: int = PENDING_MAX) -> None:
         super().__init__(params, namespace=namespace)
         self.params: WifiFixParams = params
         self.declined: Counter = Counter()
@@ -100,10 +114,22 @@ class WifiFixStage(Stage):
         self.last_sigma_m = math.nan
         self.radio_map: RadioMap | None = radio_map
         self.positioner: Positioner | None = None
+        #: the map being fitted (``begin_fit`` .. ``end_fit``/``fit_failed``) and its job number
+        self.fitting: RadioMap | None = None
+        self._fit_job = 0
+        self.fit_error = ""
+        #: scans received while no positioner could answer them: (scan, node-clock receive ns)
+        self.pending: deque[tuple[WifiScan, int]] = deque()
+        self.pending_max = max(1, int(pending_max))
+        self.located_late = 0           # queued scans located once the fit ended
         if self.radio_map is None and params.radiomap:
             self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
         if self.radio_map is not None:
-            self.positioner = params.make_positioner().fit(self.radio_map)
+            if fit_now:
+                self.positioner = self.fit_positioner(self.radio_map)
+            else:
+                rm, self.radio_map = self.radio_map, None
+                self.begin_fit(rm)
         self._last_scan_ns: int | None = None     # stamp of the last scan accepted (older ones: stamp_backwards)
         self.on("wifi/scan", self._on_scan)
 
@@ -114,18 +140,88 @@ class WifiFixStage(Stage):
         return [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
 
     def set_radio_map(self, rm: RadioMap) -> None:
-        """Replace the map (e.g. grown by the back-end) and refit the positioner."""
-        self.radio_map = rm
-        self.positioner = self.params.make_positioner().fit(rm)
+        """Replace the map (e.g. grown by the back-end) and refit the positioner, here and now."""
+        job = self.begin_fit(rm)
+        self.end_fit(job, self.fit_positioner(rm))
+
+    # -- fitting in steps (the live node runs fit_positioner in a worker thread) ----------------
+    def fit_positioner(self, rm: RadioMap) -> Positioner:
+        """A new positioner fitted to ``rm``. Touches no state of the stage, so it may run in
+        another thread while the stage handles scans."""
+        return self.params.make_positioner().fit(rm)
+
+    def begin_fit(self, rm: RadioMap) -> int:
+        """``rm`` is being fitted: until :meth:`end_fit`, scans are located with the current
+        positioner, or queued when there is none. Returns the job number ``end_fit`` and
+        :meth:`fit_failed` take (a later ``begin_fit`` supersedes an unfinished one)."""
+        self._fit_job += 1
+        self.fitting = rm
+        return self._fit_job
+
+    def end_fit(self, job: int, positioner: Positioner) -> list[Output]:
+        """Install the positioner fitted for job ``job`` (ignored if a later job superseded it) and
+        locate the queued scans in arrival order; returns their fixes (counted as published)."""
+        if job != self._fit_job or self.fitting is None:
+            return []
+        self.radio_map, self.positioner, self.fitting, self.fit_error = self.fitting, positioner, None, ""
+        out: list[Output] = []
+        while self.pending:
+            scan, recv_ns = self.pending.popleft()
+            self.diag.now_ns = recv_ns
+            self.located_late += 1
+            out += self._guarded("queued scan", lambda scan=scan: self._locate(scan))
+        return out
+
+    def fit_failed(self, job: int, err: BaseException) -> None:
+        """The fit of job ``job`` raised ``err``: a standing error (ERROR in diagnostics) with the
+        cause; the previous positioner, if any, keeps answering, else the queued scans are dropped
+        and counted (``fit_failed``)."""
+        if job != self._fit_job or self.fitting is None:
+            return
+        n_scans = self.fitting.n_scans
+        self.fitting = None
+        self.fit_error = f"fitting the radio map ({n_scans} scans) failed: {type(err).__name__}: {err}"
+        if self.positioner is not None:
+            self.fit_error += f"; the previous map ({self.radio_map.n_scans if self.radio_map else 0} scans) is still used"
+        while self.pending:
+            scan, recv_ns = self.pending.popleft()
+            self.diag.now_ns = recv_ns
+            self._reject("fit_failed", f"wifi/scan stamped {scan.stamp_ns} ns: {self.fit_error}")
+
+    def waiting_for_fit(self) -> bool:
+        """True while scans are held for a fit in progress (no earlier positioner answers them)."""
+        return self.fitting is not None and self.positioner is None
+
+    def finish(self) -> list[Output]:
+        # input ends while the map is still being fitted: the queued scans were never located
+        while self.pending:
+            scan, recv_ns = self.pending.popleft()
+            self.diag.now_ns = recv_ns
+            self._reject("fit_unfinished", f"wifi/scan stamped {scan.stamp_ns} ns: input ended before the "
+                                           f"radio map was fitted; not located")
+        return []
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
         scan = scan_from_msg(msg)          # InvalidMessageError -> counted by reason
-        if self.positioner is None:
+        if self.positioner is None and self.fitting is None:
+            if self.fit_error:
+                raise InvalidMessageError("fit_failed", self.fit_error)
             raise InvalidMessageError("no_map", "no radio map configured (parameter radiomap is '')")
         if self._last_scan_ns is not None and scan.stamp_ns < self._last_scan_ns:
             raise InvalidMessageError("stamp_backwards", f"scan stamp {scan.stamp_ns} ns is before the previous "
                                                          f"scan's {self._last_scan_ns} ns")
         self._last_scan_ns = scan.stamp_ns
+        if self.positioner is None:        # the map is being fitted: located when it is ready
+            if len(self.pending) >= self.pending_max:
+                old, _ = self.pending.popleft()
+                self._reject("fit_queue_full", f"wifi/scan stamped {old.stamp_ns} ns dropped: more than "
+                                               f"{self.pending_max} scans arrived while the radio map was fitted")
+            self.pending.append((scan, recv_ns))
+            return []
+        return self._locate(scan)
+
+    def _locate(self, scan: WifiScan) -> list[Output]:
+        assert self.positioner is not None
         fix = self.positioner.locate(scan)
         if not fix.ok:
             self.declined[fix.reason or "declined"] += 1
@@ -152,11 +248,19 @@ class WifiFixStage(Stage):
         if self.last_floor:
             out["last_floor"] = self.last_floor
             out.update({f"floor.{k}": str(v) for k, v in sorted(self.floors.items())})
-        if self.radio_map is None:
+        if self.fit_error:
+            out["error"] = self.fit_error
+        elif self.radio_map is None and self.fitting is None:
             out["error"] = "no radio map configured (parameter radiomap is ''): scans are dropped"
-        else:
+        if self.radio_map is not None:
             out["map.scans"] = str(self.radio_map.n_scans)
             out["map.aps"] = str(self.radio_map.n_aps)
+        if self.fitting is not None:
+            out["fit.state"] = "fitting"
+            out["fit.map_scans"] = str(self.fitting.n_scans)
+            out["fit.queued"] = str(len(self.pending))
+        elif self.located_late:
+            out["fit.located_late"] = str(self.located_late)
         if self.fixes:
             out["last_fix_sigma_m"] = f"{self.last_sigma_m:.2f}"
         return out

@@ -24,7 +24,9 @@ Two weights multiply each reading's value:
   say; with ``age_views`` 'both' the position is the mean of two k-NN estimates, one with the age
   weights and one with ages ignored (an equal-weight average over the two hypotheses). On ms_site2
   the age weights alone win on some walks and lose on others (B1: the walks of the second survey
-  day lose 2–5 m with them); the average is better than either on three floors of four.
+  day lose 2–5 m with them — they were walked slower, 0.95 against 1.22 m/s, so a cached reading was
+  measured nearer to where the phone is; over B1's test walks the walking speed predicts the loss,
+  though not on the other floors); the average is better than either on three floors of four.
 - **AP informativeness** — an AP heard by nearly every map scan (a mall-wide network) says little
   about where one is: ``w_a = sqrt(ln(1 + M / n_a))`` (n_a = map scans hearing AP a; the inverse
   document frequency of text retrieval, Sparck Jones 1972). APs unknown to the map are ignored.
