@@ -41,6 +41,9 @@ from indoor_loc.wifi.types import RadioMap, WifiScan
 
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
 TUNED_ON = ("B1", "F7")
+#: the extrapolating radio map (indoor_loc.wifi.radio_field): the path-loss prior weighs as much as one survey
+#: scan 10 m away (0.05 at the 4 m kernel), and the grid reaches that far from the survey walks
+FIELD = {"field_weight": 0.05, "smooth_reach_m": 10.0}
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [
@@ -51,6 +54,7 @@ METHODS: list[tuple[str, str, dict, float]] = [
     ("powed k-NN (ages, AP weights, offset)", "powed", {}, 0.0),
     ("powed, map scans only (no grid)", "powed", {"smooth_m": 0.0}, 0.0),
     ("powed, interpolated grid only", "powed", {"smooth_views": "grid"}, 0.0),
+    ("powed + path-loss field, reach 10 m", "powed", dict(FIELD), 0.0),
     ("powed, ages weighted only", "powed", {"age_views": "weighted"}, 0.0),
     ("powed, ages ignored", "powed", {"age_tau_ms": 0.0}, 0.0),
     ("powed, no AP weights", "powed", {"ap_weighting": "none"}, 0.0),
