@@ -1082,8 +1082,9 @@ class Stepometer:
             peaks, _ = find_peaks(y, distance=dist, prominence=p.bridge_prominence * float(y.std()))
             peaks = peaks + a
         out = []
-        for lo, hi, fq, *_ in st.held:
-            n = int(np.count_nonzero((peaks >= lo) & (peaks < hi)))
+        # peaks in each hop (find_peaks gives them in increasing order)
+        n_in = (np.searchsorted(peaks, [h[1] for h in st.held]) - np.searchsorted(peaks, [h[0] for h in st.held])).tolist()
+        for (lo, hi, fq, *_), n in zip(st.held, n_in):
             dur = (hi - lo) / st.grid_hz
             out.append(self._emit(lo, hi, fq, n / dur, True, c, (1.0 - c) * max(n, 1.0)))
         st.held = []
