@@ -109,3 +109,35 @@ def test_clean_stamps_slice_only_when_strictly_increasing():
         keep = order[np.r_[True, np.diff(stamps[order]) != 0]]      # first of each repeated stamp
         assert stamps[idx].tolist() == stamps[keep].tolist()
         assert isinstance(idx, slice) == bool(np.all(np.diff(stamps) > 0)) == (not odd)
+
+
+SURVEY = {
+    "clean": _scan(0, 3, GOOD) + _scan(0, 5, GOOD[1:]),
+    "repeated bssid": _scan(0, 3, GOOD + GOOD[:1]) + _scan(0, 5, GOOD),
+    "bad bssid before an unknown location": _scan(0, 3, [("aa:bb:cc:dd:ee", "-50.0")]) + _scan(0, 9, GOOD),
+    "bad unknown location before a bad bssid": _scan(0, 9, GOOD) + _scan(0, 3, [("aa:bb:cc:dd:ee", "-50.0")]),
+}
+
+
+@pytest.mark.parametrize("case", list(SURVEY))
+def test_survey_batch_scans_equal_block_at_a_time(tmp_path, monkeypatch, case):
+    (tmp_path / P.MAP_DIR).mkdir()
+    (tmp_path / P.MAP_DIR / "positions.map").write_text("3 1.5 2.5\n5 3.5 4.5\n")
+    (tmp_path / P.MAP_DIR / "wifi.map").write_text(SURVEY[case])
+    odd_batch: list[P.Oddity] = []
+    odd_single: list[P.Oddity] = []
+    batch = _outcome(lambda: P.read_survey_map(tmp_path, odd_batch))
+    monkeypatch.setattr(P, "_scans_from_blocks", lambda *a, **k: None)
+    single = _outcome(lambda: P.read_survey_map(tmp_path, odd_single))
+    assert odd_batch == odd_single
+    if isinstance(single, str):
+        assert batch == single and case.startswith("bad")
+        first = "bad BSSID" if case.startswith("bad bssid") else "location 9 has no entry"
+        assert first in batch
+        return
+    assert not isinstance(batch, str), batch
+    for f in ("positions", "rssi_dbm", "freq_mhz", "scan_ids", "stamps_ns"):
+        a, b = getattr(batch, f), getattr(single, f)
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
+    assert (batch.bssids, batch.ssids, batch.source) == (single.bssids, single.ssids, single.source)
+    assert ("duplicate_bssid" in [o.kind for o in odd_batch]) == (case == "repeated bssid")

@@ -250,10 +250,10 @@ def _parse_table_fast(data: bytes, ncols: int) -> tuple[np.ndarray, np.ndarray] 
         return None
     if len(dot) == before.size:                          # one per value field, in order?
         at = dot.reshape(before.shape)
-        if not ((at > before).all() and (at < after).all()):
-            return None
         k = after - at                                   # value = mantissa * 10**-k …
         k -= 1                                           # … k: the digits after the point
+        if k.min() < 0 or not (at > before).all():       # each point inside its field
+            return None
         dot_of = np.arange(before.size)                  # value field -> index of its point
     else:
         t_dot = np.searchsorted(sep, dot)
@@ -392,12 +392,11 @@ def _scan_from_block(stamp_ns: int, aps: list[list[str]], frame_id: str, source:
 
 
 def _scans_from_blocks(blocks: list[tuple[list[str], list[list[str]]]], stamps: list[int], frame_id: str,
-                       source: str, where_prefix: str, oddities: list[Oddity], walk: int) -> list[WifiScan] | None:
+                       source: str, wheres: list[str], oddities: list[Oddity], walk: int) -> list[WifiScan] | None:
     """:func:`_scan_from_block` of every block, the BSSIDs checked by one regular expression over all
     of them and the numbers converted in one pass; a block with a repeated BSSID goes through
-    :func:`_scan_from_block` (``where_prefix`` + its second header field names it). ``None`` if a
-    BSSID or a number is malformed: the caller then takes the blocks one at a time, which names the
-    first fault."""
+    :func:`_scan_from_block` (its entry of ``wheres`` names it). ``None`` if a BSSID or a number is
+    malformed: the caller then takes the blocks one at a time, which names the first fault."""
     rows = [cols for _, aps in blocks for cols in aps]
     bssid = [cols[0].strip().lower().replace("-", ":") for cols in rows]
     if rows and not _BSSIDS_RE.fullmatch("\n".join(bssid) + "\n"):
@@ -408,11 +407,11 @@ def _scans_from_blocks(blocks: list[tuple[list[str], list[list[str]]]], stamps: 
     except ValueError:
         return None
     scans, s = [], 0
-    for (head, aps), stamp in zip(blocks, stamps):
+    for (_, aps), stamp, where in zip(blocks, stamps, wheres):
         e = s + len(aps)
         ids = bssid[s:e]
         if len(set(ids)) < len(ids):
-            scans.append(_scan_from_block(stamp, aps, frame_id, source, where_prefix + head[1], oddities, walk))
+            scans.append(_scan_from_block(stamp, aps, frame_id, source, where, oddities, walk))
         else:
             scans.append(WifiScan(stamp_ns=stamp, bssid=tuple(ids), rssi_dbm=np.array(rssi[s:e]),
                                   freq_mhz=np.array(freq[s:e]), ssid=tuple(cols[1] for cols in aps),
@@ -479,14 +478,24 @@ def read_survey_map(root: Path, oddities: list[Oddity] | None = None) -> RadioMa
     pos_of = {int(i): p for i, p in zip(ids, image_to_enu(xy))}
     blocks = read_wifi_blocks(mdir / "wifi.map")
     odd: list[Oddity] = [] if oddities is None else oddities
-    scans, positions, scan_ids = [], [], []
-    for head, aps in blocks:
-        loc = int(head[1])
-        if loc not in pos_of:
-            raise DatasetError(f"{mdir}/wifi.map: scan of location {loc} has no entry in positions.map")
-        scans.append(_scan_from_block(0, aps, "map", "survey", f"{mdir.name}/wifi.map loc {loc}", odd, 0))
-        positions.append(pos_of[loc])
-        scan_ids.append(loc)
+    prefix = f"{mdir.name}/wifi.map loc "
+    try:
+        locs = [int(head[1]) for head, _ in blocks]
+    except ValueError:
+        locs = None
+    batch = None if locs is None or not all(loc in pos_of for loc in locs) else \
+        _scans_from_blocks(blocks, [0] * len(blocks), "map", "survey", [f"{prefix}{loc}" for loc in locs], odd, 0)
+    if batch is None:       # a malformed block or an unknown location: one at a time, the first fault raised
+        scans, scan_ids = [], []
+        for head, aps in blocks:
+            loc = int(head[1])
+            if loc not in pos_of:
+                raise DatasetError(f"{mdir}/wifi.map: scan of location {loc} has no entry in positions.map")
+            scans.append(_scan_from_block(0, aps, "map", "survey", f"{prefix}{loc}", odd, 0))
+            scan_ids.append(loc)
+    else:
+        scans, scan_ids = batch, locs or []
+    positions = [pos_of[loc] for loc in scan_ids]
     missing = sorted(set(pos_of) - set(scan_ids))
     if missing:
         odd.append(Oddity(0, "survey_position_without_scan", f"positions.map ids without a scan: {missing}",
@@ -617,7 +626,10 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
     _report_dropouts("orient", ori_t, walk, odd)
 
     quat = ori[:, :4]
-    qn = np.sqrt(np.add.reduce(quat * quat, axis=1))     # np.linalg.norm(quat, axis=1), one copy fewer
+    qn = quat[:, 0] * quat[:, 0]                         # |q|, summed x, y, z, w in turn (as numpy's
+    for j in (1, 2, 3):                                  # norm(axis=1) does) without an (M, 4) temporary
+        qn += quat[:, j] * quat[:, j]
+    np.sqrt(qn, out=qn)
     if np.any(np.abs(qn - 1) > 1e-3):
         bad = int(np.sum(np.abs(qn - 1) > 1e-3))
         odd.append(Oddity(walk, "quat_norm", f"orient: {bad} quaternions with |q| off 1 by > 1e-3; normalised", bad))
@@ -639,8 +651,8 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
         heads = [(int(h[0]), int(h[1])) for h, _ in blocks]
     except ValueError:
         heads = None
-    batch = None if heads is None else _scans_from_blocks(blocks, [t for t, _ in heads], frame, "putmc", prefix,
-                                                          odd, walk)
+    batch = None if heads is None else _scans_from_blocks(blocks, [t for t, _ in heads], frame, "putmc",
+                                                          [prefix + h[1] for h, _ in blocks], odd, walk)
     if batch is None:       # a malformed block: one at a time, so that the first fault is the one raised
         scans, scan_idx = [], []
         for head, aps in blocks:
