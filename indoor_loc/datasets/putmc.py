@@ -63,6 +63,7 @@ TRAJ_DIR = "PUTMC_Floor3_Xperia_trajs"
 MAP_DIR = "PUTMC_Floor3_Xperia_map"
 _FOLDER_RE = re.compile(r"^xperia_traj(\d+)(_JW)?$")
 _BSSID_RE = re.compile(r"[0-9a-f]{2}(:[0-9a-f]{2}){5}")
+_BSSIDS_RE = re.compile(r"(?:[0-9a-f]{2}(?::[0-9a-f]{2}){5}\n)*")     #: ``_BSSID_RE`` per line
 
 
 class Oddity(NamedTuple):
@@ -249,10 +250,10 @@ def _parse_table_fast(data: bytes, ncols: int) -> tuple[np.ndarray, np.ndarray] 
         return None
     if len(dot) == before.size:                          # one per value field, in order?
         at = dot.reshape(before.shape)
-        if not ((at > before).all() and (at < after).all()):
-            return None
         k = after - at                                   # value = mantissa * 10**-k …
         k -= 1                                           # … k: the digits after the point
+        if k.min() < 0 or not (at > before).all():       # each point inside its field
+            return None
         dot_of = np.arange(before.size)                  # value field -> index of its point
     else:
         t_dot = np.searchsorted(sep, dot)
@@ -390,6 +391,35 @@ def _scan_from_block(stamp_ns: int, aps: list[list[str]], frame_id: str, source:
                     ssid=tuple(ssid), frame_id=frame_id, source=source)
 
 
+def _scans_from_blocks(blocks: list[tuple[list[str], list[list[str]]]], stamps: list[int], frame_id: str,
+                       source: str, wheres: list[str], oddities: list[Oddity], walk: int) -> list[WifiScan] | None:
+    """:func:`_scan_from_block` of every block, the BSSIDs checked by one regular expression over all
+    of them and the numbers converted in one pass; a block with a repeated BSSID goes through
+    :func:`_scan_from_block` (its entry of ``wheres`` names it). ``None`` if a BSSID or a number is
+    malformed: the caller then takes the blocks one at a time, which names the first fault."""
+    rows = [cols for _, aps in blocks for cols in aps]
+    bssid = [cols[0].strip().lower().replace("-", ":") for cols in rows]
+    if rows and not _BSSIDS_RE.fullmatch("\n".join(bssid) + "\n"):
+        return None
+    try:
+        rssi = list(map(float, [cols[2] for cols in rows]))
+        freq = list(map(float, [cols[3] for cols in rows]))
+    except ValueError:
+        return None
+    scans, s = [], 0
+    for (_, aps), stamp, where in zip(blocks, stamps, wheres):
+        e = s + len(aps)
+        ids = bssid[s:e]
+        if len(set(ids)) < len(ids):
+            scans.append(_scan_from_block(stamp, aps, frame_id, source, where, oddities, walk))
+        else:
+            scans.append(WifiScan(stamp_ns=stamp, bssid=tuple(ids), rssi_dbm=np.array(rssi[s:e]),
+                                  freq_mhz=np.array(freq[s:e]), ssid=tuple(cols[1] for cols in aps),
+                                  frame_id=frame_id, source=source))
+        s = e
+    return scans
+
+
 # ---------------------------------------------------------------------------------------------
 # ground truth, survey map
 # ---------------------------------------------------------------------------------------------
@@ -448,14 +478,24 @@ def read_survey_map(root: Path, oddities: list[Oddity] | None = None) -> RadioMa
     pos_of = {int(i): p for i, p in zip(ids, image_to_enu(xy))}
     blocks = read_wifi_blocks(mdir / "wifi.map")
     odd: list[Oddity] = [] if oddities is None else oddities
-    scans, positions, scan_ids = [], [], []
-    for head, aps in blocks:
-        loc = int(head[1])
-        if loc not in pos_of:
-            raise DatasetError(f"{mdir}/wifi.map: scan of location {loc} has no entry in positions.map")
-        scans.append(_scan_from_block(0, aps, "map", "survey", f"{mdir.name}/wifi.map loc {loc}", odd, 0))
-        positions.append(pos_of[loc])
-        scan_ids.append(loc)
+    prefix = f"{mdir.name}/wifi.map loc "
+    try:
+        locs = [int(head[1]) for head, _ in blocks]
+    except ValueError:
+        locs = None
+    batch = None if locs is None or not all(loc in pos_of for loc in locs) else \
+        _scans_from_blocks(blocks, [0] * len(blocks), "map", "survey", [f"{prefix}{loc}" for loc in locs], odd, 0)
+    if batch is None:       # a malformed block or an unknown location: one at a time, the first fault raised
+        scans, scan_ids = [], []
+        for head, aps in blocks:
+            loc = int(head[1])
+            if loc not in pos_of:
+                raise DatasetError(f"{mdir}/wifi.map: scan of location {loc} has no entry in positions.map")
+            scans.append(_scan_from_block(0, aps, "map", "survey", f"{prefix}{loc}", odd, 0))
+            scan_ids.append(loc)
+    else:
+        scans, scan_ids = batch, locs or []
+    positions = [pos_of[loc] for loc in scan_ids]
     missing = sorted(set(pos_of) - set(scan_ids))
     if missing:
         odd.append(Oddity(0, "survey_position_without_scan", f"positions.map ids without a scan: {missing}",
@@ -508,11 +548,14 @@ def start_gap(stamps: np.ndarray, *, gap_s: float = START_GAP_S) -> int:
     return i + 1 if d[i] > gap_s * 1e9 and i < len(stamps) // 2 else 0
 
 
-def _clean_stamps(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -> np.ndarray:
+def _clean_stamps(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -> np.ndarray | slice:
     """Indices that make ``stamps`` strictly increasing: stable sort if out of order, first of each
-    duplicate kept (both reported)."""
+    duplicate kept (both reported); ``slice(None)`` (no copy) when they already increase."""
+    step = np.diff(stamps)
+    if (step > 0).all():
+        return slice(None)
     idx = np.arange(len(stamps))
-    back = int(np.sum(np.diff(stamps) < 0))
+    back = int(np.sum(step < 0))
     if back:
         odd.append(Oddity(walk, "non_monotonic", f"{name}: {back} stamps go backwards; sorted (stable)", back))
         idx = np.argsort(stamps, kind="stable")
@@ -522,6 +565,13 @@ def _clean_stamps(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -
                           int(dup.sum())))
         idx = idx[~dup]
     return idx
+
+
+def _kept_from(stamps: np.ndarray, cut: int, n_before: int) -> np.ndarray | slice:
+    """Which samples have ``stamps >= cut`` (``n_before`` of them do not): a slice (no copy) when
+    those are the last ones, as in a recording sorted in time, else a mask."""
+    keep = stamps >= cut
+    return slice(n_before, None) if keep[n_before:].all() else keep
 
 
 def _report_dropouts(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -> None:
@@ -563,7 +613,7 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
         odd.append(Oddity(walk, "stale_samples", f"{n_a} acc, {n_o} orient, {n_w} wifi samples before the "
                                                  f"start gap: {what}", n_a + n_o + n_w))
         if not keep_stale:
-            ka, ko = acc_t >= cut, ori_t >= cut
+            ka, ko = _kept_from(acc_t, cut, n_a), _kept_from(ori_t, cut, n_o)
             acc_t, acc, ori_t, ori = acc_t[ka], acc[ka], ori_t[ko], ori[ko]
             blocks = [b for b in blocks if int(b[0][0]) >= cut]
             dropped = {"acc": n_a, "orient": n_o, "wifi": n_w}
@@ -576,7 +626,10 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
     _report_dropouts("orient", ori_t, walk, odd)
 
     quat = ori[:, :4]
-    qn = np.linalg.norm(quat, axis=1)
+    qn = quat[:, 0] * quat[:, 0]                         # |q|, summed x, y, z, w in turn (as numpy's
+    for j in (1, 2, 3):                                  # norm(axis=1) does) without an (M, 4) temporary
+        qn += quat[:, j] * quat[:, j]
+    np.sqrt(qn, out=qn)
     if np.any(np.abs(qn - 1) > 1e-3):
         bad = int(np.sum(np.abs(qn - 1) > 1e-3))
         odd.append(Oddity(walk, "quat_norm", f"orient: {bad} quaternions with |q| off 1 by > 1e-3; normalised", bad))
@@ -593,11 +646,20 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
 
     # WiFi scans and their true positions
     frame = f"{name}/wifi_link"
-    scans, scan_idx = [], []
-    for head, aps in blocks:
-        where = f"{folder.name}/wifi.map scan {head[1]}"
-        scans.append(_scan_from_block(int(head[0]), aps, frame, "putmc", where, odd, walk))
-        scan_idx.append(int(head[1]))
+    prefix = f"{folder.name}/wifi.map scan "
+    try:
+        heads = [(int(h[0]), int(h[1])) for h, _ in blocks]
+    except ValueError:
+        heads = None
+    batch = None if heads is None else _scans_from_blocks(blocks, [t for t, _ in heads], frame, "putmc",
+                                                          [prefix + h[1] for h, _ in blocks], odd, walk)
+    if batch is None:       # a malformed block: one at a time, so that the first fault is the one raised
+        scans, scan_idx = [], []
+        for head, aps in blocks:
+            scans.append(_scan_from_block(int(head[0]), aps, frame, "putmc", prefix + head[1], odd, walk))
+            scan_idx.append(int(head[1]))
+    else:
+        scans, scan_idx = batch, [i for _, i in heads or ()]
     st = np.array([s.stamp_ns for s in scans], dtype=np.int64)
     if np.any(np.diff(st) <= 0):
         n = int(np.sum(np.diff(st) <= 0))

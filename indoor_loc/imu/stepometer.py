@@ -248,7 +248,7 @@ class _Design:
                        weight, harmonic_map, n_m, m_lo, m_hi)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=64)
 def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
     sos = butter(order, cutoff_hz, fs=fs, output="sos")
     sos.setflags(write=False)
@@ -276,18 +276,22 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
     """Squared :func:`amplitude_spectrum` of already mean-removed windows ``x`` (N, n_w), bins
     ``[0, n_bins)`` (default ``design.n_bins``, all the analysis reads), from the real and imaginary
     parts (no square root): (N, n_bins). The tapered windows are written into a zeroed block of
-    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call."""
+    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call, into buffers
+    allocated once per call."""
     nb = design.n_bins if n_bins is None else n_bins
     n = len(x)
     power = np.empty((n, nb))
-    buf = np.zeros((min(_FFT_BLOCK, n), design.n_fft))
+    k = min(_FFT_BLOCK, n)
+    buf = np.zeros((k, design.n_fft))
+    spec = np.empty((k, design.n_fft // 2 + 1), dtype=complex)
+    im2 = np.empty((k, nb))
     for i in range(0, n, _FFT_BLOCK):
         m = min(_FFT_BLOCK, n - i)
         np.multiply(x[i: i + m], design.taper, out=buf[:m, : design.n_w])
-        spec = np.fft.rfft(buf[:m], axis=1)[:, :nb]
+        np.fft.rfft(buf[:m], axis=1, out=spec[:m])
         blk = power[i: i + m]
-        np.square(spec.real, out=blk)
-        blk += np.square(spec.imag)
+        np.square(spec[:m, :nb].real, out=blk)
+        blk += np.square(spec[:m, :nb].imag, out=im2[:m])
     power *= design.scale ** 2
     return power
 
@@ -304,14 +308,21 @@ def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi:
     n = len(x)
     full = np.empty((n, hi - lag_lo))
     acf0 = np.empty((n, 1))
-    buf = np.zeros((min(_FFT_BLOCK, n), design.n_acf))
+    k = min(_FFT_BLOCK, n)
+    buf = np.zeros((k, design.n_acf))
+    spec = np.empty((k, design.n_acf // 2 + 1), dtype=complex)
+    psd = np.empty((k, design.n_acf // 2 + 1))
+    im2 = np.empty_like(psd)
+    blk = np.empty((k, design.n_acf))
     for i in range(0, n, _FFT_BLOCK):
         m = min(_FFT_BLOCK, n - i)
         buf[:m, :n_w] = x[i: i + m]
-        spec = np.fft.rfft(buf[:m], axis=1)
-        blk = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
-        full[i: i + m] = blk[:, lag_lo:hi]
-        acf0[i: i + m] = blk[:, :1]
+        np.fft.rfft(buf[:m], axis=1, out=spec[:m])
+        np.square(spec[:m].real, out=psd[:m])
+        psd[:m] += np.square(spec[:m].imag, out=im2[:m])
+        np.fft.irfft(psd[:m], design.n_acf, axis=1, out=blk[:m])
+        full[i: i + m] = blk[:m, lag_lo:hi]
+        acf0[i: i + m] = blk[:m, :1]
     acf = full / (n_w - np.arange(lag_lo, hi))
     acf0 /= n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
@@ -323,12 +334,22 @@ def harmonic_score(power: np.ndarray, design: _Design) -> np.ndarray:
     return np.ascontiguousarray((design.harmonic_map @ np.ascontiguousarray(power[:, : design.n_bins].T)).T)
 
 
+#: Windows analysed together: a block's arrays stay small enough to be reused, not mapped afresh.
+_ANALYSIS_BLOCK = 64
+
+
 def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
-    """Step frequency and walking decision for each row of ``windows`` (N, n_w) of |a| in m/s²."""
+    """Step frequency and walking decision for each row of ``windows`` (N, n_w) of |a| in m/s²
+    (row by row: a block of rows gives each the estimate it gets alone)."""
     windows = np.atleast_2d(np.asarray(windows, dtype=float))
+    out: list[WindowEstimate] = []
+    for i in range(0, len(windows), _ANALYSIS_BLOCK):
+        out += _analyse_block(windows[i: i + _ANALYSIS_BLOCK], design, p)
+    return out
+
+
+def _analyse_block(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
     n = len(windows)
-    if n == 0:
-        return []
     x = windows - windows.mean(axis=1, keepdims=True)
     power = power_spectrum(x, design)
     score = harmonic_score(power, design)
@@ -375,8 +396,7 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     std = x.std(axis=1)
     mstd = windows[:, design.m_lo: design.m_hi].std(axis=1)
     walking = in_band & (ac >= p.min_autocorr) & (std >= p.min_std_m_s2) & (mstd >= p.min_motion_std_m_s2)
-    return [WindowEstimate(float(f[i]), bool(walking[i]), float(ac[i]), float(std[i]), float(mstd[i]))
-            for i in range(n)]
+    return list(map(WindowEstimate, f.tolist(), walking.tolist(), ac.tolist(), std.tolist(), mstd.tolist()))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1082,8 +1102,9 @@ class Stepometer:
             peaks, _ = find_peaks(y, distance=dist, prominence=p.bridge_prominence * float(y.std()))
             peaks = peaks + a
         out = []
-        for lo, hi, fq, *_ in st.held:
-            n = int(np.count_nonzero((peaks >= lo) & (peaks < hi)))
+        # peaks in each hop (find_peaks gives them in increasing order)
+        n_in = (np.searchsorted(peaks, [h[1] for h in st.held]) - np.searchsorted(peaks, [h[0] for h in st.held])).tolist()
+        for (lo, hi, fq, *_), n in zip(st.held, n_in):
             dur = (hi - lo) / st.grid_hz
             out.append(self._emit(lo, hi, fq, n / dur, True, c, (1.0 - c) * max(n, 1.0)))
         st.held = []
