@@ -248,7 +248,7 @@ class _Design:
                        weight, harmonic_map, n_m, m_lo, m_hi)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=64)
 def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
     sos = butter(order, cutoff_hz, fs=fs, output="sos")
     sos.setflags(write=False)
@@ -396,8 +396,7 @@ def _analyse_block(windows: np.ndarray, design: _Design, p: StepometerParams) ->
     std = x.std(axis=1)
     mstd = windows[:, design.m_lo: design.m_hi].std(axis=1)
     walking = in_band & (ac >= p.min_autocorr) & (std >= p.min_std_m_s2) & (mstd >= p.min_motion_std_m_s2)
-    return [WindowEstimate(float(f[i]), bool(walking[i]), float(ac[i]), float(std[i]), float(mstd[i]))
-            for i in range(n)]
+    return list(map(WindowEstimate, f.tolist(), walking.tolist(), ac.tolist(), std.tolist(), mstd.tolist()))
 
 
 # ----------------------------------------------------------------------------------------------
