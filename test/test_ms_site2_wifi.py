@@ -61,7 +61,9 @@ def test_by_day_groups_test_scans_by_utc_date_on_the_scans_both_located():
     day_ns = 86400 * 10**9
     t0 = 18220 * day_ns                                                       # 2019-11-20 00:00 UTC
     stamps = [t0 + 3600 * 10**9, t0 + 7200 * 10**9, t0 + day_ns + 60 * 10**9, t0 + day_ns + 120 * 10**9]
-    scans = [WifiScan(t, ("a",), np.array([-60.0]), np.array([2412.0])) for t in stamps]
+    scans = [WifiScan(t, ("a",), np.array([-60.0]), np.array([2412.0]), source=w)
+             for t, w in zip(stamps, ["w1", "w1", "w2", "w2"])]
+    truth = np.array([[0.0, 0.0], [3600.0, 0.0], [0.0, 0.0], [0.0, 60.0]])     # 1 m/s on both dates
     rm = add_fingerprints(empty_radiomap(), np.zeros((3, 2)),
                           [WifiScan(t, ("a",), np.array([-60.0]), np.array([2412.0]))
                            for t in (t0, t0 + day_ns, t0 + day_ns + 1)], "s")
@@ -69,9 +71,10 @@ def test_by_day_groups_test_scans_by_utc_date_on_the_scans_both_located():
     e = np.array([2.0, 4.0, 6.0, np.nan])
     ref_ok = np.array([True, True, True, True])
     ref_e = np.array([4.0, 4.0, 3.0, 9.0])
-    days = by_day(scans, rm, (ok, e, e, ref_ok, ref_e))
+    days = by_day(scans, truth, rm, (ok, e, e, ref_ok, ref_e))
     assert [d["date"] for d in days] == ["2019-11-20", "2019-11-21"]
     assert [d["map_scans"] for d in days] == [1, 2]
     assert [d["scans"] for d in days] == [2, 1]                               # the 4th: ours gave no fix
     assert days[0]["mean"] == 3.0 and days[0]["ref_mean"] == 4.0 and days[0]["ratio"] == 0.75
     assert days[1]["ratio"] == 2.0
+    assert [d["speed_m_s"] for d in days] == [1.0, 1.0]                       # not across the two walks

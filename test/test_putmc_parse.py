@@ -61,6 +61,12 @@ EDGE_CASES = [
     "1 1E22 1E-22 1.5E21\n", "1 1E23 1E-23 0.0000000000000000000001\n", "1 2E-0000000004 3 4\n",
     "123456789012345678 2 3 4\n", "1234567890123456789 2 3 4\n", "-123456789012345678 2 3 4\n",
     "1 2 3 4 \n", "1 2 3 4\n\n\n", "1 2  3 4\n", "1 2 3 4\n 5 6 7 8\n", "1 2 3\n4\n",
+    # one point per value: the i-th point must lie in the i-th value field
+    "1 2.5 3 4.5\n2 1.2.3 6.5 7.5\n", "1 2.5.5 3 4.5\n", "1.5 2.5 3 4.5\n", "1 2\n3 4\n5 6.5 7.5 8.5\n",
+    "1 .-5 3 4\n", "1 .+5 3 4\n", "1 +.5 3 4\n", "1 -0.0 0.0 -0E3\n", "1 5.E3 .5E-3 -.5E1\n",
+    "1 2 3 -\n5 6 7 8\n", "1 2 3 5E-\n5 6 7 8\n", "1 2 3 4\n5 6 7 -\n",    # a sign ending a line
+    "1 2 3 4\n99999999999999999999 2 3 4\n", "1 2 3 4\n-9999999999999999999 2 3 4\n",   # wide fields
+    "1 2 3 4\n5 0.1234567890123456789012 3 4\n",
 ]
 
 
@@ -123,6 +129,59 @@ def test_decimal_fast_path_accepts_only_what_it_parses_exactly():
     assert taken > 500 and declined > 500, (taken, declined)
 
 
+def _java_float(rng) -> str:
+    """A value written like Java's ``Float.toString``: always one point, an upper-case exponent for
+    very small or large magnitudes."""
+    v = np.float32(rng.normal(0, 10) * 10.0 ** int(rng.integers(-9, 9)))
+    if 1e-3 <= abs(v) < 1e7 or v == 0:
+        return np.format_float_positional(v, unique=True, trim="0")
+    return np.format_float_scientific(v, unique=True, trim="0", exp_digits=1).upper().replace("E+", "E")
+
+
+def _mutate(field: str, rng) -> str:
+    """One field with a point, sign, exponent marker, digit or separator inserted, dropped or moved."""
+    i = int(rng.integers(0, len(field) + 1))
+    what = int(rng.integers(0, 4))
+    if what == 0:
+        return field[:i] + str(rng.choice([".", "-", "E", "E-", "0", "9", " ", ".5"])) + field[i:]
+    if what == 1 and len(field) > 1:
+        return field[:i] + field[i + 1:]
+    if what == 2:
+        return field.replace(".", "", 1)
+    return field.replace(".", "", 1)[:i] + "." + field.replace(".", "", 1)[i:]
+
+
+def test_one_point_per_value_path_matches_the_reference_parser():
+    """Seeded tables of 3, 4 or 6 columns whose values are written like Java floats (one point each,
+    the layout of the published files), some with one or two fields mutated (a point, sign or
+    exponent marker added, dropped or moved; two such changes can keep the number of points equal to
+    the number of values):
+    wherever the fast path returns arrays they are the reference parser's, bit for bit, and every
+    unmutated table is accepted."""
+    rng = np.random.default_rng(1123)
+    taken = declined = 0
+    for _ in range(3000):
+        ncols = int(rng.choice([3, 4, 6]))
+        rows = [[str(int(rng.integers(0, 10 ** 13)))] + [_java_float(rng) for _ in range(ncols - 1)]
+                for _ in range(int(rng.integers(1, 5)))]
+        mutated = rng.random() < 0.7
+        for _ in range(int(rng.integers(1, 3)) if mutated else 0):     # one or two fields
+            r, c = int(rng.integers(0, len(rows))), int(rng.integers(0, ncols))
+            rows[r][c] = _mutate(rows[r][c], rng)
+        text = "".join(" ".join(row) + "\n" for row in rows)
+        fast = P._parse_table_fast(text.encode(), ncols)
+        if fast is None:
+            assert mutated, f"{text!r}: a well-formed table declined"
+            declined += 1
+            continue
+        taken += 1
+        ref = _outcome(lambda t=text, n=ncols: P.parse_table_lines(t, n))
+        assert not isinstance(ref, str), f"{text!r}: fast path accepted what the reference refuses: {ref}"
+        for a, b in zip(fast, ref):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), repr(text)
+    assert taken > 1000 and declined > 500, (taken, declined)
+
+
 def test_all_walks_take_the_fast_path_with_loadtxts_arrays():
     """Every acc.map / orient.map of the 24 walks takes the fast path; on every third walk its
     arrays are numpy loadtxt's, bit for bit."""
@@ -174,3 +233,14 @@ def test_walk_events_hops_are_the_online_stepometers():
     assert ev.t_end.tolist() == [h.t_end_ns for h in hops]
     # the per-sample path resamples with other floating-point operations: step counts agree to ~1e-15
     np.testing.assert_allclose(ev.steps, [h.steps for h in hops], rtol=1e-12, atol=0)
+
+
+def test_find_all_gives_numpys_offsets_on_either_side_of_few():
+    rng = np.random.default_rng(5)
+    data = bytes(rng.choice(np.frombuffer(b"0123456789E .", np.uint8), 5000).tolist())
+    b = np.frombuffer(data, np.uint8)
+    want = np.flatnonzero(b == ord("E"))
+    assert 300 < len(want) < 600
+    for few in (0, 1, len(want) - 1, len(want), 10_000):
+        assert P._find_all(data, b, ord("E"), few).tolist() == want.tolist(), few
+    assert P._find_all(b"1 2\n", np.frombuffer(b"1 2\n", np.uint8), ord("E")).tolist() == []

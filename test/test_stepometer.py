@@ -10,7 +10,7 @@ from conftest import dataset
 from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
 from indoor_loc.measurements import pdr_intervals
-from indoor_loc.imu.stepometer import (CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
+from indoor_loc.imu.stepometer import (ACF_LAG_TOL, CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
                                        amplitude_spectrum, analyse_windows, harmonic_score,
                                        normalised_autocorr, power_spectrum, stepometer_batch, total_steps)
 from indoor_loc.params import params_from_dict
@@ -55,7 +55,8 @@ def test_amplitude_spectrum_matches_plain_fft(rng):
 @pytest.mark.parametrize("rate_hz", [100.0, 222.5])
 def test_blocked_power_spectrum_and_fast_autocorr_equal_the_direct_formulation(rng, rate_hz):
     """The blocked, truncated power spectrum and the autocorrelation at a fast FFT length give what the
-    plain formulation gives (full-length |rfft|², autocorrelation zero-padded to exactly 2 n_w), on a
+    plain formulation gives (full-length |rfft|², autocorrelation zero-padded to exactly 2 n_w; the fast one
+    holds the lags the analysis reads), on a
     number of windows that is not a multiple of the FFT block."""
     d = _Design.make(StepometerParams(), rate_hz)
     n = 37
@@ -72,7 +73,11 @@ def test_blocked_power_spectrum_and_fast_autocorr_equal_the_direct_formulation(r
     np.testing.assert_allclose(power_spectrum(x, d, d.n_fft // 2 + 1), direct, rtol=1e-9, atol=1e-9 * direct.max())
     spec = np.fft.rfft(x, 2 * d.n_w, axis=1)
     acf = np.fft.irfft(np.abs(spec) ** 2, 2 * d.n_w, axis=1)[:, : d.n_w] / (d.n_w - np.arange(d.n_w))
-    np.testing.assert_allclose(normalised_autocorr(x, d), acf / acf[:, :1], rtol=1e-9, atol=1e-9)
+    # the shorter FFT holds every lag the analysis reads: up to the stride lag of the lowest candidate
+    assert d.n_lags >= np.ceil(2.0 * rate_hz / d.cand[0] * (1 + ACF_LAG_TOL)) + 1 and d.n_acf < 2 * d.n_w - 1
+    np.testing.assert_allclose(normalised_autocorr(x, d), (acf / acf[:, :1])[:, : d.n_lags], rtol=1e-9, atol=1e-9)
+    with pytest.raises(InvalidInputError):
+        normalised_autocorr(x, d, 0, d.n_lags + 1)      # those lags would wrap around
     lag = int(round(rate_hz / 1.8))
     plain = np.dot(x[0, :-lag], x[0, lag:]) / (d.n_w - lag) / (np.dot(x[0], x[0]) / d.n_w)
     assert normalised_autocorr(x[:1], d)[0, lag] == pytest.approx(plain, rel=1e-9)

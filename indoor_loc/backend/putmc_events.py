@@ -55,11 +55,10 @@ def walk_events(walk: Walk, *, stepometer: StepometerParams | None = None,
     sm = Stepometer(stepometer)
     hops = sm.update_many(walk.acc_t, walk.acc) + sm.finish()      # the whole walk in one call
     yaw = quat_yaw(to_map_quat(walk.quat_xyzw, map_yaw_rad))
+    cols = list(zip(*hops)) if hops else [(), (), ()]           # the hops' fields, column by column
+    t_start, t_end, steps = np.array(cols[0], np.int64), np.array(cols[1], np.int64), np.array(cols[2], float)
     # linear interpolation of the unwrapped yaw at each hop's end (as HeadingHistory.at in imu_node)
-    t_end = np.array([h.t_end_ns for h in hops], np.int64)
     t0 = int(walk.ori_t[0]) if len(walk.ori_t) else 0
     hy = wrap(np.interp((t_end - t0).astype(float), (walk.ori_t - t0).astype(float), np.unwrap(yaw))) \
         if len(hops) and len(yaw) else np.zeros(len(hops))
-    return WalkEvents(walk.name, np.array([h.t_start_ns for h in hops], np.int64),
-                      t_end, np.array([h.steps for h in hops], float),
-                      hy, list(walk.scans))
+    return WalkEvents(walk.name, t_start, t_end, steps, hy, list(walk.scans))

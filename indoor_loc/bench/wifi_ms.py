@@ -11,7 +11,7 @@ Tables, all methods on the same scans in one run:
 1. per floor (floor known: that floor's map) — each method's located count, mean / median / 75 % /
    95 % / max error over located scans, 50 % / 95 % ellipse consistency, scans/s, and the mean on
    the scans the plain WKNN baseline located, with its ratio to the baseline's mean there; below it,
-   the default's and the baseline's means per UTC date of the test scans;
+   the default's and the baseline's means per UTC date of the test scans, with the test walks' speed;
 2. pooled over floors (the same per-floor runs);
 3. floor detection against the pooled four-floor map: accuracy per floor and the error of the
    positions of that run;
@@ -41,6 +41,9 @@ from indoor_loc.wifi.types import RadioMap, WifiScan
 
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
 TUNED_ON = ("B1", "F7")
+#: the extrapolating radio map (indoor_loc.wifi.radio_field): the path-loss prior weighs as much as one survey
+#: scan 10 m away (0.05 at the 4 m kernel), and the grid reaches that far from the survey walks
+FIELD = {"field_weight": 0.05, "smooth_reach_m": 10.0}
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [
@@ -51,6 +54,7 @@ METHODS: list[tuple[str, str, dict, float]] = [
     ("powed k-NN (ages, AP weights, offset)", "powed", {}, 0.0),
     ("powed, map scans only (no grid)", "powed", {"smooth_m": 0.0}, 0.0),
     ("powed, interpolated grid only", "powed", {"smooth_views": "grid"}, 0.0),
+    ("powed + path-loss field, reach 10 m", "powed", dict(FIELD), 0.0),
     ("powed, ages weighted only", "powed", {"age_views": "weighted"}, 0.0),
     ("powed, ages ignored", "powed", {"age_tau_ms": 0.0}, 0.0),
     ("powed, no AP weights", "powed", {"ap_weighting": "none"}, 0.0),
@@ -199,11 +203,11 @@ def run(args) -> int:
             pooled[label].append((ok, e, m2, ref_ok, ref_e))
             print(row(label, s, rate))
             report["floors"][name]["methods"][label] = s
-        days = by_day(scans, rm, pooled[OURS][-1])
+        days = by_day(scans, truth, rm, pooled[OURS][-1])
         report["floors"][name]["by_day"] = days
-        print("   by the UTC date of the test scans (map scans that day): " + "; ".join(
-            f"{d['date']} ({d['map_scans']}): {d['scans']} scans, baseline {d['ref_mean']:.2f}, ours {d['mean']:.2f} "
-            f"({d['ratio']:.2f})" for d in days))
+        print("   by the UTC date of the test scans (map scans that date; test walks' median speed): " + "; ".join(
+            f"{d['date']} ({d['map_scans']}; {d['speed_m_s']:.2f} m/s): {d['scans']} scans, baseline "
+            f"{d['ref_mean']:.2f}, ours {d['mean']:.2f} ({d['ratio']:.2f})" for d in days))
         print()
     print("2. pooled over the four floors (floor known)")
     print(HEAD)
@@ -251,22 +255,32 @@ def run(args) -> int:
     return 0
 
 
-def by_day(scans: list[WifiScan], rm: RadioMap, errs: tuple) -> list[dict[str, Any]]:
+def by_day(scans: list[WifiScan], truth: np.ndarray, rm: RadioMap, errs: tuple) -> list[dict[str, Any]]:
     """Mean errors of a method and of the baseline per UTC date of the test scans, on the scans both located,
-    with the number of map scans taken that date (a site surveyed on several days: the radio environment and
-    the map's coverage can differ between them). ``errs`` = (ok, e, m2, ref_ok, ref_e) of the method."""
+    with the number of map scans taken that date and the test walks' median walking speed between
+    consecutive scans of a walk (from the true positions: how far back along the walk a cached reading was
+    measured). ``errs`` = (ok, e, m2, ref_ok, ref_e) of the method."""
     ok, e, _, ref_ok, ref_e = errs
-    day = np.asarray([s.stamp_ns for s in scans], np.int64) // (86400 * 10**9)
+    stamps = np.asarray([s.stamp_ns for s in scans], np.int64)
+    day = stamps // (86400 * 10**9)
     map_day = np.asarray(rm.stamps_ns, np.int64) // (86400 * 10**9)
+    src = [s.source for s in scans]
+    step = np.hypot(*np.diff(np.asarray(truth, float), axis=0).T)
+    dt = np.diff(stamps) / 1e9
+    same = np.array([a == b for a, b in zip(src[:-1], src[1:])], bool) & (dt > 0)
+    speed = np.full(len(scans), np.nan)
+    speed[1:][same] = step[same] / dt[same]
     out = []
     for d in np.unique(day):
         both = ok & ref_ok & (day == d)
         if not both.any():
             continue
+        v = speed[day == d]
         date = time.strftime("%Y-%m-%d", time.gmtime(int(d) * 86400))
         out.append({"date": date, "scans": int(both.sum()), "map_scans": int(np.sum(map_day == d)),
                     "mean": float(e[both].mean()), "ref_mean": float(ref_e[both].mean()),
-                    "ratio": float(e[both].mean() / ref_e[both].mean())})
+                    "ratio": float(e[both].mean() / ref_e[both].mean()),
+                    "speed_m_s": float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else float("nan")})
     return out
 
 

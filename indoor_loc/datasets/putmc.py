@@ -63,6 +63,7 @@ TRAJ_DIR = "PUTMC_Floor3_Xperia_trajs"
 MAP_DIR = "PUTMC_Floor3_Xperia_map"
 _FOLDER_RE = re.compile(r"^xperia_traj(\d+)(_JW)?$")
 _BSSID_RE = re.compile(r"[0-9a-f]{2}(:[0-9a-f]{2}){5}")
+_BSSIDS_RE = re.compile(r"(?:[0-9a-f]{2}(?::[0-9a-f]{2}){5}\n)*")     #: ``_BSSID_RE`` per line
 
 
 class Oddity(NamedTuple):
@@ -200,12 +201,14 @@ def read_table(path: Path, ncols: int) -> tuple[np.ndarray, np.ndarray]:
 
 #: bytes the decimal fast path of :func:`read_table` handles; any other byte sends a file to loadtxt
 _FAST_BYTES = b"0123456789.-E \n"
-#: deletes '.' and turns the exponent marker into a separator: "-8.85E-4" -> "-885 -4"
-_FAST_STRIP = bytes.maketrans(b"E", b" ")
+#: with '.' deleted, turns the exponent marker into a separator ("-8.85E-4" -> "-885 -4") and any
+#: byte outside ``_FAST_BYTES`` into 'x', on which ``np.fromstring`` fails
+_FAST_STRIP = bytes(b if b in _FAST_BYTES else ord("x") for b in range(256)).replace(b"E", b" ")
 _FAST_MAX_FIELD = 18                #: bytes per field: at most 18 digits, below 2**63 as an int64
 _FAST_LAST_FIELD = re.compile(rb"-?(\d+\.?\d*|\.\d+)(E-?\d+)?")
 #: 10**0 … 10**22, each exact in float64 (5**22 < 2**53)
 _POW10 = np.array([float(10 ** i) for i in range(23)])
+_FAST_MAX_MANTISSA = float(2 ** 53)
 
 
 def _parse_table_fast(data: bytes, ncols: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -213,37 +216,56 @@ def _parse_table_fast(data: bytes, ncols: int) -> tuple[np.ndarray, np.ndarray] 
 
     Handles fields of at most 18 bytes separated by single spaces, one ``\n`` per line, integer
     stamps, and values ``[-]digits[.digits][E[-]digits]`` whose digits without the point make an
-    integer M ≤ 2**53 and whose point and exponent scale it by 10**-k, |k| ≤ 22. There M and 10**|k|
+    integer M < 2**53 and whose point and exponent scale it by 10**-k, |k| ≤ 22. There M and 10**|k|
     are exact in float64, so one IEEE division (multiplication) is the correctly rounded conversion:
     bit for bit what ``float()`` and ``np.loadtxt`` give (Clinger's fast path: W. D. Clinger, "How
     to read floating point numbers accurately", PLDI 1990). numpy parses the integers
     (``np.fromstring`` on the text with the points removed and the exponent markers turned into
     separators); a malformed field either makes it fail or changes the number of integers it
     finds, and the checks here catch the rest (several points or markers in a field, a point in
-    the stamp column or in an exponent, a sign at the very end)."""
-    if not data or data.translate(None, _FAST_BYTES) or data[0] in b" \n":
+    the stamp column or in an exponent or just before a sign, a sign at the very end).
+
+    In the published files every value has exactly one point; then the i-th point belongs to the
+    i-th value field, which is checked (each point between the separators around its field) and
+    gives the digits after it without a search. Other texts locate each point's field by a search."""
+    if not data or data[0] in b" \n":
         return None
     if not data.endswith(b"\n") or data.endswith((b" \n", b"\n\n")):
         data = data.rstrip(b" \n") + b"\n"
     b = np.frombuffer(data, np.uint8)
     sep = np.flatnonzero(b <= 32)                        # the byte after each field: ' ' or '\n'
     n_tok = len(sep)
-    n_lines = n_tok // ncols
-    if n_tok % ncols or not _FAST_LAST_FIELD.fullmatch(data, data.rfind(b" ") + 1, len(data) - 1):
+    n_lines, rest = divmod(n_tok, ncols)
+    if rest or not _FAST_LAST_FIELD.fullmatch(data, data.rfind(b" ") + 1, len(data) - 1):
         return None
-    start = np.empty(n_tok, np.intp)
-    start[0] = 0
-    start[1:] = sep[:-1] + 1
-    width = sep - start                                  # field lengths: 1 … 18 (none empty)
-    kind = b[sep].reshape(n_lines, ncols)
-    if (np.any(kind[:, -1] != 10) or np.any(kind[:, :-1] != 32) or width.min() < 1
-            or width.max() > _FAST_MAX_FIELD):
+    grid = sep.reshape(n_lines, ncols)
+    if not (b[grid] == _line_ends(ncols)).all():        # ncols-1 spaces then '\n' on every line
         return None
-    dot = np.flatnonzero(b == 46)                        # decimal points, with their fields
-    t_dot = np.searchsorted(sep, dot)
-    if np.any(np.diff(t_dot) == 0) or np.any(t_dot % ncols == 0):
+    # fields of at most 18 bytes (an empty one gives no integer: the count below declines it)
+    if sep[0] > _FAST_MAX_FIELD or (n_tok > 1 and np.diff(sep).max() > _FAST_MAX_FIELD + 1):
         return None
-    ex = np.flatnonzero(b == 69) if b"E" in data else np.zeros(0, np.intp)    # exponent markers
+    before, after = grid[:, :-1], grid[:, 1:]            # the separators around each value field
+    dot = np.flatnonzero(b == 46)                        # decimal points
+    if len(dot) and (b[dot + 1] == 45).any():            # ".-5": without its point, "-5" would parse
+        return None
+    if len(dot) == before.size:                          # one per value field, in order?
+        at = dot.reshape(before.shape)
+        k = after - at                                   # value = mantissa * 10**-k …
+        k -= 1                                           # … k: the digits after the point
+        if k.min() < 0 or not (at > before).all():       # each point inside its field
+            return None
+        dot_of = np.arange(before.size)                  # value field -> index of its point
+    else:
+        t_dot = np.searchsorted(sep, dot)
+        if np.any(np.diff(t_dot) == 0) or np.any(t_dot % ncols == 0):
+            return None
+        kf = np.zeros(n_tok, np.int64)
+        kf[t_dot] = sep[t_dot] - dot - 1
+        k = kf.reshape(n_lines, ncols)[:, 1:].copy()
+        dot_of = np.full(n_tok, -1, np.int64)
+        dot_of[t_dot] = np.arange(len(dot))
+        dot_of = dot_of.reshape(n_lines, ncols)[:, 1:].ravel()
+    ex = _find_all(data, b, ord("E"))                    # exponent markers
     t_ex = np.searchsorted(sep, ex)
     if np.any(np.diff(t_ex) == 0) or np.any(t_ex % ncols == 0):
         return None
@@ -251,33 +273,52 @@ def _parse_table_fast(data: bytes, ncols: int) -> tuple[np.ndarray, np.ndarray] 
         ints = np.fromstring(data.translate(_FAST_STRIP, b"."), dtype=np.int64, sep=" ")
     except ValueError:
         return None
-    if len(ints) != n_tok + len(t_ex):
+    if len(ints) != n_tok + len(ex):
         return None
-    k = np.zeros(n_tok, np.int64)                        # value = mantissa * 10**-k
-    k[t_dot] = sep[t_dot] - dot - 1                      # digits after the point
-    if len(t_ex):
-        pointed = np.zeros(len(t_ex), bool)              # fields with a point and an exponent
-        if len(t_dot):
-            i = np.minimum(np.searchsorted(t_dot, t_ex), len(t_dot) - 1)
-            pointed = t_dot[i] == t_ex
-            if np.any(pointed & (dot[i] > ex)):          # a point in the exponent
-                return None
-        k[t_ex] -= np.where(pointed, sep[t_ex] - ex, 0)  # … not counting the exponent's characters
-        slot = t_ex + np.arange(1, len(t_ex) + 1)
-        k[t_ex] -= ints[slot]
+    kv = k.reshape(-1)
+    up, scale_up = np.zeros(0, np.intp), np.zeros(0)     # fields with 10**-k, k < 0: multiplied
+    if len(ex):
+        slot = t_ex + np.arange(1, len(ex) + 1)          # the exponents, each after its field
+        expo = ints[slot]
         ints = np.delete(ints, slot)
+        vi = t_ex - t_ex // ncols - 1                    # value-field index of each marked field
+        di = dot_of[vi]
+        pointed = di >= 0
+        if len(dot) and np.any(pointed & (dot[di] > ex)):    # a point in the exponent
+            return None
+        ke = kv[vi] - np.where(pointed, sep[t_ex] - ex, 0) - expo   # … not counting "E-4" as digits
+        if np.any(ke < 1 - len(_POW10)) or np.any(ke >= len(_POW10)):
+            return None
+        kv[vi] = np.maximum(ke, 0)
+        up, scale_up = vi[ke < 0], _POW10[-ke[ke < 0]]
     table = ints.reshape(n_lines, ncols)
-    mant = np.abs(table[:, 1:])
-    k = k.reshape(n_lines, ncols)[:, 1:]
-    if np.any(mant > 2 ** 53) or np.any(k < 1 - len(_POW10)) or np.any(k >= len(_POW10)):
-        return None
-    if len(t_ex) and np.any(k < 0):
-        values = np.where(k >= 0, mant / _POW10[np.maximum(k, 0)], mant * _POW10[np.maximum(-k, 0)])
-    else:
-        values = mant / _POW10[k]
-    neg = (b[start] == 45).reshape(n_lines, ncols)[:, 1:]
-    np.negative(values, out=values, where=neg)           # the sign apart, so "-0.0" gives -0.0
+    values = table[:, 1:].astype(np.float64)
+    if len(values) and (values.max() >= _FAST_MAX_MANTISSA or values.min() <= -_FAST_MAX_MANTISSA):
+        return None                                      # (float rounding keeps M >= 2**53 at or above it)
+    np.divide(values, _POW10[k], out=values)
+    vflat = values.reshape(-1)
+    vflat[up] *= scale_up                                # divided by 10**0 above: exact
+    zero = np.flatnonzero(vflat == 0)                    # a zero keeps its sign: "-0.0" gives -0.0
+    if len(zero):
+        minus = b[sep[zero + zero // (ncols - 1)] + 1] == 45     # the field's first byte
+        vflat[zero[minus]] = -0.0
     return np.ascontiguousarray(table[:, 0]), values
+
+
+def _line_ends(ncols: int) -> np.ndarray:
+    """The separator bytes of one table line: ``ncols - 1`` spaces, then ``\n``."""
+    return np.array([32] * (ncols - 1) + [10], np.uint8)
+
+
+def _find_all(data: bytes, b: np.ndarray, char: int, few: int = 256) -> np.ndarray:
+    """Offsets of every byte ``char`` in ``data`` (``b``: its uint8 view): by ``bytes.find`` while
+    there are at most ``few``, which skips a pass over the whole text, else by numpy."""
+    out: list[int] = []
+    i = data.find(char)
+    while i >= 0 and len(out) < few:
+        out.append(i)
+        i = data.find(char, i + 1)
+    return np.array(out, dtype=np.intp) if i < 0 else np.flatnonzero(b == char)
 
 
 def parse_table_lines(text: str, ncols: int, path: Path | str = "<text>") -> tuple[np.ndarray, np.ndarray]:
@@ -350,6 +391,35 @@ def _scan_from_block(stamp_ns: int, aps: list[list[str]], frame_id: str, source:
                     ssid=tuple(ssid), frame_id=frame_id, source=source)
 
 
+def _scans_from_blocks(blocks: list[tuple[list[str], list[list[str]]]], stamps: list[int], frame_id: str,
+                       source: str, wheres: list[str], oddities: list[Oddity], walk: int) -> list[WifiScan] | None:
+    """:func:`_scan_from_block` of every block, the BSSIDs checked by one regular expression over all
+    of them and the numbers converted in one pass; a block with a repeated BSSID goes through
+    :func:`_scan_from_block` (its entry of ``wheres`` names it). ``None`` if a BSSID or a number is
+    malformed: the caller then takes the blocks one at a time, which names the first fault."""
+    rows = [cols for _, aps in blocks for cols in aps]
+    bssid = [cols[0].strip().lower().replace("-", ":") for cols in rows]
+    if rows and not _BSSIDS_RE.fullmatch("\n".join(bssid) + "\n"):
+        return None
+    try:
+        rssi = list(map(float, [cols[2] for cols in rows]))
+        freq = list(map(float, [cols[3] for cols in rows]))
+    except ValueError:
+        return None
+    scans, s = [], 0
+    for (_, aps), stamp, where in zip(blocks, stamps, wheres):
+        e = s + len(aps)
+        ids = bssid[s:e]
+        if len(set(ids)) < len(ids):
+            scans.append(_scan_from_block(stamp, aps, frame_id, source, where, oddities, walk))
+        else:
+            scans.append(WifiScan(stamp_ns=stamp, bssid=tuple(ids), rssi_dbm=np.array(rssi[s:e]),
+                                  freq_mhz=np.array(freq[s:e]), ssid=tuple(cols[1] for cols in aps),
+                                  frame_id=frame_id, source=source))
+        s = e
+    return scans
+
+
 # ---------------------------------------------------------------------------------------------
 # ground truth, survey map
 # ---------------------------------------------------------------------------------------------
@@ -408,14 +478,24 @@ def read_survey_map(root: Path, oddities: list[Oddity] | None = None) -> RadioMa
     pos_of = {int(i): p for i, p in zip(ids, image_to_enu(xy))}
     blocks = read_wifi_blocks(mdir / "wifi.map")
     odd: list[Oddity] = [] if oddities is None else oddities
-    scans, positions, scan_ids = [], [], []
-    for head, aps in blocks:
-        loc = int(head[1])
-        if loc not in pos_of:
-            raise DatasetError(f"{mdir}/wifi.map: scan of location {loc} has no entry in positions.map")
-        scans.append(_scan_from_block(0, aps, "map", "survey", f"{mdir.name}/wifi.map loc {loc}", odd, 0))
-        positions.append(pos_of[loc])
-        scan_ids.append(loc)
+    prefix = f"{mdir.name}/wifi.map loc "
+    try:
+        locs = [int(head[1]) for head, _ in blocks]
+    except ValueError:
+        locs = None
+    batch = None if locs is None or not all(loc in pos_of for loc in locs) else \
+        _scans_from_blocks(blocks, [0] * len(blocks), "map", "survey", [f"{prefix}{loc}" for loc in locs], odd, 0)
+    if batch is None:       # a malformed block or an unknown location: one at a time, the first fault raised
+        scans, scan_ids = [], []
+        for head, aps in blocks:
+            loc = int(head[1])
+            if loc not in pos_of:
+                raise DatasetError(f"{mdir}/wifi.map: scan of location {loc} has no entry in positions.map")
+            scans.append(_scan_from_block(0, aps, "map", "survey", f"{prefix}{loc}", odd, 0))
+            scan_ids.append(loc)
+    else:
+        scans, scan_ids = batch, locs or []
+    positions = [pos_of[loc] for loc in scan_ids]
     missing = sorted(set(pos_of) - set(scan_ids))
     if missing:
         odd.append(Oddity(0, "survey_position_without_scan", f"positions.map ids without a scan: {missing}",
@@ -468,11 +548,14 @@ def start_gap(stamps: np.ndarray, *, gap_s: float = START_GAP_S) -> int:
     return i + 1 if d[i] > gap_s * 1e9 and i < len(stamps) // 2 else 0
 
 
-def _clean_stamps(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -> np.ndarray:
+def _clean_stamps(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -> np.ndarray | slice:
     """Indices that make ``stamps`` strictly increasing: stable sort if out of order, first of each
-    duplicate kept (both reported)."""
+    duplicate kept (both reported); ``slice(None)`` (no copy) when they already increase."""
+    step = np.diff(stamps)
+    if (step > 0).all():
+        return slice(None)
     idx = np.arange(len(stamps))
-    back = int(np.sum(np.diff(stamps) < 0))
+    back = int(np.sum(step < 0))
     if back:
         odd.append(Oddity(walk, "non_monotonic", f"{name}: {back} stamps go backwards; sorted (stable)", back))
         idx = np.argsort(stamps, kind="stable")
@@ -482,6 +565,13 @@ def _clean_stamps(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -
                           int(dup.sum())))
         idx = idx[~dup]
     return idx
+
+
+def _kept_from(stamps: np.ndarray, cut: int, n_before: int) -> np.ndarray | slice:
+    """Which samples have ``stamps >= cut`` (``n_before`` of them do not): a slice (no copy) when
+    those are the last ones, as in a recording sorted in time, else a mask."""
+    keep = stamps >= cut
+    return slice(n_before, None) if keep[n_before:].all() else keep
 
 
 def _report_dropouts(name: str, stamps: np.ndarray, walk: int, odd: list[Oddity]) -> None:
@@ -523,7 +613,7 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
         odd.append(Oddity(walk, "stale_samples", f"{n_a} acc, {n_o} orient, {n_w} wifi samples before the "
                                                  f"start gap: {what}", n_a + n_o + n_w))
         if not keep_stale:
-            ka, ko = acc_t >= cut, ori_t >= cut
+            ka, ko = _kept_from(acc_t, cut, n_a), _kept_from(ori_t, cut, n_o)
             acc_t, acc, ori_t, ori = acc_t[ka], acc[ka], ori_t[ko], ori[ko]
             blocks = [b for b in blocks if int(b[0][0]) >= cut]
             dropped = {"acc": n_a, "orient": n_o, "wifi": n_w}
@@ -536,7 +626,10 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
     _report_dropouts("orient", ori_t, walk, odd)
 
     quat = ori[:, :4]
-    qn = np.linalg.norm(quat, axis=1)
+    qn = quat[:, 0] * quat[:, 0]                         # |q|, summed x, y, z, w in turn (as numpy's
+    for j in (1, 2, 3):                                  # norm(axis=1) does) without an (M, 4) temporary
+        qn += quat[:, j] * quat[:, j]
+    np.sqrt(qn, out=qn)
     if np.any(np.abs(qn - 1) > 1e-3):
         bad = int(np.sum(np.abs(qn - 1) > 1e-3))
         odd.append(Oddity(walk, "quat_norm", f"orient: {bad} quaternions with |q| off 1 by > 1e-3; normalised", bad))
@@ -553,11 +646,20 @@ def read_walk(folder: Path, walk: int, *, keep_stale: bool = False) -> Walk:
 
     # WiFi scans and their true positions
     frame = f"{name}/wifi_link"
-    scans, scan_idx = [], []
-    for head, aps in blocks:
-        where = f"{folder.name}/wifi.map scan {head[1]}"
-        scans.append(_scan_from_block(int(head[0]), aps, frame, "putmc", where, odd, walk))
-        scan_idx.append(int(head[1]))
+    prefix = f"{folder.name}/wifi.map scan "
+    try:
+        heads = [(int(h[0]), int(h[1])) for h, _ in blocks]
+    except ValueError:
+        heads = None
+    batch = None if heads is None else _scans_from_blocks(blocks, [t for t, _ in heads], frame, "putmc",
+                                                          [prefix + h[1] for h, _ in blocks], odd, walk)
+    if batch is None:       # a malformed block: one at a time, so that the first fault is the one raised
+        scans, scan_idx = [], []
+        for head, aps in blocks:
+            scans.append(_scan_from_block(int(head[0]), aps, frame, "putmc", prefix + head[1], odd, walk))
+            scan_idx.append(int(head[1]))
+    else:
+        scans, scan_idx = batch, [i for _, i in heads or ()]
     st = np.array([s.stamp_ns for s in scans], dtype=np.int64)
     if np.any(np.diff(st) <= 0):
         n = int(np.sum(np.diff(st) <= 0))

@@ -43,6 +43,7 @@ from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import next_fast_len
 from scipy.signal import butter, find_peaks, sosfiltfilt
+from scipy.sparse import csr_array
 
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import field, require
@@ -197,13 +198,15 @@ class _Design:
     offset: int              # first grid index of the hop counted by window 0
     n_fft: int
     n_bins: int              # spectrum bins the analysis reads: [0, n_bins)
-    n_acf: int               # FFT length of the linear autocorrelation (>= 2 n_w - 1, a fast size)
+    n_lags: int              # autocorrelation lags the analysis reads: [0, n_lags) (<= n_w)
+    n_acf: int               # FFT length of the linear autocorrelation (>= n_w + n_lags - 1, a fast size)
     taper: np.ndarray        # (n_w,)
     scale: float             # 2 / sum(taper): one-sided sinusoid amplitude
     cand: np.ndarray         # (C,) candidate step frequencies, Hz
     i0: np.ndarray           # (H, C) lower FFT bin of each harmonic of each candidate
     frac: np.ndarray         # (H, C) interpolation fraction
     weight: np.ndarray       # (H, 1)
+    harmonic_map: csr_array  # (C, n_bins): S = harmonic_map @ P, the weighted, interpolated harmonic bins
     n_m: int                 # samples of the motion span (>= n_h)
     m_lo: int                # motion span of the counted hop inside the window: [m_lo, m_hi)
     m_hi: int
@@ -232,12 +235,20 @@ class _Design:
         m_hi = min(n_w, m_lo + n_m)
         below = int(math.floor(cand[0] * n_fft / fs))
         n_bins = min(n_fft // 2 + 1, max(int(i0.max()) + 2, below + 1))
-        n_acf = next_fast_len(2 * n_w - 1, real=True)
-        return _Design(fs, n_w, n_h, offset, n_fft, n_bins, n_acf, taper, 2.0 / float(taper.sum()), cand, i0, idx - i0,
-                       weight, n_m, m_lo, m_hi)
+        # the longest stride lag the periodicity check reads: 2/f (+ ACF_LAG_TOL) at the lowest
+        # refined frequency, the first candidate (a hair lower for rounding)
+        n_lags = min(n_w, int(math.ceil(2.0 * fs / (cand[0] * (1.0 - 1e-9)) * (1.0 + ACF_LAG_TOL))) + 2)
+        n_acf = next_fast_len(n_w + n_lags - 1, real=True)
+        frac = idx - i0
+        c = np.broadcast_to(np.arange(len(cand)), i0.shape)
+        harmonic_map = csr_array((np.concatenate(((1.0 - frac) * weight, frac * weight), axis=None),
+                                  (np.concatenate((c, c), axis=None), np.concatenate((i0, i0 + 1), axis=None))),
+                                 shape=(len(cand), n_bins))
+        return _Design(fs, n_w, n_h, offset, n_fft, n_bins, n_lags, n_acf, taper, 2.0 / float(taper.sum()), cand, i0, frac,
+                       weight, harmonic_map, n_m, m_lo, m_hi)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=64)
 def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
     sos = butter(order, cutoff_hz, fs=fs, output="sos")
     sos.setflags(write=False)
@@ -265,63 +276,80 @@ def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) ->
     """Squared :func:`amplitude_spectrum` of already mean-removed windows ``x`` (N, n_w), bins
     ``[0, n_bins)`` (default ``design.n_bins``, all the analysis reads), from the real and imaginary
     parts (no square root): (N, n_bins). The tapered windows are written into a zeroed block of
-    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call."""
+    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call, into buffers
+    allocated once per call."""
     nb = design.n_bins if n_bins is None else n_bins
     n = len(x)
     power = np.empty((n, nb))
-    buf = np.zeros((min(_FFT_BLOCK, n), design.n_fft))
+    k = min(_FFT_BLOCK, n)
+    buf = np.zeros((k, design.n_fft))
+    spec = np.empty((k, design.n_fft // 2 + 1), dtype=complex)
+    im2 = np.empty((k, nb))
     for i in range(0, n, _FFT_BLOCK):
         m = min(_FFT_BLOCK, n - i)
         np.multiply(x[i: i + m], design.taper, out=buf[:m, : design.n_w])
-        spec = np.fft.rfft(buf[:m], axis=1)[:, :nb]
+        np.fft.rfft(buf[:m], axis=1, out=spec[:m])
         blk = power[i: i + m]
-        np.square(spec.real, out=blk)
-        blk += np.square(spec.imag)
+        np.square(spec[:m, :nb].real, out=blk)
+        blk += np.square(spec[:m, :nb].imag, out=im2[:m])
     power *= design.scale ** 2
     return power
 
 
 def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
     """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
-    (default 0..n_w-1), normalised by lag 0 (all zero for a constant window); Wiener-Khinchin,
-    zero-padded to ``n_acf >= 2 n_w - 1`` so nothing wraps around (a block of windows per call)."""
+    (default, and at most, 0..n_lags-1: the lags the analysis reads), normalised by lag 0 (all zero
+    for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= n_w + n_lags - 1`` so that
+    nothing wraps around onto these lags (a block of windows per call)."""
     n_w = design.n_w
-    hi = n_w if lag_hi is None else lag_hi
+    hi = design.n_lags if lag_hi is None else lag_hi
+    if not 0 <= lag_lo < hi <= design.n_lags:
+        raise InvalidInputError("lags", f"lags [{lag_lo}, {hi}) outside [0, {design.n_lags}): they would wrap around")
     n = len(x)
     full = np.empty((n, hi - lag_lo))
     acf0 = np.empty((n, 1))
-    buf = np.zeros((min(_FFT_BLOCK, n), design.n_acf))
+    k = min(_FFT_BLOCK, n)
+    buf = np.zeros((k, design.n_acf))
+    spec = np.empty((k, design.n_acf // 2 + 1), dtype=complex)
+    psd = np.empty((k, design.n_acf // 2 + 1))
+    im2 = np.empty_like(psd)
+    blk = np.empty((k, design.n_acf))
     for i in range(0, n, _FFT_BLOCK):
         m = min(_FFT_BLOCK, n - i)
         buf[:m, :n_w] = x[i: i + m]
-        spec = np.fft.rfft(buf[:m], axis=1)
-        blk = np.fft.irfft(np.square(spec.real) + np.square(spec.imag), design.n_acf, axis=1)
-        full[i: i + m] = blk[:, lag_lo:hi]
-        acf0[i: i + m] = blk[:, :1]
+        np.fft.rfft(buf[:m], axis=1, out=spec[:m])
+        np.square(spec[:m].real, out=psd[:m])
+        psd[:m] += np.square(spec[:m].imag, out=im2[:m])
+        np.fft.irfft(psd[:m], design.n_acf, axis=1, out=blk[:m])
+        full[i: i + m] = blk[:m, lag_lo:hi]
+        acf0[i: i + m] = blk[:m, :1]
     acf = full / (n_w - np.arange(lag_lo, hi))
     acf0 /= n_w
     return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
 
 
 def harmonic_score(power: np.ndarray, design: _Design) -> np.ndarray:
-    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, n_bins) -> (N, C), summed
-    over k in order (the bins of each harmonic are gathered as rows of the transposed spectrum)."""
-    pt = np.ascontiguousarray(power.T)
-    total = np.zeros((design.i0.shape[1], len(power)))
-    for i0, fr, w in zip(design.i0, design.frac[:, :, None], design.weight[:, 0]):
-        vals = pt[i0] * (1.0 - fr)
-        vals += pt[i0 + 1] * fr
-        vals *= w
-        total += vals
-    return np.ascontiguousarray(total.T)
+    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, >= n_bins) -> (N, C), as
+    one sparse product (each candidate reads two bins per harmonic, :attr:`_Design.harmonic_map`)."""
+    return np.ascontiguousarray((design.harmonic_map @ np.ascontiguousarray(power[:, : design.n_bins].T)).T)
+
+
+#: Windows analysed together: a block's arrays stay small enough to be reused, not mapped afresh.
+_ANALYSIS_BLOCK = 64
 
 
 def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
-    """Step frequency and walking decision for each row of ``windows`` (N, n_w) of |a| in m/s²."""
+    """Step frequency and walking decision for each row of ``windows`` (N, n_w) of |a| in m/s²
+    (row by row: a block of rows gives each the estimate it gets alone)."""
     windows = np.atleast_2d(np.asarray(windows, dtype=float))
+    out: list[WindowEstimate] = []
+    for i in range(0, len(windows), _ANALYSIS_BLOCK):
+        out += _analyse_block(windows[i: i + _ANALYSIS_BLOCK], design, p)
+    return out
+
+
+def _analyse_block(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
     n = len(windows)
-    if n == 0:
-        return []
     x = windows - windows.mean(axis=1, keepdims=True)
     power = power_spectrum(x, design)
     score = harmonic_score(power, design)
@@ -331,16 +359,18 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     # the stride of a fast gait (a swinging arm or a bag at 2.3-2.4 Hz puts most power at the stride,
     # 1.2 Hz, just below the band), the cadence is the largest interior local maximum: take it, and
     # let the band and periodicity tests judge it.
-    interior = np.zeros_like(score, dtype=bool)
-    interior[:, 1:-1] = (score[:, 1:-1] >= score[:, :-2]) & (score[:, 1:-1] >= score[:, 2:])
-    has_interior = interior.any(axis=1)
-    j_int = np.argmax(np.where(interior, score, -np.inf), axis=1)
-    # Only when the strongest component below the search range sits at that maximum's stride f/2
-    # (within a bin of the unpadded window, 1/window_s): a slow sway elsewhere stays rejected.
-    below = int(np.floor(design.cand[0] * design.n_fft / design.fs))
-    f_pk = (np.argmax(power[:, 1:below + 1], axis=1) + 1) * (design.fs / design.n_fft)
-    stride_ok = np.abs(design.cand[j_int] / 2.0 - f_pk) <= 1.0 / p.window_s
-    j = np.where((j == 0) & has_interior & stride_ok, j_int, j)
+    edge = np.flatnonzero(j == 0)
+    if len(edge):
+        s = score[edge]
+        interior = np.zeros_like(s, dtype=bool)
+        interior[:, 1:-1] = (s[:, 1:-1] >= s[:, :-2]) & (s[:, 1:-1] >= s[:, 2:])
+        j_int = np.argmax(np.where(interior, s, -np.inf), axis=1)
+        # Only when the strongest component below the search range sits at that maximum's stride f/2
+        # (within a bin of the unpadded window, 1/window_s): a slow sway elsewhere stays rejected.
+        below = int(np.floor(design.cand[0] * design.n_fft / design.fs))
+        f_pk = (np.argmax(power[edge, 1:below + 1], axis=1) + 1) * (design.fs / design.n_fft)
+        stride_ok = np.abs(design.cand[j_int] / 2.0 - f_pk) <= 1.0 / p.window_s
+        j[edge] = np.where(interior.any(axis=1) & stride_ok, j_int, 0)
     j = np.clip(j, 1, c - 2)
     r = np.arange(n)
     a, b, cc = score[r, j - 1], score[r, j], score[r, j + 1]
@@ -357,10 +387,9 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
         fund = (design.weight[:2, 0][:, None] * pw).sum(axis=0)
         in_band &= fund >= p.min_fundamental_share * score[r, j]
     # Periodicity: the normalised autocorrelation at the stride lag 2/f.
-    n_w = design.n_w
     lag = 2.0 / np.maximum(f, 1e-6) * design.fs
-    lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, n_w - 1)
-    hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, n_w)
+    lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, design.n_lags - 1)
+    hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, design.n_lags)
     lags = np.arange(int(lo.min()), int(hi.max()))          # only the lags some window reads
     acf = normalised_autocorr(x, design, int(lags[0]), int(lags[-1]) + 1)
     mask = (lags[None, :] >= lo[:, None]) & (lags[None, :] < hi[:, None])
@@ -369,8 +398,7 @@ def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -
     std = x.std(axis=1)
     mstd = windows[:, design.m_lo: design.m_hi].std(axis=1)
     walking = in_band & (ac >= p.min_autocorr) & (std >= p.min_std_m_s2) & (mstd >= p.min_motion_std_m_s2)
-    return [WindowEstimate(float(f[i]), bool(walking[i]), float(ac[i]), float(std[i]), float(mstd[i]))
-            for i in range(n)]
+    return list(map(WindowEstimate, f.tolist(), walking.tolist(), ac.tolist(), std.tolist(), mstd.tolist()))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -500,6 +528,8 @@ class Stepometer:
         self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
         self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
         self._grid_now: np.ndarray | None = None    # the grid from buffer_start while analysing; not state
+        #: walking hops over which the gait's energy is a median: the run's last half window
+        self._n_recent = max(1, int(round(0.5 * self.params.window_s / self.params.hop_s)))
 
     # -- state ------------------------------------------------------------------------------------
     def state(self) -> StepometerState:
@@ -709,7 +739,9 @@ class Stepometer:
         k = np.arange(st.n_grid, last_k + 1, dtype=np.int64)
         # grid point k is filled by the first sample whose k_end reaches it, between that
         # sample and the one before it (update(): last_m + (m - last_m) * ((tk - last_t) / dt))
-        i = np.searchsorted(np.maximum.accumulate(k_end), k, side="left")
+        # (sample j fills the points above the previous samples' reach, up to its own: np.repeat)
+        reach = np.maximum(np.maximum.accumulate(k_end), st.n_grid - 1)
+        i = np.repeat(np.arange(len(t)), np.diff(reach, prepend=st.n_grid - 1))
         t_prev = np.concatenate((np.array([st.last_t_ns], np.int64), t))[i]
         m_prev = np.concatenate(([st.last_m], m))[i]
         tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
@@ -970,15 +1002,21 @@ class Stepometer:
                 st.held.append((lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0))
                 return []
         if est.walking:
-            run = bool(st.held) or (st.walk_end is not None and st.walk_end == lo)
-            out = self._release_held(est.freq_hz) if est.autocorr >= p.bridge_min_autocorr else self._drop_held()
+            out: list[StepHop] = []
+            run = st.walk_end == lo and st.walk_end is not None
+            if st.held:
+                run = True
+                out = self._release_held(est.freq_hz) if est.autocorr >= p.bridge_min_autocorr else self._drop_held()
             st.walk_freq_hz = est.freq_hz
             st.walk_end = hi
             # the gait's energy: median over the run's last half window (a stop's steps decay from it)
-            n_recent = max(1, int(round(0.5 * p.window_s / p.hop_s)))
-            st.walk_motion_recent = (st.walk_motion_recent if run else [])[max(0, len(st.walk_motion_recent) - n_recent + 1):]
-            st.walk_motion_recent.append(est.motion_std_m_s2)
-            st.walk_motion_std = _median(st.walk_motion_recent)
+            recent = st.walk_motion_recent
+            if not run:
+                recent = st.walk_motion_recent = []
+            elif len(recent) >= self._n_recent:
+                del recent[: len(recent) - self._n_recent + 1]
+            recent.append(est.motion_std_m_s2)
+            st.walk_motion_std = _median(recent)
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
             hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
             if st.walk_autocorr < p.bridge_min_autocorr:
@@ -988,7 +1026,11 @@ class Stepometer:
                 if (hi - st.tentative[0][0]) / st.grid_hz < p.bridge_s:
                     return out
                 hop = st.tentative.pop()
-            return out + [self._emit(*h) for h in st.tentative] + [self._emit(*hop)] + self._clear_tentative()
+            if st.tentative:
+                out += [self._emit(*h) for h in st.tentative]
+                st.tentative = []
+            out.append(self._emit(*hop))
+            return out
         if est.motion_std_m_s2 < p.min_motion_std_m_s2:
             return self._drop_tentative() + self._drop_held() + [self._emit(lo, hi, est.freq_hz, 0.0, False, 1.0, 0.0)]
         c = p.coast_confidence
@@ -1020,10 +1062,6 @@ class Stepometer:
                 st.tentative.append(hop)      # a gait that is starting misses the test for a moment
                 return []
         return self._drop_tentative() + self._drop_held() + [self._emit(*hop)]
-
-    def _clear_tentative(self) -> list[StepHop]:
-        self._st.tentative = []
-        return []
 
     def _drop_tentative(self) -> list[StepHop]:
         """A walking run ended before it became clearly periodic (or the recording ended): it was
@@ -1066,8 +1104,9 @@ class Stepometer:
             peaks, _ = find_peaks(y, distance=dist, prominence=p.bridge_prominence * float(y.std()))
             peaks = peaks + a
         out = []
-        for lo, hi, fq, *_ in st.held:
-            n = int(np.count_nonzero((peaks >= lo) & (peaks < hi)))
+        # peaks in each hop (find_peaks gives them in increasing order)
+        n_in = (np.searchsorted(peaks, [h[1] for h in st.held]) - np.searchsorted(peaks, [h[0] for h in st.held])).tolist()
+        for (lo, hi, fq, *_), n in zip(st.held, n_in):
             dur = (hi - lo) / st.grid_hz
             out.append(self._emit(lo, hi, fq, n / dur, True, c, (1.0 - c) * max(n, 1.0)))
         st.held = []
@@ -1092,7 +1131,10 @@ class Stepometer:
         st.last_confidence = confidence
         st.count_freq_hz = count_hz if walking else 0.0
         st.count_confidence = confidence
-        return StepHop(self._grid_time(lo), self._grid_time(hi), steps, freq_hz, walking, confidence, steps_std)
+        t0, fs = st.t0_ns, st.grid_hz      # _grid_time, inline
+        assert t0 is not None
+        return StepHop(t0 + int(round(lo * 1e9 / fs)), t0 + int(round(hi * 1e9 / fs)), steps, freq_hz, walking,
+                       confidence, steps_std)
 
     def _motion_std(self, lo: int, hi: int) -> float:
         """Standard deviation of the grid samples over ``motion_window_s`` centred on ``[lo, hi)``

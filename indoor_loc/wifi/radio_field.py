@@ -1,0 +1,144 @@
+"""A radio map that extrapolates: per-AP log-distance path loss as the prior mean of the field.
+
+Kernel regression of the survey scans (:mod:`indoor_loc.wifi.powed_knn`'s interpolated grid) cannot
+extrapolate: away from the survey walks it copies the nearest scans, so a user walking where no
+survey walk went is matched to the nearest surveyed stretch. The standard remedy is a
+Gaussian-process radio map whose *mean function* is a parametric propagation model and whose
+residual is interpolated near the data (Ferris, Hähnel & Fox, "Gaussian processes for signal
+strength-based location estimation", RSS 2006; Bekkali, Masuo, Tominaga, Nakamura & Matsumoto,
+"Gaussian processes for learning-based indoor localization", ICSPCS 2011; Atia, Noureldin & Korenberg,
+"Dynamic online-calibrated radio maps for indoor positioning in wireless local area networks",
+IEEE TMC 2013). Here:
+
+- **Prior mean:** every AP's log-distance path-loss model ``P = A − 10 n log10(d)`` with its own power
+  at 1 m, exponent and position (:class:`indoor_loc.wifi.pathloss.PathLoss`, Nurminen et al. 2014),
+  fitted per floor on that floor's map scans.
+- **Prior variance:** the model's residual variance σ_a² plus the propagated uncertainty of the AP's
+  parameters, ``g^T C_a g`` (g = ∂P/∂θ_a at the point): an AP whose position is poorly known is
+  poorly known everywhere, and most of all far from where it was heard.
+- **What a fingerprint holds at a point:** the powed value of a reading is 0 below the detection
+  floor, so the value expected there is ``E[powed(R)]`` with ``R ~ N(μ, σ²)``:
+  it carries the AP's detection probability, ``P(R > floor)``, and an
+  AP predicted near the floor with a large variance contributes a small, blurred value instead of a
+  hard "heard" or "not heard". The expectation has a closed form in the parabolic cylinder function,
+  tabulated once.
+- **Posterior (large-noise limit):** at a candidate x the field is the kernel regression of the
+  survey scans with the prior as λ = ``field_weight`` pseudo-scans at x::
+
+      v_a(x) = (Σ_i K(x, x_i) v_ia + λ · prior_a(x)) / (Σ_i K(x, x_i) + λ)
+
+  Near the survey walks (kernel mass ≫ λ) this is the interpolated grid; far from them it tends to
+  the path-loss prediction. With the Gaussian kernel, λ = 0.05 is the weight of one survey scan
+  2.45 bandwidths away (≈ 10 m at 4 m): the data decide within that distance, the propagation model
+  beyond it. Scans that did not hear an AP count as 0 in the kernel sum, so a non-detection near
+  the survey walks is kept as evidence.
+
+Functions only (no state): the caller owns the candidate grid and the matching.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from scipy import sparse
+from scipy.special import gamma, pbdv
+
+from indoor_loc.wifi.pathloss import PathLoss, PathLossParams
+from indoor_loc.wifi.types import RadioMap
+
+#: expected powed values below this are dropped (an AP all but undetectable there: a reading of about
+#: −92 dBm without AP weights), which keeps the extrapolated grid sparse
+FIELD_MIN_VALUE = 1e-3
+#: an AP is taken as not heard where its predicted RSS is below this quantile of the map's readings (what
+#: the phones report at the weakest: readings below it are rare, so the AP is more likely missed than heard)
+DETECT_QUANTILE = 0.05
+#: E[max(Z + t, 0)^beta], Z ~ N(0, 1), is tabulated on t in [T_LO, T_HI] (0 below; an asymptotic series above)
+T_LO, T_HI, T_STEP = -10.0, 25.0, 0.005
+
+
+@lru_cache(maxsize=4)
+def _positive_part_moment(beta: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t, E[max(Z + t, 0)^beta]) on a fine grid of t: Γ(β + 1) e^(−t²/4) D_(−β−1)(−t) / √(2π), with
+    D the parabolic cylinder function (Abramowitz & Stegun 19.5.1)."""
+    t = np.arange(T_LO, T_HI + T_STEP / 2, T_STEP)
+    return t, gamma(beta + 1.0) * np.exp(-0.25 * t * t) * pbdv(-beta - 1.0, -t)[0] / math.sqrt(2.0 * math.pi)
+
+
+def expected_powed(mu_dbm: np.ndarray, sigma_db: np.ndarray, floor_dbm: float, beta: float) -> np.ndarray:
+    """E[powed(R)] for R ~ N(mu, sigma^2) (dBm, dB > 0; broadcast), powed(r) = (max(r − floor, 0) / −floor)^beta:
+    (sigma / −floor)^beta · E[max(Z + t, 0)^beta] with t = (mu − floor) / sigma (tabulated; for t above the
+    table t^beta (1 + beta (beta − 1) / (2 t²)), relative error below 1e-6)."""
+    mu, sig = np.broadcast_arrays(np.asarray(mu_dbm, float), np.asarray(sigma_db, float))
+    sig = np.maximum(sig, 1e-9)
+    t = (mu - floor_dbm) / sig
+    tab_t, tab_m = _positive_part_moment(float(beta))
+    m = np.interp(t, tab_t, tab_m, left=0.0)
+    hi = t > T_HI
+    th = t[hi]
+    m[hi] = th ** beta * (1.0 + beta * (beta - 1.0) / (2.0 * th * th))
+    return (sig / -floor_dbm) ** beta * m
+
+
+def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray, *, floor_dbm: float, beta: float,
+                   min_value: float = FIELD_MIN_VALUE, params: PathLossParams | None = None,
+                   keep: np.ndarray | None = None, chunk: int = 2048) -> sparse.csr_matrix:
+    """(C, A) sparse expected powed values of the map's APs (columns as ``radio_map.bssids``) at the
+    candidates ``grid_pos`` (C, 2) m on floors ``grid_z`` (C,) m, from per-floor path-loss models of
+    the map scans; values below ``min_value`` (an AP all but undetectable there) are dropped. APs
+    with fewer map scans than the path-loss fit needs get no prior (0). ``keep`` (M,) bool: fit on these
+    map scans only (a cross-validation fold)."""
+    pos = np.asarray(radio_map.positions, float)
+    rss = np.asarray(radio_map.rssi_dbm, float)
+    map_z = np.asarray(radio_map.z_m, float)
+    if keep is not None:
+        keep = np.asarray(keep, bool)
+        pos, rss, map_z = pos[keep], rss[keep], map_z[keep]
+    grid_pos = np.asarray(grid_pos, float)
+    grid_z = np.asarray(grid_z, float)
+    n_aps = rss.shape[1]
+    heard_rss = rss[np.isfinite(rss)]
+    detect_dbm = float(np.quantile(heard_rss, DETECT_QUANTILE)) if len(heard_rss) else floor_dbm
+    blocks = []
+    for zf in np.unique(grid_z):
+        on = map_z == zf
+        rows = np.flatnonzero(grid_z == zf)
+        heard = np.flatnonzero(np.any(np.isfinite(rss[on]), axis=0))
+        if len(rows) == 0 or len(heard) == 0:
+            continue
+        sub = RadioMap(positions=pos[on], bssids=[radio_map.bssids[a] for a in heard], rssi_dbm=rss[on][:, heard],
+                       freq_mhz=np.zeros(len(heard)))
+        pl = PathLoss(params).fit(sub)
+        use = np.flatnonzero(pl.usable)
+        if len(use) == 0:
+            continue
+        th, cov, s2 = pl.theta[use], pl.theta_cov[use], pl.sigma2[use]
+        cols = heard[use]
+        d0 = pl.params.d0_m
+        for lo in range(0, len(rows), chunk):
+            r = rows[lo:lo + chunk]
+            diff = grid_pos[r][:, None, :] - th[None, :, 2:4]                     # (c, a, 2)
+            d2 = np.einsum("cai,cai->ca", diff, diff) + d0 * d0
+            log10d = 0.5 * np.log10(d2)
+            mu = th[None, :, 0] - 10.0 * th[None, :, 1] * log10d
+            g = np.empty(d2.shape + (4,))
+            g[..., 0] = 1.0
+            g[..., 1] = -10.0 * log10d
+            g[..., 2:4] = (10.0 / np.log(10.0)) * (th[None, :, 1] / d2)[..., None] * diff
+            var = s2[None, :] + np.einsum("cai,aij,caj->ca", g, cov, g)
+            v = expected_powed(mu, np.sqrt(var), floor_dbm, beta)
+            v[mu < detect_dbm] = 0.0                  # more likely not heard than heard there
+            v[v < min_value] = 0.0
+            cc, aa = np.nonzero(v)
+            blocks.append(sparse.coo_matrix((v[cc, aa], (r[cc], cols[aa])), shape=(len(grid_pos), n_aps)))
+    if not blocks:
+        return sparse.csr_matrix((len(grid_pos), n_aps))
+    return sparse.csr_matrix(sum(b.tocsr() for b in blocks))
+
+
+def view_scale(values: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """(A,) per-AP factor that maps raw powed values to a view's values (AP weights, mean age weight):
+    Σ_i values_ia / Σ_i raw_ia over the map scans (0 for an AP no scan heard)."""
+    num = np.asarray(values, float).sum(axis=0)
+    den = np.asarray(raw, float).sum(axis=0)
+    return np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)

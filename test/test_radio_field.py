@@ -1,0 +1,127 @@
+"""The extrapolating radio map (indoor_loc.wifi.radio_field) and its hook in the powed k-NN grid."""
+from __future__ import annotations
+
+import numpy as np
+
+from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, powed
+from indoor_loc.wifi.radio_field import expected_powed, pathloss_prior, view_scale
+from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
+from indoor_loc.wifi.types import WifiScan
+
+SIZE = (60.0, 40.0)
+FLOOR, BETA = -100.0, np.e
+
+
+def _field(rng, n_aps):
+    """Log-distance APs over the floor: P = p0 - 10 n log10(d), p0 in [-40, -30] dBm, n in [2.5, 3.5]."""
+    ap = np.column_stack([rng.uniform(0, SIZE[0], n_aps), rng.uniform(0, SIZE[1], n_aps)])
+    p0 = rng.uniform(-40, -30, n_aps)
+    n = rng.uniform(2.5, 3.5, n_aps)
+
+    def rss(xy, noise_db):
+        d = np.sqrt(((xy[:, None, :] - ap[None]) ** 2).sum(-1) + 1.0)
+        r = p0[None] - 10 * n[None] * np.log10(d) + rng.normal(0, noise_db, (len(xy), n_aps))
+        r[r < -95] = np.nan
+        return np.clip(r, -120, 0)
+    return rss
+
+
+def _scans(rows, bssids):
+    out = []
+    for i, row in enumerate(rows):
+        c = np.flatnonzero(~np.isnan(row))
+        out.append(WifiScan(stamp_ns=i, bssid=tuple(bssids[j] for j in c), rssi_dbm=row[c].copy(),
+                            freq_mhz=np.full(len(c), 2437.0)))
+    return out
+
+
+def _survey(rng, n_aps=40, noise_db=4.0, ys=(5.0, 14.0)):
+    """Survey walks along y = ys (a scan every metre, one walk each): the north of the floor is never surveyed."""
+    rss = _field(rng, n_aps)
+    bssids = [f"02:00:00:00:02:{i:02x}" for i in range(n_aps)]
+    xs = np.arange(1.0, SIZE[0], 1.0)
+    rm = empty_radiomap()
+    for j, y in enumerate(ys):
+        pts = np.column_stack([xs, np.full(len(xs), y)])
+        rm = add_fingerprints(rm, pts, _scans(rss(pts, noise_db), bssids), f"walk{j}")
+    return rm, rss, bssids
+
+
+def test_expected_powed_is_the_mean_over_the_reading_distribution():
+    """E[powed(R)], R ~ N(mu, sigma^2), against a seeded Monte Carlo mean; sigma -> 0 gives powed(mu);
+    far below the detection floor the expectation is 0."""
+    rng = np.random.default_rng(3)
+    mu = np.array([-95.0, -85.0, -70.0, -50.0])
+    sig = np.array([6.0, 8.0, 4.0, 2.0])
+    mc = powed(mu[None] + sig[None] * rng.standard_normal((200_000, 4)), FLOOR, BETA).mean(axis=0)
+    np.testing.assert_allclose(expected_powed(mu, sig, FLOOR, BETA), mc, rtol=0.02, atol=1e-6)
+    np.testing.assert_allclose(expected_powed(mu, np.full(4, 1e-9), FLOOR, BETA), powed(mu, FLOOR, BETA), rtol=1e-9)
+    assert expected_powed(np.array([-160.0]), np.array([3.0]), FLOOR, BETA)[0] == 0.0
+
+
+def test_pathloss_prior_predicts_the_unsurveyed_part_of_a_log_distance_field():
+    """Far from the survey walks (y >= 24 m, 10 m or more from them) the path-loss prior predicts the
+    expected powed values of a log-distance field much better than copying the nearest survey scan
+    (what kernel regression does there). Measured (seed 11): 0.25 against 0.90 summed absolute error."""
+    rng = np.random.default_rng(11)
+    rm, rss, _ = _survey(rng)
+    gx, gy = np.meshgrid(np.arange(2.0, SIZE[0], 4.0), np.arange(24.0, SIZE[1], 4.0))
+    g = np.column_stack([gx.ravel(), gy.ravel()])
+    prior = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA).toarray()
+    truth = np.mean([powed(rss(g, 4.0), FLOOR, BETA) for _ in range(40)], axis=0)
+    nearest = powed(rm.rssi_dbm, FLOOR, BETA)[np.argmin(np.linalg.norm(g[:, None] - rm.positions[None], axis=2),
+                                                         axis=1)]
+    err_prior = np.abs(prior - truth).sum(axis=1).mean()
+    err_nearest = np.abs(nearest - truth).sum(axis=1).mean()
+    assert err_prior < 0.6 * err_nearest, (err_prior, err_nearest)
+    assert prior.shape == (len(g), rm.n_aps) and np.all(prior >= 0)
+
+
+def test_view_scale_maps_raw_values_to_a_view():
+    raw = np.array([[0.2, 0.0, 0.0], [0.4, 0.1, 0.0]])
+    w = np.array([2.0, 0.5, 3.0])
+    np.testing.assert_allclose(view_scale(raw * w, raw), [2.0, 0.5, 0.0])
+
+
+def test_the_field_locates_users_where_the_survey_did_not_go():
+    """Users in the unsurveyed north (y in [24, 34] m, 10-20 m from the survey walks): a grid that reaches
+    20 m and carries the path-loss prior (field_weight 0.05) locates them better than the same grid by
+    kernel regression alone (which copies the nearest scans) and than the default 2 m grid. Measured (seed 4):
+    2.4 m against 9.8 m and 15.8 m mean."""
+    rng = np.random.default_rng(4)
+    rm, rss, bssids = _survey(rng)
+    pts = np.column_stack([rng.uniform(4, SIZE[0] - 4, 80), rng.uniform(24, 34, 80)])
+    scans = _scans(rss(pts, 4.0), bssids)
+    err = {}
+    for label, params in (("field", {"field_weight": 0.05, "smooth_reach_m": 20.0}),
+                          ("kernel", {"smooth_reach_m": 20.0}), ("default", {})):
+        fixes = PowedKnn(PowedKnnParams(cov_calibration=False, smooth_views="grid", **params)).fit(rm).locate_many(scans)
+        assert all(f.ok for f in fixes)
+        err[label] = float(np.mean([np.hypot(*(f.xy - p)) for f, p in zip(fixes, pts)]))
+    assert err["field"] < 0.8 * min(err["kernel"], err["default"]), err
+
+
+def test_the_calibration_folds_refit_the_prior_without_the_left_out_walk():
+    """The grid of a calibration fold is the kernel regression of the kept scans plus the path-loss prior
+    fitted on the kept scans only (a prior fitted on every scan would leak the left-out walk into its own
+    cross-validation and make the ellipses too small)."""
+    rm, _, _ = _survey(np.random.default_rng(6), ys=(5.0, 14.0, 23.0))
+    lam = 0.05
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, age_tau_ms=0.0, field_weight=lam,
+                                  smooth_reach_m=6.0)).fit(rm)
+    h = pos.params.smooth_m
+    keep = np.array(rm.source) != "walk1"
+    readings, sums, rows = pos._smoothed(keep)
+    g = pos._grid_pos[rows]
+    d = np.linalg.norm(g[:, None, :] - rm.positions[keep][None], axis=2)
+    w = np.exp(-0.5 * (d / h) ** 2) * (d <= 3 * h)
+    prior = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA, keep=keep).toarray() * pos._w
+    leaky = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA).toarray() * pos._w
+    expect = (w @ pos._vals[0][keep] + lam * prior) / (w.sum(axis=1) + lam)[:, None]
+    got = np.zeros_like(expect)
+    for col in range(expect.shape[1]):
+        r, v, _ = readings[0].gather(np.array([col]))
+        got[r, col] = v
+    np.testing.assert_allclose(got, expect, atol=1e-12)
+    np.testing.assert_allclose(sums[0], expect.sum(axis=1), atol=1e-12)
+    assert np.abs(prior - leaky).max() > 1e-3                 # the left-out walk does move the models
