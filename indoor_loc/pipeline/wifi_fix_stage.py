@@ -127,9 +127,8 @@ class WifiFixStage(Stage):
         if self.radio_map is not None:
             if fit_now:
                 self.positioner = self.fit_positioner(self.radio_map)
-            else:
-                rm, self.radio_map = self.radio_map, None
-                self.begin_fit(rm)
+            else:               # radio_map is the configured map; it answers once end_fit installs it
+                self.begin_fit(self.radio_map)
         self._last_scan_ns: int | None = None     # stamp of the last scan accepted (older ones: stamp_backwards)
         self.on("wifi/scan", self._on_scan)
 
