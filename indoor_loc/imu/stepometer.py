@@ -359,16 +359,18 @@ def _analyse_block(windows: np.ndarray, design: _Design, p: StepometerParams) ->
     # the stride of a fast gait (a swinging arm or a bag at 2.3-2.4 Hz puts most power at the stride,
     # 1.2 Hz, just below the band), the cadence is the largest interior local maximum: take it, and
     # let the band and periodicity tests judge it.
-    interior = np.zeros_like(score, dtype=bool)
-    interior[:, 1:-1] = (score[:, 1:-1] >= score[:, :-2]) & (score[:, 1:-1] >= score[:, 2:])
-    has_interior = interior.any(axis=1)
-    j_int = np.argmax(np.where(interior, score, -np.inf), axis=1)
-    # Only when the strongest component below the search range sits at that maximum's stride f/2
-    # (within a bin of the unpadded window, 1/window_s): a slow sway elsewhere stays rejected.
-    below = int(np.floor(design.cand[0] * design.n_fft / design.fs))
-    f_pk = (np.argmax(power[:, 1:below + 1], axis=1) + 1) * (design.fs / design.n_fft)
-    stride_ok = np.abs(design.cand[j_int] / 2.0 - f_pk) <= 1.0 / p.window_s
-    j = np.where((j == 0) & has_interior & stride_ok, j_int, j)
+    edge = np.flatnonzero(j == 0)
+    if len(edge):
+        s = score[edge]
+        interior = np.zeros_like(s, dtype=bool)
+        interior[:, 1:-1] = (s[:, 1:-1] >= s[:, :-2]) & (s[:, 1:-1] >= s[:, 2:])
+        j_int = np.argmax(np.where(interior, s, -np.inf), axis=1)
+        # Only when the strongest component below the search range sits at that maximum's stride f/2
+        # (within a bin of the unpadded window, 1/window_s): a slow sway elsewhere stays rejected.
+        below = int(np.floor(design.cand[0] * design.n_fft / design.fs))
+        f_pk = (np.argmax(power[edge, 1:below + 1], axis=1) + 1) * (design.fs / design.n_fft)
+        stride_ok = np.abs(design.cand[j_int] / 2.0 - f_pk) <= 1.0 / p.window_s
+        j[edge] = np.where(interior.any(axis=1) & stride_ok, j_int, 0)
     j = np.clip(j, 1, c - 2)
     r = np.arange(n)
     a, b, cc = score[r, j - 1], score[r, j], score[r, j + 1]
