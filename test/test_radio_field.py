@@ -99,3 +99,29 @@ def test_the_field_locates_users_where_the_survey_did_not_go():
         assert all(f.ok for f in fixes)
         err[label] = float(np.mean([np.hypot(*(f.xy - p)) for f, p in zip(fixes, pts)]))
     assert err["field"] < 0.8 * min(err["kernel"], err["default"]), err
+
+
+def test_the_calibration_folds_refit_the_prior_without_the_left_out_walk():
+    """The grid of a calibration fold is the kernel regression of the kept scans plus the path-loss prior
+    fitted on the kept scans only (a prior fitted on every scan would leak the left-out walk into its own
+    cross-validation and make the ellipses too small)."""
+    rm, _, _ = _survey(np.random.default_rng(6), ys=(5.0, 14.0, 23.0))
+    lam = 0.05
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, age_tau_ms=0.0, field_weight=lam,
+                                  smooth_reach_m=6.0)).fit(rm)
+    h = pos.params.smooth_m
+    keep = np.array(rm.source) != "walk1"
+    readings, sums, rows = pos._smoothed(keep)
+    g = pos._grid_pos[rows]
+    d = np.linalg.norm(g[:, None, :] - rm.positions[keep][None], axis=2)
+    w = np.exp(-0.5 * (d / h) ** 2) * (d <= 3 * h)
+    prior = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA, keep=keep).toarray() * pos._w
+    leaky = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA).toarray() * pos._w
+    expect = (w @ pos._vals[0][keep] + lam * prior) / (w.sum(axis=1) + lam)[:, None]
+    got = np.zeros_like(expect)
+    for col in range(expect.shape[1]):
+        r, v, _ = readings[0].gather(np.array([col]))
+        got[r, col] = v
+    np.testing.assert_allclose(got, expect, atol=1e-12)
+    np.testing.assert_allclose(sums[0], expect.sum(axis=1), atol=1e-12)
+    assert np.abs(prior - leaky).max() > 1e-3                 # the left-out walk does move the models

@@ -59,8 +59,9 @@ to 0.90 (F3) and stays 0.70 (F8).
 scans away from the walks, so a wider grid only adds look-alikes. With a per-AP log-distance path-loss
 prior (:mod:`indoor_loc.wifi.radio_field`) the grid's values tend from the kernel regression near the
 walks to the propagation model's expected powed values far from them, and the grid may reach where the
-survey did not go (``smooth_reach_m``). The prior is fitted once on all map scans; the calibration's
-folds re-interpolate the data part only.
+survey did not go (``smooth_reach_m``). The calibration's folds fit the prior again without their
+walks (a prior fitted on every scan leaks the left-out walk: on ms_site2 F3 it cut the cross-validated
+error from 13.9 to 12.9 m and left 70 % of the test truths in the 95 % ellipse instead of 83 %).
 
 Position: the similarity-weighted mean of the k nearest map scans (or grid candidates), weights 1 / (D + epsilon)
 (as WKNN, Nowicki & Skrzypczyński 2019, eq. 13). A scan that shares no AP with the map gets no fix
@@ -281,6 +282,8 @@ class PowedKnn(Positioner):
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
         self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
         self._prior: list[Any] | None = None         # per _vals (C, A) sparse path-loss prior (field_weight > 0)
+        self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
+        self._grid_z = np.zeros(0)
         self._vals: list[np.ndarray] = []            # (M, A) weighted map values: ages weighted, ages ignored
         self._views: list[_View] = []
         self._map_views_equal = True                 # the map has no ages: its values are the same in every view
@@ -338,11 +341,10 @@ class PowedKnn(Positioner):
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
                 pos, map_z, p.smooth_grid_m, p.smooth_reach_m, p.smooth_m)
             # --- extrapolating radio map: the path-loss prior of the grid (indoor_loc.wifi.radio_field) ---
-            self._prior = None
+            self._prior, self._grid_z = None, grid_z
             if p.field_weight > 0:
-                prior = pathloss_prior(radio_map, self._grid_pos, grid_z, floor_dbm=p.floor_dbm, beta=p.beta,
-                                       min_value=FIELD_MIN_VALUE)
-                self._prior = [sparse_scale(prior, view_scale(v, raw)) for v in self._vals]
+                self._prior_scale = [view_scale(v, raw) for v in self._vals]
+                self._prior = self._field_prior(np.ones(len(pos), bool), np.arange(len(grid_z)))
             readings, sums, _ = self._smoothed(np.ones(len(pos), bool))
             for a, j, twin in age_views:
                 self._views.append(_View(readings[j], sums[j], a, j, True, twin))
@@ -357,7 +359,8 @@ class PowedKnn(Positioner):
     def _smoothed(self, keep: np.ndarray) -> tuple[list[ApReadings], list[np.ndarray], np.ndarray]:
         """The grid interpolated from the map scans ``keep`` (M,) bool: per map values (``_vals``) the
         readings and their sums over the grid points within reach of a kept scan, and those points' rows.
-        The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs."""
+        The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs.
+        With ``field_weight`` > 0 the path-loss prior is added, fitted again without the left-out scans."""
         from scipy import sparse
         if self._kernel_sums is None:
             self._kernel_sums = ([sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals],
@@ -369,19 +372,31 @@ class PowedKnn(Positioner):
             k_drop = sparse.csc_matrix(self._kernel)[:, drop]
             den = den - np.asarray(k_drop.sum(axis=1)).ravel()
             nums = [n - sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop])) for n, v in zip(nums, self._vals)]
+        nums, den = [n[rows] for n in nums], den[rows]
         if self._prior is not None:                      # the path-loss prior: field_weight pseudo-scans at each point
-            den = den + self.params.field_weight
-            nums = [n + self.params.field_weight * pr for n, pr in zip(nums, self._prior)]
-        scale = sparse.diags(1.0 / np.maximum(den[rows], 1e-300))
+            lam = self.params.field_weight
+            prior = self._field_prior(keep, rows) if drop.any() else [pr[rows] for pr in self._prior]
+            den = den + lam
+            nums = [n + lam * pr for n, pr in zip(nums, prior)]
+        scale = sparse.diags(1.0 / np.maximum(den, 1e-300))
         readings: list[ApReadings] = []
         sums: list[np.ndarray] = []
         for n in nums:
-            g = sparse.csr_matrix(scale @ n[rows])
+            g = sparse.csr_matrix(scale @ n)
             g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
             g.eliminate_zeros()
             readings.append(ApReadings.from_sparse(g))
             sums.append(np.asarray(g.sum(axis=1)).ravel())
         return readings, sums, rows
+
+    def _field_prior(self, keep: np.ndarray, rows: np.ndarray) -> list[Any]:
+        """Per map values (``_vals``) the (len(rows), A) sparse path-loss prior at the grid points ``rows``,
+        the models fitted on the map scans ``keep`` (M,) bool (:mod:`indoor_loc.wifi.radio_field`)."""
+        assert self.radio_map is not None
+        p = self.params
+        prior = pathloss_prior(self.radio_map, self._grid_pos[rows], self._grid_z[rows], floor_dbm=p.floor_dbm,
+                               beta=p.beta, min_value=FIELD_MIN_VALUE, keep=keep)
+        return [sparse_scale(prior, sc) for sc in self._prior_scale]
 
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
         """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance.

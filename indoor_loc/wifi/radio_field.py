@@ -17,12 +17,13 @@ IEEE TMC 2013). Here:
   parameters, ``g^T C_a g`` (g = ∂P/∂θ_a at the point): an AP whose position is poorly known is
   poorly known everywhere, and most of all far from where it was heard.
 - **What a fingerprint holds at a point:** the powed value of a reading is 0 below the detection
-  floor, so the value expected there is ``E[powed(R)]`` with ``R ~ N(μ, σ²)``
-  (Gauss–Hermite quadrature): it carries the AP's detection probability, ``P(R > floor)``, and an
+  floor, so the value expected there is ``E[powed(R)]`` with ``R ~ N(μ, σ²)``:
+  it carries the AP's detection probability, ``P(R > floor)``, and an
   AP predicted near the floor with a large variance contributes a small, blurred value instead of a
-  hard "heard" or "not heard".
+  hard "heard" or "not heard". The expectation has a closed form in the parabolic cylinder function,
+  tabulated once.
 - **Posterior (large-noise limit):** at a candidate x the field is the kernel regression of the
-  survey scans with the prior as ``prior_weight`` pseudo-scans at x::
+  survey scans with the prior as λ = ``field_weight`` pseudo-scans at x::
 
       v_a(x) = (Σ_i K(x, x_i) v_ia + λ · prior_a(x)) / (Σ_i K(x, x_i) + λ)
 
@@ -36,8 +37,12 @@ Functions only (no state): the caller owns the candidate grid and the matching.
 """
 from __future__ import annotations
 
+import math
+from functools import lru_cache
+
 import numpy as np
 from scipy import sparse
+from scipy.special import gamma, pbdv
 
 from indoor_loc.wifi.pathloss import PathLoss, PathLossParams
 from indoor_loc.wifi.types import RadioMap
@@ -45,34 +50,55 @@ from indoor_loc.wifi.types import RadioMap
 #: expected powed values below this are dropped (an AP all but undetectable there: a reading of about
 #: −92 dBm without AP weights), which keeps the extrapolated grid sparse
 FIELD_MIN_VALUE = 1e-3
-#: Gauss–Hermite nodes and weights (probabilists', normalised) for E[f(R)], R ~ N(mu, sigma^2)
-_GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(12)
-_GH_W = _GH_W / _GH_W.sum()
+#: an AP is taken as not heard where its predicted RSS is below this quantile of the map's readings (what
+#: the phones report at the weakest: readings below it are rare, so the AP is more likely missed than heard)
+DETECT_QUANTILE = 0.05
+#: E[max(Z + t, 0)^beta], Z ~ N(0, 1), is tabulated on t in [T_LO, T_HI] (0 below; an asymptotic series above)
+T_LO, T_HI, T_STEP = -10.0, 25.0, 0.005
+
+
+@lru_cache(maxsize=4)
+def _positive_part_moment(beta: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t, E[max(Z + t, 0)^beta]) on a fine grid of t: Γ(β + 1) e^(−t²/4) D_(−β−1)(−t) / √(2π), with
+    D the parabolic cylinder function (Abramowitz & Stegun 19.5.1)."""
+    t = np.arange(T_LO, T_HI + T_STEP / 2, T_STEP)
+    return t, gamma(beta + 1.0) * np.exp(-0.25 * t * t) * pbdv(-beta - 1.0, -t)[0] / math.sqrt(2.0 * math.pi)
 
 
 def expected_powed(mu_dbm: np.ndarray, sigma_db: np.ndarray, floor_dbm: float, beta: float) -> np.ndarray:
-    """E[powed(R)] for R ~ N(mu, sigma^2) (dBm, dB; broadcast), powed(r) = (max(r − floor, 0) / −floor)^beta."""
+    """E[powed(R)] for R ~ N(mu, sigma^2) (dBm, dB > 0; broadcast), powed(r) = (max(r − floor, 0) / −floor)^beta:
+    (sigma / −floor)^beta · E[max(Z + t, 0)^beta] with t = (mu − floor) / sigma (tabulated; for t above the
+    table t^beta (1 + beta (beta − 1) / (2 t²)), relative error below 1e-6)."""
     mu, sig = np.broadcast_arrays(np.asarray(mu_dbm, float), np.asarray(sigma_db, float))
-    out = np.zeros(mu.shape)
-    live = mu + _GH_X[-1] * sig > floor_dbm          # else every node is below the floor: 0
-    r = mu[live][:, None] + sig[live][:, None] * _GH_X
-    out[live] = (np.clip(r - floor_dbm, 0.0, None) / -floor_dbm) ** beta @ _GH_W
-    return out
+    sig = np.maximum(sig, 1e-9)
+    t = (mu - floor_dbm) / sig
+    tab_t, tab_m = _positive_part_moment(float(beta))
+    m = np.interp(t, tab_t, tab_m, left=0.0)
+    hi = t > T_HI
+    th = t[hi]
+    m[hi] = th ** beta * (1.0 + beta * (beta - 1.0) / (2.0 * th * th))
+    return (sig / -floor_dbm) ** beta * m
 
 
 def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray, *, floor_dbm: float, beta: float,
-                   min_value: float = FIELD_MIN_VALUE, params: PathLossParams | None = None, chunk: int = 2048
-                   ) -> sparse.csr_matrix:
+                   min_value: float = FIELD_MIN_VALUE, params: PathLossParams | None = None,
+                   keep: np.ndarray | None = None, chunk: int = 2048) -> sparse.csr_matrix:
     """(C, A) sparse expected powed values of the map's APs (columns as ``radio_map.bssids``) at the
     candidates ``grid_pos`` (C, 2) m on floors ``grid_z`` (C,) m, from per-floor path-loss models of
     the map scans; values below ``min_value`` (an AP all but undetectable there) are dropped. APs
-    with fewer map scans than the path-loss fit needs get no prior (0)."""
+    with fewer map scans than the path-loss fit needs get no prior (0). ``keep`` (M,) bool: fit on these
+    map scans only (a cross-validation fold)."""
     pos = np.asarray(radio_map.positions, float)
     rss = np.asarray(radio_map.rssi_dbm, float)
     map_z = np.asarray(radio_map.z_m, float)
+    if keep is not None:
+        keep = np.asarray(keep, bool)
+        pos, rss, map_z = pos[keep], rss[keep], map_z[keep]
     grid_pos = np.asarray(grid_pos, float)
     grid_z = np.asarray(grid_z, float)
     n_aps = rss.shape[1]
+    heard_rss = rss[np.isfinite(rss)]
+    detect_dbm = float(np.quantile(heard_rss, DETECT_QUANTILE)) if len(heard_rss) else floor_dbm
     blocks = []
     for zf in np.unique(grid_z):
         on = map_z == zf
@@ -101,6 +127,7 @@ def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray
             g[..., 2:4] = (10.0 / np.log(10.0)) * (th[None, :, 1] / d2)[..., None] * diff
             var = s2[None, :] + np.einsum("cai,aij,caj->ca", g, cov, g)
             v = expected_powed(mu, np.sqrt(var), floor_dbm, beta)
+            v[mu < detect_dbm] = 0.0                  # more likely not heard than heard there
             v[v < min_value] = 0.0
             cc, aa = np.nonzero(v)
             blocks.append(sparse.coo_matrix((v[cc, aa], (r[cc], cols[aa])), shape=(len(grid_pos), n_aps)))
