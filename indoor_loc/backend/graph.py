@@ -514,9 +514,9 @@ class MultiUserGraph:
 
         # Jacobian sparsity: (rows, cols, keep) in the order jac() produces its values. Entries the
         # factor models make zero whatever the estimates are left out (``nz``): the PDR blocks'
-        # x-y couplings and the heading row of d e / d l, the gauge priors' off-diagonals and, with a
-        # scalar WiFi information and no robust kernel, the hyperedges' off-diagonals — nearly half
-        # of all entries, which every LSMR product would otherwise multiply by zero
+        # x-y couplings and the heading row of d e / d l, the gauge priors' off-diagonals and, without
+        # a robust kernel, the hyperedges' off-diagonals (lower left only with a fix's information) —
+        # nearly half of all entries, which every LSMR product would otherwise multiply by zero
         def blk(row0, nrow, cols0, ncol, ok, nz=None):
             """Entries of (N, nrow, ncol) blocks: rows row0[n] + a, cols cols0[n] + b."""
             r = row0[:, None, None] + np.arange(nrow)[None, :, None] + np.zeros((1, 1, ncol), np.int64)
@@ -527,7 +527,10 @@ class MultiUserGraph:
 
         nz_pdr = np.array([[1, 0, 1], [0, 1, 1], [0, 0, 1]], bool)      # F.pdr_error's J_prev, J_cur
         nz_len = np.array([[1], [1], [0]], bool)                          # its J_len
-        nz_wifi = np.eye(2, dtype=bool) if p.robust_kernel == "none" and not p.wifi_info_from_fix else None
+        # whitened hyperedge blocks are L (and -w_j L): diagonal for a scalar information, upper
+        # triangular for a fix's (Cholesky) one; a robust kernel's correction fills them
+        nz_wifi = (None if p.robust_kernel != "none" else
+                   np.triu(np.ones((2, 2), bool)) if p.wifi_info_from_fix else np.eye(2, dtype=bool))
         rp = r_p + 3 * np.arange(n_p)
         rw = r_w + 2 * np.arange(n_w)
         parts = [blk(rp, 3, col[pprev], 3, isvar[pprev], nz_pdr), blk(rp, 3, col[pcur], 3, isvar[pcur], nz_pdr),
