@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers_dds import ros_node
+from helpers_dds import ros_node, spin_until
 from msg_adapters.diagnostics import diagnostics_from_msg
 from indoor_loc.nodes.base import params_file_args
 from indoor_loc.nodes.wifi_fix_node import WifiFixNode
@@ -33,14 +33,18 @@ def test_written_params_file_reaches_a_namespaced_node(ros_domain, tmp_path):
     path = tmp_path / "params.yaml"
     path.write_text(params_file_text({"imu_node": {"step_length_m": 0.7},
                                       "wifi_fix_node": {"radiomap": _radiomap(tmp_path), "method": "wknn"}}))
-    with ros_node("probe") as (probe, _):
+    with ros_node("probe") as (probe, ex):
         node = _node(probe, path)
+        ex.add_node(node)
         try:
             assert node.stage.radio_map is not None and node.stage.radio_map.n_scans == 20
             assert node.check_params_files([str(path)]) == []
+            # the map is fitted in the background; once it is, the node is OK
+            assert spin_until(ex, lambda: node.stage.positioner is not None, 20)
             st = diagnostics_from_msg(node.diagnostics_msg(0))["/walk06/wifi_fix_node"]
-            assert st.level == 0            # OK
+            assert st.level == 0, st        # OK
         finally:
+            ex.remove_node(node)
             node.destroy_node()
 
 

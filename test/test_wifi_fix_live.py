@@ -158,14 +158,14 @@ def test_deferred_fit_equals_the_synchronous_stage_and_overflow_is_counted(tmp_p
     assert "error" not in st.extra_diagnostics()
     assert all(st.process("wifi/scan", s, i) == [] for i, s in enumerate(scans))
     assert len(st.pending) == 3 and st.diag.rejected == {"fit_queue_full": 2}       # the two oldest dropped
-    outs = st.end_fit(st._fit_job, st.fit_positioner(st.fitting))
+    outs = st.end_fit(st.fit_job, st.fit_positioner(st.fitting))
     want = _reference(map_dir, scans)[2:]
     assert len(outs) == 3 and all(_same_fix(m, w) for (_, m), w in zip(outs, want))
     assert st.diag.published["wifi/fix"] == 3 and st.extra_diagnostics()["fit.located_late"] == "3"
 
     # a superseded job is ignored; input ending during a fit counts the queued scans
     st2 = WifiFixStage(params, namespace="/alice", fit_now=False)
-    old = st2._fit_job
+    old = st2.fit_job
     st2.begin_fit(grid_map())
     assert st2.end_fit(old, st2.fit_positioner(grid_map())) == [] and st2.waiting_for_fit()
     st2.process("wifi/scan", scans[0], 0)

@@ -43,7 +43,7 @@ class WifiFixNode(StageNode):
         self.stage: WifiFixStage
         self._fit_done = self.create_guard_condition(self._on_fit_done)
         if self.stage.fitting is not None:
-            self._start_fit(self.stage._fit_job, self.stage.fitting)
+            self._start_fit(self.stage.fit_job, self.stage.fitting)
 
     def set_radio_map(self, rm: RadioMap) -> None:
         """Replace the radio map without blocking the executor: it is fitted in a worker thread and
@@ -103,7 +103,7 @@ class WifiFixNode(StageNode):
         if rm is None or not arr.status:
             return arr
         st = arr.status[0]
-        started = self._fit_started.get(self.stage._fit_job)
+        started = self._fit_started.get(self.stage.fit_job)
         elapsed = time.monotonic() - started if started is not None else 0.0
         st.values.append(KeyValue(key="fit.elapsed_s", value=f"{elapsed:.1f}"))
         if self.stage.waiting_for_fit():

@@ -116,7 +116,7 @@ class WifiFixStage(Stage):
         self.positioner: Positioner | None = None
         #: the map being fitted (``begin_fit`` .. ``end_fit``/``fit_failed``) and its job number
         self.fitting: RadioMap | None = None
-        self._fit_job = 0
+        self.fit_job = 0
         self.fit_error = ""
         #: scans received while no positioner could answer them: (scan, node-clock receive ns)
         self.pending: deque[tuple[WifiScan, int]] = deque()
@@ -127,9 +127,8 @@ class WifiFixStage(Stage):
         if self.radio_map is not None:
             if fit_now:
                 self.positioner = self.fit_positioner(self.radio_map)
-            else:
-                rm, self.radio_map = self.radio_map, None
-                self.begin_fit(rm)
+            else:               # radio_map is the configured map; it answers once end_fit installs it
+                self.begin_fit(self.radio_map)
         self._last_scan_ns: int | None = None     # stamp of the last scan accepted (older ones: stamp_backwards)
         self.on("wifi/scan", self._on_scan)
 
@@ -154,14 +153,14 @@ class WifiFixStage(Stage):
         """``rm`` is being fitted: until :meth:`end_fit`, scans are located with the current
         positioner, or queued when there is none. Returns the job number ``end_fit`` and
         :meth:`fit_failed` take (a later ``begin_fit`` supersedes an unfinished one)."""
-        self._fit_job += 1
+        self.fit_job += 1
         self.fitting = rm
-        return self._fit_job
+        return self.fit_job
 
     def end_fit(self, job: int, positioner: Positioner) -> list[Output]:
         """Install the positioner fitted for job ``job`` (ignored if a later job superseded it) and
         locate the queued scans in arrival order; returns their fixes (counted as published)."""
-        if job != self._fit_job or self.fitting is None:
+        if job != self.fit_job or self.fitting is None:
             return []
         self.radio_map, self.positioner, self.fitting, self.fit_error = self.fitting, positioner, None, ""
         out: list[Output] = []
@@ -176,7 +175,7 @@ class WifiFixStage(Stage):
         """The fit of job ``job`` raised ``err``: a standing error (ERROR in diagnostics) with the
         cause; the previous positioner, if any, keeps answering, else the queued scans are dropped
         and counted (``fit_failed``)."""
-        if job != self._fit_job or self.fitting is None:
+        if job != self.fit_job or self.fitting is None:
             return
         n_scans = self.fitting.n_scans
         self.fitting = None
