@@ -73,7 +73,10 @@ def expected_powed(mu_dbm: np.ndarray, sigma_db: np.ndarray, floor_dbm: float, b
     sig = np.maximum(sig, 1e-9)
     t = (mu - floor_dbm) / sig
     tab_t, tab_m = _positive_part_moment(float(beta))
-    m = np.interp(t, tab_t, tab_m, left=0.0)
+    x = np.clip((t - T_LO) / T_STEP, 0.0, len(tab_t) - 1.0)     # uniform table: index directly
+    i = np.minimum(x.astype(np.int64), len(tab_t) - 2)
+    f = x - i
+    m = np.where(t < T_LO, 0.0, (1.0 - f) * tab_m[i] + f * tab_m[i + 1])
     hi = t > T_HI
     th = t[hi]
     m[hi] = th ** beta * (1.0 + beta * (beta - 1.0) / (2.0 * th * th))
@@ -115,25 +118,30 @@ def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray
         th, cov, s2 = pl.theta[use], pl.theta_cov[use], pl.sigma2[use]
         cols = heard[use]
         d0 = pl.params.d0_m
+        rr, cc, vv = [], [], []
         for lo in range(0, len(rows), chunk):
             r = rows[lo:lo + chunk]
             diff = grid_pos[r][:, None, :] - th[None, :, 2:4]                     # (c, a, 2)
-            d2 = np.einsum("cai,cai->ca", diff, diff) + d0 * d0
+            d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + d0 * d0
             log10d = 0.5 * np.log10(d2)
             mu = th[None, :, 0] - 10.0 * th[None, :, 1] * log10d
-            g = np.empty(d2.shape + (4,))
-            g[..., 0] = 1.0
-            g[..., 1] = -10.0 * log10d
-            g[..., 2:4] = (10.0 / np.log(10.0)) * (th[None, :, 1] / d2)[..., None] * diff
-            var = s2[None, :] + np.einsum("cai,aij,caj->ca", g, cov, g)
-            v = expected_powed(mu, np.sqrt(var), floor_dbm, beta)
-            v[mu < detect_dbm] = 0.0                  # more likely not heard than heard there
-            v[v < min_value] = 0.0
-            cc, aa = np.nonzero(v)
-            blocks.append(sparse.coo_matrix((v[cc, aa], (r[cc], cols[aa])), shape=(len(grid_pos), n_aps)))
+            ci, ai = np.nonzero(mu >= detect_dbm)     # below: more likely not heard than heard there (0)
+            dl = diff[ci, ai]
+            g = np.empty((len(ci), 4))
+            g[:, 0] = 1.0
+            g[:, 1] = -10.0 * log10d[ci, ai]
+            g[:, 2:4] = ((10.0 / np.log(10.0)) * th[ai, 1] / d2[ci, ai])[:, None] * dl
+            var = s2[ai] + np.einsum("pi,pij,pj->p", g, cov[ai], g)
+            v = expected_powed(mu[ci, ai], np.sqrt(var), floor_dbm, beta)
+            big = v >= min_value
+            rr.append(r[ci[big]])
+            cc.append(cols[ai[big]])
+            vv.append(v[big])
+        blocks.append(sparse.coo_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))),
+                                        shape=(len(grid_pos), n_aps)))
     if not blocks:
         return sparse.csr_matrix((len(grid_pos), n_aps))
-    return sparse.csr_matrix(sum(b.tocsr() for b in blocks))
+    return sparse.csr_matrix(sum(b.tocsr() for b in blocks))  # floors' rows are disjoint
 
 
 def view_scale(values: np.ndarray, raw: np.ndarray) -> np.ndarray:
