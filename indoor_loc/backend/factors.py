@@ -101,7 +101,11 @@ def wifi_error(pose_xy: np.ndarray, nbr_xy: np.ndarray, weights: np.ndarray, *, 
     p = np.asarray(pose_xy, float)
     q = np.asarray(nbr_xy, float)
     w = np.asarray(weights, float)
-    e = p - np.einsum("nk,nkd->nd", w, q)
+    # Σ_j w_j q_j accumulated neighbour by neighbour (numpy's einsum costs ~50 us a call here)
+    acc = w[:, 0, None] * q[:, 0]
+    for j in range(1, w.shape[1]):
+        acc = acc + w[:, j, None] * q[:, j]
+    e = p - acc
     if not jacobians:
         return e
     n, k = w.shape

@@ -256,22 +256,26 @@ class MultiUserGraph:
     def add_hop(self, name: str, t_start_ns: int, t_end_ns: int, steps: float, yaw: float) -> int | None:
         """One stepometer hop of user ``name``: ``steps`` over [t_start, t_end], odometry yaw (rad) at
         its end. Returns the index of a pose it added, else None."""
-        tr = self.user(name)
+        tr = self.users.get(name) or self.user(name)
+        t_end_ns = int(t_end_ns)
         self._check_order(tr, t_end_ns, "hop")
-        if tr.last_hop_end_ns is not None and t_end_ns <= tr.last_hop_end_ns:
-            raise ValueError(f"{name}: hop end {t_end_ns} not after the previous hop end {tr.last_hop_end_ns}")
-        dtheta = F.wrap_scalar(yaw - tr.last_yaw) if tr.last_hop_end_ns is not None else 0.0
+        last_end = tr.last_hop_end_ns
+        if last_end is not None and t_end_ns <= last_end:
+            raise ValueError(f"{name}: hop end {t_end_ns} not after the previous hop end {last_end}")
+        steps = float(steps)
+        dtheta = F.wrap_scalar(yaw - tr.last_yaw) if last_end is not None else 0.0
         dur = max((t_end_ns - t_start_ns) * 1e-9, 1e-3)
-        tr.step_rate = max(float(steps), 0.0) / dur
-        tr.last_hop_end_ns, tr.last_yaw, tr.last_event_ns = int(t_end_ns), float(yaw), int(t_end_ns)
+        tr.step_rate = max(steps, 0.0) / dur
+        tr.last_hop_end_ns = tr.last_event_ns = t_end_ns
+        tr.last_yaw = float(yaw)
         if not tr.started:
             return None
-        eff = max(float(steps) - tr.carry_steps, 0.0)
-        tr.carry_steps = max(tr.carry_steps - float(steps), 0.0)
-        tr.acc_steps += eff
+        carry = tr.carry_steps
+        tr.carry_steps = max(carry - steps, 0.0)
+        tr.acc_steps += max(steps - carry, 0.0)
         tr.acc_dtheta += dtheta
         if (t_end_ns - tr.last_grid_ns) * 1e-9 >= self.params.pose_period_s - 1e-3:
-            tr.last_grid_ns = int(t_end_ns)
+            tr.last_grid_ns = t_end_ns
             self._new_pose(tr, t_end_ns, None)
             self._bound(tr)
             return tr.poses[-1]
@@ -280,7 +284,7 @@ class MultiUserGraph:
     def add_scan(self, name: str, scan: WifiScan) -> tuple[int | None, Match | None]:
         """A WiFi scan of user ``name``. Returns (pose it is attached to or None (user not started yet),
         the WKNN match or None)."""
-        tr = self.user(name)
+        tr = self.users.get(name) or self.user(name)
         self._check_order(tr, scan.stamp_ns, "scan")
         tr.last_event_ns = int(scan.stamp_ns)
         match = self.map.match(scan, user=tr.index, joint=self.params.joint)
@@ -334,10 +338,10 @@ class MultiUserGraph:
     def _new_pose(self, tr: UserTrack, stamp_ns: int, xy: np.ndarray | None) -> int:
         """A pose after the last one, from the accumulated PDR (position from ``xy`` when given)."""
         last = tr.poses[-1]
-        p = self.poses.x[last]
-        d = self.step_len[tr.index] * tr.acc_steps
-        mean = p[2] + 0.5 * tr.acc_dtheta
-        x = np.array([p[0] + d * math.cos(mean), p[1] + d * math.sin(mean), F.wrap_scalar(p[2] + tr.acc_dtheta)])
+        px, py, pth = self.poses.x[last].tolist()
+        d = float(self.step_len[tr.index]) * tr.acc_steps
+        mean = pth + 0.5 * tr.acc_dtheta
+        x = np.array([px + d * math.cos(mean), py + d * math.sin(mean), F.wrap_scalar(pth + tr.acc_dtheta)])
         if xy is not None:
             x[:2] = xy
         i = self._add_pose(tr, stamp_ns, x)
@@ -355,6 +359,10 @@ class MultiUserGraph:
         """Freeze the oldest poses of ``tr`` beyond ``max_user_poses`` and the oldest-inserted poses
         beyond ``max_active_poses`` (finished users first); drop frozen poses beyond
         ``max_frozen_poses``. Returns the old -> new pose index map when poses were dropped."""
+        p = self.params
+        if (len(tr.poses) <= p.max_user_poses and self.poses.n - self.n_frozen <= p.max_active_poses
+                and self.n_frozen <= p.max_frozen_poses):
+            return None                  # within every bound: nothing to freeze or drop
         frozen = self.poses.view("frozen")
         old = np.asarray(tr.poses[:-self.params.max_user_poses], np.int64)
         if len(old):
@@ -566,12 +574,16 @@ class MultiUserGraph:
                 L[var_users] = z[3 * len(var):]
             return Xc, L
 
+        # neighbour positions (n_w, k, 2): the fixed ones once, the poses' at each evaluation
+        nbr_fixed = np.empty(wrefs.shape + (2,))
+        at_fixed = wrefs < 0
+        nbr_fixed[at_fixed] = fixed_xy[-1 - wrefs[at_fixed]]
+        at_pose = ~at_fixed
+        pose_refs = wrefs[at_pose]
+
         def nbr_xy(Xc):
-            refs = wrefs
-            out = np.empty(refs.shape + (2,))
-            fx = refs < 0
-            out[fx] = fixed_xy[-1 - refs[fx]]
-            out[~fx] = Xc[refs[~fx], :2]
+            out = nbr_fixed.copy()
+            out[at_pose] = Xc[pose_refs, :2]
             return out
 
         def evaluate(z, want_jac):
@@ -583,10 +595,13 @@ class MultiUserGraph:
                 ep, (jp, jc, jl) = ep
                 ew, (jwp, jwn) = ew
             res[r_p:r_w] = (ep * sqrt_pdr).ravel()
-            ewh = np.einsum("nab,nb->na", wL, ew)
+            # whitening by the (n, 2, 2) square roots, as two products and a sum (numpy's einsum
+            # costs ~50 us a call at this size)
+            ewh = wL[:, :, 0] * ew[:, None, 0] + wL[:, :, 1] * ew[:, None, 1]
             if want_jac:
-                jwp = np.einsum("nab,nbc->nac", wL, jwp)
-                jwn = np.einsum("nab,nkbc->nkac", wL, jwn)
+                jwp = wL[:, :, 0, None] * jwp[:, None, 0, :] + wL[:, :, 1, None] * jwp[:, None, 1, :]
+                jwn = (wL[:, None, :, 0, None] * jwn[:, :, None, 0, :]
+                       + wL[:, None, :, 1, None] * jwn[:, :, None, 1, :])
                 ewh, (jwp, jwn), _ = F.robustify(ewh, [jwp, jwn.transpose(0, 2, 1, 3)], p.robust_kernel, c_rob)
                 jwn = jwn.transpose(0, 2, 1, 3)
             else:

@@ -88,6 +88,7 @@ class Wknn(Positioner):
         self.aps = ApIndex()
         self._n_map = np.zeros(0)                    # (M,) usable networks per map scan
         self._n_map_floor = np.zeros(0)              # (M,) the same, at least 1 (the shared-fraction divisor)
+        self._cov_floor = (self.params.cov_floor_m ** 2) * np.eye(2)
         self._pos = np.zeros((0, 2))                 # (M, 2) map positions, m
         self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # usable RSS (dBm) by AP
 
@@ -181,7 +182,7 @@ class Wknn(Positioner):
         xy = w @ f
         dev = f - xy
         spread = (w[:, None] * dev).T @ dev
-        cov = p.cov_scale * spread + (p.cov_floor_m ** 2) * np.eye(2)
+        cov = p.cov_scale * spread + self._cov_floor
         if not full_info:
             return Fix(stamp_ns, xy, cov, ok=True, info={"rows": best, "weights": w, "similarity": s,
                                                           "candidates": n_cand})
