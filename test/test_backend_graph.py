@@ -39,6 +39,30 @@ def test_assembled_jacobian_matches_numerical_derivatives(robust):
         np.testing.assert_allclose(J[:, c], (fun(z0 + d) - fun(z0 - d)) / (2 * h), atol=2e-5)
 
 
+@pytest.mark.parametrize("robust,from_fix", [("none", False), ("huber", False), ("none", True)])
+def test_jacobian_pattern_holds_every_nonzero(robust, from_fix):
+    """The sparse Jacobian stores only entries the factor models can make non-zero: every column
+    against central differences, and the stored pattern against the non-zeros it leaves out."""
+    rng = np.random.default_rng(8)
+    g = MultiUserGraph(GraphParams(window_poses=0, robust_kernel=robust, robust_threshold_m=0.3,
+                                   wifi_info_from_fix=from_fix,
+                                   wknn={"shared_threshold": 0.75, "shared_strict": False}), survey(0, 24, rng))
+    feed(g, corridor_walk("a", 2, 40, 0, rng, scan_period_s=1.0))
+    feed(g, corridor_walk("b", 38, 26, 100 * SEC, rng))
+    g.poses.x[:g.poses.n] += rng.normal(0, 0.5, (g.poses.n, 3))
+    if from_fix:      # a fix's information has a full Cholesky factor (upper triangular Lᵀ)
+        g.wifi.view("sqrt_info")[:] = np.triu(rng.uniform(0.5, 3.0, (g.wifi.n, 2, 2)))
+    fun, jac, z0, _, _ = g.problem(np.arange(g.poses.n))
+    J = jac(z0)
+    h = 1e-6
+    num = np.stack([(fun(z0 + d) - fun(z0 - d)) / (2 * h) for d in h * np.eye(len(z0))], axis=1)
+    np.testing.assert_allclose(J.toarray(), num, atol=2e-5)
+    stored = np.zeros(J.shape, bool)
+    stored[np.repeat(np.arange(J.shape[0]), np.diff(J.indptr)), J.indices] = True
+    assert np.all(np.abs(num[~stored]) < 1e-7)                # nothing left out is non-zero
+    assert np.mean(J.data == 0) < 0.05                          # and the pattern is tight (was ~45 % zeros)
+
+
 def test_insertion_policy():
     rng = np.random.default_rng(5)
     p = GraphParams(window_poses=0, pose_period_s=1.28, min_scan_move_m=0.3)

@@ -89,6 +89,29 @@ def test_locate_and_locate_many_agree(rng):
             np.testing.assert_array_equal(a.cov, b.cov)
 
 
+def test_locate_rows_is_locate_with_less_info(rng):
+    """The back-end's lighter call gives the same fix, rows, weights and reasons bit for bit."""
+    rm, field = _field(rng)
+    _, scans = _queries(rng, field, 30)
+    scans += [WifiScan(1, ("aa:bb:cc:dd:ee:ff",), np.array([-50.0]), np.array([2412.0])),
+              WifiScan(2, (rm.bssids[0],), np.array([-110.0]), np.array([2412.0])),
+              WifiScan(3, (rm.bssids[0], rm.bssids[1]), np.array([np.nan, -60.0]), np.full(2, 2412.0))]
+    seen = set()
+    for p in (WknnParams(), WknnParams(error_type="rms", shared_strict=True, shared_threshold=0.5),
+              WknnParams(error_type="mae", k=3, min_candidates=170)):
+        w = Wknn(p).fit(rm)
+        for s in scans:
+            a, b = w.locate(s), w.locate_rows(s)
+            seen.add(a.reason)
+            assert (a.ok, a.reason, a.info["candidates"]) == (b.ok, b.reason, b.info["candidates"])
+            assert a.xy.tobytes() == b.xy.tobytes() and a.cov.tobytes() == b.cov.tobytes()
+            if a.ok:
+                for key in ("rows", "weights", "similarity"):
+                    assert a.info[key].tobytes() == b.info[key].tobytes()
+                assert "sources" not in b.info
+    assert seen == {"", "no_candidates", "no_usable_aps", "few_candidates"}
+
+
 def test_recovers_positions_in_a_path_loss_field(rng):
     """2 m grid, 40 APs (n 3.5-5, 3 dB noise): WKNN mean error under 2 m (measured 0.9 m)."""
     rm, field = _field(rng)

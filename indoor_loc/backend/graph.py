@@ -512,23 +512,34 @@ class MultiUserGraph:
         # threshold in whitened units: robust_threshold_m at the paper's information, else in sigmas
         c_rob = (1.0 if p.wifi_info_from_fix else self._sqrt_wifi) * p.robust_threshold_m
 
-        # Jacobian sparsity: (rows, cols, keep) in the order jac() produces its values
-        def blk(row0, nrow, cols0, ncol, ok):
+        # Jacobian sparsity: (rows, cols, keep) in the order jac() produces its values. Entries the
+        # factor models make zero whatever the estimates are left out (``nz``): the PDR blocks'
+        # x-y couplings and the heading row of d e / d l, the gauge priors' off-diagonals and, without
+        # a robust kernel, the hyperedges' off-diagonals (lower left only with a fix's information) —
+        # nearly half of all entries, which every LSMR product would otherwise multiply by zero
+        def blk(row0, nrow, cols0, ncol, ok, nz=None):
             """Entries of (N, nrow, ncol) blocks: rows row0[n] + a, cols cols0[n] + b."""
             r = row0[:, None, None] + np.arange(nrow)[None, :, None] + np.zeros((1, 1, ncol), np.int64)
             c = cols0[:, None, None] + np.zeros((1, nrow, 1), np.int64) + np.arange(ncol)[None, None, :]
-            k = np.broadcast_to(ok[:, None, None], r.shape)
+            k = ok[:, None, None] if nz is None else ok[:, None, None] & nz[None]
+            k = np.broadcast_to(k, r.shape)
             return r.ravel(), c.ravel(), k.ravel()
 
+        nz_pdr = np.array([[1, 0, 1], [0, 1, 1], [0, 0, 1]], bool)      # F.pdr_error's J_prev, J_cur
+        nz_len = np.array([[1], [1], [0]], bool)                          # its J_len
+        # whitened hyperedge blocks are L (and -w_j L): diagonal for a scalar information, upper
+        # triangular for a fix's (Cholesky) one; a robust kernel's correction fills them
+        nz_wifi = (None if p.robust_kernel != "none" else
+                   np.triu(np.ones((2, 2), bool)) if p.wifi_info_from_fix else np.eye(2, dtype=bool))
         rp = r_p + 3 * np.arange(n_p)
         rw = r_w + 2 * np.arange(n_w)
-        parts = [blk(rp, 3, col[pprev], 3, isvar[pprev]), blk(rp, 3, col[pcur], 3, isvar[pcur]),
-                 blk(rp, 3, ucol[puser], 1, ucol[puser] >= 0),
-                 blk(rw, 2, col[wpose], 2, isvar[wpose])]
+        parts = [blk(rp, 3, col[pprev], 3, isvar[pprev], nz_pdr), blk(rp, 3, col[pcur], 3, isvar[pcur], nz_pdr),
+                 blk(rp, 3, ucol[puser], 1, ucol[puser] >= 0, nz_len),
+                 blk(rw, 2, col[wpose], 2, isvar[wpose], nz_wifi)]
         for j in range(self.k):
             rj = np.maximum(wrefs[:, j], 0)
-            parts.append(blk(rw, 2, col[rj], 2, refvar[:, j]))
-        parts.append(blk(r_g + 3 * np.arange(n_g), 3, col[gpose], 3, np.ones(n_g, bool)))
+            parts.append(blk(rw, 2, col[rj], 2, refvar[:, j], nz_wifi))
+        parts.append(blk(r_g + 3 * np.arange(n_g), 3, col[gpose], 3, np.ones(n_g, bool), np.eye(3, dtype=bool)))
         parts.append(blk(r_u + np.arange(n_u), 1, ucol[var_users], 1, np.ones(n_u, bool)))
         rows = np.concatenate([q[0] for q in parts])
         cols = np.concatenate([q[1] for q in parts])

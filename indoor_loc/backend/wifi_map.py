@@ -198,7 +198,7 @@ class EvolvingMap:
                           source=["map"] * len(rows))
             wknn = Wknn(self.wknn_params).fit(rm)
             self._fitted = (key, rows, wknn)
-        fix = wknn.locate(scan)
+        fix = wknn.locate_rows(scan)
         if not fix.ok:
             return None
         chosen = rows[np.asarray(fix.info["rows"], np.int64)]

@@ -87,6 +87,7 @@ class Wknn(Positioner):
         self.radio_map: RadioMap | None = None
         self.aps = ApIndex()
         self._n_map = np.zeros(0)                    # (M,) usable networks per map scan
+        self._n_map_floor = np.zeros(0)              # (M,) the same, at least 1 (the shared-fraction divisor)
         self._pos = np.zeros((0, 2))                 # (M, 2) map positions, m
         self._readings = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))   # usable RSS (dBm) by AP
 
@@ -103,6 +104,7 @@ class Wknn(Positioner):
         self.radio_map = radio_map
         self.aps = ApIndex(radio_map.bssids)
         self._n_map = usable.sum(axis=1).astype(float)
+        self._n_map_floor = np.maximum(self._n_map, 1.0)
         self._pos = pos
         self._readings = ApReadings(usable, rss)
         return self
@@ -112,27 +114,32 @@ class Wknn(Positioner):
         return int(self.params.k)
 
     # ------------------------------------------------------------------------------------------
-    def _query(self, scan: WifiScan) -> tuple[np.ndarray, np.ndarray, int]:
-        """(columns (q,), RSS (q,), usable networks n_x) of a scan; APs unknown to the map count
-        in n_x but have no column."""
-        thr = self.params.min_signal_dbm
+    def _nearest(self, scan: WifiScan) -> tuple[np.ndarray | None, np.ndarray | str, int]:
+        """The k most similar candidate map rows of a scan, most similar first, and their
+        similarities: (best (k,), s (k,), candidates), or (None, reason, candidates) when declined.
+
+        Only map rows sharing at least one AP with the scan can be candidates, so the distances,
+        shared fractions and the candidate test are evaluated on those rows alone (element by
+        element the same arithmetic as over every map row)."""
+        p = self.params
         r = np.asarray(scan.rssi_dbm, float)
-        ok = np.isfinite(r) & (r >= thr)
+        ok = np.isfinite(r) & (r >= p.min_signal_dbm)
+        n_x = int(np.count_nonzero(ok))
+        if n_x == 0:
+            return None, "no_usable_aps", 0
         cols = self.aps.columns(scan.bssid)
         keep = ok & (cols >= 0)
-        return cols[keep], r[keep], int(ok.sum())
-
-    def _distances_inverted(self, cols: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One query through the inverted index: cols (q,), vals (q,). Touches only the readings of
-        the query's APs (sum of their map counts), so the cost is O(M q density)."""
-        m = self._pos.shape[0]
-        rows, map_vals, lens = self._readings.gather(cols)
+        rows, map_vals, lens = self._readings.gather(cols[keep])
         if len(rows) == 0:
-            return np.full(m, np.inf), np.zeros(m)
-        diff = np.repeat(vals, lens) - map_vals
-        shared = np.bincount(rows, minlength=m).astype(float)
-        et = self.params.error_type
-        acc = np.bincount(rows, weights=diff * diff if et in ("l2", "rms") else np.abs(diff), minlength=m)
+            return None, "no_candidates", 0
+        m = self._pos.shape[0]
+        diff = np.repeat(r[keep], lens) - map_vals
+        count = np.bincount(rows, minlength=m)
+        et = p.error_type
+        acc_all = np.bincount(rows, weights=diff * diff if et in ("l2", "rms") else np.abs(diff), minlength=m)
+        idx = np.flatnonzero(count)                       # the rows sharing an AP with the scan
+        shared = count[idx].astype(float)
+        acc = acc_all[idx]
         if et == "l2":
             d = np.sqrt(acc)
         elif et == "rms":
@@ -141,50 +148,48 @@ class Wknn(Positioner):
             d = acc / np.maximum(shared, 1.0)
         else:
             d = acc
-        d[shared == 0] = np.inf
-        return d, shared
-
-    def _select(self, d: np.ndarray, shared: np.ndarray, n_x: int) -> np.ndarray:
-        """Candidate mask (M,) for one query row."""
-        p = self.params
-        if n_x == 0:
-            return np.zeros_like(shared, bool)
         frac_x = shared / n_x
-        frac_y = shared / np.maximum(self._n_map, 1.0)
+        frac_y = shared / self._n_map_floor[idx]
         if p.shared_strict:
-            ok = (frac_x > p.shared_threshold) & (frac_y > p.shared_threshold)
+            cand = (frac_x > p.shared_threshold) & (frac_y > p.shared_threshold)
         else:
             thr = p.shared_threshold - 1e-12
-            ok = (frac_x >= thr) & (frac_y >= thr)
-        return ok & (shared >= p.min_shared_aps) & np.isfinite(d)
+            cand = (frac_x >= thr) & (frac_y >= thr)
+        cand &= (shared >= p.min_shared_aps) & np.isfinite(d)
+        sub = d[cand]
+        n_cand = len(sub)
+        if n_cand == 0:
+            return None, "no_candidates", 0
+        if n_cand < (p.min_candidates or p.k):
+            return None, "few_candidates", n_cand
+        idx = idx[cand]
+        k = min(p.k, n_cand)
+        part = np.argpartition(sub, k - 1)[:k] if k < n_cand else np.arange(n_cand)
+        part = part[np.argsort(sub[part], kind="stable")]
+        return idx[part], 1.0 / (sub[part] + p.epsilon), n_cand
 
-    def _fix(self, stamp_ns: int, d: np.ndarray, cand: np.ndarray, n_x: int) -> Fix:
+    def _fix(self, stamp_ns: int, scan: WifiScan, full_info: bool) -> Fix:
+        best, s, n_cand = self._nearest(scan)
+        if best is None:
+            assert isinstance(s, str)
+            return Fix(stamp_ns, np.full(2, np.nan), np.full((2, 2), np.nan), ok=False, reason=s,
+                       info={"candidates": n_cand})
+        assert isinstance(s, np.ndarray)
         p = self.params
-        need = p.min_candidates or p.k
-        idx = np.flatnonzero(cand)
-        if n_x == 0 or len(idx) == 0:
-            reason = "no_usable_aps" if n_x == 0 else "no_candidates"
-            return Fix(stamp_ns, np.full(2, np.nan), np.full((2, 2), np.nan), ok=False, reason=reason,
-                       info={"candidates": 0})
-        if len(idx) < need:
-            return Fix(stamp_ns, np.full(2, np.nan), np.full((2, 2), np.nan), ok=False, reason="few_candidates",
-                       info={"candidates": int(len(idx))})
-        k = min(p.k, len(idx))
-        sub = d[idx]
-        part = np.argpartition(sub, k - 1)[:k] if k < len(idx) else np.arange(len(idx))
-        best = idx[part[np.argsort(sub[part], kind="stable")]]
-        s = 1.0 / (d[best] + p.epsilon)
         w = s / s.sum()
         f = self._pos[best]
         xy = w @ f
         dev = f - xy
         spread = (w[:, None] * dev).T @ dev
         cov = p.cov_scale * spread + (p.cov_floor_m ** 2) * np.eye(2)
+        if not full_info:
+            return Fix(stamp_ns, xy, cov, ok=True, info={"rows": best, "weights": w, "similarity": s,
+                                                          "candidates": n_cand})
         rm = self.radio_map
         assert rm is not None
         return Fix(stamp_ns, xy, cov, ok=True, info={
             "rows": best, "scan_ids": np.asarray(rm.scan_ids)[best], "weights": w, "similarity": s,
-            "positions": f, "sources": [rm.source[i] for i in best], "candidates": int(len(idx))})
+            "positions": f, "sources": [rm.source[i] for i in best], "candidates": n_cand})
 
     # ------------------------------------------------------------------------------------------
     def locate(self, scan: WifiScan) -> Fix:
@@ -196,12 +201,11 @@ class Wknn(Positioner):
         """Position a batch of scans (each through the inverted index; same results as ``locate``)."""
         if self.radio_map is None:
             raise MapError("wknn: fit() a radio map before locating")
-        out = []
-        for scan in scans:
-            cols, vals, n_x = self._query(scan)
-            if len(cols):
-                d, shared = self._distances_inverted(cols, vals)
-            else:
-                d, shared = np.full(len(self._pos), np.inf), np.zeros(len(self._pos))
-            out.append(self._fix(scan.stamp_ns, d, self._select(d, shared, n_x), n_x))
-        return out
+        return [self._fix(scan.stamp_ns, scan, True) for scan in scans]
+
+    def locate_rows(self, scan: WifiScan) -> Fix:
+        """:meth:`locate` with a lighter ``info`` (rows, weights, similarity, candidates): for callers
+        that look the matched rows up themselves (the back-end's evolving map, once per scan)."""
+        if self.radio_map is None:
+            raise MapError("wknn: fit() a radio map before locating")
+        return self._fix(scan.stamp_ns, scan, False)
