@@ -125,3 +125,28 @@ def test_the_calibration_folds_refit_the_prior_without_the_left_out_walk():
     np.testing.assert_allclose(got, expect, atol=1e-12)
     np.testing.assert_allclose(sums[0], expect.sum(axis=1), atol=1e-12)
     assert np.abs(prior - leaky).max() > 1e-3                 # the left-out walk does move the models
+
+
+def test_a_walkable_area_bounds_where_the_field_extends():
+    """With a walkable area (a floor plan) the grid reaches field_reach_m from the map scans inside it only,
+    smooth_reach_m elsewhere; without one, smooth_reach_m everywhere. The users in the unsurveyed north are
+    then located as well as with the unbounded grid of the previous test."""
+    rng = np.random.default_rng(4)
+    rm, rss, bssids = _survey(rng)
+
+    def north(xy, z):
+        return xy[:, 1] >= 20.0
+    params = PowedKnnParams(cov_calibration=False, smooth_views="grid", field_weight=0.05, field_reach_m=20.0)
+    pos = PowedKnn(params, walkable=north).fit(rm)
+    d = np.linalg.norm(pos._grid_pos[:, None] - rm.positions[None], axis=2).min(axis=1)
+    inside = north(pos._grid_pos, 0.0)
+    assert np.all(d[~inside] <= params.smooth_reach_m + 1e-9) and np.all(d[inside] <= 20.0 + 1e-9)
+    assert inside.sum() > 0 and d[inside].max() > 10.0
+    plain = PowedKnn(params).fit(rm)
+    assert len(plain._grid_pos) < len(pos._grid_pos)
+    d_plain = np.linalg.norm(plain._grid_pos[:, None] - rm.positions[None], axis=2).min(axis=1)
+    assert np.all(d_plain <= params.smooth_reach_m + 1e-9)
+    pts = np.column_stack([rng.uniform(4, SIZE[0] - 4, 80), rng.uniform(24, 34, 80)])
+    scans = _scans(rss(pts, 4.0), bssids)
+    err = [float(np.mean([np.hypot(*(f.xy - p)) for f, p in zip(m.locate_many(scans), pts)])) for m in (pos, plain)]
+    assert err[0] < 0.5 * err[1], err

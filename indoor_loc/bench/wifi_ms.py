@@ -39,6 +39,8 @@ from indoor_loc.bench.wifi import CHI2_2_50, CHI2_2_95, _jsonable
 from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.measurements import Fix
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.radio_field import Walkable
 from indoor_loc.wifi.types import RadioMap, WifiScan
 
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
@@ -46,6 +48,10 @@ TUNED_ON = ("B1", "F7")
 #: the extrapolating radio map (indoor_loc.wifi.radio_field): the path-loss prior weighs as much as one survey
 #: scan 10 m away (0.05 at the 4 m kernel), and the grid reaches that far from the survey walks
 FIELD = {"field_weight": 0.05, "smooth_reach_m": 10.0}
+#: the same prior, the grid reaching 10 m (field_reach_m) only into the floor plan's free space (the GeoJSON's
+#: outline minus its shops), 2 m elsewhere
+FIELD_PLAN = {"field_weight": 0.05}
+PLAN_ROWS = ("powed + path-loss field in the plan, 10 m",)
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [
@@ -57,6 +63,7 @@ METHODS: list[tuple[str, str, dict, float]] = [
     ("powed, map scans only (no grid)", "powed", {"smooth_m": 0.0}, 0.0),
     ("powed, interpolated grid only", "powed", {"smooth_views": "grid"}, 0.0),
     ("powed + path-loss field, reach 10 m", "powed", dict(FIELD), 0.0),
+    (PLAN_ROWS[0], "powed", dict(FIELD_PLAN), 0.0),
     ("powed, ages weighted only", "powed", {"age_views": "weighted"}, 0.0),
     ("powed, ages ignored", "powed", {"age_tau_ms": 0.0}, 0.0),
     ("powed, no AP weights", "powed", {"ap_weighting": "none"}, 0.0),
@@ -107,8 +114,32 @@ def load_site(root: Path) -> dict[str, dict[str, Any]]:
             ts += sc
             tp.append(xy)
         rm = add_fingerprints(empty_radiomap(), np.vstack(mp), ms, src, z_m=z, floors={fl.name: z})
-        out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp), "z": z, "walks": (len(survey), len(test))}
+        out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp), "z": z, "walks": (len(survey), len(test)),
+                        "walkable": plan_walkable(fl.directory / "geojson_map.json", (fl.width_m, fl.height_m))}
     return out
+
+
+def plan_walkable(geojson: Path, extent_m: tuple[float, float], resolution_m: float = 0.5
+                  ) -> Walkable | None:
+    """Where people can be on a floor, from its GeoJSON plan stretched onto the floor's size (the format's
+    ``floor_info.json``): the free space of :func:`indoor_loc.graph.from_geojson.rasterise` (the outline
+    minus shops and shafts). None without a plan. On ms_site2 it holds 97-100 % of every floor's survey
+    and test positions."""
+    from indoor_loc.graph.from_geojson import rasterise
+    if not geojson.is_file():
+        return None
+    plan = rasterise(json.loads(geojson.read_text()), resolution_m=resolution_m, extent_m=extent_m, margin_m=1.0)
+    free = plan.grey > 127
+    h, w = free.shape
+
+    def walkable(xy: np.ndarray, z: float) -> np.ndarray:
+        c = np.round((xy[:, 0] - plan.origin_xy[0]) * plan.px_per_m).astype(int)
+        r = np.round(h - 1 - (xy[:, 1] - plan.origin_xy[1]) * plan.px_per_m).astype(int)
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        out = np.zeros(len(xy), bool)
+        out[inside] = free[r[inside], c[inside]]
+        return out
+    return walkable
 
 
 def errors(fixes: list[Fix], truth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,7 +223,10 @@ def run(args) -> int:
         ref_ok = ref_e = None
         report["floors"][name] = {"tag": tag, "map_scans": rm.n_scans, "map_aps": rm.n_aps, "methods": {}}
         for label, meth, params, shift in METHODS:
-            pos = make_positioner(meth, params).fit(rm)
+            pos = make_positioner(meth, params)
+            if label in PLAN_ROWS and isinstance(pos, PowedKnn):
+                pos.walkable = f["walkable"]
+            pos.fit(rm)
             t0 = time.perf_counter()
             fixes = locate_walks(pos, scans, shift)
             rate = len(scans) / max(time.perf_counter() - t0, 1e-9)

@@ -112,7 +112,7 @@ from numpy.typing import ArrayLike
 from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.radio_field import FIELD_MIN_VALUE, pathloss_prior, view_scale
+from indoor_loc.wifi.radio_field import FIELD_MIN_VALUE, Walkable, pathloss_prior, view_scale, walkable_mask, within_reach
 from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
 
 AP_WEIGHTINGS = ("idf", "none")
@@ -156,6 +156,8 @@ class PowedKnnParams:
     field_weight: float = field(0.0, "weight of the per-AP path-loss prior in the interpolated grid, in survey "
                                      "scans at the candidate (indoor_loc.wifi.radio_field; 0 = kernel regression "
                                      "alone); with it the grid may reach farther (smooth_reach_m) and extrapolates")
+    field_reach_m: float = field(10.0, "with field_weight > 0 and a walkable area (PowedKnn.walkable, from a floor plan) "
+                                       "the grid also covers the walkable points this far from the map scans (m)")
     offset_gain: float = field(0.2, "online device RSS offset: after each fix the offset moves by this fraction "
                                     "of the median residual against the neighbours (0 = off)")
     offset_max_db: float = field(20.0, "bound on the device RSS offset (dB)")
@@ -191,6 +193,8 @@ class PowedKnnParams:
         require(int(self.smooth_k) >= 1, n, "smooth_k", "an integer >= 1", self.smooth_k)
         require(math.isfinite(self.field_weight) and self.field_weight >= 0, n, "field_weight", ">= 0",
                 self.field_weight)
+        require(math.isfinite(self.field_reach_m) and self.field_reach_m >= 0, n, "field_reach_m", ">= 0 m",
+                self.field_reach_m)
         require(self.smooth_m == 0 or self.smooth_grid_m <= 10 * self.smooth_m, n, "smooth_grid_m",
                 "at most 10 x smooth_m", self.smooth_grid_m)
         require(int(self.cov_folds) >= 2, n, "cov_folds", "an integer >= 2", self.cov_folds)
@@ -270,9 +274,12 @@ class PowedKnn(Positioner):
     docstring)."""
     name = "powed"
 
-    def __init__(self, params: PowedKnnParams | None = None) -> None:
+    def __init__(self, params: PowedKnnParams | None = None, *, walkable: Walkable | None = None) -> None:
         self.params = params or PowedKnnParams()
         self.params.validate()
+        #: where people can be: (xy (N, 2) m, floor height z m) -> (N,) bool, e.g. from a floor plan; with
+        #: field_weight > 0 the grid covers these points up to field_reach_m from the map scans
+        self.walkable = walkable
         self.radio_map: RadioMap | None = None
         self.aps = ApIndex()
         self._w = np.zeros(0)                        # (A,) AP weights
@@ -340,8 +347,15 @@ class PowedKnn(Positioner):
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
         self._kernel_sums = None
         if p.smooth_m > 0:
+            plan = p.field_weight > 0 and self.walkable is not None and p.field_reach_m > p.smooth_reach_m
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
-                pos, map_z, p.smooth_grid_m, p.smooth_reach_m, p.smooth_m)
+                pos, map_z, p.smooth_grid_m, p.field_reach_m if plan else p.smooth_reach_m, p.smooth_m)
+            if plan:                                     # beyond smooth_reach_m only where people can be
+                assert self.walkable is not None
+                keep = within_reach(self._grid_pos, grid_z, pos, map_z, p.smooth_reach_m) | \
+                    walkable_mask(self.walkable, self._grid_pos, grid_z)
+                self._grid_pos, grid_z = self._grid_pos[keep], grid_z[keep]
+                self._kernel, self._near = self._kernel[keep], self._near[keep]
             # --- extrapolating radio map: the path-loss prior of the grid (indoor_loc.wifi.radio_field) ---
             self._prior, self._grid_z = None, grid_z
             if p.field_weight > 0:

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import Callable
 
 import numpy as np
 from scipy import sparse
@@ -50,6 +51,9 @@ from indoor_loc.wifi.types import RadioMap
 #: expected powed values below this are dropped (an AP all but undetectable there: a reading of about
 #: −92 dBm without AP weights), which keeps the extrapolated grid sparse
 FIELD_MIN_VALUE = 1e-3
+#: where people can be on a floor: (xy (N, 2) m, floor height z m) -> (N,) bool (e.g. a floor plan's free space)
+Walkable = Callable[[np.ndarray, float], np.ndarray]
+
 #: an AP is taken as not heard where its predicted RSS is below this quantile of the map's readings (what
 #: the phones report at the weakest: readings below it are rare, so the AP is more likely missed than heard)
 DETECT_QUANTILE = 0.05
@@ -150,3 +154,24 @@ def view_scale(values: np.ndarray, raw: np.ndarray) -> np.ndarray:
     num = np.asarray(values, float).sum(axis=0)
     den = np.asarray(raw, float).sum(axis=0)
     return np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+
+
+def within_reach(grid_pos: np.ndarray, grid_z: np.ndarray, pos: np.ndarray, z: np.ndarray, reach_m: float) -> np.ndarray:
+    """(C,) bool: the candidates within ``reach_m`` of a map scan (``pos`` (M, 2), ``z`` (M,)) of their floor."""
+    from scipy.spatial import cKDTree
+    out = np.zeros(len(grid_pos), bool)
+    for zf in np.unique(grid_z):
+        on, rows = z == zf, np.flatnonzero(grid_z == zf)
+        if on.any():
+            d, _ = cKDTree(pos[on]).query(grid_pos[rows], distance_upper_bound=reach_m + 1e-9)
+            out[rows] = np.isfinite(d)
+    return out
+
+
+def walkable_mask(walkable: Walkable, grid_pos: np.ndarray, grid_z: np.ndarray) -> np.ndarray:
+    """(C,) bool: ``walkable`` per floor of the candidates."""
+    out = np.zeros(len(grid_pos), bool)
+    for zf in np.unique(grid_z):
+        rows = np.flatnonzero(grid_z == zf)
+        out[rows] = np.asarray(walkable(grid_pos[rows], float(zf)), bool)
+    return out
