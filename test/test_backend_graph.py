@@ -151,6 +151,7 @@ def test_graph_stays_bounded():
     assert g.poses.n > 60 and g.poses.n - g.n_frozen == 40
     assert not g.poses.frozen[g.users["b"].poses[-1]]                  # the active user's newest poses stay free
     assert g.map.n_user_rows == 8 and g.map.dropped_rows > 0
+    assert g.map.n_user_rows == np.count_nonzero(g.map.user[:g.map.n] >= 0)   # the running count is the rows'
     rep = g.optimize()
     assert rep.n_poses == 40
 

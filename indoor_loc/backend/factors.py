@@ -142,7 +142,9 @@ def robustify(e: np.ndarray, jac: list[np.ndarray] | None, kernel: str, c: float
     Returns (e', jac' or None, weights g² = ρ(s)/s (N,) — 1 for inliers)."""
     if kernel == "none":
         return e, jac, np.ones(len(e))
-    s = np.einsum("nd,nd->n", e, e)
+    s = e[:, 0] * e[:, 0]                  # |e|² term by term (numpy's einsum costs ~50 us a call here)
+    for j in range(1, e.shape[1]):
+        s = s + e[:, j] * e[:, j]
     rho, drho = robust_rho(s, kernel, c)
     small = s < 1e-12
     ss = np.where(small, 1.0, s)
@@ -156,8 +158,11 @@ def robustify(e: np.ndarray, jac: list[np.ndarray] | None, kernel: str, c: float
     for J in jac:
         extra = J.ndim - 2
         gsh = g.reshape((-1,) + (1,) * (extra + 1))
+        esh = (-1,) + (1,) * extra
         # eᵀJ: (N, ...) contracted over the error dimension
-        eTJ = np.einsum("nd,nd...->n...", e, J)
+        eTJ = e[:, 0].reshape(esh) * J[:, 0]
+        for j in range(1, e.shape[1]):
+            eTJ = eTJ + e[:, j].reshape(esh) * J[:, j]
         corr = (2.0 * dg).reshape((-1,) + (1,) * extra) * eTJ
         out.append(gsh * J + e.reshape(e.shape + (1,) * extra) * corr[:, None, ...])
     return e2, out, g * g

@@ -53,6 +53,7 @@ class EvolvingMap:
         self.fixed_source: list[str] = []
         self.n_loaded_fixed = 0          # fixed positions from add_fixed (the rest: pinned poses)
         self.dropped_rows = 0
+        self._n_user_rows = 0            # rows with user != SURVEY
         # the fitted WKNN index is reused while the rows a query may use are unchanged: fixed rows
         # and drops change every query's rows (epoch); a user's own appended rows never enter its
         # own queries, so only other users' appends count (in the sequential order a walk's scans
@@ -95,6 +96,7 @@ class EvolvingMap:
             self._epoch += 1
         else:
             self._appends += 1
+            self._n_user_rows += 1
             self._own_appends[user] = self._own_appends.get(user, 0) + 1
         self._rss[i] = np.nan
         self._rss[i, cols] = rssi
@@ -122,7 +124,7 @@ class EvolvingMap:
         the oldest user row is dropped."""
         cols = self._columns(scan)
         row = self._append(cols, np.asarray(scan.rssi_dbm, float), ref, user, scan.stamp_ns)
-        if int(np.sum(self.user[:self.n] != SURVEY)) > self.max_rows:
+        if self._n_user_rows > self.max_rows:
             self._drop_oldest_user_row()
         return row
 
@@ -138,6 +140,7 @@ class EvolvingMap:
             a[:n] = a[:self.n][keep]
         self.n = n
         self.dropped_rows += 1
+        self._n_user_rows -= 1
         self._epoch += 1
 
     def pin(self, refs: np.ndarray, xy: np.ndarray, source: list[str]) -> np.ndarray:
@@ -218,4 +221,4 @@ class EvolvingMap:
 
     @property
     def n_user_rows(self) -> int:
-        return int(np.sum(self.user[:self.n] != SURVEY))
+        return self._n_user_rows

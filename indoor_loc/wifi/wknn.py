@@ -101,7 +101,7 @@ class Wknn(Positioner):
             raise MapError(f"wknn: radio map expected positions (M, 2) and rssi (M, A), got {pos.shape}, {rss.shape}")
         if len(pos) == 0:
             raise MapError("wknn: the radio map has no scans")
-        usable = ~np.isnan(rss) & (np.nan_to_num(rss, nan=-np.inf) >= self.params.min_signal_dbm)
+        usable = rss >= self.params.min_signal_dbm           # NaN (not heard) compares False
         self.radio_map = radio_map
         self.aps = ApIndex(radio_map.bssids)
         self._n_map = usable.sum(axis=1).astype(float)
