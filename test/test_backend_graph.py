@@ -70,8 +70,10 @@ def test_insertion_policy():
     # hops before the first localised scan add nothing
     assert g.add_hop("u", 0, 320_000_000, 0.6, 0.0) is None and g.poses.n == 0
     i, m = g.add_scan("u", scan_at(400_000_000, np.array([1.0, 0.0]), rng))
-    assert i == 0 and m is not None and g.poses.n == 1                    # first pose at the WKNN position
+    assert i == 0 and m is not None and g.poses.n == 1                    # first pose at the WKNN position:
     np.testing.assert_allclose(g.poses.x[0, :2], m.fix.xy)
+    np.testing.assert_allclose(m.fix.xy, m.weights @ g.map.positions(m.refs, g.poses.x[:0, :2]))
+    assert np.linalg.norm(m.fix.xy - [1.0, 0.0]) < 2.0                    # the matched survey scans' mean
     # standing still: a scan right after attaches to the same pose
     i2, _ = g.add_scan("u", scan_at(500_000_000, np.array([1.0, 0.0]), rng))
     assert i2 == 0 and g.poses.n == 1 and g.wifi.n == 2
@@ -82,6 +84,7 @@ def test_insertion_policy():
     i3, m3 = g.add_scan("u", scan_at(2_300_000_000, np.array([3.0, 0.0]), rng))
     assert i3 == 2 and g.pdr.n == 2
     np.testing.assert_allclose(g.poses.x[2, :2], m3.fix.xy)
+    assert np.linalg.norm(m3.fix.xy - [3.0, 0.0]) < 2.0
     # the motion from the last hop (2.0 s) to the scan is extrapolated and taken off the next hop:
     # every step counted after the start is in exactly one edge (or still accumulating)
     g.add_hop("u", 2_000_000_000, 2_320_000_000, 0.6, 0.0)
@@ -202,15 +205,17 @@ def test_reused_wknn_index_gives_the_same_matches_as_a_fresh_one():
     cached.add_fixed(s)
     fresh.add_fixed(s)
     n_user_matches = 0
+    pose_xy = rng.uniform(0, 30, (30, 2))                  # the user rows' (pose i's) current positions
     for i in range(30):
         user = i % 3 if i < 20 else 0                      # interleaved, then one user alone
         scan = scan_at(i * SEC, np.array([rng.uniform(0, 30), 0.0]), rng)
         fresh._fitted = None
-        a = cached.match(scan, user=user, joint=True)
-        b = fresh.match(scan, user=user, joint=True)
+        a = cached.match(scan, user=user, joint=True, pose_xy=pose_xy)
+        b = fresh.match(scan, user=user, joint=True, pose_xy=pose_xy)
         assert (a is None) == (b is None)
         if a is not None:
             assert np.array_equal(a.refs, b.refs) and np.allclose(a.weights, b.weights)
+            np.testing.assert_allclose(a.fix.xy, a.weights @ cached.positions(a.refs, pose_xy))
             n_user_matches += a.n_from_users > 0
         cached.add_scan(scan, i, user)
         fresh.add_scan(scan, i, user)

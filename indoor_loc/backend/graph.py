@@ -287,7 +287,7 @@ class MultiUserGraph:
         tr = self.users.get(name) or self.user(name)
         self._check_order(tr, scan.stamp_ns, "scan")
         tr.last_event_ns = int(scan.stamp_ns)
-        match = self.map.match(scan, user=tr.index, joint=self.params.joint)
+        match = self.map.match(scan, user=tr.index, joint=self.params.joint, pose_xy=self.poses.x[:self.poses.n, :2])
         if match is None:
             tr.scans_unlocalised += 1
             if not tr.started:

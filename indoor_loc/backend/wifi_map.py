@@ -14,13 +14,13 @@ The number of user rows is capped (``max_rows``): the oldest learnt rows are dro
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.types import RadioMap, WifiScan
-from indoor_loc.wifi.wknn import Wknn, WknnParams
+from indoor_loc.wifi.wknn import Wknn, WknnParams, neighbour_fix
 
 SURVEY = -1      # user index of fixed rows
 
@@ -52,6 +52,7 @@ class EvolvingMap:
         self.fixed_xy = np.zeros((0, 2))
         self.fixed_source: list[str] = []
         self.n_loaded_fixed = 0          # fixed positions from add_fixed (the rest: pinned poses)
+        self._cov_floor = (wknn.cov_floor_m ** 2) * np.eye(2)
         self.dropped_rows = 0
         self._n_user_rows = 0            # rows with user != SURVEY
         # the fitted WKNN index is reused while the rows a query may use are unchanged: fixed rows
@@ -184,9 +185,13 @@ class EvolvingMap:
         return new_index
 
     # ------------------------------------------------------------------------------------------
-    def match(self, scan: WifiScan, *, user: int, joint: bool) -> Match | None:
+    def match(self, scan: WifiScan, *, user: int, joint: bool, pose_xy: np.ndarray) -> Match | None:
         """WKNN of ``scan`` against the survey rows and, when ``joint``, other users' rows (never the
-        user's own). None when WKNN declines (fewer candidates than k...)."""
+        user's own). None when WKNN declines (fewer candidates than k...).
+
+        The rows are chosen by RSS alone; the fix (the initial position of a pose added at this scan,
+        and its covariance) is then taken at the matched rows' current positions: the fixed ones,
+        and for users' rows their poses in ``pose_xy (P, 2)``, the graph's current estimates."""
         key = (user, self._epoch, self._appends - self._own_appends.get(user, 0)) if joint else (None, self._epoch)
         if self._fitted is not None and self._fitted[0] == key:
             rows, wknn = self._fitted[1], self._fitted[2]
@@ -195,6 +200,7 @@ class EvolvingMap:
             rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
             if len(rows) == 0:
                 return None
+            # positions are looked up per match (users' rows move with their poses): not needed here
             rm = RadioMap(positions=np.zeros((len(rows), 2)), bssids=list(self.bssids),
                           rssi_dbm=self._rss[rows, :len(self.bssids)], freq_mhz=np.asarray(self.freq, float),
                           ssids=list(self.ssids), scan_ids=rows.astype(np.int64), stamps_ns=self.stamp[rows].copy(),
@@ -205,15 +211,27 @@ class EvolvingMap:
         if not fix.ok:
             return None
         chosen = rows[np.asarray(fix.info["rows"], np.int64)]
-        return Match(fix, self.ref[chosen].copy(), np.asarray(fix.info["weights"], float),
-                     int(np.sum(self.user[chosen] != SURVEY)))
+        refs = self.ref[chosen].copy()
+        w = np.asarray(fix.info["weights"], float)
+        xy, cov = neighbour_fix(self.positions(refs, pose_xy), w, self.wknn_params.cov_scale, self._cov_floor)
+        fix = replace(fix, xy=xy, cov=cov)
+        return Match(fix, refs, w, int(np.sum(self.user[chosen] != SURVEY)))
+
+    def positions(self, refs: np.ndarray, pose_xy: np.ndarray) -> np.ndarray:
+        """Current positions ``(N, 2)`` of position references ``refs``: ``fixed_xy[-1 - ref]`` for
+        ref < 0, ``pose_xy[ref]`` for ref >= 0."""
+        refs = np.asarray(refs, np.int64)
+        out = np.empty((len(refs), 2))
+        fixed = refs < 0
+        out[fixed] = self.fixed_xy[-1 - refs[fixed]]
+        out[~fixed] = np.asarray(pose_xy, float)[refs[~fixed]]
+        return out
 
     def radio_map(self, pose_xy: np.ndarray, user_names: list[str]) -> RadioMap:
         """The whole map as a :class:`RadioMap` at the current positions (``pose_xy`` (P, 2) of the
         graph's poses): what ``save_radiomap`` writes. Sources: the survey's labels, else the user."""
         ref = self.ref[:self.n]
-        xy = np.where((ref < 0)[:, None], self.fixed_xy[np.maximum(-1 - ref, 0)] if len(self.fixed_xy) else 0.0,
-                      pose_xy[np.maximum(ref, 0)] if len(pose_xy) else 0.0)
+        xy = self.positions(ref, pose_xy)
         src = [self.fixed_source[-1 - r] if r < 0 else user_names[u] for r, u in zip(ref, self.user[:self.n])]
         return RadioMap(positions=xy, bssids=list(self.bssids), rssi_dbm=self._rss[:self.n, :len(self.bssids)].copy(),
                         freq_mhz=np.asarray(self.freq, float), ssids=list(self.ssids),

@@ -46,6 +46,15 @@ from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, Wif
 ERROR_TYPES = ("l2", "l1", "rms", "mae")
 
 
+def neighbour_fix(positions: np.ndarray, weights: np.ndarray, cov_scale: float,
+                  cov_floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The WKNN estimate from the k neighbours' ``positions (k, 2)`` and normalised ``weights (k,)``:
+    their weighted mean, and ``cov_scale`` × their weighted spread about it + ``cov_floor (2, 2)``."""
+    xy = weights @ positions
+    dev = positions - xy
+    return xy, cov_scale * ((weights[:, None] * dev).T @ dev) + cov_floor
+
+
 @dataclass(frozen=True)
 class WknnParams:
     """WKNN parameters; defaults are the paper's best (k=4, 0.6, -100 dBm, L2)."""
@@ -179,10 +188,7 @@ class Wknn(Positioner):
         p = self.params
         w = s / s.sum()
         f = self._pos[best]
-        xy = w @ f
-        dev = f - xy
-        spread = (w[:, None] * dev).T @ dev
-        cov = p.cov_scale * spread + self._cov_floor
+        xy, cov = neighbour_fix(f, w, p.cov_scale, self._cov_floor)
         if not full_info:
             return Fix(stamp_ns, xy, cov, ok=True, info={"rows": best, "weights": w, "similarity": s,
                                                           "candidates": n_cand})
