@@ -51,7 +51,7 @@ FIELD = {"field_weight": 0.05, "smooth_reach_m": 10.0}
 #: the same prior, the grid reaching 10 m (field_reach_m) only into the floor plan's free space (the GeoJSON's
 #: outline minus its shops), 2 m elsewhere
 FIELD_PLAN = {"field_weight": 0.05}
-PLAN_ROWS = ("powed + path-loss field in the plan, 10 m",)
+PLAN_ROWS = ("powed + path-loss field in plan, 10 m",)
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [
