@@ -22,8 +22,9 @@ Method choices were made looking at floors B1 and F7 (marked "tuned") with F3 an
 (marked "held out"), except the two age views and the quantile calibration of the covariance,
 which were compared on all four floors. The interpolated radio map (the grid) and the mean of the
 estimates against the map scans and against the grid were chosen on B1 and F7, F3 and F8 held out.
-The path-loss field row (an option, off by default) was developed on B1 and F7; F3 and F8 were run
-once per design decision (twice in all).
+The two path-loss field rows (an option, off by default; the second keeps the extrapolated grid inside
+each floor's GeoJSON plan) were developed on B1 and F7; F3 and F8 were run once per design decision
+(three times in all).
 """
 from __future__ import annotations
 
