@@ -22,8 +22,9 @@ Method choices were made looking at floors B1 and F7 (marked "tuned") with F3 an
 (marked "held out"), except the two age views and the quantile calibration of the covariance,
 which were compared on all four floors. The interpolated radio map (the grid) and the mean of the
 estimates against the map scans and against the grid were chosen on B1 and F7, F3 and F8 held out.
-The path-loss field row (an option, off by default) was developed on B1 and F7; F3 and F8 were run
-once per design decision (twice in all).
+The two path-loss field rows (an option, off by default; the second keeps the extrapolated grid inside
+each floor's GeoJSON plan) were developed on B1 and F7; F3 and F8 were run once per design decision
+(three times in all).
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ FIELD = {"field_weight": 0.05, "smooth_reach_m": 10.0}
 #: the same prior, the grid reaching 10 m (field_reach_m) only into the floor plan's free space (the GeoJSON's
 #: outline minus its shops), 2 m elsewhere
 FIELD_PLAN = {"field_weight": 0.05}
-PLAN_ROWS = ("powed + path-loss field in the plan, 10 m",)
+PLAN_ROWS = ("powed + path-loss field in plan, 10 m",)
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [

@@ -62,8 +62,12 @@ walks to the propagation model's expected powed values far from them, and the gr
 survey did not go (``smooth_reach_m``). The calibration's folds fit the prior again without their
 walks (a prior fitted on every scan leaks the left-out walk into its own cross-validation: on ms_site2
 F3 the cross-validated mean error read 12.9 m instead of 13.9 m and the 95 % ellipse held 70 % of the
-test truths instead of 79 %). Without a floor plan the wider grid also offers positions where nobody
-can be: on PUTMC, whose survey covers the corridors, a 10 m reach costs 2.58 → 3.40 m, so it stays off.
+test truths instead of 79 %). The grid should extend only where people can be: given a walkable area
+(``walkable``, e.g. a floor plan's free space) it covers those points up to ``field_reach_m`` from the
+map scans (ms_site2 with its GeoJSON plans, against the plain WKNN: B1 0.850 → 0.822, F3 0.905 → 0.855,
+F7 0.595 → 0.584, F8 0.705 → 0.703; B1/F7 tuned, F3/F8 run once per design decision). Without a plan a
+wider ``smooth_reach_m`` also offers positions where nobody can be: on PUTMC, whose survey covers the
+corridors, a 10 m reach costs 2.58 → 3.40 m, so the field stays off by default.
 
 Position: the similarity-weighted mean of the k nearest map scans (or grid candidates), weights 1 / (D + epsilon)
 (as WKNN, Nowicki & Skrzypczyński 2019, eq. 13). A scan that shares no AP with the map gets no fix
