@@ -1,10 +1,12 @@
 """The extrapolating radio map (indoor_loc.wifi.radio_field) and its hook in the powed k-NN grid."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, powed
-from indoor_loc.wifi.radio_field import expected_powed, pathloss_prior, view_scale
+from indoor_loc.wifi.radio_field import detect_level, expected_powed, pathloss_prior, view_scale
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import WifiScan
 
@@ -115,7 +117,8 @@ def test_the_calibration_folds_refit_the_prior_without_the_left_out_walk():
     g = pos._grid_pos[rows]
     d = np.linalg.norm(g[:, None, :] - rm.positions[keep][None], axis=2)
     w = np.exp(-0.5 * (d / h) ** 2) * (d <= 3 * h)
-    prior = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA, keep=keep).toarray() * pos._w
+    prior = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA, keep=keep,
+                           detect_dbm=detect_level(rm)).toarray() * pos._w
     leaky = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA).toarray() * pos._w
     expect = (w @ pos._vals[0][keep] + lam * prior) / (w.sum(axis=1) + lam)[:, None]
     got = np.zeros_like(expect)
@@ -150,3 +153,25 @@ def test_a_walkable_area_bounds_where_the_field_extends():
     scans = _scans(rss(pts, 4.0), bssids)
     err = [float(np.mean([np.hypot(*(f.xy - p)) for f, p in zip(m.locate_many(scans), pts)])) for m in (pos, plain)]
     assert err[0] < 0.5 * err[1], err
+
+
+def test_a_fold_refits_only_the_aps_its_left_out_walk_heard():
+    """A calibration fold's prior equals a prior fitted on the kept scans alone, though the fold refits
+    only the APs the left-out walk heard (each AP's model depends on its own readings only)."""
+    rm, _, _ = _survey(np.random.default_rng(7), ys=(5.0, 14.0, 23.0))
+    walk1 = np.array(rm.source) == "walk1"
+    unheard = np.arange(0, len(rm.bssids), 2)
+    rss = np.array(rm.rssi_dbm, float)
+    rss[np.ix_(walk1, unheard)] = np.nan                     # walk1 heard the odd APs only
+    rm = dataclasses.replace(rm, rssi_dbm=rss)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, age_tau_ms=0.0, field_weight=0.05,
+                                  smooth_reach_m=6.0)).fit(rm)
+    rows = np.arange(len(pos._grid_pos))
+    scale = pos._prior_scale[0]
+    got = pos._field_prior(~walk1, rows)[0].toarray()
+    refit = pathloss_prior(rm, pos._grid_pos, pos._grid_z, floor_dbm=FLOOR, beta=BETA, keep=~walk1,
+                           detect_dbm=detect_level(rm)).toarray() * scale
+    np.testing.assert_allclose(got, refit, atol=1e-12)
+    full = pos._field_prior(np.ones(len(walk1), bool), rows)[0].toarray()
+    np.testing.assert_array_equal(got[:, unheard], full[:, unheard])     # kept, not refitted
+    assert np.abs(got - full).max() > 1e-3                                # the heard APs were refitted

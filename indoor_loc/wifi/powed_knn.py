@@ -116,7 +116,8 @@ from numpy.typing import ArrayLike
 from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.radio_field import FIELD_MIN_VALUE, Walkable, pathloss_prior, view_scale, walkable_mask, within_reach
+from indoor_loc.wifi.radio_field import (FIELD_MIN_VALUE, Walkable, detect_level, fit_floor_models, prior_values,
+                                         view_scale, walkable_mask, within_reach)
 from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
 
 AP_WEIGHTINGS = ("idf", "none")
@@ -296,6 +297,9 @@ class PowedKnn(Positioner):
         self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
         self._prior: list[Any] | None = None         # per _vals (C, A) sparse path-loss prior (field_weight > 0)
         self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
+        self._prior_raw: Any = None                  # (C, A) sparse raw prior of the whole map's models
+        self._field_floors = np.zeros(0)
+        self._field_detect = 0.0
         self._grid_z = np.zeros(0)
         self._vals: list[np.ndarray] = []            # (M, A) weighted map values: ages weighted, ages ignored
         self._views: list[_View] = []
@@ -364,6 +368,7 @@ class PowedKnn(Positioner):
             self._prior, self._grid_z = None, grid_z
             if p.field_weight > 0:
                 self._prior_scale = [view_scale(v, raw) for v in self._vals]
+                self._prior_raw = None
                 self._prior = self._field_prior(np.ones(len(pos), bool), np.arange(len(grid_z)))
             readings, sums, _ = self._smoothed(np.ones(len(pos), bool))
             for a, j, twin in age_views:
@@ -411,11 +416,40 @@ class PowedKnn(Positioner):
 
     def _field_prior(self, keep: np.ndarray, rows: np.ndarray) -> list[Any]:
         """Per map values (``_vals``) the (len(rows), A) sparse path-loss prior at the grid points ``rows``,
-        the models fitted on the map scans ``keep`` (M,) bool (:mod:`indoor_loc.wifi.radio_field`)."""
+        the models fitted on the map scans ``keep`` (M,) bool (:mod:`indoor_loc.wifi.radio_field`).
+        The first call fits every AP on all scans; a fold then refits, per floor, only the APs its
+        left-out scans heard there (every other AP's readings, hence its model, are unchanged) and
+        keeps the other APs' values. The detection level is the whole map's (a property of the phones)."""
+        from scipy import sparse
         assert self.radio_map is not None
         p = self.params
-        prior = pathloss_prior(self.radio_map, self._grid_pos[rows], self._grid_z[rows], floor_dbm=p.floor_dbm,
-                               beta=p.beta, min_value=FIELD_MIN_VALUE, keep=keep)
+        rm = self.radio_map
+        n_aps = len(rm.bssids)
+        if self._prior_raw is None:
+            self._field_floors = np.unique(self._grid_z)
+            level = detect_level(rm)
+            self._field_detect = level if math.isfinite(level) else p.floor_dbm
+            models = fit_floor_models(rm, self._field_floors)
+            self._prior_raw = prior_values(models, self._grid_pos, self._grid_z, n_aps,
+                                           detect_dbm=self._field_detect,
+                                           floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
+        keep = np.asarray(keep, bool)
+        if keep.all():
+            prior = self._prior_raw[rows]
+        else:
+            rss = np.asarray(rm.rssi_dbm, float)
+            map_z = np.asarray(rm.z_m, float)
+            drop = ~keep
+            floors = self._field_floors
+            changed = np.array([np.any(np.isfinite(rss[drop & (map_z == zf)]), axis=0) for zf in floors]
+                               ).reshape(len(floors), n_aps)
+            gz = self._grid_z[rows]
+            models = fit_floor_models(rm, floors, keep=keep, aps=changed)
+            fresh = prior_values(models, self._grid_pos[rows], gz, n_aps, detect_dbm=self._field_detect,
+                                 floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
+            old = self._prior_raw[rows].tocoo()
+            stay = ~changed[np.searchsorted(floors, gz)[old.row], old.col]
+            prior = sparse.csr_matrix((old.data[stay], (old.row[stay], old.col[stay])), shape=old.shape) + fresh
         return [sparse_scale(prior, sc) for sc in self._prior_scale]
 
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:

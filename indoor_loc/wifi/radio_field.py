@@ -38,6 +38,7 @@ Functions only (no state): the caller owns the candidate grid and the matching.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Callable
 
@@ -87,49 +88,77 @@ def expected_powed(mu_dbm: np.ndarray, sigma_db: np.ndarray, floor_dbm: float, b
     return (sig / -floor_dbm) ** beta * m
 
 
-def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray, *, floor_dbm: float, beta: float,
-                   min_value: float = FIELD_MIN_VALUE, params: PathLossParams | None = None,
-                   keep: np.ndarray | None = None, chunk: int = 2048) -> sparse.csr_matrix:
-    """(C, A) sparse expected powed values of the map's APs (columns as ``radio_map.bssids``) at the
-    candidates ``grid_pos`` (C, 2) m on floors ``grid_z`` (C,) m, from per-floor path-loss models of
-    the map scans; values below ``min_value`` (an AP all but undetectable there) are dropped. APs
-    with fewer map scans than the path-loss fit needs get no prior (0). ``keep`` (M,) bool: fit on these
-    map scans only (a cross-validation fold)."""
+@dataclass(frozen=True)
+class FloorModels:
+    """The path-loss models of one floor's APs: ``cols`` (K,) the APs' columns in the radio map, ``theta``
+    (K, 4) [A, n, px, py], ``cov`` (K, 4, 4) their covariance, ``sigma2`` (K,) the residual variances."""
+    cols: np.ndarray
+    theta: np.ndarray
+    cov: np.ndarray
+    sigma2: np.ndarray
+    d0_m: float
+
+
+def detect_level(radio_map: RadioMap, keep: np.ndarray | None = None) -> float:
+    """The map's weakest usual reading (dBm): the ``DETECT_QUANTILE`` of its readings (of the scans ``keep``)."""
+    rss = np.asarray(radio_map.rssi_dbm, float)
+    if keep is not None:
+        rss = rss[np.asarray(keep, bool)]
+    heard = rss[np.isfinite(rss)]
+    return float(np.quantile(heard, DETECT_QUANTILE)) if len(heard) else -math.inf
+
+
+def fit_floor_models(radio_map: RadioMap, floors: np.ndarray, *, params: PathLossParams | None = None,
+                     keep: np.ndarray | None = None, aps: np.ndarray | None = None) -> dict[float, FloorModels]:
+    """Per floor height in ``floors`` the log-distance models of the APs its map scans heard (those with
+    enough scans for the fit), fitted on the map scans ``keep`` (M,) bool (all if None). ``aps``
+    (n_floors, A) bool, per floor in ``floors``' order: fit only these APs. Each AP's model depends on
+    its own readings only, so fitting a subset gives the same models as fitting all."""
     pos = np.asarray(radio_map.positions, float)
     rss = np.asarray(radio_map.rssi_dbm, float)
     map_z = np.asarray(radio_map.z_m, float)
     if keep is not None:
         keep = np.asarray(keep, bool)
         pos, rss, map_z = pos[keep], rss[keep], map_z[keep]
-    grid_pos = np.asarray(grid_pos, float)
-    grid_z = np.asarray(grid_z, float)
-    n_aps = rss.shape[1]
-    heard_rss = rss[np.isfinite(rss)]
-    detect_dbm = float(np.quantile(heard_rss, DETECT_QUANTILE)) if len(heard_rss) else floor_dbm
-    blocks = []
-    for zf in np.unique(grid_z):
+    out: dict[float, FloorModels] = {}
+    for f, zf in enumerate(np.asarray(floors, float)):
         on = map_z == zf
-        rows = np.flatnonzero(grid_z == zf)
-        heard = np.flatnonzero(np.any(np.isfinite(rss[on]), axis=0))
-        if len(rows) == 0 or len(heard) == 0:
+        heard = np.any(np.isfinite(rss[on]), axis=0)
+        if aps is not None:
+            heard &= np.asarray(aps[f], bool)
+        cols = np.flatnonzero(heard)
+        if not on.any() or len(cols) == 0:
             continue
-        sub = RadioMap(positions=pos[on], bssids=[radio_map.bssids[a] for a in heard], rssi_dbm=rss[on][:, heard],
-                       freq_mhz=np.zeros(len(heard)))
+        sub = RadioMap(positions=pos[on], bssids=[radio_map.bssids[a] for a in cols], rssi_dbm=rss[on][:, cols],
+                       freq_mhz=np.zeros(len(cols)))
         pl = PathLoss(params).fit(sub)
         use = np.flatnonzero(pl.usable)
-        if len(use) == 0:
+        out[float(zf)] = FloorModels(cols[use], pl.theta[use], pl.theta_cov[use], pl.sigma2[use], pl.params.d0_m)
+    return out
+
+
+def prior_values(models: dict[float, FloorModels], grid_pos: np.ndarray, grid_z: np.ndarray, n_aps: int, *,
+                 detect_dbm: float, floor_dbm: float, beta: float, min_value: float = FIELD_MIN_VALUE,
+                 chunk: int = 2048) -> sparse.csr_matrix:
+    """(C, n_aps) sparse expected powed values of the per-floor ``models`` at the candidates ``grid_pos``
+    (C, 2) m on floors ``grid_z`` (C,) m; 0 where the predicted RSS is below ``detect_dbm`` (more likely
+    not heard than heard there) or the value below ``min_value``."""
+    grid_pos = np.asarray(grid_pos, float)
+    grid_z = np.asarray(grid_z, float)
+    rr, cc, vv = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0)]
+    for zf in np.unique(grid_z):
+        fm = models.get(float(zf))
+        rows = np.flatnonzero(grid_z == zf)
+        if fm is None or len(rows) == 0 or len(fm.cols) == 0:
             continue
-        th, cov, s2 = pl.theta[use], pl.theta_cov[use], pl.sigma2[use]
-        cols = heard[use]
-        d0 = pl.params.d0_m
-        rr, cc, vv = [], [], []
+        th, cov, s2, d0 = fm.theta, fm.cov, fm.sigma2, fm.d0_m
         for lo in range(0, len(rows), chunk):
             r = rows[lo:lo + chunk]
             diff = grid_pos[r][:, None, :] - th[None, :, 2:4]                     # (c, a, 2)
             d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + d0 * d0
             log10d = 0.5 * np.log10(d2)
             mu = th[None, :, 0] - 10.0 * th[None, :, 1] * log10d
-            ci, ai = np.nonzero(mu >= detect_dbm)     # below: more likely not heard than heard there (0)
+            ci, ai = np.nonzero(mu >= detect_dbm)
             dl = diff[ci, ai]
             g = np.empty((len(ci), 4))
             g[:, 0] = 1.0
@@ -139,13 +168,29 @@ def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray
             v = expected_powed(mu[ci, ai], np.sqrt(var), floor_dbm, beta)
             big = v >= min_value
             rr.append(r[ci[big]])
-            cc.append(cols[ai[big]])
+            cc.append(fm.cols[ai[big]])
             vv.append(v[big])
-        blocks.append(sparse.coo_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))),
-                                        shape=(len(grid_pos), n_aps)))
-    if not blocks:
-        return sparse.csr_matrix((len(grid_pos), n_aps))
-    return sparse.csr_matrix(sum(b.tocsr() for b in blocks))  # floors' rows are disjoint
+    return sparse.csr_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))),
+                             shape=(len(grid_pos), n_aps))
+
+
+def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray, *, floor_dbm: float, beta: float,
+                   min_value: float = FIELD_MIN_VALUE, params: PathLossParams | None = None,
+                   keep: np.ndarray | None = None, detect_dbm: float | None = None,
+                   chunk: int = 2048) -> sparse.csr_matrix:
+    """(C, A) sparse expected powed values of the map's APs (columns as ``radio_map.bssids``) at the
+    candidates ``grid_pos`` (C, 2) m on floors ``grid_z`` (C,) m, from per-floor path-loss models of
+    the map scans; values below ``min_value`` (an AP all but undetectable there) are dropped. APs
+    with fewer map scans than the path-loss fit needs get no prior (0). ``keep`` (M,) bool: fit on these
+    map scans only (a cross-validation fold). ``detect_dbm``: the level below which an AP counts as not
+    heard (default :func:`detect_level` of the scans fitted on)."""
+    models = fit_floor_models(radio_map, np.unique(np.asarray(grid_z, float)), params=params, keep=keep)
+    if detect_dbm is None:
+        detect_dbm = detect_level(radio_map, keep)
+        if not math.isfinite(detect_dbm):
+            detect_dbm = floor_dbm
+    return prior_values(models, grid_pos, grid_z, len(radio_map.bssids), detect_dbm=detect_dbm,
+                        floor_dbm=floor_dbm, beta=beta, min_value=min_value, chunk=chunk)
 
 
 def view_scale(values: np.ndarray, raw: np.ndarray) -> np.ndarray:
