@@ -41,8 +41,8 @@ from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.measurements import Fix
 from indoor_loc.wifi.powed_knn import PowedKnn
-from indoor_loc.wifi.radio_field import Walkable
 from indoor_loc.wifi.types import RadioMap, WifiScan
+from indoor_loc.wifi.walkable import plan_walkable
 
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
 TUNED_ON = ("B1", "F7")
@@ -118,29 +118,6 @@ def load_site(root: Path) -> dict[str, dict[str, Any]]:
         out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp), "z": z, "walks": (len(survey), len(test)),
                         "walkable": plan_walkable(fl.directory / "geojson_map.json", (fl.width_m, fl.height_m))}
     return out
-
-
-def plan_walkable(geojson: Path, extent_m: tuple[float, float], resolution_m: float = 0.5
-                  ) -> Walkable | None:
-    """Where people can be on a floor, from its GeoJSON plan stretched onto the floor's size (the format's
-    ``floor_info.json``): the free space of :func:`indoor_loc.graph.from_geojson.rasterise` (the outline
-    minus shops and shafts). None without a plan. On ms_site2 it holds 97-100 % of every floor's survey
-    and test positions."""
-    from indoor_loc.graph.from_geojson import rasterise
-    if not geojson.is_file():
-        return None
-    plan = rasterise(json.loads(geojson.read_text()), resolution_m=resolution_m, extent_m=extent_m, margin_m=1.0)
-    free = plan.grey > 127
-    h, w = free.shape
-
-    def walkable(xy: np.ndarray, z: float) -> np.ndarray:
-        c = np.round((xy[:, 0] - plan.origin_xy[0]) * plan.px_per_m).astype(int)
-        r = np.round(h - 1 - (xy[:, 1] - plan.origin_xy[1]) * plan.px_per_m).astype(int)
-        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        out = np.zeros(len(xy), bool)
-        out[inside] = free[r[inside], c[inside]]
-        return out
-    return walkable
 
 
 def errors(fixes: list[Fix], truth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -20,6 +20,11 @@ floor; ``wifi/fix`` then carries ``pose.position.z`` = the floor's height from t
 ``floors: {name: z_m}`` and ``covariance[14]`` its variance; diagnostics give ``last_floor``.
 On a single-floor map z is 0.
 
+Floor plans: ``floor_plans`` names the directory of per-floor plans ``indoor-loc import ms-indoor``
+writes (``OUT_DIR/floors``); with ``powed.field_weight`` > 0 the powed method's extrapolating radio map
+then extends only over each floor's walkable area (:mod:`indoor_loc.wifi.walkable`). A missing or
+unreadable plan is a configuration error at start-up naming the path.
+
 An unreadable radio map is a configuration error at start-up. With ``radiomap: ""`` the stage
 starts, drops every scan with reason ``no_map`` and says so under ``error`` in its diagnostics.
 A scan the method declines (too few shared APs, outlier conflict...) publishes nothing and is
@@ -54,9 +59,11 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.wifi.coverage import CoverageParams
 from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
-from indoor_loc.wifi.powed_knn import PowedKnnParams
+from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
+from indoor_loc.wifi.radio_field import Walkable
 from indoor_loc.wifi.radiomap import load_radiomap
 from indoor_loc.wifi.types import Positioner, RadioMap, WifiScan
+from indoor_loc.wifi.walkable import load_floor_plans
 from indoor_loc.wifi.wknn import WknnParams
 
 NODE_NAME = "wifi_fix_node"
@@ -73,6 +80,10 @@ class WifiFixParams:
     method: str = field("wknn", "positioning method: 'wknn', 'powed', 'pathloss' or 'coverage'")
     fallback: str = field("", "method for the scans the first declines ('' = none, e.g. 'powed')")
     frame_id: str = field("map", "frame_id of the published fixes (the radio map's frame)")
+    floor_plans: str = field("", "floor plans bounding the powed method's extrapolating radio map (powed.field_weight "
+                                 "> 0): the directory `indoor-loc import ms-indoor` writes (OUT_DIR/floors, one "
+                                 "<floor>/map.yaml + geojson_map.json each, matched to the map's floors by z_m); "
+                                 "'' = none")
     wknn: WknnParams = group(WknnParams, "WKNN (indoor_loc/wifi/wknn.py; wknn.k, wknn.shared_threshold, ...)")
     pathloss: PathLossParams = group(PathLossParams, "path-loss model (indoor_loc/wifi/pathloss.py; pathloss.*)")
     coverage: CoverageParams = group(CoverageParams, "coverage areas (indoor_loc/wifi/coverage.py; coverage.*)")
@@ -91,10 +102,15 @@ class WifiFixParams:
         """The Params object of the selected method."""
         return getattr(self, self.method)
 
-    def make_positioner(self):
-        """The configured positioner (with its fallback), unfitted."""
-        return make_chain(self.method, self.method_params(), self.fallback,
-                          getattr(self, self.fallback) if self.fallback else None)
+    def make_positioner(self, walkable: Walkable | None = None):
+        """The configured positioner (with its fallback), unfitted; ``walkable`` (from ``floor_plans``)
+        bounds the powed method's extrapolating grid."""
+        pos = make_chain(self.method, self.method_params(), self.fallback,
+                         getattr(self, self.fallback) if self.fallback else None)
+        for part in (pos, getattr(pos, "primary", None), getattr(pos, "fallback", None)):
+            if isinstance(part, PowedKnn):
+                part.walkable = walkable
+        return pos
 
 
 class WifiFixStage(Stage):
@@ -122,6 +138,11 @@ class WifiFixStage(Stage):
         self.pending: deque[tuple[WifiScan, int]] = deque()
         self.pending_max = max(1, int(pending_max))
         self.located_late = 0           # queued scans located once the fit ended
+        #: where people can be per floor, from ``floor_plans`` (ConfigError at start-up naming the path)
+        self.walkable: Walkable | None = None
+        self.floor_plans: dict[float, str] = {}
+        if params.floor_plans:
+            self.walkable, self.floor_plans = load_floor_plans(params.floor_plans)
         if self.radio_map is None and params.radiomap:
             self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
         if self.radio_map is not None:
@@ -147,7 +168,7 @@ class WifiFixStage(Stage):
     def fit_positioner(self, rm: RadioMap) -> Positioner:
         """A new positioner fitted to ``rm``. Touches no state of the stage, so it may run in
         another thread while the stage handles scans."""
-        return self.params.make_positioner().fit(rm)
+        return self.params.make_positioner(self.walkable).fit(rm)
 
     def begin_fit(self, rm: RadioMap) -> int:
         """``rm`` is being fitted: until :meth:`end_fit`, scans are located with the current
@@ -251,6 +272,8 @@ class WifiFixStage(Stage):
             out["error"] = self.fit_error
         elif self.radio_map is None and self.fitting is None:
             out["error"] = "no radio map configured (parameter radiomap is ''): scans are dropped"
+        if self.floor_plans:
+            out["floor_plans"] = str(len(self.floor_plans))
         if self.radio_map is not None:
             out["map.scans"] = str(self.radio_map.n_scans)
             out["map.aps"] = str(self.radio_map.n_aps)
