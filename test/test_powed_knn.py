@@ -12,6 +12,7 @@ from indoor_loc.wifi.methods import FallbackPositioner, make_chain, make_positio
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, age_weight, powed
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import RadioMap, WifiScan
+from grid_readings import assert_grid_equals
 
 CHI2_50, CHI2_95 = 2 * math.log(2), 5.991464547107979
 SIZE = (60.0, 30.0)
@@ -255,12 +256,7 @@ def test_interpolated_grid_is_the_kernel_regression_of_the_kept_scans():
         assert np.all(d_keep.min(axis=1) <= pos.params.smooth_reach_m + 1e-6)
         w = np.exp(-0.5 * (d_keep / h) ** 2) * (d_keep <= 3 * h)
         expect = (w / w.sum(axis=1, keepdims=True)) @ pos._vals[0][keep]
-        got = np.zeros_like(expect)
-        for col in range(expect.shape[1]):
-            r, v, _ = readings[0].gather(np.array([col]))
-            got[r, col] = v
-        np.testing.assert_allclose(got, expect, atol=1e-12)
-        np.testing.assert_allclose(sums[0], expect.sum(axis=1), atol=1e-12)
+        assert_grid_equals(readings[0], sums[0], expect)
     assert len(pos._smoothed(src != "walk1")[2]) < len(pos._grid_pos)       # the middle walk's own points go
 
 

@@ -9,6 +9,7 @@ from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, powed
 from indoor_loc.wifi.radio_field import detect_level, expected_powed, pathloss_prior, view_scale
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import WifiScan
+from grid_readings import assert_grid_equals
 
 SIZE = (60.0, 40.0)
 FLOOR, BETA = -100.0, np.e
@@ -121,12 +122,7 @@ def test_the_calibration_folds_refit_the_prior_without_the_left_out_walk():
                            detect_dbm=detect_level(rm)).toarray() * pos._w
     leaky = pathloss_prior(rm, g, np.zeros(len(g)), floor_dbm=FLOOR, beta=BETA).toarray() * pos._w
     expect = (w @ pos._vals[0][keep] + lam * prior) / (w.sum(axis=1) + lam)[:, None]
-    got = np.zeros_like(expect)
-    for col in range(expect.shape[1]):
-        r, v, _ = readings[0].gather(np.array([col]))
-        got[r, col] = v
-    np.testing.assert_allclose(got, expect, atol=1e-12)
-    np.testing.assert_allclose(sums[0], expect.sum(axis=1), atol=1e-12)
+    assert_grid_equals(readings[0], sums[0], expect)
     assert np.abs(prior - leaky).max() > 1e-3                 # the left-out walk does move the models
 
 
