@@ -759,18 +759,23 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
 
 
 #: A node that cannot start waits this long at most for a /diagnostics subscriber to match (s).
-STARTUP_ERROR_WAIT_S = 3.0
+STARTUP_ERROR_WAIT_S = 10.0
+#: ... but gives up after this long if it has seen no other node at all (s): a little over Fast
+#: DDS's periodic participant announcement (3 s), so one lost initial announcement burst is covered.
+STARTUP_ERROR_ALONE_S = 4.0
 #: ... and for the subscribers it found to acknowledge its ERROR (s).
 STARTUP_ERROR_ACK_S = 1.0
 
 
-def report_startup_error(node_name: str, message: str, *, wait_s: float = STARTUP_ERROR_WAIT_S) -> bool:
+def report_startup_error(node_name: str, message: str, *, wait_s: float = STARTUP_ERROR_WAIT_S,
+                         alone_s: float = STARTUP_ERROR_ALONE_S) -> bool:
     """Publish one ``/diagnostics`` ERROR for a node that cannot start (name and namespace from the
     command line's ``--ros-args``, as the node would have had), so a monitor sees it beside the
-    running nodes and not only the terminal. Waits up to ``wait_s`` for subscribers to match (a
-    new participant is discovered asynchronously; the count must then hold still for a moment, since
-    several monitors match one after another), publishes, and waits up to
-    :data:`STARTUP_ERROR_ACK_S` for their acknowledgement. Returns whether a subscriber acknowledged
+    running nodes and not only the terminal. A new participant is discovered asynchronously, and on
+    a loaded machine that takes seconds: the node waits up to ``wait_s`` for subscribers to match
+    (the count must then hold still for a moment, since several monitors match one after another),
+    or only ``alone_s`` while it sees no other node in the domain; then it publishes and waits up to
+    :data:`STARTUP_ERROR_ACK_S` for the acknowledgements. Returns whether a subscriber acknowledged
     it; never raises (the caller is already reporting an error)."""
     try:
         node = Node(node_name)
@@ -778,14 +783,18 @@ def report_startup_error(node_name: str, message: str, *, wait_s: float = STARTU
         return False
     try:
         pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
-        end = time.monotonic() + wait_s
-        last, since = -1, time.monotonic()
-        while time.monotonic() < end and not _STOP.is_set():
+        start = time.monotonic()
+        last, since, others = -1, start, False
+        while not _STOP.is_set():
+            now = time.monotonic()
+            if now - start >= wait_s or (not others and now - start >= alone_s):
+                break
             n = pub.get_subscription_count()
             if n != last:
-                last, since = n, time.monotonic()
-            elif n > 0 and time.monotonic() - since >= 0.3:
+                last, since = n, now
+            elif n > 0 and now - since >= 0.3:
                 break
+            others = others or len(node.get_node_names()) > 1
             time.sleep(0.02)
         pub.publish(status_array(node.get_fully_qualified_name(), 2, message, {"error": message}, time.time_ns()))
         return bool(pub.get_subscription_count() > 0
