@@ -36,9 +36,10 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
 
 
-#: ROS domain ids of one xdist worker, and this worker's turn through them (starting where the
+#: ROS domain ids of one xdist worker (a two-worker run uses 24 from INDOOR_LOC_DOMAIN_BASE, so
+#: bases 25 apart never share one), and this worker's turn through them (starting where the
 #: process id says, so two runs one after the other do not begin on the same domain).
-_DOMAINS_PER_WORKER = 13
+_DOMAINS_PER_WORKER = 12
 _DOMAIN_TURN = itertools.count(os.getpid() % _DOMAINS_PER_WORKER)
 
 
@@ -47,8 +48,8 @@ def ros_domain(monkeypatch) -> int:
     """A ROS_DOMAIN_ID of its own for a test that talks DDS, so parallel runs don't cross-talk.
     Child processes inherit it through the environment."""
     # INDOOR_LOC_DOMAIN_BASE moves the whole range, so suites run side by side on one machine
-    # (e.g. two checkouts) do not share domains; each xdist worker takes its own 13 ids, in turn:
-    # a domain is used again only 13 DDS tests later, so a process a previous test left still
+    # (e.g. two checkouts) do not share domains; each xdist worker takes its own 12 ids, in turn:
+    # a domain is used again only 12 DDS tests later, so a process a previous test left still
     # stopping (or a participant still being forgotten by DDS) cannot talk to the next test.
     first = int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1"))
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
