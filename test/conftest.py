@@ -1,8 +1,8 @@
 """Shared fixtures: dataset location, per-test ROS domain, seeded RNG."""
 from __future__ import annotations
 
+import itertools
 import os
-import random
 from pathlib import Path
 
 import numpy as np
@@ -36,17 +36,26 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
 
 
+#: ROS domain ids of one xdist worker (a two-worker run uses 24 from INDOOR_LOC_DOMAIN_BASE, so
+#: bases 25 apart never share one), and this worker's turn through them (starting where the
+#: process id says, so two runs one after the other do not begin on the same domain).
+_DOMAINS_PER_WORKER = 12
+_DOMAIN_TURN = itertools.count(os.getpid() % _DOMAINS_PER_WORKER)
+
+
 @pytest.fixture
 def ros_domain(monkeypatch) -> int:
     """A ROS_DOMAIN_ID of its own for a test that talks DDS, so parallel runs don't cross-talk.
     Child processes inherit it through the environment."""
     # INDOOR_LOC_DOMAIN_BASE moves the whole range, so suites run side by side on one machine
-    # (e.g. two checkouts) do not share domains; each xdist worker takes its own 13 ids.
+    # (e.g. two checkouts) do not share domains; each xdist worker takes its own 12 ids, in turn:
+    # a domain is used again only 12 DDS tests later, so a process a previous test left still
+    # stopping (or a participant still being forgotten by DDS) cannot talk to the next test.
     first = int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1"))
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-    base = first + (int(worker[2:]) if worker[2:].isdigit() else 0) * 13
+    base = first + (int(worker[2:]) if worker[2:].isdigit() else 0) * _DOMAINS_PER_WORKER
     # Fast DDS refuses domain ids above 232 (its port numbers overflow): wrap into 1..232.
-    domain = 1 + (base - 1 + random.Random(os.getpid() ^ id(monkeypatch)).randrange(13)) % 232
+    domain = 1 + (base - 1 + next(_DOMAIN_TURN) % _DOMAINS_PER_WORKER) % 232
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return domain

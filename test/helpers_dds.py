@@ -100,6 +100,18 @@ class Peer:
                 return line
         return None
 
+    def wait_seen(self, pattern: str, timeout: float) -> str | None:
+        """The first output line matching regex ``pattern``, printed before this call or within
+        ``timeout`` s (unlike :meth:`wait_line`, lines already passed over count), else None."""
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        while True:
+            done = not self._reader.is_alive()          # read before the lines: nothing comes after
+            found = next((line for line in list(self.lines) if rx.search(line)), None)
+            if found is not None or done or time.monotonic() >= deadline:
+                return found
+            time.sleep(0.05)
+
     def signal(self, sig: int = signal.SIGINT) -> None:
         if self.proc.poll() is None:
             self.proc.send_signal(sig)

@@ -35,18 +35,22 @@ def test_ap_readings_gather_matches_the_dense_matrix(rng):
     """The inverted index returns exactly the masked readings of the asked columns, column by column."""
     import numpy as np
 
+    from scipy import sparse
+
     from indoor_loc.wifi.types import ApReadings
-    vals = rng.normal(-70, 10, (40, 12))
-    mask = rng.random((40, 12)) < 0.3
-    idx = ApReadings(mask, vals)
-    cols = np.array([3, 0, 11, 3])
-    rows, got, lens = idx.gather(cols)
-    assert lens.tolist() == [int(mask[:, c].sum()) for c in cols]
-    start = 0
-    for c, n in zip(cols, lens):
-        r = np.flatnonzero(mask[:, c])
-        assert rows[start:start + n].tolist() == r.tolist()
-        np.testing.assert_array_equal(got[start:start + n], vals[r, c])
-        start += n
+    for m in (40, 400):                      # short runs (indexed element by element) and long ones (copied whole)
+        vals = rng.normal(-70, 10, (m, 12))
+        mask = rng.random((m, 12)) < 0.3
+        cols = np.array([3, 0, 11, 3])
+        assert (mask[:, cols].sum() >= ApReadings.RUN_COPY * len(cols)) == (m == 400)
+        for idx in (ApReadings(mask, vals), ApReadings.from_sparse(sparse.csr_matrix(np.where(mask, vals, 0.0)))):
+            rows, got, lens = idx.gather(cols)
+            assert lens.tolist() == [int(mask[:, c].sum()) for c in cols]
+            start = 0
+            for c, n in zip(cols, lens):
+                r = np.flatnonzero(mask[:, c])
+                assert rows[start:start + n].tolist() == r.tolist()
+                np.testing.assert_array_equal(got[start:start + n], vals[r, c])
+                start += n
     empty = ApReadings(np.zeros((0, 0), bool), np.zeros((0, 0)))
     assert [len(a) for a in empty.gather(np.zeros(0, np.int64))] == [0, 0, 0]

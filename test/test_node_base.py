@@ -6,7 +6,6 @@ import math
 import os
 import signal
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -28,7 +27,9 @@ from indoor_loc.nodes.base import QOS_PROFILES, StageNode, node_usage, qos_profi
 sys.path.insert(0, str(PEERS))
 from dummy_node import DummyStage  # noqa: E402
 
-pytestmark = pytest.mark.timeout(60)
+# a bound for a hung test, above the sum of a test's condition deadlines (which a loaded machine may
+# use up one after another), not an expected duration
+pytestmark = pytest.mark.timeout(180)
 
 
 def test_qos_table_covers_every_contract_role():
@@ -157,8 +158,8 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
 
             def on_diag(msg: DiagnosticArray) -> None:
                 d = diagnostics_from_msg(msg)
-                if "/alice/dummy_node" in d:
-                    diags.append((time.monotonic(), d["/alice/dummy_node"]))
+                if "/alice/dummy_node" in d:      # when the node published it (its clock), not when we got it
+                    diags.append((msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, d["/alice/dummy_node"]))
 
             matched: list[int] = []     # the writer has matched the node's reader (not just the graph)
             pub = node.create_publisher(Imu, "/alice/imu/data_raw", qos_profile(Qos.RELIABLE),
@@ -168,7 +169,7 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
                                      qos_profile(Qos.RELIABLE))
             node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
             assert spin_until(ex, lambda: bool(matched) and matched[-1] > 0
-                              and node.count_publishers("/alice/dummy/pose") > 0 and len(diags) > 0, 20), \
+                              and node.count_publishers("/alice/dummy/pose") > 0 and len(diags) > 0, 40), \
                 peer.output()
 
             good = [(1_000_000_000 + i, np.array([0.5 * i, -1.0 - i, 9.8])) for i in range(3)]
@@ -177,16 +178,16 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
                         imu_to_msg(good[2][0], "f", good[2][1])]
             for msg in sequence:
                 pub.publish(msg)
-            assert spin_until(ex, lambda: len(poses) == 3, 10), peer.output()
+            assert spin_until(ex, lambda: len(poses) == 3, 30), peer.output()
             for (stamp, acc), msg in zip(good, poses):
                 p = pose_from_msg(msg)
                 assert p.stamp_ns == stamp and np.array_equal(p.xy, 2.5 * acc[:2])
 
             def counted() -> bool:
                 return bool(diags) and diags[-1][1].values.get("rejected.total") == "3"
-            assert spin_until(ex, counted, 5)
+            assert spin_until(ex, counted, 20)
             n0 = len(diags)
-            assert spin_until(ex, lambda: len(diags) >= n0 + 3, 8)
+            assert spin_until(ex, lambda: len(diags) >= n0 + 3, 20)
             gaps = np.diff([t for t, _ in diags[n0 - 1:]])   # about once a second (loose: shared CPUs)
             assert 0.7 < np.median(gaps) < 1.4 and np.all(gaps < 3.0), gaps
             d = diags[-1][1]
@@ -198,7 +199,7 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
 
             # SIGINT: the node publishes the stage's finish() outputs before it goes
             peer.signal(signal.SIGINT)
-            assert spin_until(ex, lambda: len(poses) == 4, 10), peer.output()
+            assert spin_until(ex, lambda: len(poses) == 4, 30), peer.output()
             assert pose_from_msg(poses[-1]).stamp_ns == 3          # DummyStage.finish(): accepted count
         assert peer.wait(timeout=15) == 0, peer.output()
         assert "dropped message (nan" in peer.output()

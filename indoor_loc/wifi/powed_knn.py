@@ -252,7 +252,17 @@ def smoothing_grid(pos: np.ndarray, z: np.ndarray, step_m: float, reach_m: float
 def sparse_scale(m: Any, col_scale: np.ndarray) -> Any:
     """A sparse (C, A) matrix with column a multiplied by ``col_scale[a]`` (CSR)."""
     from scipy import sparse
-    return sparse.csr_matrix(m @ sparse.diags(np.asarray(col_scale, float)))
+    out = sparse.csr_matrix(m, copy=True)
+    out.data *= np.asarray(col_scale, float)[out.indices]
+    return out
+
+
+def _scaled(m: Any, factor: float) -> Any:
+    """A copy of the sparse matrix ``m`` (CSR) times ``factor``."""
+    from scipy import sparse
+    out = sparse.csr_matrix(m, copy=True)
+    out.data *= factor
+    return out
 
 
 def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
@@ -295,6 +305,7 @@ class PowedKnn(Positioner):
         self._kernel: Any = None                     # (C, M) sparse smoothing weights (None: no grid)
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
         self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
+        self._kernel_csc: Any = None                 # the kernel by columns (map scans), for leaving scans out
         self._prior: list[Any] | None = None         # per _vals (C, A) sparse path-loss prior (field_weight > 0)
         self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
         self._prior_raw: Any = None                  # (C, A) sparse raw prior of the whole map's models
@@ -353,7 +364,7 @@ class PowedKnn(Positioner):
                 v = self._vals[j]
                 self._views.append(_View(ApReadings(v > 0, v), v.sum(axis=1), a, j, False, twin))
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
-        self._kernel_sums = None
+        self._kernel_sums = self._kernel_csc = None
         if p.smooth_m > 0:
             plan = p.field_weight > 0 and self.walkable is not None and p.field_reach_m > p.smooth_reach_m
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
@@ -381,20 +392,27 @@ class PowedKnn(Positioner):
             self._calibrate(list(radio_map.source), map_z)
         return self
 
-    def _smoothed(self, keep: np.ndarray) -> tuple[list[ApReadings], list[np.ndarray], np.ndarray]:
+    def _smoothed(self, keep: np.ndarray, floors: np.ndarray | None = None
+                  ) -> tuple[list[Any], list[Any], np.ndarray]:
         """The grid interpolated from the map scans ``keep`` (M,) bool: per map values (``_vals``) the
         readings and their sums over the grid points within reach of a kept scan, and those points' rows.
         The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs.
-        With ``field_weight`` > 0 the path-loss prior is added, fitted again without the left-out scans."""
+        With ``field_weight`` > 0 the path-loss prior is added, fitted again without the left-out scans.
+        With ``floors`` (heights) the readings and sums are split by floor: per map values a list of
+        (readings, sums, positions in the returned rows) per floor, so a query is matched against its
+        own floor's points only."""
         from scipy import sparse
         if self._kernel_sums is None:
             self._kernel_sums = ([sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals],
                                  np.asarray(self._kernel.sum(axis=1)).ravel())
         nums, den = self._kernel_sums
-        drop = ~np.asarray(keep, bool)
-        rows = np.flatnonzero(np.asarray(self._near[:, keep].sum(axis=1)).ravel() > 0)
+        keep = np.asarray(keep, bool)
+        drop = ~keep
+        rows = np.flatnonzero(self._near @ keep.astype(np.float64) > 0)
         if drop.any():
-            k_drop = sparse.csc_matrix(self._kernel)[:, drop]
+            if self._kernel_csc is None:
+                self._kernel_csc = sparse.csc_matrix(self._kernel)
+            k_drop = self._kernel_csc[:, drop]
             den = den - np.asarray(k_drop.sum(axis=1)).ravel()
             nums = [n - sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop])) for n, v in zip(nums, self._vals)]
         nums, den = [n[rows] for n in nums], den[rows]
@@ -402,16 +420,25 @@ class PowedKnn(Positioner):
             lam = self.params.field_weight
             prior = self._field_prior(keep, rows) if drop.any() else [pr[rows] for pr in self._prior]
             den = den + lam
-            nums = [n + lam * pr for n, pr in zip(nums, prior)]
-        scale = sparse.diags(1.0 / np.maximum(den, 1e-300))
-        readings: list[ApReadings] = []
-        sums: list[np.ndarray] = []
+            nums = [n + _scaled(pr, lam) for n, pr in zip(nums, prior)]
+        inv = 1.0 / np.maximum(den, 1e-300)
+        parts = [np.arange(len(rows))] if floors is None else \
+            [np.flatnonzero(self._grid_z[rows] == zf) for zf in floors]
+        readings: list[Any] = []
+        sums: list[Any] = []
         for n in nums:
-            g = sparse.csr_matrix(scale @ n)
+            g = sparse.csr_matrix(n, copy=True)
+            g.data *= np.repeat(inv, np.diff(g.indptr))
             g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
             g.eliminate_zeros()
-            readings.append(ApReadings.from_sparse(g))
-            sums.append(np.asarray(g.sum(axis=1)).ravel())
+            blocks = [g if len(part) == len(rows) else g[part] for part in parts]
+            got = [(ApReadings.from_sparse(x), np.asarray(x.sum(axis=1)).ravel()) for x in blocks]
+            if floors is None:
+                readings.append(got[0][0])
+                sums.append(got[0][1])
+            else:
+                readings.append([(r, sm, part) for (r, sm), part in zip(got, parts)])
+                sums.append(None)
         return readings, sums, rows
 
     def _field_prior(self, keep: np.ndarray, rows: np.ndarray) -> list[Any]:
@@ -447,9 +474,11 @@ class PowedKnn(Positioner):
             models = fit_floor_models(rm, floors, keep=keep, aps=changed)
             fresh = prior_values(models, self._grid_pos[rows], gz, n_aps, detect_dbm=self._field_detect,
                                  floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
-            old = self._prior_raw[rows].tocoo()
-            stay = ~changed[np.searchsorted(floors, gz)[old.row], old.col]
-            prior = sparse.csr_matrix((old.data[stay], (old.row[stay], old.col[stay])), shape=old.shape) + fresh
+            old = self._prior_raw if len(rows) == self._prior_raw.shape[0] else self._prior_raw[rows]
+            entry_floor = np.repeat(np.searchsorted(floors, gz), np.diff(old.indptr))
+            stay = ~changed[entry_floor, old.indices]        # the APs the fold did not refit keep their values
+            kept = np.concatenate([[0], np.cumsum(stay)])
+            prior = sparse.csr_matrix((old.data[stay], old.indices[stay], kept[old.indptr]), shape=old.shape) + fresh
         return [sparse_scale(prior, sc) for sc in self._prior_scale]
 
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
@@ -472,34 +501,39 @@ class PowedKnn(Positioner):
         err = np.full(m, np.nan)
         rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
         views = [v for v in self._views if not v.twin]           # the map scans have no ages to ignore
+        floors = np.unique(map_z)
         for fold in np.unique(src[rows]):
             keep = src != fold
             if self._kernel is not None:
-                g_read, g_sums, g_rows = self._smoothed(keep)
+                g_read, _, g_rows = self._smoothed(keep, floors)
             else:
-                g_read, g_sums, g_rows = [], [], np.zeros(0, np.int64)
+                g_read, g_rows = [], np.zeros(0, np.int64)           # no grid view
             n_c = m + len(g_rows)
             pos_c = np.vstack([self._pos[:m], self._grid_pos[g_rows]])
             z_c = np.concatenate([map_z, self._z[m + g_rows]])
             allowed = np.concatenate([keep, np.ones(len(g_rows), bool)])
-            for i in rows[src[rows] == fold]:
-                c = np.flatnonzero(self._vals[0][i] > 0)
-                if len(c) == 0:
-                    continue
-                ds = []
-                for v in views:
-                    d = np.ones(n_c)
-                    if v.grid:
-                        d[m:] = _sorensen(c, self._vals[v.values][i, c], g_read[v.values], g_sums[v.values],
-                                          len(g_rows))
-                    else:
-                        d[:m] = _sorensen(c, self._vals[v.values][i, c], v.readings, v.sums, m)
-                    ds.append(d)
-                est = self._estimate(ds, allowed & (z_c == map_z[i]), pos_c, views)
-                if est is None:
-                    continue
-                d1[i] = est[3]
-                err[i] = float(np.hypot(*(est[0] - self._pos[i])))
+            for f, zf in enumerate(floors):
+                # a scan is matched on its own floor only: the distances to the other floors' grid points
+                # are never read (they stay 1, no candidate)
+                on_floor = allowed & (z_c == zf)
+                for i in rows[(src[rows] == fold) & (map_z[rows] == zf)]:
+                    c = np.flatnonzero(self._vals[0][i] > 0)
+                    if len(c) == 0:
+                        continue
+                    ds = []
+                    for v in views:
+                        d = np.ones(n_c)
+                        if v.grid:
+                            rd, sums, part = g_read[v.values][f]
+                            d[m + part] = _sorensen(c, self._vals[v.values][i, c], rd, sums, len(part))
+                        else:
+                            d[:m] = _sorensen(c, self._vals[v.values][i, c], v.readings, v.sums, m)
+                        ds.append(d)
+                    est = self._estimate(ds, on_floor, pos_c, views)
+                    if est is None:
+                        continue
+                    d1[i] = est[3]
+                    err[i] = float(np.hypot(*(est[0] - self._pos[i])))
         ok = np.isfinite(err)
         if ok.sum() < 10:
             return

@@ -151,21 +151,32 @@ def prior_values(models: dict[float, FloorModels], grid_pos: np.ndarray, grid_z:
         rows = np.flatnonzero(grid_z == zf)
         if fm is None or len(rows) == 0 or len(fm.cols) == 0:
             continue
-        th, cov, s2, d0 = fm.theta, fm.cov, fm.sigma2, fm.d0_m
+        th, s2, d0 = fm.theta, fm.sigma2, fm.d0_m
+        a0, n_exp, px, py = th[:, 0], th[:, 1], th[:, 2], th[:, 3]
+        # g^T C g with g = [1, -10 log10 d, k dx, k dy] (k = 10 n / (ln 10 d^2)), C symmetric: its ten
+        # distinct entries per AP, the off-diagonal ones doubled
+        c = fm.cov
+        c00, c11, c22, c33 = c[:, 0, 0], c[:, 1, 1], c[:, 2, 2], c[:, 3, 3]
+        c01, c02, c03 = 2.0 * c[:, 0, 1], 2.0 * c[:, 0, 2], 2.0 * c[:, 0, 3]
+        c12, c13, c23 = 2.0 * c[:, 1, 2], 2.0 * c[:, 1, 3], 2.0 * c[:, 2, 3]
+        base = s2 + c00
+        kn = (10.0 / np.log(10.0)) * n_exp
         for lo in range(0, len(rows), chunk):
             r = rows[lo:lo + chunk]
-            diff = grid_pos[r][:, None, :] - th[None, :, 2:4]                     # (c, a, 2)
-            d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + d0 * d0
+            dx = grid_pos[r, 0][:, None] - px[None, :]                              # (c, a)
+            dy = grid_pos[r, 1][:, None] - py[None, :]
+            d2 = dx * dx + dy * dy + d0 * d0
             log10d = 0.5 * np.log10(d2)
-            mu = th[None, :, 0] - 10.0 * th[None, :, 1] * log10d
-            ci, ai = np.nonzero(mu >= detect_dbm)
-            dl = diff[ci, ai]
-            g = np.empty((len(ci), 4))
-            g[:, 0] = 1.0
-            g[:, 1] = -10.0 * log10d[ci, ai]
-            g[:, 2:4] = ((10.0 / np.log(10.0)) * th[ai, 1] / d2[ci, ai])[:, None] * dl
-            var = s2[ai] + np.einsum("pi,pij,pj->p", g, cov[ai], g)
-            v = expected_powed(mu[ci, ai], np.sqrt(var), floor_dbm, beta)
+            mu = a0[None, :] - 10.0 * n_exp[None, :] * log10d
+            flat = np.flatnonzero(mu >= detect_dbm)                              # the pairs it may be heard at
+            ci, ai = np.divmod(flat, mu.shape[1])
+            g1 = -10.0 * log10d.ravel()[flat]
+            k = kn[ai] / d2.ravel()[flat]
+            g2 = k * dx.ravel()[flat]
+            g3 = k * dy.ravel()[flat]
+            var = (base[ai] + g1 * (c01[ai] + c11[ai] * g1 + c12[ai] * g2 + c13[ai] * g3)
+                   + g2 * (c02[ai] + c22[ai] * g2 + c23[ai] * g3) + g3 * (c03[ai] + c33[ai] * g3))
+            v = expected_powed(mu.ravel()[flat], np.sqrt(var), floor_dbm, beta)
             big = v >= min_value
             rr.append(r[ci[big]])
             cc.append(fm.cols[ai[big]])
