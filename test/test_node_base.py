@@ -89,10 +89,12 @@ def test_invalid_parameters_stop_the_process(tmp_path, ros_domain):
         "typo": (["--params-file", str(typo)], "unknown parameter(s) ['step_lenght']"),
         "args": (["--params-file", str(tmp_path / "missing.yaml")], "invalid arguments"),
     }
+    # four processes starting at once, each then waiting up to 10 s for a /diagnostics subscriber
+    # (they see each other) before it exits: on a loaded machine that is well over 20 s
     peers = {k: python_peer("dummy_node.py", "--ros-args", *a) for k, (a, _) in cases.items()}
     for k, peer in peers.items():
         try:
-            rc = peer.wait(timeout=30)
+            rc = peer.wait(timeout=90)
         finally:
             peer.stop()
         assert rc == 2, f"{k}: rc {rc}\n{peer.output()}"
@@ -126,7 +128,7 @@ def test_startup_error_is_an_error_in_diagnostics(ros_domain, tmp_path):
         peer = Peer([sys.executable, "-m", "indoor_loc.nodes.wifi_fix_node", "--ros-args", "-r", f"__ns:={ns}",
                      "-p", f"radiomap:={tmp_path / 'missing'}"])
         try:
-            assert spin_until(ex, lambda: any(name == f"{ns}/wifi_fix_node" for _, name, _ in got), 40), \
+            assert spin_until(ex, lambda: any(name == f"{ns}/wifi_fix_node" for _, name, _ in got), 60), \
                 (got, peer.output())
             assert peer.wait(timeout=30) == 2, peer.output()
         finally:
