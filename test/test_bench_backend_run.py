@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from conftest import dataset
-from indoor_loc.bench.backend_run import CONFIG_NAMES, configs, scratch
+from indoor_loc.bench.backend_run import CONFIG_NAMES, READING, STEPS, configs, load, scratch
 
 #: what the measured process must not import: ROS, plotting, the bench and evaluation front ends
 HEAVY = ("rclpy", "matplotlib", "indoor_loc.bench.backend", "indoor_loc.pipeline", "indoor_loc.nodes")
@@ -33,3 +33,20 @@ def test_unknown_configuration_is_refused_with_the_known_ones(tmp_path):
     with pytest.raises(RuntimeError, match="failed"):
         scratch(tmp_path, "nope")
     assert list(configs()) == list(CONFIG_NAMES)
+
+
+def test_front_end_in_two_processes_gives_the_same_events_and_counts_their_cpu():
+    data = dataset("putmc").parent
+    one, two = load(data, [3, 1, 2]), load(data, [3, 1, 2], jobs=2)
+    assert one.walks == two.walks == [1, 2, 3]
+    for n in one.walks:
+        a, b = one.events[n], two.events[n]
+        for col in ("t_start", "t_end", "steps", "yaw"):
+            assert getattr(a, col).tobytes() == getattr(b, col).tobytes()
+        assert [s.stamp_ns for s in a.scans] == [s.stamp_ns for s in b.scans]
+        assert all(x.tobytes() == y.tobytes() for x, y in zip(one.truth[n], two.truth[n]))
+    assert one.survey.rssi_dbm.tobytes() == two.survey.rssi_dbm.tobytes()
+    # the workers' CPU time is counted: the stepometer ran only in them
+    assert set(two.parts) == {READING, STEPS}
+    assert two.parts[STEPS][1] > 0.2 * one.parts[STEPS][1]
+    assert two.load_cpu_s > two.parts[STEPS][1]
