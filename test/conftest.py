@@ -44,27 +44,26 @@ def rng() -> np.random.Generator:
 #: process id says, so two runs one after the other do not begin on the same domain).
 _DOMAINS_PER_WORKER = 12
 _DOMAIN_TURN = itertools.count(os.getpid() % _DOMAINS_PER_WORKER)
+_MARKS = itertools.count()
 
 
-def _live_descendants() -> set[int]:
-    """Process ids of this process's live (not zombie) children, grandchildren, ... (Linux /proc)."""
-    children: dict[int, list[int]] = {}
+#: Environment variable that marks the processes a DDS test started (children inherit it, and so do
+#: their children, also when a bring-up puts them in process groups of their own).
+_TEST_MARK = "INDOOR_LOC_TEST_PROCESS"
+
+
+def _processes_marked(mark: str) -> list[int]:
+    """Live processes (other than this one) whose environment holds ``_TEST_MARK=mark`` (Linux /proc)."""
+    needle = f"{_TEST_MARK}={mark}".encode()
+    found = []
     for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
+        if not d.name.isdigit() or int(d.name) == os.getpid():
             continue
         try:
-            fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            if needle in (d / "environ").read_bytes().split(b"\0"):
+                found.append(int(d.name))
         except OSError:
             continue
-        if fields[0] != "Z":
-            children.setdefault(int(fields[1]), []).append(int(d.name))
-    found: set[int] = set()
-    todo = [os.getpid()]
-    while todo:
-        for pid in children.get(todo.pop(), []):
-            if pid not in found:
-                found.add(pid)
-                todo.append(pid)
     return found
 
 
@@ -85,11 +84,12 @@ def ros_domain(monkeypatch) -> Iterator[int]:
     domain = 1 + (base - 1 + next(_DOMAIN_TURN) % _DOMAINS_PER_WORKER) % 232
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    before = _live_descendants() if Path("/proc/self/stat").exists() else set()
+    mark = f"{os.getpid()}-{domain}-{next(_MARKS)}"
+    monkeypatch.setenv(_TEST_MARK, mark)
     yield domain
-    if not Path("/proc/self/stat").exists():
+    if not Path("/proc/self/environ").exists():
         return
-    left = sorted(_live_descendants() - before)
+    left = _processes_marked(mark)
     for pid in left:
         try:
             os.kill(pid, signal.SIGKILL)
