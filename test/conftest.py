@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import itertools
 import os
+import signal
+import warnings
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -43,10 +46,34 @@ _DOMAINS_PER_WORKER = 12
 _DOMAIN_TURN = itertools.count(os.getpid() % _DOMAINS_PER_WORKER)
 
 
+def _live_descendants() -> set[int]:
+    """Process ids of this process's live (not zombie) children, grandchildren, ... (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z":
+            children.setdefault(int(fields[1]), []).append(int(d.name))
+    found: set[int] = set()
+    todo = [os.getpid()]
+    while todo:
+        for pid in children.get(todo.pop(), []):
+            if pid not in found:
+                found.add(pid)
+                todo.append(pid)
+    return found
+
+
 @pytest.fixture
-def ros_domain(monkeypatch) -> int:
+def ros_domain(monkeypatch) -> Iterator[int]:
     """A ROS_DOMAIN_ID of its own for a test that talks DDS, so parallel runs don't cross-talk.
-    Child processes inherit it through the environment."""
+    Child processes inherit it through the environment. A process the test started and left
+    running (a test that failed before it could stop it) is killed when the test ends, with a
+    warning, so it cannot talk to a later test that gets the same domain."""
     # INDOOR_LOC_DOMAIN_BASE moves the whole range, so suites run side by side on one machine
     # (e.g. two checkouts) do not share domains; each xdist worker takes its own 12 ids, in turn:
     # a domain is used again only 12 DDS tests later, so a process a previous test left still
@@ -58,4 +85,16 @@ def ros_domain(monkeypatch) -> int:
     domain = 1 + (base - 1 + next(_DOMAIN_TURN) % _DOMAINS_PER_WORKER) % 232
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    return domain
+    before = _live_descendants() if Path("/proc/self/stat").exists() else set()
+    yield domain
+    if not Path("/proc/self/stat").exists():
+        return
+    left = sorted(_live_descendants() - before)
+    for pid in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    if left:
+        warnings.warn(f"killed {len(left)} process(es) the test left running in ROS domain {domain}: {left}",
+                      stacklevel=1)
