@@ -29,6 +29,7 @@ import resource
 import tracemalloc
 from dataclasses import replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -57,6 +58,8 @@ REF_TIME_S = {"separate": (0.6, 0.95), "joint": (1.0, 1.6)}
 REF_MEMORY_MB = (15, 18)
 #: worker processes of the parallel front end timed beside (wall time; not less work)
 JOBS = 2
+#: the configurations timed in fresh processes with ``--quick`` (all of them otherwise)
+QUICK_FRESH = ("separate, no step-length est.", "joint, step-length est.")
 
 
 def errors(data: Putmc, g: MultiUserGraph) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -108,10 +111,10 @@ def _fmt(v: float, nd: int = 2) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
 
 
-def fresh_processes(data_dir: Path, runs: int) -> dict[str, dict]:
-    """Each configuration from scratch in ``runs`` fresh processes that import only what the work
-    needs (:mod:`indoor_loc.bench.backend_run`); prints a table (least CPU time of the runs, largest
-    peak memory) and returns the runs."""
+def fresh_processes(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONFIGS)) -> dict[str, dict]:
+    """Each configuration of ``names`` from scratch in ``runs`` fresh processes that import only what
+    the work needs (:mod:`indoor_loc.bench.backend_run`); prints a table (least CPU time of the
+    runs, largest peak memory) and returns the runs."""
     print(f"\nEach configuration from scratch in a fresh process (`python -m indoor_loc.bench.backend_run`, "
           f"{runs} run{'s' if runs > 1 else ''}, least CPU), importing only the PUTMC reader, the stepometer and "
           "the graph (numpy, scipy.signal/.sparse/.optimize, PyYAML; no ROS, no plotting): the work (front end "
@@ -121,7 +124,7 @@ def fresh_processes(data_dir: Path, runs: int) -> dict[str, dict]:
           "+ imports) | peak RSS MB (of which after imports) | reference C++ s wall, MB |")
     print("|---|---|---|---|---|")
     out: dict[str, dict] = {}
-    for name in CONFIGS:
+    for name in names:
         rs = scratch(data_dir, name, runs)
         best = min(rs, key=lambda r: r["cpu_work_s"])
         proc = min(r["cpu_process_s"] for r in rs)
@@ -304,7 +307,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"memory: peak Python heap of one joint run {peak / 2**20:.1f} MB (tracemalloc); peak RSS of this process "
           f"{rss:.0f} MB, of which {rss0:.0f} MB before any data was read (interpreter, numpy, scipy, the package); "
           f"reference C++ {REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB")
-    fresh = fresh_processes(data_dir, 1 if quick else 3)
+    fresh = fresh_processes(data_dir, 1, QUICK_FRESH) if quick else fresh_processes(data_dir, 3)
     if getattr(args, "live", False):
         from indoor_loc.bench import backend_live
         backend_live.run(data, rates=(10.0,) if quick else (1.0, 10.0))
