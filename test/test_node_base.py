@@ -276,7 +276,7 @@ def test_sigint_processes_what_was_already_received(ros_domain):
                                                                          reliability=ReliabilityPolicy.RELIABLE))
             assert spin_until(ex, lambda: bool(matched) and matched[-1] > 0
                               and node.count_publishers("/drain/dummy/pose") > 0, 30), peer.output()
-            assert spin_until(ex, lambda: any("dummy_node up" in ln for ln in peer.lines), 10)
+            assert spin_until(ex, lambda: any("dummy_node up" in ln for ln in peer.lines), 30)
             peer.signal(signal.SIGSTOP)
             for i in range(n):
                 pub.publish(imu_to_msg(1_000_000_000 + i, "f", np.array([0.1, 0.2, 9.8])))
@@ -285,7 +285,7 @@ def test_sigint_processes_what_was_already_received(ros_domain):
             assert pub.wait_for_all_acked(Duration(seconds=20))     # all in the node's queue
             peer.signal(signal.SIGINT)
             assert peer.wait(timeout=30) == 0, peer.output()
-            assert spin_until(ex, lambda: len(poses) >= n + 1, 10), (len(poses), peer.output()[-2000:])
+            assert spin_until(ex, lambda: len(poses) >= n + 1, 30), (len(poses), peer.output()[-2000:])
             assert pose_from_msg(poses[-1]).stamp_ns == n          # finish(): every message accepted
     finally:
         peer.stop()
