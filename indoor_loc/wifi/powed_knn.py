@@ -249,20 +249,13 @@ def smoothing_grid(pos: np.ndarray, z: np.ndarray, step_m: float, reach_m: float
     return g, gz, w, near
 
 
-def sparse_scale(m: Any, col_scale: np.ndarray) -> Any:
-    """A sparse (C, A) matrix with column a multiplied by ``col_scale[a]`` (CSR)."""
+def _scaled(m: Any, col_scale: np.ndarray, factor: float) -> Any:
+    """The CSR matrix ``m`` with column a multiplied by ``col_scale[a]``, then by ``factor`` (new values,
+    the index arrays shared)."""
     from scipy import sparse
-    out = sparse.csr_matrix(m, copy=True)
-    out.data *= np.asarray(col_scale, float)[out.indices]
-    return out
-
-
-def _scaled(m: Any, factor: float) -> Any:
-    """A copy of the sparse matrix ``m`` (CSR) times ``factor``."""
-    from scipy import sparse
-    out = sparse.csr_matrix(m, copy=True)
-    out.data *= factor
-    return out
+    m = sparse.csr_matrix(m)
+    return sparse.csr_matrix((m.data * np.asarray(col_scale, float)[m.indices] * factor, m.indices, m.indptr),
+                             shape=m.shape)
 
 
 def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
@@ -306,7 +299,7 @@ class PowedKnn(Positioner):
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
         self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
         self._kernel_csc: Any = None                 # the kernel by columns (map scans), for leaving scans out
-        self._prior: list[Any] | None = None         # per _vals (C, A) sparse path-loss prior (field_weight > 0)
+        self._prior: Any = None                      # (C, A) sparse raw path-loss prior (field_weight > 0)
         self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
         self._prior_raw: Any = None                  # (C, A) sparse raw prior of the whole map's models
         self._field_floors = np.zeros(0)
@@ -418,16 +411,15 @@ class PowedKnn(Positioner):
         nums, den = [n[rows] for n in nums], den[rows]
         if self._prior is not None:                      # the path-loss prior: field_weight pseudo-scans at each point
             lam = self.params.field_weight
-            prior = self._field_prior(keep, rows) if drop.any() else [pr[rows] for pr in self._prior]
+            prior = self._field_prior(keep, rows) if drop.any() else self._prior[rows]
             den = den + lam
-            nums = [n + _scaled(pr, lam) for n, pr in zip(nums, prior)]
+            nums = [n + _scaled(prior, sc, lam) for n, sc in zip(nums, self._prior_scale)]
         inv = 1.0 / np.maximum(den, 1e-300)
         parts = [np.arange(len(rows))] if floors is None else \
             [np.flatnonzero(self._grid_z[rows] == zf) for zf in floors]
         readings: list[Any] = []
         sums: list[Any] = []
-        for n in nums:
-            g = sparse.csr_matrix(n, copy=True)
+        for g in nums:                                   # each a new matrix: scaled in place
             g.data *= np.repeat(inv, np.diff(g.indptr))
             g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
             g.eliminate_zeros()
@@ -441,8 +433,8 @@ class PowedKnn(Positioner):
                 sums.append(None)
         return readings, sums, rows
 
-    def _field_prior(self, keep: np.ndarray, rows: np.ndarray) -> list[Any]:
-        """Per map values (``_vals``) the (len(rows), A) sparse path-loss prior at the grid points ``rows``,
+    def _field_prior(self, keep: np.ndarray, rows: np.ndarray) -> Any:
+        """The (len(rows), A) sparse raw path-loss prior (powed values) at the grid points ``rows``,
         the models fitted on the map scans ``keep`` (M,) bool (:mod:`indoor_loc.wifi.radio_field`).
         The first call fits every AP on all scans; a fold then refits, per floor, only the APs its
         left-out scans heard there (every other AP's readings, hence its model, are unchanged) and
@@ -479,7 +471,7 @@ class PowedKnn(Positioner):
             stay = ~changed[entry_floor, old.indices]        # the APs the fold did not refit keep their values
             kept = np.concatenate([[0], np.cumsum(stay)])
             prior = sparse.csr_matrix((old.data[stay], old.indices[stay], kept[old.indptr]), shape=old.shape) + fresh
-        return [sparse_scale(prior, sc) for sc in self._prior_scale]
+        return prior
 
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
         """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance.
