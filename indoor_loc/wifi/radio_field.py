@@ -49,6 +49,9 @@ from scipy.special import gamma, pbdv
 from indoor_loc.wifi.pathloss import PathLoss, PathLossParams
 from indoor_loc.wifi.types import RadioMap
 
+#: the field weight used with a floor plan (``indoor-loc import ms-indoor`` writes it with the plans): the prior
+#: weighs as much as one survey scan 10 m away at the 4 m kernel (2.45 bandwidths)
+PLAN_FIELD_WEIGHT = 0.05
 #: expected powed values below this are dropped (an AP all but undetectable there: a reading of about
 #: −92 dBm without AP weights), which keeps the extrapolated grid sparse
 FIELD_MIN_VALUE = 1e-3
