@@ -55,7 +55,8 @@ best everywhere. On ms_site2 (choices made on floors B1 and F7) the mean error a
 WKNN's falls from 0.94 to 0.85 on B1 and from 0.61 to 0.60 on F7; on the held-out floors from 0.94
 to 0.90 (F3) and stays 0.70 (F8).
 
-**Extrapolation** (``field_weight`` > 0, off by default): kernel regression copies the nearest survey
+**Extrapolation** (``field_weight`` > 0; 0 by default, ``indoor-loc import ms-indoor`` sets 0.05 with its floor
+plans): kernel regression copies the nearest survey
 scans away from the walks, so a wider grid only adds look-alikes. With a per-AP log-distance path-loss
 prior (:mod:`indoor_loc.wifi.radio_field`) the grid's values tend from the kernel regression near the
 walks to the propagation model's expected powed values far from them, and the grid may reach where the
@@ -67,7 +68,7 @@ test truths instead of 79 %). The grid should extend only where people can be: g
 map scans (ms_site2 with its GeoJSON plans, against the plain WKNN: B1 0.850 → 0.822, F3 0.905 → 0.855,
 F7 0.595 → 0.584, F8 0.705 → 0.703; B1/F7 tuned, F3/F8 run once per design decision). Without a plan a
 wider ``smooth_reach_m`` also offers positions where nobody can be: on PUTMC, whose survey covers the
-corridors, a 10 m reach costs 2.58 → 3.40 m, so the field stays off by default.
+corridors, a 10 m reach costs 2.58 → 3.40 m, so the field stays off without a plan.
 
 Position: the similarity-weighted mean of the k nearest map scans (or grid candidates), weights 1 / (D + epsilon)
 (as WKNN, Nowicki & Skrzypczyński 2019, eq. 13). A scan that shares no AP with the map gets no fix
@@ -469,10 +470,21 @@ class PowedKnn(Positioner):
             fresh = prior_values(models, grid, gz, n_aps, detect_dbm=self._field_detect,
                                  floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
             old = self._prior_raw if rows is None else self._prior_raw[rows]
-            entry_floor = np.repeat(np.searchsorted(floors, gz), np.diff(old.indptr))
-            stay = ~changed[entry_floor, old.indices]        # the APs the fold did not refit keep their values
-            kept = np.concatenate([[0], np.cumsum(stay)])
-            prior = sparse.csr_matrix((old.data[stay], old.indices[stay], kept[old.indptr]), shape=old.shape) + fresh
+            # the APs the fold did not refit keep their values: the refitted ones' entries are zeroed and dropped
+            # (every stored prior value is >= FIELD_MIN_VALUE > 0); the grid points are in floor order, so a
+            # floor's entries are one run
+            f_row = np.searchsorted(floors, gz)
+            data = old.data.copy()
+            if np.all(np.diff(f_row) >= 0):
+                bounds = old.indptr[np.searchsorted(f_row, np.arange(len(floors) + 1))]
+                for f in range(len(floors)):
+                    seg = slice(bounds[f], bounds[f + 1])
+                    data[seg][changed[f][old.indices[seg]]] = 0.0
+            else:
+                data[changed[np.repeat(f_row, np.diff(old.indptr)), old.indices]] = 0.0
+            kept = sparse.csr_matrix((data, old.indices.copy(), old.indptr.copy()), shape=old.shape)
+            kept.eliminate_zeros()
+            prior = kept + fresh
         return prior
 
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
