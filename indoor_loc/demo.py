@@ -116,8 +116,11 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
         nodes.append({"name": "view", "module": "indoor_loc.nodes.view_node",
                       "args": ["--port", str(foxglove), "--building", str(sim["dir"] / "building.geojson")],
                       "use_sim_time": True})
+    # the player starts with the nodes and waits until each of its topics has a subscriber (it plays
+    # as soon as they have): the demo's ten-odd processes starting on a loaded 2-core machine took
+    # 20 s where one CPU in three was free, so the bound is 60 s
     nodes.append({"name": "player", "module": "indoor_loc.nodes.player_node",
-                  "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "30",
+                  "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "60",
                            "--delay", "1.0"],
                   "use_sim_time": False})
     return {"env": env, "use_sim_time": True, "stop_timeout_s": 10.0, "nodes": nodes}

@@ -7,6 +7,8 @@ import sys
 
 import numpy as np
 
+import pytest
+
 from backend_synth import SEC, corridor_walk, survey
 from helpers_dds import Peer, child_env, ros_node, spin_until
 from indoor_loc.contract import Qos
@@ -16,6 +18,11 @@ from indoor_loc.wifi.radiomap import save_radiomap
 from msg_adapters.odom import odom_to_msg
 from msg_adapters.path import path_from_msg
 from msg_adapters.wifi_scan import scan_to_msg
+
+
+# a bound for a hung test, above the sum of a test's condition deadlines (which a loaded machine may
+# use up one after another), not an expected duration
+pytestmark = pytest.mark.timeout(420)
 
 
 def _messages(walk):
@@ -54,14 +61,14 @@ def test_users_join_and_leave_live(ros_domain, tmp_path):
                                          qos_profile(Qos.RELIABLE if kind == "pose" else Qos.LATCHED))
             diags: list = []
             node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
-            assert spin_until(ex, lambda: node.count_publishers("/diagnostics") > 0, 20), node_proc.output()
+            assert spin_until(ex, lambda: node.count_publishers("/diagnostics") > 0, 60), node_proc.output()
 
             def join(user):
                 pubs = {"pdr/odom": node.create_publisher(Odometry, f"/{user}/pdr/odom", qos_profile(Qos.RELIABLE)),
                         "wifi/scan": node.create_publisher(DiagnosticArray, f"/{user}/wifi/scan",
                                                            qos_profile(Qos.RELIABLE))}
                 # the node discovers the user from the graph and subscribes: wait for its readers
-                assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20), \
+                assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 40), \
                     node_proc.output()
                 for topic, msg in _messages(walks[user]):
                     pubs[topic].publish(msg)
@@ -69,16 +76,16 @@ def test_users_join_and_leave_live(ros_domain, tmp_path):
                 return pubs
 
             alice = join("alice")
-            assert spin_until(ex, lambda: len(got["alice/pose"]) > 5, 20), node_proc.output()
+            assert spin_until(ex, lambda: len(got["alice/pose"]) > 5, 40), node_proc.output()
             bob = join("bob")                                   # a second user joins later
-            assert spin_until(ex, lambda: len(got["bob/pose"]) > 5, 20), node_proc.output()
+            assert spin_until(ex, lambda: len(got["bob/pose"]) > 5, 40), node_proc.output()
             assert node_proc.wait_line(r"following user 'bob'", 1) is not None or "following user 'bob'" in \
                 node_proc.output()
 
             # alice leaves: her publishers go; after user_timeout_s her whole path is published
             for p in alice.values():
                 node.destroy_publisher(p)
-            assert spin_until(ex, lambda: len(got["alice/path"]) >= 1, 20), node_proc.output()
+            assert spin_until(ex, lambda: len(got["alice/path"]) >= 1, 40), node_proc.output()
             stamps, xy, _ = path_from_msg(got["alice/path"][-1])
             truth = walks["alice"].true_xy_at(stamps)
             assert len(stamps) > 10 and np.mean(np.linalg.norm(xy - truth, axis=1)) < 1.5
@@ -88,12 +95,12 @@ def test_users_join_and_leave_live(ros_domain, tmp_path):
             # SIGINT: every user's final (whole-graph optimised) path goes out before the node ends
             n_alice = len(got["alice/path"])
             node_proc.signal(signal.SIGINT)
-            assert spin_until(ex, lambda: len(got["bob/path"]) >= 1 and len(got["alice/path"]) > n_alice, 20), \
+            assert spin_until(ex, lambda: len(got["bob/path"]) >= 1 and len(got["alice/path"]) > n_alice, 60), \
                 node_proc.output()
             stamps, xy, _ = path_from_msg(got["bob/path"][-1])
             assert np.mean(np.linalg.norm(xy - walks["bob"].true_xy_at(stamps), axis=1)) < 1.5
             del bob
-        assert node_proc.wait(timeout=20) == 0, node_proc.output()
+        assert node_proc.wait(timeout=40) == 0, node_proc.output()
         assert "Traceback" not in node_proc.output()
     finally:
         node_proc.stop()
@@ -121,14 +128,14 @@ def test_a_fixed_user_list_is_followed_and_nobody_else(ros_domain, tmp_path):
                                                   qos_profile(Qos.RELIABLE))
                     for u in poses for t in ("pdr/odom", "wifi/scan")}
             assert spin_until(ex, lambda: all(pubs[("carol", t)].get_subscription_count() > 0
-                                              for t in ("pdr/odom", "wifi/scan")), 20), node_proc.output()
+                                              for t in ("pdr/odom", "wifi/scan")), 60), node_proc.output()
             spin_until(ex, lambda: False, 2.5)          # two discovery rounds: dave must not be followed
             assert all(pubs[("dave", t)].get_subscription_count() == 0 for t in ("pdr/odom", "wifi/scan"))
             for u in poses:
                 for topic, msg in _messages(corridor_walk(u, 2, 30, 0, rng)):
                     pubs[(u, topic)].publish(msg)
                     spin_until(ex, lambda: False, 0.002)
-            assert spin_until(ex, lambda: len(poses["carol"]) > 5, 20), node_proc.output()
+            assert spin_until(ex, lambda: len(poses["carol"]) > 5, 40), node_proc.output()
             spin_until(ex, lambda: False, 1.0)
             assert poses["dave"] == []
         assert "following user 'carol'" in node_proc.output() and "'dave'" not in node_proc.output()

@@ -18,7 +18,9 @@ from indoor_loc.nodes.base import qos_profile
 sys.path.insert(0, str(PEERS))
 from contract_messages import ALL_TOPICS, NAMESPACE, build, check  # noqa: E402
 
-pytestmark = pytest.mark.timeout(60)
+# a bound for a hung test, above the sum of a test's condition deadlines (which a loaded machine may
+# use up one after another), not an expected duration
+pytestmark = pytest.mark.timeout(180)
 
 
 def test_every_contract_topic_has_a_test_message():
@@ -35,7 +37,7 @@ def test_qos_roles_cover_volatile_latched_and_best_effort():
 
 
 def test_contract_over_dds(ros_domain):
-    sender = python_peer("contract_sender.py", "--timeout", "40")
+    sender = python_peer("contract_sender.py", "--timeout", "120")     # stopped by SIGINT once checked
     received: dict[str, list] = {t: [] for t in ALL_TOPICS}
     try:
         with ros_node("contract_receiver") as (node, ex):
@@ -47,12 +49,12 @@ def test_contract_over_dds(ros_domain):
             volatile = [t for t in ALL_TOPICS if t not in latched]
             for t in volatile:
                 sub(t)
-            line = sender.wait_line(r"^LATCHED_SENT", timeout=30)
+            line = sender.wait_line(r"^LATCHED_SENT", timeout=60)
             assert line is not None, f"sender never published:\n{sender.output()}"
             assert sorted(line.split()[1:]) == sorted(latched)
             for t in latched:       # subscribe only now: a late subscriber
                 sub(t)
-            ok = spin_until(ex, lambda: all(received.values()), timeout=20)
+            ok = spin_until(ex, lambda: all(received.values()), timeout=60)
             missing = [t for t, v in received.items() if not v]
             assert ok, f"nothing received on {missing}\n{sender.output()}"
             for t in ALL_TOPICS:
@@ -62,7 +64,7 @@ def test_contract_over_dds(ros_domain):
             full = {t: join_ns(NAMESPACE, t) for t in ALL_TOPICS}
             assert full["imu/data_raw"] == "/alice/imu/data_raw" and full["/clock"] == "/clock"
         sender.signal(signal.SIGINT)
-        assert sender.wait(timeout=10) == 0
+        assert sender.wait(timeout=30) == 0
         assert "SENDER_DONE" in sender.output()
     finally:
         sender.stop()

@@ -64,10 +64,10 @@ def test_raw_runs_equal_message_by_message(ros_domain):
             pub = probe.create_publisher(Imu, f"{NS}/imu/data",
                                          QoSProfile(depth=len(msgs), reliability=ReliabilityPolicy.RELIABLE))
             assert spin_until(ex, lambda: pub.get_subscription_count() > 0
-                              and probe.count_publishers(f"{NS}/pdr/odom") > 0, 20)
+                              and probe.count_publishers(f"{NS}/pdr/odom") > 0, 40)
             for m in msgs:                       # all queued before the node runs: it takes them in runs
                 pub.publish(m)
-            assert spin_until(ex, lambda: node.taken == len(msgs) and len(got) >= len(want), 30), \
+            assert spin_until(ex, lambda: node.taken == len(msgs) and len(got) >= len(want), 60), \
                 (node.taken, len(got), len(want))
             assert got == want
             assert max(runs) > 100, runs                                      # the batch path did the work

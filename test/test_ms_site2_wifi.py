@@ -33,7 +33,7 @@ def test_f8_powed_locates_every_scan_and_beats_plain_wknn():
     ok, e, m2 = errors(make_positioner("powed", {}).fit(rm).locate_many(scans), truth)
     assert ok.all() and p_ok.mean() < 0.95                                    # bench: 100 % vs 88.7 %
     assert e[p_ok].mean() < 0.8 * p_e[p_ok].mean()                            # bench: 11.49 vs 16.30 m
-    assert 0.4 < np.mean(m2 <= 2 * np.log(2)) < 0.7 and np.mean(m2 <= 5.991) > 0.85   # bench: 67 / 100
+    assert 0.4 < np.mean(m2 <= 2 * np.log(2)) < 0.7 and np.mean(m2 <= 5.991) > 0.85   # bench: 55 / 89
 
 
 def test_floor_detection_between_adjacent_floors_f7_f8():

@@ -3,6 +3,7 @@ consistency of every method on synthetic data, fallback chain."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -277,3 +278,48 @@ def test_interpolated_map_beats_single_noisy_scans():
         assert all(f.ok for f in fixes)
         err[label] = float(np.mean([np.hypot(*(f.xy - p)) for f, p in zip(fixes, pts)]))
     assert err["both"] < 0.9 * err["map"], err
+
+
+def test_covariance_is_calibrated_per_recording_time_stratum():
+    """A map with recording times: the calibration keeps one sigma table for fixes whose nearest matched map
+    scan was recorded within ``cov_recent_s`` of the scan (same survey session) and one for the others; a fix
+    takes its stratum's sigma, its position does not depend on it; a pre-surveyed map (no times) keeps one
+    table, as with ``cov_recent_s`` 0."""
+    r = np.random.default_rng(5)
+    rss = _field(r, 40, [0.0])
+    bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+    g = _grid()
+    day = 86_400 * 10**9
+    session = np.arange(len(g)) % 2                       # every other point surveyed a day later, 2 s apart
+    rows = rss(g, np.zeros(len(g), int), 4.0)
+    scans = [replace(s, stamp_ns=int(session[i] * day + i * 2 * 10**9)) for i, s in enumerate(_scans(rows, bssids))]
+    rm = add_fingerprints(empty_radiomap(), g, scans, [f"w{i % 10}" for i in range(len(g))])
+    pos = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(rm)
+    one = PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0)).fit(rm)
+    cal = pos.calibration
+    assert len(pos.sigma_tables) == 2 and one.sigma_tables == ()
+    assert 0 < cal["recent_scans"] < cal["scans"]
+    pts = r.uniform([3, 3], np.array(SIZE) - 3, size=(10, 2))
+    queries = _scans(rss(pts, np.zeros(len(pts), int), 4.0), bssids)
+    differ = 0
+    for q in queries:
+        near = pos.locate(replace(q, stamp_ns=int(scans[0].stamp_ns + 10**9)))       # during the first session
+        far = pos.locate(replace(q, stamp_ns=int(30 * day)))                          # a month later
+        base = one.locate(q)
+        np.testing.assert_array_equal(near.xy, base.xy)
+        np.testing.assert_array_equal(far.xy, base.xy)
+        assert far.info["lag_s"] > 600.0
+        assert far.info["sigma_m"] == pos.sigma_m(far.info["d1"], math.inf) == max(
+            1.0, float(np.interp(far.info["d1"], *pos.sigma_tables[1])))
+        stratum = 0 if near.info["lag_s"] <= 600.0 else 1
+        assert near.info["sigma_m"] == max(1.0, float(np.interp(near.info["d1"], *pos.sigma_tables[stratum])))
+        assert base.info["sigma_m"] == one.sigma_m(base.info["d1"])
+        differ += int(near.info["sigma_m"] != far.info["sigma_m"])
+    assert differ >= 3                                     # the two strata's tables differ where the fixes fall
+    surveyed = add_fingerprints(empty_radiomap(), g, [replace(s, stamp_ns=0) for s in scans],
+                                [f"w{i % 10}" for i in range(len(g))])
+    pre = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(surveyed)
+    assert pre.sigma_tables == () and "recent_scans" not in pre.calibration
+    f = pre.locate(queries[0])
+    np.testing.assert_array_equal(f.cov, PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0)).fit(surveyed)
+                                  .locate(queries[0]).cov)

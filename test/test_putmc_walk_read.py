@@ -141,3 +141,13 @@ def test_survey_batch_scans_equal_block_at_a_time(tmp_path, monkeypatch, case):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
     assert (batch.bssids, batch.ssids, batch.source) == (single.bssids, single.ssids, single.source)
     assert ("duplicate_bssid" in [o.kind for o in odd_batch]) == (case == "repeated bssid")
+
+
+@pytest.mark.parametrize("map_yaw_rad", [0.0, P.PUTMC_MAP_YAW_RAD, 2.9, -1.7])
+def test_map_yaw_is_the_yaw_of_the_map_quaternion(map_yaw_rad):
+    """``map_yaw`` = ``quat_yaw(to_map_quat(...))`` bit for bit, unit and non-unit quaternions."""
+    q = np.random.default_rng(7).normal(size=(4000, 4))
+    q[:2000] /= np.linalg.norm(q[:2000], axis=1, keepdims=True)
+    expected = P.quat_yaw(P.to_map_quat(q, map_yaw_rad))
+    assert P.map_yaw(q, map_yaw_rad).tobytes() == expected.tobytes()
+    assert P.map_yaw(q[:0], map_yaw_rad).shape == (0,)

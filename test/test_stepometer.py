@@ -11,7 +11,7 @@ from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
 from indoor_loc.measurements import pdr_intervals
 from indoor_loc.imu.stepometer import (ACF_LAG_TOL, CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
-                                       amplitude_spectrum, analyse_windows, harmonic_score,
+                                       _filtfilt, _lowpass_design, amplitude_spectrum, analyse_windows, harmonic_score,
                                        normalised_autocorr, power_spectrum, stepometer_batch, total_steps)
 from indoor_loc.params import params_from_dict
 
@@ -617,3 +617,15 @@ def test_tentative_run_online_equals_batch_with_save_restore_inside_it():
     online += st.finish()
     assert saved_inside
     assert online == batch
+
+
+@pytest.mark.parametrize("rate_hz", [25.0, 100.0, 177.3, 400.0])
+def test_filtfilt_with_cached_initial_conditions_is_scipys_sosfiltfilt(rate_hz, rng):
+    """The bridged span's zero-phase low-pass: scipy's ``sosfiltfilt`` bit for bit, from the shortest
+    signal it takes (one sample more than the odd extension) up."""
+    from scipy.signal import sosfiltfilt
+    lp = _lowpass_design(4, min(3.0, 0.45 * rate_hz), rate_hz)
+    assert lp.pad == 15
+    for n in (lp.pad + 1, lp.pad + 2, 64, 1000):
+        x = rng.standard_normal(n) + 5.0
+        assert _filtfilt(lp, x).tobytes() == sosfiltfilt(lp.sos.copy(), x).tobytes()

@@ -195,3 +195,28 @@ def test_grid_ahead_used_only_for_the_samples_announced(rng):
         assert _key(hops + s.finish()) == _key(ref)
         assert s.state() == one.state()
         assert len(hits) > 10 and (all(hits) if want_hits else not any(hits))
+
+
+def test_inline_walking_hops_equal_the_general_count():
+    """A clearly periodic walking run's hops are counted inline; the general path (_count, _emit)
+    gives the same hops and state, bit for bit, through walking, a turn, stops and a gap."""
+    rng = np.random.default_rng(12345)       # a turn that is bridged
+    parts = [walk_turn_walk(rng)[:2], walk_turn_walk(rng, resume=False)[:2], walk_signal(rng, duration_s=30.0)]
+    t0 = 0
+    stamps, acc = [], []
+    for t, a in parts:                       # one after another, 3 s apart (a gap: a new segment)
+        stamps.append(t - t[0] + t0)
+        acc.append(a)
+        t0 = int(stamps[-1][-1]) + 3_000_000_000
+    t, a = np.concatenate(stamps), np.concatenate(acc)
+    runs = []
+    for inline in (True, False):
+        s = Stepometer()
+        s._inline_walking = inline
+        hops = s.update_many(t[:9000], a[:9000]) + s.update_many(t[9000:], a[9000:]) + s.finish()
+        runs.append((hops, s.state()))
+    (h_in, st_in), (h_gen, st_gen) = runs
+    assert sum(h.walking and h.confidence == 1.0 for h in h_in) > 100
+    assert any(h.confidence == 0.5 for h in h_in)          # the bridged turn went through _count
+    assert h_in == h_gen
+    assert st_in == st_gen

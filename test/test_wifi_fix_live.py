@@ -26,7 +26,9 @@ from msg_adapters.pose import pose_from_msg
 from msg_adapters.wifi_scan import scan_to_msg
 from test_wifi_fix_stage import grid_map, scan_at
 
-pytestmark = pytest.mark.timeout(90)
+# a bound for a hung test, above the sum of a test's condition deadlines (which a loaded machine may
+# use up one after another), not an expected duration
+pytestmark = pytest.mark.timeout(300)
 S = 1_000_000_000
 NAME = "/alice/wifi_fix_node"
 
@@ -87,32 +89,32 @@ def test_scans_sent_while_fitting_are_located_afterwards(tmp_path, ros_domain):
             probe = _Probe(node)
             # the node is up and says it is fitting, at WARN, while the fit is held
             assert spin_until(ex, lambda: bool(probe.matched) and probe.matched[-1] > 0 and probe.last() is not None,
-                              30), peer.output()
+                              60), peer.output()
             d = probe.last()
             assert d.level == 1 and d.message.startswith("fitting the radio map (36 scans"), d
             assert d.values["fit.state"] == "fitting" and d.values["fit.map_scans"] == "36"
             # ... and answers a parameter request meanwhile
             client = node.create_client(GetParameters, f"{NAME}/get_parameters")
-            assert client.wait_for_service(timeout_sec=10)
+            assert client.wait_for_service(timeout_sec=30)
             fut = client.call_async(GetParameters.Request(names=["method", "radiomap"]))
-            assert spin_until(ex, fut.done, 10)
+            assert spin_until(ex, fut.done, 30)
             assert [v.string_value for v in fut.result().values] == ["wknn", str(map_dir)]
 
             for s in scans:
                 probe.pub.publish(s)
-            assert spin_until(ex, lambda: probe.last().values.get("fit.queued") == "6", 15), probe.last()
+            assert spin_until(ex, lambda: probe.last().values.get("fit.queued") == "6", 30), probe.last()
             assert probe.last().level == 1 and "6 scan(s) queued" in probe.last().message
             assert probe.fixes == []                                 # nothing located before the fit
             assert not gate.exists() and peer.proc.poll() is None
 
             gate.write_text("go")                                    # the fit may now run
-            assert spin_until(ex, lambda: len(probe.fixes) == 6, 30), peer.output()
+            assert spin_until(ex, lambda: len(probe.fixes) == 6, 60), peer.output()
             want = _reference(map_dir, scans)
             assert len(want) == 6 and all(_same_fix(a, b) for a, b in zip(probe.fixes, want))
             # later scans are located at once; health is back to OK
             probe.pub.publish(_scans(1, first_s=20)[0])
-            assert spin_until(ex, lambda: len(probe.fixes) == 7, 10)
-            assert spin_until(ex, lambda: probe.last().values["fixes"] == "7", 10)
+            assert spin_until(ex, lambda: len(probe.fixes) == 7, 30)
+            assert spin_until(ex, lambda: probe.last().values["fixes"] == "7", 30)
             d = probe.last()
             assert d.level == 0 and "fit.state" not in d.values and d.values["fit.located_late"] == "6"
             assert d.values["rejected.total"] == "0" and d.values["map.scans"] == "36"
@@ -127,19 +129,19 @@ def test_failed_fit_is_an_error_and_the_node_keeps_running(tmp_path, ros_domain)
         with ros_node("probe") as (node, ex):
             probe = _Probe(node)
             assert spin_until(ex, lambda: bool(probe.matched) and probe.matched[-1] > 0 and probe.last() is not None,
-                              30), peer.output()
+                              60), peer.output()
             for s in _scans(3):
                 probe.pub.publish(s)
-            assert spin_until(ex, lambda: probe.last().values.get("fit.queued") == "3", 15), probe.last()
+            assert spin_until(ex, lambda: probe.last().values.get("fit.queued") == "3", 30), probe.last()
             gate.write_text("fail")
-            assert spin_until(ex, lambda: probe.last().level == 2, 15), probe.last()
+            assert spin_until(ex, lambda: probe.last().level == 2, 30), probe.last()
             d = probe.last()
             assert "fitting the radio map (36 scans) failed: MapError" in d.message and "test gate" in d.message
             assert d.values["rejected.fit_failed"] == "3"              # the queued scans: dropped, counted
             n = len(probe.diags)
             probe.pub.publish(_scans(1, first_s=30)[0])
             assert spin_until(ex, lambda: probe.last().values.get("rejected.fit_failed") == "4"
-                              and len(probe.diags) > n, 10)
+                              and len(probe.diags) > n, 30)
             assert probe.last().level == 2 and probe.fixes == []
             assert peer.proc.poll() is None, "the node died on a failed fit"
         assert "failed: MapError" in peer.output() and "Traceback" not in peer.output()
@@ -179,7 +181,7 @@ def test_set_radio_map_refits_without_blocking_the_executor(tmp_path, ros_domain
 
     def gated(self, rm):
         if rm.n_scans != 36:          # the new map waits for the gate
-            assert gate.wait(20)
+            assert gate.wait(120)
         return real(self, rm)
     monkeypatch.setattr(WifiFixStage, "fit_positioner", gated)
     with ros_node("probe") as (probe, ex):
@@ -188,7 +190,7 @@ def test_set_radio_map_refits_without_blocking_the_executor(tmp_path, ros_domain
                            parameter_overrides=[Parameter("radiomap", value=str(map_dir))])
         ex.add_node(node)
         try:
-            assert spin_until(ex, lambda: node.stage.positioner is not None, 20)
+            assert spin_until(ex, lambda: node.stage.positioner is not None, 40)
             first = node.stage.positioner
             half = grid_map()
             half = type(half)(positions=half.positions[::2], bssids=half.bssids, rssi_dbm=half.rssi_dbm[::2],
@@ -196,14 +198,14 @@ def test_set_radio_map_refits_without_blocking_the_executor(tmp_path, ros_domain
             ticks: list[float] = []
             probe.create_timer(0.05, lambda: ticks.append(time.monotonic()))
             node.set_radio_map(half)
-            assert spin_until(ex, lambda: len(ticks) >= 10, 5)           # the executor keeps running
+            assert spin_until(ex, lambda: len(ticks) >= 10, 20)          # the executor keeps running
             assert node.stage.positioner is first and not node.stage.waiting_for_fit()
             d = diagnostics_from_msg(node.diagnostics_msg(1))[NAME]
             assert d.level == 0 and d.values["fit.state"] == "fitting" and d.values["fit.map_scans"] == "18"
             outs = node.stage.process("wifi/scan", _scans(1)[0], 1)     # the previous map still answers
             assert [t for t, _ in outs] == ["wifi/fix"] and node.stage.extra_diagnostics()["map.scans"] == "36"
             gate.set()
-            assert spin_until(ex, lambda: node.stage.extra_diagnostics().get("map.scans") == "18", 20)
+            assert spin_until(ex, lambda: node.stage.extra_diagnostics().get("map.scans") == "18", 40)
             assert node.stage.positioner is not first and node.stage.fitting is None
         finally:
             gate.set()

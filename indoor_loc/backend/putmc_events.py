@@ -8,10 +8,12 @@ the map frame (the importer's calibration), looked up at each hop's end. Used by
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import repeat
+from operator import itemgetter
 
 import numpy as np
 
-from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Walk, quat_yaw, to_map_quat
+from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Walk, map_yaw
 from indoor_loc.backend.factors import wrap
 from indoor_loc.imu.stepometer import Stepometer, StepometerParams
 from indoor_loc.wifi.types import WifiScan
@@ -42,10 +44,10 @@ class WalkEvents:
 
     def events(self) -> list[tuple[int, int, object]]:
         """(stamp, kind 0 = hop / 1 = scan, payload) in stamp order (a hop before a scan of the same stamp)."""
-        ev = [(int(b), 0, (int(a), int(b), float(n), float(y)))
-              for a, b, n, y in zip(self.t_start, self.t_end, self.steps, self.yaw)]
+        t_end = self.t_end.tolist()                 # Python ints and floats, column by column
+        ev = list(zip(t_end, repeat(0), zip(self.t_start.tolist(), t_end, self.steps.tolist(), self.yaw.tolist())))
         ev += [(int(s.stamp_ns), 1, s) for s in self.scans]
-        ev.sort(key=lambda e: (e[0], e[1]))
+        ev.sort(key=itemgetter(0, 1))
         return ev
 
 
@@ -54,7 +56,7 @@ def walk_events(walk: Walk, *, stepometer: StepometerParams | None = None,
     """Stepometer hops and headings of a walk (see module docstring)."""
     sm = Stepometer(stepometer)
     hops = sm.update_many(walk.acc_t, walk.acc) + sm.finish()      # the whole walk in one call
-    yaw = quat_yaw(to_map_quat(walk.quat_xyzw, map_yaw_rad))
+    yaw = map_yaw(walk.quat_xyzw, map_yaw_rad)
     cols = list(zip(*hops)) if hops else [(), (), ()]           # the hops' fields, column by column
     t_start, t_end, steps = np.array(cols[0], np.int64), np.array(cols[1], np.int64), np.array(cols[2], float)
     # linear interpolation of the unwrapped yaw at each hop's end (as HeadingHistory.at in imu_node)

@@ -26,31 +26,25 @@ import argparse
 import json
 import re
 import resource
-import time
 import tracemalloc
-from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
-from indoor_loc.backend.putmc_events import PUTMC_GRAPH_PARAMS, WalkEvents, walk_events
+from indoor_loc.bench.backend_run import (DEFAULT, READING, STEPS, Putmc, configs, load, run_graph,
+                                          run_graph_timed, scratch)
 from indoor_loc.eval.metrics import paper_score, point_segment_distance, scan_time_errors
 from indoor_loc.wifi.types import RadioMap
 
-#: the importer's configuration (joint + step length, measured noise, Huber): ``PUTMC_GRAPH_PARAMS``
-DEFAULT = "default (importer): joint + SLE, measured noise, Huber"
+__all__ = ["CONFIGS", "DEFAULT", "READING", "STEPS", "Putmc", "load", "run", "run_graph", "run_graph_timed"]
+
 #: walks whose errors chose DEFAULT's parameters (the odd ones); the even ones are held out
 TUNING_WALKS = tuple(range(1, 25, 2))
 #: the paper's four configurations (users separate/joint x step length off/on) and the default
-CONFIGS: dict[str, GraphParams] = {
-    "separate, no step-length est.": GraphParams(joint=False, estimate_step_length=False, window_poses=0),
-    "separate, step-length est.": GraphParams(joint=False, estimate_step_length=True, window_poses=0),
-    "joint, no step-length est.": GraphParams(joint=True, estimate_step_length=False, window_poses=0),
-    "joint, step-length est.": GraphParams(joint=True, estimate_step_length=True, window_poses=0),
-    DEFAULT: GraphParams(window_poses=0, **PUTMC_GRAPH_PARAMS),
-}
+CONFIGS: dict[str, GraphParams] = configs()
 #: reference C++ (paper Table 2 as rebuilt): paper RMSE, paper mean, true RMSE, true mean, scan mean, scan p95
 REFERENCE = {
     "separate, no step-length est.": (6.24, 2.42, 1.555, 1.123, 2.86, 7.97),
@@ -61,86 +55,11 @@ REFERENCE = {
 REF_KEYS = {"separate, no step-length est.": "iUC_false_sLE_false", "separate, step-length est.": "iUC_false_sLE_true",
             "joint, no step-length est.": "iUC_true_sLE_false", "joint, step-length est.": "iUC_true_sLE_true"}
 REF_TIME_S = {"separate": (0.6, 0.95), "joint": (1.0, 1.6)}
-#: the front end's parts, as :func:`load` times them
-READING = "reading the text files (24 walks, survey, routes)"
-STEPS = "stepometer + headings"
 REF_MEMORY_MB = (15, 18)
-
-
-@dataclass
-class Putmc:
-    walks: list[int]
-    events: dict[int, WalkEvents]
-    truth: dict[int, tuple[np.ndarray, np.ndarray]]      # scan stamps, true scan xy
-    segments: dict[int, np.ndarray]
-    survey: RadioMap
-    load_s: float
-    load_cpu_s: float = 0.0
-    #: wall and CPU time (s) of the front end's parts: READING, STEPS
-    parts: dict[str, tuple[float, float]] = field(default_factory=dict)
-
-
-class _Clock:
-    """Wall and CPU time (``time.process_time``: this process, all threads) summed per part."""
-
-    def __init__(self) -> None:
-        self.parts: dict[str, tuple[float, float]] = {}
-
-    @contextmanager
-    def part(self, name: str):
-        t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            yield
-        finally:
-            w, c = self.parts.get(name, (0.0, 0.0))
-            self.parts[name] = (w + time.perf_counter() - t0, c + time.process_time() - c0)
-
-
-def load(data: Path) -> Putmc:
-    """Every walk's hops and scans (the front end), timed (wall and CPU time of this process, in
-    total and per part: reading the text files; the stepometer and headings)."""
-    from indoor_loc.datasets.putmc import Putmc as Dataset
-
-    clock = _Clock()
-    t0, c0 = time.perf_counter(), time.process_time()
-    with clock.part(READING):
-        ds = Dataset(Path(data) / "putmc")
-    ev, truth, seg = {}, {}, {}
-    for n in ds.walk_numbers:
-        with clock.part(READING):
-            w = ds.walk(n)
-        with clock.part(STEPS):
-            ev[n] = walk_events(w)
-        truth[n] = (w.scan_t, w.scan_xy)
-        seg[n] = ds.routes[n].segments
-    with clock.part(READING):
-        survey = ds.survey_map()
-    return Putmc(ds.walk_numbers, ev, truth, seg, survey, time.perf_counter() - t0, time.process_time() - c0,
-                 clock.parts)
-
-
-def run_graph_timed(data: Putmc, params: GraphParams,
-                    survey: RadioMap | None = None) -> tuple[MultiUserGraph, float, float]:
-    """:func:`run_graph`, also returning its CPU time (this process; all threads)."""
-    c0 = time.process_time()
-    g, wall = run_graph(data, params, survey)
-    return g, wall, time.process_time() - c0
-
-
-def run_graph(data: Putmc, params: GraphParams, survey: RadioMap | None = None) -> tuple[MultiUserGraph, float]:
-    """Walks 1…24 one after another, then one optimisation; returns the graph and the wall time."""
-    t0 = time.perf_counter()
-    g = MultiUserGraph(params, data.survey if survey is None else survey)
-    for n in data.walks:
-        name = data.events[n].name
-        for _, kind, payload in data.events[n].events():
-            if kind == 0:
-                g.add_hop(name, *payload)
-            else:
-                g.add_scan(name, payload)
-        g.finish_user(name)
-    g.optimize()
-    return g, time.perf_counter() - t0
+#: worker processes of the parallel front end timed beside (wall time; not less work)
+JOBS = 2
+#: the configurations timed in fresh processes with ``--quick`` (all of them otherwise)
+QUICK_FRESH = ("separate, no step-length est.", "joint, step-length est.")
 
 
 def errors(data: Putmc, g: MultiUserGraph) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -190,6 +109,46 @@ def reference_per_sequence(data_dir: Path) -> dict[int, dict[str, tuple[float, f
 
 def _fmt(v: float, nd: int = 2) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def fresh_processes(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONFIGS)) -> dict[str, dict]:
+    """Each configuration of ``names`` from scratch in ``runs`` fresh processes that import only what
+    the work needs (:mod:`indoor_loc.bench.backend_run`); prints a table (least CPU time of the
+    runs, largest peak memory) and returns the runs."""
+    print(f"\nEach configuration from scratch in a fresh process (`python -m indoor_loc.bench.backend_run`, "
+          f"{runs} run{'s' if runs > 1 else ''}, least CPU), importing only the PUTMC reader, the stepometer and "
+          "the graph (numpy, scipy.signal/.sparse/.optimize, PyYAML; no ROS, no plotting): the work (front end "
+          "+ graph) as above, the whole process's CPU time (interpreter start-up and imports included), and "
+          "its peak resident memory. The reference's figures are wall times of one C++ process each.\n")
+    print("| configuration | work s CPU (front end + graph) / wall | whole process s CPU (of which start-up "
+          "+ imports) | peak RSS MB (of which after imports) | reference C++ s wall, MB |")
+    print("|---|---|---|---|---|")
+    out: dict[str, dict] = {}
+    for name in names:
+        rs = scratch(data_dir, name, runs)
+        best = min(rs, key=lambda r: r["cpu_work_s"])
+        proc = min(r["cpu_process_s"] for r in rs)
+        ref = REF_TIME_S["joint" if "joint" in name else "separate"] if name in REFERENCE else None
+        reftxt = f"{ref[0]}–{ref[1]} s, {REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB" if ref else "–"
+        print(f"| {name} | **{best['cpu_work_s']:.2f}** / {best['wall_work_s']:.2f} | {proc:.2f} "
+              f"({proc - best['cpu_work_s']:.2f}) | **{max(r['rss_peak_mb'] for r in rs):.0f}** "
+              f"({max(r['rss_imports_mb'] for r in rs):.0f}) | {reftxt} |")
+        out[name] = {"runs": rs}
+    print(f"\nThe same with the front end shared out among {JOBS} forked processes (`--jobs {JOBS}`: walks read "
+          "and stepped in parallel while the first process reads the survey). Not less work — the CPU time is "
+          "all the processes' — so only the wall time can drop, and only with a free core; the graph stays "
+          "in one process.\n")
+    print("| configuration | work s wall (least of runs) | work s CPU, all processes | front end s wall / CPU "
+          "| reference C++ s wall |")
+    print("|---|---|---|---|---|")
+    for name in ("separate, no step-length est.", "joint, step-length est."):
+        rs = scratch(data_dir, name, runs, jobs=JOBS)
+        best = min(rs, key=lambda r: r["wall_work_s"])
+        ref = REF_TIME_S["joint" if "joint" in name else "separate"]
+        print(f"| {name} | **{best['wall_work_s']:.2f}** | {best['cpu_work_s']:.2f} | {best['wall_front_s']:.2f} / "
+              f"{best['cpu_front_s']:.2f} | {ref[0]}–{ref[1]} |")
+        out[f"{name} (jobs {JOBS})"] = {"runs": rs}
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -348,6 +307,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"memory: peak Python heap of one joint run {peak / 2**20:.1f} MB (tracemalloc); peak RSS of this process "
           f"{rss:.0f} MB, of which {rss0:.0f} MB before any data was read (interpreter, numpy, scipy, the package); "
           f"reference C++ {REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB")
+    fresh = fresh_processes(data_dir, 1, QUICK_FRESH) if quick else fresh_processes(data_dir, 3)
     if getattr(args, "live", False):
         from indoor_loc.bench import backend_live
         backend_live.run(data, rates=(10.0,) if quick else (1.0, 10.0))
@@ -360,5 +320,6 @@ def run(args: argparse.Namespace) -> int:
         out["front_end_parts"] = {"first pass": cold.parts, "second pass": data.parts}
         out["shared_front_end"] = {"wall_s": shared_wall, "cpu_s": shared_cpu, "configurations": len(paper)}
         out["rss_mb"] = {"peak": rss, "before_data": rss0}
+        out["fresh_process"] = fresh
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0

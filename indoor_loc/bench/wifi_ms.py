@@ -11,7 +11,8 @@ Tables, all methods on the same scans in one run:
 1. per floor (floor known: that floor's map) — each method's located count, mean / median / 75 % /
    95 % / max error over located scans, 50 % / 95 % ellipse consistency, scans/s, and the mean on
    the scans the plain WKNN baseline located, with its ratio to the baseline's mean there; below it,
-   the default's and the baseline's means per UTC date of the test scans, with the test walks' speed;
+   the default's ellipses per recording-time stratum of its covariance calibration, and the default's and
+   the baseline's means per UTC date of the test scans, with the test walks' speed;
 2. pooled over floors (the same per-floor runs);
 3. floor detection against the pooled four-floor map: accuracy per floor and the error of the
    positions of that run;
@@ -26,6 +27,9 @@ The default row ("powed k-NN + path-loss field in plan", what ``indoor-loc impor
 the extrapolating radio map kept inside each floor's GeoJSON plan) and the path-loss field without a plan
 were developed on B1 and F7; F3 and F8 were run once per design decision (three times in all). The
 ablation rows change one thing of the powed k-NN without the field (the default where no plan exists).
+The covariance's recording-time strata (``cov_recent_s``; the row "one sigma table" is the calibration
+without them, and each floor prints the default's ellipses per stratum) were chosen on B1 and F7; F3 and F8
+were looked at three times (the diagnosis, a rejected candidate, the strata).
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ from indoor_loc.bench.wifi import CHI2_2_50, CHI2_2_95, _jsonable
 from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.powed_knn import MIN_BIN_SCANS, PowedKnn
 from indoor_loc.wifi.radio_field import PLAN_FIELD_WEIGHT
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from indoor_loc.wifi.walkable import floors_walkable, plan_walkable
@@ -68,6 +72,7 @@ METHODS: list[tuple[str, str, dict, float]] = [
                                                  "error_type": "rms"}, 0.0),
     (OURS, "powed", dict(FIELD_PLAN), 0.0),
     (NO_FIELD, "powed", {}, 0.0),
+    ("powed, one sigma table (no strata)", "powed", {"cov_recent_s": 0.0}, 0.0),
     ("powed, map scans only (no grid)", "powed", {"smooth_m": 0.0}, 0.0),
     ("powed, interpolated grid only", "powed", {"smooth_views": "grid"}, 0.0),
     ("powed + path-loss field, reach 10 m", "powed", dict(FIELD), 0.0),
@@ -205,6 +210,7 @@ def run(args) -> int:
         print(HEAD)
         ref_ok = ref_e = None
         report["floors"][name] = {"tag": tag, "map_scans": rm.n_scans, "map_aps": rm.n_aps, "methods": {}}
+        strata: dict[str, dict[str, Any]] = {}
         for label, meth, params, shift in METHODS:
             pos = make_positioner(meth, params)
             if label in PLAN_ROWS and isinstance(pos, PowedKnn):
@@ -222,6 +228,12 @@ def run(args) -> int:
             pooled[label].append((ok, e, m2, ref_ok, ref_e))
             print(row(label, s, rate))
             report["floors"][name]["methods"][label] = s
+            if label == OURS and isinstance(pos, PowedKnn):
+                strata = ellipses_by_stratum(pos, fixes, m2)
+        report["floors"][name]["ellipse_strata"] = strata
+        print("   ellipses of the default by the time from a scan to its nearest matched map scan (its sigma table): "
+              + "; ".join(f"{k} {d['fixes']} fixes, in50/in95 {d['in50']:.0f}/{d['in95']:.0f} (calibrated on "
+                          f"{d['calibration_scans']} scans)" for k, d in strata.items()))
         days = by_day(scans, truth, rm, pooled[OURS][-1])
         report["floors"][name]["by_day"] = days
         print("   by the UTC date of the test scans (map scans that date; test walks' median speed): " + "; ".join(
@@ -307,6 +319,23 @@ def by_day(scans: list[WifiScan], truth: np.ndarray, rm: RadioMap, errs: tuple) 
                     "mean": float(e[both].mean()), "ref_mean": float(ref_e[both].mean()),
                     "ratio": float(e[both].mean() / ref_e[both].mean()),
                     "speed_m_s": float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else float("nan")})
+    return out
+
+
+def ellipses_by_stratum(pos: PowedKnn, fixes: list[Fix], m2: np.ndarray) -> dict[str, dict[str, Any]]:
+    """In50/in95 (%) of the located fixes per recording-time stratum of the covariance calibration
+    (``cov_recent_s``: within it, or later), with the stratum's cross-validated scan count."""
+    cal, lim = pos.calibration, pos.params.cov_recent_s
+    lag = np.array([f.info.get("lag_s", np.inf) if f.ok else np.nan for f in fixes])
+    n_all, n_recent = int(cal.get("scans", 0)), int(cal.get("recent_scans", 0))
+    out: dict[str, dict[str, Any]] = {}
+    for key, sel, n_cal in ((f"<= {lim / 60:g} min", lag <= lim, n_recent),
+                            ("later", lag > lim, n_all - n_recent)):
+        if not pos.sigma_tables or n_cal < MIN_BIN_SCANS:
+            n_cal = n_all                                    # that stratum uses the table of all scans
+        if sel.any():
+            out[key] = {"fixes": int(sel.sum()), "in50": float(100 * np.mean(m2[sel] <= CHI2_2_50)),
+                        "in95": float(100 * np.mean(m2[sel] <= CHI2_2_95)), "calibration_scans": n_cal}
     return out
 
 

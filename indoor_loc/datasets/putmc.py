@@ -708,6 +708,26 @@ def to_map_quat(q_xyzw: np.ndarray, map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> n
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
+def map_yaw(q_xyzw: np.ndarray, map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> np.ndarray:
+    """``quat_yaw(to_map_quat(q_xyzw, map_yaw_rad))``, the same operations on each component (so
+    the same bits), without the (N, 4) arrays in between: the heading of each sample in the map
+    frame, rad."""
+    q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
+    c, s = math.cos(map_yaw_rad / 2), math.sin(map_yaw_rad / 2)
+    x, y, z, w = q.T
+    mx, my, mz, mw = c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z
+    n = mx * mx                                   # |q|: x, y, z, w summed in turn, as norm(axis=1)
+    n += my * my
+    n += mz * mz
+    n += mw * mw
+    np.sqrt(n, out=n)
+    mx /= n
+    my /= n
+    mz /= n
+    mw /= n
+    return np.arctan2(2.0 * (mw * mz + mx * my), 1.0 - 2.0 * (my * my + mz * mz))
+
+
 def causal_index(t_query: np.ndarray, t_ref: np.ndarray) -> np.ndarray:
     """For each query stamp, the index of the latest reference stamp at or before it (-1: none)."""
     return np.searchsorted(np.asarray(t_ref), np.asarray(t_query), side="right") - 1

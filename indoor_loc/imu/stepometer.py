@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import next_fast_len
-from scipy.signal import butter, find_peaks, sosfiltfilt
+from scipy.signal import butter, find_peaks, sosfilt, sosfilt_zi
 from scipy.sparse import csr_array
 
 from indoor_loc.errors import InvalidInputError
@@ -248,17 +248,36 @@ class _Design:
                        weight, harmonic_map, n_m, m_lo, m_hi)
 
 
+class _Lowpass(NamedTuple):
+    """A Butterworth low-pass designed once per (order, cutoff, rate): second-order sections, the
+    steady-state initial conditions of a unit step (``sosfilt_zi``) and the odd-extension length of
+    :func:`_filtfilt` (scipy's ``sosfiltfilt`` default: 3 x the number of taps)."""
+    sos: np.ndarray
+    zi: np.ndarray           # (n_sections, 2)
+    pad: int
+
+
 @functools.lru_cache(maxsize=64)
-def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
+def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> _Lowpass:
     sos = butter(order, cutoff_hz, fs=fs, output="sos")
+    ntaps = 2 * len(sos) + 1 - min(int((sos[:, 2] == 0).sum()), int((sos[:, 5] == 0).sum()))
+    zi = sosfilt_zi(sos)
     sos.setflags(write=False)
-    return sos
+    zi.setflags(write=False)
+    return _Lowpass(sos, zi, 3 * ntaps)
 
 
-def _lowpass_sos(order: int, cutoff_hz: float, fs: float) -> np.ndarray:
-    """Butterworth low-pass sections, designed once per (order, cutoff, rate); a writable copy (scipy's
-    ``sosfilt`` needs one) of the cached design."""
-    return _lowpass_design(order, cutoff_hz, fs).copy()
+def _filtfilt(lp: _Lowpass, x: np.ndarray) -> np.ndarray:
+    """Zero-phase low-pass of a 1-D signal longer than ``lp.pad``: forward and backward through the
+    sections, odd extension of ``lp.pad`` samples at both ends, each pass starting in the steady
+    state of its first sample — what ``scipy.signal.sosfiltfilt(lp.sos, x)`` computes (the same
+    operations, bit for bit), with the design's initial conditions computed once, not per call."""
+    n = lp.pad
+    ext = np.concatenate((2.0 * x[0] - x[n:0:-1], x, 2.0 * x[-1] - x[-2: -n - 2: -1]))
+    sos = lp.sos.copy()
+    y, _ = sosfilt(sos, ext, zi=lp.zi * ext[0])
+    y, _ = sosfilt(sos, y[::-1], zi=lp.zi * y[-1])
+    return y[::-1][n: len(y) - n]
 
 
 def amplitude_spectrum(windows: np.ndarray, design: _Design) -> np.ndarray:
@@ -528,6 +547,9 @@ class Stepometer:
         self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
         self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
         self._grid_now: np.ndarray | None = None    # the grid from buffer_start while analysing; not state
+        #: count a clearly periodic walking run's hops inline in _analyse_ready (False: through _count
+        #: and _emit, the same operations; for tests)
+        self._inline_walking = True
         #: walking hops over which the gait's energy is a median: the run's last half window
         self._n_recent = max(1, int(round(0.5 * self.params.window_s / self.params.hop_s)))
 
@@ -938,13 +960,48 @@ class Stepometer:
         if new is not None:
             grid = np.concatenate((grid, new))
         self._grid_now = grid
+        n_h, offset, b_min = d.n_h, d.offset, self.params.bridge_min_autocorr
+        inline = self._inline_walking
+        stale = False            # walk_motion_std not yet the median of the run's recent energies
         try:
             first = st.next_window * d.n_h - st.buffer_start
             span = grid[first: first + (n_ready - 1) * d.n_h + d.n_w]
             for est in self._analysed(span, d):
                 j = st.next_window
-                lo = j * d.n_h + d.offset
-                hi = lo + d.n_h
+                lo = j * n_h + offset
+                hi = lo + n_h
+                if (inline and est.walking and st.walk_end == lo and j and not st.held and not st.tentative
+                        and (est.autocorr >= b_min or st.walk_autocorr >= b_min)):
+                    # the common case, inline: a clearly periodic walking run goes on (what _count
+                    # and _emit do for it, the same operations; the run's energy median is taken
+                    # once the run leaves this path)
+                    f = est.freq_hz
+                    st.walk_freq_hz = f
+                    st.walk_end = hi
+                    recent = st.walk_motion_recent
+                    if len(recent) >= self._n_recent:
+                        del recent[: len(recent) - self._n_recent + 1]
+                    recent.append(est.motion_std_m_s2)
+                    stale = True
+                    if est.autocorr > st.walk_autocorr:
+                        st.walk_autocorr = est.autocorr
+                    fs = st.grid_hz
+                    dur = (hi - lo) / fs
+                    steps = f * dur
+                    st.total_steps += steps
+                    st.walking_s += dur
+                    st.last_freq_hz = st.count_freq_hz = f
+                    st.last_walking = True
+                    st.last_confidence = st.count_confidence = 1.0
+                    t0 = st.t0_ns
+                    assert t0 is not None
+                    out.append(StepHop(t0 + int(round(lo * 1e9 / fs)), t0 + int(round(hi * 1e9 / fs)), steps, f,
+                                       True, 1.0, 0.0))
+                    st.next_window = j + 1
+                    continue
+                if stale:
+                    st.walk_motion_std = _median(st.walk_motion_recent)
+                    stale = False
                 if j == 0:
                     # head of the segment: the first window covers it, hop by hop (each with its own
                     # moving/still test, so standing before the walk is not counted); with a walking
@@ -957,6 +1014,8 @@ class Stepometer:
                 out += self._count(lo, hi, est)
                 st.next_window += 1
         finally:
+            if stale:
+                st.walk_motion_std = _median(st.walk_motion_recent)
             self._grid_now = None
             # keep the grid samples later windows (or a bridged span's step count) need
             keep_from = st.next_window * d.n_h
@@ -1096,9 +1155,9 @@ class Stepometer:
         b = min(st.n_grid, hi1 + pad)
         seg = self._grid_values(a, b)
         peaks = np.zeros(0, dtype=np.int64)
-        sos = _lowpass_sos(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
-        if len(seg) > 3 * (2 * len(sos) + 1):
-            y = sosfiltfilt(sos, seg - seg.mean())
+        lp = _lowpass_design(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
+        if len(seg) > lp.pad:
+            y = _filtfilt(lp, seg - seg.mean())
             f_hi = max(st.walk_freq_hz, freq_hz)
             dist = max(1, int(round(st.grid_hz / (1.5 * f_hi))))
             peaks, _ = find_peaks(y, distance=dist, prominence=p.bridge_prominence * float(y.std()))

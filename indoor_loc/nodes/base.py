@@ -763,8 +763,10 @@ STARTUP_ERROR_WAIT_S = 10.0
 #: ... but gives up after this long if it has seen no other node at all (s): a little over Fast
 #: DDS's periodic participant announcement (3 s), so one lost initial announcement burst is covered.
 STARTUP_ERROR_ALONE_S = 4.0
-#: ... and for the subscribers it found to acknowledge its ERROR (s).
-STARTUP_ERROR_ACK_S = 1.0
+#: ... and for the subscribers it found to acknowledge its ERROR (s; returns as soon as they did). A
+#: subscriber whose own side of the match completes later gets the message resent only while this
+#: node still exists, which on a loaded machine can take seconds.
+STARTUP_ERROR_ACK_S = 5.0
 
 
 def report_startup_error(node_name: str, message: str, *, wait_s: float = STARTUP_ERROR_WAIT_S,

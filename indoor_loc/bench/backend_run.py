@@ -1,0 +1,267 @@
+"""The work ``indoor-loc bench backend`` times: the PUTMC front end (reading the text files, the
+stepometer and headings) and one graph configuration over all walks, importing only what that work
+needs (the PUTMC reader, the stepometer, the graph; no ROS, plotting, evaluation or bench code).
+
+Run as a module, it is one configuration from scratch in a fresh process, as the authors' C++ is
+timed (one process per configuration: loading, stepometer, WKNN, 15 LM iterations), and prints one
+JSON line: the work's CPU and wall time, the process's CPU time in all (interpreter start-up and
+imports included) and its peak resident memory::
+
+    python -m indoor_loc.bench.backend_run DATA_DIR "separate, no step-length est."
+
+:func:`scratch` runs it from the bench.
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
+
+if TYPE_CHECKING:       # the heavy imports wait until the work starts (see main)
+    import numpy as np
+
+    from indoor_loc.backend.graph import GraphParams, MultiUserGraph
+    from indoor_loc.backend.putmc_events import WalkEvents
+    from indoor_loc.wifi.types import RadioMap
+
+#: the front end's parts, as :func:`load` times them
+READING = "reading the text files (24 walks, survey, routes)"
+STEPS = "stepometer + headings"
+#: the importer's configuration (joint + step length, measured noise, Huber): ``PUTMC_GRAPH_PARAMS``
+DEFAULT = "default (importer): joint + SLE, measured noise, Huber"
+#: the configurations :func:`configs` gives, in its order
+CONFIG_NAMES = ("separate, no step-length est.", "separate, step-length est.", "joint, no step-length est.",
+                "joint, step-length est.", DEFAULT)
+
+
+def configs() -> dict[str, GraphParams]:
+    """The paper's four configurations (users separate/joint x step length off/on) and the default,
+    each optimised once at the end (no live window)."""
+    from indoor_loc.backend.graph import GraphParams
+    from indoor_loc.backend.putmc_events import PUTMC_GRAPH_PARAMS
+    return dict(zip(CONFIG_NAMES, (
+        GraphParams(joint=False, estimate_step_length=False, window_poses=0),
+        GraphParams(joint=False, estimate_step_length=True, window_poses=0),
+        GraphParams(joint=True, estimate_step_length=False, window_poses=0),
+        GraphParams(joint=True, estimate_step_length=True, window_poses=0),
+        GraphParams(window_poses=0, **PUTMC_GRAPH_PARAMS))))
+
+
+@dataclass
+class Putmc:
+    walks: list[int]
+    events: dict[int, WalkEvents]
+    truth: dict[int, tuple[np.ndarray, np.ndarray]]      # scan stamps, true scan xy
+    segments: dict[int, np.ndarray]
+    survey: RadioMap
+    load_s: float
+    load_cpu_s: float = 0.0
+    #: wall and CPU time (s) of the front end's parts: READING, STEPS
+    parts: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+class _Clock:
+    """Wall and CPU time (``time.process_time``: this process, all threads) summed per part."""
+
+    def __init__(self) -> None:
+        self.parts: dict[str, tuple[float, float]] = {}
+
+    @contextmanager
+    def part(self, name: str) -> Iterator[None]:
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            w, c = self.parts.get(name, (0.0, 0.0))
+            self.parts[name] = (w + time.perf_counter() - t0, c + time.process_time() - c0)
+
+
+def load(data: Path, walks: Sequence[int] | None = None, jobs: int = 1) -> Putmc:
+    """Every walk's hops and scans (the front end), timed (wall and CPU time, in total and per part:
+    reading the text files; the stepometer and headings). ``walks``: only these walk numbers
+    (default: all). ``jobs`` > 1: the walks are shared out among that many forked worker processes
+    while this one reads the survey — not less work, so the CPU times are those of all the processes
+    (this one's and the workers', each part summed over them) and only the wall time can drop."""
+    from indoor_loc.datasets.putmc import Putmc as Dataset
+
+    clock = _Clock()
+    t0, c0, k0 = time.perf_counter(), time.process_time(), _children_cpu_s()
+    with clock.part(READING):
+        ds = Dataset(Path(data) / "putmc")
+    numbers = [n for n in ds.walk_numbers if walks is None or n in walks]
+    ev, truth, seg = {}, {}, {}
+    if jobs > 1 and len(numbers) > 1:
+        import multiprocessing
+
+        global _FORKED
+        _FORKED = ds
+        pool = multiprocessing.get_context("fork").Pool(min(jobs, len(numbers)))
+        try:
+            pending = pool.imap(_front_end, numbers)
+            with clock.part(READING):
+                survey = ds.survey_map()
+            for n, (e, tr, parts) in zip(numbers, pending):
+                ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
+                for name, (w, c) in parts.items():
+                    w0, c_0 = clock.parts.get(name, (0.0, 0.0))
+                    clock.parts[name] = (w0 + w, c_0 + c)
+        finally:
+            pool.close()
+            pool.join()             # the workers have exited: their CPU time is in RUSAGE_CHILDREN
+            _FORKED = None
+    else:
+        for n in numbers:
+            e, tr, parts = _front_end(n, ds, clock)
+            ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
+        with clock.part(READING):
+            survey = ds.survey_map()
+    cpu = time.process_time() - c0 + _children_cpu_s() - k0
+    return Putmc(numbers, ev, truth, seg, survey, time.perf_counter() - t0, cpu, clock.parts)
+
+
+#: the dataset a forked worker of :func:`load` reads from (set before the fork)
+_FORKED: Any = None
+
+
+def _front_end(n: int, ds: Any = None, clock: _Clock | None = None) -> tuple[WalkEvents, tuple, dict]:
+    """Walk ``n``'s events and truth, and the parts' times (on ``clock``, else a new one)."""
+    from indoor_loc.backend.putmc_events import walk_events
+
+    ds = _FORKED if ds is None else ds
+    clock = _Clock() if clock is None else clock
+    with clock.part(READING):
+        w = ds.walk(n)
+    with clock.part(STEPS):
+        e = walk_events(w)
+    return e, (w.scan_t, w.scan_xy), clock.parts
+
+
+def _children_cpu_s() -> float:
+    """CPU time of this process's terminated and waited-for children (the forked workers)."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_graph(data: Putmc, params: GraphParams, survey: RadioMap | None = None) -> tuple[MultiUserGraph, float]:
+    """Walks 1…24 one after another, then one optimisation; returns the graph and the wall time."""
+    from indoor_loc.backend.graph import MultiUserGraph
+
+    t0 = time.perf_counter()
+    g = MultiUserGraph(params, data.survey if survey is None else survey)
+    for n in data.walks:
+        name = data.events[n].name
+        for _, kind, payload in data.events[n].events():
+            if kind == 0:
+                g.add_hop(name, *payload)        # type: ignore[misc]
+            else:
+                g.add_scan(name, payload)        # type: ignore[arg-type]
+        g.finish_user(name)
+    g.optimize()
+    return g, time.perf_counter() - t0
+
+
+def run_graph_timed(data: Putmc, params: GraphParams,
+                    survey: RadioMap | None = None) -> tuple[MultiUserGraph, float, float]:
+    """:func:`run_graph`, also returning its CPU time (this process; all threads)."""
+    c0 = time.process_time()
+    g, wall = run_graph(data, params, survey)
+    return g, wall, time.process_time() - c0
+
+
+def _process_cpu_s() -> float:
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory, MB: ``VmHWM`` of ``/proc/self/status`` (since the exec;
+    ``getrusage``'s ``ru_maxrss`` starts from the parent's at the fork), else ``ru_maxrss``."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0      # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0     # Linux: KiB
+
+
+def measure(data: Path, config: str, walks: Sequence[int] | None = None, jobs: int = 1) -> dict[str, Any]:
+    """This process (fresh): import what the work needs, then the front end (``jobs``: see
+    :func:`load`) and the graph of ``config`` once. CPU times are this process's and its workers'
+    (``time.process_time`` / ``getrusage``)."""
+    cpu_start, rss_start = _process_cpu_s(), _peak_rss_mb()       # interpreter start-up
+    c0 = time.process_time()
+    import numpy  # noqa: F401  (imported first so that its share is reported)
+    cpu_numpy = time.process_time() - c0
+    import indoor_loc.backend.graph  # noqa: F401
+    import indoor_loc.backend.putmc_events  # noqa: F401
+    import indoor_loc.datasets.putmc  # noqa: F401
+    params = configs()[config]
+    cpu_imports = time.process_time() - c0
+    rss_imports = _peak_rss_mb()
+    w0, c1 = time.perf_counter(), time.process_time()
+    data_ = load(data, walks, jobs)
+    g, _ = run_graph(data_, params)
+    cpu_work = time.process_time() - c1 + _children_cpu_s()      # (no children before the work)
+    wall_work = time.perf_counter() - w0
+    return {"config": config, "jobs": jobs, "walks": len(data_.walks), "poses": int(g.poses.n),
+            "cpu_start_s": cpu_start, "cpu_numpy_s": cpu_numpy, "cpu_imports_s": cpu_imports,
+            "cpu_front_s": data_.load_cpu_s, "wall_front_s": data_.load_s, "cpu_work_s": cpu_work,
+            "wall_work_s": wall_work, "cpu_process_s": _process_cpu_s() + _children_cpu_s(),
+            "rss_start_mb": rss_start, "rss_imports_mb": rss_imports, "rss_peak_mb": _peak_rss_mb(),
+            "modules": sorted(m for m in sys.modules if m.split(".")[0] in {"scipy", "indoor_loc", "yaml"}
+                              and m.count(".") <= 1)}
+
+
+def scratch(data: Path, config: str, runs: int = 1, walks: Sequence[int] | None = None, jobs: int = 1,
+            timeout_s: float = 300.0) -> list[dict[str, Any]]:
+    """:func:`measure` in ``runs`` fresh processes (``python -m indoor_loc.bench.backend_run``), one
+    after another; their JSON results."""
+    cmd = [sys.executable, "-m", "indoor_loc.bench.backend_run", str(data), config, "--jobs", str(jobs)]
+    if walks is not None:
+        cmd += ["--walks", ",".join(str(n) for n in walks)]
+    root = str(Path(__file__).resolve().parents[2])        # this package, first on the child's path
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p))
+    out = []
+    for _ in range(runs):
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False, env=env)
+        if res.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed ({res.returncode}): {res.stderr.strip()[-2000:]}")
+        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    opts: dict[str, str] = {}
+    for key in ("--walks", "--jobs"):
+        if key in args[:-1]:
+            i = args.index(key)
+            opts[key] = args[i + 1]
+            del args[i: i + 2]
+    try:
+        walks = [int(v) for v in opts["--walks"].split(",")] if "--walks" in opts else None
+        jobs = int(opts.get("--jobs", "1"))
+    except ValueError:
+        jobs = 0
+    if len(args) != 2 or jobs < 1:
+        print("usage: python -m indoor_loc.bench.backend_run DATA_DIR CONFIG [--walks 1,2,...] [--jobs N >= 1]",
+              file=sys.stderr)
+        return 2
+    if args[1] not in CONFIG_NAMES:
+        print(f"unknown configuration {args[1]!r}; one of {list(CONFIG_NAMES)}", file=sys.stderr)
+        return 2
+    print(json.dumps(measure(Path(args[0]), args[1], walks, jobs)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
