@@ -33,9 +33,9 @@ def _node(module: str, params, *extra: str, **kw) -> Peer:
                  "-p", "sensor_reliability:=reliable", *extra], **kw)
 
 
-#: a replay at 5x on a busy machine: a wifi/fix may reach pdr_kf_node after later PDR hops (a node
-#: stalled for a second takes the hops queued meanwhile before the fix: 5 s of bag time); holding each
-#: hop 15 s of bag time (3 s of wall time) keeps the stamp order of the offline run through such stalls
+#: a replay at 5x on a busy machine: a wifi/fix may reach pdr_kf_node after later PDR hops (a fix held
+#: up for a second on its way, a process descheduled, is 5 s of bag time late); holding each hop 15 s
+#: of bag time (3 s of wall time) keeps the stamp order of the offline run through such stalls
 EXTRA = {"pdr_kf_node": ("-p", "odom_hold_s:=15.0")}
 
 

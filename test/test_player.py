@@ -239,3 +239,58 @@ def test_player_waits_for_the_subscribers_it_is_told_of(ros_domain: int, tmp_pat
     assert got["first"] == got["late"] == list(range(n))
     assert f"subscribers when playing starts: {ns}/imu/data_raw 2" in player.output()
     assert "fewer subscribers" not in player.output()
+
+
+def test_clock_never_runs_past_the_next_message(ros_domain: int, tmp_path: Path, monkeypatch) -> None:
+    """A player that stalls (here its monotonic clock jumps 0.1 s after the 5th message, as a loaded
+    machine may deschedule it) publishes the late messages at once, and /clock never passes the stamp
+    of the next message to publish: nodes on sim time are not told a time whose data is still to come."""
+    import time as real_time
+
+    from helpers_dds import ros_node
+    from indoor_loc.nodes import player_node
+
+    class StallingTime:
+        """The player's time: sleeps advance it at once; the test makes it jump."""
+        def __init__(self) -> None:
+            self.t = 1000.0
+
+        def monotonic(self) -> float:
+            return self.t
+
+        def sleep(self, s: float) -> None:
+            self.t += max(s, 1e-4)
+
+        def time_ns(self) -> int:
+            return real_time.time_ns()
+
+    fake = StallingTime()
+    monkeypatch.setattr(player_node, "time", fake)
+    bag = tmp_path / "walk.mcap"
+    n = 20
+    _make_bag(bag, f"/{U}_c", n)            # ground truth at T0, then imu i at T0 + i DT
+    with ros_node("probe") as (probe, _):
+        player = player_node.PlayerNode([bag], rate=1.0, clock_hz=100.0, context=probe.context)
+        try:
+            seen: list[tuple[int, int]] = []           # (messages published so far, /clock value)
+            publish_clock, diagnostics = player._publish_clock, player._maybe_diagnostics
+
+            def clock(bag_ns: int) -> None:
+                seen.append((player.published, bag_ns))
+                publish_clock(bag_ns)
+
+            def after_publish(force: bool = False) -> None:
+                if player.published == 5 and fake.t < 1001.0:
+                    fake.t += 0.1                      # the stall: 0.1 s (10 messages) with nothing done
+                diagnostics(force)
+            monkeypatch.setattr(player, "_publish_clock", clock)
+            monkeypatch.setattr(player, "_maybe_diagnostics", after_publish)
+            player.play()
+        finally:
+            player.destroy_node()
+    assert player.published == n + 1
+    assert any(k > 15 for k, _ in seen)                   # /clock goes on once the player caught up
+    assert [c for _, c in seen] == sorted(c for _, c in seen)
+    next_stamp = [T0] + [T0 + i * DT for i in range(n)]  # stamp of the k-th message played
+    assert all(c <= next_stamp[k] for k, c in seen if k < len(next_stamp)), \
+        [(k, c - T0) for k, c in seen if k < len(next_stamp) and c > next_stamp[k]]

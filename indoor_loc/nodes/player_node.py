@@ -5,7 +5,9 @@
 - Messages are published as stored (serialised bytes, no deserialisation) at their log time
   scaled by ``--rate``; several bags are merged in time order.
 - ``--clock [HZ]`` publishes ``rosgraph_msgs/Clock`` on ``/clock`` (default 100 Hz) in bag time,
-  for nodes started with ``use_sim_time:=true``.
+  for nodes started with ``use_sim_time:=true``. It never runs past the stamp of the next message
+  to publish: a player that fell behind (a stall on a loaded machine) does not tell the nodes a
+  time whose data they have not been sent yet.
 - Publishers are reliable (they serve reliable and best-effort subscribers alike);
   transient_local for the contract's latched topics (``ground_truth``, ``map/graph``,
   ``backend/wifi_map``, ``pf/pose``, under any namespace) and for topics whose recorded
@@ -272,7 +274,7 @@ class PlayerNode(Node):
                     return False
                 now = time.monotonic()
                 if clock_period and now >= next_clock:
-                    self._publish_clock(first + int((now - wall0) * self.rate * 1e9))
+                    self._publish_clock(min(first + int((now - wall0) * self.rate * 1e9), m.stamp_ns))
                     next_clock += clock_period
                     if next_clock < now:          # fell behind (slow machine): don't burst
                         next_clock = now + clock_period
