@@ -118,7 +118,7 @@ class Peer:
 
     def wait(self, timeout: float) -> int:
         rc = self.proc.wait(timeout=timeout)
-        self._reader.join(timeout=2.0)
+        self._reader.join(timeout=10.0)   # returns at EOF; bounded for a stuck pipe
         return rc
 
     def output(self) -> str:
@@ -133,7 +133,7 @@ class Peer:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(timeout=5.0)
-        self._reader.join(timeout=2.0)
+        self._reader.join(timeout=10.0)   # returns at EOF; bounded for a stuck pipe
 
 
 def python_peer(script: str, *args: str, **kw) -> Peer:
