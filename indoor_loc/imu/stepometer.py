@@ -547,9 +547,6 @@ class Stepometer:
         self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
         self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
         self._grid_now: np.ndarray | None = None    # the grid from buffer_start while analysing; not state
-        #: count a clearly periodic walking run's hops inline in _analyse_ready (False: through _count
-        #: and _emit, the same operations; for tests)
-        self._inline_walking = True
         #: walking hops over which the gait's energy is a median: the run's last half window
         self._n_recent = max(1, int(round(0.5 * self.params.window_s / self.params.hop_s)))
 
@@ -960,8 +957,7 @@ class Stepometer:
         if new is not None:
             grid = np.concatenate((grid, new))
         self._grid_now = grid
-        n_h, offset, b_min = d.n_h, d.offset, self.params.bridge_min_autocorr
-        inline = self._inline_walking
+        n_h, offset = d.n_h, d.offset
         stale = False            # walk_motion_std not yet the median of the run's recent energies
         try:
             first = st.next_window * d.n_h - st.buffer_start
@@ -970,33 +966,10 @@ class Stepometer:
                 j = st.next_window
                 lo = j * n_h + offset
                 hi = lo + n_h
-                if (inline and est.walking and st.walk_end == lo and j and not st.held and not st.tentative
-                        and (est.autocorr >= b_min or st.walk_autocorr >= b_min)):
-                    # the common case, inline: a clearly periodic walking run goes on (what _count
-                    # and _emit do for it, the same operations; the run's energy median is taken
-                    # once the run leaves this path)
-                    f = est.freq_hz
-                    st.walk_freq_hz = f
-                    st.walk_end = hi
-                    recent = st.walk_motion_recent
-                    if len(recent) >= self._n_recent:
-                        del recent[: len(recent) - self._n_recent + 1]
-                    recent.append(est.motion_std_m_s2)
+                hop = self._walk_on(j, lo, hi, est)
+                if hop is not None:
+                    out.append(hop)
                     stale = True
-                    if est.autocorr > st.walk_autocorr:
-                        st.walk_autocorr = est.autocorr
-                    fs = st.grid_hz
-                    dur = (hi - lo) / fs
-                    steps = f * dur
-                    st.total_steps += steps
-                    st.walking_s += dur
-                    st.last_freq_hz = st.count_freq_hz = f
-                    st.last_walking = True
-                    st.last_confidence = st.count_confidence = 1.0
-                    t0 = st.t0_ns
-                    assert t0 is not None
-                    out.append(StepHop(t0 + int(round(lo * 1e9 / fs)), t0 + int(round(hi * 1e9 / fs)), steps, f,
-                                       True, 1.0, 0.0))
                     st.next_window = j + 1
                     continue
                 if stale:
@@ -1032,6 +1005,38 @@ class Stepometer:
         if self._grid_now is not None:
             return self._grid_now[a - st.buffer_start: b - st.buffer_start]
         return np.asarray(st.buffer[a - st.buffer_start: b - st.buffer_start], dtype=float)
+
+    def _walk_on(self, j: int, lo: int, hi: int, est: WindowEstimate) -> StepHop | None:
+        """The common case: the hop ``[lo, hi)`` of window ``j`` (not a segment's first) when a clearly
+        periodic walking run goes on with it and nothing is held or tentative — what :meth:`_count`
+        and :meth:`_emit` do for it (the same operations), without their general branches, except that
+        ``walk_motion_std`` is left to the caller: the median of ``walk_motion_recent``, taken once
+        the run leaves this path. None, with nothing changed, in any other case."""
+        st = self._st
+        b_min = self.params.bridge_min_autocorr
+        if not (est.walking and st.walk_end == lo and j and not st.held and not st.tentative
+                and (est.autocorr >= b_min or st.walk_autocorr >= b_min)):
+            return None
+        f = est.freq_hz
+        st.walk_freq_hz = f
+        st.walk_end = hi
+        recent = st.walk_motion_recent
+        if len(recent) >= self._n_recent:
+            del recent[: len(recent) - self._n_recent + 1]
+        recent.append(est.motion_std_m_s2)
+        if est.autocorr > st.walk_autocorr:
+            st.walk_autocorr = est.autocorr
+        fs = st.grid_hz
+        dur = (hi - lo) / fs
+        steps = f * dur
+        st.total_steps += steps
+        st.walking_s += dur
+        st.last_freq_hz = st.count_freq_hz = f
+        st.last_walking = True
+        st.last_confidence = st.count_confidence = 1.0
+        t0 = st.t0_ns
+        assert t0 is not None
+        return StepHop(t0 + int(round(lo * 1e9 / fs)), t0 + int(round(hi * 1e9 / fs)), steps, f, True, 1.0, 0.0)
 
     def _count(self, lo: int, hi: int, est: WindowEstimate) -> list[StepHop]:
         """The hop ``[lo, hi)`` (grid indices) centred in a window with estimate ``est``, and any hops
