@@ -13,6 +13,7 @@ imports included) and its peak resident memory::
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import resource
@@ -239,27 +240,31 @@ def scratch(data: Path, config: str, runs: int = 1, walks: Sequence[int] | None 
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    opts: dict[str, str] = {}
-    for key in ("--walks", "--jobs"):
-        if key in args[:-1]:
-            i = args.index(key)
-            opts[key] = args[i + 1]
-            del args[i: i + 2]
+def _walk_numbers(text: str) -> list[int]:
     try:
-        walks = [int(v) for v in opts["--walks"].split(",")] if "--walks" in opts else None
-        jobs = int(opts.get("--jobs", "1"))
+        return [int(v) for v in text.split(",")]
     except ValueError:
-        jobs = 0
-    if len(args) != 2 or jobs < 1:
-        print("usage: python -m indoor_loc.bench.backend_run DATA_DIR CONFIG [--walks 1,2,...] [--jobs N >= 1]",
-              file=sys.stderr)
-        return 2
-    if args[1] not in CONFIG_NAMES:
-        print(f"unknown configuration {args[1]!r}; one of {list(CONFIG_NAMES)}", file=sys.stderr)
-        return 2
-    print(json.dumps(measure(Path(args[0]), args[1], walks, jobs)))
+        raise argparse.ArgumentTypeError(f"not comma-separated walk numbers: {text!r}") from None
+
+
+def _positive(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"not a whole number >= 1: {text!r}")
+    return int(text)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m indoor_loc.bench.backend_run",
+                                 description="One back-end configuration from scratch in this process; prints "
+                                             "its times (s) and memory (MB) as one JSON line.")
+    ap.add_argument("data", type=Path, help="datasets directory (holding putmc/)")
+    ap.add_argument("config", help=f"configuration, one of: {'; '.join(CONFIG_NAMES)}")
+    ap.add_argument("--walks", type=_walk_numbers, help="comma-separated walk numbers (default: all)")
+    ap.add_argument("--jobs", type=_positive, default=1, help="processes sharing the front end (default 1)")
+    args = ap.parse_args(argv)
+    if args.config not in CONFIG_NAMES:
+        ap.error(f"unknown configuration {args.config!r}; one of {list(CONFIG_NAMES)}")
+    print(json.dumps(measure(args.data, args.config, args.walks, args.jobs)))
     return 0
 
 
