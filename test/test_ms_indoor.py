@@ -132,6 +132,7 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
     params = yaml.safe_load((out / "params.yaml").read_text())
     wifi = params["/**/wifi_fix_node"]["ros__parameters"]
     assert Path(wifi["radiomap"]) == out / "radiomap" and wifi["method"] == "powed"    # ages, two floors
+    assert Path(wifi["floor_plans"]) == out / "floors" and wifi["powed"] == {"field_weight": 0.05}   # plans: field on
     # phone yaw 45°, walking east: the heading offset that maps the phone's yaw onto the walk
     assert params["/**/imu_node"]["ros__parameters"]["heading_offset_rad"] == pytest.approx(-np.pi / 4, abs=1e-3)
     plan = yaml.safe_load((out / "floors" / "B1" / "map.yaml").read_text())
@@ -187,14 +188,17 @@ def test_imported_bags_replayed_through_wifi_give_the_core_fixes(tmp_path):
     from indoor_loc.bag import read_bag
     from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     from indoor_loc.pipeline.offline import run_offline
-    from indoor_loc.wifi.powed_knn import PowedKnn
+    from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
     from indoor_loc.wifi.radiomap import load_radiomap
+    from indoor_loc.wifi.walkable import load_floor_plans
     out = tmp_path / "out"
     assert import_ms_indoor(_args(out, survey_walks="5f0000000000000000000001,5f0000000000000000000002")) == 0
     bag = out / "B1" / "5f0000000000000000000002.mcap"
     run_offline([bag], tmp_path / "run.mcap", nodes=["wifi"], params=out / "params.yaml", progress=False)
     fixes = [m.msg for m in read_bag(tmp_path / "run.mcap") if m.topic.endswith("/wifi/fix")]
-    pos = PowedKnn().fit(load_radiomap(out / "radiomap"))
+    walkable, _ = load_floor_plans(out / "floors")              # the params turn the plan-bounded field on
+    pos = PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(load_radiomap(out / "radiomap"))
+    assert pos._prior is not None
     expect = [pos.locate(s) for s in read_trace(B1).scans]
     assert len(fixes) == len(expect) == 3 and all(f.ok for f in expect)
     for msg, f in zip(fixes, expect):

@@ -205,6 +205,8 @@ def test_fallback_chain_and_recommended_params(rng):
     none = chain.locate(WifiScan(1, ("0a:00:00:00:00:01",), np.array([-50.0]), np.array([2412.0])))
     assert not none.ok and none.reason == "fallback_no_shared_aps"
     assert recommended_params(rm) == {"method": "powed"}           # two floors
+    assert recommended_params(rm, "out/floors") == {"method": "powed", "floor_plans": "out/floors",
+                                                    "powed": {"field_weight": 0.05}}     # plans: the field on
     one = RadioMap(positions=rm.positions[:5], bssids=rm.bssids, rssi_dbm=rm.rssi_dbm[:5], freq_mhz=rm.freq_mhz)
     assert recommended_params(one)["fallback"] == "powed"
 

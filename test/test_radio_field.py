@@ -164,10 +164,10 @@ def test_a_fold_refits_only_the_aps_its_left_out_walk_heard():
                                   smooth_reach_m=6.0)).fit(rm)
     rows = np.arange(len(pos._grid_pos))
     scale = pos._prior_scale[0]
-    got = pos._field_prior(~walk1, rows)[0].toarray()
+    got = pos._field_prior(~walk1, rows).toarray() * scale
     refit = pathloss_prior(rm, pos._grid_pos, pos._grid_z, floor_dbm=FLOOR, beta=BETA, keep=~walk1,
                            detect_dbm=detect_level(rm)).toarray() * scale
     np.testing.assert_allclose(got, refit, atol=1e-12)
-    full = pos._field_prior(np.ones(len(walk1), bool), rows)[0].toarray()
+    full = pos._field_prior(np.ones(len(walk1), bool), rows).toarray() * scale
     np.testing.assert_array_equal(got[:, unheard], full[:, unheard])     # kept, not refitted
     assert np.abs(got - full).max() > 1e-3                                # the heard APs were refitted

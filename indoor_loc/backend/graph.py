@@ -258,14 +258,12 @@ class MultiUserGraph:
         its end. Returns the index of a pose it added, else None."""
         tr = self.users.get(name) or self.user(name)
         t_end_ns = int(t_end_ns)
-        if tr.last_event_ns is not None and t_end_ns < tr.last_event_ns:
-            self._check_order(tr, t_end_ns, "hop")        # raises
+        self._check_order(tr, t_end_ns, "hop")
         last_end = tr.last_hop_end_ns
         if last_end is not None and t_end_ns <= last_end:
             raise ValueError(f"{name}: hop end {t_end_ns} not after the previous hop end {last_end}")
         steps = float(steps)
-        # F.wrap_scalar, inline (the same operations)
-        dtheta = (float(yaw - tr.last_yaw) + math.pi) % (2.0 * math.pi) - math.pi if last_end is not None else 0.0
+        dtheta = F.wrap_scalar(yaw - tr.last_yaw) if last_end is not None else 0.0
         dur = max((t_end_ns - t_start_ns) * 1e-9, 1e-3)
         tr.step_rate = max(steps, 0.0) / dur
         tr.last_hop_end_ns = tr.last_event_ns = t_end_ns

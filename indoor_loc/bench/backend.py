@@ -18,7 +18,8 @@ Sections: Table 2 side by side (pooled and per sequence), the importer's default
 (the paper's graph with information from measured noise and a Huber kernel, see
 ``PUTMC_GRAPH_PARAMS``) on the odd walks its parameters were chosen on and on the held-out even ones,
 estimated step length per sequence, the reduced-map experiment (survey kept at 90…50 %, seeded
-draws), wall time and peak memory.
+draws), wall and CPU time and peak memory, in this process and (each configuration from scratch) in
+fresh processes (:mod:`indoor_loc.bench.backend_run`).
 """
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ REF_TIME_S = {"separate": (0.6, 0.95), "joint": (1.0, 1.6)}
 REF_MEMORY_MB = (15, 18)
 #: worker processes of the parallel front end timed beside (wall time; not less work)
 JOBS = 2
-#: the configurations timed in fresh processes with ``--quick`` (all of them otherwise)
+#: the configurations timed in fresh processes with ``--quick`` (all of them otherwise), and with ``--jobs``
 QUICK_FRESH = ("separate, no step-length est.", "joint, step-length est.")
 
 
@@ -141,7 +142,7 @@ def fresh_processes(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONF
     print("| configuration | work s wall (least of runs) | work s CPU, all processes | front end s wall / CPU "
           "| reference C++ s wall |")
     print("|---|---|---|---|---|")
-    for name in ("separate, no step-length est.", "joint, step-length est."):
+    for name in QUICK_FRESH:
         rs = scratch(data_dir, name, runs, jobs=JOBS)
         best = min(rs, key=lambda r: r["wall_work_s"])
         ref = REF_TIME_S["joint" if "joint" in name else "separate"]

@@ -14,8 +14,9 @@ or unique id prefixes; default all):
   frame: metres, x right, y up, origin at the plan's bottom-left corner) and ``map.yaml`` (a nav2
   map_server description of the image: resolution m/px, origin [0, 0, 0], plus the floor's z);
 - ``OUT_DIR/split.yaml`` — survey and test walks per floor; ``OUT_DIR/params.yaml`` — every node
-  (imu_node heading from the rotation vector; wifi_fix_node with the radio map and the
-  recommended method); ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
+  (imu_node heading from the rotation vector; wifi_fix_node with the radio map, the
+  recommended method and, where GeoJSON plans exist, ``floor_plans`` = ``OUT_DIR/floors`` with powed
+  k-NN's path-loss field turned on); ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
 
 Floor heights: ``z = storey index × --storey-height-m`` (B1 → −1, F1 → 0, F3 → 2; default 5 m).
 """
@@ -156,8 +157,11 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     imu_params = {"heading_source": "orientation"}
     if offset is not None:
         imu_params["heading_offset_rad"] = round(offset, 4)
+    # the floor plans bound powed k-NN's extrapolating radio map (a site without any GeoJSON plan: none)
+    plans = out / "floors"
+    has_plan = any((plans / f.name / "geojson_map.json").exists() for f in floors)
     params = {"imu_node": imu_params,
-              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm)}}
+              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"

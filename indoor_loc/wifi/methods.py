@@ -110,14 +110,21 @@ def make_chain(name: str, params: Any = None, fallback: str = "",
     return FallbackPositioner(pos, make_positioner(fallback, fallback_params))
 
 
-def recommended_params(rm: RadioMap) -> dict[str, Any]:
+def recommended_params(rm: RadioMap, floor_plans: str = "") -> dict[str, Any]:
     """``wifi_fix_node`` parameters the importers and ``radiomap build`` write for radio map ``rm``:
     powed k-NN when the map carries reading ages or several floors (phone traces with cached
     results, multi-storey sites: ``indoor-loc bench wifi --dataset ms_site2``), else the best WKNN
     measured on PUTMC with powed k-NN as fallback, so every scan sharing an AP with the map gets a fix
-    (``indoor-loc bench wifi``: 347 of 347 PUTMC scans, 2.65 m mean)."""
+    (``indoor-loc bench wifi``: 347 of 347 PUTMC scans, 2.65 m mean). With ``floor_plans`` (a
+    directory of floor plans, as ``indoor-loc import ms-indoor`` writes) powed k-NN also extrapolates
+    its radio map inside the plans with the path-loss field (``field_weight``
+    :data:`~indoor_loc.wifi.radio_field.PLAN_FIELD_WEIGHT`; ms_site2: better on every floor)."""
     import numpy as np
+    from indoor_loc.wifi.radio_field import PLAN_FIELD_WEIGHT
     several_floors = len(np.unique(np.asarray(rm.z_m, float))) > 1
+    field: dict[str, Any] = {"floor_plans": floor_plans} if floor_plans else {}
+    powed = {"field_weight": PLAN_FIELD_WEIGHT} if floor_plans else None
     if rm.age_ms is not None or several_floors:
-        return {"method": "powed"}
-    return {"method": "wknn", "fallback": "powed", "wknn": dict(WKNN_BEST)}
+        return {"method": "powed", **field, **({"powed": powed} if powed else {})}
+    return {"method": "wknn", "fallback": "powed", "wknn": dict(WKNN_BEST), **field,
+            **({"powed": powed} if powed else {})}

@@ -150,39 +150,55 @@ class PathLoss(Positioner):
         sig2 = np.full(A, p.sigma_db ** 2)
 
         # np.nonzero is row-major, so each AP's readings are one contiguous run of the arrays; APs
-        # that have converged are frozen and their readings dropped from later iterations
-        def per_ap(v: np.ndarray, sel: np.ndarray) -> np.ndarray:
-            """Sum rows of v (n_sel, ...) — the readings ``sel`` (nnz,) bool — per AP -> (A, ...)."""
-            counts = np.bincount(ai[sel], minlength=A)
+        # that have converged are frozen and their readings dropped from later iterations. A selection of
+        # readings is (their indices, their APs, which APs have any, where each AP's run starts)
+        Sel = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+        def select(idx: np.ndarray) -> Sel:
+            a_s = ai[idx]
+            counts = np.bincount(a_s, minlength=A)
             has = counts > 0
+            return idx, a_s, has, np.r_[0, np.cumsum(counts)[:-1]][has]
+
+        def per_ap(v: np.ndarray, sel: Sel) -> np.ndarray:
+            """Sum rows of v (n_sel, ...) — the readings of ``sel`` — per AP -> (A, ...)."""
+            _, _, has, starts = sel
             out = np.zeros((A,) + v.shape[1:])
             if has.any():
-                out[has] = np.add.reduceat(v, np.r_[0, np.cumsum(counts)[:-1]][has], axis=0)
+                out[has] = np.add.reduceat(v, starts, axis=0)
             return out
 
-        def cost(th: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            h, J, _ = model(th[ai[sel]], po[sel], p.d0_m)
-            res = zo[sel] - h
+        def cost(th: np.ndarray, sel: Sel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            idx, a_s = sel[0], sel[1]
+            h, J, _ = model(th[a_s], po[idx], p.d0_m)
+            res = zo[idx] - h
             dp = th - prior_mean
             c = per_ap(res ** 2, sel) / sig2 + np.einsum("ai,ij,aj->a", dp, prior_info, dp)
             return c, res, J
 
-        def normal_eq(res: np.ndarray, J: np.ndarray, th: np.ndarray, sel: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-            H = per_ap(J[:, :, None] * J[:, None, :], sel) / sig2[:, None, None] + prior_info
+        iu, ju = np.triu_indices(4)
+
+        def normal_eq(res: np.ndarray, J: np.ndarray, th: np.ndarray, sel: Sel) -> tuple[np.ndarray, np.ndarray]:
+            upper = per_ap(J[:, iu] * J[:, ju], sel)              # the 10 distinct products of J^T J per AP
+            H = np.empty((A, 4, 4))
+            H[:, iu, ju] = upper
+            H[:, ju, iu] = upper
+            H = H / sig2[:, None, None] + prior_info
             g = per_ap(J * res[:, None], sel) / sig2[:, None] - (th - prior_mean) @ prior_info
             return H, g
 
-        everything = np.ones(len(ai), bool)
+        everything = select(np.arange(len(ai)))
         lam = np.full(A, 1e-3)
         c, res, J = cost(theta, everything)
         active = np.ones(A, bool)
         eye4 = np.eye(4)
+        sel = everything
         for _ in range(p.fit_iters):
-            sel = active[ai]
-            H, g = normal_eq(res[sel], J[sel], theta, sel)
+            idx = sel[0]
+            H, g = normal_eq(res[idx], J[idx], theta, sel)
             Hd = H + lam[:, None, None] * (np.einsum("aii->ai", H)[:, :, None] * eye4)
-            cand = theta + np.linalg.solve(Hd, g[..., None])[..., 0]
+            cand = theta.copy()
+            cand[active] += np.linalg.solve(Hd[active], g[active][..., None])[..., 0]
             cand[:, 1] = np.clip(cand[:, 1], p.n_bounds[0], p.n_bounds[1])
             cand[~active] = theta[~active]
             c2, res2, J2 = cost(cand, sel)
@@ -190,13 +206,16 @@ class PathLoss(Positioner):
             moved = np.abs(cand - theta).max(axis=1)
             theta = np.where(better[:, None], cand, theta)
             c = np.where(better, c2, c)
-            keep = better[ai[sel]]
-            res[sel] = np.where(keep, res2, res[sel])
-            J[sel] = np.where(keep[:, None], J2, J[sel])
+            keep = better[sel[1]]
+            res[idx] = np.where(keep, res2, res[idx])
+            J[idx] = np.where(keep[:, None], J2, J[idx])
             lam = np.clip(np.where(better, lam * 0.1, lam * 10.0), 1e-9, 1e9)
-            active &= moved >= 1e-3  # mdB and mm (after the bounds): converged
-            if not active.any():
-                break
+            still = active & (moved >= 1e-3)  # mdB and mm (after the bounds): the others have converged
+            if (still != active).any():
+                active = still
+                if not active.any():
+                    break
+                sel = select(idx[active[sel[1]]])
         # per-AP noise variance (shrinkage to sigma0) and parameter covariance
         dof = np.maximum(self.n_obs - 4, 0) + p.sigma_nu0
         sig2 = (per_ap(res ** 2, everything) + p.sigma_nu0 * p.sigma_db ** 2) / dof

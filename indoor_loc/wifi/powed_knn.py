@@ -55,7 +55,8 @@ best everywhere. On ms_site2 (choices made on floors B1 and F7) the mean error a
 WKNN's falls from 0.94 to 0.85 on B1 and from 0.61 to 0.60 on F7; on the held-out floors from 0.94
 to 0.90 (F3) and stays 0.70 (F8).
 
-**Extrapolation** (``field_weight`` > 0, off by default): kernel regression copies the nearest survey
+**Extrapolation** (``field_weight`` > 0; 0 by default, ``indoor-loc import ms-indoor`` sets 0.05 with its floor
+plans): kernel regression copies the nearest survey
 scans away from the walks, so a wider grid only adds look-alikes. With a per-AP log-distance path-loss
 prior (:mod:`indoor_loc.wifi.radio_field`) the grid's values tend from the kernel regression near the
 walks to the propagation model's expected powed values far from them, and the grid may reach where the
@@ -67,7 +68,7 @@ test truths instead of 79 %). The grid should extend only where people can be: g
 map scans (ms_site2 with its GeoJSON plans, against the plain WKNN: B1 0.850 → 0.822, F3 0.905 → 0.855,
 F7 0.595 → 0.584, F8 0.705 → 0.703; B1/F7 tuned, F3/F8 run once per design decision). Without a plan a
 wider ``smooth_reach_m`` also offers positions where nobody can be: on PUTMC, whose survey covers the
-corridors, a 10 m reach costs 2.58 → 3.40 m, so the field stays off by default.
+corridors, a 10 m reach costs 2.58 → 3.40 m, so the field stays off without a plan.
 
 Position: the similarity-weighted mean of the k nearest map scans (or grid candidates), weights 1 / (D + epsilon)
 (as WKNN, Nowicki & Skrzypczyński 2019, eq. 13). A scan that shares no AP with the map gets no fix
@@ -271,20 +272,13 @@ def smoothing_grid(pos: np.ndarray, z: np.ndarray, step_m: float, reach_m: float
     return g, gz, w, near
 
 
-def sparse_scale(m: Any, col_scale: np.ndarray) -> Any:
-    """A sparse (C, A) matrix with column a multiplied by ``col_scale[a]`` (CSR)."""
+def _scaled(m: Any, col_scale: np.ndarray, factor: float) -> Any:
+    """The CSR matrix ``m`` with column a multiplied by ``col_scale[a]``, then by ``factor`` (new values,
+    the index arrays shared)."""
     from scipy import sparse
-    out = sparse.csr_matrix(m, copy=True)
-    out.data *= np.asarray(col_scale, float)[out.indices]
-    return out
-
-
-def _scaled(m: Any, factor: float) -> Any:
-    """A copy of the sparse matrix ``m`` (CSR) times ``factor``."""
-    from scipy import sparse
-    out = sparse.csr_matrix(m, copy=True)
-    out.data *= factor
-    return out
+    m = sparse.csr_matrix(m)
+    return sparse.csr_matrix((m.data * np.asarray(col_scale, float)[m.indices] * factor, m.indices, m.indptr),
+                             shape=m.shape)
 
 
 def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
@@ -328,7 +322,7 @@ class PowedKnn(Positioner):
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
         self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
         self._kernel_csc: Any = None                 # the kernel by columns (map scans), for leaving scans out
-        self._prior: list[Any] | None = None         # per _vals (C, A) sparse path-loss prior (field_weight > 0)
+        self._prior: Any = None                      # (C, A) sparse raw path-loss prior (field_weight > 0)
         self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
         self._prior_raw: Any = None                  # (C, A) sparse raw prior of the whole map's models
         self._field_floors = np.zeros(0)
@@ -404,7 +398,7 @@ class PowedKnn(Positioner):
             if p.field_weight > 0:
                 self._prior_scale = [view_scale(v, raw) for v in self._vals]
                 self._prior_raw = None
-                self._prior = self._field_prior(np.ones(len(pos), bool), np.arange(len(grid_z)))
+                self._prior = self._field_prior(np.ones(len(pos), bool))
             readings, sums, _ = self._smoothed(np.ones(len(pos), bool))
             for a, j, twin in age_views:
                 self._views.append(_View(readings[j], sums[j], a, j, True, twin))
@@ -424,8 +418,8 @@ class PowedKnn(Positioner):
         The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs.
         With ``field_weight`` > 0 the path-loss prior is added, fitted again without the left-out scans.
         With ``floors`` (heights) the readings and sums are split by floor: per map values a list of
-        (readings, sums, positions in the returned rows) per floor, so a query is matched against its
-        own floor's points only."""
+        (readings, sums, their grid points) per floor, so a query is matched against its own floor's
+        points only."""
         from scipy import sparse
         if self._kernel_sums is None:
             self._kernel_sums = ([sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals],
@@ -433,30 +427,31 @@ class PowedKnn(Positioner):
         nums, den = self._kernel_sums
         keep = np.asarray(keep, bool)
         drop = ~keep
-        rows = np.flatnonzero(self._near @ keep.astype(np.float64) > 0)
+        reach = self._near @ keep.astype(np.float64) > 0
+        rows = np.flatnonzero(reach)
+        # computed over every grid point; the points out of reach are left out at the end
         if drop.any():
             if self._kernel_csc is None:
                 self._kernel_csc = sparse.csc_matrix(self._kernel)
             k_drop = self._kernel_csc[:, drop]
             den = den - np.asarray(k_drop.sum(axis=1)).ravel()
             nums = [n - sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop])) for n, v in zip(nums, self._vals)]
-        nums, den = [n[rows] for n in nums], den[rows]
         if self._prior is not None:                      # the path-loss prior: field_weight pseudo-scans at each point
             lam = self.params.field_weight
-            prior = self._field_prior(keep, rows) if drop.any() else [pr[rows] for pr in self._prior]
+            prior = self._field_prior(keep) if drop.any() else self._prior
             den = den + lam
-            nums = [n + _scaled(pr, lam) for n, pr in zip(nums, prior)]
+            nums = [n + _scaled(prior, sc, lam) for n, sc in zip(nums, self._prior_scale)]
+        elif not drop.any():
+            nums = [n.copy() for n in nums]              # the kernel sums are kept: scale a copy
         inv = 1.0 / np.maximum(den, 1e-300)
-        parts = [np.arange(len(rows))] if floors is None else \
-            [np.flatnonzero(self._grid_z[rows] == zf) for zf in floors]
+        parts = [rows] if floors is None else [np.flatnonzero(reach & (self._grid_z == zf)) for zf in floors]
         readings: list[Any] = []
         sums: list[Any] = []
-        for n in nums:
-            g = sparse.csr_matrix(n, copy=True)
+        for g in nums:                                   # each a new matrix: scaled in place
             g.data *= np.repeat(inv, np.diff(g.indptr))
             g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
             g.eliminate_zeros()
-            blocks = [g if len(part) == len(rows) else g[part] for part in parts]
+            blocks = [g if len(part) == g.shape[0] else g[part] for part in parts]
             got = [(ApReadings.from_sparse(x), np.asarray(x.sum(axis=1)).ravel()) for x in blocks]
             if floors is None:
                 readings.append(got[0][0])
@@ -466,8 +461,8 @@ class PowedKnn(Positioner):
                 sums.append(None)
         return readings, sums, rows
 
-    def _field_prior(self, keep: np.ndarray, rows: np.ndarray) -> list[Any]:
-        """Per map values (``_vals``) the (len(rows), A) sparse path-loss prior at the grid points ``rows``,
+    def _field_prior(self, keep: np.ndarray, rows: np.ndarray | None = None) -> Any:
+        """The (len(rows), A) sparse raw path-loss prior (powed values) at the grid points ``rows`` (all if None),
         the models fitted on the map scans ``keep`` (M,) bool (:mod:`indoor_loc.wifi.radio_field`).
         The first call fits every AP on all scans; a fold then refits, per floor, only the APs its
         left-out scans heard there (every other AP's readings, hence its model, are unchanged) and
@@ -486,8 +481,9 @@ class PowedKnn(Positioner):
                                            detect_dbm=self._field_detect,
                                            floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
         keep = np.asarray(keep, bool)
+        grid, gz = (self._grid_pos, self._grid_z) if rows is None else (self._grid_pos[rows], self._grid_z[rows])
         if keep.all():
-            prior = self._prior_raw[rows]
+            prior = self._prior_raw if rows is None else self._prior_raw[rows]
         else:
             rss = np.asarray(rm.rssi_dbm, float)
             map_z = np.asarray(rm.z_m, float)
@@ -495,16 +491,26 @@ class PowedKnn(Positioner):
             floors = self._field_floors
             changed = np.array([np.any(np.isfinite(rss[drop & (map_z == zf)]), axis=0) for zf in floors]
                                ).reshape(len(floors), n_aps)
-            gz = self._grid_z[rows]
             models = fit_floor_models(rm, floors, keep=keep, aps=changed)
-            fresh = prior_values(models, self._grid_pos[rows], gz, n_aps, detect_dbm=self._field_detect,
+            fresh = prior_values(models, grid, gz, n_aps, detect_dbm=self._field_detect,
                                  floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
-            old = self._prior_raw if len(rows) == self._prior_raw.shape[0] else self._prior_raw[rows]
-            entry_floor = np.repeat(np.searchsorted(floors, gz), np.diff(old.indptr))
-            stay = ~changed[entry_floor, old.indices]        # the APs the fold did not refit keep their values
-            kept = np.concatenate([[0], np.cumsum(stay)])
-            prior = sparse.csr_matrix((old.data[stay], old.indices[stay], kept[old.indptr]), shape=old.shape) + fresh
-        return [sparse_scale(prior, sc) for sc in self._prior_scale]
+            old = self._prior_raw if rows is None else self._prior_raw[rows]
+            # the APs the fold did not refit keep their values: the refitted ones' entries are zeroed and dropped
+            # (every stored prior value is >= FIELD_MIN_VALUE > 0); the grid points are in floor order, so a
+            # floor's entries are one run
+            f_row = np.searchsorted(floors, gz)
+            data = old.data.copy()
+            if np.all(np.diff(f_row) >= 0):
+                bounds = old.indptr[np.searchsorted(f_row, np.arange(len(floors) + 1))]
+                for f in range(len(floors)):
+                    seg = slice(bounds[f], bounds[f + 1])
+                    data[seg][changed[f][old.indices[seg]]] = 0.0
+            else:
+                data[changed[np.repeat(f_row, np.diff(old.indptr)), old.indices]] = 0.0
+            kept = sparse.csr_matrix((data, old.indices.copy(), old.indptr.copy()), shape=old.shape)
+            kept.eliminate_zeros()
+            prior = kept + fresh
+        return prior
 
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
         """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance.
@@ -532,14 +538,12 @@ class PowedKnn(Positioner):
         floors = np.unique(map_z)
         for fold in np.unique(src[rows]):
             keep = src != fold
-            if self._kernel is not None:
-                g_read, _, g_rows = self._smoothed(keep, floors)
-            else:
-                g_read, g_rows = [], np.zeros(0, np.int64)           # no grid view
-            n_c = m + len(g_rows)
-            pos_c = np.vstack([self._pos[:m], self._grid_pos[g_rows]])
-            z_c = np.concatenate([map_z, self._z[m + g_rows]])
-            allowed = np.concatenate([keep, np.ones(len(g_rows), bool)])
+            # candidates: the map scans, then every grid point (a floor's points out of reach of the kept scans
+            # are in no floor's part: their distance stays 1, no candidate)
+            g_read = self._smoothed(keep, floors)[0] if self._kernel is not None else []
+            n_c = len(self._pos)
+            pos_c, z_c = self._pos, self._z
+            allowed = np.concatenate([keep, np.ones(n_c - m, bool)])
             for f, zf in enumerate(floors):
                 # a scan is matched on its own floor only: the distances to the other floors' grid points
                 # are never read (they stay 1, no candidate)
