@@ -190,8 +190,10 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
             assert spin_until(ex, counted, 20)
             n0 = len(diags)
             assert spin_until(ex, lambda: len(diags) >= n0 + 3, 20)
-            gaps = np.diff([t for t, _ in diags[n0 - 1:]])   # about once a second (loose: shared CPUs)
-            assert 0.7 < np.median(gaps) < 1.4 and np.all(gaps < 3.0), gaps
+            # about once a second (loose: shared CPUs): the mean period, since a tick the node made late
+            # (a stall) is followed by one as much early (the timer keeps its phase)
+            gaps = np.diff([t for t, _ in diags[n0 - 1:]])
+            assert 0.7 < np.mean(gaps) < 1.4 and np.all(gaps < 3.0), gaps
             d = diags[-1][1]
             assert d.level == 1 and "3 messages rejected" in d.message
             assert d.values["rejected.nan"] == "2" and d.values["rejected.negative_stamp"] == "1"

@@ -151,3 +151,16 @@ def test_map_yaw_is_the_yaw_of_the_map_quaternion(map_yaw_rad):
     expected = P.quat_yaw(P.to_map_quat(q, map_yaw_rad))
     assert P.map_yaw(q, map_yaw_rad).tobytes() == expected.tobytes()
     assert P.map_yaw(q[:0], map_yaw_rad).shape == (0,)
+
+
+@pytest.mark.parametrize("map_yaw_rad", [0.0, P.PUTMC_MAP_YAW_RAD, -1.7])
+def test_to_map_quat_is_the_normalised_product(map_yaw_rad):
+    """``to_map_quat`` = Rz(map_yaw) ⊗ q, normalised, bit for bit as written out here."""
+    q = np.random.default_rng(8).normal(size=(3000, 4))
+    c, s = np.cos(map_yaw_rad / 2), np.sin(map_yaw_rad / 2)
+    x, y, z, w = q.T
+    ref = np.stack([c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z], axis=1)
+    ref = ref / np.linalg.norm(ref, axis=1, keepdims=True)
+    got = P.to_map_quat(q, map_yaw_rad)
+    assert got.shape == (3000, 4) and got.flags.c_contiguous and got.tobytes() == ref.tobytes()
+    assert P.to_map_quat(q[:0], map_yaw_rad).shape == (0, 4)

@@ -73,6 +73,14 @@ class _Probe:
         return self.diags[-1] if self.diags else None
 
 
+def _open_gate(gate, text: str) -> None:
+    """Let the held fit run (``go``) or fail (``fail``): the file appears with its text in one step
+    (written aside, then renamed), so the node never reads it half written."""
+    aside = gate.with_name(gate.name + ".new")
+    aside.write_text(text)
+    aside.replace(gate)
+
+
 def _start(tmp_path, ros_domain):
     map_dir = save_radiomap(grid_map(), tmp_path / "rm")
     gate = tmp_path / "gate"
@@ -107,7 +115,7 @@ def test_scans_sent_while_fitting_are_located_afterwards(tmp_path, ros_domain):
             assert probe.fixes == []                                 # nothing located before the fit
             assert not gate.exists() and peer.proc.poll() is None
 
-            gate.write_text("go")                                    # the fit may now run
+            _open_gate(gate, "go")                                   # the fit may now run
             assert spin_until(ex, lambda: len(probe.fixes) == 6, 60), peer.output()
             want = _reference(map_dir, scans)
             assert len(want) == 6 and all(_same_fix(a, b) for a, b in zip(probe.fixes, want))
@@ -134,7 +142,7 @@ def test_failed_fit_is_an_error_and_the_node_keeps_running(tmp_path, ros_domain)
             for s in _scans(3):
                 probe.pub.publish(s)
             assert spin_until(ex, lambda: probe.last().values.get("fit.queued") == "3", 30), probe.last()
-            gate.write_text("fail")
+            _open_gate(gate, "fail")
             assert spin_until(ex, lambda: probe.last().level == 2, 30), probe.last()
             d = probe.last()
             assert "fitting the radio map (36 scans) failed: MapError" in d.message and "test gate" in d.message

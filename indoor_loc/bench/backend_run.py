@@ -13,6 +13,7 @@ imports included) and its peak resident memory::
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import resource
@@ -56,6 +57,7 @@ def configs() -> dict[str, GraphParams]:
 
 @dataclass
 class Putmc:
+    """The front end's output for the graph and the scoring, per walk number, and its times (s)."""
     walks: list[int]
     events: dict[int, WalkEvents]
     truth: dict[int, tuple[np.ndarray, np.ndarray]]      # scan stamps, true scan xy
@@ -82,6 +84,12 @@ class _Clock:
             w, c = self.parts.get(name, (0.0, 0.0))
             self.parts[name] = (w + time.perf_counter() - t0, c + time.process_time() - c0)
 
+    def add(self, parts: dict[str, tuple[float, float]]) -> None:
+        """Another clock's times, added part by part."""
+        for name, (w, c) in parts.items():
+            w0, c0 = self.parts.get(name, (0.0, 0.0))
+            self.parts[name] = (w0 + w, c0 + c)
+
 
 def load(data: Path, walks: Sequence[int] | None = None, jobs: int = 1) -> Putmc:
     """Every walk's hops and scans (the front end), timed (wall and CPU time, in total and per part:
@@ -97,45 +105,41 @@ def load(data: Path, walks: Sequence[int] | None = None, jobs: int = 1) -> Putmc
         ds = Dataset(Path(data) / "putmc")
     numbers = [n for n in ds.walk_numbers if walks is None or n in walks]
     ev, truth, seg = {}, {}, {}
-    if jobs > 1 and len(numbers) > 1:
-        import multiprocessing
+    global _DATASET
+    _DATASET = ds
+    pool = None
+    try:
+        if jobs > 1 and len(numbers) > 1:
+            import multiprocessing
 
-        global _FORKED
-        _FORKED = ds
-        pool = multiprocessing.get_context("fork").Pool(min(jobs, len(numbers)))
-        try:
-            pending = pool.imap(_front_end, numbers)
-            with clock.part(READING):
-                survey = ds.survey_map()
-            for n, (e, tr, parts) in zip(numbers, pending):
-                ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
-                for name, (w, c) in parts.items():
-                    w0, c_0 = clock.parts.get(name, (0.0, 0.0))
-                    clock.parts[name] = (w0 + w, c_0 + c)
-        finally:
+            pool = multiprocessing.get_context("fork").Pool(min(jobs, len(numbers)))
+            results: Iterator[tuple[WalkEvents, tuple, dict]] = pool.imap(_front_end, numbers)
+        else:
+            results = map(_front_end, numbers)          # one after another, below
+        with clock.part(READING):
+            survey = ds.survey_map()                    # (while the workers, if any, take the walks)
+        for n, (e, tr, parts) in zip(numbers, results):
+            ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
+            clock.add(parts)
+    finally:
+        if pool is not None:
             pool.close()
             pool.join()             # the workers have exited: their CPU time is in RUSAGE_CHILDREN
-            _FORKED = None
-    else:
-        for n in numbers:
-            e, tr, parts = _front_end(n, ds, clock)
-            ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
-        with clock.part(READING):
-            survey = ds.survey_map()
+        _DATASET = None
     cpu = time.process_time() - c0 + _children_cpu_s() - k0
     return Putmc(numbers, ev, truth, seg, survey, time.perf_counter() - t0, cpu, clock.parts)
 
 
-#: the dataset a forked worker of :func:`load` reads from (set before the fork)
-_FORKED: Any = None
+#: the dataset :func:`_front_end` reads from: set by :func:`load` (and inherited by its forked workers)
+_DATASET: Any = None
 
 
-def _front_end(n: int, ds: Any = None, clock: _Clock | None = None) -> tuple[WalkEvents, tuple, dict]:
-    """Walk ``n``'s events and truth, and the parts' times (on ``clock``, else a new one)."""
+def _front_end(n: int) -> tuple[WalkEvents, tuple, dict]:
+    """Walk ``n``'s events and truth, and the parts' times."""
     from indoor_loc.backend.putmc_events import walk_events
 
-    ds = _FORKED if ds is None else ds
-    clock = _Clock() if clock is None else clock
+    ds = _DATASET
+    clock = _Clock()
     with clock.part(READING):
         w = ds.walk(n)
     with clock.part(STEPS):
@@ -239,27 +243,31 @@ def scratch(data: Path, config: str, runs: int = 1, walks: Sequence[int] | None 
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    opts: dict[str, str] = {}
-    for key in ("--walks", "--jobs"):
-        if key in args[:-1]:
-            i = args.index(key)
-            opts[key] = args[i + 1]
-            del args[i: i + 2]
+def _walk_numbers(text: str) -> list[int]:
     try:
-        walks = [int(v) for v in opts["--walks"].split(",")] if "--walks" in opts else None
-        jobs = int(opts.get("--jobs", "1"))
+        return [int(v) for v in text.split(",")]
     except ValueError:
-        jobs = 0
-    if len(args) != 2 or jobs < 1:
-        print("usage: python -m indoor_loc.bench.backend_run DATA_DIR CONFIG [--walks 1,2,...] [--jobs N >= 1]",
-              file=sys.stderr)
-        return 2
-    if args[1] not in CONFIG_NAMES:
-        print(f"unknown configuration {args[1]!r}; one of {list(CONFIG_NAMES)}", file=sys.stderr)
-        return 2
-    print(json.dumps(measure(Path(args[0]), args[1], walks, jobs)))
+        raise argparse.ArgumentTypeError(f"not comma-separated walk numbers: {text!r}") from None
+
+
+def _positive(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"not a whole number >= 1: {text!r}")
+    return int(text)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m indoor_loc.bench.backend_run",
+                                 description="One back-end configuration from scratch in this process; prints "
+                                             "its times (s) and memory (MB) as one JSON line.")
+    ap.add_argument("data", type=Path, help="datasets directory (holding putmc/)")
+    ap.add_argument("config", help=f"configuration, one of: {'; '.join(CONFIG_NAMES)}")
+    ap.add_argument("--walks", type=_walk_numbers, help="comma-separated walk numbers (default: all)")
+    ap.add_argument("--jobs", type=_positive, default=1, help="processes sharing the front end (default 1)")
+    args = ap.parse_args(argv)
+    if args.config not in CONFIG_NAMES:
+        ap.error(f"unknown configuration {args.config!r}; one of {list(CONFIG_NAMES)}")
+    print(json.dumps(measure(args.data, args.config, args.walks, args.jobs)))
     return 0
 
 

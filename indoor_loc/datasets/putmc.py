@@ -700,32 +700,34 @@ def quat_yaw(q_xyzw: np.ndarray) -> np.ndarray:
 def to_map_quat(q_xyzw: np.ndarray, map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> np.ndarray:
     """Android device->ENU quaternions (N, 4) -> device->map: q_map = Rz(map_yaw) ⊗ q_enu.
     Roll and pitch are unchanged; yaw grows by ``map_yaw_rad``."""
-    q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
-    c, s = math.cos(map_yaw_rad / 2), math.sin(map_yaw_rad / 2)
-    x, y, z, w = q.T
-    # (0, 0, s, c) ⊗ (x, y, z, w)
-    out = np.stack([c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z], axis=1)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
+    return np.ascontiguousarray(_map_quat_wxyz(q_xyzw, map_yaw_rad)[[1, 2, 3, 0]].T)
 
 
 def map_yaw(q_xyzw: np.ndarray, map_yaw_rad: float = PUTMC_MAP_YAW_RAD) -> np.ndarray:
-    """``quat_yaw(to_map_quat(q_xyzw, map_yaw_rad))``, the same operations on each component (so
-    the same bits), without the (N, 4) arrays in between: the heading of each sample in the map
-    frame, rad."""
+    """``quat_yaw(to_map_quat(q_xyzw, map_yaw_rad))`` without the (N, 4) arrays in between: the
+    heading of each sample in the map frame, rad."""
+    return quaternion.quat_yaw(_map_quat_wxyz(q_xyzw, map_yaw_rad).T)
+
+
+def _map_quat_wxyz(q_xyzw: np.ndarray, map_yaw_rad: float) -> np.ndarray:
+    """:func:`to_map_quat` as a (4, N) array, one row per component w, x, y, z (normalised)."""
     q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
     c, s = math.cos(map_yaw_rad / 2), math.sin(map_yaw_rad / 2)
     x, y, z, w = q.T
-    mx, my, mz, mw = c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z
-    n = mx * mx                                   # |q|: x, y, z, w summed in turn, as norm(axis=1)
+    out = np.empty((4, len(q)))
+    mw, mx, my, mz = out
+    # (0, 0, s, c) ⊗ (x, y, z, w)
+    np.subtract(c * w, s * z, out=mw)
+    np.subtract(c * x, s * y, out=mx)
+    np.add(c * y, s * x, out=my)
+    np.add(c * z, s * w, out=mz)
+    n = mx * mx                                   # |q|: x, y, z, w summed in turn, as a norm over rows x, y, z, w
     n += my * my
     n += mz * mz
     n += mw * mw
     np.sqrt(n, out=n)
-    mx /= n
-    my /= n
-    mz /= n
-    mw /= n
-    return np.arctan2(2.0 * (mw * mz + mx * my), 1.0 - 2.0 * (my * my + mz * mz))
+    out /= n
+    return out
 
 
 def causal_index(t_query: np.ndarray, t_ref: np.ndarray) -> np.ndarray:

@@ -440,10 +440,10 @@ class StepometerState:
     last_walking: bool = False
     walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
     walk_end: int | None = None          # grid index where the last periodic walking hop ended
-    walk_motion_std: float = 0.0         # median |a| std around the walking run's last hops, m/s²
     walk_motion_recent: list[float] = dc_field(default_factory=list)
+    # ^ |a| std around each of the walking run's hops over its last window_s/2, m/s² (the gait's energy:
+    #   their median)
     coast_end: int | None = None         # grid index where the last coasted hop ended
-    # ^ |a| std around each of the walking run's hops over its last window_s/2, m/s²
     walk_autocorr: float = 0.0           # largest stride-lag autocorrelation of the current walking run
     head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
     head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
@@ -958,7 +958,6 @@ class Stepometer:
             grid = np.concatenate((grid, new))
         self._grid_now = grid
         n_h, offset = d.n_h, d.offset
-        stale = False            # walk_motion_std not yet the median of the run's recent energies
         try:
             first = st.next_window * d.n_h - st.buffer_start
             span = grid[first: first + (n_ready - 1) * d.n_h + d.n_w]
@@ -969,12 +968,8 @@ class Stepometer:
                 hop = self._walk_on(j, lo, hi, est)
                 if hop is not None:
                     out.append(hop)
-                    stale = True
                     st.next_window = j + 1
                     continue
-                if stale:
-                    st.walk_motion_std = _median(st.walk_motion_recent)
-                    stale = False
                 if j == 0:
                     # head of the segment: the first window covers it, hop by hop (each with its own
                     # moving/still test, so standing before the walk is not counted); with a walking
@@ -987,8 +982,6 @@ class Stepometer:
                 out += self._count(lo, hi, est)
                 st.next_window += 1
         finally:
-            if stale:
-                st.walk_motion_std = _median(st.walk_motion_recent)
             self._grid_now = None
             # keep the grid samples later windows (or a bridged span's step count) need
             keep_from = st.next_window * d.n_h
@@ -1009,9 +1002,8 @@ class Stepometer:
     def _walk_on(self, j: int, lo: int, hi: int, est: WindowEstimate) -> StepHop | None:
         """The common case: the hop ``[lo, hi)`` of window ``j`` (not a segment's first) when a clearly
         periodic walking run goes on with it and nothing is held or tentative — what :meth:`_count`
-        and :meth:`_emit` do for it (the same operations), without their general branches, except that
-        ``walk_motion_std`` is left to the caller: the median of ``walk_motion_recent``, taken once
-        the run leaves this path. None, with nothing changed, in any other case."""
+        and :meth:`_emit` do for it (the same operations), without their general branches. None, with
+        nothing changed, in any other case."""
         st = self._st
         b_min = self.params.bridge_min_autocorr
         if not (est.walking and st.walk_end == lo and j and not st.held and not st.tentative
@@ -1080,7 +1072,6 @@ class Stepometer:
             elif len(recent) >= self._n_recent:
                 del recent[: len(recent) - self._n_recent + 1]
             recent.append(est.motion_std_m_s2)
-            st.walk_motion_std = _median(recent)
             st.walk_autocorr = max(st.walk_autocorr, est.autocorr) if run else est.autocorr
             hop = (lo, hi, est.freq_hz, est.freq_hz, True, 1.0, 0.0)
             if st.walk_autocorr < p.bridge_min_autocorr:
@@ -1102,8 +1093,8 @@ class Stepometer:
         # a stop's last steps: contiguous hops right after a clearly periodic walk that keep its energy
         contiguous = (st.walk_end is not None and lo in (st.walk_end, st.coast_end)
                       and st.walk_autocorr >= p.bridge_min_autocorr)
-        coast = (since_s < p.coast_s and contiguous
-                 and est.motion_std_m_s2 >= p.coast_energy_ratio * st.walk_motion_std)
+        coast = (since_s < p.coast_s and contiguous and bool(st.walk_motion_recent)
+                 and est.motion_std_m_s2 >= p.coast_energy_ratio * _median(st.walk_motion_recent))
         if not coast and since_s < p.turn_coast_s and st.walk_freq_hz > 0:
             # a corridor turn: the heading swings while the gait loses its periodicity
             half = int(0.5 * p.window_s * 1e9)
