@@ -292,8 +292,8 @@ def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
 @dataclass
 class _View:
     """One k-NN estimate averaged into the fix: which map values, against which candidates."""
-    readings: ApReadings                             # over this view's candidate rows
-    sums: np.ndarray                                 # (rows,) value sums
+    parts: list[tuple[ApReadings, np.ndarray, np.ndarray]]   # per floor (grid) or all map scans: readings,
+    #                                                  their value sums, their rows among the view's candidates
     aged: bool                                       # the query's readings weigh by their age
     values: int                                      # index of the map values (PowedKnn._vals)
     grid: bool                                       # candidates: the grid (else the map scans)
@@ -364,6 +364,9 @@ class PowedKnn(Positioner):
         two = aged and p.age_views == "both"
         if two and not self._map_views_equal:
             self._vals.append(raw * w[None, :])
+        # raw powed -> each view's scale, for the path-loss prior (field_weight > 0)
+        self._prior_scale = [view_scale(v, raw) for v in self._vals] if p.field_weight > 0 else []
+        del raw, heard                                   # (M, A) each: no longer needed
         # (aged, values index, twin) per age view
         age_views = [(aged, 0, False)] + ([(False, len(self._vals) - 1, self._map_views_equal)] if two else [])
         self.radio_map = radio_map
@@ -380,7 +383,8 @@ class PowedKnn(Positioner):
         if p.smooth_m == 0 or p.smooth_views == "both":
             for a, j, twin in age_views:
                 v = self._vals[j]
-                self._views.append(_View(ApReadings(v > 0, v), v.sum(axis=1), a, j, False, twin))
+                self._views.append(_View([(ApReadings(v > 0, v), v.sum(axis=1), np.arange(len(pos)))], a, j,
+                                         False, twin))
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
         self._kernel_den = self._kernel_csc = None
         if p.smooth_m > 0:
@@ -396,20 +400,25 @@ class PowedKnn(Positioner):
             # --- extrapolating radio map: the path-loss prior of the grid (indoor_loc.wifi.radio_field) ---
             self._prior, self._grid_z = None, grid_z
             if p.field_weight > 0:
-                self._prior_scale = [view_scale(v, raw) for v in self._vals]
                 self._prior_raw = None
                 self._prior = self._field_prior(np.ones(len(pos), bool))
-            readings, sums, _ = self._smoothed(np.ones(len(pos), bool))
+            # the grid views' readings are filled after the calibration, which interpolates its own per fold
             for a, j, twin in age_views:
-                self._views.append(_View(readings[j], sums[j], a, j, True, twin))
+                self._views.append(_View([], a, j, True, twin))
         self._pos = np.vstack([pos, self._grid_pos])
         self._z = np.concatenate([map_z, grid_z])
         self.sigma_table = (np.zeros(1), np.full(1, p.cov_floor_m))
         self.sigma_tables = ()
         self.calibration = {}
-        del rss, raw, heard                              # (M, A) each: not needed by the calibration
         if p.cov_calibration:
             self._calibrate(list(radio_map.source), map_z)
+        if self._kernel is not None:
+            # one floor at a time (the grid's values are row by row): no whole-grid temporaries
+            for zf in np.unique(grid_z):
+                rd, sm, rows = self._smoothed(np.ones(len(pos), bool), float(zf))
+                for view in self._views:
+                    if view.grid:
+                        view.parts.append((rd[view.values], sm[view.values], rows))
         return self
 
     def _smoothed(self, keep: np.ndarray, floor: float | None = None
@@ -554,6 +563,8 @@ class PowedKnn(Positioner):
                 if len(todo) == 0:
                     continue
                 if self._kernel is not None:             # this floor's grid without the fold's scans
+                    g_rd: list[Any] = []                 # (the previous floor's freed first)
+                    g_sums: list[Any] = []
                     g_rd, g_sums, part = self._smoothed(keep, float(zf))
                 for i in todo:
                     c = np.flatnonzero(self._vals[0][i] > 0)
@@ -566,7 +577,8 @@ class PowedKnn(Positioner):
                             d[m + part] = _sorensen(c, self._vals[v.values][i, c], g_rd[v.values],
                                                     g_sums[v.values], len(part))
                         else:
-                            d[:m] = _sorensen(c, self._vals[v.values][i, c], v.readings, v.sums, m)
+                            rd, sm, _ = v.parts[0]
+                            d[:m] = _sorensen(c, self._vals[v.values][i, c], rd, sm, m)
                         ds.append(d)
                     est = self._estimate(ds, on_floor, pos_c, views)
                     if est is None:
@@ -662,10 +674,9 @@ class PowedKnn(Positioner):
         to the candidates of view ``view`` (1 for the others)."""
         v = self._views[view]
         d = np.ones(len(self._pos))
-        if v.grid:
-            d[self._n_map:] = _sorensen(c, q, v.readings, v.sums, len(self._pos) - self._n_map)
-        else:
-            d[:self._n_map] = _sorensen(c, q, v.readings, v.sums, self._n_map)
+        off = self._n_map if v.grid else 0
+        for rd, sums, rows in v.parts:
+            d[off + rows] = _sorensen(c, q, rd, sums, len(rows))
         return d
 
     def _estimate(self, ds: list[np.ndarray], allowed: np.ndarray, pos: np.ndarray | None = None,
