@@ -5,7 +5,7 @@ import dataclasses
 
 import numpy as np
 
-from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, powed
+from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, _sorensen, powed
 from indoor_loc.wifi.radio_field import detect_level, expected_powed, pathloss_prior, view_scale
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import WifiScan
@@ -171,3 +171,72 @@ def test_a_fold_refits_only_the_aps_its_left_out_walk_heard():
     full = pos._field_prior(np.ones(len(walk1), bool), rows).toarray() * scale
     np.testing.assert_array_equal(got[:, unheard], full[:, unheard])     # kept, not refitted
     assert np.abs(got - full).max() > 1e-3                                # the heard APs were refitted
+
+
+def _two_floors(seed):
+    """Survey walks on two floors 4 m apart (the same building shape, independent APs per floor)."""
+    rng = np.random.default_rng(seed)
+    rm = empty_radiomap()
+    xs = np.arange(1.0, SIZE[0], 1.0)
+    for f, z in enumerate((0.0, 4.0)):
+        rss = _field(rng, 30)
+        bssids = [f"02:00:00:00:0{f + 3}:{i:02x}" for i in range(30)]
+        for j, y in enumerate((5.0, 14.0)):
+            pts = np.column_stack([xs, np.full(len(xs), y)])
+            rm = add_fingerprints(rm, pts, _scans(rss(pts, 4.0), bssids), f"f{f}walk{j}", z_m=z)
+    return rm
+
+
+def _dense(readings, n_rows, n_aps):
+    out = np.zeros((n_rows, n_aps))
+    for col in range(n_aps):
+        r, v, _ = readings.gather(np.array([col]))
+        out[r, col] = v
+    return out
+
+
+def test_the_prior_is_the_same_whatever_the_order_of_the_grid_points():
+    """The prior is assembled as CSR block by block; grid points of several floors in any order get the
+    values they have in floor order, bit for bit."""
+    rm = _two_floors(11)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, field_weight=0.05, smooth_reach_m=6.0)).fit(rm)
+    g, gz = pos._grid_pos, pos._grid_z
+    assert len(np.unique(gz)) == 2 and np.all(np.diff(gz) >= 0)
+    ordered = pathloss_prior(rm, g, gz, floor_dbm=FLOOR, beta=BETA)
+    perm = np.random.default_rng(1).permutation(len(g))
+    mixed = pathloss_prior(rm, g[perm], gz[perm], floor_dbm=FLOOR, beta=BETA)
+    assert ordered.nnz > 0 and mixed.has_sorted_indices
+    np.testing.assert_array_equal(mixed.toarray(), ordered.toarray()[perm])
+
+
+def test_the_grid_interpolated_per_floor_equals_the_whole_grid():
+    """The fit and the calibration folds interpolate the grid one floor at a time; every floor's points
+    get the values (and, in the fit's views, the distances) of the whole grid interpolated at once."""
+    rm = _two_floors(12)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, field_weight=0.05, smooth_reach_m=6.0)).fit(rm)
+    n_aps = len(rm.bssids)
+    src = np.array(rm.source)
+    for keep in (np.ones(rm.n_scans, bool), src != "f1walk0"):
+        readings, sums, rows = pos._smoothed(keep)
+        whole = [_dense(r, len(rows), n_aps) for r in readings]
+        covered = np.zeros(len(rows), bool)
+        for zf in (0.0, 4.0):
+            rd, sm, part = pos._smoothed(keep, zf)
+            at = np.searchsorted(rows, part)
+            assert np.array_equal(rows[at], part) and np.all(pos._grid_z[part] == zf)
+            covered[at] = True
+            for j in range(len(readings)):
+                np.testing.assert_array_equal(_dense(rd[j], len(part), n_aps), whole[j][at])
+                np.testing.assert_array_equal(sm[j], sums[j][at])
+        assert covered.all()
+    # the fit's views, kept per floor, give each grid point the distance to the whole grid's values
+    view = next(j for j, v in enumerate(pos._views) if v.grid)
+    whole_rd, whole_sums, rows = pos._smoothed(np.ones(rm.n_scans, bool))
+    assert len(rows) == len(pos._grid_pos) and len(pos._views[view].parts) == 2
+    c = np.arange(0, n_aps, 3)
+    q = np.random.default_rng(2).uniform(0.01, 0.5, len(c))
+    d = pos._dist_cols(c, q, view)
+    vals = pos._views[view].values
+    expect = _sorensen(c, q, whole_rd[vals], whole_sums[vals], len(rows))
+    np.testing.assert_array_equal(d[pos._n_map:], expect)
+    assert np.all(d[:pos._n_map] == 1.0) and np.any(expect < 1.0)
