@@ -321,6 +321,7 @@ class PowedKnn(Positioner):
         self._kernel: Any = None                     # (C, M) sparse smoothing weights (None: no grid)
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
         self._kernel_den: Any = None                 # (C,) kernel row sums over all scans
+        self._kernel_sums: list[Any] | None = None   # kernel @ values per _vals over all scans (kept while calibrating)
         self._kernel_csc: Any = None                 # the kernel by columns (map scans), for leaving scans out
         self._prior: Any = None                      # (C, A) sparse raw path-loss prior (field_weight > 0)
         self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
@@ -386,7 +387,7 @@ class PowedKnn(Positioner):
                 self._views.append(_View([(ApReadings(v > 0, v), v.sum(axis=1), np.arange(len(pos)))], a, j,
                                          False, twin))
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
-        self._kernel_den = self._kernel_csc = None
+        self._kernel_den = self._kernel_csc = self._kernel_sums = None
         if p.smooth_m > 0:
             plan = p.field_weight > 0 and self.walkable is not None and p.field_reach_m > p.smooth_reach_m
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
@@ -461,7 +462,10 @@ class PowedKnn(Positioner):
         readings: list[Any] = []
         sums: list[Any] = []
         for j, (v, dr) in enumerate(zip(self._vals, drops)):
-            g = sparse.csr_matrix(kern @ sparse.csr_matrix(v))        # the kernel sums over all scans
+            if self._kernel_sums is None:                # the kernel sums over all scans
+                g = sparse.csr_matrix(kern @ sparse.csr_matrix(v))
+            else:                                        # (a copy: scaled in place below)
+                g = self._kernel_sums[j].copy() if whole else self._kernel_sums[j][rows]
             if dr is not None:
                 g = g - dr
             if prior is not None:
@@ -527,6 +531,7 @@ class PowedKnn(Positioner):
     def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
         """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance.
         With smoothing the grid is interpolated again without the left-out source's scans."""
+        from scipy import sparse
         p = self.params
         m = self._n_map
         # leave walks (sources) out: the sources, in name order, are dealt into at most cov_folds folds;
@@ -547,6 +552,8 @@ class PowedKnn(Positioner):
         stamps = np.asarray(self.radio_map.stamps_ns, np.int64)
         rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
         views = [v for v in self._views if not v.twin]           # the map scans have no ages to ignore
+        if self._kernel is not None:                 # every fold starts from the kernel sums over all scans
+            self._kernel_sums = [sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals]
         floors = np.unique(map_z)
         for fold in np.unique(src[rows]):
             keep = src != fold
@@ -586,6 +593,7 @@ class PowedKnn(Positioner):
                     d1[i] = est[3]
                     err[i] = float(np.hypot(*(est[0] - self._pos[i])))
                     lag[i] = self._lag_s(est[1], int(stamps[i]))
+        self._kernel_sums = None
         ok = np.isfinite(err)
         if ok.sum() < 10:
             return
