@@ -204,7 +204,7 @@ class _GeneralCount(Stepometer):
         return None
 
 
-def test_inline_walking_hops_equal_the_general_count():
+def test_walking_run_short_path_equals_the_general_count():
     """A clearly periodic walking run's hops are counted by a short path (_walk_on); the general path
     (_count, _emit) gives the same hops and state, bit for bit, through walking, a turn, stops and a
     gap."""

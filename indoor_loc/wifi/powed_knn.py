@@ -292,8 +292,8 @@ def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
 @dataclass
 class _View:
     """One k-NN estimate averaged into the fix: which map values, against which candidates."""
-    readings: ApReadings                             # over this view's candidate rows
-    sums: np.ndarray                                 # (rows,) value sums
+    parts: list[tuple[ApReadings, np.ndarray, np.ndarray]]   # per floor (grid) or all map scans: readings,
+    #                                                  their value sums, their rows among the view's candidates
     aged: bool                                       # the query's readings weigh by their age
     values: int                                      # index of the map values (PowedKnn._vals)
     grid: bool                                       # candidates: the grid (else the map scans)
@@ -320,7 +320,7 @@ class PowedKnn(Positioner):
         self._grid_pos = np.zeros((0, 2))           # (C, 2) smoothing grid (empty without smoothing)
         self._kernel: Any = None                     # (C, M) sparse smoothing weights (None: no grid)
         self._near: Any = None                       # (C, M) sparse: map scans within smooth_reach_m
-        self._kernel_sums: Any = None                # (kernel @ values per _vals, kernel row sums) over all scans
+        self._kernel_den: Any = None                 # (C,) kernel row sums over all scans
         self._kernel_csc: Any = None                 # the kernel by columns (map scans), for leaving scans out
         self._prior: Any = None                      # (C, A) sparse raw path-loss prior (field_weight > 0)
         self._prior_scale: list[np.ndarray] = []     # per _vals (A,) raw powed -> the values' scale
@@ -364,6 +364,9 @@ class PowedKnn(Positioner):
         two = aged and p.age_views == "both"
         if two and not self._map_views_equal:
             self._vals.append(raw * w[None, :])
+        # raw powed -> each view's scale, for the path-loss prior (field_weight > 0)
+        self._prior_scale = [view_scale(v, raw) for v in self._vals] if p.field_weight > 0 else []
+        del raw, heard                                   # (M, A) each: no longer needed
         # (aged, values index, twin) per age view
         age_views = [(aged, 0, False)] + ([(False, len(self._vals) - 1, self._map_views_equal)] if two else [])
         self.radio_map = radio_map
@@ -380,9 +383,10 @@ class PowedKnn(Positioner):
         if p.smooth_m == 0 or p.smooth_views == "both":
             for a, j, twin in age_views:
                 v = self._vals[j]
-                self._views.append(_View(ApReadings(v > 0, v), v.sum(axis=1), a, j, False, twin))
+                self._views.append(_View([(ApReadings(v > 0, v), v.sum(axis=1), np.arange(len(pos)))], a, j,
+                                         False, twin))
         self._grid_pos, grid_z, self._kernel, self._near = np.zeros((0, 2)), np.zeros(0), None, None
-        self._kernel_sums = self._kernel_csc = None
+        self._kernel_den = self._kernel_csc = None
         if p.smooth_m > 0:
             plan = p.field_weight > 0 and self.walkable is not None and p.field_reach_m > p.smooth_reach_m
             self._grid_pos, grid_z, self._kernel, self._near = smoothing_grid(
@@ -396,12 +400,11 @@ class PowedKnn(Positioner):
             # --- extrapolating radio map: the path-loss prior of the grid (indoor_loc.wifi.radio_field) ---
             self._prior, self._grid_z = None, grid_z
             if p.field_weight > 0:
-                self._prior_scale = [view_scale(v, raw) for v in self._vals]
                 self._prior_raw = None
                 self._prior = self._field_prior(np.ones(len(pos), bool))
-            readings, sums, _ = self._smoothed(np.ones(len(pos), bool))
+            # the grid views' readings are filled after the calibration, which interpolates its own per fold
             for a, j, twin in age_views:
-                self._views.append(_View(readings[j], sums[j], a, j, True, twin))
+                self._views.append(_View([], a, j, True, twin))
         self._pos = np.vstack([pos, self._grid_pos])
         self._z = np.concatenate([map_z, grid_z])
         self.sigma_table = (np.zeros(1), np.full(1, p.cov_floor_m))
@@ -409,56 +412,66 @@ class PowedKnn(Positioner):
         self.calibration = {}
         if p.cov_calibration:
             self._calibrate(list(radio_map.source), map_z)
+        if self._kernel is not None:
+            # one floor at a time (the grid's values are row by row): no whole-grid temporaries
+            for zf in np.unique(grid_z):
+                rd, sm, rows = self._smoothed(np.ones(len(pos), bool), float(zf))
+                for view in self._views:
+                    if view.grid:
+                        view.parts.append((rd[view.values], sm[view.values], rows))
         return self
 
-    def _smoothed(self, keep: np.ndarray, floors: np.ndarray | None = None
+    def _smoothed(self, keep: np.ndarray, floor: float | None = None
                   ) -> tuple[list[Any], list[Any], np.ndarray]:
         """The grid interpolated from the map scans ``keep`` (M,) bool: per map values (``_vals``) the
-        readings and their sums over the grid points within reach of a kept scan, and those points' rows.
-        The kernel sums over all scans are kept from the first call; leaving scans out subtracts theirs.
-        With ``field_weight`` > 0 the path-loss prior is added, fitted again without the left-out scans.
-        With ``floors`` (heights) the readings and sums are split by floor: per map values a list of
-        (readings, sums, their grid points) per floor, so a query is matched against its own floor's
-        points only."""
+        readings and their sums over the grid points within reach of a kept scan (of floor height ``floor``
+        only, if given), and those points' rows. Leaving scans out subtracts their kernel terms from the
+        sums over all scans. With ``field_weight`` > 0 the path-loss prior is added, fitted again without
+        the left-out scans. Every step is row by row, so a floor's rows get the values they have in the
+        whole grid; one floor and one map values at a time keep the temporaries small."""
         from scipy import sparse
-        if self._kernel_sums is None:
-            self._kernel_sums = ([sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals],
-                                 np.asarray(self._kernel.sum(axis=1)).ravel())
-        nums, den = self._kernel_sums
+        if self._kernel_den is None:
+            self._kernel_den = np.asarray(self._kernel.sum(axis=1)).ravel()
         keep = np.asarray(keep, bool)
         drop = ~keep
         reach = self._near @ keep.astype(np.float64) > 0
+        if floor is not None:
+            reach &= self._grid_z == floor
         rows = np.flatnonzero(reach)
-        # computed over every grid point; the points out of reach are left out at the end
+        whole = len(rows) == len(self._grid_pos)
+        kern = self._kernel if whole else self._kernel[rows]
+        den = self._kernel_den if whole else self._kernel_den[rows]
+        drops: list[Any] = [None] * len(self._vals)
         if drop.any():
             if self._kernel_csc is None:
                 self._kernel_csc = sparse.csc_matrix(self._kernel)
             k_drop = self._kernel_csc[:, drop]
-            den = den - np.asarray(k_drop.sum(axis=1)).ravel()
-            nums = [n - sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop])) for n, v in zip(nums, self._vals)]
+            den = den - np.asarray(k_drop.sum(axis=1)).ravel()[rows]
+            drops = [sparse.csr_matrix(k_drop @ sparse.csr_matrix(v[drop]))[rows] for v in self._vals]
+            del k_drop
+        prior = None
+        lam = self.params.field_weight
         if self._prior is not None:                      # the path-loss prior: field_weight pseudo-scans at each point
-            lam = self.params.field_weight
-            prior = self._field_prior(keep) if drop.any() else self._prior
+            if drop.any():
+                prior = self._field_prior(keep, rows)
+            else:
+                prior = self._prior if whole else self._prior[rows]
             den = den + lam
-            nums = [n + _scaled(prior, sc, lam) for n, sc in zip(nums, self._prior_scale)]
-        elif not drop.any():
-            nums = [n.copy() for n in nums]              # the kernel sums are kept: scale a copy
         inv = 1.0 / np.maximum(den, 1e-300)
-        parts = [rows] if floors is None else [np.flatnonzero(reach & (self._grid_z == zf)) for zf in floors]
         readings: list[Any] = []
         sums: list[Any] = []
-        for g in nums:                                   # each a new matrix: scaled in place
+        for j, (v, dr) in enumerate(zip(self._vals, drops)):
+            g = sparse.csr_matrix(kern @ sparse.csr_matrix(v))        # the kernel sums over all scans
+            if dr is not None:
+                g = g - dr
+            if prior is not None:
+                g = g + _scaled(prior, self._prior_scale[j], lam)
             g.data *= np.repeat(inv, np.diff(g.indptr))
             g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
             g.eliminate_zeros()
-            blocks = [g if len(part) == g.shape[0] else g[part] for part in parts]
-            got = [(ApReadings.from_sparse(x), np.asarray(x.sum(axis=1)).ravel()) for x in blocks]
-            if floors is None:
-                readings.append(got[0][0])
-                sums.append(got[0][1])
-            else:
-                readings.append([(r, sm, part) for (r, sm), part in zip(got, parts)])
-                sums.append(None)
+            sums.append(np.asarray(g.sum(axis=1)).ravel())
+            readings.append(ApReadings.from_sparse(g))
+            del g
         return readings, sums, rows
 
     def _field_prior(self, keep: np.ndarray, rows: np.ndarray | None = None) -> Any:
@@ -467,7 +480,6 @@ class PowedKnn(Positioner):
         The first call fits every AP on all scans; a fold then refits, per floor, only the APs its
         left-out scans heard there (every other AP's readings, hence its model, are unchanged) and
         keeps the other APs' values. The detection level is the whole map's (a property of the phones)."""
-        from scipy import sparse
         assert self.radio_map is not None
         p = self.params
         rm = self.radio_map
@@ -491,23 +503,23 @@ class PowedKnn(Positioner):
             floors = self._field_floors
             changed = np.array([np.any(np.isfinite(rss[drop & (map_z == zf)]), axis=0) for zf in floors]
                                ).reshape(len(floors), n_aps)
-            models = fit_floor_models(rm, floors, keep=keep, aps=changed)
+            on = np.searchsorted(floors, np.unique(gz))            # refit the floors of these points only
+            models = fit_floor_models(rm, floors[on], keep=keep, aps=changed[on])
             fresh = prior_values(models, grid, gz, n_aps, detect_dbm=self._field_detect,
                                  floor_dbm=p.floor_dbm, beta=p.beta, min_value=FIELD_MIN_VALUE)
-            old = self._prior_raw if rows is None else self._prior_raw[rows]
+            kept = self._prior_raw.copy() if rows is None else self._prior_raw[rows]
             # the APs the fold did not refit keep their values: the refitted ones' entries are zeroed and dropped
             # (every stored prior value is >= FIELD_MIN_VALUE > 0); the grid points are in floor order, so a
             # floor's entries are one run
             f_row = np.searchsorted(floors, gz)
-            data = old.data.copy()
+            data = kept.data
             if np.all(np.diff(f_row) >= 0):
-                bounds = old.indptr[np.searchsorted(f_row, np.arange(len(floors) + 1))]
+                bounds = kept.indptr[np.searchsorted(f_row, np.arange(len(floors) + 1))]
                 for f in range(len(floors)):
                     seg = slice(bounds[f], bounds[f + 1])
-                    data[seg][changed[f][old.indices[seg]]] = 0.0
+                    data[seg][changed[f][kept.indices[seg]]] = 0.0
             else:
-                data[changed[np.repeat(f_row, np.diff(old.indptr)), old.indices]] = 0.0
-            kept = sparse.csr_matrix((data, old.indices.copy(), old.indptr.copy()), shape=old.shape)
+                data[changed[np.repeat(f_row, np.diff(kept.indptr)), kept.indices]] = 0.0
             kept.eliminate_zeros()
             prior = kept + fresh
         return prior
@@ -540,15 +552,21 @@ class PowedKnn(Positioner):
             keep = src != fold
             # candidates: the map scans, then every grid point (a floor's points out of reach of the kept scans
             # are in no floor's part: their distance stays 1, no candidate)
-            g_read = self._smoothed(keep, floors)[0] if self._kernel is not None else []
             n_c = len(self._pos)
             pos_c, z_c = self._pos, self._z
             allowed = np.concatenate([keep, np.ones(n_c - m, bool)])
-            for f, zf in enumerate(floors):
+            for zf in floors:
                 # a scan is matched on its own floor only: the distances to the other floors' grid points
                 # are never read (they stay 1, no candidate)
                 on_floor = allowed & (z_c == zf)
-                for i in rows[(src[rows] == fold) & (map_z[rows] == zf)]:
+                todo = rows[(src[rows] == fold) & (map_z[rows] == zf)]
+                if len(todo) == 0:
+                    continue
+                if self._kernel is not None:             # this floor's grid without the fold's scans
+                    g_rd: list[Any] = []                 # (the previous floor's freed first)
+                    g_sums: list[Any] = []
+                    g_rd, g_sums, part = self._smoothed(keep, float(zf))
+                for i in todo:
                     c = np.flatnonzero(self._vals[0][i] > 0)
                     if len(c) == 0:
                         continue
@@ -556,10 +574,11 @@ class PowedKnn(Positioner):
                     for v in views:
                         d = np.ones(n_c)
                         if v.grid:
-                            rd, sums, part = g_read[v.values][f]
-                            d[m + part] = _sorensen(c, self._vals[v.values][i, c], rd, sums, len(part))
+                            d[m + part] = _sorensen(c, self._vals[v.values][i, c], g_rd[v.values],
+                                                    g_sums[v.values], len(part))
                         else:
-                            d[:m] = _sorensen(c, self._vals[v.values][i, c], v.readings, v.sums, m)
+                            rd, sm, _ = v.parts[0]
+                            d[:m] = _sorensen(c, self._vals[v.values][i, c], rd, sm, m)
                         ds.append(d)
                     est = self._estimate(ds, on_floor, pos_c, views)
                     if est is None:
@@ -655,10 +674,9 @@ class PowedKnn(Positioner):
         to the candidates of view ``view`` (1 for the others)."""
         v = self._views[view]
         d = np.ones(len(self._pos))
-        if v.grid:
-            d[self._n_map:] = _sorensen(c, q, v.readings, v.sums, len(self._pos) - self._n_map)
-        else:
-            d[:self._n_map] = _sorensen(c, q, v.readings, v.sums, self._n_map)
+        off = self._n_map if v.grid else 0
+        for rd, sums, rows in v.parts:
+            d[off + rows] = _sorensen(c, q, rd, sums, len(rows))
         return d
 
     def _estimate(self, ds: list[np.ndarray], allowed: np.ndarray, pos: np.ndarray | None = None,

@@ -150,7 +150,12 @@ def prior_values(models: dict[float, FloorModels], grid_pos: np.ndarray, grid_z:
     2048 candidates, with the same values."""
     grid_pos = np.asarray(grid_pos, float)
     grid_z = np.asarray(grid_z, float)
-    rr, cc, vv = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0)]
+    # built as CSR directly (int32 columns, no (row, column) pairs): a block's pairs come in row-major order
+    # with the columns ascending, so they are the CSR entries of their rows once the rows are in order
+    counts = np.zeros(len(grid_pos), np.int64)
+    cc: list[np.ndarray] = [np.zeros(0, np.int32)]
+    vv: list[np.ndarray] = [np.zeros(0)]
+    block_rows: list[np.ndarray] = []
     for zf in np.unique(grid_z):
         fm = models.get(float(zf))
         rows = np.flatnonzero(grid_z == zf)
@@ -158,6 +163,7 @@ def prior_values(models: dict[float, FloorModels], grid_pos: np.ndarray, grid_z:
             continue
         th, s2, d0 = fm.theta, fm.sigma2, fm.d0_m
         a0, n_exp, px, py = th[:, 0], th[:, 1], th[:, 2], th[:, 3]
+        cols = fm.cols.astype(np.int32)
         # g^T C g with g = [1, -10 log10 d, k dx, k dy] (k = 10 n / (ln 10 d^2)), C symmetric: its ten
         # distinct entries per AP, the off-diagonal ones doubled
         c = fm.cov
@@ -184,11 +190,18 @@ def prior_values(models: dict[float, FloorModels], grid_pos: np.ndarray, grid_z:
                    + g2 * (c02[ai] + c22[ai] * g2 + c23[ai] * g3) + g3 * (c03[ai] + c33[ai] * g3))
             v = expected_powed(mu.ravel()[flat], np.sqrt(var), floor_dbm, beta)
             big = v >= min_value
-            rr.append(r[ci[big]])
-            cc.append(fm.cols[ai[big]])
+            counts[r] = np.bincount(ci[big], minlength=len(r))
+            block_rows.append(r)
+            cc.append(cols[ai[big]])
             vv.append(v[big])
-    return sparse.csr_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))),
-                             shape=(len(grid_pos), n_aps))
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    order = np.concatenate(block_rows) if block_rows else np.zeros(0, np.int64)
+    data, indices = np.concatenate(vv), np.concatenate(cc)
+    del cc, vv
+    if np.any(np.diff(order) < 0):                   # the floors' rows interleave: put the entries in row order
+        perm = np.argsort(np.repeat(order, counts[order]), kind="stable")
+        data, indices = data[perm], indices[perm]
+    return sparse.csr_matrix((data, indices, indptr), shape=(len(grid_pos), n_aps))
 
 
 def pathloss_prior(radio_map: RadioMap, grid_pos: np.ndarray, grid_z: np.ndarray, *, floor_dbm: float, beta: float,
