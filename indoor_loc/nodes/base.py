@@ -116,14 +116,22 @@ def qos_profile(qos: Qos) -> QoSProfile:
 #: has not acknowledged yet, and overwrites the oldest beyond this — a loss for a subscriber starved of
 #: CPU for a moment (the recorder during a fast replay). 2000 = 10 s at 200 Hz, 2 s of a 5x replay.
 PUB_DEPTH_SENSOR = 2000
+#: ... and of a *reliable* output's publisher (``pdr/odom``, ``wifi/fix``, poses): the contract's 50
+#: is overrun by a burst of outputs — a node draining its queue at a stop, or catching up after a
+#: stall — while a subscriber is starved of CPU (900 drained outputs lost one for a paused
+#: subscriber); as deep as a reliable input's subscription (:data:`SUB_DEPTH`).
+PUB_DEPTH_RELIABLE = 1000
 
 
 def publisher_qos(qos: Qos) -> QoSProfile:
     """The QoS an output is published with: the contract's, except that *sensor* outputs are
     published reliable (a reliable writer serves best-effort and reliable readers alike, so a
     node whose sensor inputs were made reliable still hears another node's ``imu/data``), with a
-    history of :data:`PUB_DEPTH_SENSOR`."""
+    history of :data:`PUB_DEPTH_SENSOR`, and *reliable* outputs keep :data:`PUB_DEPTH_RELIABLE`."""
     base = QOS_PROFILES[qos]
+    if qos == Qos.RELIABLE:
+        return QoSProfile(history=base.history, depth=max(base.depth, PUB_DEPTH_RELIABLE),
+                          reliability=base.reliability, durability=base.durability)
     if qos != Qos.SENSOR:
         return base
     return QoSProfile(history=base.history, depth=max(base.depth, PUB_DEPTH_SENSOR),
