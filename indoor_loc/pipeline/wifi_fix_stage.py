@@ -31,7 +31,7 @@ A scan the method declines (too few shared APs, outlier conflict...) publishes n
 counted under ``declined.<reason>``; invalid scans are counted by the adapters' reasons.
 
 Fitting the positioner to a large map takes seconds (the pooled four-floor ms_site2 map: about
-7 s with the powed k-NN grid, about 36 s with the importer's parameters, which add the path-loss
+7 s with the powed k-NN grid, 25–27 s with the importer's parameters, which add the path-loss
 field bounded by the floor plans). Offline (``indoor-loc run``) and by default the stage fits it at
 construction. The live node constructs it with ``fit_now=False`` and fits in a worker thread
 (:meth:`WifiFixStage.begin_fit` / :meth:`fit_positioner` / :meth:`end_fit`): meanwhile each scan is
