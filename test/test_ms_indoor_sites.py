@@ -186,6 +186,7 @@ def make_site(root: Path) -> Path:
     (root / "P1" / "path_data_files").mkdir(parents=True)
     (root / "P1" / "floor_info.json").write_text(json.dumps({"map_info": {"width": 60.0, "height": 40.0}}))
     (root / "docs").mkdir()
+    (root / "B3").mkdir()
     return root
 
 
@@ -199,12 +200,13 @@ def _args(site: Path, out: Path, **kw) -> argparse.Namespace:
 def test_read_site_finds_every_floor_and_says_what_is_odd(tmp_path):
     site = read_site(make_site(tmp_path / "site"))
     fl = {f.name: f for f in site.floors}
-    assert [f.name for f in site.floors] == ["P1", "LG1", "G", "M", "Roof"]
-    assert {n: f.level for n, f in fl.items()} == {"P1": -2, "LG1": -1, "G": 0, "M": 0.5, "Roof": 1}
+    assert [f.name for f in site.floors] == ["P1", "B3", "LG1", "G", "M", "Roof"]
+    assert {n: f.level for n, f in fl.items()} == {"B3": -4, "P1": -5, "LG1": -1, "G": 0, "M": 0.5, "Roof": 1}
     assert fl["Roof"].level_rule.startswith("fallback") and site.ignored == ("docs",)
     assert fl["LG1"].width_m == pytest.approx(60.0, abs=1e-6) and fl["LG1"].height_m == pytest.approx(40.0, abs=1e-6)
     assert "no floor_info.json" in fl["LG1"].notes and any("from the GeoJSON" in n for n in fl["LG1"].notes)
     assert fl["P1"].notes == ("no walks (empty path_data_files/)",) and fl["P1"].trace_files == ()
+    assert fl["B3"].notes[:2] == ("no walks (no path_data_files/)", "no floor_info.json")
     assert len(fl["G"].trace_files) == 6 and fl["G"].trace_files[1].name.endswith(".txt.gz")
     with pytest.raises(ConfigError, match="no floor"):
         read_site(tmp_path / "site", levels={"F9": 3})
@@ -221,9 +223,9 @@ def test_import_of_a_site_with_every_quirk(tmp_path, capsys):
     assert import_ms_indoor(_args(site, out)) == 0
     printed = capsys.readouterr().out
     assert "floor Roof: level 1 by fallback" in printed
-    z = {"P1": -10.0, "LG1": -5.0, "G": 0.0, "M": 2.5, "Roof": 5.0}
+    z = {"B3": -20.0, "P1": -25.0, "LG1": -5.0, "G": 0.0, "M": 2.5, "Roof": 5.0}
     rm = load_radiomap(out / "radiomap")
-    assert rm.floors == {k: v for k, v in z.items() if k != "P1"}      # P1 has no walks
+    assert rm.floors == {k: v for k, v in z.items() if k not in ("P1", "B3")}     # no walks there
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert {k: v["z_m"] for k, v in split.items()} == z
     assert split["G"]["no_truth"] == [wid(1, 9)] and len(split["G"]["survey"]) == 3
@@ -244,7 +246,7 @@ def test_import_of_a_site_with_every_quirk(tmp_path, capsys):
     assert f"| G | {wid(1, 9)} | no truth |" in report
     assert "| Roof | 1 | 5 | fallback: not a known floor name; placed above the highest floor | 5 | 0 |" in report
     assert "| M | 0.5 | 2.5 | mezzanine | 5 | 0 | no floor_info.json" not in report          # M has its info
-    assert "| P1 | -2 | -10 | parking, below ground | 0 | 0 | no walks (empty path_data_files/) |" in report
+    assert "| P1 | -5 | -25 | parking, below ground | 0 | 0 | no walks (empty path_data_files/) |" in report
     assert "GeoJSON plan not used" not in report and "Not floors (no path_data_files/, trace or plan file), ignored: docs" in report
     assert f"{wid(1, 9)}: no waypoints: nothing to score or map" in report
     # floor detection and wifi/fix z follow the levels: a scan of M's test walk is placed at z = 2.5
@@ -312,3 +314,22 @@ def test_bench_on_any_site(tmp_path, capsys):
     assert bench_wifi.run(args) == 2 and "--floors: no floor(s) ['F9']" in capsys.readouterr().out
     args.floors, args.dataset = "", "putmc"
     assert bench_wifi.run(args) == 2
+
+
+def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys):
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    d = tmp_path / "site" / "F2" / "path_data_files"
+    d.mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    for k in range(2):
+        _walk(d / f"{wid(0, k)}.txt", "F2", 0, k, rng, waypoints=False)
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(tmp_path / "site", out)) == 0
+    assert "radio map: NONE — no survey scan lies inside a waypoint span" in capsys.readouterr().out
+    assert sorted(p.name for p in (out / "F2").glob("*.mcap")) == [f"{wid(0, 0)}.mcap", f"{wid(0, 1)}.mcap"]
+    assert not (out / "radiomap").exists()
+    params = yaml.safe_load((out / "params.yaml").read_text())
+    assert list(params) == ["/**/imu_node"]
+    split = yaml.safe_load((out / "split.yaml").read_text())
+    assert split["F2"] == {"z_m": 5.0, "survey": [], "test": [], "no_truth": [wid(0, 0), wid(0, 1)]}
+    assert "Radio map: **none**" in (out / "import_report.md").read_text()

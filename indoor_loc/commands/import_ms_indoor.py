@@ -44,6 +44,11 @@ from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
 
 
+NO_MAP = ("no survey scan lies inside a waypoint span (walks without waypoints cannot build a map): no "
+          "radiomap/ and no wifi_fix_node in params.yaml; position these walks against a radio map built "
+          "elsewhere")
+
+
 def add_arguments(sub) -> None:
     p = sub.add_parser("ms-indoor", help="Microsoft Indoor Location Competition 2.0 site (trace .txt/.txt.gz)",
                        description="Import a Microsoft indoor-location site into MCAP bags (one per walk), a "
@@ -171,10 +176,9 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                             if k not in ("TYPE_WIFI", "TYPE_WAYPOINT") and not k.startswith("TYPE_ACC")
                                             and not k.startswith("TYPE_GYR") and not k.startswith("TYPE_MAG")
                                             and k != "TYPE_ROTATION_VECTOR")})
-    if rm.n_scans == 0:
-        raise DatasetError("no survey scan inside a waypoint span: the radio map would be empty")
     rm_dir = out / "radiomap"
-    save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
+    if rm.n_scans:
+        save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
     (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
                                     + yaml.safe_dump(split, sort_keys=False))
     offset = _heading_offset(heading)
@@ -184,8 +188,9 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     # the floor plans bound powed k-NN's extrapolating radio map (a site without any GeoJSON plan: none)
     plans = out / "floors"
     has_plan = any((plans / f.name / "geojson_map.json").exists() for f in floors)
-    params = {"imu_node": imu_params,
-              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}}
+    params: dict = {"imu_node": imu_params}
+    if rm.n_scans:
+        params["wifi_fix_node"] = {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
@@ -197,8 +202,11 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                           + "\n" + _floors_note(floor_rows, site.ignored, dropped)
                                           + "\n" + heading_note + "\n")
     print(_table(rows))
-    print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
-          + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+    if rm.n_scans:
+        print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
+              + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+    else:
+        print(f"\nradio map: NONE — {NO_MAP}")
     print(f"params:    {out / 'params.yaml'}\nsplit:     {out / 'split.yaml'}\nreport:    {out / 'import_report.md'}")
     print(f"oddities:  {len(oddities)} (see the report)")
     for r in floor_rows:
@@ -300,7 +308,8 @@ def _report(src, rows, oddities, rm, floor_z, storey) -> str:
              "between), z = floor height. WiFi: readings with last_seen before the scan time are cached results, "
              "age_ms = scan time − last_seen; a BSSID listed twice in a scan keeps its most recent reading. Rows "
              "not used: Bluetooth (TYPE_BLUE/BLU4), iBeacons, TYPE_DIST*, accuracy changes.", "",
-             f"Radio map: `radiomap/`, {rm.n_scans} scans, {rm.n_aps} APs (survey walks in `split.yaml`).", "",
+             (f"Radio map: `radiomap/`, {rm.n_scans} scans, {rm.n_aps} APs (survey walks in `split.yaml`)."
+              if rm.n_scans else f"Radio map: **none** — {NO_MAP}"), "",
              "## Walks", "", _table(rows), "", f"## Oddities ({len(oddities)})", ""]
     lines += [f"- {o}" for o in oddities] or ["(none)"]
     return "\n".join(lines) + "\n"

@@ -588,7 +588,8 @@ class Site:
 
 def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None) -> Site:
     """The floors of a site directory. A floor is a subdirectory holding ``path_data_files/``, trace
-    files, ``floor_info.json`` or ``geojson_map.json``; its walks are ``path_data_files/*.txt[.gz]`` (or
+    files, ``floor_info.json`` or ``geojson_map.json``, or named as a floor (:func:`floor_kind`; an
+    empty ``F5/`` is a floor without walks); its walks are ``path_data_files/*.txt[.gz]`` (or
     the trace files in it). Its extent comes from ``floor_info.json`` (``map_info.width/height``), else
     from the GeoJSON plan's lon/lat extent (:func:`geojson_extent_m`), else NaN; each fallback and an
     empty floor is a note. ``levels`` ({name: storey index}) override :func:`floor_levels`; naming a
@@ -604,7 +605,8 @@ def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None) -
             continue
         pdf = d / "path_data_files"
         direct = list_traces(d)
-        if not (pdf.is_dir() or direct or any((d / f).is_file() for f in _FLOOR_FILES)):
+        if not (pdf.is_dir() or direct or any((d / f).is_file() for f in _FLOOR_FILES)
+                or floor_kind(d.name) is not None):
             ignored.append(d.name)
             continue
         notes: list[str] = []
