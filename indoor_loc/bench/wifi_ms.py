@@ -168,7 +168,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         walkable = None
         if np.isfinite(fl.width_m):
             try:
-                walkable = plan_walkable(fl.directory / "geojson_map.json", (fl.width_m, fl.height_m))
+                walkable = plan_walkable(fl.plans / "geojson_map.json", (fl.width_m, fl.height_m))
             except MapError as err:
                 notes.append(f"floor {fl.name}: plan not used: {err}")
         out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp) if tp else np.zeros((0, 2)), "z": z,
