@@ -333,6 +333,11 @@ def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys)
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert split["F2"] == {"z_m": 5.0, "survey": [], "test": [], "no_truth": [wid(0, 0), wid(0, 1)]}
     assert "Radio map: **none**" in (out / "import_report.md").read_text()
+    # re-imported over an import that had a map: that map goes with --overwrite
+    (out / "radiomap").mkdir()
+    (out / "radiomap" / "radiomap.yaml").write_text("stale")
+    assert import_ms_indoor(_args(tmp_path / "site", out, overwrite=True)) == 0
+    assert not (out / "radiomap").exists()
 
 
 def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):

@@ -184,6 +184,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     rm_dir = out / "radiomap"
     if rm.n_scans:
         save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
+    elif rm_dir.exists():                    # --overwrite: an earlier import's map must not stay beside these
+        shutil.rmtree(rm_dir)
     (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
                                     + yaml.safe_dump(split, sort_keys=False))
     offset = _heading_offset(heading)
