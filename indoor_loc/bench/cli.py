@@ -34,6 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                             "through backend_node at 1x and 10x")
     parser.add_argument("--dataset", default="", help="dataset of the benchmark when it has several "
                                                       "(wifi: putmc (default) or ms_site2)")
+    parser.add_argument("--site", type=Path, help="wifi: a site directory of the Microsoft Indoor Location "
+                                                  "Competition 2.0 format (<floor>/path_data_files/...): the "
+                                                  "ms_site2 tables on its floors")
+    parser.add_argument("--floors", default="", help="wifi --site/ms_site2: comma-separated floor names (default all)")
+    parser.add_argument("--floor-levels", default="", help="wifi --site/ms_site2: storey index per floor, "
+                                                           "NAME=LEVEL,... (default: from the floor names)")
     parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
     parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay")
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
