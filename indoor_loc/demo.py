@@ -61,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="'sim' (default): the shipped sample building, live over DDS; 'putmc': the real "
                              "PUTMC dataset from --data, replayed offline")
     g = parser.add_argument_group("--dataset putmc")
-    g.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
+    g.add_argument("--data", type=Path, default=Path("../shared/datasets"),
+                   help="datasets directory, holding putmc/ (default ../shared/datasets)")
     g.add_argument("--walks", default="all", help="PUTMC walks to use: 'all' or e.g. 1,7,12")
     g.add_argument("--plot-walk", type=int, default=6, help="walk drawn on the floor plan (default 6)")
     g.add_argument("--reimport", action="store_true", help="import again even if OUT/import exists")

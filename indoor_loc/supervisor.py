@@ -427,6 +427,8 @@ class Bringup:
             why = "died" if rc != 0 else "is required and exited"
             self.log(PREFIX, f"{spec.name} {why}: stopping the others")
             self.request_stop(signal.SIGINT)
+        elif any(c.proc is not None and c.proc.poll() is None for c in self.children):
+            self.log(PREFIX, f"the other nodes keep running: Ctrl-C stops them ({spec.name} is not `required`)")
 
     def run(self, poll_s: float = 0.05) -> int:
         """Start every child, supervise until all are done; 0 when all ended cleanly, else 1."""

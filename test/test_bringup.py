@@ -300,3 +300,19 @@ def test_waves_stop_one_after_another(tmp_path):
         assert order == sorted(order), out
     finally:
         up.stop()
+
+
+def test_a_node_that_ends_says_the_others_keep_running(tmp_path):
+    """A node that is not required and ends cleanly leaves the others running, and the bring-up says
+    how to stop them."""
+    cfg = write(tmp_path, {"nodes": [{"name": "short", "script": EXIT, "args": ["--after", "0.2"]},
+                                     {"name": "long", "script": EXIT}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait_seen(r"^\[up\] the other nodes keep running: Ctrl-C stops them \(short is not", 60), \
+            up.output()
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=30) == 0, up.output()
+        assert "[up] long stopped (exit status 0)" in up.output()
+    finally:
+        up.stop()

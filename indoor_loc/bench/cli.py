@@ -19,7 +19,8 @@ BENCHES = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("which", choices=sorted(BENCHES), help="which benchmark")
-    parser.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
+    parser.add_argument("--data", type=Path, default=Path("../shared/datasets"),
+                        help="datasets directory (default ../shared/datasets)")
     parser.add_argument("--quick", action="store_true", help=(
         "smaller run. heading: a quarter of the TyRex trials, the first 60 s of each BROAD trial, "
         "no Madgwick; imu: 6 PUTMC walks, the first 60 s of each BROAD trial, shorter throughput runs; "
