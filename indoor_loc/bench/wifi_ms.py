@@ -330,8 +330,8 @@ def run(args) -> int:
             f"{d['date']} ({d['map_scans']}; {d['speed_m_s']:.2f} m/s): {d['scans']} scans, baseline "
             f"{d['ref_mean']:.2f}, ours {d['mean']:.2f} ({d['ratio']:.2f})" for d in days))
         print()
-    print(f"2. pooled over the {_COUNT[len(scored)] if len(scored) < len(_COUNT) else len(scored)} floors "
-          "(floor known)")
+    print(f"2. pooled over the {_COUNT[len(scored)] if len(scored) < len(_COUNT) else len(scored)} "
+          f"floor{'s' if len(scored) > 1 else ''} (floor known)")
     print(HEAD)
     for label, parts in pooled.items():
         cat = [np.concatenate([p[i] for p in parts]) for i in range(5)]
