@@ -34,7 +34,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="indoor-loc", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="indoor-loc", description="indoor-loc: the package's command line (offline replay, bring-up, bags, "
+        "import, eval, bench). `indoor-loc COMMAND --help` shows a command's options.",
+        epilog="The nodes are executables of their own (imu_node, wifi_scan_node, wifi_fix_node, pdr_kf_node, "
+               "tll_pf, backend_node, recorder, player, view); `NODE --help` prints their parameters and topics.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)

@@ -9,8 +9,9 @@ With no arguments:
    -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman filter -> pdr_kf/pose, pdr_kf/path), the particle
    filter and the multi-user back-end when this build has them, the recorder (every output topic
    -> OUT/live.mcap) and the player (the simulated bag, with /clock, all nodes on sim time);
-3. when the bag has been played, stop the estimators (their final outputs are recorded), then the
-   recorder; score each estimator per walker against the ground truth; draw OUT/demo.png.
+3. when the bag has been played (or on Ctrl-C), stop the nodes in dependency order: the player,
+   then the estimators from sources to sinks (each one's final outputs reach the nodes after it), the
+   recorder last; score each estimator per walker against the ground truth; draw OUT/demo.png.
 
 ``--dataset putmc`` runs the real-data demo instead (PUTMC import, offline replay through the same
 stages, scores beside the published reference). ``--foxglove`` adds the live view
@@ -60,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="'sim' (default): the shipped sample building, live over DDS; 'putmc': the real "
                              "PUTMC dataset from --data, replayed offline")
     g = parser.add_argument_group("--dataset putmc")
-    g.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
+    g.add_argument("--data", type=Path, default=Path("../shared/datasets"),
+                   help="datasets directory, holding putmc/ (default ../shared/datasets)")
     g.add_argument("--walks", default="all", help="PUTMC walks to use: 'all' or e.g. 1,7,12")
     g.add_argument("--plot-walk", type=int, default=6, help="walk drawn on the floor plan (default 6)")
     g.add_argument("--reimport", action="store_true", help="import again even if OUT/import exists")
@@ -153,8 +155,9 @@ class _Console:
 
 
 def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event, state: dict) -> None:
-    """Progress while the player runs; when it has finished, stop the estimators first (their
-    final outputs reach the recorder), then everything else."""
+    """Progress while the player runs; when it has finished, stop the nodes in dependency order
+    (the bring-up's ``stop_order`` waves: the estimators from sources to sinks, so each one's final
+    outputs reach the nodes after it, the recorder last)."""
     player = next(c for c in bup.children if c.spec.name == "player")
     t_start = time.monotonic()
     next_report = t_start + 10.0
@@ -171,14 +174,6 @@ def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event,
         return                          # interrupted (Ctrl-C) or a node died: the bring-up stops everything
     state["played"] = player.last_rc == 0
     time.sleep(1.5)          # let the last messages drain through the nodes
-    estimators = [c for c in bup.children if c.spec.name not in ("recorder", "player") and c.proc is not None]
-    for c in estimators:
-        if c.proc is not None and c.proc.poll() is None:
-            c.proc.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + 15.0
-    while time.monotonic() < deadline and any(c.proc is not None and c.proc.poll() is None for c in estimators):
-        time.sleep(0.1)
-    time.sleep(1.0)          # the recorder receives what they published on their way out
     bup.request_stop(signal.SIGINT)
 
 
@@ -200,7 +195,9 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     (out / "bringup.yaml").write_text(
         f"# The demo's bring-up; `indoor-loc up {out / 'bringup.yaml'}` runs the same processes. The player\n"
         "# is not `required`: when the bag ends the nodes keep running until Ctrl-C (`indoor-loc demo` itself\n"
-        "# stops the estimators first, then the recorder, so their last outputs are recorded).\n"
+        "# stops them when the bag ends). Both stop them in waves of stop_order, by module: the player, then\n"
+        "# imu_node, wifi_fix_node, pdr_kf_node and tll_pf, backend_node, the recorder last, so every node's\n"
+        "# last outputs reach the nodes after it and are recorded.\n"
         + yaml.safe_dump(cfg_map, sort_keys=False))
     config = parse_config(cfg_map, out)
     names = [n["name"] for n in cfg_map["nodes"]]

@@ -6,9 +6,11 @@ Each node runs as a child process::
     <program> [args...] --ros-args -r __ns:=NS [-r FROM:=TO ...] [-p use_sim_time:=true]
               [--params-file F ...] [-p NAME:=VALUE ...] [ros_args...]
 
-with its output (stdout and stderr) prefixed by ``[name]``. SIGINT/SIGTERM are forwarded to the
-children (SIGINT first — SIGTERM to a child that has printed nothing yet, so one still starting
-ends without a traceback; SIGTERM after ``stop_timeout_s``, SIGKILL after as long again). The
+with its output (stdout and stderr) prefixed by ``[name]``. SIGINT/SIGTERM stop the children in
+waves of ascending ``stop_order`` (the player, then the estimators from sources to sinks, the
+recorder last; each wave once the one before has exited), each child with SIGINT first — SIGTERM to
+a child that has printed nothing yet, so one still starting ends without a traceback; SIGTERM after
+``stop_timeout_s``, SIGKILL after as long again; a second signal stops every wave at once. The
 bring-up ends when every child has exited, or when one dies (exits non-zero, or exits at all with
 ``required: true``) and has no ``respawn``: then the others are stopped too. Exit status: 0 when
 every child ended cleanly, 1 otherwise. ``config/bringup_example.yaml`` documents every key.
@@ -41,11 +43,12 @@ _ENV_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _TOP_KEYS = {"env", "use_sim_time", "params_files", "stop_timeout_s", "nodes"}
 _NODE_KEYS = {"name", "executable", "module", "script", "namespace", "args", "params_files", "params",
               "remap", "ros_args", "env", "use_sim_time", "respawn", "respawn_delay_s", "required", "stop_order"}
-#: Default ``stop_order`` of the package's executables: data sources stop first, then the front
-#: ends, then the estimators (their end-of-input outputs, e.g. pdr_kf's final smoothed path, still
-#: reach the nodes after them), the recorder last so it holds all of it. Other nodes: 1.
+#: Default ``stop_order`` of the package's executables (given as ``executable:`` or as their
+#: ``module:``): data sources stop first, then the front ends, then the estimators from sources to
+#: sinks (their end-of-input outputs, e.g. pdr_kf's final smoothed path, still reach the nodes after
+#: them), the recorder and the live view last so they hold all of it. Other nodes: 1.
 STOP_ORDER = {"player": 0, "wifi_scan_node": 1, "imu_node": 1, "wifi_fix_node": 2, "pdr_kf_node": 3,
-              "pf_node": 3, "backend_node": 4, "recorder": 9}
+              "tll_pf": 3, "backend_node": 4, "recorder": 9, "view": 9}
 #: Exit statuses of a child that was asked to stop and did so (0, or killed by the signal sent).
 _CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
 #: A child stopped within this many seconds of its start may not have installed its signal
@@ -203,10 +206,13 @@ def _program(i: int, node: dict, base: Path, exes: dict[str, str]) -> tuple[str,
     return (sys.executable, str(path.resolve()))
 
 
-def _stop_order(i: int, node: dict) -> int:
+def _stop_order(i: int, node: dict, exes: dict[str, str]) -> int:
     value = node.get("stop_order")
     if value is None:
-        return STOP_ORDER.get(str(node.get("executable", "")), 1)
+        name = node.get("executable")
+        if name is None and node.get("module") is not None:      # a package node run as python -m
+            name = next((exe for exe, target in exes.items() if target.split(":")[0] == node["module"]), None)
+        return STOP_ORDER.get(str(name), 1)
     _expect(isinstance(value, int) and not isinstance(value, bool), _where(i, "stop_order"), "an integer", value)
     return int(value)
 
@@ -268,7 +274,7 @@ def parse_config(data: Any, base: Path, source: Path | None = None) -> BringupCo
             respawn=bool(_bool(n.get("respawn"), _where(i, "respawn"), False)),
             respawn_delay_s=float(delay),
             required=bool(_bool(n.get("required"), _where(i, "required"), False)),
-            stop_order=_stop_order(i, n)))
+            stop_order=_stop_order(i, n, exes)))
     return BringupConfig(nodes=tuple(nodes), env=env, stop_timeout_s=float(stop), source=source)
 
 
@@ -374,6 +380,8 @@ class Bringup:
         alive = [c for c in running if c.spec.stop_order == wave or self._hurry]
         if wave != self._wave:                     # a new wave: its own timeouts
             self._wave = wave
+            self.log(PREFIX, f"stopping {', '.join(c.spec.name for c in alive)}"
+                             + ("" if self._hurry else f" (stop_order {wave})"))
             self._stop_deadline = now + self.config.stop_timeout_s
             self._term_sent = self._kill_sent = False
         for c in alive:
@@ -419,6 +427,8 @@ class Bringup:
             why = "died" if rc != 0 else "is required and exited"
             self.log(PREFIX, f"{spec.name} {why}: stopping the others")
             self.request_stop(signal.SIGINT)
+        elif any(c.proc is not None and c.proc.poll() is None for c in self.children):
+            self.log(PREFIX, f"the other nodes keep running: Ctrl-C stops them ({spec.name} is not `required`)")
 
     def run(self, poll_s: float = 0.05) -> int:
         """Start every child, supervise until all are done; 0 when all ended cleanly, else 1."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -261,3 +262,57 @@ def test_stop_in_dependency_order_keeps_the_final_outputs(ros_domain, tmp_path):
     from indoor_loc.bag import read_bag
     poses = [m for m in read_bag([bag]) if m.topic == "/alice/dummy/pose"]
     assert len(poses) == 1          # the finish() output (stamp = number of accepted messages, 0)
+
+
+def test_package_nodes_stop_in_dependency_order_also_as_modules(tmp_path):
+    """A package node gets its default stop_order whether given as ``executable:`` or ``module:``
+    (the demo's bring-up uses modules); other programs stop with the first wave after the player."""
+    nodes = [("player", "executable", "player"), ("imu", "module", "indoor_loc.nodes.imu_node"),
+             ("wifi", "module", "indoor_loc.nodes.wifi_fix_node"), ("kf", "executable", "pdr_kf_node"),
+             ("pf", "module", "indoor_loc.nodes.tll_pf_node"), ("backend", "module", "indoor_loc.nodes.backend_node"),
+             ("rec", "module", "indoor_loc.nodes.recorder_node"), ("view", "executable", "view"),
+             ("other", "script", EXIT)]
+    cfg = parse_config({"nodes": [{"name": n, kind: v} for n, kind, v in nodes]}, tmp_path)
+    assert {n.name: n.stop_order for n in cfg.nodes} == {
+        "player": 0, "imu": 1, "wifi": 2, "kf": 3, "pf": 3, "backend": 4, "rec": 9, "view": 9, "other": 1}
+
+
+def test_waves_stop_one_after_another(tmp_path):
+    """Each stop_order wave gets SIGINT only once the wave before it has exited."""
+    started = tmp_path / "started.log"
+    cfg = write(tmp_path, {"stop_timeout_s": 10, "nodes": [
+        {"name": name, "script": EXIT, "args": ["--log", str(started)], "stop_order": order}
+        for name, order in (("sink", 9), ("source", 0), ("middle", 3))]})
+    up = bringup(cfg)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (not started.exists() or len(started.read_text().splitlines()) < 3):
+            time.sleep(0.05)
+        assert len(started.read_text().splitlines()) == 3, up.output()
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=60) == 0, up.output()
+        out = up.output()
+        order = [out.index(s) for s in ("[up] stopping source (stop_order 0)", "[source] exit_peer stopped by signal",
+                                        "[up] source stopped", "[up] stopping middle (stop_order 3)",
+                                        "[middle] exit_peer stopped by signal", "[up] middle stopped",
+                                        "[up] stopping sink (stop_order 9)", "[sink] exit_peer stopped by signal",
+                                        "[up] sink stopped")]
+        assert order == sorted(order), out
+    finally:
+        up.stop()
+
+
+def test_a_node_that_ends_says_the_others_keep_running(tmp_path):
+    """A node that is not required and ends cleanly leaves the others running, and the bring-up says
+    how to stop them."""
+    cfg = write(tmp_path, {"nodes": [{"name": "short", "script": EXIT, "args": ["--after", "0.2"]},
+                                     {"name": "long", "script": EXIT}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait_seen(r"^\[up\] the other nodes keep running: Ctrl-C stops them \(short is not", 60), \
+            up.output()
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=30) == 0, up.output()
+        assert "[up] long stopped (exit status 0)" in up.output()
+    finally:
+        up.stop()

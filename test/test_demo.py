@@ -90,3 +90,23 @@ def test_demo_ctrl_c_stops_every_process(ros_domain, tmp_path):
     while _processes_mentioning(str(out)) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not _processes_mentioning(str(out)), "processes left behind after Ctrl-C"
+
+
+def test_demo_bringup_stops_in_dependency_order(tmp_path):
+    """The demo's nodes (given as modules) stop player first, then the estimators from sources to
+    sinks, the recorder last, so every node's last outputs are recorded."""
+    from indoor_loc.demo import bringup_config
+    from indoor_loc.supervisor import parse_config
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**/imu_node:\n  ros__parameters:\n    step_length_m: 0.7\n")
+    sim = {"params": params, "bag": tmp_path / "sim.mcap", "dir": tmp_path}
+    cfg = parse_config(bringup_config(["alice", "bob"], sim, tmp_path, rate=1.0, foxglove=8765), tmp_path)
+    order = {n.name: n.stop_order for n in cfg.nodes}
+    assert order["player"] == 0 and order["recorder"] == 9 and order["view"] == 9
+    for w in ("alice", "bob"):
+        assert 0 < order[f"imu_{w}"] < order[f"wifi_{w}"] < order[f"pdr_kf_{w}"]
+        if f"pf_{w}" in order:
+            assert order[f"pf_{w}"] > order[f"wifi_{w}"]
+    if "backend" in order:
+        assert max(order[f"pdr_kf_{w}"] for w in ("alice", "bob")) < order["backend"] < order["recorder"]

@@ -19,13 +19,27 @@ BENCHES = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("which", choices=sorted(BENCHES), help="which benchmark")
-    parser.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory")
-    parser.add_argument("--quick", action="store_true", help="smaller run (fewer repetitions / grid points)")
+    parser.add_argument("--data", type=Path, default=Path("../shared/datasets"),
+                        help="datasets directory (default ../shared/datasets)")
+    parser.add_argument("--quick", action="store_true", help=(
+        "smaller run. heading: a quarter of the TyRex trials, the first 60 s of each BROAD trial, "
+        "no Madgwick; imu: 6 PUTMC walks, the first 60 s of each BROAD trial, shorter throughput runs; "
+        "steps: a quarter of the Oxford traces; wifi: a smaller WKNN grid and 100 timed queries instead "
+        "of 300 (putmc; --dataset ms_site2 has no smaller run); backend: 5 reduced-map draws instead of "
+        "50, one graph run per configuration instead of best of 3, fresh processes for 2 configurations "
+        "x 1 run instead of all 5 x 3, --live at 10x only; pf: one run, the PDR and 10 s WiFi-only rows; "
+        "throughput: walks 1-3 instead of 1-12; live: users 1,2, rates 2,5, 30 s (each unless given)"))
     parser.add_argument("--json", type=Path, help="also write the figures as JSON here")
     parser.add_argument("--live", action="store_true", help="backend: also replay all walks live over DDS "
                                                             "through backend_node at 1x and 10x")
     parser.add_argument("--dataset", default="", help="dataset of the benchmark when it has several "
                                                       "(wifi: putmc (default) or ms_site2)")
+    parser.add_argument("--site", type=Path, help="wifi: a site directory of the Microsoft Indoor Location "
+                                                  "Competition 2.0 format (<floor>/path_data_files/...): the "
+                                                  "ms_site2 tables on its floors")
+    parser.add_argument("--floors", default="", help="wifi --site/ms_site2: comma-separated floor names (default all)")
+    parser.add_argument("--floor-levels", default="", help="wifi --site/ms_site2: storey index per floor, "
+                                                           "NAME=LEVEL,... (default: from the floor names)")
     parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
     parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay")
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")

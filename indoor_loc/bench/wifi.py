@@ -1,6 +1,7 @@
 """``indoor-loc bench wifi``: WiFi-only positioning on PUTMC, methods side by side in one run.
 
-(``--dataset ms_site2``: the four-floor mall, :mod:`indoor_loc.bench.wifi_ms`.)
+(``--dataset ms_site2``: the four-floor mall, and ``--site SITE_DIR``: any site of its format,
+:mod:`indoor_loc.bench.wifi_ms`.)
 
 Data: PUTMC (Nowicki & Skrzypczyński, Sensors 2019, GPLv3) via :mod:`indoor_loc.datasets.putmc`,
 all in the ENU map frame (``y = PUTMC_Y0 - y_img``): each of the 347 trajectory scans of the 24
@@ -203,7 +204,10 @@ def _queries_like(rm: RadioMap, rng: np.random.Generator, n: int) -> list[WifiSc
 
 # ----------------------------------------------------------------------------------------------
 def run(args) -> int:
-    dataset = getattr(args, "dataset", "") or "putmc"
+    dataset = getattr(args, "dataset", "") or ("ms_site2" if getattr(args, "site", None) else "putmc")
+    if getattr(args, "site", None) and dataset != "ms_site2":
+        print(f"bench wifi: --site is a site of the Microsoft format, not of --dataset {dataset!r}")
+        return 2
     if dataset == "ms_site2":
         from indoor_loc.bench import wifi_ms
         return wifi_ms.run(args)

@@ -1,4 +1,5 @@
-"""``indoor-loc bench wifi --dataset ms_site2``: WiFi positioning and floor detection on a mall.
+"""``indoor-loc bench wifi --dataset ms_site2``: WiFi positioning and floor detection on a mall;
+``indoor-loc bench wifi --site SITE_DIR``: the same tables on any site directory of the format.
 
 Data: the Microsoft Indoor Location Competition 2.0 sample (site 2, floors B1, F3, F7, F8; MIT
 licence) read with :mod:`indoor_loc.datasets.ms_indoor`. Per floor, the documented interleaved
@@ -17,6 +18,11 @@ Tables, all methods on the same scans in one run:
 3. floor detection against the pooled four-floor map: accuracy per floor and the error of the
    positions of that run;
 4. map sizes.
+Any site (``--site SITE_DIR``, the layout ``indoor-loc import ms-indoor`` reads): the same tables over the
+floors found there, the split over each floor's walks that have waypoints; floors' storey indices from
+their names (:func:`indoor_loc.datasets.ms_indoor.floor_levels`) or ``--floor-levels NAME=LEVEL,...``;
+``--floors`` selects floors. Every floor of a site other than ms_site2 is held out. On ms_site2 the
+output is the ``--dataset ms_site2`` one.
 Baseline (the dataset README's): RMS of RSS differences over shared BSSIDs, candidates sharing more
 than half of the BSSIDs both ways, weights 1/(RMS + 1e-4), k = 4.
 Method choices were made looking at floors B1 and F7 (marked "tuned") with F3 and F8 held out
@@ -102,31 +108,73 @@ def locate_walks(pos, scans: list[WifiScan], shift_db: float = 0.0) -> list[Fix]
     return out
 
 
-def load_site(root: Path) -> dict[str, dict[str, Any]]:
-    """Per floor: map (RadioMap of the survey walks), test scans, truth (N, 2), level, z."""
-    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, read_trace, scans_with_truth, site_floors,
-                                               split_map_test)
+def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[str] | None = None,
+              notes: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    """Per floor of a site directory in the Microsoft format: map (RadioMap of the survey walks), test
+    scans, truth (N, 2), level, z, walkable area, site id. The documented split runs over the floor's
+    walks that have waypoints (a walk without any has no truth). A floor without survey scans is left
+    out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
+    ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor.floor_levels`),
+    ``only`` selects floors by name; what was left out or guessed is appended to ``notes``."""
+    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_waypoints, read_site, read_trace,
+                                               scans_with_truth, split_map_test)
+    from indoor_loc.errors import ConfigError, MapError
+    notes = [] if notes is None else notes
+    site = read_site(root, levels=levels)
+    names = [fl.name for fl in site.floors]
+    if only:
+        bad = [n for n in only if n not in names]
+        if bad:
+            raise ConfigError(f"--floors: no floor(s) {bad}; the site has {names}")
     out: dict[str, dict[str, Any]] = {}
-    for fl in site_floors(root):
+    for fl in site.floors:
+        if only and fl.name not in only:
+            continue
+        if fl.level_rule.startswith("fallback"):
+            notes.append(f"floor {fl.name}: storey index {fl.level:g} by {fl.level_rule} (--floor-levels to set it)")
         ids = {p.name.split(".")[0]: p for p in fl.trace_files}
-        survey, test = split_map_test(list(ids))
+        with_truth = [i for i in ids if has_waypoints(ids[i])]
+        if len(with_truth) < len(ids):
+            notes.append(f"floor {fl.name}: {len(ids) - len(with_truth)} of {len(ids)} walks have no waypoints "
+                         "(no truth): not used")
+        survey, test = split_map_test(with_truth)
         z = fl.z_m(STOREY_HEIGHT_M)
+        site_id = ""
         ms: list[WifiScan] = []
         mp, src = [], []
         for tid in survey:
-            sc, xy = scans_with_truth(read_trace(ids[tid], imu=False))
+            tr = read_trace(ids[tid], imu=False)
+            site_id = site_id or tr.header.get("SiteID", "")
+            sc, xy = scans_with_truth(tr)
             ms += sc
             mp.append(xy)
             src += [f"{fl.name}/{tid}"] * len(sc)
         ts: list[WifiScan] = []
         tp = []
         for tid in test:
-            sc, xy = scans_with_truth(read_trace(ids[tid], imu=False))
+            tr = read_trace(ids[tid], imu=False)
+            site_id = site_id or tr.header.get("SiteID", "")
+            sc, xy = scans_with_truth(tr)
             ts += sc
             tp.append(xy)
+        if not ms:
+            notes.append(f"floor {fl.name}: left out: no survey scan inside a waypoint span "
+                         f"({len(survey)} survey walks)")
+            continue
+        if not ts:
+            notes.append(f"floor {fl.name}: no test scan inside a waypoint span ({len(test)} test walks): "
+                         "its map joins the floor detection only")
         rm = add_fingerprints(empty_radiomap(), np.vstack(mp), ms, src, z_m=z, floors={fl.name: z})
-        out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp), "z": z, "walks": (len(survey), len(test)),
-                        "walkable": plan_walkable(fl.directory / "geojson_map.json", (fl.width_m, fl.height_m))}
+        walkable = None
+        if np.isfinite(fl.width_m):
+            try:
+                walkable = plan_walkable(fl.plans / "geojson_map.json", (fl.width_m, fl.height_m))
+            except MapError as err:
+                notes.append(f"floor {fl.name}: plan not used: {err}")
+        out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp) if tp else np.zeros((0, 2)), "z": z,
+                        "walks": (len(survey), len(test)), "walkable": walkable, "site_id": site_id}
+    if not out:
+        raise ConfigError(f"{root}: no floor with survey scans inside a waypoint span")
     return out
 
 
@@ -186,24 +234,66 @@ def _map_scans(rm: RadioMap) -> list[WifiScan]:
     return map_scans(rm)
 
 
+#: the header SiteID of ms_site2, whose floors B1 and F7 chose the methods
+MS_SITE2_ID = "5dbc1d84c1eb61796cf7c010"
+_COUNT = ("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
+
+
 def run(args) -> int:
+    from indoor_loc.datasets.ms_indoor import parse_floor_levels
+    from indoor_loc.errors import ConfigError, DatasetError
     data = Path(getattr(args, "data", "../shared/datasets"))
-    root = data / "ms_site2"
+    site_arg = getattr(args, "site", None)
+    root = Path(site_arg) if site_arg else data / "ms_site2"
+    what = f"--site {root}" if site_arg else "--dataset ms_site2"
     if not root.is_dir():
-        print(f"bench wifi: ms_site2 not found at {root} (use --data)")
+        print(f"bench wifi: site directory {root} not found" if site_arg
+              else f"bench wifi: ms_site2 not found at {root} (use --data)")
         return 1
     t_start = time.perf_counter()
-    floors = load_site(root)
+    notes: list[str] = []
+    try:
+        only = [t.strip() for t in (getattr(args, "floors", "") or "").split(",") if t.strip()]
+        floors = load_site(root, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""),
+                           only=only or None, notes=notes)
+    except (ConfigError, DatasetError) as err:
+        print(f"bench wifi {what}: {err}")
+        return 2
+    scored = {n: f for n, f in floors.items() if len(f["scans"])}
+    if not scored:
+        print(f"bench wifi {what}: no floor has both survey and test scans inside waypoint spans")
+        for n in notes:
+            print(f"   {n}")
+        return 2
+    ms_site2 = any(f["site_id"] == MS_SITE2_ID for f in floors.values())
+    tuned_on = TUNED_ON if ms_site2 else ()
     report: dict[str, Any] = {"floors": {}, "pooled": {}, "floor_detection": {}}
-    print("ms_site2 (Microsoft Indoor Location Competition 2.0, site 2): per floor, survey walks (1st/3rd/5th of "
-          "every five, by id) build the map,\ntest walks (2nd/4th) are positioned; errors in m over located scans; "
-          "in50/in95 = % of truths inside the 50/95 % ellipse;\nsame-scan mean = mean on the scans the baseline "
-          f"located / the baseline's there; choices made on {', '.join(TUNED_ON)} (tuned), the rest held out\n"
-          "(except the age views and the covariance calibration, compared on all four floors; the interpolated "
-          "grid was chosen on B1, F7).\n")
+    if not site_arg:
+        print("ms_site2 (Microsoft Indoor Location Competition 2.0, site 2): per floor, survey walks (1st/3rd/5th of "
+              "every five, by id) build the map,\ntest walks (2nd/4th) are positioned; errors in m over located "
+              "scans; in50/in95 = % of truths inside the 50/95 % ellipse;\nsame-scan mean = mean on the scans the "
+              f"baseline located / the baseline's there; choices made on {', '.join(TUNED_ON)} (tuned), the rest "
+              "held out\n(except the age views and the covariance calibration, compared on all four floors; the "
+              "interpolated grid was chosen on B1, F7).\n")
+        for n in notes:
+            print(f"   {n}")
+    else:
+        sid = next((f["site_id"] for f in floors.values() if f["site_id"]), "")
+        report["site"] = {"path": str(root), "site_id": sid, "notes": notes,
+                          "floors": {n: {"z_m": f["z"], "test_scans": len(f["scans"])} for n, f in floors.items()}}
+        print(f"site {root} (Microsoft Indoor Location Competition 2.0 format{', SiteID ' + sid if sid else ''}): "
+              "per floor, survey walks (1st/3rd/5th of every five\nwalks with waypoints, by id) build the map, test "
+              "walks (2nd/4th) are positioned; errors in m over located scans;\nin50/in95 = % of truths inside the "
+              "50/95 % ellipse; same-scan mean = mean on the scans the baseline located / the\nbaseline's there; "
+              + (f"choices made on {', '.join(TUNED_ON)} (tuned), the rest held out.\n" if ms_site2 else
+                 "no floor of this site was used to choose methods (all held out).\n")
+              + "floors: " + ", ".join(f"{n} z={f['z']:g} m" for n, f in floors.items()))
+        for n in notes:
+            print(f"   {n}")
+        print()
     pooled: dict[str, list] = {label: [] for label, _, _, _ in METHODS}
-    for name, f in floors.items():
-        tag = "tuned" if name in TUNED_ON else "held out"
+    for name, f in scored.items():
+        tag = "tuned" if name in tuned_on else "held out"
         rm, scans, truth = f["map"], f["scans"], f["truth"]
         print(f"1. floor {name} ({tag}): {rm.n_scans} map scans from {f['walks'][0]} walks, {rm.n_aps} APs; "
               f"{len(scans)} test scans from {f['walks'][1]} walks")
@@ -245,14 +335,15 @@ def run(args) -> int:
             f"{g['range']} m: {g['scans']} scans, baseline {g['ref_mean']:.2f}, ours {g['mean']:.2f} ({g['ratio']:.2f})"
             for g in gaps))
         print()
-    print("2. pooled over the four floors (floor known)")
+    print(f"2. pooled over the {_COUNT[len(scored)] if len(scored) < len(_COUNT) else len(scored)} floors "
+          "(floor known)")
     print(HEAD)
     for label, parts in pooled.items():
         cat = [np.concatenate([p[i] for p in parts]) for i in range(5)]
         s = stats(*cat)
         print(row(label, s, None))
         report["pooled"][label] = s
-    decl = {lab: s["declined"] for lab, s in report["floors"][next(iter(floors))]["methods"].items()
+    decl = {lab: s["declined"] for lab, s in report["floors"][next(iter(scored))]["methods"].items()
             if s["declined"]}
     print("   not located, by reason (all floors): " + "; ".join(
         f"{lab}: " + ", ".join(f"{r} {c}" for r, c in _sum_reasons(report, lab).items())
@@ -274,7 +365,7 @@ def run(args) -> int:
     print(f"{'floor':<6} {'scans':>6} {'floor right':>12} {'accuracy':>9} {'mean err (m)':>13} {'p95':>6} "
           f"{'scans/s':>8}")
     tot_n = tot_ok = 0
-    for name, f in floors.items():
+    for name, f in scored.items():
         t0 = time.perf_counter()
         fixes = locate_walks(pos, f["scans"])
         rate = len(fixes) / max(time.perf_counter() - t0, 1e-9)
@@ -292,7 +383,7 @@ def run(args) -> int:
         f"{n}: {f['map'].n_scans} scans x {f['map'].n_aps} APs, "
         f"{int(np.sum(~np.isnan(f['map'].rssi_dbm)))} readings" for n, f in floors.items())
         + f"; pooled {rm_all.n_scans} x {rm_all.n_aps}")
-    print(f"\n(bench wifi --dataset ms_site2: {time.perf_counter() - t_start:.1f} s)")
+    print(f"\n(bench wifi {what}: {time.perf_counter() - t_start:.1f} s)")
     if getattr(args, "json", None):
         Path(args.json).write_text(json.dumps(report, indent=1, default=_jsonable))
     return 0

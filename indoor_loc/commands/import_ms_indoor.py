@@ -18,7 +18,14 @@ or unique id prefixes; default all):
   recommended method and, where GeoJSON plans exist, ``floor_plans`` = ``OUT_DIR/floors`` with powed
   k-NN's path-loss field turned on); ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
 
-Floor heights: ``z = storey index × --storey-height-m`` (B1 → −1, F1 → 0, F3 → 2; default 5 m).
+Floor heights: ``z = storey index × --storey-height-m`` (default 5 m). The index comes from the floor's
+name (:func:`indoor_loc.datasets.ms_indoor.floor_levels`: B1 → −1, F1/1F/L1/G → 0, F3 → 2, M → 0.5,
+LG<n>, then B<n>, then P<n> stacking below ground), ``--floor-levels NAME=LEVEL,...`` overriding it; a
+name of no known convention gets the next index above the highest floor, named in the report's
+"Floors" table. Walks without any waypoint have no truth: they are written and positioned but take no
+part in the split (role ``no truth``) and build no map. A floor without ``floor_info.json`` takes its
+extent from its GeoJSON plan's lon/lat extent; a plan that cannot be placed or drawn is not copied
+(the report says why), so the nodes never load it.
 """
 from __future__ import annotations
 
@@ -37,6 +44,11 @@ from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
 
 
+NO_MAP = ("no survey scan lies inside a waypoint span (walks without waypoints cannot build a map): no "
+          "radiomap/ and no wifi_fix_node in params.yaml; position these walks against a radio map built "
+          "elsewhere")
+
+
 def add_arguments(sub) -> None:
     p = sub.add_parser("ms-indoor", help="Microsoft Indoor Location Competition 2.0 site (trace .txt/.txt.gz)",
                        description="Import a Microsoft indoor-location site into MCAP bags (one per walk), a "
@@ -48,6 +60,13 @@ def add_arguments(sub) -> None:
     p.add_argument("--survey-walks", default="",
                    help="trace ids (or prefixes) that build the radio map (default: the interleaved split)")
     p.add_argument("--storey-height-m", type=float, default=5.0, help="floor height per storey, m (default 5)")
+    p.add_argument("--metadata", type=Path, default=None,
+                   help="directory with the floors' plan files (<floor>/floor_info.json…) when the site's "
+                        "floor directories hold only traces (default: ../../metadata/<site> for a site "
+                        "directory .../train/<site>, the competition's Kaggle layout, if it exists)")
+    p.add_argument("--floor-levels", default="",
+                   help="storey index per floor, NAME=LEVEL,... (0 = ground, e.g. G=0,M=0.5,P1=-2); default: "
+                        "from the floor names' conventions (the import report says which rule set each)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace bags, radiomap/, params.yaml, split.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_ms_indoor)
@@ -68,13 +87,15 @@ def _select(text: str, ids: list[str], what: str) -> list[str]:
 
 
 def import_ms_indoor(args: argparse.Namespace) -> int:
-    from indoor_loc.datasets.ms_indoor import (heading_offsets, read_trace, scans_with_truth, site_floors,
-                                               split_map_test)
+    from indoor_loc.datasets.ms_indoor import (has_waypoints, heading_offsets, parse_floor_levels, read_site,
+                                               read_trace, scans_with_truth, split_map_test)
     from indoor_loc.datasets.ms_indoor_bags import trace_bag_counts, walk_namespace, write_trace_bag
 
     if not (args.storey_height_m > 0):
         raise ConfigError(f"--storey-height-m: expected > 0, got {args.storey_height_m}")
-    floors = site_floors(args.dataset_dir)
+    site = read_site(args.dataset_dir, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""),
+                     metadata=getattr(args, "metadata", None))
+    floors = site.floors
     names = [f.name for f in floors]
     if args.floors.strip():
         want = [t.strip() for t in args.floors.split(",") if t.strip()]
@@ -99,18 +120,29 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
 
     rm = empty_radiomap()
     rows, oddities, split = [], [], {}
+    dropped: dict[str, int] = {}
+    floor_rows: list[dict] = []
     skipped: list[str] = []
     heading: dict[str, list] = {}
     floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
     for fl in floors:
         ids = all_ids[fl.name]
+        truth = {p.name.split(".")[0]: has_waypoints(p) for p in fl.trace_files}
+        no_truth = [i for i in ids if not truth[i]]
         if user_survey is None:
-            survey, test = split_map_test(ids)
+            survey, test = split_map_test([i for i in ids if truth[i]])
         else:
             survey = [i for i in ids if i in user_survey]
-            test = [i for i in ids if i not in user_survey]
+            test = [i for i in ids if i not in user_survey and truth[i]]
+            oddities += [f"{i}: a survey walk without waypoints: it cannot build the radio map"
+                         for i in survey if not truth[i]]
         split[fl.name] = {"z_m": floor_z[fl.name], "survey": survey, "test": test}
-        _write_floor_plan(fl, out / "floors" / fl.name, floor_z[fl.name])
+        if no_truth:
+            split[fl.name]["no_truth"] = [i for i in no_truth if i not in survey]
+        plan_note = _write_floor_plan(fl, out / "floors" / fl.name, floor_z[fl.name])
+        floor_rows.append({"floor": fl.name, "level": fl.level, "z": floor_z[fl.name], "rule": fl.level_rule,
+                           "walks": len(ids), "no_truth": len(no_truth),
+                           "notes": list(fl.notes) + ([plan_note] if plan_note else [])})
         for p in fl.trace_files:
             tid = p.name.split(".")[0]
             if tid not in walks and tid not in survey:
@@ -124,6 +156,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
             if tr.floor and tr.floor != fl.name:
                 oddities.append(f"{tid}: header FloorName {tr.floor!r} but stored under {fl.name}")
             oddities += [f"{tid}: {o}" for o in tr.oddities if not o.startswith("rows not used")]
+            for k, v in tr.dropped.items():
+                dropped[k] = dropped.get(k, 0) + v
             if tid in survey:
                 sc, xy = scans_with_truth(tr)
                 if sc:
@@ -134,11 +168,11 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
             heading.setdefault(fl.name, []).append(heading_offsets(tr))
             bag = bag_of[tid]
             bag.parent.mkdir(parents=True, exist_ok=True)
-            counts = write_trace_bag(tr, bag, z_m=floor_z[fl.name])
+            counts = write_trace_bag(tr, bag, z_m=floor_z[fl.name], floor=fl.name)
             sc, _ = scans_with_truth(tr)
             rel = trace_bag_counts(tr)
-            rows.append({"floor": fl.name, "walk": tid, "ns": walk_namespace(tr), "role":
-                         "survey" if tid in survey else "test", "device": tr.device,
+            rows.append({"floor": fl.name, "walk": tid, "ns": walk_namespace(tr, fl.name), "role":
+                         "survey" if tid in survey else "test" if truth[tid] else "no truth", "device": tr.device,
                          "duration_s": (tr.end_ns - tr.start_ns) * 1e-9, "waypoints": len(tr.waypoint_t),
                          "scans": len(tr.scans), "scans_in_span": len(sc),
                          "aps_per_scan": float(np.mean([len(s) for s in tr.scans])) if tr.scans else 0.0,
@@ -147,10 +181,11 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                             if k not in ("TYPE_WIFI", "TYPE_WAYPOINT") and not k.startswith("TYPE_ACC")
                                             and not k.startswith("TYPE_GYR") and not k.startswith("TYPE_MAG")
                                             and k != "TYPE_ROTATION_VECTOR")})
-    if rm.n_scans == 0:
-        raise DatasetError("no survey scan inside a waypoint span: the radio map would be empty")
     rm_dir = out / "radiomap"
-    save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
+    if rm.n_scans:
+        save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
+    elif rm_dir.exists():                    # --overwrite: an earlier import's map must not stay beside these
+        shutil.rmtree(rm_dir)
     (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
                                     + yaml.safe_dump(split, sort_keys=False))
     offset = _heading_offset(heading)
@@ -160,8 +195,9 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     # the floor plans bound powed k-NN's extrapolating radio map (a site without any GeoJSON plan: none)
     plans = out / "floors"
     has_plan = any((plans / f.name / "geojson_map.json").exists() for f in floors)
-    params = {"imu_node": imu_params,
-              "wifi_fix_node": {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}}
+    params: dict = {"imu_node": imu_params}
+    if rm.n_scans:
+        params["wifi_fix_node"] = {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
@@ -170,12 +206,20 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file).")))
     heading_note = _heading_note(heading)
     (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m)
+                                          + "\n" + _floors_note(floor_rows, site.ignored, dropped, site.metadata)
                                           + "\n" + heading_note + "\n")
     print(_table(rows))
-    print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
-          + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+    if rm.n_scans:
+        print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
+              + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+    else:
+        print(f"\nradio map: NONE — {NO_MAP}")
     print(f"params:    {out / 'params.yaml'}\nsplit:     {out / 'split.yaml'}\nreport:    {out / 'import_report.md'}")
     print(f"oddities:  {len(oddities)} (see the report)")
+    for r in floor_rows:
+        if r["rule"].startswith("fallback"):
+            print(f"floor {r['floor']}: level {r['level']:g} by fallback ({r['rule'][10:]}); "
+                  "set it with --floor-levels NAME=LEVEL")
     if skipped:
         print(f"SKIPPED {len(skipped)} unreadable walk(s): {', '.join(skipped)} (see the report)")
     return 0
@@ -211,10 +255,14 @@ def _heading_note(heading: dict[str, list]) -> str:
     return "\n".join(lines)
 
 
-def _write_floor_plan(fl, d: Path, z_m: float) -> None:
+def _write_floor_plan(fl, d: Path, z_m: float) -> str:
+    """The floor's plan in the map frame (image, GeoJSON, map.yaml); returns a note when its GeoJSON
+    is not copied (no extent to place it, or it cannot be drawn), so no node ever loads it."""
+    from indoor_loc.errors import MapError
+    from indoor_loc.wifi.walkable import plan_walkable
     d.mkdir(parents=True, exist_ok=True)
-    img = fl.directory / "floor_image.png"
-    gj = fl.directory / "geojson_map.json"
+    img = fl.plans / "floor_image.png"
+    gj = fl.plans / "geojson_map.json"
     meta = {"floor": fl.name, "z_m": z_m, "width_m": fl.width_m, "height_m": fl.height_m, "frame_id": "map"}
     if img.exists():
         shutil.copyfile(img, d / "floor_image.png")
@@ -223,10 +271,19 @@ def _write_floor_plan(fl, d: Path, z_m: float) -> None:
             meta.update({"image": "floor_image.png", "resolution": fl.width_m / w_px,
                          "origin": [0.0, 0.0, 0.0], "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196,
                          "mode": "trinary"})
+    note = ""
     if gj.exists():
-        shutil.copyfile(gj, d / "geojson_map.json")
+        if not np.isfinite(fl.width_m):
+            note = "GeoJSON plan not used: the floor's extent is unknown"
+        else:
+            try:
+                plan_walkable(gj, (fl.width_m, fl.height_m))
+                shutil.copyfile(gj, d / "geojson_map.json")
+            except MapError as err:
+                note = f"GeoJSON plan not used: {err}"
     (d / "map.yaml").write_text("# floor plan in the map frame (nav2 map_server keys + floor height)\n"
                                 + yaml.safe_dump(meta, sort_keys=False))
+    return note
 
 
 def _png_width(path: Path) -> int:
@@ -258,9 +315,29 @@ def _report(src, rows, oddities, rm, floor_z, storey) -> str:
              "between), z = floor height. WiFi: readings with last_seen before the scan time are cached results, "
              "age_ms = scan time − last_seen; a BSSID listed twice in a scan keeps its most recent reading. Rows "
              "not used: Bluetooth (TYPE_BLUE/BLU4), iBeacons, TYPE_DIST*, accuracy changes.", "",
-             f"Radio map: `radiomap/`, {rm.n_scans} scans, {rm.n_aps} APs (survey walks in `split.yaml`).", "",
+             (f"Radio map: `radiomap/`, {rm.n_scans} scans, {rm.n_aps} APs (survey walks in `split.yaml`)."
+              if rm.n_scans else f"Radio map: **none** — {NO_MAP}"), "",
              "## Walks", "", _table(rows), "", f"## Oddities ({len(oddities)})", ""]
     lines += [f"- {o}" for o in oddities] or ["(none)"]
+    return "\n".join(lines) + "\n"
+
+
+def _floors_note(floor_rows: list[dict], ignored: tuple[str, ...], dropped: dict[str, int],
+                 metadata: Path | None = None) -> str:
+    """The report's floor table (level, how it was decided, walks without truth, what was odd) and
+    the site's dropped rows by reason."""
+    lines = ["## Floors", "", "Storey index (0 = ground; z = index × storey height) from the floor's name, "
+             "or `--floor-levels`; a `fallback` index is a guess: set it with `--floor-levels NAME=LEVEL`.", "",
+             "| floor | index | z m | from | walks | without waypoints | notes |", "|---|---|---|---|---|---|---|"]
+    for r in floor_rows:
+        lines.append(f"| {r['floor']} | {r['level']:g} | {r['z']:g} | {r['rule']} | {r['walks']} | {r['no_truth']} | "
+                     + ("; ".join(r["notes"]) or "") + " |")
+    if ignored:
+        lines += ["", "Not floors (no path_data_files/, trace or plan file), ignored: " + ", ".join(ignored)]
+    if metadata is not None:
+        lines += ["", f"Plan files of floors that hold none: from `{metadata}/<floor>/`."]
+    lines += ["", "Rows dropped over the walks read, by reason: "
+              + (", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) or "none")]
     return "\n".join(lines) + "\n"
 
 

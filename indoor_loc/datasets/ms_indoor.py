@@ -40,10 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from indoor_loc.errors import DatasetError
+from indoor_loc.errors import ConfigError, DatasetError, MapError
 from indoor_loc.wifi.types import WifiScan
 
-_BSSID_RE = re.compile(r"^[0-9a-f]{2}(:[0-9a-f]{2}){5}$")
 
 #: row type -> (attribute, number of values used)
 _SENSORS = {
@@ -169,78 +168,76 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
     counts: Counter = Counter()
     dropped: Counter = Counter()
     oddities: list[str] = []
-    beacons = 0
+    beacons = run_on = no_freq = no_seen = 0
     try:
         fh = _open_text(path)
         with fh:
-            for line in fh:
-                line = line.rstrip("\r\n")
-                if not line:
+            for raw in fh:
+                raw = raw.rstrip("\r\n").lstrip("\ufeff")
+                if not raw:
                     continue
-                if line.startswith("#"):
-                    kv = _header_fields(line)
-                    if "type" in kv:
-                        sensors.append(kv)
-                    else:
-                        header.update(kv)
-                    continue
-                f = line.split("\t")
-                if len(f) < 2:
-                    dropped["malformed"] += 1
-                    continue
-                typ = f[1]
-                counts[typ] += 1
-                try:
-                    t = int(f[0])
-                except ValueError:
-                    dropped["malformed"] += 1
-                    continue
-                spec = _SENSORS.get(typ)
-                if spec is not None:
-                    if not imu:
+                records = _split_run_on(raw)
+                if len(records) > 1:
+                    run_on += 1
+                for line in records:
+                    if line.startswith("#"):
+                        kv = _header_fields(line)
+                        if "type" in kv:
+                            sensors.append(kv)
+                        else:
+                            header.update(kv)
                         continue
-                    n = spec[1]
+                    f = line.split("\t")
+                    if len(f) < 2:
+                        dropped["malformed"] += 1
+                        continue
+                    typ = f[1].strip()
+                    counts[typ] += 1
                     try:
-                        vals = [float(x) for x in f[2:2 + n]]
+                        t = int(f[0])
                     except ValueError:
-                        dropped[f"malformed_{spec[0]}"] += 1
+                        dropped["malformed"] += 1
                         continue
-                    if len(vals) != n or not all(math.isfinite(v) for v in vals):
-                        dropped[f"malformed_{spec[0]}"] += 1
-                        continue
-                    rows[typ].append((t, vals))
-                elif typ == "TYPE_WIFI":
-                    if len(f) < 6:
-                        dropped["malformed_wifi"] += 1
-                        continue
-                    # ssid may itself contain a tab: take the fixed fields from the right
-                    has_seen = len(f) >= 7
-                    tail = f[-3:] if has_seen else f[-2:]
-                    ssid = "\t".join(f[2:len(f) - len(tail) - 1])
-                    bssid = f[len(f) - len(tail) - 1].strip().lower()
-                    try:
-                        rssi = float(tail[0])
-                        freq = float(tail[1])
-                        seen = int(tail[2]) if has_seen else None
-                    except ValueError:
-                        dropped["malformed_wifi"] += 1
-                        continue
-                    if not _BSSID_RE.match(bssid):
-                        dropped["bad_bssid"] += 1
-                        continue
-                    if not (math.isfinite(rssi) and -120.0 <= rssi <= 0.0):
-                        dropped["rssi_range"] += 1
-                        continue
-                    wifi.append((t, bssid, ssid, rssi, freq, seen))
-                elif typ == "TYPE_WAYPOINT":
-                    try:
-                        x, y = float(f[2]), float(f[3])
-                    except (ValueError, IndexError):
-                        dropped["malformed_waypoint"] += 1
-                        continue
-                    wp.append((t, x, y))
-                elif typ == "TYPE_BEACON":
-                    beacons += 1
+                    spec = _SENSORS.get(typ)
+                    if spec is not None:
+                        if not imu:
+                            continue
+                        n = spec[1]
+                        try:
+                            vals = [float(x) for x in f[2:2 + n]]
+                        except ValueError:
+                            dropped[f"malformed_{spec[0]}"] += 1
+                            continue
+                        if len(vals) != n or not all(math.isfinite(v) for v in vals):
+                            dropped[f"malformed_{spec[0]}"] += 1
+                            continue
+                        rows[typ].append((t, vals))
+                    elif typ == "TYPE_WIFI":
+                        got = _wifi_fields(f)
+                        if isinstance(got, str):
+                            dropped[got] += 1
+                            continue
+                        bssid, ssid, rssi, freq, seen = got
+                        if freq is None:
+                            no_freq += 1
+                        if seen is None:
+                            no_seen += 1
+                        if not (math.isfinite(rssi) and -120.0 <= rssi <= 0.0):
+                            dropped["rssi_range"] += 1
+                            continue
+                        wifi.append((t, bssid, ssid, rssi, 0.0 if freq is None else freq, seen))
+                    elif typ == "TYPE_WAYPOINT":
+                        try:
+                            x, y = float(f[2]), float(f[3])
+                        except (ValueError, IndexError):
+                            dropped["malformed_waypoint"] += 1
+                            continue
+                        if not (math.isfinite(x) and math.isfinite(y)):
+                            dropped["malformed_waypoint"] += 1
+                            continue
+                        wp.append((t, x, y))
+                    elif typ == "TYPE_BEACON":
+                        beacons += 1
     except (OSError, EOFError, gzip.BadGzipFile) as err:
         raise DatasetError(f"cannot read trace {path}: {err}") from err
     if not counts:
@@ -274,6 +271,12 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
         oddities.append(f"{dup} duplicate BSSID readings within scans (kept the most recently seen)")
     if future:
         oddities.append(f"{future} WiFi readings last seen after their scan time (age clamped to 0)")
+    if run_on:
+        oddities.append(f"{run_on} lines held records run together (a missing line end): split into their records")
+    if no_freq:
+        oddities.append(f"{no_freq} WiFi readings without a frequency (kept as 0 = unknown)")
+    if no_seen:
+        oddities.append(f"{no_seen} WiFi readings without a last-seen time (age unknown)")
     if not len(wt):
         oddities.append("no waypoints: nothing to score or map")
     for k, v in sorted(dropped.items()):
@@ -289,14 +292,71 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
                  dropped=dropped, **sers)
 
 
+#: a record's start inside a line: a 13-digit Unix-ms stamp and a row type, or a header key
+_RECORD_START = re.compile(r"\d{13}\tTYPE_|#\t[A-Za-z]+:")
+#: header keys of the format, by lower-case spelling (files differ in case and separators)
+_HEADER_KEYS = {k.lower(): k for k in (
+    "startTime", "endTime", "SiteID", "SiteName", "FloorId", "FloorName", "Brand", "Model", "AndroidName",
+    "APILevel", "VersionName", "VersionCode", "type", "name", "version", "vendor", "resolution", "power",
+    "maximumRange")}
+_HEADER_SPLIT = re.compile(r"\t|\s+(?=(?:" + "|".join(_HEADER_KEYS.values()) + r"):)", re.IGNORECASE)
+_MAC_RE = re.compile(r"^[0-9a-f]{2}([:-][0-9a-f]{2}){5}$")
+
+
+def _split_run_on(line: str) -> list[str]:
+    """A line as its records. In some of the competition's files a line lacks its end, so the next
+    record (a 13-digit Unix-ms stamp then ``TYPE_…``, or a ``#`` header) follows on the same line, its
+    stamp glued to the previous record's last field; each record starts where such a start is found."""
+    if line.count("TYPE_") + line.count("#") <= 1:
+        return [line]
+    cuts = [m.start() for m in _RECORD_START.finditer(line) if m.start() > 0]
+    if not cuts:
+        return [line]
+    return [line[a:b] for a, b in zip([0, *cuts], [*cuts, len(line)])]
+
+
 def _header_fields(line: str) -> dict[str, str]:
+    """``key:value`` fields of a ``#`` line: tab-separated as the format writes them, or separated by
+    spaces before a known key; known keys take the format's spelling whatever their case."""
     out = {}
-    for tok in line.lstrip("#").split("\t"):
-        tok = tok.strip()
+    for tok in _HEADER_SPLIT.split(line.lstrip("#")):
+        tok = (tok or "").strip()
         if ":" in tok:
             k, v = tok.split(":", 1)
-            out[k.strip()] = v.strip()
+            k = k.strip()
+            out[_HEADER_KEYS.get(k.lower(), k)] = v.strip()
     return out
+
+
+def _wifi_fields(f: list[str]) -> tuple[str, str, float, float | None, int | None] | str:
+    """(bssid, ssid, rssi, freq or None, last_seen or None) of a ``TYPE_WIFI`` row split at tabs, or
+    the reason it is dropped. The BSSID is the rightmost field shaped like a MAC address (an SSID may
+    hold tabs); after it come the RSSI, then the frequency (MHz) and the last-seen Unix ms, either of
+    which older files leave out: a 13-digit number is a time, a smaller one a frequency."""
+    at = next((i for i in range(len(f) - 1, 1, -1) if _MAC_RE.match(f[i].strip().lower())), -1)
+    if at < 0:
+        return "bad_bssid" if len(f) >= 5 else "malformed_wifi"
+    bssid = f[at].strip().lower().replace("-", ":")
+    ssid = "\t".join(f[2:at])
+    tail = [x.strip() for x in f[at + 1:] if x.strip()]
+    if not tail or len(tail) > 3:
+        return "malformed_wifi"
+    try:
+        rssi = float(tail[0])
+        nums = [float(x) for x in tail[1:]]
+    except ValueError:
+        return "malformed_wifi"
+    if not all(math.isfinite(v) and v >= 0 for v in nums):
+        return "malformed_wifi"
+    freq: float | None = None
+    seen: int | None = None
+    if len(nums) == 2:                          # the format's own order
+        freq, seen = nums[0], int(nums[1])
+    elif nums and nums[0] >= 1e11:
+        seen = int(nums[0])
+    elif nums:
+        freq = nums[0]
+    return bssid, ssid, rssi, freq, seen
 
 
 def _group_scans(rows: list, source: str) -> tuple[list[WifiScan], int, int]:
@@ -333,27 +393,178 @@ def _group_scans(rows: list, source: str) -> tuple[list[WifiScan], int, int]:
 # ----------------------------------------------------------------------------------------------
 # sites and floors
 # ----------------------------------------------------------------------------------------------
-def floor_level(name: str) -> int:
-    """Storey index from a floor name: ``B1`` -> -1, ``B2`` -> -2, ``F1``/``1F``/``L1`` -> 0,
-    ``F3`` -> 2 (the ground floor is F1/L1, as in the competition's sites). DatasetError otherwise."""
-    s = name.strip().upper()
-    m = re.fullmatch(r"B(\d+)|(\d+)B", s)
-    if m:
-        return -int(m.group(1) or m.group(2))
-    m = re.fullmatch(r"[FL](\d+)|(\d+)[FL]", s)
-    if m:
-        return int(m.group(1) or m.group(2)) - 1
-    raise DatasetError(f"floor name {name!r}: expected B<n>, F<n>, L<n>, <n>F or <n>B")
+def floor_kind(name: str) -> tuple[str, int] | None:
+    """The convention a floor name follows, as (kind, number), or None when it follows none:
+    ``("S", n)`` storey n above ground counted with 1 = ground (``F<n>``, ``<n>F``, ``L<n>``),
+    ``("G", 0)`` ground (``G``, ``GF``), ``("UG", 0)`` upper ground, ``("LG", n)`` lower ground n
+    (``LG``, ``LG<n>``), ``("B", n)`` basement n (``B<n>``, ``<n>B``, ``B<n>F``, ``BF`` = 1),
+    ``("P", n)`` parking n (``P<n>``, ``<n>P``), ``("M", n)`` the mezzanine above storey n (``<n>M``;
+    ``M`` = ``("M", 0)``, above ground), ``("LM", 0)`` the lower mezzanine just below ground, ``("BM", 0)`` the basement mezzanine
+    just above the first basement. Case, spaces, ``-`` and ``_`` are ignored."""
+    s = re.sub(r"[\s_-]", "", name.upper())
+    for pat, kind in ((r"F(\d+)|(\d+)F|L(\d+)", "S"), (r"B(\d+)F?|(\d+)B", "B"), (r"LG(\d*)", "LG"),
+                      (r"P(\d+)|(\d+)P", "P"), (r"(\d+)M", "M")):
+        m = re.fullmatch(pat, s)
+        if m:
+            n = int(next((g for g in m.groups() if g), "1"))
+            return (kind, n) if n >= 1 else None
+    return {"G": ("G", 0), "GF": ("G", 0), "UG": ("UG", 0), "BF": ("B", 1), "M": ("M", 0), "LM": ("LM", 0),
+            "BM": ("BM", 0)}.get(s)
+
+
+def floor_level(name: str) -> float | None:
+    """Storey index of one floor name on its own (0 = ground; see :func:`floor_levels` for a site,
+    where lower-ground, basement and parking levels stack and ``G`` shifts the storeys): ``B1`` -> -1,
+    ``F1``/``1F``/``L1``/``G`` -> 0, ``F3`` -> 2, ``M`` -> 0.5; None for a name of no known convention."""
+    got = floor_levels([name])[name]
+    return None if got[1].startswith("fallback") else got[0]
+
+
+def floor_levels(names: list[str], overrides: dict[str, float] | None = None) -> dict[str, tuple[float, str]]:
+    """Storey index of each floor of a site (0 = ground, z = index × storey height) and how it was decided.
+
+    The competition's sites name floors in several conventions (:func:`floor_kind`); the indices are:
+
+    - storeys ``F<n>``/``<n>F``/``L<n>``: n − 1 (1 = ground), or n when the site also has ``G``
+      (then ``L1`` is the first floor above ground, as in British usage); ``G``: 0; ``UG``: 0.5;
+    - below ground the levels stack from the top: lower ground ``LG1``…``LGk`` at −1…−k, then
+      basements ``B1``…``Bm`` at −(k+1)…−(k+m), then parking ``P1``… below the lowest basement
+      (k, m = the highest numbers present; with neither, ``B1`` = −1 and ``P1`` = −1);
+    - mezzanines sit half a storey above their storey: ``M`` = ground + 0.5, ``<n>M`` = storey n + 0.5
+      (so ``1M`` = 0.5 where 1 = ground, 1.5 on a site with ``G``); ``LM`` = −0.5 (between ground and
+      the first level below); ``BM`` = the first basement + 0.5.
+
+    ``overrides`` ({name: index}) win. A name of no known convention, or one whose index another floor
+    already holds, gets the next index above the highest one assigned (in natural name order) — a
+    documented fallback, marked ``fallback: …`` so it can be reported and overridden."""
+    over = dict(overrides or {})
+    kinds = {n: floor_kind(n) for n in names if n not in over}
+    have = {k for k in kinds.values() if k}
+    top_n = {fam: max((k[1] for k in have if k[0] == fam), default=0) for fam in ("LG", "B")}
+    ground_named = ("G", 0) in have
+    shift = 0 if ground_named else -1
+
+    def level(kind: tuple[str, int]) -> tuple[float, str]:
+        fam, n = kind
+        if fam == "S":
+            return float(n + shift), ("storey, G = 0" if ground_named else "storey, 1 = ground")
+        if fam == "G":
+            return 0.0, "ground"
+        if fam == "UG":
+            return 0.5, "upper ground"
+        if fam == "LG":
+            return float(-n), "lower ground"
+        if fam == "B":
+            return float(-(top_n["LG"] + n)), "basement" + (f", below {top_n['LG']} lower-ground level(s)"
+                                                             if top_n["LG"] else "")
+        if fam == "P":
+            return float(-(top_n["LG"] + top_n["B"] + n)), "parking, below ground"
+        if fam == "M":
+            return (n + shift if n else 0.0) + 0.5, "mezzanine"
+        if fam == "LM":
+            return -0.5, "lower mezzanine"
+        return -(top_n["LG"] + 1) + 0.5, "basement mezzanine"        # BM
+
+    out: dict[str, tuple[float, str]] = {n: (float(v), "set by the user") for n, v in over.items() if n in names}
+    taken = {v for v, _ in out.values()}
+    rest: list[str] = []
+    for n in sorted(kinds, key=_natural):
+        k = kinds[n]
+        if k is None:
+            rest.append(n)
+            continue
+        v, how = level(k)
+        if v in taken:
+            rest.append(n)
+            continue
+        out[n] = (v, how)
+        taken.add(v)
+    nxt = math.floor(max(taken)) + 1.0 if taken else 0.0
+    for n in sorted(rest, key=_natural):
+        why = "not a known floor name" if kinds[n] is None else f"its level {level(kinds[n])[0]:g} is another floor's"
+        out[n] = (nxt, f"fallback: {why}; placed above the highest floor")
+        nxt += 1.0
+    return {n: out[n] for n in names}
+
+
+def _natural(name: str) -> list:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name.upper())]
+
+
+def parse_floor_levels(text: str) -> dict[str, float]:
+    """``NAME=LEVEL,...`` (storey indices, 0 = ground; a mezzanine may be fractional) -> {name: level}.
+    ConfigError on a malformed entry."""
+    out: dict[str, float] = {}
+    for tok in (t.strip() for t in text.split(",")):
+        if not tok:
+            continue
+        name, eq, val = tok.partition("=")
+        try:
+            v = float(val)
+        except ValueError:
+            v = math.nan
+        if not eq or not name.strip() or not math.isfinite(v):
+            raise ConfigError(f"--floor-levels: expected NAME=LEVEL (a number), got {tok!r}")
+        if name.strip() in out:
+            raise ConfigError(f"--floor-levels: floor {name.strip()!r} given twice")
+        out[name.strip()] = v
+    if len(set(out.values())) < len(out):
+        raise ConfigError(f"--floor-levels: two floors at one level in {text!r}")
+    return out
+
+
+#: WGS-84 semi-major axis (m): the competition's floor_info.json sizes are its GeoJSON's lon/lat extent
+#: at this radius (equirectangular at the plan's mid latitude; within 1 mm on ms_site2)
+_EARTH_A_M = 6378137.0
+
+
+def geojson_extent_m(path: Path) -> tuple[float, float]:
+    """(width, height) m of a floor's GeoJSON plan: its lon/lat bounding box in metres (or the box
+    itself when the coordinates are not lon/lat). MapError when unreadable or empty."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise MapError(f"{path}: not a readable GeoJSON file: {err}") from err
+    pts: list[tuple[float, float]] = []
+
+    def walk(o) -> None:
+        if isinstance(o, list) and len(o) >= 2 and all(isinstance(v, (int, float)) for v in o[:2]):
+            pts.append((float(o[0]), float(o[1])))
+        elif isinstance(o, list):
+            for v in o:
+                walk(v)
+    for ft in (data.get("features") or []) if isinstance(data, dict) else []:
+        walk(((ft or {}).get("geometry") or {}).get("coordinates") if isinstance(ft, dict) else None)
+    a = np.array(pts, float).reshape(-1, 2)
+    a = a[np.isfinite(a).all(axis=1)]
+    if len(a) < 2:
+        raise MapError(f"{path}: no coordinates in its features")
+    lo, hi = a.min(axis=0), a.max(axis=0)
+    if np.all(np.abs(a[:, 0]) <= 180) and np.all(np.abs(a[:, 1]) <= 90) and np.all(hi - lo < 0.1):
+        k_lat = math.radians(1.0) * _EARTH_A_M
+        k_lon = k_lat * math.cos(math.radians(0.5 * (lo[1] + hi[1])))
+        return float((hi[0] - lo[0]) * k_lon), float((hi[1] - lo[1]) * k_lat)
+    return float(hi[0] - lo[0]), float(hi[1] - lo[1])
 
 
 @dataclass(frozen=True)
 class FloorInfo:
+    """One floor directory: ``width_m``/``height_m`` the plan's extent (NaN when unknown), ``level`` the
+    storey index (:func:`floor_levels`; ``level_rule`` how it was decided), ``notes`` what was odd."""
     name: str
     directory: Path
     width_m: float
     height_m: float
-    level: int
+    level: float
     trace_files: tuple[Path, ...]
+    level_rule: str = ""
+    notes: tuple[str, ...] = ()
+    plan_directory: Path | None = None
+
+    @property
+    def plans(self) -> Path:
+        """Where the floor's ``floor_info.json``, ``geojson_map.json`` and ``floor_image.png`` are."""
+        return self.plan_directory or self.directory
 
     def z_m(self, storey_height_m: float = STOREY_HEIGHT_M) -> float:
         return self.level * storey_height_m
@@ -364,35 +575,121 @@ def list_traces(directory: Path) -> list[Path]:
     sorted by id (ids are time-ordered)."""
     files: dict[str, Path] = {}
     for p in sorted(Path(directory).iterdir()):
-        if p.name.endswith(".txt.gz") or p.name.endswith(".txt"):
+        if p.is_file() and (p.name.endswith(".txt.gz") or p.name.endswith(".txt")):
             tid = trace_id_of(p)
             if tid not in files or p.suffix == ".txt":
                 files[tid] = p
     return [files[k] for k in sorted(files)]
 
 
-def site_floors(site_dir: str | Path) -> list[FloorInfo]:
-    """The floors of a site directory (``<floor>/floor_info.json`` + ``path_data_files/``),
-    sorted by level. DatasetError if there are none."""
+_FLOOR_FILES = ("floor_info.json", "geojson_map.json", "floor_image.png")
+
+
+@dataclass(frozen=True)
+class Site:
+    """A site directory: its floors sorted by level, the subdirectories that are not floors and the
+    directory plan files were taken from (None: the floors' own)."""
+    floors: list[FloorInfo]
+    ignored: tuple[str, ...] = ()
+    metadata: Path | None = None
+
+
+def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None,
+              metadata: str | Path | None = None) -> Site:
+    """The floors of a site directory. A floor is a subdirectory holding ``path_data_files/``, trace
+    files, ``floor_info.json`` or ``geojson_map.json``, or named as a floor (:func:`floor_kind`; an
+    empty ``F5/`` is a floor without walks); its walks are ``path_data_files/*.txt[.gz]`` (or
+    the trace files in it). Its plan files (``floor_info.json``, ``geojson_map.json``,
+    ``floor_image.png``) are in it or, when it has none, in ``metadata/<floor>/`` — by default, for a
+    site directory ``…/train/<site>`` (the competition's Kaggle layout), ``…/metadata/<site>`` when it
+    exists. Its extent comes from ``floor_info.json`` (``map_info.width/height``), else from the GeoJSON
+    plan's lon/lat extent (:func:`geojson_extent_m`), else NaN; each fallback and an empty floor is a
+    note. ``levels`` ({name: storey index}) override :func:`floor_levels`; naming a floor the site does
+    not have is a ConfigError. DatasetError if the directory is missing or holds no floor."""
     site = Path(site_dir)
     if not site.is_dir():
         raise DatasetError(f"site directory {site} does not exist")
-    out = []
-    for d in sorted(site.iterdir()):
-        if not (d / "path_data_files").is_dir():
+    if metadata is None and site.resolve().parent.name in ("train", "test"):
+        guess = site.resolve().parent.parent / "metadata" / site.resolve().name
+        metadata = guess if guess.is_dir() else None
+    meta = Path(metadata) if metadata is not None else None
+    if meta is not None and not meta.is_dir():
+        raise DatasetError(f"metadata directory {meta} does not exist")
+    found: list[tuple[str, Path, Path, float, float, tuple[Path, ...], list[str]]] = []
+    ignored = []
+    dirs = {d.name: d for d in sorted(site.iterdir())}
+    if meta is not None:
+        for d in sorted(meta.iterdir()):
+            dirs.setdefault(d.name, d)
+    for name in sorted(dirs):
+        d = dirs[name]
+        if not d.is_dir() or name.startswith(".") or name == "__MACOSX":
             continue
+        pdf = d / "path_data_files"
+        direct = list_traces(d)
+        plans = d
+        if meta is not None and not any((d / f).is_file() for f in _FLOOR_FILES) and (meta / name).is_dir():
+            plans = meta / name
+        if not (pdf.is_dir() or direct or any((plans / f).is_file() for f in _FLOOR_FILES)
+                or floor_kind(name) is not None):
+            ignored.append(name)
+            continue
+        notes: list[str] = []
+        if plans != d:
+            notes.append(f"plan files from {plans}")
+        traces = tuple(list_traces(pdf)) if pdf.is_dir() else tuple(direct)
+        if pdf.is_dir() and direct:
+            notes.append(f"{len(direct)} trace file(s) beside path_data_files/ not read (the walks are in it)")
+        if not traces:
+            notes.append("no walks (" + ("empty path_data_files/" if pdf.is_dir() else "no path_data_files/") + ")")
         w = h = math.nan
-        info = d / "floor_info.json"
-        if info.exists():
+        info, gj = plans / "floor_info.json", plans / "geojson_map.json"
+        if info.is_file():
             try:
                 mi = json.loads(info.read_text())["map_info"]
                 w, h = float(mi["width"]), float(mi["height"])
-            except (ValueError, KeyError, TypeError) as err:
-                raise DatasetError(f"{info}: expected map_info.width/height: {err}") from err
-        out.append(FloorInfo(d.name, d, w, h, floor_level(d.name), tuple(list_traces(d / "path_data_files"))))
-    if not out:
-        raise DatasetError(f"{site}: no floor directories with path_data_files/ found")
-    return sorted(out, key=lambda f: f.level)
+                if not (w > 0 and h > 0 and math.isfinite(w) and math.isfinite(h)):
+                    raise ValueError(f"width {w}, height {h}")
+            except (OSError, ValueError, KeyError, TypeError) as err:
+                notes.append(f"floor_info.json unreadable (expected map_info.width/height > 0: {err})")
+                w = h = math.nan
+        else:
+            notes.append("no floor_info.json")
+        if not math.isfinite(w) and gj.is_file():
+            try:
+                w, h = geojson_extent_m(gj)
+                notes.append(f"extent {w:.2f} × {h:.2f} m from the GeoJSON plan's lon/lat extent")
+            except MapError as err:
+                notes.append(f"extent unknown: {err}")
+        elif not math.isfinite(w):
+            notes.append("extent unknown (no floor_info.json, no geojson_map.json): no plan in the map frame")
+        found.append((name, d, plans, w, h, traces, notes))
+    if not found:
+        raise DatasetError(f"{site}: no floor directories (path_data_files/, floor_info.json…) found")
+    names = [f[0] for f in found]
+    over = dict(levels or {})
+    bad = [n for n in over if n not in names]
+    if bad:
+        raise ConfigError(f"--floor-levels: no floor(s) {bad}; the site has {names}")
+    lv = floor_levels(names, over)
+    floors = [FloorInfo(n, d, w, h, lv[n][0], traces, lv[n][1], tuple(notes), plans)
+              for n, d, plans, w, h, traces, notes in found]
+    return Site(sorted(floors, key=lambda f: f.level), tuple(ignored), meta)
+
+
+def site_floors(site_dir: str | Path, *, levels: dict[str, float] | None = None,
+                metadata: str | Path | None = None) -> list[FloorInfo]:
+    """The floors of a site directory sorted by level (:func:`read_site`)."""
+    return read_site(site_dir, levels=levels, metadata=metadata).floors
+
+
+def has_waypoints(path: Path) -> bool:
+    """Whether a trace file holds a ``TYPE_WAYPOINT`` row (read until the first; unreadable: False)."""
+    try:
+        with _open_text(Path(path)) as fh:
+            return any("\tTYPE_WAYPOINT\t" in line for line in fh)
+    except (OSError, EOFError, gzip.BadGzipFile):
+        return False
 
 
 def split_map_test(trace_ids: list[str]) -> tuple[list[str], list[str]]:

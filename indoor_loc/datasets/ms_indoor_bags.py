@@ -18,6 +18,7 @@ a ROS name cannot start with a digit), log time = header stamp = the trace's Uni
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +36,15 @@ YAW_STD_RAD = math.radians(10.0)
 LATCHED = [qos_dict(reliability="reliable", durability="transient_local", depth=1)]
 
 
-def walk_namespace(trace: Trace) -> str:
-    """``/<floor>_<id>`` lower-case."""
-    return f"/{(trace.floor or 'floor').lower()}_{trace.trace_id.lower()}"
+def walk_namespace(trace: Trace, floor: str | None = None) -> str:
+    """``/<floor>_<id>`` lower-case, ``floor`` the site's name of the walk's floor (default: the trace
+    header's ``FloorName``). Characters a ROS name cannot hold become ``_`` and a floor part not
+    starting with a letter (``1F``) is prefixed ``floor_``, so every floor name gives a valid name."""
+    part = re.sub(r"_+", "_", re.sub(r"[^a-z0-9_]", "_", (floor if floor is not None else trace.floor).lower()))
+    part = part.strip("_")
+    if not part[:1].isalpha():
+        part = f"floor_{part}".rstrip("_")
+    return f"/{part}_{re.sub(r'[^a-z0-9_]', '_', trace.trace_id.lower())}"
 
 
 def _causal(t_query: np.ndarray, t_ref: np.ndarray) -> np.ndarray:
@@ -50,9 +57,11 @@ def trace_bag_counts(trace: Trace) -> dict[str, int]:
             "wifi/scan": len(trace.scans), "ground_truth": int(len(trace.waypoint_t) > 0)}
 
 
-def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0) -> dict[str, int]:
-    """Write one walk's bag (see module doc); returns messages per full topic name."""
-    ns = walk_namespace(trace)
+def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: str | None = None
+                    ) -> dict[str, int]:
+    """Write one walk's bag (see module doc; ``floor`` names the namespace, :func:`walk_namespace`);
+    returns messages per full topic name."""
+    ns = walk_namespace(trace, floor)
     name = ns.strip("/")
     imu_frame, wifi_frame = f"{name}/imu_link", f"{name}/wifi_link"
     t_raw, t_mag, t_imu = join_ns(ns, "imu/data_raw"), join_ns(ns, "imu/mag"), join_ns(ns, "imu/data")

@@ -88,14 +88,6 @@ class RadioMap:
         """BSSID -> column of this map (a new index; it does not follow later edits of the map)."""
         return ApIndex(self.bssids)
 
-    def scan_vector(self, scan: WifiScan) -> np.ndarray:
-        """The scan as an (A,) vector in this map's AP order, NaN for APs not heard or unknown."""
-        cols = self.ap_index().columns(scan.bssid)
-        v = np.full(self.n_aps, np.nan)
-        known = cols >= 0
-        v[cols[known]] = np.asarray(scan.rssi_dbm, float)[known]
-        return v
-
 
 class ApIndex:
     """BSSID -> column in a radio map's AP order, shared by the positioning methods; grows when a
