@@ -192,7 +192,7 @@ def make_site(root: Path) -> Path:
 
 def _args(site: Path, out: Path, **kw) -> argparse.Namespace:
     base = dict(dataset_dir=site, out_dir=out, floors="", walks="", survey_walks="", storey_height_m=5.0,
-                overwrite=False, floor_levels="")
+                overwrite=False, floor_levels="", metadata=None)
     base.update(kw)
     return argparse.Namespace(**base)
 
@@ -333,3 +333,35 @@ def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys)
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert split["F2"] == {"z_m": 5.0, "survey": [], "test": [], "no_truth": [wid(0, 0), wid(0, 1)]}
     assert "Radio map: **none**" in (out / "import_report.md").read_text()
+    # re-imported over an import that had a map: that map goes with --overwrite
+    (out / "radiomap").mkdir()
+    (out / "radiomap" / "radiomap.yaml").write_text("stale")
+    assert import_ms_indoor(_args(tmp_path / "site", out, overwrite=True)) == 0
+    assert not (out / "radiomap").exists()
+
+
+def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
+    """``train/<site>/<floor>/*.txt`` with the plans in ``metadata/<site>/<floor>/``: found on their own."""
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    site = tmp_path / "train" / "5f00aa"
+    rng = np.random.default_rng(2)
+    for ix, floor in enumerate(("1F", "2F")):
+        (site / floor).mkdir(parents=True)
+        for k in range(3):
+            _walk(site / floor / f"{wid(ix, k)}.txt", floor, ix, k, rng)
+        meta = tmp_path / "metadata" / "5f00aa" / floor
+        meta.mkdir(parents=True)
+        (meta / "floor_info.json").write_text(json.dumps({"map_info": {"width": 60.0, "height": 40.0}}))
+        (meta / "geojson_map.json").write_text(json.dumps(_plan(False)))
+    floors = read_site(site).floors
+    assert [(f.name, f.level, f.plans, len(f.trace_files)) for f in floors] == [
+        ("1F", 0, tmp_path / "metadata" / "5f00aa" / "1F", 3), ("2F", 1, tmp_path / "metadata" / "5f00aa" / "2F", 3)]
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(site, out)) == 0
+    assert sorted(p.parent.name for p in (out / "floors").glob("*/geojson_map.json")) == ["1F", "2F"]
+    assert (out / "1F" / f"{wid(0, 0)}.mcap").exists()
+    assert "Plan files of floors that hold none: from" in (out / "import_report.md").read_text()
+    # an explicit --metadata that does not exist is an error, not a silent plan-less import
+    from indoor_loc.errors import DatasetError
+    with pytest.raises(DatasetError, match="metadata directory"):
+        import_ms_indoor(_args(site, tmp_path / "out2", metadata=tmp_path / "nope"))

@@ -60,6 +60,10 @@ def add_arguments(sub) -> None:
     p.add_argument("--survey-walks", default="",
                    help="trace ids (or prefixes) that build the radio map (default: the interleaved split)")
     p.add_argument("--storey-height-m", type=float, default=5.0, help="floor height per storey, m (default 5)")
+    p.add_argument("--metadata", type=Path, default=None,
+                   help="directory with the floors' plan files (<floor>/floor_info.json…) when the site's "
+                        "floor directories hold only traces (default: ../../metadata/<site> for a site "
+                        "directory .../train/<site>, the competition's Kaggle layout, if it exists)")
     p.add_argument("--floor-levels", default="",
                    help="storey index per floor, NAME=LEVEL,... (0 = ground, e.g. G=0,M=0.5,P1=-2); default: "
                         "from the floor names' conventions (the import report says which rule set each)")
@@ -89,7 +93,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
 
     if not (args.storey_height_m > 0):
         raise ConfigError(f"--storey-height-m: expected > 0, got {args.storey_height_m}")
-    site = read_site(args.dataset_dir, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""))
+    site = read_site(args.dataset_dir, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""),
+                     metadata=getattr(args, "metadata", None))
     floors = site.floors
     names = [f.name for f in floors]
     if args.floors.strip():
@@ -179,6 +184,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     rm_dir = out / "radiomap"
     if rm.n_scans:
         save_radiomap(rm, rm_dir, created_by="indoor-loc import ms-indoor", inputs=[str(src)])
+    elif rm_dir.exists():                    # --overwrite: an earlier import's map must not stay beside these
+        shutil.rmtree(rm_dir)
     (out / "split.yaml").write_text("# survey walks build radiomap/; test walks are positioned against it\n"
                                     + yaml.safe_dump(split, sort_keys=False))
     offset = _heading_offset(heading)
@@ -199,7 +206,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file).")))
     heading_note = _heading_note(heading)
     (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m)
-                                          + "\n" + _floors_note(floor_rows, site.ignored, dropped)
+                                          + "\n" + _floors_note(floor_rows, site.ignored, dropped, site.metadata)
                                           + "\n" + heading_note + "\n")
     print(_table(rows))
     if rm.n_scans:
@@ -254,8 +261,8 @@ def _write_floor_plan(fl, d: Path, z_m: float) -> str:
     from indoor_loc.errors import MapError
     from indoor_loc.wifi.walkable import plan_walkable
     d.mkdir(parents=True, exist_ok=True)
-    img = fl.directory / "floor_image.png"
-    gj = fl.directory / "geojson_map.json"
+    img = fl.plans / "floor_image.png"
+    gj = fl.plans / "geojson_map.json"
     meta = {"floor": fl.name, "z_m": z_m, "width_m": fl.width_m, "height_m": fl.height_m, "frame_id": "map"}
     if img.exists():
         shutil.copyfile(img, d / "floor_image.png")
@@ -315,7 +322,8 @@ def _report(src, rows, oddities, rm, floor_z, storey) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _floors_note(floor_rows: list[dict], ignored: tuple[str, ...], dropped: dict[str, int]) -> str:
+def _floors_note(floor_rows: list[dict], ignored: tuple[str, ...], dropped: dict[str, int],
+                 metadata: Path | None = None) -> str:
     """The report's floor table (level, how it was decided, walks without truth, what was odd) and
     the site's dropped rows by reason."""
     lines = ["## Floors", "", "Storey index (0 = ground; z = index × storey height) from the floor's name, "
@@ -326,6 +334,8 @@ def _floors_note(floor_rows: list[dict], ignored: tuple[str, ...], dropped: dict
                      + ("; ".join(r["notes"]) or "") + " |")
     if ignored:
         lines += ["", "Not floors (no path_data_files/, trace or plan file), ignored: " + ", ".join(ignored)]
+    if metadata is not None:
+        lines += ["", f"Plan files of floors that hold none: from `{metadata}/<floor>/`."]
     lines += ["", "Rows dropped over the walks read, by reason: "
               + (", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) or "none")]
     return "\n".join(lines) + "\n"

@@ -559,6 +559,12 @@ class FloorInfo:
     trace_files: tuple[Path, ...]
     level_rule: str = ""
     notes: tuple[str, ...] = ()
+    plan_directory: Path | None = None
+
+    @property
+    def plans(self) -> Path:
+        """Where the floor's ``floor_info.json``, ``geojson_map.json`` and ``floor_image.png`` are."""
+        return self.plan_directory or self.directory
 
     def z_m(self, storey_height_m: float = STOREY_HEIGHT_M) -> float:
         return self.level * storey_height_m
@@ -581,42 +587,63 @@ _FLOOR_FILES = ("floor_info.json", "geojson_map.json", "floor_image.png")
 
 @dataclass(frozen=True)
 class Site:
-    """A site directory: its floors sorted by level and the subdirectories that are not floors."""
+    """A site directory: its floors sorted by level, the subdirectories that are not floors and the
+    directory plan files were taken from (None: the floors' own)."""
     floors: list[FloorInfo]
     ignored: tuple[str, ...] = ()
+    metadata: Path | None = None
 
 
-def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None) -> Site:
+def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None,
+              metadata: str | Path | None = None) -> Site:
     """The floors of a site directory. A floor is a subdirectory holding ``path_data_files/``, trace
     files, ``floor_info.json`` or ``geojson_map.json``, or named as a floor (:func:`floor_kind`; an
     empty ``F5/`` is a floor without walks); its walks are ``path_data_files/*.txt[.gz]`` (or
-    the trace files in it). Its extent comes from ``floor_info.json`` (``map_info.width/height``), else
-    from the GeoJSON plan's lon/lat extent (:func:`geojson_extent_m`), else NaN; each fallback and an
-    empty floor is a note. ``levels`` ({name: storey index}) override :func:`floor_levels`; naming a
-    floor the site does not have is a ConfigError. DatasetError if the directory is missing or holds
-    no floor."""
+    the trace files in it). Its plan files (``floor_info.json``, ``geojson_map.json``,
+    ``floor_image.png``) are in it or, when it has none, in ``metadata/<floor>/`` — by default, for a
+    site directory ``…/train/<site>`` (the competition's Kaggle layout), ``…/metadata/<site>`` when it
+    exists. Its extent comes from ``floor_info.json`` (``map_info.width/height``), else from the GeoJSON
+    plan's lon/lat extent (:func:`geojson_extent_m`), else NaN; each fallback and an empty floor is a
+    note. ``levels`` ({name: storey index}) override :func:`floor_levels`; naming a floor the site does
+    not have is a ConfigError. DatasetError if the directory is missing or holds no floor."""
     site = Path(site_dir)
     if not site.is_dir():
         raise DatasetError(f"site directory {site} does not exist")
-    found: list[tuple[str, Path, float, float, tuple[Path, ...], list[str]]] = []
+    if metadata is None and site.resolve().parent.name in ("train", "test"):
+        guess = site.resolve().parent.parent / "metadata" / site.resolve().name
+        metadata = guess if guess.is_dir() else None
+    meta = Path(metadata) if metadata is not None else None
+    if meta is not None and not meta.is_dir():
+        raise DatasetError(f"metadata directory {meta} does not exist")
+    found: list[tuple[str, Path, Path, float, float, tuple[Path, ...], list[str]]] = []
     ignored = []
-    for d in sorted(site.iterdir()):
-        if not d.is_dir() or d.name.startswith(".") or d.name == "__MACOSX":
+    dirs = {d.name: d for d in sorted(site.iterdir())}
+    if meta is not None:
+        for d in sorted(meta.iterdir()):
+            dirs.setdefault(d.name, d)
+    for name in sorted(dirs):
+        d = dirs[name]
+        if not d.is_dir() or name.startswith(".") or name == "__MACOSX":
             continue
         pdf = d / "path_data_files"
         direct = list_traces(d)
-        if not (pdf.is_dir() or direct or any((d / f).is_file() for f in _FLOOR_FILES)
-                or floor_kind(d.name) is not None):
-            ignored.append(d.name)
+        plans = d
+        if meta is not None and not any((d / f).is_file() for f in _FLOOR_FILES) and (meta / name).is_dir():
+            plans = meta / name
+        if not (pdf.is_dir() or direct or any((plans / f).is_file() for f in _FLOOR_FILES)
+                or floor_kind(name) is not None):
+            ignored.append(name)
             continue
         notes: list[str] = []
+        if plans != d:
+            notes.append(f"plan files from {plans}")
         traces = tuple(list_traces(pdf)) if pdf.is_dir() else tuple(direct)
         if pdf.is_dir() and direct:
             notes.append(f"{len(direct)} trace file(s) beside path_data_files/ not read (the walks are in it)")
         if not traces:
             notes.append("no walks (" + ("empty path_data_files/" if pdf.is_dir() else "no path_data_files/") + ")")
         w = h = math.nan
-        info, gj = d / "floor_info.json", d / "geojson_map.json"
+        info, gj = plans / "floor_info.json", plans / "geojson_map.json"
         if info.is_file():
             try:
                 mi = json.loads(info.read_text())["map_info"]
@@ -636,7 +663,7 @@ def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None) -
                 notes.append(f"extent unknown: {err}")
         elif not math.isfinite(w):
             notes.append("extent unknown (no floor_info.json, no geojson_map.json): no plan in the map frame")
-        found.append((d.name, d, w, h, traces, notes))
+        found.append((name, d, plans, w, h, traces, notes))
     if not found:
         raise DatasetError(f"{site}: no floor directories (path_data_files/, floor_info.json…) found")
     names = [f[0] for f in found]
@@ -645,14 +672,15 @@ def read_site(site_dir: str | Path, *, levels: dict[str, float] | None = None) -
     if bad:
         raise ConfigError(f"--floor-levels: no floor(s) {bad}; the site has {names}")
     lv = floor_levels(names, over)
-    floors = [FloorInfo(n, d, w, h, lv[n][0], traces, lv[n][1], tuple(notes))
-              for n, d, w, h, traces, notes in found]
-    return Site(sorted(floors, key=lambda f: f.level), tuple(ignored))
+    floors = [FloorInfo(n, d, w, h, lv[n][0], traces, lv[n][1], tuple(notes), plans)
+              for n, d, plans, w, h, traces, notes in found]
+    return Site(sorted(floors, key=lambda f: f.level), tuple(ignored), meta)
 
 
-def site_floors(site_dir: str | Path, *, levels: dict[str, float] | None = None) -> list[FloorInfo]:
+def site_floors(site_dir: str | Path, *, levels: dict[str, float] | None = None,
+                metadata: str | Path | None = None) -> list[FloorInfo]:
     """The floors of a site directory sorted by level (:func:`read_site`)."""
-    return read_site(site_dir, levels=levels).floors
+    return read_site(site_dir, levels=levels, metadata=metadata).floors
 
 
 def has_waypoints(path: Path) -> bool:
