@@ -460,5 +460,6 @@ class Bringup:
                     c.proc.kill()
                     c.proc.wait()
         status = 1 if self._failed else 0
-        self.log(PREFIX, "all nodes stopped" + ("" if status == 0 else " (some exited with an error)"))
+        took = "" if self._stop_requested is None else f" in {time.monotonic() - self._stop_at:.1f} s"
+        self.log(PREFIX, f"all nodes stopped{took}" + ("" if status == 0 else " (some exited with an error)"))
         return status

@@ -240,3 +240,19 @@ def test_the_grid_interpolated_per_floor_equals_the_whole_grid():
     expect = _sorensen(c, q, whole_rd[vals], whole_sums[vals], len(rows))
     np.testing.assert_array_equal(d[pos._n_map:], expect)
     assert np.all(d[:pos._n_map] == 1.0) and np.any(expect < 1.0)
+
+
+def test_bench_by_gap_bands_scans_by_their_distance_to_the_survey():
+    from indoor_loc.bench.wifi_ms import by_gap
+    rm = add_fingerprints(empty_radiomap(), np.array([[0.0, 0.0], [10.0, 0.0]]),
+                          _scans(np.array([[-50.0], [-60.0]]), ["a"]), "s")
+    truth = np.array([[1.0, 0.0], [10.0, 2.0], [5.0, 5.0], [10.0, 20.0], [10.0, 30.0]])   # gaps 1, 2, 7.07, 20, 30
+    ok = np.array([True, True, True, True, False])
+    e = np.array([1.0, 3.0, 4.0, 12.0, np.nan])
+    ref_ok = np.ones(5, bool)
+    ref_e = np.array([2.0, 2.0, 8.0, 24.0, 5.0])
+    bands = by_gap(truth, rm, (ok, e, e, ref_ok, ref_e))
+    assert [b["range"] for b in bands] == ["0-3", "3-10", ">10"]
+    assert [b["scans"] for b in bands] == [2, 1, 1]                    # the last scan: ours gave no fix
+    assert bands[0]["mean"] == 2.0 and bands[0]["ref_mean"] == 2.0 and bands[0]["ratio"] == 1.0
+    assert bands[1]["ratio"] == 0.5 and bands[2]["ratio"] == 0.5

@@ -329,6 +329,11 @@ def run(args) -> int:
         print("   by the UTC date of the test scans (map scans that date; test walks' median speed): " + "; ".join(
             f"{d['date']} ({d['map_scans']}; {d['speed_m_s']:.2f} m/s): {d['scans']} scans, baseline "
             f"{d['ref_mean']:.2f}, ours {d['mean']:.2f} ({d['ratio']:.2f})" for d in days))
+        gaps = by_gap(truth, rm, pooled[OURS][-1])
+        report["floors"][name]["by_gap"] = gaps
+        print("   by the distance from the truth to the nearest map scan (where the survey did not go): " + "; ".join(
+            f"{g['range']} m: {g['scans']} scans, baseline {g['ref_mean']:.2f}, ours {g['mean']:.2f} ({g['ratio']:.2f})"
+            for g in gaps))
         print()
     print(f"2. pooled over the {_COUNT[len(scored)] if len(scored) < len(_COUNT) else len(scored)} "
           f"floor{'s' if len(scored) > 1 else ''} (floor known)")
@@ -410,6 +415,28 @@ def by_day(scans: list[WifiScan], truth: np.ndarray, rm: RadioMap, errs: tuple) 
                     "mean": float(e[both].mean()), "ref_mean": float(ref_e[both].mean()),
                     "ratio": float(e[both].mean() / ref_e[both].mean()),
                     "speed_m_s": float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else float("nan")})
+    return out
+
+
+#: bands of the distance from a test scan's truth to the nearest map scan (m): on the survey, near it, beyond it
+GAP_BANDS_M = (0.0, 3.0, 10.0, float("inf"))
+
+
+def by_gap(truth: np.ndarray, rm: RadioMap, errs: tuple) -> list[dict[str, Any]]:
+    """Mean errors of a method and of the baseline per band of the distance from a test scan's true position
+    to the nearest map scan (:data:`GAP_BANDS_M`), on the scans both located: how well a method does where
+    the survey did not go. ``errs`` = (ok, e, m2, ref_ok, ref_e) of the method."""
+    from scipy.spatial import cKDTree
+    ok, e, _, ref_ok, ref_e = errs
+    gap, _ = cKDTree(np.asarray(rm.positions, float)).query(np.asarray(truth, float))
+    out = []
+    for lo, hi in zip(GAP_BANDS_M[:-1], GAP_BANDS_M[1:]):
+        both = ok & ref_ok & (gap >= lo) & (gap < hi)
+        if not both.any():
+            continue
+        out.append({"range": f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}", "scans": int(both.sum()),
+                    "mean": float(e[both].mean()), "ref_mean": float(ref_e[both].mean()),
+                    "ratio": float(e[both].mean() / ref_e[both].mean())})
     return out
 
 
