@@ -209,10 +209,11 @@ def _program(i: int, node: dict, base: Path, exes: dict[str, str]) -> tuple[str,
 def _stop_order(i: int, node: dict, exes: dict[str, str]) -> int:
     value = node.get("stop_order")
     if value is None:
-        name = node.get("executable")
-        if name is None and node.get("module") is not None:      # a package node run as python -m
-            name = next((exe for exe, target in exes.items() if target.split(":")[0] == node["module"]), None)
-        return STOP_ORDER.get(str(name), 1)
+        names = [str(node.get("executable"))]
+        if node.get("module") is not None:      # a package node run as python -m: its executables' names
+            names = [exe for exe, target in exes.items() if target.split(":")[0] == node["module"]]
+        # (a node module found beside the package but not installed is named after its file: tll_pf_node)
+        return next((STOP_ORDER[n] for name in names for n in (name, name.removesuffix("_node")) if n in STOP_ORDER), 1)
     _expect(isinstance(value, int) and not isinstance(value, bool), _where(i, "stop_order"), "an integer", value)
     return int(value)
 
