@@ -119,9 +119,12 @@ def package_executables() -> dict[str, str]:
     for ep in entry_points(group="console_scripts"):
         if ep.value.startswith("indoor_loc.") and ep.name != "indoor-loc":
             out[ep.name] = ep.value
+    installed = set(out.values())
     nodes_dir = Path(__file__).resolve().parent / "nodes"
     for p in nodes_dir.glob("*_node.py"):           # also nodes not (yet) installed as scripts
         name = p.stem
+        if f"indoor_loc.nodes.{name}:main" in installed:
+            continue
         out.setdefault(name.removesuffix("_node") if name in ("player_node", "recorder_node") else name,
                        f"indoor_loc.nodes.{name}:main")
     return out

@@ -61,6 +61,7 @@ def test_command_line_layout(tmp_path):
     assert param_text(True) == "true" and param_text("auto") == "auto" and param_text(0.65) == "0.65"
     exe = package_executables()
     assert {"player", "recorder"} <= set(exe) and all(v.startswith("indoor_loc.nodes.") for v in exe.values())
+    assert len(set(exe.values())) == len(exe)          # one name per node (an error message lists them)
 
 
 @pytest.mark.parametrize("data,match", [
