@@ -260,7 +260,7 @@ def test_a_second_node_loads_the_saved_fit_and_logs_it(tmp_path, ros_domain, mon
         with ros_node("probe") as (probe, ex):
             node = start(probe, ex)
             try:
-                assert spin_until(ex, lambda: node.stage.positioner is not None, 60)
+                assert spin_until(ex, lambda node=node: node.stage.positioner is not None, 60)
                 assert logs[-1] is node.stage.fit_log                  # the node's logger, not stderr
                 fixes.append([m for i, s in enumerate(scans) for _, m in node.stage.process("wifi/scan", s, i)])
             finally:
