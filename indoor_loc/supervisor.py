@@ -119,9 +119,12 @@ def package_executables() -> dict[str, str]:
     for ep in entry_points(group="console_scripts"):
         if ep.value.startswith("indoor_loc.") and ep.name != "indoor-loc":
             out[ep.name] = ep.value
+    installed = set(out.values())
     nodes_dir = Path(__file__).resolve().parent / "nodes"
     for p in nodes_dir.glob("*_node.py"):           # also nodes not (yet) installed as scripts
         name = p.stem
+        if f"indoor_loc.nodes.{name}:main" in installed:
+            continue
         out.setdefault(name.removesuffix("_node") if name in ("player_node", "recorder_node") else name,
                        f"indoor_loc.nodes.{name}:main")
     return out
@@ -209,10 +212,11 @@ def _program(i: int, node: dict, base: Path, exes: dict[str, str]) -> tuple[str,
 def _stop_order(i: int, node: dict, exes: dict[str, str]) -> int:
     value = node.get("stop_order")
     if value is None:
-        name = node.get("executable")
-        if name is None and node.get("module") is not None:      # a package node run as python -m
-            name = next((exe for exe, target in exes.items() if target.split(":")[0] == node["module"]), None)
-        return STOP_ORDER.get(str(name), 1)
+        names = [str(node.get("executable"))]
+        if node.get("module") is not None:      # a package node run as python -m: its executables' names
+            names = [exe for exe, target in exes.items() if target.split(":")[0] == node["module"]]
+        # (a node module found beside the package but not installed is named after its file: tll_pf_node)
+        return next((STOP_ORDER[n] for name in names for n in (name, name.removesuffix("_node")) if n in STOP_ORDER), 1)
     _expect(isinstance(value, int) and not isinstance(value, bool), _where(i, "stop_order"), "an integer", value)
     return int(value)
 

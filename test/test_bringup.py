@@ -61,6 +61,7 @@ def test_command_line_layout(tmp_path):
     assert param_text(True) == "true" and param_text("auto") == "auto" and param_text(0.65) == "0.65"
     exe = package_executables()
     assert {"player", "recorder"} <= set(exe) and all(v.startswith("indoor_loc.nodes.") for v in exe.values())
+    assert len(set(exe.values())) == len(exe)          # one name per node (an error message lists them)
 
 
 @pytest.mark.parametrize("data,match", [
@@ -275,6 +276,11 @@ def test_package_nodes_stop_in_dependency_order_also_as_modules(tmp_path):
     cfg = parse_config({"nodes": [{"name": n, kind: v} for n, kind, v in nodes]}, tmp_path)
     assert {n.name: n.stop_order for n in cfg.nodes} == {
         "player": 0, "imu": 1, "wifi": 2, "kf": 3, "pf": 3, "backend": 4, "rec": 9, "view": 9, "other": 1}
+    # node modules not installed as console scripts are named after their files
+    from indoor_loc.supervisor import _stop_order
+    files = {f"{m}_node": f"indoor_loc.nodes.{m}_node:main" for m in ("tll_pf", "view", "pdr_kf")}
+    assert [_stop_order(0, {"module": f"indoor_loc.nodes.{m}_node"}, files) for m in ("tll_pf", "view", "pdr_kf")] \
+        == [3, 9, 3]
 
 
 def test_waves_stop_one_after_another(tmp_path):
