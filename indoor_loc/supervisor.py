@@ -308,9 +308,10 @@ class _Child:
 class Bringup:
     """Runs the children of a :class:`BringupConfig` (``run()`` blocks until they are all done)."""
 
-    def __init__(self, config: BringupConfig, *, out: TextIO | None = None) -> None:
+    def __init__(self, config: BringupConfig, *, out: TextIO | None = None, hint_ctrl_c: bool = True) -> None:
         self.config = config
         self.out = out or sys.stdout
+        self.hint_ctrl_c = hint_ctrl_c     # say that Ctrl-C stops the rest when a node ends (not when a caller will)
         self.children = [_Child(s) for s in config.nodes]
         self._lock = threading.Lock()
         self._stop_requested: int | None = None     # signal number once asked to stop
@@ -431,7 +432,7 @@ class Bringup:
             why = "died" if rc != 0 else "is required and exited"
             self.log(PREFIX, f"{spec.name} {why}: stopping the others")
             self.request_stop(signal.SIGINT)
-        elif any(c.proc is not None and c.proc.poll() is None for c in self.children):
+        elif self.hint_ctrl_c and any(c.proc is not None and c.proc.poll() is None for c in self.children):
             self.log(PREFIX, f"the other nodes keep running: Ctrl-C stops them ({spec.name} is not `required`)")
 
     def run(self, poll_s: float = 0.05) -> int:
