@@ -372,3 +372,36 @@ def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
     from indoor_loc.errors import DatasetError
     with pytest.raises(DatasetError, match="metadata directory"):
         import_ms_indoor(_args(site, tmp_path / "out2", metadata=tmp_path / "nope"))
+
+
+def test_ms_site2_rewritten_with_the_quirks_reads_back_record_for_record(tmp_path):
+    """F8 of ms_site2 with other sites' quirks (test/ms_quirks.py): every record reads back equal, but
+    the WiFi frequencies removed; the floor is found under its new name with its plan's extent."""
+    from collections import Counter
+
+    from conftest import dataset
+    from ms_quirks import JUNK, rewrite
+    from indoor_loc.datasets.ms_indoor import list_traces
+    src = dataset("ms_site2")
+    joined = rewrite(src, tmp_path / "q", floors={"F8": "Roof top"})
+    assert joined > 1000
+    (roof,) = [f for f in read_site(tmp_path / "q").floors if f.name == "Roof top"]
+    assert roof.level_rule.startswith("fallback") and "no floor_info.json" in roof.notes
+    assert (roof.width_m, roof.height_m) == pytest.approx((236.7118, 219.7468), abs=1e-3)
+    pairs = list(zip(list_traces(src / "F8" / "path_data_files"), roof.trace_files))
+    assert len(pairs) == 24
+    for p, q in pairs[::3]:                 # each rewrite by walk index mod 4 and 5, 8 walks
+        a, b = read_trace(p), read_trace(q)
+        for k in ("acc", "gyro", "mag", "acc_uncal", "gyro_uncal", "mag_uncal", "rotvec"):
+            np.testing.assert_array_equal(getattr(a, k).t_ns, getattr(b, k).t_ns)
+            np.testing.assert_array_equal(getattr(a, k).values, getattr(b, k).values)
+        np.testing.assert_array_equal(a.waypoint_t, b.waypoint_t)
+        np.testing.assert_array_equal(a.waypoint_xy, b.waypoint_xy)
+        assert a.header == b.header and a.beacons == b.beacons
+        assert a.row_counts + Counter({"TYPE_WIFI": 1}) == b.row_counts       # the short WiFi row
+        assert b.dropped == Counter({"malformed": 1, "malformed_wifi": 1}), (q, b.dropped, JUNK)
+        assert len(a.scans) == len(b.scans)
+        for x, y in zip(a.scans, b.scans):
+            assert (x.stamp_ns, x.bssid, x.ssid) == (y.stamp_ns, y.bssid, y.ssid)
+            np.testing.assert_array_equal(x.rssi_dbm, y.rssi_dbm)
+            np.testing.assert_array_equal(x.age_ms, y.age_ms)
