@@ -40,6 +40,10 @@ def test_floor_levels_follow_the_sites_conventions():
     got = floor_levels(["f 2", "b-1", "Roof", "Sky10", "Sky9"])
     assert {n: v for n, (v, _) in got.items()} == {"f 2": 1, "b-1": -1, "Roof": 2, "Sky10": 4, "Sky9": 3}
     assert got["Roof"][1].startswith("fallback: not a known floor name")
+    # bare numbers and "Level n": 1 = ground unless a 0 is there
+    assert {n: v for n, (v, _) in floor_levels(["-1", "1", "2", "Level 3"]).items()} == {
+        "-1": -1, "1": 0, "2": 1, "Level 3": 2}
+    assert {n: v for n, (v, _) in floor_levels(["Floor 0", "1", "2"]).items()} == {"Floor 0": 0, "1": 1, "2": 2}
     # overrides win; a derived level that an override holds falls back
     got = floor_levels(["G", "F1", "Roof"], {"Roof": 1, "G": 0})
     assert {n: v for n, (v, _) in got.items()} == {"G": 0, "F1": 2, "Roof": 1}
