@@ -85,8 +85,9 @@ WIFI_SOURCES = ("scan", "fix")
 #: each ``wifi/fix`` a position factor weighted by its own (calibrated) covariance, a Huber kernel at
 #: the usual 1.345 σ for the wrong ones, the paper's PDR information; users separate. On a mall
 #: (ms_site2) the paper's WKNN hyperedges are worse than the front end they would replace (plain WKNN
-#: errs ~20 % more than its fixes there), and matching other users' scans by plain WKNN pulled poses
-#: tens of metres off. Chosen on ms_site2's B1 and F7.
+#: errs ~20 % more than its fixes there). Users are separate: with fixes, the joint configuration
+#: (other users' scans matched by plain WKNN) gave 17 m mean error on B1, a cause not yet found.
+#: Chosen on ms_site2's B1.
 FIX_GRAPH_PARAMS: dict = {"wifi_source": "fix", "joint": False, "wifi_info": 1.0, "robust_kernel": "huber",
                           "robust_threshold_m": 1.345}
 
