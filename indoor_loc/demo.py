@@ -210,7 +210,7 @@ def run_sim_demo(args: argparse.Namespace) -> int:
         print(f"   live view: open Foxglove -> Open connection -> ws://localhost:{args.foxglove} "
               f"(layout: {layout_path()})")
     console = _Console(out / "nodes.log", args.verbose)
-    bup = Bringup(config, out=console)
+    bup = Bringup(config, out=console, hint_ctrl_c=False)      # the demo stops the nodes itself
     stop_event = threading.Event()
     state = {"played": False}
     watcher = threading.Thread(target=_supervise, args=(bup, args.duration, args.rate, stop_event, state),

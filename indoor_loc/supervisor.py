@@ -119,9 +119,12 @@ def package_executables() -> dict[str, str]:
     for ep in entry_points(group="console_scripts"):
         if ep.value.startswith("indoor_loc.") and ep.name != "indoor-loc":
             out[ep.name] = ep.value
+    installed = set(out.values())
     nodes_dir = Path(__file__).resolve().parent / "nodes"
     for p in nodes_dir.glob("*_node.py"):           # also nodes not (yet) installed as scripts
         name = p.stem
+        if f"indoor_loc.nodes.{name}:main" in installed:
+            continue
         out.setdefault(name.removesuffix("_node") if name in ("player_node", "recorder_node") else name,
                        f"indoor_loc.nodes.{name}:main")
     return out
@@ -209,10 +212,11 @@ def _program(i: int, node: dict, base: Path, exes: dict[str, str]) -> tuple[str,
 def _stop_order(i: int, node: dict, exes: dict[str, str]) -> int:
     value = node.get("stop_order")
     if value is None:
-        name = node.get("executable")
-        if name is None and node.get("module") is not None:      # a package node run as python -m
-            name = next((exe for exe, target in exes.items() if target.split(":")[0] == node["module"]), None)
-        return STOP_ORDER.get(str(name), 1)
+        names = [str(node.get("executable"))]
+        if node.get("module") is not None:      # a package node run as python -m: its executables' names
+            names = [exe for exe, target in exes.items() if target.split(":")[0] == node["module"]]
+        # (a node module found beside the package but not installed is named after its file: tll_pf_node)
+        return next((STOP_ORDER[n] for name in names for n in (name, name.removesuffix("_node")) if n in STOP_ORDER), 1)
     _expect(isinstance(value, int) and not isinstance(value, bool), _where(i, "stop_order"), "an integer", value)
     return int(value)
 
@@ -304,9 +308,10 @@ class _Child:
 class Bringup:
     """Runs the children of a :class:`BringupConfig` (``run()`` blocks until they are all done)."""
 
-    def __init__(self, config: BringupConfig, *, out: TextIO | None = None) -> None:
+    def __init__(self, config: BringupConfig, *, out: TextIO | None = None, hint_ctrl_c: bool = True) -> None:
         self.config = config
         self.out = out or sys.stdout
+        self.hint_ctrl_c = hint_ctrl_c     # say that Ctrl-C stops the rest when a node ends (not when a caller will)
         self.children = [_Child(s) for s in config.nodes]
         self._lock = threading.Lock()
         self._stop_requested: int | None = None     # signal number once asked to stop
@@ -357,6 +362,7 @@ class Bringup:
         if self._stop_requested is not None:
             self._stop_deadline = time.monotonic()
             self._hurry = True                     # every wave at once
+            self._hurry_said = self._term_sent = False
             return
         self._wave: int | None = None
         self._hurry = False
@@ -378,6 +384,9 @@ class Bringup:
             return
         wave = min(c.spec.stop_order for c in running)
         alive = [c for c in running if c.spec.stop_order == wave or self._hurry]
+        if self._hurry and not self._hurry_said:
+            self._hurry_said = True
+            self.log(PREFIX, f"asked again: stopping {', '.join(c.spec.name for c in alive)} at once (SIGTERM)")
         if wave != self._wave:                     # a new wave: its own timeouts
             self._wave = wave
             self.log(PREFIX, f"stopping {', '.join(c.spec.name for c in alive)}"
@@ -395,7 +404,8 @@ class Bringup:
             self._term_sent = True
             self._stop_deadline = now + self.config.stop_timeout_s
             for c in alive:
-                self.log(PREFIX, f"{c.spec.name} still running {self.config.stop_timeout_s:g} s after SIGINT: SIGTERM")
+                if not self._hurry:
+                    self.log(PREFIX, f"{c.spec.name} still running {self.config.stop_timeout_s:g} s after SIGINT: SIGTERM")
                 c.proc.terminate()
         elif self._term_sent and not self._kill_sent and now > self._stop_deadline:
             self._kill_sent = True
@@ -427,7 +437,7 @@ class Bringup:
             why = "died" if rc != 0 else "is required and exited"
             self.log(PREFIX, f"{spec.name} {why}: stopping the others")
             self.request_stop(signal.SIGINT)
-        elif any(c.proc is not None and c.proc.poll() is None for c in self.children):
+        elif self.hint_ctrl_c and any(c.proc is not None and c.proc.poll() is None for c in self.children):
             self.log(PREFIX, f"the other nodes keep running: Ctrl-C stops them ({spec.name} is not `required`)")
 
     def run(self, poll_s: float = 0.05) -> int:
@@ -460,5 +470,6 @@ class Bringup:
                     c.proc.kill()
                     c.proc.wait()
         status = 1 if self._failed else 0
-        self.log(PREFIX, "all nodes stopped" + ("" if status == 0 else " (some exited with an error)"))
+        took = "" if self._stop_requested is None else f" in {time.monotonic() - self._stop_at:.1f} s"
+        self.log(PREFIX, f"all nodes stopped{took}" + ("" if status == 0 else " (some exited with an error)"))
         return status

@@ -61,6 +61,7 @@ def test_command_line_layout(tmp_path):
     assert param_text(True) == "true" and param_text("auto") == "auto" and param_text(0.65) == "0.65"
     exe = package_executables()
     assert {"player", "recorder"} <= set(exe) and all(v.startswith("indoor_loc.nodes.") for v in exe.values())
+    assert len(set(exe.values())) == len(exe)          # one name per node (an error message lists them)
 
 
 @pytest.mark.parametrize("data,match", [
@@ -275,6 +276,11 @@ def test_package_nodes_stop_in_dependency_order_also_as_modules(tmp_path):
     cfg = parse_config({"nodes": [{"name": n, kind: v} for n, kind, v in nodes]}, tmp_path)
     assert {n.name: n.stop_order for n in cfg.nodes} == {
         "player": 0, "imu": 1, "wifi": 2, "kf": 3, "pf": 3, "backend": 4, "rec": 9, "view": 9, "other": 1}
+    # node modules not installed as console scripts are named after their files
+    from indoor_loc.supervisor import _stop_order
+    files = {f"{m}_node": f"indoor_loc.nodes.{m}_node:main" for m in ("tll_pf", "view", "pdr_kf")}
+    assert [_stop_order(0, {"module": f"indoor_loc.nodes.{m}_node"}, files) for m in ("tll_pf", "view", "pdr_kf")] \
+        == [3, 9, 3]
 
 
 def test_waves_stop_one_after_another(tmp_path):
@@ -314,5 +320,30 @@ def test_a_node_that_ends_says_the_others_keep_running(tmp_path):
         up.signal(signal.SIGINT)
         assert up.wait(timeout=30) == 0, up.output()
         assert "[up] long stopped (exit status 0)" in up.output()
+    finally:
+        up.stop()
+
+
+def test_a_second_ctrl_c_stops_every_wave_at_once(tmp_path):
+    """Asked again while a wave is still stopping, the bring-up sends SIGTERM to every node at once
+    instead of waiting stop_timeout_s per wave."""
+    stubborn = tmp_path / "stubborn.py"
+    stubborn.write_text("import signal, sys, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                        "print('ready', flush=True)\ntime.sleep(60)\n")
+    cfg = write(tmp_path, {"stop_timeout_s": 30, "nodes": [
+        {"name": "first", "script": str(stubborn), "stop_order": 0},
+        {"name": "last", "script": str(stubborn), "stop_order": 9}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait_seen(r"^\[first\] ready", 30) and up.wait_seen(r"^\[last\] ready", 30), up.output()
+        up.signal(signal.SIGINT)
+        assert up.wait_seen(r"^\[up\] stopping first \(stop_order 0\)", 30), up.output()
+        t0 = time.monotonic()
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=25) == 0, up.output()              # well before the first wave's 30 s
+        assert time.monotonic() - t0 < 25
+        out = up.output()
+        assert "[up] asked again: stopping first, last at once (SIGTERM)" in out, out
+        assert "[up] first stopped (exit status -15)" in out and "[up] last stopped (exit status -15)" in out
     finally:
         up.stop()

@@ -42,6 +42,9 @@ def test_demo_runs_every_node_live_and_scores_them(ros_domain, tmp_path):
     text = demo.output()
     assert rc == 0, text
     assert "score each estimator" in text and "RTS-smoothed" in text
+    # stopped in dependency order once the bag was played, by the demo itself (no Ctrl-C hint)
+    waves = [text.index(f"[up] stopping {first}") for first in ("imu_alice", "wifi_alice", "pdr_kf_alice", "recorder")]
+    assert waves == sorted(waves) and "Ctrl-C stops them" not in text, text
     assert (out / "demo.png").stat().st_size > 20_000
     # every node ran as its own process in its namespace
     bringup = (out / "bringup.yaml").read_text()

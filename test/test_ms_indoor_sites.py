@@ -40,6 +40,10 @@ def test_floor_levels_follow_the_sites_conventions():
     got = floor_levels(["f 2", "b-1", "Roof", "Sky10", "Sky9"])
     assert {n: v for n, (v, _) in got.items()} == {"f 2": 1, "b-1": -1, "Roof": 2, "Sky10": 4, "Sky9": 3}
     assert got["Roof"][1].startswith("fallback: not a known floor name")
+    # bare numbers and "Level n": 1 = ground unless a 0 is there
+    assert {n: v for n, (v, _) in floor_levels(["-1", "1", "2", "Level 3"]).items()} == {
+        "-1": -1, "1": 0, "2": 1, "Level 3": 2}
+    assert {n: v for n, (v, _) in floor_levels(["Floor 0", "1", "2"]).items()} == {"Floor 0": 0, "1": 1, "2": 2}
     # overrides win; a derived level that an override holds falls back
     got = floor_levels(["G", "F1", "Roof"], {"Roof": 1, "G": 0})
     assert {n: v for n, (v, _) in got.items()} == {"G": 0, "F1": 2, "Roof": 1}
@@ -132,7 +136,8 @@ def _plan(multi: bool) -> dict:
          if multi else {"type": "Polygon", "coordinates": shop}}]}
 
 
-def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: bool = True, gz: bool = False):
+def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: bool = True, gz: bool = False,
+          x_end: float = 55.0):
     """One walk across the floor (y = 5 + 6 k, x 5 -> 55 m in 25 s): IMU at 10 Hz, a WiFi scan every
     2.5 s from per-floor APs (path loss in distance, 6 dB per floor between floors), two waypoints."""
     t0 = T0 + 10_000_000 * floor_ix + 100_000 * k
@@ -153,7 +158,7 @@ def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: bool
             if rss > -95:
                 out.append(f"{t}\tTYPE_WIFI\tmall\t{b}\t{rss:.0f}\t2412\t{t - 300}\n")
     if waypoints:
-        out.append(f"{t0}\tTYPE_WAYPOINT\t5.0\t{y}\n{t0 + 25_000}\tTYPE_WAYPOINT\t55.0\t{y}\n")
+        out.append(f"{t0}\tTYPE_WAYPOINT\t5.0\t{y}\n{t0 + 25_000}\tTYPE_WAYPOINT\t{x_end}\t{y}\n")
     text = "".join(out)
     if gz:
         path.with_name(path.name + ".gz").write_bytes(gzip.compress(text.encode()))
@@ -180,7 +185,7 @@ def make_site(root: Path) -> Path:
         if plan:
             (root / floor / "geojson_map.json").write_text(json.dumps(_plan(plan == "multi")))
         for k in range(5):
-            _walk(d / f"{wid(ix, k)}.txt", floor, ix, k, rng, gz=k == 1)
+            _walk(d / f"{wid(ix, k)}.txt", floor, ix, k, rng, gz=k == 1, x_end=61.0 if floor == "M" and k == 4 else 55.0)
         if floor == "G":
             _walk(d / f"{wid(ix, 9)}.txt", floor, ix, 9, rng, waypoints=False)
     (root / "P1" / "path_data_files").mkdir(parents=True)
@@ -249,6 +254,7 @@ def test_import_of_a_site_with_every_quirk(tmp_path, capsys):
     assert "| P1 | -5 | -25 | parking, below ground | 0 | 0 | no walks (empty path_data_files/) |" in report
     assert "GeoJSON plan not used" not in report and "Not floors (no path_data_files/, trace or plan file), ignored: docs" in report
     assert f"{wid(1, 9)}: no waypoints: nothing to score or map" in report
+    assert f"{wid(2, 4)}: 1 of 2 waypoints outside the floor's extent [0, 60.0] × [0, 40.0] m" in report
     # floor detection and wifi/fix z follow the levels: a scan of M's test walk is placed at z = 2.5
     pos = make_positioner("powed", {}).fit(rm)
     tr = read_trace(site / "M" / "path_data_files" / f"{wid(2, 3)}.txt")

@@ -114,6 +114,18 @@ def test_a_subscription_that_matched_late_says_so():
     on_time: list[int] = []
     fresh = SequenceGaps(on_time.append)
     assert fresh.gap({"publication_sequence_number": 1}) == 0 and on_time == []
+    # counted before the player's publisher was seen (0): its first message is still the first, and
+    # the late start is not said at the next message
+    stale = SequenceGaps(on_time.append)
+    stale.publishers = 0
+    assert stale.gap({"publication_sequence_number": 1}) == 0
+    stale.publishers = 1
+    assert stale.gap({"publication_sequence_number": 2}) == 0 and on_time == []
+    assert stale.gap({"publication_sequence_number": 5}, lambda: 0) == 2     # a stale count hides no loss
+    two = SequenceGaps(on_time.append)
+    two.publishers = 2                       # two publishers: their numbers interleave, nothing is said
+    assert two.gap({"publication_sequence_number": 40}) == 0 and two.gap({"publication_sequence_number": 7}) == 0
+    assert on_time == []
 
 
 def test_startup_error_is_an_error_in_diagnostics(ros_domain, tmp_path):

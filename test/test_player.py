@@ -113,7 +113,7 @@ def test_player_options_and_latched_topics() -> None:
     assert a.clock == 100.0 and a.rate == 1.0 and not a.loop
 
 
-def test_player_rejects_bad_options(tmp_path: Path, capsys) -> None:
+def test_player_rejects_bad_options(tmp_path: Path, capsys, monkeypatch) -> None:
     from indoor_loc.cli import main
     bag = tmp_path / "b.mcap"
     _make_bag(bag, "/w", 2)
@@ -125,6 +125,9 @@ def test_player_rejects_bad_options(tmp_path: Path, capsys) -> None:
             run(p.parse_args([str(bag), *args]))
     assert main(["play", str(tmp_path / "missing.mcap")]) == 2         # BagError, before any DDS
     assert "does not exist" in capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)                                          # a relative path: where it looked
+    assert main(["play", "missing.mcap"]) == 2
+    assert f"bag missing.mcap does not exist (in {tmp_path})" in capsys.readouterr().err
 
 
 @pytest.mark.timeout(150)

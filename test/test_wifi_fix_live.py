@@ -230,3 +230,46 @@ def test_a_map_that_cannot_be_fitted_fails_the_stage_cleanly(tmp_path):
     st.fit_failed(job, MapError("broken"))
     assert st.extra_diagnostics()["error"] == "fitting the radio map (36 scans) failed: MapError: broken"
     assert st.diag.rejected == {"fit_failed": 1}
+
+
+def test_a_second_node_loads_the_saved_fit_and_logs_it(tmp_path, ros_domain, monkeypatch):
+    """The first node on a map fits and saves (fit_cache); the next one on the same map and params loads
+    the saved fit (no fit), says so in its log, and gives the fixes of the first."""
+    from rclpy.parameter import Parameter
+    from indoor_loc.pipeline import wifi_fix_stage
+    from indoor_loc.wifi.powed_knn import PowedKnn
+    map_dir = save_radiomap(grid_map(), tmp_path / "rm")
+    scans = _scans(5)
+    logged: list[str] = []
+    logs: list = []
+    real_fit = wifi_fix_stage.fit_positioner
+
+    def spy(pos, rm, store, log, **kw):                 # what the store tells the node's log
+        logs.append(log)
+        return real_fit(pos, rm, store, lambda level, text: (logged.append(text), log(level, text)), **kw)
+    monkeypatch.setattr(wifi_fix_stage, "fit_positioner", spy)
+
+    def start(probe, ex):
+        node = WifiFixNode(context=probe.context, namespace="/alice", parameter_overrides=[
+            Parameter("radiomap", value=str(map_dir)), Parameter("method", value="powed")])
+        ex.add_node(node)
+        return node
+
+    fixes = []
+    for run in range(2):
+        with ros_node("probe") as (probe, ex):
+            node = start(probe, ex)
+            try:
+                assert spin_until(ex, lambda node=node: node.stage.positioner is not None, 60)
+                assert logs[-1] is node.stage.fit_log                  # the node's logger, not stderr
+                fixes.append([m for i, s in enumerate(scans) for _, m in node.stage.process("wifi/scan", s, i)])
+            finally:
+                ex.remove_node(node)
+                node.destroy_node()
+        if run == 0:
+            assert any(t.startswith("saved the fitted radio map") for t in logged), logged
+            assert len(list((map_dir / "fit_cache").glob("*.npz"))) == 1
+            logged.clear()
+            monkeypatch.setattr(PowedKnn, "fit", lambda self, rm: pytest.fail("fitted instead of loaded"))
+    assert len(logged) == 1 and logged[0].startswith("loaded the fitted radio map from " + str(map_dir / "fit_cache"))
+    assert len(fixes[0]) == len(scans) and all(_same_fix(a, b) for a, b in zip(fixes[0], fixes[1]))

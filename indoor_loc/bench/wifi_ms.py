@@ -341,8 +341,8 @@ def run(args) -> int:
             f"{g['range']} m: {g['scans']} scans, baseline {g['ref_mean']:.2f}, ours {g['mean']:.2f} ({g['ratio']:.2f})"
             for g in gaps))
         print()
-    print(f"2. pooled over the {_COUNT[len(scored)] if len(scored) < len(_COUNT) else len(scored)} floors "
-          "(floor known)")
+    print(f"2. pooled over the {_COUNT[len(scored)] if len(scored) < len(_COUNT) else len(scored)} "
+          f"floor{'s' if len(scored) > 1 else ''} (floor known)")
     print(HEAD)
     for label, parts in pooled.items():
         cat = [np.concatenate([p[i] for p in parts]) for i in range(5)]

@@ -158,6 +158,12 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
             oddities += [f"{tid}: {o}" for o in tr.oddities if not o.startswith("rows not used")]
             for k, v in tr.dropped.items():
                 dropped[k] = dropped.get(k, 0) + v
+            if len(tr.waypoint_xy) and np.isfinite(fl.width_m):
+                wx, wy = tr.waypoint_xy[:, 0], tr.waypoint_xy[:, 1]
+                off = int(np.sum((wx < 0) | (wx > fl.width_m) | (wy < 0) | (wy > fl.height_m)))
+                if off:
+                    oddities.append(f"{tid}: {off} of {len(wx)} waypoints outside the floor's extent "
+                                    f"[0, {fl.width_m:.1f}] × [0, {fl.height_m:.1f}] m")
             if tid in survey:
                 sc, xy = scans_with_truth(tr)
                 if sc:

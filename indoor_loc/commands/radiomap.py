@@ -1,4 +1,4 @@
-"""``indoor-loc radiomap build|info``: make and inspect radio maps (format: :mod:`indoor_loc.wifi.radiomap`).
+"""``indoor-loc radiomap build|fit|info``: make and inspect radio maps (format: :mod:`indoor_loc.wifi.radiomap`).
 
 ``indoor-loc radiomap build BAG... --out DIR [--topic-scan wifi/scan] [--topic-truth ground_truth]
 [--putmc DATASET_DIR] [--method wknn] [--overwrite]``
@@ -16,6 +16,10 @@ It also writes ``DIR/params.yaml`` configuring ``wifi_fix_node`` for the map
 (``radiomap: <absolute DIR>``, ``method``), so ``indoor-loc run OTHER.mcap --params DIR/params.yaml
 --nodes wifi --out X.mcap`` positions another recording of the same building as is.
 
+``indoor-loc radiomap fit [DIR] --params PARAMS [--refit]`` fits ``wifi_fix_node``'s positioner as PARAMS
+configures it and saves the fit where the node loads it at start-up (:mod:`indoor_loc.wifi.fit_store`;
+by default ``DIR/fit_cache``), so the node is ready in about a second instead of after the fit.
+
 ``indoor-loc radiomap info DIR`` prints the manifest's figures, per-source counts, the AP count
 distribution and the map spacing.
 
@@ -26,6 +30,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter, defaultdict
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -52,6 +57,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("--overwrite", action="store_true", help="replace an existing radio map in --out")
     i = sub.add_parser("info", help="summarise a radio map directory")
     i.add_argument("directory", type=Path)
+    f = sub.add_parser("fit", help="fit wifi_fix_node's positioner to its radio map ahead of time and save the fit "
+                                   "where the node loads it at start-up (fit_cache)")
+    f.add_argument("radiomap", type=Path, nargs="?",
+                   help="radio map directory (default: the params file's wifi_fix_node radiomap)")
+    f.add_argument("--params", type=Path, required=True,
+                   help="the params file the node runs with (e.g. an importer's OUT/params.yaml)")
+    f.add_argument("--namespace", default="", help="the node's namespace, for params files keyed by it (default: root)")
+    f.add_argument("--cache-dir", help="save the fit here (default: the params' fit_cache_dir, else RADIOMAP/fit_cache)")
+    f.add_argument("--refit", action="store_true", help="fit and save even when the saved fit is up to date")
 
 
 def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
@@ -194,9 +208,41 @@ def info_lines(directory: Path) -> list[str]:
     return lines
 
 
+def fit(params_file: Path, radiomap: Path | None = None, *, namespace: str = "", cache_dir: str | None = None,
+        refit: bool = False, log: Callable[[str, str], None] | None = None) -> list[Path]:
+    """Fit ``wifi_fix_node``'s positioner as the params file configures it (``radiomap`` and ``cache_dir``
+    override its ``radiomap`` and ``fit_cache_dir``) and save the fit where the node looks for it. Returns
+    the files saved: none when the saved fit is up to date (unless ``refit``). ConfigError when the params
+    turn ``fit_cache`` off or name no radio map."""
+    from indoor_loc.params import load_params_file, params_for_node, params_from_dict
+    from indoor_loc.pipeline.wifi_fix_stage import NODE_NAME, WifiFixParams, WifiFixStage
+    from indoor_loc.wifi.fit_store import fit_positioner
+    values = params_for_node(load_params_file(params_file), NODE_NAME, namespace)
+    if radiomap is not None:
+        values["radiomap"] = str(radiomap)
+    if cache_dir is not None:
+        values["fit_cache_dir"] = cache_dir
+    params = params_from_dict(WifiFixParams, values)
+    if not params.radiomap:
+        raise ConfigError(f"{params_file}: {NODE_NAME} has no radiomap (give RADIOMAP)")
+    if not params.fit_cache:
+        raise ConfigError(f"{params_file}: {NODE_NAME} has fit_cache: false; the node would not load a saved fit")
+    stage = WifiFixStage(params, fit_now=False)            # reads the map and plans as the node does
+    store = stage.fit_store()
+    assert store is not None and stage.radio_map is not None
+    fit_positioner(params.make_positioner(stage.walkable), stage.radio_map, store,
+                   log or (lambda level, text: print(text)), refit=refit)
+    return store.saved
+
+
 def main(args: argparse.Namespace) -> int:
     if args.action == "info":
         print("\n".join(info_lines(args.directory)))
+        return 0
+    if args.action == "fit":
+        saved = fit(args.params, args.radiomap, namespace=args.namespace, cache_dir=args.cache_dir, refit=args.refit)
+        if not saved:
+            print("the saved fit is up to date (--refit to fit again)")
         return 0
     rm, report = build(list(args.bags), args.out, putmc=args.putmc, topic_scan=args.topic_scan,
                        topic_truth=args.topic_truth, method=args.method, overwrite=args.overwrite)

@@ -400,8 +400,15 @@ def floor_kind(name: str) -> tuple[str, int] | None:
     (``LG``, ``LG<n>``), ``("B", n)`` basement n (``B<n>``, ``<n>B``, ``B<n>F``, ``BF`` = 1),
     ``("P", n)`` parking n (``P<n>``, ``<n>P``), ``("M", n)`` the mezzanine above storey n (``<n>M``;
     ``M`` = ``("M", 0)``, above ground), ``("LM", 0)`` the lower mezzanine just below ground, ``("BM", 0)`` the basement mezzanine
-    just above the first basement. Case, spaces, ``-`` and ``_`` are ignored."""
-    s = re.sub(r"[\s_-]", "", name.upper())
+    just above the first basement. A bare number (or ``Level``/``Floor`` and a number) counts storeys:
+    ``1`` the first storey, ``0`` ground, ``-1`` the first basement. Case, spaces, ``_`` and (except as
+    a sign) ``-`` are ignored."""
+    s = re.sub(r"[\s_]", "", name.upper())
+    m = re.fullmatch(r"(?:LEVEL|LVL|FLOOR|FL)?(-?\d+)", s)           # "2", "-1", "Level 3", "Floor 0"
+    if m:
+        n = int(m.group(1))
+        return ("S", n) if n > 0 else ("B", -n) if n < 0 else ("G", 0)
+    s = s.replace("-", "")
     for pat, kind in ((r"F(\d+)|(\d+)F|L(\d+)", "S"), (r"B(\d+)F?|(\d+)B", "B"), (r"LG(\d*)", "LG"),
                       (r"P(\d+)|(\d+)P", "P"), (r"(\d+)M", "M")):
         m = re.fullmatch(pat, s)

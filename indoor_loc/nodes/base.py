@@ -154,7 +154,8 @@ class SequenceGaps:
     """Messages lost on the way to a subscription, from gaps in the publisher's sequence numbers
     (``publication_sequence_number`` of the message info; DDS numbers each writer's samples 1, 2,
     3...). rclpy does not say which publisher a message came from, so gaps are counted only while
-    the topic has a single publisher (``publishers`` is refreshed by the caller)."""
+    the topic has a single publisher (``publishers`` is refreshed by the caller; a count of 0 is
+    one taken before the publisher was seen: the message just taken has one)."""
 
     def __init__(self, on_late_start: Callable[[int], None] | None = None) -> None:
         self.last: int | None = None
@@ -172,15 +173,17 @@ class SequenceGaps:
         n = self._gap(info)
         if n and recount is not None:
             self.publishers = recount()
-            if self.publishers != 1:
+            if self.publishers > 1:
                 self.last = None
                 return 0
         return n
 
     def _gap(self, info: Any) -> int:
         seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
-        if not seq or self.publishers != 1:
-            self.last = None if self.publishers != 1 else self.last
+        if self.publishers > 1:
+            self.last = None
+            return 0
+        if not seq:
             return 0
         last, self.last = self.last, seq
         if not self._started:

@@ -313,7 +313,7 @@ def check_options(options: argparse.Namespace) -> None:
         raise ConfigError(f"play.start_offset: expected >= 0 s, got {options.start_offset}")
     for bag in bag_files(options.bags):
         if not bag.is_file():
-            raise BagError(f"bag {bag} does not exist")
+            raise BagError(f"bag {bag} does not exist" + ("" if bag.is_absolute() else f" (in {Path.cwd()})"))
     parse_remaps(options.remap)
     MinSubscribers(options.min_subscribers)
 

@@ -4,12 +4,14 @@ pipeline/wifi_fix_stage.py). Each method's parameters are a group named after th
 ``--help`` like every stage's parameter groups.
 
 Start-up does not wait for the radio map's fit (seconds on a large multi-floor map): the node is up
-at once and fits in a worker thread. Until the fit ends, ``/diagnostics`` says "fitting the radio
-map (N scans)" at WARN with the time so far and the scans queued (``fit.*`` values), parameter and
-other requests are answered, and each scan received is kept (see the stage's ``pending_max``) and
-located, in order, as soon as the fit ends. A failed fit is an ERROR in ``/diagnostics`` with its
-cause, and the node keeps running. :meth:`WifiFixNode.set_radio_map` replaces the map the same way
-(the previous one answers meanwhile)."""
+at once and fits in a worker thread, or loads the fit saved by an earlier start or by ``indoor-loc
+radiomap fit`` (parameter ``fit_cache``; a stale or unreadable one is logged and fitted again).
+Until the fit ends, ``/diagnostics`` says "fitting the radio map (N scans)" at WARN with the time so
+far and the scans queued (``fit.*`` values), parameter and other requests are answered, and each
+scan received is kept (see the stage's ``pending_max``) and located, in order, as soon as the fit
+ends. A failed fit is an ERROR in ``/diagnostics`` with its cause, and the node keeps running.
+:meth:`WifiFixNode.set_radio_map` replaces the map the same way (the previous one answers
+meanwhile)."""
 from __future__ import annotations
 
 import threading
@@ -41,6 +43,9 @@ class WifiFixNode(StageNode):
         self._fit_started: dict[int, float] = {}      # job -> time.monotonic() at its start
         super().__init__(_LiveWifiFixStage, **node_kwargs)
         self.stage: WifiFixStage
+        logger = self.get_logger()
+        # what the fit store did (loaded, saved, refused a stale or unreadable fit) goes to the node's log
+        self.stage.fit_log = lambda level, text: (logger.warning if level == "warning" else logger.info)(text)
         self._fit_done = self.create_guard_condition(self._on_fit_done)
         if self.stage.fitting is not None:
             self._start_fit(self.stage.fit_job, self.stage.fitting)

@@ -41,10 +41,18 @@ in arrival order, so the fixes are exactly those of the synchronous stage. A fai
 ``error`` (ERROR in ``/diagnostics``) with its cause; the queued scans are then counted as
 ``rejected.fit_failed``. While a new map (:meth:`set_radio_map`, or ``begin_fit`` live) is being
 fitted, the previous one keeps answering.
+
+Saved fits (``fit_cache``, on by default; :mod:`indoor_loc.wifi.fit_store`): the fit of the map named by
+``radiomap`` is saved in ``fit_cache_dir`` (default ``<radiomap>/fit_cache``) and loaded at the next start
+on the same map files, floor plans, parameters and code (the pooled map: 0.8 s instead of the fit); a
+stale or unreadable file is logged, fitted again and replaced. ``indoor-loc radiomap fit`` saves it ahead
+of time. A map given otherwise (:meth:`set_radio_map`) is fitted. After a fit the positioner drops the
+data only the fit used; the fixes are the same either way.
 """
 from __future__ import annotations
 
 import math
+import sys
 from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +66,7 @@ from msg_adapters.pose import fix_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.wifi.coverage import CoverageParams
+from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner
 from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
@@ -81,6 +90,10 @@ class WifiFixParams:
     method: str = field("wknn", "positioning method: 'wknn', 'powed', 'pathloss' or 'coverage'")
     fallback: str = field("", "method for the scans the first declines ('' = none, e.g. 'powed')")
     frame_id: str = field("map", "frame_id of the published fixes (the radio map's frame)")
+    fit_cache: bool = field(True, "save the fitted radio map (powed k-NN) and load it at the next start on the same "
+                                  "map files, floor plans, parameters and code instead of fitting again "
+                                  "(indoor_loc.wifi.fit_store; `indoor-loc radiomap fit` does it ahead of time)")
+    fit_cache_dir: str = field("", "directory of the saved fits; '' = <radiomap>/fit_cache")
     floor_plans: str = field("", "floor plans bounding the powed method's extrapolating radio map (powed.field_weight "
                                  "> 0): the directory `indoor-loc import ms-indoor` writes (OUT_DIR/floors, one "
                                  "<floor>/map.yaml + geojson_map.json each, matched to the map's floors by z_m); "
@@ -141,11 +154,15 @@ class WifiFixStage(Stage):
         self.located_late = 0           # queued scans located once the fit ended
         #: where people can be per floor, from ``floor_plans`` (ConfigError at start-up naming the path)
         self.walkable: Walkable | None = None
+        self._configured_map: RadioMap | None = None
+        #: log(level, text) of the fit store (the live node: its logger; None: stderr)
+        self.fit_log: Log | None = None
         self.floor_plans: dict[float, str] = {}
         if params.floor_plans:
             self.walkable, self.floor_plans = load_floor_plans(params.floor_plans)
         if self.radio_map is None and params.radiomap:
             self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
+            self._configured_map = self.radio_map       # its fit may be saved beside it (fit_cache)
         if self.radio_map is not None:
             if fit_now:
                 self.positioner = self.fit_positioner(self.radio_map)
@@ -166,10 +183,27 @@ class WifiFixStage(Stage):
         self.end_fit(job, self.fit_positioner(rm))
 
     # -- fitting in steps (the live node runs fit_positioner in a worker thread) ----------------
-    def fit_positioner(self, rm: RadioMap) -> Positioner:
+    def fit_positioner(self, rm: RadioMap, log: Log | None = None) -> Positioner:
         """A new positioner fitted to ``rm``. Touches no state of the stage, so it may run in
-        another thread while the stage handles scans."""
-        return self.params.make_positioner(self.walkable).fit(rm)
+        another thread while the stage handles scans. The configured map (parameter ``radiomap``)
+        is loaded from its saved fit when one matches (``fit_cache``; :mod:`indoor_loc.wifi.fit_store`),
+        else fitted and saved; ``log(level, text)`` gets what the store did (default: :attr:`fit_log`, else
+        stderr)."""
+        return fit_positioner(self.params.make_positioner(self.walkable), rm, self.fit_store(rm),
+                              log or self.fit_log or self._log_stderr)
+
+    def fit_store(self, rm: RadioMap | None = None) -> FitStore | None:
+        """Where fits of ``rm`` (default: the configured map) are saved: None unless ``fit_cache`` is on and
+        ``rm`` is the map read from parameter ``radiomap`` (a map given otherwise has no files to key it)."""
+        p = self.params
+        rm = self._configured_map if rm is None else rm
+        if not (p.fit_cache and p.radiomap and rm is not None and rm is self._configured_map):
+            return None
+        return FitStore(p.radiomap, p.floor_plans, p.fit_cache_dir)
+
+    def _log_stderr(self, level: str, text: str) -> None:
+        print(f"[{self.NODE_NAME}{' in ' + self.namespace if self.namespace else ''}] {level}: {text}",
+              file=sys.stderr)
 
     def begin_fit(self, rm: RadioMap) -> int:
         """``rm`` is being fitted: until :meth:`end_fit`, scans are located with the current

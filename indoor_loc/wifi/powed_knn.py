@@ -133,6 +133,7 @@ the positions do not change.
 """
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, replace
 from typing import Any
@@ -847,6 +848,111 @@ class PowedKnn(Positioner):
         z_best = float(self._z[best[0]])
         return Fix(scan.stamp_ns, xy, cov, ok=True, info=info, z=z_best,
                    z_var=float(sum(pp * (z - z_best) ** 2 for z, pp in floor_p.items())))
+
+    # -- fitted state: save / load (indoor_loc.wifi.fit_store) and memory after the fit ------------
+    def release_fit_data(self) -> None:
+        """Drop what only :meth:`fit` uses: the map values (M, A), the reach matrix, the kernel by columns
+        and its row sums, the path-loss prior. :meth:`locate` needs none of them, so the fixes do not
+        change; a later :meth:`fit` builds them again. (The kernel by rows stays: a fix on grid points
+        only spreads its weights over the map scans with it, for the device offset.)"""
+        self._vals = []
+        self._near = self._kernel_den = self._kernel_csc = self._kernel_sums = None
+        self._prior = self._prior_raw = None
+        self._prior_scale = []
+
+    def fitted_state(self) -> dict[str, np.ndarray]:
+        """Everything :meth:`locate` needs after :meth:`fit`, as named arrays (no Python objects), for
+        :meth:`load_fitted_state` on the same radio map. Map values shared by two views are stored once."""
+        if self.radio_map is None:
+            raise MapError("powed: fit() a radio map before saving its fitted state")
+        out: dict[str, np.ndarray] = {
+            "w": self._w, "pos": self._pos, "z": self._z, "n_map": np.array(self._n_map, np.int64),
+            "floors": self._floors, "home": self._home, "map_views_equal": np.array(self._map_views_equal),
+            "sigma_d1": self.sigma_table[0], "sigma_s": self.sigma_table[1],
+            "n_sigma_tables": np.array(len(self.sigma_tables), np.int64),
+            "calibration": np.array(json.dumps(self.calibration)),
+            "views": np.array([[v.aged, v.values, v.grid, v.twin] for v in self._views], np.int64).reshape(-1, 4)}
+        for i, (d1, sig) in enumerate(self.sigma_tables):
+            out[f"sigma{i}_d1"], out[f"sigma{i}_s"] = d1, sig
+        parts: dict[int, int] = {}                       # id(readings) -> part number
+        for j, view in enumerate(self._views):
+            ids = []
+            for rd, sums, rows in view.parts:
+                if id(rd) not in parts:
+                    n = parts[id(rd)] = len(parts)
+                    out.update({f"part{n}_ptr": rd.ptr, f"part{n}_row": rd.row, f"part{n}_val": rd.val,
+                                f"part{n}_sums": np.asarray(sums), f"part{n}_rows": np.asarray(rows)})
+                ids.append(parts[id(rd)])
+            out[f"view{j}_parts"] = np.array(ids, np.int64)
+        if self._kernel is not None:
+            from scipy import sparse
+            k = sparse.csr_matrix(self._kernel)
+            out.update(kernel_data=k.data, kernel_indices=k.indices, kernel_indptr=k.indptr,
+                       kernel_shape=np.array(k.shape, np.int64))
+        return out
+
+    def load_fitted_state(self, radio_map: RadioMap, state: Any) -> "PowedKnn":
+        """This positioner as :meth:`fit` (then :meth:`release_fit_data`) leaves it on ``radio_map``, from the
+        arrays of :meth:`fitted_state` (a mapping, e.g. an opened ``.npz``; the caller checks that they were
+        made for this map and these parameters). MapError when they are inconsistent with the map."""
+        from scipy import sparse
+        n_scans, n_aps = len(radio_map.positions), len(radio_map.bssids)
+        try:
+            w, pos, z = (np.asarray(state[k]) for k in ("w", "pos", "z"))
+            n_map = int(state["n_map"])
+            home = np.asarray(state["home"])
+            views = np.asarray(state["views"]).reshape(-1, 4)
+            n_c = len(pos) - n_map
+            ok = (n_map == n_scans and w.shape == (n_aps,) and home.shape == (n_aps,) and pos.ndim == 2
+                  and pos.shape[1] == 2 and z.shape == (len(pos),) and n_c >= 0)
+            if not ok:
+                raise MapError(f"arrays of {n_map} map scans, {len(w)} APs, {len(pos)} candidates do not fit a map "
+                               f"of {n_scans} scans and {n_aps} APs")
+            parts: dict[int, tuple[ApReadings, np.ndarray, np.ndarray]] = {}
+            built: list[_View] = []
+            for j, (aged, values, grid, twin) in enumerate(views.tolist()):
+                view_parts = []
+                for n in np.asarray(state[f"view{j}_parts"]).tolist():
+                    if n not in parts:
+                        rd = ApReadings.__new__(ApReadings)
+                        rd.ptr, rd.row, rd.val = (np.asarray(state[f"part{n}_{k}"]) for k in ("ptr", "row", "val"))
+                        sums, rows = np.asarray(state[f"part{n}_sums"]), np.asarray(state[f"part{n}_rows"])
+                        limit = n_c if grid else n_map
+                        if not (len(rd.ptr) == n_aps + 1 and len(rd.row) == len(rd.val) == int(rd.ptr[-1])
+                                and sums.shape == rows.shape and (len(rows) == 0 or
+                                                                  (rows.min() >= 0 and rows.max() < limit))
+                                and (len(rd.row) == 0 or (rd.row.min() >= 0 and rd.row.max() < len(rows)))):
+                            raise MapError(f"part {n} of view {j} is inconsistent")
+                        parts[n] = (rd, sums, rows)
+                    view_parts.append(parts[n])
+                built.append(_View(view_parts, bool(aged), int(values), bool(grid), bool(twin)))
+            kernel = None
+            if "kernel_data" in state:
+                shape = tuple(int(s) for s in np.asarray(state["kernel_shape"]))
+                if shape != (n_c, n_scans):
+                    raise MapError(f"kernel of shape {shape}, expected {(n_c, n_scans)}")
+                kernel = sparse.csr_matrix((np.asarray(state["kernel_data"]), np.asarray(state["kernel_indices"]),
+                                            np.asarray(state["kernel_indptr"])), shape=shape)
+            tables = tuple((np.asarray(state[f"sigma{i}_d1"]), np.asarray(state[f"sigma{i}_s"]))
+                           for i in range(int(state["n_sigma_tables"])))
+            sigma_table = (np.asarray(state["sigma_d1"]), np.asarray(state["sigma_s"]))
+            calibration = json.loads(str(state["calibration"]))
+            floors = np.asarray(state["floors"])
+            map_views_equal = bool(state["map_views_equal"])
+        except (KeyError, ValueError, TypeError, IndexError) as err:
+            raise MapError(f"powed: fitted state unreadable: {type(err).__name__}: {err}") from err
+        self.release_fit_data()
+        self.radio_map = radio_map
+        self.aps = ApIndex(radio_map.bssids)
+        self._w, self._pos, self._z, self._n_map, self._home = w, pos, z, n_map, home
+        self._grid_pos, self._grid_z = pos[n_map:], z[n_map:]
+        self._kernel = kernel
+        self._views = built
+        self._floors = floors
+        self._floor_names = {float(zf): str(name) for name, zf in radio_map.floors.items()}
+        self._map_views_equal = map_views_equal
+        self.sigma_table, self.sigma_tables, self.calibration = sigma_table, tables, calibration
+        return self
 
 
 def _sorensen(c: np.ndarray, q: np.ndarray, readings: ApReadings, sums: np.ndarray, m: int) -> np.ndarray:

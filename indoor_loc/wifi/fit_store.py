@@ -1,0 +1,226 @@
+"""Fit once, load everywhere: the fitted state of a WiFi positioner saved beside its radio map.
+
+Fitting the powed k-NN (:mod:`indoor_loc.wifi.powed_knn`) to a large map takes seconds to tens of seconds
+(its interpolated grid, the path-loss field in the floor plans and the leave-walks-out calibration), and
+every ``wifi_fix_node`` started on the same map would spend it again. A :class:`FitStore` saves what the
+positioning needs after the fit (:meth:`PowedKnn.fitted_state`: the grid's values, the σ tables, the AP
+weights, the floor detection's home floors, …) as one ``.npz`` file of plain arrays (no pickled objects)
+and loads it back, bit for bit, at the next start.
+
+The file is used only when it was made for the same inputs: its **key** is a SHA-256 over the format
+version, the radio map's files (the manifest and the files it names), the floor plans' files
+(``map.yaml`` and ``geojson_map.json`` of each floor), the positioner's parameters, the source code of
+the modules that compute the fit, and the numpy/scipy versions. A file whose key differs (stale) or that
+cannot be read (corrupt, truncated, inconsistent with the map) is refused with a log line saying why,
+the positioner is fitted, and the file replaced. Files are written to a temporary name in the same
+directory and renamed, so a reader never sees half a file and two processes fitting at once leave one
+whole file. A directory that cannot be written is logged and the fit is simply not saved.
+
+Location: ``<cache directory>/wifi_fit_<name>.npz``, where the cache directory defaults to
+``<radio map>/fit_cache`` and the name is a hash of the map's path and the parameters, so maps and
+parameter sets sharing one directory do not overwrite each other. Parts of a positioner other than
+powed k-NN (WKNN, coverage areas, path loss; a chain's primary) fit in well under a second and are
+fitted as usual.
+"""
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import hashlib
+import importlib
+import json
+import os
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from indoor_loc.errors import MapError
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.radiomap import APS_FILE, FINGERPRINTS_FILE, MANIFEST, read_manifest
+from indoor_loc.wifi.types import Positioner, RadioMap
+
+FORMAT = "indoor_loc.wifi_fit"
+FORMAT_VERSION = 1
+#: the default cache directory, inside the radio map's directory
+CACHE_DIRNAME = "fit_cache"
+#: modules whose code decides the fitted state: editing any of them changes the key
+CODE_MODULES = ("indoor_loc.wifi.powed_knn", "indoor_loc.wifi.radio_field", "indoor_loc.wifi.pathloss",
+                "indoor_loc.wifi.types", "indoor_loc.wifi.walkable", "indoor_loc.wifi.radiomap",
+                "indoor_loc.wifi.fit_store")
+
+#: log(level, text) with level "info" or "warning"
+Log = Callable[[str, str], None]
+
+
+def _no_log(level: str, text: str) -> None:
+    pass
+
+
+def _hash_files(h: Any, root: Path, files: list[Path]) -> None:
+    for f in files:
+        h.update(str(f.relative_to(root)).encode() + b"\0")
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        h.update(b"\0")
+
+
+def map_files(map_dir: Path) -> list[Path]:
+    """The files a radio map directory is read from: its manifest and the files it names."""
+    files = read_manifest(map_dir).get("files") or {}
+    out = [map_dir / MANIFEST]
+    for name in sorted({files.get("aps", APS_FILE), files.get("fingerprints", FINGERPRINTS_FILE)}):
+        if (map_dir / name).is_file():
+            out.append(map_dir / name)
+    return out
+
+
+def plan_files(floor_plans: Path) -> list[Path]:
+    """The files :func:`indoor_loc.wifi.walkable.load_floor_plans` reads under ``floor_plans``."""
+    metas = [floor_plans / "map.yaml"] if (floor_plans / "map.yaml").is_file() else \
+        sorted(floor_plans.glob("*/map.yaml"))
+    return [f for m in metas for f in (m, m.parent / "geojson_map.json") if f.is_file()]
+
+
+def code_digest() -> str:
+    """SHA-256 of the source of :data:`CODE_MODULES` and the numpy/scipy versions."""
+    import scipy
+    h = hashlib.sha256(f"numpy {np.__version__} scipy {scipy.__version__}".encode())
+    for name in CODE_MODULES:
+        src = getattr(importlib.import_module(name), "__file__", None)
+        h.update(name.encode() + b"\0")
+        if src:
+            h.update(Path(src).read_bytes())
+    return h.hexdigest()
+
+
+def _leaves(pos: Positioner) -> list[Positioner]:
+    """The positioners a chain is made of (itself when it is no chain), in fitting order."""
+    if hasattr(pos, "primary") and hasattr(pos, "fallback"):
+        return _leaves(pos.primary) + _leaves(pos.fallback)
+    return [pos]
+
+
+class FitStore:
+    """Saved fits of positioners on the radio map in ``map_dir`` (with the floor plans in ``floor_plans``,
+    "" = none), in ``cache_dir`` (default ``map_dir/fit_cache``)."""
+
+    def __init__(self, map_dir: str | Path, floor_plans: str | Path = "", cache_dir: str | Path = "") -> None:
+        self.map_dir = Path(map_dir).expanduser().resolve()
+        self.floor_plans = Path(floor_plans).expanduser().resolve() if str(floor_plans) else None
+        self.cache_dir = Path(cache_dir).expanduser() if str(cache_dir) else self.map_dir / CACHE_DIRNAME
+        self._inputs: str | None = None
+        #: the files loaded and written by this store
+        self.loaded: list[Path] = []
+        self.saved: list[Path] = []
+
+    def inputs_digest(self) -> str:
+        """SHA-256 of the map's and plans' files and the fitting code (computed once)."""
+        if self._inputs is None:
+            h = hashlib.sha256(f"{FORMAT} {FORMAT_VERSION}\0{code_digest()}\0".encode())
+            _hash_files(h, self.map_dir, map_files(self.map_dir))
+            h.update(b"plans\0")
+            if self.floor_plans is not None:
+                _hash_files(h, self.floor_plans, plan_files(self.floor_plans))
+            self._inputs = h.hexdigest()
+        return self._inputs
+
+    def _settings(self, part: PowedKnn, index: int) -> str:
+        return json.dumps({"part": index, "method": part.name, "walkable": part.walkable is not None,
+                           "params": dataclasses.asdict(part.params)}, sort_keys=True)
+
+    def key(self, part: PowedKnn, index: int) -> str:
+        """The key a saved fit of ``part`` (the ``index``-th part of its chain) must carry."""
+        return hashlib.sha256(f"{self.inputs_digest()}\0{self._settings(part, index)}".encode()).hexdigest()
+
+    def path(self, part: PowedKnn, index: int) -> Path:
+        """Where the fit of ``part`` is saved: named by the map's path and the parameters."""
+        name = hashlib.sha256(f"{self.map_dir}\0{self.floor_plans}\0{self._settings(part, index)}".encode())
+        return self.cache_dir / f"wifi_fit_{name.hexdigest()[:16]}.npz"
+
+    # ------------------------------------------------------------------------------------------
+    def load(self, part: PowedKnn, index: int, rm: RadioMap, log: Log = _no_log) -> bool:
+        """Load the saved fit of ``part`` into it; False (with a log line saying why, unless there is
+        simply none) when there is none or it is refused."""
+        path = self.path(part, index)
+        if not path.is_file():
+            return False
+        t0 = time.monotonic()
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
+                    log("warning", f"fit cache {path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
+                                   f"expected {FORMAT!r} {FORMAT_VERSION}: refused, fitting again")
+                    return False
+                if meta.get("key") != self.key(part, index):
+                    log("info", f"fit cache {path} is stale (the radio map, floor plans, parameters or code "
+                                f"changed since it was written): fitting again")
+                    return False
+                part.load_fitted_state(rm, {k: z[k] for k in z.files if k != "meta"})
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, MapError) as err:
+            log("warning", f"fit cache {path} is unreadable ({type(err).__name__}: {err}): refused, fitting again")
+            return False
+        log("info", f"loaded the fitted radio map from {path} in {time.monotonic() - t0:.1f} s")
+        self.loaded.append(path)
+        return True
+
+    def save(self, part: PowedKnn, index: int, log: Log = _no_log) -> Path | None:
+        """Write the fit of ``part`` atomically; None (logged) when the directory cannot be written."""
+        path = self.path(part, index)
+        meta = {"format": FORMAT, "version": FORMAT_VERSION, "key": self.key(part, index),
+                "radiomap": str(self.map_dir), "floor_plans": str(self.floor_plans or ""),
+                "written": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        tmp = None
+        try:
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp", dir=self.cache_dir)
+            with os.fdopen(fd, "wb") as fh:
+                savez: Any = np.savez                # (its typing does not take arrays by keyword)
+                savez(fh, meta=np.array(json.dumps(meta)), **part.fitted_state())
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, 0o644)                       # mkstemp's 0600: other users' nodes read it too
+            os.replace(tmp, path)
+        except OSError as err:
+            log("warning", f"could not write the fit cache in {self.cache_dir} ({err}): the fit is not saved")
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+            return None
+        log("info", f"saved the fitted radio map to {path}")
+        self.saved.append(path)
+        return path
+
+
+def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None, log: Log = _no_log, *,
+                   refit: bool = False) -> Positioner:
+    """``pos.fit(rm)``, except that with a ``store`` each powed k-NN part is loaded from its saved fit when
+    one matches (unless ``refit``), and a part fitted is saved. Powed k-NN parts then drop what only the
+    fit needed (:meth:`PowedKnn.release_fit_data`). The fixes are those of ``pos.fit(rm)``."""
+    for index, part in enumerate(_leaves(pos)):
+        if not isinstance(part, PowedKnn):
+            part.fit(rm)
+            continue
+        if store is not None and not refit and store.load(part, index, rm, log):
+            continue
+        t0 = time.thread_time()
+        part.fit(rm)
+        part.release_fit_data()
+        if store is not None:
+            log("info", f"fitted the radio map ({rm.n_scans} scans) in {time.thread_time() - t0:.1f} s CPU")
+            store.save(part, index, log)
+    release_free_memory()
+    return pos
+
+
+def release_free_memory() -> None:
+    """Hand the heap's free pages back to the system (glibc ``malloc_trim``; elsewhere nothing): the fit's
+    temporaries, freed, otherwise stay in the process's resident memory."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass

@@ -1,0 +1,269 @@
+"""Saved fits of the WiFi positioner (indoor_loc.wifi.fit_store): loaded bit for bit, refused when stale or
+corrupt, and the wifi_fix stage / `indoor-loc radiomap fit` using them."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from indoor_loc.params import params_from_dict
+from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
+from indoor_loc.wifi.fit_store import FitStore, fit_positioner
+from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
+from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, load_radiomap, save_radiomap
+from indoor_loc.wifi.types import WifiScan
+from indoor_loc.wifi.walkable import load_floor_plans
+
+SIZE = (40.0, 24.0)
+FLOORS = {"F1": 0.0, "F2": 5.0}
+N_APS = 24
+
+
+def _write_plans(root: Path) -> Path:
+    """Both floors' plans in the importer's layout: the outline with one shop in it."""
+    def poly(x0, y0, x1, y1):
+        return {"type": "Feature", "properties": {},
+                "geometry": {"type": "Polygon", "coordinates": [[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]]}}
+    for name, z in FLOORS.items():
+        d = root / name
+        d.mkdir(parents=True)
+        (d / "map.yaml").write_text(yaml.safe_dump({"floor": name, "z_m": z, "width_m": SIZE[0],
+                                                    "height_m": SIZE[1], "frame_id": "map"}))
+        feats = [poly(0, 0, 400, 240), poly(150, 150, 250, 240)]
+        (d / "geojson_map.json").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    return root
+
+
+def _world(seed: int = 5):
+    """Log-distance APs on two floors (a slab costs 15 dB) and a scan maker with cached readings (ages)."""
+    rng = np.random.default_rng(seed)
+    ap = np.column_stack([rng.uniform(0, SIZE[0], N_APS), rng.uniform(0, SIZE[1], N_APS)])
+    ap_z = np.where(np.arange(N_APS) % 2 == 0, 0.0, 5.0)
+    p0 = rng.uniform(-40, -30, N_APS)
+    bssids = [f"02:00:00:00:03:{i:02x}" for i in range(N_APS)]
+
+    def scans(xy, z, t0):
+        d = np.sqrt(((xy[:, None, :] - ap[None]) ** 2).sum(-1) + 1.0)
+        r = p0[None] - 30 * np.log10(d) - 15 * (np.abs(ap_z[None] - z) > 0) + rng.normal(0, 4, (len(xy), N_APS))
+        out = []
+        for i, row in enumerate(r):
+            c = np.flatnonzero(row > -95)
+            out.append(WifiScan(stamp_ns=t0 + i * 1_000_000_000, bssid=tuple(bssids[j] for j in c),
+                                rssi_dbm=row[c], freq_mhz=np.full(len(c), 2437.0),
+                                age_ms=rng.choice([0.0, 0.0, 1500.0, 9000.0], len(c))))
+        return out
+    return rng, scans
+
+
+def _site(tmp_path: Path):
+    """A two-floor radio map directory (walks at y = 4 and 10 per floor) and its floor plans; test scans
+    off the walks (north of them, where only the plan-bounded field reaches)."""
+    rng, scans = _world()
+    rm = empty_radiomap()
+    t = 0
+    xs = np.arange(1.0, SIZE[0], 1.5)
+    for name, z in FLOORS.items():
+        for j, y in enumerate((4.0, 10.0)):
+            pts = np.column_stack([xs, np.full(len(xs), y)])
+            rm = add_fingerprints(rm, pts, scans(pts, z, t), f"{name}_walk{j}", z_m=z, floors={name: z})
+            t += 100 * 10**9
+    save_radiomap(rm, tmp_path / "radiomap")
+    plans = _write_plans(tmp_path / "floors")
+    test = []
+    for z in FLOORS.values():
+        pts = np.column_stack([rng.uniform(1, SIZE[0] - 1, 12), rng.uniform(2, 16, 12)])
+        test += scans(pts, z, t)
+        t += 100 * 10**9
+    return tmp_path / "radiomap", plans, test
+
+
+def _params(mapdir: Path, plans: Path, **kw) -> WifiFixParams:
+    return params_from_dict(WifiFixParams, {"radiomap": str(mapdir), "method": "powed", "floor_plans": str(plans),
+                                            "powed": {"field_weight": 0.05}, **kw})
+
+
+def _fixes(pos, scans):
+    return [pos.locate(s) for s in scans]
+
+
+def _assert_same(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert (x.ok, x.reason) == (y.ok, y.reason)
+        assert np.array_equal(x.xy, y.xy, equal_nan=True) and np.array_equal(x.cov, y.cov, equal_nan=True)
+        assert (x.z, x.z_var) == (y.z, y.z_var)
+        if x.ok:
+            assert x.info["floor_p"] == y.info["floor_p"] and x.info["offset_db"] == y.info["offset_db"]
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    return _site(tmp_path_factory.mktemp("fitstore"))
+
+
+def _logger():
+    lines: list[tuple[str, str]] = []
+    return lines, lambda level, text: lines.append((level, text))
+
+
+def test_saved_fit_gives_the_fixes_of_a_fresh_fit_bit_for_bit(site, tmp_path, monkeypatch):
+    mapdir, plans, scans = site
+    rm = load_radiomap(mapdir)
+    walkable, _ = load_floor_plans(plans)
+    fresh = PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(rm)     # keeps its fit data
+    assert fresh._prior is not None and len(fresh._floors) == 2 and len(fresh._views) == 4
+    expect = _fixes(fresh, scans)
+    assert sum(f.ok for f in expect) == len(scans)
+    assert any(r >= fresh._n_map for f in expect for r in f.info["rows"])     # grid candidates are used
+    assert len({f.z for f in expect}) == 2 and any(f.info["offset_db"] != 0 for f in expect)
+
+    store = FitStore(mapdir, plans, tmp_path / "cache")
+    lines, log = _logger()
+    fitted = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store, log)
+    assert fitted._prior is None and fitted._vals == []               # fit data released after the fit
+    assert [lv for lv, _ in lines] == ["info", "info"] and "saved the fitted radio map" in lines[1][1]
+    _assert_same(_fixes(fitted, scans), expect)
+
+    monkeypatch.setattr(PowedKnn, "fit", lambda self, rm: pytest.fail("fitted instead of loaded"))
+    lines, log = _logger()
+    loaded = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store, log)
+    assert len(lines) == 1 and "loaded the fitted radio map" in lines[0][1]
+    _assert_same(_fixes(loaded, scans), expect)
+    assert loaded.calibration == fresh.calibration and loaded.calibration["scans"] > 10
+    # twin views share their grid values after the load as after the fit
+    assert loaded._views[2].parts[0][0] is not loaded._views[3].parts[0][0]
+    assert len({id(rd) for v in loaded._views for rd, _, _ in v.parts}) == \
+        len({id(rd) for v in fitted._views for rd, _, _ in v.parts})
+
+
+def test_changed_map_plans_or_params_are_not_served_the_old_fit(site, tmp_path):
+    mapdir, plans, scans = site
+    work = tmp_path / "site"
+    import shutil
+    shutil.copytree(mapdir, work / "radiomap")
+    shutil.copytree(plans, work / "floors")
+    mapdir, plans = work / "radiomap", work / "floors"
+    walkable, _ = load_floor_plans(plans)
+    store = FitStore(mapdir, plans)                      # default: beside the map
+    rm = load_radiomap(mapdir)
+    fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store)
+    files = sorted((mapdir / "fit_cache").glob("*.npz"))
+    assert len(files) == 1
+    # other parameters: another file, fitted afresh
+    lines, log = _logger()
+    fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05, k=3), walkable=walkable), rm, store, log)
+    assert "fitted the radio map" in lines[0][1] and len(list((mapdir / "fit_cache").glob("*.npz"))) == 2
+    # an edited plan: the saved fit is stale
+    gj = plans / "F2" / "geojson_map.json"
+    gj.write_text(gj.read_text().replace("150, 150", "160, 150"))
+    lines, log = _logger()
+    store = FitStore(mapdir, plans)
+    walkable, _ = load_floor_plans(plans)
+    pos = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store, log)
+    assert "is stale" in lines[0][1] and "fitted the radio map" in lines[1][1]
+    _assert_same(_fixes(pos, scans),
+                 _fixes(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(rm), scans))
+    # a grown map (same directory): stale again
+    rm2 = add_fingerprints(rm, [[20.0, 7.0]], scans[:1], "more", z_m=0.0)
+    save_radiomap(rm2, mapdir)
+    lines, log = _logger()
+    fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), load_radiomap(mapdir),
+                   FitStore(mapdir, plans), log)
+    assert "is stale" in lines[0][1]
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "inconsistent", "wrong_format"])
+def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
+    mapdir, plans, scans = site
+    walkable, _ = load_floor_plans(plans)
+    rm = load_radiomap(mapdir)
+    store = FitStore(mapdir, plans, tmp_path / "cache")
+
+    def make():
+        return PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable)
+    expect = _fixes(fit_positioner(make(), rm, store), scans)
+    path = store.path(make(), 0)
+    blob = path.read_bytes()
+    if damage == "truncated":
+        path.write_bytes(blob[: len(blob) // 2])
+    elif damage == "garbage":
+        path.write_bytes(b"\x00" * 100)
+    else:
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+        if damage == "inconsistent":                  # the right key, but arrays that do not fit the map
+            arrays["home"] = arrays["home"][:-1]
+        else:
+            meta = json.loads(str(arrays["meta"]))
+            arrays["meta"] = np.array(json.dumps({**meta, "version": 99}))
+        np.savez(path, **arrays)
+    lines, log = _logger()
+    pos = fit_positioner(make(), rm, store, log)
+    assert lines[0][0] == "warning" and str(path) in lines[0][1] and "refused" in lines[0][1]
+    assert "fitted the radio map" in lines[1][1] and "saved" in lines[2][1]
+    _assert_same(_fixes(pos, scans), expect)
+    lines, log = _logger()
+    _assert_same(_fixes(fit_positioner(make(), rm, store, log), scans), expect)    # the replacement loads
+    assert "loaded" in lines[0][1]
+
+
+def test_an_unwritable_cache_directory_is_logged_and_the_fit_still_used(site, tmp_path):
+    mapdir, plans, scans = site
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("")
+    rm = load_radiomap(mapdir)
+    lines, log = _logger()
+    pos = fit_positioner(PowedKnn(PowedKnnParams()), rm, FitStore(mapdir, "", blocker / "cache"), log)
+    assert lines[-1][0] == "warning" and "could not write the fit cache" in lines[-1][1]
+    _assert_same(_fixes(pos, scans), _fixes(PowedKnn(PowedKnnParams()).fit(rm), scans))
+    assert list(tmp_path.glob("**/*.tmp")) == []
+
+
+def test_wifi_fix_stage_loads_the_saved_fit_and_gives_the_same_fixes(site, tmp_path, capsys):
+    """Offline and live the stage fits the configured map once; a second stage loads it (fit_cache), one with
+    fit_cache false neither reads nor writes it; a chain (WKNN + powed fallback) caches its powed part."""
+    from msg_adapters.wifi_scan import scan_to_msg
+    mapdir, plans, scans = site
+    cache = tmp_path / "cache"
+
+    def run(**kw):
+        st = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache), **kw))
+        out = [st.process("wifi/scan", scan_to_msg(s), i) for i, s in enumerate(scans)]
+        return [o[0][1] for o in out if o], capsys.readouterr().err
+    plain, err = run(fit_cache=False)
+    assert err == "" and not cache.exists()
+    first, err = run()
+    assert "saved the fitted radio map" in err and len(list(cache.glob("*.npz"))) == 1
+    second, err = run()
+    assert "loaded the fitted radio map" in err and "fitted the radio map (" not in err
+    assert len(plain) == len(scans)
+    for a, b, c in zip(plain, first, second):
+        assert a.pose == b.pose == c.pose
+    chain, err = run(method="wknn", fallback="powed")
+    assert "saved" in err and len(list(cache.glob("*.npz"))) == 2
+    again, err = run(method="wknn", fallback="powed")
+    assert "loaded" in err and [m.pose for m in again] == [m.pose for m in chain]
+
+
+def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
+    from indoor_loc.cli import main
+    mapdir, plans, _ = site
+    params = tmp_path / "params.yaml"
+    cache = tmp_path / "cache"
+    params.write_text(yaml.safe_dump({"/**/wifi_fix_node": {"ros__parameters": {
+        "radiomap": str(mapdir), "method": "powed", "floor_plans": str(plans), "fit_cache_dir": str(cache),
+        "powed": {"field_weight": 0.05}}}}))
+    assert main(["radiomap", "fit", "--params", str(params)]) == 0
+    out = capsys.readouterr()
+    assert "saved the fitted radio map" in out.out and len(list(cache.glob("*.npz"))) == 1
+    assert main(["radiomap", "fit", "--params", str(params)]) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert main(["radiomap", "fit", "--params", str(params), "--refit"]) == 0
+    assert "saved the fitted radio map" in capsys.readouterr().out
+    params.write_text(yaml.safe_dump({"/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(mapdir),
+                                                                                  "fit_cache": False}}}))
+    assert main(["radiomap", "fit", "--params", str(params)]) == 2
+    assert "fit_cache" in capsys.readouterr().err
