@@ -875,6 +875,8 @@ class PowedKnn(Positioner):
             "views": np.array([[v.aged, v.values, v.grid, v.twin] for v in self._views], np.int64).reshape(-1, 4)}
         for i, (d1, sig) in enumerate(self.sigma_tables):
             out[f"sigma{i}_d1"], out[f"sigma{i}_s"] = d1, sig
+        if self._off is not None:                        # the grid points beyond the survey (field_survey_share)
+            out["off"] = self._off
         parts: dict[int, int] = {}                       # id(readings) -> part number
         for j, view in enumerate(self._views):
             ids = []
@@ -940,6 +942,9 @@ class PowedKnn(Positioner):
             calibration = json.loads(str(state["calibration"]))
             floors = np.asarray(state["floors"])
             map_views_equal = bool(state["map_views_equal"])
+            off = np.asarray(state["off"], bool) if "off" in state else None
+            if off is not None and off.shape != (len(pos),):
+                raise MapError(f"off-survey flags of shape {off.shape}, expected {(len(pos),)}")
         except (KeyError, ValueError, TypeError, IndexError) as err:
             raise MapError(f"powed: fitted state unreadable: {type(err).__name__}: {err}") from err
         self.release_fit_data()
@@ -952,6 +957,7 @@ class PowedKnn(Positioner):
         self._floors = floors
         self._floor_names = {float(zf): str(name) for name, zf in radio_map.floors.items()}
         self._map_views_equal = map_views_equal
+        self._off = off
         self.sigma_table, self.sigma_tables, self.calibration = sigma_table, tables, calibration
         return self
 
