@@ -11,7 +11,7 @@ import yaml
 
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
-from indoor_loc.wifi.fit_store import FitStore, fit_positioner
+from indoor_loc.wifi.fit_store import FitStore, fit_positioner, read_arrays, read_header, write_arrays
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, load_radiomap, save_radiomap
 from indoor_loc.wifi.types import WifiScan
@@ -150,12 +150,12 @@ def test_changed_map_plans_or_params_are_not_served_the_old_fit(site, tmp_path):
     store = FitStore(mapdir, plans)                      # default: beside the map
     rm = load_radiomap(mapdir)
     fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store)
-    files = sorted((mapdir / "fit_cache").glob("*.npz"))
+    files = sorted((mapdir / "fit_cache").glob("*.fit"))
     assert len(files) == 1
     # other parameters: another file, fitted afresh
     lines, log = _logger()
     fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05, k=3), walkable=walkable), rm, store, log)
-    assert "fitted the radio map" in lines[0][1] and len(list((mapdir / "fit_cache").glob("*.npz"))) == 2
+    assert "fitted the radio map" in lines[0][1] and len(list((mapdir / "fit_cache").glob("*.fit"))) == 2
     # an edited plan: the saved fit is stale
     gj = plans / "F2" / "geojson_map.json"
     gj.write_text(gj.read_text().replace("150, 150", "160, 150"))
@@ -175,7 +175,7 @@ def test_changed_map_plans_or_params_are_not_served_the_old_fit(site, tmp_path):
     assert "is stale" in lines[0][1]
 
 
-@pytest.mark.parametrize("damage", ["truncated", "garbage", "inconsistent", "wrong_format"])
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "bit_flip", "inconsistent", "wrong_format"])
 def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
     mapdir, plans, scans = site
     walkable, _ = load_floor_plans(plans)
@@ -191,15 +191,22 @@ def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
         path.write_bytes(blob[: len(blob) // 2])
     elif damage == "garbage":
         path.write_bytes(b"\x00" * 100)
+    elif damage == "bit_flip":                        # one bit of the grid's values: the checksum differs
+        flipped = bytearray(blob)
+        flipped[len(blob) - 1000] ^= 0x10
+        path.write_bytes(bytes(flipped))
     else:
-        with np.load(path) as z:
-            arrays = {k: z[k] for k in z.files}
+        meta, data = read_header(path)
+        arrays = {k: np.array(v) for k, v in read_arrays(meta, data).items()}
+        meta = {k: v for k, v in meta.items() if k not in ("arrays", "data_bytes", "crc32")}
+        del data
         if damage == "inconsistent":                  # the right key, but arrays that do not fit the map
             arrays["home"] = arrays["home"][:-1]
         else:
-            meta = json.loads(str(arrays["meta"]))
-            arrays["meta"] = np.array(json.dumps({**meta, "version": 99}))
-        np.savez(path, **arrays)
+            meta["version"] = 99
+        path.unlink()
+        with open(path, "wb") as fh:
+            write_arrays(fh, meta, arrays)
     lines, log = _logger()
     pos = fit_positioner(make(), rm, store, log)
     assert lines[0][0] == "warning" and str(path) in lines[0][1] and "refused" in lines[0][1]
@@ -236,14 +243,14 @@ def test_wifi_fix_stage_loads_the_saved_fit_and_gives_the_same_fixes(site, tmp_p
     plain, err = run(fit_cache=False)
     assert err == "" and not cache.exists()
     first, err = run()
-    assert "saved the fitted radio map" in err and len(list(cache.glob("*.npz"))) == 1
+    assert "saved the fitted radio map" in err and len(list(cache.glob("*.fit"))) == 1
     second, err = run()
     assert "loaded the fitted radio map" in err and "fitted the radio map (" not in err
     assert len(plain) == len(scans)
     for a, b, c in zip(plain, first, second):
         assert a.pose == b.pose == c.pose
     chain, err = run(method="wknn", fallback="powed")
-    assert "saved" in err and len(list(cache.glob("*.npz"))) == 2
+    assert "saved" in err and len(list(cache.glob("*.fit"))) == 2
     again, err = run(method="wknn", fallback="powed")
     assert "loaded" in err and [m.pose for m in again] == [m.pose for m in chain]
 
@@ -258,7 +265,7 @@ def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
         "powed": {"field_weight": 0.05}}}}))
     assert main(["radiomap", "fit", "--params", str(params)]) == 0
     out = capsys.readouterr()
-    assert "saved the fitted radio map" in out.out and len(list(cache.glob("*.npz"))) == 1
+    assert "saved the fitted radio map" in out.out and len(list(cache.glob("*.fit"))) == 1
     assert main(["radiomap", "fit", "--params", str(params)]) == 0
     assert "up to date" in capsys.readouterr().out
     assert main(["radiomap", "fit", "--params", str(params), "--refit"]) == 0

@@ -4,19 +4,22 @@ Fitting the powed k-NN (:mod:`indoor_loc.wifi.powed_knn`) to a large map takes s
 (its interpolated grid, the path-loss field in the floor plans and the leave-walks-out calibration), and
 every ``wifi_fix_node`` started on the same map would spend it again. A :class:`FitStore` saves what the
 positioning needs after the fit (:meth:`PowedKnn.fitted_state`: the grid's values, the σ tables, the AP
-weights, the floor detection's home floors, …) as one ``.npz`` file of plain arrays (no pickled objects)
-and loads it back, bit for bit, at the next start.
+weights, the floor detection's home floors, …) as one file of plain arrays (a JSON header, then the raw
+bytes; no pickled objects) and loads it back, bit for bit, at the next start. The grid's values, most of
+the file, are not copied but mapped read-only from the file, so the nodes of several users on one map
+share one copy in memory (and the system may drop and re-read those pages under pressure).
 
 The file is used only when it was made for the same inputs: its **key** is a SHA-256 over the format
 version, the radio map's files (the manifest and the files it names), the floor plans' files
 (``map.yaml`` and ``geojson_map.json`` of each floor), the positioner's parameters, the source code of
 the modules that compute the fit, and the numpy/scipy versions. A file whose key differs (stale) or that
-cannot be read (corrupt, truncated, inconsistent with the map) is refused with a log line saying why,
+cannot be read (truncated, a CRC-32 mismatch, inconsistent with the map) is refused with a log line saying why,
 the positioner is fitted, and the file replaced. Files are written to a temporary name in the same
 directory and renamed, so a reader never sees half a file and two processes fitting at once leave one
-whole file. A directory that cannot be written is logged and the fit is simply not saved.
+whole file (a file is never rewritten in place: a node that has one mapped keeps reading the version it
+loaded). A directory that cannot be written is logged and the fit is simply not saved.
 
-Location: ``<cache directory>/wifi_fit_<name>.npz``, where the cache directory defaults to
+Location: ``<cache directory>/wifi_fit_<name>.fit``, where the cache directory defaults to
 ``<radio map>/fit_cache`` and the name is a hash of the map's path and the parameters, so maps and
 parameter sets sharing one directory do not overwrite each other. Parts of a positioner other than
 powed k-NN (WKNN, coverage areas, path loss; a chain's primary) fit in well under a second and are
@@ -29,10 +32,13 @@ import dataclasses
 import hashlib
 import importlib
 import json
+import mmap
 import os
+import re
+import struct
 import tempfile
 import time
-import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, Callable
 
@@ -44,7 +50,7 @@ from indoor_loc.wifi.radiomap import APS_FILE, FINGERPRINTS_FILE, MANIFEST, read
 from indoor_loc.wifi.types import Positioner, RadioMap
 
 FORMAT = "indoor_loc.wifi_fit"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: the default cache directory, inside the radio map's directory
 CACHE_DIRNAME = "fit_cache"
 #: modules whose code decides the fitted state: editing any of them changes the key
@@ -140,7 +146,7 @@ class FitStore:
     def path(self, part: PowedKnn, index: int) -> Path:
         """Where the fit of ``part`` is saved: named by the map's path and the parameters."""
         name = hashlib.sha256(f"{self.map_dir}\0{self.floor_plans}\0{self._settings(part, index)}".encode())
-        return self.cache_dir / f"wifi_fit_{name.hexdigest()[:16]}.npz"
+        return self.cache_dir / f"wifi_fit_{name.hexdigest()[:16]}.fit"
 
     # ------------------------------------------------------------------------------------------
     def load(self, part: PowedKnn, index: int, rm: RadioMap, log: Log = _no_log) -> bool:
@@ -151,18 +157,17 @@ class FitStore:
             return False
         t0 = time.monotonic()
         try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
-                    log("warning", f"fit cache {path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
-                                   f"expected {FORMAT!r} {FORMAT_VERSION}: refused, fitting again")
-                    return False
-                if meta.get("key") != self.key(part, index):
-                    log("info", f"fit cache {path} is stale (the radio map, floor plans, parameters or code "
-                                f"changed since it was written): fitting again")
-                    return False
-                part.load_fitted_state(rm, {k: z[k] for k in z.files if k != "meta"})
-        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, MapError) as err:
+            meta, data = read_header(path)
+            if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
+                log("warning", f"fit cache {path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
+                               f"expected {FORMAT!r} {FORMAT_VERSION}: refused, fitting again")
+                return False
+            if meta.get("key") != self.key(part, index):
+                log("info", f"fit cache {path} is stale (the radio map, floor plans, parameters or code "
+                            f"changed since it was written): fitting again")
+                return False
+            part.load_fitted_state(rm, read_arrays(meta, data))
+        except (OSError, ValueError, KeyError, TypeError, MapError) as err:
             log("warning", f"fit cache {path} is unreadable ({type(err).__name__}: {err}): refused, fitting again")
             return False
         log("info", f"loaded the fitted radio map from {path} in {time.monotonic() - t0:.1f} s")
@@ -180,8 +185,7 @@ class FitStore:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp", dir=self.cache_dir)
             with os.fdopen(fd, "wb") as fh:
-                savez: Any = np.savez                # (its typing does not take arrays by keyword)
-                savez(fh, meta=np.array(json.dumps(meta)), **part.fitted_state())
+                write_arrays(fh, meta, part.fitted_state())
                 fh.flush()
                 os.fsync(fh.fileno())
             os.chmod(tmp, 0o644)                       # mkstemp's 0600: other users' nodes read it too
@@ -194,6 +198,82 @@ class FitStore:
         log("info", f"saved the fitted radio map to {path}")
         self.saved.append(path)
         return path
+
+
+# ----------------------------------------------------------------------------------------------
+# the file: MAGIC, the header's length (8 bytes, little-endian), the header (JSON: the caller's metadata,
+# each array's dtype, shape and offset, the data's length and CRC-32), then the arrays' bytes, each
+# starting at a multiple of ALIGN bytes
+# ----------------------------------------------------------------------------------------------
+MAGIC = b"indoor_loc.fit\n\0"
+ALIGN = 64
+#: arrays left in the file's mapping instead of copied (read only; the processes that load one file share
+#: its pages): the values and rows of the grid's inverted indexes, most of the file
+SHARED = re.compile(r"part\d+_(row|val)")
+
+
+def _aligned(n: int) -> int:
+    return -(-n // ALIGN) * ALIGN
+
+
+def write_arrays(fh: Any, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+    """Write ``meta`` and ``arrays`` (numeric, bool or str; no objects) to the binary file ``fh``."""
+    table: dict[str, dict[str, Any]] = {}
+    flat: list[tuple[memoryview, int]] = []
+    crc, offset = 0, 0
+    for name, a in arrays.items():
+        a = np.asarray(a)
+        a = a if a.flags.c_contiguous else a.copy(order="C")       # (ascontiguousarray makes 0-d arrays 1-d)
+        if a.dtype.hasobject:
+            raise ValueError(f"array {name!r} holds Python objects")
+        table[name] = {"dtype": a.dtype.str, "shape": list(a.shape), "offset": offset}
+        raw = memoryview(a.reshape(-1).view(np.uint8).data)
+        pad = _aligned(len(raw)) - len(raw)
+        crc = zlib.crc32(b"\0" * pad, zlib.crc32(raw, crc))
+        flat.append((raw, pad))
+        offset += len(raw) + pad
+    header = json.dumps({**meta, "arrays": table, "data_bytes": offset, "crc32": crc}).encode()
+    fh.write(MAGIC + struct.pack("<Q", len(header)) + header + b"\0" * (_aligned(24 + len(header)) - 24 - len(header)))
+    for raw, pad in flat:
+        fh.write(raw)
+        fh.write(b"\0" * pad)
+
+
+def read_header(path: Path) -> tuple[dict[str, Any], memoryview]:
+    """(the header, the data as a read-only mapping of the file). ValueError when the file is not one of
+    these or its length does not match its header (truncated)."""
+    with open(path, "rb") as fh:
+        head = fh.read(24)
+        if len(head) < 24 or head[:16] != MAGIC:
+            raise ValueError("not a saved fit (wrong magic bytes)")
+        n = struct.unpack("<Q", head[16:])[0]
+        if n > 1 << 24:
+            raise ValueError(f"header of {n} bytes")
+        meta = json.loads(fh.read(n))
+        if not isinstance(meta, dict):
+            raise ValueError("header is not a mapping")
+        start = _aligned(24 + n)
+        size = os.fstat(fh.fileno()).st_size
+        if size != start + int(meta.get("data_bytes", -1)):
+            raise ValueError(f"{size} bytes, the header describes {start + int(meta.get('data_bytes', 0))}")
+        mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    return meta, memoryview(mm)[start:]
+
+
+def read_arrays(meta: dict[str, Any], data: memoryview) -> dict[str, np.ndarray]:
+    """The arrays of a file read by :func:`read_header`, after checking the data's CRC-32 (ValueError when it
+    differs): those matching :data:`SHARED` as read-only views of the mapping, the others copied."""
+    if zlib.crc32(data) != meta.get("crc32"):
+        raise ValueError("checksum mismatch (the file was damaged)")
+    out: dict[str, np.ndarray] = {}
+    for name, spec in meta["arrays"].items():
+        dtype, shape = np.dtype(spec["dtype"]), tuple(int(v) for v in spec["shape"])
+        count = int(np.prod(shape, dtype=np.int64))
+        if dtype.hasobject or spec["offset"] + count * dtype.itemsize > len(data):
+            raise ValueError(f"array {name!r} ({spec}) is outside the data")
+        a = np.frombuffer(data, dtype, count, int(spec["offset"])).reshape(shape) if count else np.zeros(shape, dtype)
+        out[name] = a if SHARED.fullmatch(name) else a.copy()
+    return out
 
 
 def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None, log: Log = _no_log, *,
