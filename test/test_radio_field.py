@@ -279,3 +279,22 @@ def test_map_scan_estimates_weigh_by_the_grid_estimates_share_on_the_survey():
         fixes[share] = PowedKnn(params).fit(rm).locate_many(scans)
     assert err[True] < 0.5 * err[False], err
     assert max(float(np.abs(a.xy - b.xy).max()) for a, b in zip(fixes[True], fixes[False])) == 0.0
+
+
+def test_a_calibration_fold_judges_the_survey_without_its_left_out_walk():
+    """The off-survey flags a calibration fold uses are those of the kept walks only: a grid point next to
+    the left-out walk alone is beyond the survey for that fold (else the fold would see its own walk)."""
+    rm, _, _ = _survey(np.random.default_rng(6), ys=(5.0, 14.0, 23.0))
+
+    def everywhere(xy, z):
+        return np.ones(len(xy), bool)
+    pos = PowedKnn(PowedKnnParams(cov_calibration=False, field_weight=0.05, field_reach_m=12.0),
+                   walkable=everywhere).fit(rm)
+    keep = np.array(rm.source) != "walk1"
+    off = pos._off_survey(keep)
+    d = np.linalg.norm(pos._grid_pos[:, None] - rm.positions[keep][None], axis=2).min(axis=1)
+    np.testing.assert_array_equal(off[pos._n_map:], d > pos.params.smooth_reach_m + 1e-9)
+    assert not off[:pos._n_map].any()
+    near_walk1 = (np.abs(pos._grid_pos[:, 1] - 14.0) <= 1.0) & (pos._grid_pos[:, 0] >= 1.0) & (pos._grid_pos[:, 0] <= 59.0)
+    assert near_walk1.sum() > 50 and off[pos._n_map:][near_walk1].all()
+    assert not pos._off[pos._n_map:][near_walk1].any()
