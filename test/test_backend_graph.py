@@ -317,7 +317,7 @@ def test_front_end_fixes_as_position_factors():
                                    robust_kernel="huber", robust_threshold_m=1.345), survey(0, 60, rng))
     w = corridor_walk("u", 2, 50, 0, rng, scan_period_s=2.0)
     fix_err = []
-    for k, (stamp, kind, payload) in enumerate(w.events):
+    for stamp, kind, payload in w.events:
         if kind == 0:
             g.add_hop("u", *payload)
             continue
