@@ -220,3 +220,13 @@ def test_front_end_fixes_feed_the_stage():
     stamps, xy, _ = path_from_msg([m for t, m in outs if t == "backend/bob/path"][-1])
     assert st.graph.wifi.n == len(fix_err) and st.graph.users["bob"].scans_localised == len(fix_err)
     assert np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 0.6 * np.mean(fix_err)
+
+
+def test_without_a_survey_scans_are_rejected_not_silently_lost():
+    """No radio map and ``wifi_source: scan``: no user could ever start, so every scan is rejected
+    and counted (``no_survey``) instead of the node publishing nothing without a word."""
+    rng = np.random.default_rng(3)
+    st = BackendStage(BackendParams(window_poses=0))
+    for _, topic, msg in _messages(corridor_walk("eve", 2, 20, 0, rng)):
+        st.process(topic, msg, 0, "eve")
+    assert st.diag.rejected["no_survey"] > 0 and st.finish() == []

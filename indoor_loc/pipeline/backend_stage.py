@@ -48,8 +48,9 @@ NODE_NAME = "backend_node"
 class BackendParams(GraphParams):
     """Parameters of ``backend_node``: its own, and the graph's inherited from :class:`GraphParams`
     (same names, defaults and docs, declared once)."""
-    radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = start from users' scans "
-                           "only (a map grows, but nothing ties it to the map frame)")
+    radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = none: with wifi_source "
+                           "'scan' no user can start (a user starts at a scan localised against the survey), so "
+                           "scans are rejected as 'no_survey'; with 'fix' the fixes place the users")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
@@ -102,6 +103,7 @@ class BackendStage(Stage):
         if survey is None and params.radiomap:
             survey = load_radiomap(Path(params.radiomap).expanduser())     # MapError -> start-up fails
         self.graph = MultiUserGraph(params.graph_params(), survey)
+        self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._seq = 0
         self.on("pdr/odom", self._on_odom)
@@ -150,6 +152,9 @@ class BackendStage(Stage):
 
     def _on_scan(self, msg, recv_ns: int, user: str) -> list[Output]:
         scan = scan_from_msg(msg)
+        if self._no_survey:
+            raise InvalidMessageError("no_survey", "no radio map (radiomap ''): a user starts at a scan WKNN "
+                                                   "localises against the survey, so none can; set radiomap")
         self._push(user, scan.stamp_ns, 2, scan)
         b = self._buffer(user)
         b.newest_scan_ns = scan.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, scan.stamp_ns)
