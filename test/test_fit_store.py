@@ -309,3 +309,12 @@ def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
                                                                                   "fit_cache": False}}}))
     assert main(["radiomap", "fit", "--params", str(params)]) == 2
     assert "fit_cache" in capsys.readouterr().err
+
+
+def test_a_fit_without_the_stores_plans_is_not_saved_under_their_key(site, tmp_path):
+    from indoor_loc.errors import ConfigError
+    mapdir, plans, _ = site
+    rm = load_radiomap(mapdir)
+    with pytest.raises(ConfigError, match="disagree"):
+        fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05)), rm, FitStore(mapdir, plans, tmp_path / "c"))
+    assert not (tmp_path / "c").exists()                 # nothing was written

@@ -21,7 +21,9 @@ loaded). A directory that cannot be written is logged and the fit is simply not 
 
 Location: ``<cache directory>/wifi_fit_<name>.fit``, where the cache directory defaults to
 ``<radio map>/fit_cache`` and the name is a hash of the map's path and the parameters, so maps and
-parameter sets sharing one directory do not overwrite each other. Parts of a positioner other than
+parameter sets sharing one directory do not overwrite each other. Beside it, ``wifi_map_<name>.fit`` holds
+the radio map's arrays as read from its files (keyed by those files and the code), so a start with a saved
+fit parses neither the map's CSV nor the floor plans. Parts of a positioner other than
 powed k-NN (WKNN, coverage areas, path loss; a chain's primary) fit in well under a second and are
 fitted as usual.
 """
@@ -44,7 +46,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from indoor_loc.errors import MapError
+from indoor_loc.errors import ConfigError, MapError
 from indoor_loc.wifi.powed_knn import PowedKnn
 from indoor_loc.wifi.radiomap import APS_FILE, FINGERPRINTS_FILE, MANIFEST, read_manifest
 from indoor_loc.wifi.types import Positioner, RadioMap
@@ -364,7 +366,7 @@ def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None,
         if store is not None and not refit and store.load(part, index, rm, log):
             continue
         if store is not None and (part.walkable is None) != (store.floor_plans is None):
-            raise ValueError(f"the store's floor plans ({store.floor_plans}) and the positioner's walkable area "
+            raise ConfigError(f"the store's floor plans ({store.floor_plans}) and the positioner's walkable area "
                              f"({'none' if part.walkable is None else 'given'}) disagree: its fit would be saved "
                              f"under the wrong key")
         t0 = time.thread_time()
