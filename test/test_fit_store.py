@@ -260,6 +260,7 @@ def test_a_start_with_a_saved_fit_parses_neither_map_nor_plans(site, tmp_path, m
     """The map's arrays saved from its files equal load_radiomap's; a stage whose fit is saved reads them and
     leaves the plans unparsed (it loads them if a fit is needed after all), with the same fixes."""
     from indoor_loc.pipeline import wifi_fix_stage
+    from indoor_loc.wifi import fit_store
     from msg_adapters.wifi_scan import scan_to_msg
     mapdir, plans, scans = site
     cache = tmp_path / "cache"
@@ -277,6 +278,7 @@ def test_a_start_with_a_saved_fit_parses_neither_map_nor_plans(site, tmp_path, m
         raise AssertionError("parsed although saved")
     monkeypatch.setattr(wifi_fix_stage, "load_radiomap", refuse)
     monkeypatch.setattr(wifi_fix_stage, "load_floor_plans", refuse)
+    monkeypatch.setattr(fit_store, "load_floor_plans", refuse)
     second = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache)))
     assert second.walkable is None and second.extra_diagnostics()["floor_plans"] == "2"
     msgs = [scan_to_msg(s) for s in scans]
@@ -288,6 +290,20 @@ def test_a_start_with_a_saved_fit_parses_neither_map_nor_plans(site, tmp_path, m
     # a fit needed after start-up (a refit) loads the deferred plans
     with pytest.raises(AssertionError, match="parsed although saved"):
         second.fit_positioner(second.radio_map, refit=True)
+    # the saved fit damaged after a start that deferred the plans: refused, refitted within the plans
+    monkeypatch.undo()
+    third = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache)), fit_now=False)
+    assert third._plans_deferred
+    (fit,) = cache.glob("wifi_fit_*.fit")
+    blob = bytearray(fit.read_bytes())
+    blob[-100] ^= 1
+    fit.unlink()
+    fit.write_bytes(bytes(blob))
+    pos = third.fit_positioner(third.radio_map)
+    assert "checksum mismatch" in capsys.readouterr().err
+    walkable, _ = load_floor_plans(plans)
+    _assert_same(_fixes(pos, scans), _fixes(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(rm),
+                                            scans))
 
 
 def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
@@ -311,10 +327,19 @@ def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
     assert "fit_cache" in capsys.readouterr().err
 
 
-def test_a_fit_without_the_stores_plans_is_not_saved_under_their_key(site, tmp_path):
+def test_the_store_bounds_a_fit_by_its_plans_and_refuses_a_bounded_fit_without_them(site, tmp_path):
+    """A part without a walkable area fitted with a store that has plans is bounded by them (a start with a
+    saved fit leaves the plans unparsed, and a damaged file then needs a fit); the other way round the fit
+    would be saved under a key without plans: ConfigError, nothing written."""
     from indoor_loc.errors import ConfigError
-    mapdir, plans, _ = site
+    mapdir, plans, scans = site
     rm = load_radiomap(mapdir)
-    with pytest.raises(ConfigError, match="disagree"):
-        fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05)), rm, FitStore(mapdir, plans, tmp_path / "c"))
-    assert not (tmp_path / "c").exists()                 # nothing was written
+    walkable, _ = load_floor_plans(plans)
+    expect = _fixes(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(rm), scans)
+    pos = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05)), rm, FitStore(mapdir, plans, tmp_path / "a"))
+    assert pos.walkable is not None
+    _assert_same(_fixes(pos, scans), expect)
+    with pytest.raises(ConfigError, match="wrong key"):
+        fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm,
+                       FitStore(mapdir, "", tmp_path / "b"))
+    assert not (tmp_path / "b").exists()                 # nothing was written

@@ -204,10 +204,11 @@ class WifiFixStage(Stage):
         else fitted (``refit``: always) and saved (in ``store``, default :meth:`fit_store`); ``log(level, text)``
         gets what the store did (default: :attr:`fit_log`, else stderr)."""
         store = self.fit_store(rm) if store is None else store
-        pos = self.params.make_positioner(self.walkable)
-        if self._plans_deferred and not (store is not None and not refit and store.is_current(pos)):
-            pos = self.params.make_positioner(load_floor_plans(self.params.floor_plans)[0])
-        return fit_positioner(pos, rm, store, log or self.fit_log or self._log, refit=refit)
+        walkable = self.walkable
+        if self._plans_deferred and store is None:      # (with a store, the store reads them if a fit needs them)
+            walkable = load_floor_plans(self.params.floor_plans)[0]
+        return fit_positioner(self.params.make_positioner(walkable), rm, store, log or self.fit_log or self._log,
+                              refit=refit)
 
     def fit_store(self, rm: RadioMap | None = None) -> FitStore | None:
         """Where fits of ``rm`` (default: the configured map) are saved: None unless ``fit_cache`` is on and

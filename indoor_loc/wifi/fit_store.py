@@ -50,6 +50,7 @@ from indoor_loc.errors import ConfigError, MapError
 from indoor_loc.wifi.powed_knn import PowedKnn
 from indoor_loc.wifi.radiomap import APS_FILE, FINGERPRINTS_FILE, MANIFEST, read_manifest
 from indoor_loc.wifi.types import Positioner, RadioMap
+from indoor_loc.wifi.walkable import load_floor_plans
 
 FORMAT = "indoor_loc.wifi_fit"
 FORMAT_VERSION = 2
@@ -357,7 +358,8 @@ def read_arrays(meta: dict[str, Any], data: memoryview) -> dict[str, np.ndarray]
 def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None, log: Log = _no_log, *,
                    refit: bool = False) -> Positioner:
     """``pos.fit(rm)``, except that with a ``store`` each powed k-NN part is loaded from its saved fit when
-    one matches (unless ``refit``), and a part fitted is saved. Powed k-NN parts then drop what only the
+    one matches (unless ``refit``), and a part fitted is saved (bounded by the store's floor plans, read
+    here when the part has none yet). Powed k-NN parts then drop what only the
     fit needed (:meth:`PowedKnn.release_fit_data`). The fixes are those of ``pos.fit(rm)``."""
     for index, part in enumerate(_leaves(pos)):
         if not isinstance(part, PowedKnn):
@@ -365,10 +367,11 @@ def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None,
             continue
         if store is not None and not refit and store.load(part, index, rm, log):
             continue
-        if store is not None and (part.walkable is None) != (store.floor_plans is None):
-            raise ConfigError(f"the store's floor plans ({store.floor_plans}) and the positioner's walkable area "
-                             f"({'none' if part.walkable is None else 'given'}) disagree: its fit would be saved "
-                             f"under the wrong key")
+        if store is not None and store.floor_plans is not None and part.walkable is None:
+            part.walkable = load_floor_plans(store.floor_plans)[0]     # not parsed while a saved fit served
+        if store is not None and store.floor_plans is None and part.walkable is not None:
+            raise ConfigError("a positioner bounded by floor plans and a fit store without them: its fit would be "
+                              "saved under the wrong key")
         t0 = time.thread_time()
         part.fit(rm)
         part.release_fit_data()
