@@ -362,6 +362,7 @@ class Bringup:
         if self._stop_requested is not None:
             self._stop_deadline = time.monotonic()
             self._hurry = True                     # every wave at once
+            self._hurry_said = self._term_sent = False
             return
         self._wave: int | None = None
         self._hurry = False
@@ -383,6 +384,9 @@ class Bringup:
             return
         wave = min(c.spec.stop_order for c in running)
         alive = [c for c in running if c.spec.stop_order == wave or self._hurry]
+        if self._hurry and not self._hurry_said:
+            self._hurry_said = True
+            self.log(PREFIX, f"asked again: stopping {', '.join(c.spec.name for c in alive)} at once (SIGTERM)")
         if wave != self._wave:                     # a new wave: its own timeouts
             self._wave = wave
             self.log(PREFIX, f"stopping {', '.join(c.spec.name for c in alive)}"
@@ -400,7 +404,8 @@ class Bringup:
             self._term_sent = True
             self._stop_deadline = now + self.config.stop_timeout_s
             for c in alive:
-                self.log(PREFIX, f"{c.spec.name} still running {self.config.stop_timeout_s:g} s after SIGINT: SIGTERM")
+                if not self._hurry:
+                    self.log(PREFIX, f"{c.spec.name} still running {self.config.stop_timeout_s:g} s after SIGINT: SIGTERM")
                 c.proc.terminate()
         elif self._term_sent and not self._kill_sent and now > self._stop_deadline:
             self._kill_sent = True

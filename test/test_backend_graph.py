@@ -306,3 +306,30 @@ def test_a_solved_graph_is_freed_without_the_cycle_collector():
     finally:
         if enabled:
             gc.enable()
+
+
+def test_front_end_fixes_as_position_factors():
+    """``wifi_source: fix``: the front end's fixes (truth + 2 m noise, one wild one) are position
+    factors with their covariance; the PDR-linked trajectory beats the fixes, the user starts at its
+    first fix, and (separate users) scans neither match the survey nor add poses."""
+    rng = np.random.default_rng(4)
+    g = MultiUserGraph(GraphParams(window_poses=10, wifi_source="fix", joint=False, wifi_info=1.0,
+                                   robust_kernel="huber", robust_threshold_m=1.345), survey(0, 60, rng))
+    w = corridor_walk("u", 2, 50, 0, rng, scan_period_s=2.0)
+    fix_err = []
+    for stamp, kind, payload in w.events:
+        if kind == 0:
+            g.add_hop("u", *payload)
+            continue
+        noise = rng.normal(0, 2.0, 2) + (np.array([0.0, 25.0]) if len(fix_err) == 5 else 0.0)
+        fix_err.append(np.linalg.norm(noise))
+        i = g.add_fix("u", stamp, w.true_xy_at([stamp])[0] + noise, 4.0 * np.eye(2))
+        assert (i == 0) if len(fix_err) == 1 else (i == g.users["u"].poses[-1])
+        n_after_fix = g.poses.n
+        assert g.add_scan("u", payload) == (None, None) and g.poses.n == n_after_fix
+    g.optimize(max_iterations=30)
+    assert g.wifi.n == len(fix_err) and np.all(g.wifi.view("refs") < 0)
+    e = _err(g, w)
+    assert np.mean(e) < 0.6 * np.mean(fix_err) and np.max(e) < 5.0            # the wild fix is bounded
+    with pytest.raises(ConfigError, match="wifi_source"):
+        GraphParams(wifi_source="both").validate()

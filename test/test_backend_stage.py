@@ -192,3 +192,41 @@ def test_putmc_importer_configuration_beats_the_paper_weights_at_scan_times():
     paper, default = scores
     assert default < 0.85 * paper, scores
     assert default < 2.2, scores
+
+
+def test_front_end_fixes_feed_the_stage():
+    """``wifi_source: fix``: the stage takes ``wifi/fix`` (a fix sorts before its scan of the same
+    stamp); the path follows the truth better than the noisy fixes; a fix in another frame is
+    rejected and counted."""
+    from indoor_loc.measurements import Fix
+    from msg_adapters.pose import fix_to_msg
+    rng = np.random.default_rng(9)
+    walk = corridor_walk("bob", 2, 50, 0, rng, scan_period_s=2.0)
+    st = _stage(wifi_source="fix", joint=False, wifi_info=1.0, robust_kernel="huber", robust_threshold_m=1.345)
+    assert "wifi/fix" in [p.topic for p in st.inputs()]
+    outs, fix_err = [], []
+    for stamp, topic, msg in _messages(walk):
+        if topic == "wifi/scan":      # the scan first, then its fix (as wifi_fix_node publishes it)
+            outs += st.process(topic, msg, 0, "bob")
+            noise = rng.normal(0, 2.0, 2)
+            fix_err.append(np.linalg.norm(noise))
+            fix = Fix(stamp, walk.true_xy_at([stamp])[0] + noise, 4.0 * np.eye(2))
+            outs += st.process("wifi/fix", fix_to_msg(fix), 0, "bob")
+        else:
+            outs += st.process(topic, msg, 0, "bob")
+    outs += st.process("wifi/fix", fix_to_msg(Fix(walk.truth_t[-1], np.zeros(2), np.eye(2)), frame_id="odom"), 0, "bob")
+    assert st.diag.rejected["wrong_frame"] == 1
+    outs += st.finish()
+    stamps, xy, _ = path_from_msg([m for t, m in outs if t == "backend/bob/path"][-1])
+    assert st.graph.wifi.n == len(fix_err) and st.graph.users["bob"].scans_localised == len(fix_err)
+    assert np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 0.6 * np.mean(fix_err)
+
+
+def test_without_a_survey_scans_are_rejected_not_silently_lost():
+    """No radio map and ``wifi_source: scan``: no user could ever start, so every scan is rejected
+    and counted (``no_survey``) instead of the node publishing nothing without a word."""
+    rng = np.random.default_rng(3)
+    st = BackendStage(BackendParams(window_poses=0))
+    for _, topic, msg in _messages(corridor_walk("eve", 2, 20, 0, rng)):
+        st.process(topic, msg, 0, "eve")
+    assert st.diag.rejected["no_survey"] > 0 and st.finish() == []

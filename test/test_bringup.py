@@ -322,3 +322,28 @@ def test_a_node_that_ends_says_the_others_keep_running(tmp_path):
         assert "[up] long stopped (exit status 0)" in up.output()
     finally:
         up.stop()
+
+
+def test_a_second_ctrl_c_stops_every_wave_at_once(tmp_path):
+    """Asked again while a wave is still stopping, the bring-up sends SIGTERM to every node at once
+    instead of waiting stop_timeout_s per wave."""
+    stubborn = tmp_path / "stubborn.py"
+    stubborn.write_text("import signal, sys, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                        "print('ready', flush=True)\ntime.sleep(60)\n")
+    cfg = write(tmp_path, {"stop_timeout_s": 30, "nodes": [
+        {"name": "first", "script": str(stubborn), "stop_order": 0},
+        {"name": "last", "script": str(stubborn), "stop_order": 9}]})
+    up = bringup(cfg)
+    try:
+        assert up.wait_seen(r"^\[first\] ready", 30) and up.wait_seen(r"^\[last\] ready", 30), up.output()
+        up.signal(signal.SIGINT)
+        assert up.wait_seen(r"^\[up\] stopping first \(stop_order 0\)", 30), up.output()
+        t0 = time.monotonic()
+        up.signal(signal.SIGINT)
+        assert up.wait(timeout=25) == 0, up.output()              # well before the first wave's 30 s
+        assert time.monotonic() - t0 < 25
+        out = up.output()
+        assert "[up] asked again: stopping first, last at once (SIGTERM)" in out, out
+        assert "[up] first stopped (exit status -15)" in out and "[up] last stopped (exit status -15)" in out
+    finally:
+        up.stop()

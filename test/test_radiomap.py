@@ -196,6 +196,37 @@ def test_build_from_bag_and_run_with_its_params(tmp_path):
     assert "/bob/wifi/fix" not in topics        # its AP is not in the map: declined, not published
 
 
+def test_build_with_floor_plans_configures_the_plan_bounded_field(tmp_path):
+    """--floor-plans: params.yaml names the plans and turns on powed k-NN's path-loss field, as the
+    ms-indoor importer's params do; a directory holding no plan is refused before anything is written."""
+    import json
+
+    from indoor_loc.commands.radiomap import build
+    from indoor_loc.errors import ConfigError
+    from indoor_loc.wifi.radio_field import PLAN_FIELD_WEIGHT
+    bag_path = tmp_path / "walk.mcap"
+    _write_bag(bag_path)
+    plans = tmp_path / "floors" / "F1"
+    plans.mkdir(parents=True)
+    (plans / "map.yaml").write_text(yaml.safe_dump({"floor": "F1", "z_m": 0.0, "width_m": 20.0, "height_m": 10.0,
+                                                    "frame_id": "map"}))
+    ring = [[0, 0], [200, 0], [200, 100], [0, 100], [0, 0]]
+    (plans / "geojson_map.json").write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    out = tmp_path / "rm"
+    build([bag_path], out, floor_plans=tmp_path / "floors")
+    wifi = yaml.safe_load((out / "params.yaml").read_text())["/**/wifi_fix_node"]["ros__parameters"]
+    assert wifi["floor_plans"] == str((tmp_path / "floors").resolve())
+    assert wifi["powed"] == {"field_weight": PLAN_FIELD_WEIGHT}
+    assert wifi["method"] == "wknn" and wifi["fallback"] == "powed"
+
+    empty = tmp_path / "no_plans"
+    empty.mkdir()
+    with pytest.raises(ConfigError, match="floor_plans"):
+        build([bag_path], tmp_path / "rm2", floor_plans=empty)
+    assert not (tmp_path / "rm2").exists()
+
+
 def test_build_from_putmc_survey(tmp_path):
     from conftest import dataset
     from indoor_loc.commands.radiomap import build

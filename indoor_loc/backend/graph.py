@@ -78,6 +78,22 @@ class BackendWknnParams(WknnParams):
     shared_strict: bool = pfield(True, "require more than (instead of at least) shared_threshold (authors' code)")
 
 
+#: How the survey map enters the graph (``GraphParams.wifi_source``).
+WIFI_SOURCES = ("scan", "fix")
+
+#: The graph on a front end's fixes (what ``indoor-loc import ms-indoor`` writes for ``backend_node``):
+#: each ``wifi/fix`` a position factor weighted by its own (calibrated) covariance, a Huber kernel at
+#: the usual 1.345 σ for the wrong ones, the paper's PDR information; users separate. On a mall
+#: (ms_site2) the paper's WKNN hyperedges are worse than the front end they would replace (plain WKNN
+#: errs ~20 % more than its fixes there). Users are separate: on B1 the joint configuration gave
+#: 17.3 m mean error at the scan times against 4.1 m — WKNN against other users' scans alone takes
+#: the k most similar of a few walks' scans however dissimilar, often across the floor — and 4.4 m
+#: (p95 14.6 against 9.8 m) when the survey competes and only matches naming another user's scan
+#: are kept. Chosen on ms_site2's B1.
+FIX_GRAPH_PARAMS: dict = {"wifi_source": "fix", "joint": False, "wifi_info": 1.0, "robust_kernel": "huber",
+                          "robust_threshold_m": 1.345}
+
+
 @dataclass(frozen=True)
 class GraphParams:
     """Parameters of the multi-user graph (defaults: the paper's joint + step-length configuration)."""
@@ -93,6 +109,11 @@ class GraphParams:
     wifi_info_from_fix: bool = pfield(False, "weight each hyperedge by the inverse of its WKNN fix covariance "
                                              "(neighbour spread + floor, see Wknn) times wifi_info, instead of "
                                              "the paper's constant wifi_info I")
+    wifi_source: str = pfield("scan", "how the survey map enters: 'scan' (the paper) = WKNN hyperedges of each "
+                                      "wifi/scan to the survey's fingerprints; 'fix' = each wifi/fix of the front "
+                                      "end as a position factor with its covariance (all WiFi factors then weighted "
+                                      "by inverse covariance, as wifi_info_from_fix), scans matching only other "
+                                      "users' scans (joint)")
     robust_kernel: str = pfield("none", "kernel on WKNN hyperedges: 'none' (paper), 'huber' or 'cauchy'")
     robust_threshold_m: float = pfield(2.0, "robust kernel threshold, m of WKNN error")
     pose_period_s: float = pfield(1.28, "a pose every this much stamp time, s (paper: 256 samples at 200 Hz)")
@@ -124,6 +145,7 @@ class GraphParams:
         require(self.robust_kernel in F.ROBUST_KERNELS, n, "robust_kernel", f"one of {F.ROBUST_KERNELS}",
                   self.robust_kernel)
         require(self.robust_threshold_m > 0, n, "robust_threshold_m", "> 0", self.robust_threshold_m)
+        require(self.wifi_source in WIFI_SOURCES, n, "wifi_source", f"one of {WIFI_SOURCES}", self.wifi_source)
         require(self.pose_period_s > 0, n, "pose_period_s", "> 0", self.pose_period_s)
         require(self.min_scan_move_m >= 0, n, "min_scan_move_m", ">= 0", self.min_scan_move_m)
         require(self.gauge_std_m > 0 and self.gauge_std_rad > 0, n, "gauge_std_m/gauge_std_rad", "> 0",
@@ -136,6 +158,11 @@ class GraphParams:
         require(self.max_frozen_poses >= 0, n, "max_frozen_poses", ">= 0", self.max_frozen_poses)
         require(self.max_map_rows >= 0, n, "max_map_rows", ">= 0", self.max_map_rows)
         self.wknn_params()
+
+    @property
+    def info_from_fix(self) -> bool:
+        """WiFi factors weighted by inverse fix covariances (robust threshold in standard deviations)."""
+        return self.wifi_info_from_fix or self.wifi_source == "fix"
 
     def wknn_params(self) -> WknnParams:
         try:
@@ -283,51 +310,84 @@ class MultiUserGraph:
 
     def add_scan(self, name: str, scan: WifiScan) -> tuple[int | None, Match | None]:
         """A WiFi scan of user ``name``. Returns (pose it is attached to or None (user not started yet),
-        the WKNN match or None)."""
+        the WKNN match or None). With ``wifi_source: fix`` a scan matches only other users' scans
+        (joint; the survey enters through :meth:`add_fix`) and never starts a user."""
         tr = self.users.get(name) or self.user(name)
         self._check_order(tr, scan.stamp_ns, "scan")
         tr.last_event_ns = int(scan.stamp_ns)
-        match = self.map.match(scan, user=tr.index, joint=self.params.joint, pose_xy=self.poses.x[:self.poses.n, :2])
+        by_fix = self.params.wifi_source == "fix"
+        match = None
+        if not by_fix or (self.params.joint and tr.started):
+            match = self.map.match(scan, user=tr.index, joint=self.params.joint,
+                                   pose_xy=self.poses.x[:self.poses.n, :2], survey=not by_fix)
         if match is None:
-            tr.scans_unlocalised += 1
-            if not tr.started:
+            if not by_fix:
+                tr.scans_unlocalised += 1
+            if not tr.started or (by_fix and not self.params.joint):
                 return None, None
         else:
-            tr.scans_localised += 1
+            tr.scans_localised += int(not by_fix)
             tr.scans_from_users += int(match.n_from_users > 0)
-        if not tr.started:
-            tr.started = True
-            tr.last_grid_ns = int(scan.stamp_ns)
-            yaw = tr.last_yaw
-            i = self._add_pose(tr, scan.stamp_ns, np.array([match.fix.xy[0], match.fix.xy[1], yaw]))
-            self.gauge.append(pose=i, x=self.poses.x[i].copy())
-        else:
-            extra = 0.0
-            if tr.last_hop_end_ns is not None and scan.stamp_ns > tr.last_hop_end_ns:
-                extra = tr.step_rate * (scan.stamp_ns - tr.last_hop_end_ns) * 1e-9
-            move = self.step_len[tr.index] * (tr.acc_steps + extra)
-            if move < self.params.min_scan_move_m:
-                i = tr.poses[-1]
-            else:
-                tr.carry_steps += extra
-                tr.acc_steps += extra
-                i = self._new_pose(tr, scan.stamp_ns, match.fix.xy if match is not None else None)
+        i = self._scan_pose(tr, scan.stamp_ns, match.fix.xy if match is not None else None)
         if match is not None:
-            self.wifi.append(pose=i, refs=match.refs, w=match.weights, sqrt_info=self._wifi_sqrt_info(match))
+            self.wifi.append(pose=i, refs=match.refs, w=match.weights, sqrt_info=self._wifi_sqrt_info(match.fix.cov))
         if self.params.joint:
             self.map.add_scan(scan, i, tr.index)     # localised or not, it is a fingerprint at pose i
+        return self._after_wifi(tr, name, i, match is not None), match
+
+    def add_fix(self, name: str, stamp_ns: int, xy: np.ndarray, cov: np.ndarray) -> int:
+        """A position fix of user ``name`` from the WiFi front end (``wifi_source: fix``): a factor
+        pulling the pose at ``stamp_ns`` to ``xy`` (2,) with information ``wifi_info`` × ``cov`` (2, 2)⁻¹,
+        as a hyperedge to one fixed position. It starts the user; it attaches to the last pose or adds
+        one by the same rule as a scan. Returns the pose index."""
+        tr = self.users.get(name) or self.user(name)
+        self._check_order(tr, stamp_ns, "fix")
+        tr.last_event_ns = int(stamp_ns)
+        xy = np.asarray(xy, float).reshape(2)
+        i = self._scan_pose(tr, stamp_ns, xy)
+        tr.scans_localised += 1
+        refs = np.full(self.k, self.map.add_point(xy), np.int64)
+        w = np.zeros(self.k)
+        w[0] = 1.0
+        self.wifi.append(pose=i, refs=refs, w=w, sqrt_info=self._wifi_sqrt_info(cov))
+        return self._after_wifi(tr, name, i, True)
+
+    def _scan_pose(self, tr: UserTrack, stamp_ns: int, xy: np.ndarray | None) -> int:
+        """The pose a localised (``xy``: its fix) or unlocalised scan / fix at ``stamp_ns`` attaches to:
+        the user's first pose (at ``xy``) if it has not started, the last pose if PDR moved less than
+        ``min_scan_move_m`` since, else a new pose (at ``xy`` when given, else from PDR)."""
+        if not tr.started:
+            assert xy is not None
+            tr.started = True
+            tr.last_grid_ns = int(stamp_ns)
+            i = self._add_pose(tr, stamp_ns, np.array([xy[0], xy[1], tr.last_yaw]))
+            self.gauge.append(pose=i, x=self.poses.x[i].copy())
+            return i
+        extra = 0.0
+        if tr.last_hop_end_ns is not None and stamp_ns > tr.last_hop_end_ns:
+            extra = tr.step_rate * (stamp_ns - tr.last_hop_end_ns) * 1e-9
+        move = self.step_len[tr.index] * (tr.acc_steps + extra)
+        if move < self.params.min_scan_move_m:
+            return tr.poses[-1]
+        tr.carry_steps += extra
+        tr.acc_steps += extra
+        return self._new_pose(tr, stamp_ns, xy)
+
+    def _after_wifi(self, tr: UserTrack, name: str, i: int, localised: bool) -> int:
+        """Bound the graph after a scan or fix at pose ``i`` (returned renumbered) and optimise the
+        user's window when it was localised."""
         pose_map = self._bound(tr)
         if pose_map is not None:
             i = int(pose_map[i])
-        if self.params.window_poses and match is not None:
+        if self.params.window_poses and localised:
             self.optimize_window(name)
-        return i, match
+        return i
 
-    def _wifi_sqrt_info(self, match: Match) -> np.ndarray:
-        """Square root L (Lᵀ L = Ω) of a hyperedge's information."""
-        if not self.params.wifi_info_from_fix:
+    def _wifi_sqrt_info(self, cov: np.ndarray) -> np.ndarray:
+        """Square root L (Lᵀ L = Ω) of a hyperedge's information (``cov``: its fix's covariance)."""
+        if not self.params.info_from_fix:
             return self._sqrt_wifi_eye
-        info = self.params.wifi_info * np.linalg.inv(np.asarray(match.fix.cov, float))
+        info = self.params.wifi_info * np.linalg.inv(np.asarray(cov, float))
         return np.linalg.cholesky(info).T
 
     def _add_pose(self, tr: UserTrack, stamp_ns: int, x: np.ndarray) -> int:
@@ -518,7 +578,7 @@ class MultiUserGraph:
         fixed_xy = self.map.fixed_xy
         sqrt_g = np.array([1 / p.gauge_std_m, 1 / p.gauge_std_m, 1 / p.gauge_std_rad])
         # threshold in whitened units: robust_threshold_m at the paper's information, else in sigmas
-        c_rob = (1.0 if p.wifi_info_from_fix else self._sqrt_wifi) * p.robust_threshold_m
+        c_rob = (1.0 if p.info_from_fix else self._sqrt_wifi) * p.robust_threshold_m
 
         # Jacobian sparsity: (rows, cols, keep) in the order jac() produces its values. Entries the
         # factor models make zero whatever the estimates are left out (``nz``): the PDR blocks'
@@ -538,7 +598,7 @@ class MultiUserGraph:
         # whitened hyperedge blocks are L (and -w_j L): diagonal for a scalar information, upper
         # triangular for a fix's (Cholesky) one; a robust kernel's correction fills them
         nz_wifi = (None if p.robust_kernel != "none" else
-                   np.triu(np.ones((2, 2), bool)) if p.wifi_info_from_fix else np.eye(2, dtype=bool))
+                   np.triu(np.ones((2, 2), bool)) if p.info_from_fix else np.eye(2, dtype=bool))
         rp = r_p + 3 * np.arange(n_p)
         rw = r_w + 2 * np.arange(n_w)
         parts = [blk(rp, 3, col[pprev], 3, isvar[pprev], nz_pdr), blk(rp, 3, col[pcur], 3, isvar[pcur], nz_pdr),

@@ -144,6 +144,13 @@ class EvolvingMap:
         self._n_user_rows -= 1
         self._epoch += 1
 
+    def add_point(self, xy: np.ndarray) -> int:
+        """A fixed position with no fingerprint (a front-end fix a factor pulls a pose to); returns its
+        reference (< 0). Unused ones go with :meth:`collect_fixed`."""
+        self.fixed_xy = np.vstack([self.fixed_xy, np.asarray(xy, float).reshape(1, 2)])
+        self.fixed_source.append("fix")
+        return -len(self.fixed_xy)
+
     def pin(self, refs: np.ndarray, xy: np.ndarray, source: list[str]) -> np.ndarray:
         """Rows whose position reference is one of the poses ``refs`` (R,) get that pose's final
         position ``xy`` (R, 2) as a fixed (learnt) position; returns the fixed reference (< 0) of
@@ -185,19 +192,21 @@ class EvolvingMap:
         return new_index
 
     # ------------------------------------------------------------------------------------------
-    def match(self, scan: WifiScan, *, user: int, joint: bool, pose_xy: np.ndarray) -> Match | None:
-        """WKNN of ``scan`` against the survey rows and, when ``joint``, other users' rows (never the
-        user's own). None when WKNN declines (fewer candidates than k...).
+    def match(self, scan: WifiScan, *, user: int, joint: bool, pose_xy: np.ndarray,
+              survey: bool = True) -> Match | None:
+        """WKNN of ``scan`` against the survey rows (unless ``survey`` is False) and, when ``joint``,
+        other users' rows (never the user's own). None when WKNN declines (fewer candidates than k...).
 
         The rows are chosen by RSS alone; the fix (the initial position of a pose added at this scan,
         and its covariance) is then taken at the matched rows' current positions: the fixed ones,
         and for users' rows their poses in ``pose_xy (P, 2)``, the graph's current estimates."""
-        key = (user, self._epoch, self._appends - self._own_appends.get(user, 0)) if joint else (None, self._epoch)
+        key = ((user, self._epoch, self._appends - self._own_appends.get(user, 0)) if joint
+               else (None, self._epoch)) + (survey,)
         if self._fitted is not None and self._fitted[0] == key:
             rows, wknn = self._fitted[1], self._fitted[2]
         else:
             u = self.user[:self.n]
-            rows = np.flatnonzero((u == SURVEY) | ((u != user) if joint else False))
+            rows = np.flatnonzero(((u == SURVEY) & survey) | (((u != user) & (u != SURVEY)) if joint else False))
             if len(rows) == 0:
                 return None
             # positions are looked up per match (users' rows move with their poses): not needed here

@@ -16,7 +16,8 @@ or unique id prefixes; default all):
 - ``OUT_DIR/split.yaml`` — survey and test walks per floor; ``OUT_DIR/params.yaml`` — every node
   (imu_node heading from the rotation vector; wifi_fix_node with the radio map, the
   recommended method and, where GeoJSON plans exist, ``floor_plans`` = ``OUT_DIR/floors`` with powed
-  k-NN's path-loss field turned on); ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
+  k-NN's path-loss field turned on; backend_node on the front end's fixes);
+  ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
 
 Floor heights: ``z = storey index × --storey-height-m`` (default 5 m). The index comes from the floor's
 name (:func:`indoor_loc.datasets.ms_indoor.floor_levels`: B1 → −1, F1/1F/L1/G → 0, F3 → 2, M → 0.5,
@@ -37,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from indoor_loc.backend.graph import FIX_GRAPH_PARAMS
 from indoor_loc.errors import ConfigError, DatasetError
 from indoor_loc.output_paths import check_outputs
 from indoor_loc.params import params_file_text
@@ -204,6 +206,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     params: dict = {"imu_node": imu_params}
     if rm.n_scans:
         params["wifi_fix_node"] = {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}
+        # the back-end on the front end's fixes (see FIX_GRAPH_PARAMS); without this it has no survey
+        params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"

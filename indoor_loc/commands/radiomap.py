@@ -1,7 +1,7 @@
 """``indoor-loc radiomap build|fit|info``: make and inspect radio maps (format: :mod:`indoor_loc.wifi.radiomap`).
 
 ``indoor-loc radiomap build BAG... --out DIR [--topic-scan wifi/scan] [--topic-truth ground_truth]
-[--putmc DATASET_DIR] [--method wknn] [--overwrite]``
+[--putmc DATASET_DIR] [--method wknn] [--floor-plans PLANS_DIR] [--overwrite]``
 
 - From bags: every ``wifi/scan`` becomes a fingerprint at the ground-truth position linearly
   interpolated at the scan's stamp, the truth being the time-stamped ``nav_msgs/Path`` on
@@ -13,7 +13,8 @@
   bags too, their fingerprints are added to it.
 
 It also writes ``DIR/params.yaml`` configuring ``wifi_fix_node`` for the map
-(``radiomap: <absolute DIR>``, ``method``), so ``indoor-loc run OTHER.mcap --params DIR/params.yaml
+(``radiomap: <absolute DIR>``, ``method``; with ``--floor-plans`` also ``floor_plans`` and powed k-NN's
+path-loss field inside the plans, as ``indoor-loc import ms-indoor`` configures it), so ``indoor-loc run OTHER.mcap --params DIR/params.yaml
 --nodes wifi --out X.mcap`` positions another recording of the same building as is.
 
 ``indoor-loc radiomap fit [DIR] --params PARAMS [--refit]`` fits ``wifi_fix_node``'s positioner as PARAMS
@@ -54,6 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("--method", default="auto",
                    help="method written to DIR/params.yaml (default auto: powed k-NN for maps with reading ages or "
                         "several floors, else the best measured WKNN with a powed fallback)")
+    b.add_argument("--floor-plans", type=Path,
+                   help="floor plans of the building (a directory of <floor>/map.yaml + geojson_map.json, as "
+                        "`indoor-loc import ms-indoor` writes in OUT/floors): params.yaml then has powed k-NN "
+                        "extrapolate the map inside the plans (the path-loss field)")
     b.add_argument("--overwrite", action="store_true", help="replace an existing radio map in --out")
     i = sub.add_parser("info", help="summarise a radio map directory")
     i.add_argument("directory", type=Path)
@@ -130,10 +135,11 @@ def fingerprints_from_bags(bags: list[Path], *, topic_scan: str = "wifi/scan",
 
 
 def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan: str = "wifi/scan",
-          topic_truth: str = "ground_truth", method: str = "auto",
+          topic_truth: str = "ground_truth", method: str = "auto", floor_plans: Path | None = None,
           overwrite: bool = False) -> tuple[RadioMap, dict]:
     """Build, save and write params.yaml; returns (map, report). An existing map in ``out`` is
-    refused (ConfigError) unless ``overwrite``."""
+    refused (ConfigError) unless ``overwrite``; ``floor_plans`` (checked before anything is written)
+    goes into params.yaml with the path-loss field (:func:`~indoor_loc.wifi.methods.recommended_params`)."""
     from indoor_loc.output_paths import check_outputs
     from indoor_loc.wifi.methods import METHODS, recommended_params
     if method != "auto" and method not in METHODS:
@@ -145,6 +151,11 @@ def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan:
         raise ConfigError(f"--out {out} exists and is not a directory")
     check_outputs([out / name for name in ("radiomap.yaml", "aps.csv", "fingerprints.csv", "params.yaml")],
                   overwrite=overwrite, what=f"radio map {out}")
+    plans = ""
+    if floor_plans is not None:
+        from indoor_loc.wifi.walkable import load_floor_plans
+        load_floor_plans(floor_plans)          # ConfigError naming what is wrong, before anything is written
+        plans = str(Path(floor_plans).resolve())
     report: dict = {}
     rm = empty_radiomap()
     if putmc is not None:
@@ -171,7 +182,8 @@ def build(bags: list[Path], out: Path, *, putmc: Path | None = None, topic_scan:
                                    f"{sum(rep['invalid'].values())} invalid" for ns, rep in per_ns.items()))
     inputs = [str(p) for p in bags] + ([f"putmc:{putmc}"] if putmc is not None else [])
     save_radiomap(rm, out, created_by="indoor-loc radiomap build", inputs=inputs)
-    chosen = recommended_params(rm) if method == "auto" else {"method": method}
+    chosen = recommended_params(rm, plans) if method == "auto" else \
+        {"method": method, **({"floor_plans": plans} if plans else {})}
     params = {"wifi_fix_node": {"radiomap": str(Path(out).resolve()), **chosen}}
     (Path(out) / "params.yaml").write_text(params_file_text(
         params, header="wifi_fix_node configured for this radio map (indoor-loc radiomap build);\n"
@@ -216,7 +228,6 @@ def fit(params_file: Path, radiomap: Path | None = None, *, namespace: str = "",
     turn ``fit_cache`` off or name no radio map."""
     from indoor_loc.params import load_params_file, params_for_node, params_from_dict
     from indoor_loc.pipeline.wifi_fix_stage import NODE_NAME, WifiFixParams, WifiFixStage
-    from indoor_loc.wifi.fit_store import fit_positioner
     values = params_for_node(load_params_file(params_file), NODE_NAME, namespace)
     if radiomap is not None:
         values["radiomap"] = str(radiomap)
@@ -230,8 +241,7 @@ def fit(params_file: Path, radiomap: Path | None = None, *, namespace: str = "",
     stage = WifiFixStage(params, fit_now=False)            # reads the map and plans as the node does
     store = stage.fit_store()
     assert store is not None and stage.radio_map is not None
-    fit_positioner(params.make_positioner(stage.walkable), stage.radio_map, store,
-                   log or (lambda level, text: print(text)), refit=refit)
+    stage.fit_positioner(stage.radio_map, log or (lambda level, text: print(text)), refit=refit, store=store)
     return store.saved
 
 
@@ -245,7 +255,8 @@ def main(args: argparse.Namespace) -> int:
             print("the saved fit is up to date (--refit to fit again)")
         return 0
     rm, report = build(list(args.bags), args.out, putmc=args.putmc, topic_scan=args.topic_scan,
-                       topic_truth=args.topic_truth, method=args.method, overwrite=args.overwrite)
+                       topic_truth=args.topic_truth, method=args.method, floor_plans=args.floor_plans,
+                       overwrite=args.overwrite)
     if "putmc_survey" in report:
         print(f"PUTMC survey map: {report['putmc_survey']['scans']} scans, {report['putmc_survey']['aps']} APs")
     for ns, rep in report.get("bags", {}).items():

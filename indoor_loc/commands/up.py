@@ -13,7 +13,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = ("Each node runs as its own process, its output lines prefixed with its name. Ctrl-C (or "
                      "SIGTERM) stops them in waves of stop_order: the player, then the estimators from sources "
                      "to sinks, the recorder last (SIGTERM, then SIGKILL, after stop_timeout_s; a second Ctrl-C "
-                     "stops all at once). Exit status 0 when every node ended cleanly, 1 otherwise. A working "
+                     "sends SIGTERM to all at once). Exit status 0 when every node ended cleanly, 1 otherwise. A working "
                      "example: the OUT/bringup.yaml that `indoor-loc demo` writes.")
     parser.add_argument("config", type=Path, help="bring-up YAML (see config/bringup_example.yaml)")
     parser.add_argument("--dry-run", action="store_true", help="print each node's command line and exit")

@@ -3,7 +3,8 @@
 Inputs, from every user namespace (a multi-user stage, see :mod:`indoor_loc.pipeline.stage`):
 ``pdr/odom`` (one message per stepometer hop; per interval ``steps = |p_i − p_(i−1)| /
 odom_step_length_m`` and ``Δψ = wrap(yaw_i − yaw_(i−1))``, the contract of ``imu_node``) and
-``wifi/scan``. Outputs: ``backend/<user>/pose`` (PoseWithCovarianceStamped, the newest pose with its
+``wifi/scan`` (and ``wifi/fix`` with ``wifi_source: fix``: the front end's fixes as position factors).
+Outputs: ``backend/<user>/pose`` (PoseWithCovarianceStamped, the newest pose with its
 marginal covariance, at every new pose), ``backend/<user>/path`` (the user's whole optimised
 trajectory: every ``path_period_s`` of stamp time, when the user finishes and at the end of input,
 after a whole-graph optimisation), ``backend/wifi_map`` (the survey and users' scans at their
@@ -36,7 +37,7 @@ from indoor_loc.errors import InvalidMessageError
 from msg_adapters.markers import points_markers
 from msg_adapters.odom import odom_from_msg
 from msg_adapters.path import path_to_msg
-from msg_adapters.pose import pose_to_msg
+from msg_adapters.pose import fix_from_msg, pose_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
@@ -47,8 +48,9 @@ NODE_NAME = "backend_node"
 class BackendParams(GraphParams):
     """Parameters of ``backend_node``: its own, and the graph's inherited from :class:`GraphParams`
     (same names, defaults and docs, declared once)."""
-    radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = start from users' scans "
-                           "only (a map grows, but nothing ties it to the map frame)")
+    radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = none: with wifi_source "
+                           "'scan' no user can start (a user starts at a scan localised against the survey), so "
+                           "scans are rejected as 'no_survey'; with 'fix' the fixes place the users")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
@@ -81,7 +83,7 @@ class BackendParams(GraphParams):
 @dataclass
 class _UserInput:
     """Reorder buffer and odometry decoding state of one user."""
-    heap: list = field(default_factory=list)           # (stamp, kind, seq, payload); kind 0 odom, 1 scan
+    heap: list = field(default_factory=list)           # (stamp, kind, seq, payload); kind 0 odom, 1 fix, 2 scan
     newest_odom_ns: int | None = None
     newest_scan_ns: int | None = None
     taken_ns: int | None = None                        # newest stamp taken into the graph
@@ -101,14 +103,19 @@ class BackendStage(Stage):
         if survey is None and params.radiomap:
             survey = load_radiomap(Path(params.radiomap).expanduser())     # MapError -> start-up fails
         self.graph = MultiUserGraph(params.graph_params(), survey)
+        self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._seq = 0
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/scan", self._on_scan)
+        if params.wifi_source == "fix":
+            self.on("wifi/fix", self._on_fix)
 
     def inputs(self) -> list[Port]:
         return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
-                Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)]
+                Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)] + (
+                [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
+                if self.params.wifi_source == "fix" else [])
 
     def outputs(self) -> list[Port]:
         return [Port("backend/wifi_map", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
@@ -145,9 +152,19 @@ class BackendStage(Stage):
 
     def _on_scan(self, msg, recv_ns: int, user: str) -> list[Output]:
         scan = scan_from_msg(msg)
-        self._push(user, scan.stamp_ns, 1, scan)
+        if self._no_survey:
+            raise InvalidMessageError("no_survey", "no radio map (radiomap ''): a user starts at a scan WKNN "
+                                                   "localises against the survey, so none can; set radiomap")
+        self._push(user, scan.stamp_ns, 2, scan)
         b = self._buffer(user)
         b.newest_scan_ns = scan.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, scan.stamp_ns)
+        return self._release(user)
+
+    def _on_fix(self, msg, recv_ns: int, user: str) -> list[Output]:
+        """A front-end fix (``wifi_source: fix``); it sorts before its own scan (same stamp), so the
+        scan attaches to the fix's pose."""
+        fix = fix_from_msg(msg, frame_id=self.params.frame_id)
+        self._push(user, fix.stamp_ns, 1, fix)
         return self._release(user)
 
     def _release(self, user: str, *, everything: bool = False) -> list[Output]:
@@ -159,12 +176,15 @@ class BackendStage(Stage):
         new_pose = False
         while b.heap:
             stamp, kind, _, payload = b.heap[0]
-            if not (everything or stamp <= odom_mark or (kind == 1 and stamp <= scan_mark)):
+            if not (everything or stamp <= odom_mark or (kind >= 1 and stamp <= scan_mark)):
                 break
             heapq.heappop(b.heap)
             b.taken_ns = stamp
             if kind == 0:
                 new_pose |= self._take_odom(user, b, payload)
+            elif kind == 1:
+                self.graph.add_fix(user, payload.stamp_ns, payload.xy, payload.cov)
+                new_pose = True
             else:
                 pose, _match = self.graph.add_scan(user, payload)
                 new_pose |= pose is not None
