@@ -372,6 +372,14 @@ def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
     from indoor_loc.errors import DatasetError
     with pytest.raises(DatasetError, match="metadata directory"):
         import_ms_indoor(_args(site, tmp_path / "out2", metadata=tmp_path / "nope"))
+    # the bench finds them too, or takes them from --metadata for another layout
+    from indoor_loc.bench.wifi_ms import load_site
+    floors = load_site(site, only=["1F"])
+    assert floors["1F"]["walkable"] is not None and floors["1F"]["walks"] == (2, 1)
+    moved = tmp_path / "plans"
+    (tmp_path / "metadata" / "5f00aa").rename(moved)
+    assert load_site(site, only=["1F"])["1F"]["walkable"] is None
+    assert load_site(site, only=["1F"], metadata=moved)["1F"]["walkable"] is not None
 
 
 def test_ms_site2_rewritten_with_the_quirks_reads_back_record_for_record(tmp_path):
