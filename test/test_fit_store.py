@@ -124,7 +124,8 @@ def test_saved_fit_gives_the_fixes_of_a_fresh_fit_bit_for_bit(site, tmp_path, mo
     lines, log = _logger()
     fitted = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store, log)
     assert fitted._prior is None and fitted._vals == []               # fit data released after the fit
-    assert [lv for lv, _ in lines] == ["info", "info"] and "saved the fitted radio map" in lines[1][1]
+    assert [lv for lv, _ in lines] == ["info"] * 3 and "saved the fitted radio map" in lines[1][1]
+    assert "saved the radio map's arrays" in lines[2][1]
     _assert_same(_fixes(fitted, scans), expect)
 
     monkeypatch.setattr(PowedKnn, "fit", lambda self, rm: pytest.fail("fitted instead of loaded"))
@@ -150,12 +151,12 @@ def test_changed_map_plans_or_params_are_not_served_the_old_fit(site, tmp_path):
     store = FitStore(mapdir, plans)                      # default: beside the map
     rm = load_radiomap(mapdir)
     fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store)
-    files = sorted((mapdir / "fit_cache").glob("*.fit"))
+    files = sorted((mapdir / "fit_cache").glob("wifi_fit_*.fit"))
     assert len(files) == 1
     # other parameters: another file, fitted afresh
     lines, log = _logger()
     fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05, k=3), walkable=walkable), rm, store, log)
-    assert "fitted the radio map" in lines[0][1] and len(list((mapdir / "fit_cache").glob("*.fit"))) == 2
+    assert "fitted the radio map" in lines[0][1] and len(list((mapdir / "fit_cache").glob("wifi_fit_*.fit"))) == 2
     # an edited plan: the saved fit is stale
     gj = plans / "F2" / "geojson_map.json"
     gj.write_text(gj.read_text().replace("150, 150", "160, 150"))
@@ -243,16 +244,66 @@ def test_wifi_fix_stage_loads_the_saved_fit_and_gives_the_same_fixes(site, tmp_p
     plain, err = run(fit_cache=False)
     assert err == "" and not cache.exists()
     first, err = run()
-    assert "saved the fitted radio map" in err and len(list(cache.glob("*.fit"))) == 1
+    assert "saved the fitted radio map" in err and len(list(cache.glob("wifi_fit_*.fit"))) == 1
     second, err = run()
     assert "loaded the fitted radio map" in err and "fitted the radio map (" not in err
     assert len(plain) == len(scans)
     for a, b, c in zip(plain, first, second):
         assert a.pose == b.pose == c.pose
     chain, err = run(method="wknn", fallback="powed")
-    assert "saved" in err and len(list(cache.glob("*.fit"))) == 2
+    assert "saved" in err and len(list(cache.glob("wifi_fit_*.fit"))) == 2
     again, err = run(method="wknn", fallback="powed")
     assert "loaded" in err and [m.pose for m in again] == [m.pose for m in chain]
+
+
+def test_a_start_with_a_saved_fit_parses_neither_map_nor_plans(site, tmp_path, monkeypatch, capsys):
+    """The map's arrays saved from its files equal load_radiomap's; a stage whose fit is saved reads them and
+    leaves the plans unparsed (it loads them if a fit is needed after all), with the same fixes."""
+    from indoor_loc.pipeline import wifi_fix_stage
+    from indoor_loc.wifi import fit_store
+    from msg_adapters.wifi_scan import scan_to_msg
+    mapdir, plans, scans = site
+    cache = tmp_path / "cache"
+    first = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache)))
+    assert "saved the radio map's arrays" in capsys.readouterr().err
+    rm, saved = load_radiomap(mapdir), FitStore(mapdir, plans, cache).load_map()
+    assert saved is not None
+    for f in ("positions", "rssi_dbm", "freq_mhz", "scan_ids", "stamps_ns", "z_m", "age_ms"):
+        a, b = getattr(rm, f), getattr(saved, f)
+        assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), f
+    for f in ("bssids", "ssids", "source", "frame_id", "floors"):
+        assert getattr(rm, f) == getattr(saved, f), f
+
+    def refuse(*args, **kw):
+        raise AssertionError("parsed although saved")
+    monkeypatch.setattr(wifi_fix_stage, "load_radiomap", refuse)
+    monkeypatch.setattr(wifi_fix_stage, "load_floor_plans", refuse)
+    monkeypatch.setattr(fit_store, "load_floor_plans", refuse)
+    second = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache)))
+    assert second.walkable is None and second.extra_diagnostics()["floor_plans"] == "2"
+    msgs = [scan_to_msg(s) for s in scans]
+    assert [second.process("wifi/scan", m, i) for i, m in enumerate(msgs)] == \
+        [first.process("wifi/scan", m, i) for i, m in enumerate(msgs)]
+    # other parameters: no saved fit, so the plans are parsed (a fit needs them)
+    with pytest.raises(AssertionError, match="parsed although saved"):
+        WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache), powed={"field_weight": 0.05, "k": 5}))
+    # a fit needed after start-up (a refit) loads the deferred plans
+    with pytest.raises(AssertionError, match="parsed although saved"):
+        second.fit_positioner(second.radio_map, refit=True)
+    # the saved fit damaged after a start that deferred the plans: refused, refitted within the plans
+    monkeypatch.undo()
+    third = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache)), fit_now=False)
+    assert third._plans_deferred
+    (fit,) = cache.glob("wifi_fit_*.fit")
+    blob = bytearray(fit.read_bytes())
+    blob[-100] ^= 1
+    fit.unlink()
+    fit.write_bytes(bytes(blob))
+    pos = third.fit_positioner(third.radio_map)
+    assert "checksum mismatch" in capsys.readouterr().err
+    walkable, _ = load_floor_plans(plans)
+    _assert_same(_fixes(pos, scans), _fixes(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(rm),
+                                            scans))
 
 
 def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
@@ -265,7 +316,7 @@ def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
         "powed": {"field_weight": 0.05}}}}))
     assert main(["radiomap", "fit", "--params", str(params)]) == 0
     out = capsys.readouterr()
-    assert "saved the fitted radio map" in out.out and len(list(cache.glob("*.fit"))) == 1
+    assert "saved the fitted radio map" in out.out and len(list(cache.glob("wifi_fit_*.fit"))) == 1
     assert main(["radiomap", "fit", "--params", str(params)]) == 0
     assert "up to date" in capsys.readouterr().out
     assert main(["radiomap", "fit", "--params", str(params), "--refit"]) == 0
@@ -274,3 +325,21 @@ def test_radiomap_fit_command_fits_ahead_of_time(site, tmp_path, capsys):
                                                                                   "fit_cache": False}}}))
     assert main(["radiomap", "fit", "--params", str(params)]) == 2
     assert "fit_cache" in capsys.readouterr().err
+
+
+def test_the_store_bounds_a_fit_by_its_plans_and_refuses_a_bounded_fit_without_them(site, tmp_path):
+    """A part without a walkable area fitted with a store that has plans is bounded by them (a start with a
+    saved fit leaves the plans unparsed, and a damaged file then needs a fit); the other way round the fit
+    would be saved under a key without plans: ConfigError, nothing written."""
+    from indoor_loc.errors import ConfigError
+    mapdir, plans, scans = site
+    rm = load_radiomap(mapdir)
+    walkable, _ = load_floor_plans(plans)
+    expect = _fixes(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable).fit(rm), scans)
+    pos = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05)), rm, FitStore(mapdir, plans, tmp_path / "a"))
+    assert pos.walkable is not None
+    _assert_same(_fixes(pos, scans), expect)
+    with pytest.raises(ConfigError, match="wrong key"):
+        fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm,
+                       FitStore(mapdir, "", tmp_path / "b"))
+    assert not (tmp_path / "b").exists()                 # nothing was written

@@ -268,7 +268,7 @@ def test_a_second_node_loads_the_saved_fit_and_logs_it(tmp_path, ros_domain, mon
                 node.destroy_node()
         if run == 0:
             assert any(t.startswith("saved the fitted radio map") for t in logged), logged
-            assert len(list((map_dir / "fit_cache").glob("*.fit"))) == 1
+            assert len(list((map_dir / "fit_cache").glob("wifi_fit_*.fit"))) == 1
             logged.clear()
             monkeypatch.setattr(PowedKnn, "fit", lambda self, rm: pytest.fail("fitted instead of loaded"))
     assert len(logged) == 1 and logged[0].startswith("loaded the fitted radio map from " + str(map_dir / "fit_cache"))

@@ -228,7 +228,6 @@ def fit(params_file: Path, radiomap: Path | None = None, *, namespace: str = "",
     turn ``fit_cache`` off or name no radio map."""
     from indoor_loc.params import load_params_file, params_for_node, params_from_dict
     from indoor_loc.pipeline.wifi_fix_stage import NODE_NAME, WifiFixParams, WifiFixStage
-    from indoor_loc.wifi.fit_store import fit_positioner
     values = params_for_node(load_params_file(params_file), NODE_NAME, namespace)
     if radiomap is not None:
         values["radiomap"] = str(radiomap)
@@ -242,8 +241,7 @@ def fit(params_file: Path, radiomap: Path | None = None, *, namespace: str = "",
     stage = WifiFixStage(params, fit_now=False)            # reads the map and plans as the node does
     store = stage.fit_store()
     assert store is not None and stage.radio_map is not None
-    fit_positioner(params.make_positioner(stage.walkable), stage.radio_map, store,
-                   log or (lambda level, text: print(text)), refit=refit)
+    stage.fit_positioner(stage.radio_map, log or (lambda level, text: print(text)), refit=refit, store=store)
     return store.saved
 
 

@@ -66,7 +66,7 @@ from msg_adapters.pose import fix_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.wifi.coverage import CoverageParams
-from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner
+from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner, plan_files
 from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
@@ -158,11 +158,24 @@ class WifiFixStage(Stage):
         #: log(level, text) of the fit store (the live node: its logger; None: stderr)
         self.fit_log: Log | None = None
         self.floor_plans: dict[float, str] = {}
-        if params.floor_plans:
-            self.walkable, self.floor_plans = load_floor_plans(params.floor_plans)
+        #: floor plans not parsed at start-up: every fit they bound is saved (read when a fit is needed)
+        self._plans_deferred = False
+        store = FitStore(params.radiomap, params.floor_plans, params.fit_cache_dir) \
+            if params.fit_cache and params.radiomap and self.radio_map is None else None
+        if store is not None:              # the map's arrays as saved from the same files (no CSV to parse)
+            self.radio_map = store.load_map(self._log)
         if self.radio_map is None and params.radiomap:
             self.radio_map = load_radiomap(Path(params.radiomap).expanduser())   # MapError -> start-up fails
+        if params.radiomap and self.radio_map is not None and radio_map is None:
             self._configured_map = self.radio_map       # its fit may be saved beside it (fit_cache)
+        self._store = store
+        if params.floor_plans:
+            if store is not None and self.radio_map is not None and store.is_current(self.params.make_positioner()):
+                self._plans_deferred = True             # unchanged since a fit they bounded: parsed that time
+                self.floor_plans = {float(i): str(f) for i, f in enumerate(plan_files(Path(params.floor_plans).expanduser()))
+                                    if f.name == "geojson_map.json"}
+            else:
+                self.walkable, self.floor_plans = load_floor_plans(params.floor_plans)   # ConfigError naming it
         if self.radio_map is not None:
             if fit_now:
                 self.positioner = self.fit_positioner(self.radio_map)
@@ -183,14 +196,19 @@ class WifiFixStage(Stage):
         self.end_fit(job, self.fit_positioner(rm))
 
     # -- fitting in steps (the live node runs fit_positioner in a worker thread) ----------------
-    def fit_positioner(self, rm: RadioMap, log: Log | None = None) -> Positioner:
+    def fit_positioner(self, rm: RadioMap, log: Log | None = None, *, refit: bool = False,
+                       store: FitStore | None = None) -> Positioner:
         """A new positioner fitted to ``rm``. Touches no state of the stage, so it may run in
         another thread while the stage handles scans. The configured map (parameter ``radiomap``)
         is loaded from its saved fit when one matches (``fit_cache``; :mod:`indoor_loc.wifi.fit_store`),
-        else fitted and saved; ``log(level, text)`` gets what the store did (default: :attr:`fit_log`, else
-        stderr)."""
-        return fit_positioner(self.params.make_positioner(self.walkable), rm, self.fit_store(rm),
-                              log or self.fit_log or self._log_stderr)
+        else fitted (``refit``: always) and saved (in ``store``, default :meth:`fit_store`); ``log(level, text)``
+        gets what the store did (default: :attr:`fit_log`, else stderr)."""
+        store = self.fit_store(rm) if store is None else store
+        walkable = self.walkable
+        if self._plans_deferred and store is None:      # (with a store, the store reads them if a fit needs them)
+            walkable = load_floor_plans(self.params.floor_plans)[0]
+        return fit_positioner(self.params.make_positioner(walkable), rm, store, log or self.fit_log or self._log,
+                              refit=refit)
 
     def fit_store(self, rm: RadioMap | None = None) -> FitStore | None:
         """Where fits of ``rm`` (default: the configured map) are saved: None unless ``fit_cache`` is on and
@@ -199,9 +217,13 @@ class WifiFixStage(Stage):
         rm = self._configured_map if rm is None else rm
         if not (p.fit_cache and p.radiomap and rm is not None and rm is self._configured_map):
             return None
-        return FitStore(p.radiomap, p.floor_plans, p.fit_cache_dir)
+        return self._store or FitStore(p.radiomap, p.floor_plans, p.fit_cache_dir)
 
-    def _log_stderr(self, level: str, text: str) -> None:
+    def _log(self, level: str, text: str) -> None:
+        """What the fit store did: to :attr:`fit_log` (the live node's logger), else stderr."""
+        if self.fit_log is not None:
+            self.fit_log(level, text)
+            return
         print(f"[{self.NODE_NAME}{' in ' + self.namespace if self.namespace else ''}] {level}: {text}",
               file=sys.stderr)
 

@@ -21,7 +21,9 @@ loaded). A directory that cannot be written is logged and the fit is simply not 
 
 Location: ``<cache directory>/wifi_fit_<name>.fit``, where the cache directory defaults to
 ``<radio map>/fit_cache`` and the name is a hash of the map's path and the parameters, so maps and
-parameter sets sharing one directory do not overwrite each other. Parts of a positioner other than
+parameter sets sharing one directory do not overwrite each other. Beside it, ``wifi_map_<name>.fit`` holds
+the radio map's arrays as read from its files (keyed by those files and the code), so a start with a saved
+fit parses neither the map's CSV nor the floor plans. Parts of a positioner other than
 powed k-NN (WKNN, coverage areas, path loss; a chain's primary) fit in well under a second and are
 fitted as usual.
 """
@@ -44,10 +46,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from indoor_loc.errors import MapError
+from indoor_loc.errors import ConfigError, MapError
 from indoor_loc.wifi.powed_knn import PowedKnn
 from indoor_loc.wifi.radiomap import APS_FILE, FINGERPRINTS_FILE, MANIFEST, read_manifest
 from indoor_loc.wifi.types import Positioner, RadioMap
+from indoor_loc.wifi.walkable import load_floor_plans
 
 FORMAT = "indoor_loc.wifi_fit"
 FORMAT_VERSION = 2
@@ -113,30 +116,38 @@ def _leaves(pos: Positioner) -> list[Positioner]:
 
 class FitStore:
     """Saved fits of positioners on the radio map in ``map_dir`` (with the floor plans in ``floor_plans``,
-    "" = none), in ``cache_dir`` (default ``map_dir/fit_cache``)."""
+    "" = none), in ``cache_dir`` (default ``map_dir/fit_cache``); and the radio map itself as read from its
+    files, so that a start with a saved fit need not parse the map's CSV either."""
 
     def __init__(self, map_dir: str | Path, floor_plans: str | Path = "", cache_dir: str | Path = "") -> None:
         self.map_dir = Path(map_dir).expanduser().resolve()
         self.floor_plans = Path(floor_plans).expanduser().resolve() if str(floor_plans) else None
         self.cache_dir = Path(cache_dir).expanduser() if str(cache_dir) else self.map_dir / CACHE_DIRNAME
+        self._map_digest: str | None = None
         self._inputs: str | None = None
         #: the files loaded and written by this store
         self.loaded: list[Path] = []
         self.saved: list[Path] = []
 
+    def map_digest(self) -> str:
+        """SHA-256 of the format, the code and the map's files (computed once)."""
+        if self._map_digest is None:
+            h = hashlib.sha256(f"{FORMAT} {FORMAT_VERSION}\0{code_digest()}\0".encode())
+            _hash_files(h, self.map_dir, map_files(self.map_dir))
+            self._map_digest = h.hexdigest()
+        return self._map_digest
+
     def inputs_digest(self) -> str:
         """SHA-256 of the map's and plans' files and the fitting code (computed once)."""
         if self._inputs is None:
-            h = hashlib.sha256(f"{FORMAT} {FORMAT_VERSION}\0{code_digest()}\0".encode())
-            _hash_files(h, self.map_dir, map_files(self.map_dir))
-            h.update(b"plans\0")
+            h = hashlib.sha256(f"{self.map_digest()}\0plans\0".encode())
             if self.floor_plans is not None:
                 _hash_files(h, self.floor_plans, plan_files(self.floor_plans))
             self._inputs = h.hexdigest()
         return self._inputs
 
     def _settings(self, part: PowedKnn, index: int) -> str:
-        return json.dumps({"part": index, "method": part.name, "walkable": part.walkable is not None,
+        return json.dumps({"part": index, "method": part.name, "plans": self.floor_plans is not None,
                            "params": dataclasses.asdict(part.params)}, sort_keys=True)
 
     def key(self, part: PowedKnn, index: int) -> str:
@@ -148,25 +159,51 @@ class FitStore:
         name = hashlib.sha256(f"{self.map_dir}\0{self.floor_plans}\0{self._settings(part, index)}".encode())
         return self.cache_dir / f"wifi_fit_{name.hexdigest()[:16]}.fit"
 
+    def map_path(self) -> Path:
+        """Where the radio map's arrays are saved: named by the map's path."""
+        return self.cache_dir / f"wifi_map_{hashlib.sha256(str(self.map_dir).encode()).hexdigest()[:16]}.fit"
+
+    def is_current(self, pos: Positioner) -> bool:
+        """Whether every powed k-NN part of ``pos`` has a saved fit with its key (the header only is read;
+        the data are checked when loaded)."""
+        for index, part in enumerate(_leaves(pos)):
+            if isinstance(part, PowedKnn):
+                try:
+                    meta, _ = read_header(self.path(part, index))
+                except (OSError, ValueError):
+                    return False
+                if meta.get("key") != self.key(part, index):
+                    return False
+        return True
+
     # ------------------------------------------------------------------------------------------
+    def _open(self, path: Path, key: str, log: Log, then: str = "fitting again"
+              ) -> tuple[dict[str, Any], memoryview] | None:
+        """The header and data of ``path`` when it exists and carries ``key``, else None (logged unless the
+        file does not exist). ValueError/OSError when it is unreadable."""
+        if not path.is_file():
+            return None
+        meta, data = read_header(path)
+        if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
+            log("warning", f"fit cache {path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
+                           f"expected {FORMAT!r} {FORMAT_VERSION}: refused, {then}")
+            return None
+        if meta.get("key") != key:
+            log("info", f"fit cache {path} is stale (the radio map, floor plans, parameters or code "
+                        f"changed since it was written): {then}")
+            return None
+        return meta, data
+
     def load(self, part: PowedKnn, index: int, rm: RadioMap, log: Log = _no_log) -> bool:
         """Load the saved fit of ``part`` into it; False (with a log line saying why, unless there is
         simply none) when there is none or it is refused."""
         path = self.path(part, index)
-        if not path.is_file():
-            return False
         t0 = time.monotonic()
         try:
-            meta, data = read_header(path)
-            if meta.get("format") != FORMAT or meta.get("version") != FORMAT_VERSION:
-                log("warning", f"fit cache {path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
-                               f"expected {FORMAT!r} {FORMAT_VERSION}: refused, fitting again")
+            opened = self._open(path, self.key(part, index), log)
+            if opened is None:
                 return False
-            if meta.get("key") != self.key(part, index):
-                log("info", f"fit cache {path} is stale (the radio map, floor plans, parameters or code "
-                            f"changed since it was written): fitting again")
-                return False
-            part.load_fitted_state(rm, read_arrays(meta, data))
+            part.load_fitted_state(rm, read_arrays(*opened))
         except (OSError, ValueError, KeyError, TypeError, MapError) as err:
             log("warning", f"fit cache {path} is unreadable ({type(err).__name__}: {err}): refused, fitting again")
             return False
@@ -174,10 +211,52 @@ class FitStore:
         self.loaded.append(path)
         return True
 
+    def load_map(self, log: Log = _no_log) -> RadioMap | None:
+        """The radio map as :func:`~indoor_loc.wifi.radiomap.load_radiomap` reads it from its files, from the
+        saved copy made of the same files and code; None (logged when refused) without one."""
+        path = self.map_path()
+        try:
+            opened = self._open(path, self.map_digest(), log, "reading the radio map's files")
+            if opened is None:
+                return None
+            meta, data = opened
+            a = read_arrays(meta, data)
+            m = meta["map"]
+            return RadioMap(positions=a["positions"], bssids=list(m["bssids"]), rssi_dbm=a["rssi_dbm"],
+                            freq_mhz=a["freq_mhz"], ssids=list(m["ssids"]), scan_ids=a["scan_ids"],
+                            stamps_ns=a["stamps_ns"], source=list(m["source"]), frame_id=str(m["frame_id"]),
+                            z_m=a["z_m"], floors={str(k): float(v) for k, v in m["floors"].items()},
+                            age_ms=a["age_ms"] if "age_ms" in a else None)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+            log("warning", f"fit cache {path} is unreadable ({type(err).__name__}: {err}): refused, reading the "
+                           f"radio map's files")
+            return None
+
+    def map_is_current(self) -> bool:
+        try:
+            meta, _ = read_header(self.map_path())
+        except (OSError, ValueError):
+            return False
+        return bool(meta.get("key") == self.map_digest())
+
     def save(self, part: PowedKnn, index: int, log: Log = _no_log) -> Path | None:
         """Write the fit of ``part`` atomically; None (logged) when the directory cannot be written."""
-        path = self.path(part, index)
-        meta = {"format": FORMAT, "version": FORMAT_VERSION, "key": self.key(part, index),
+        return self._write(self.path(part, index), self.key(part, index), {}, part.fitted_state(), log,
+                           "the fitted radio map")
+
+    def save_map(self, rm: RadioMap, log: Log = _no_log) -> Path | None:
+        """Write the radio map read from ``map_dir``'s files (``rm``), for :meth:`load_map`."""
+        arrays = {"positions": rm.positions, "rssi_dbm": rm.rssi_dbm, "freq_mhz": rm.freq_mhz, "scan_ids": rm.scan_ids,
+                  "stamps_ns": rm.stamps_ns, "z_m": rm.z_m}
+        if rm.age_ms is not None:
+            arrays["age_ms"] = rm.age_ms
+        meta = {"map": {"bssids": list(rm.bssids), "ssids": list(rm.ssids), "source": list(rm.source),
+                        "frame_id": rm.frame_id, "floors": dict(rm.floors)}}
+        return self._write(self.map_path(), self.map_digest(), meta, arrays, log, "the radio map's arrays")
+
+    def _write(self, path: Path, key: str, extra: dict[str, Any], arrays: dict[str, np.ndarray], log: Log,
+               what: str) -> Path | None:
+        meta = {"format": FORMAT, "version": FORMAT_VERSION, "key": key, **extra,
                 "radiomap": str(self.map_dir), "floor_plans": str(self.floor_plans or ""),
                 "written": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         tmp = None
@@ -185,17 +264,17 @@ class FitStore:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp", dir=self.cache_dir)
             with os.fdopen(fd, "wb") as fh:
-                write_arrays(fh, meta, part.fitted_state())
+                write_arrays(fh, meta, arrays)
                 fh.flush()
                 os.fsync(fh.fileno())
             os.chmod(tmp, 0o644)                       # mkstemp's 0600: other users' nodes read it too
             os.replace(tmp, path)
         except OSError as err:
-            log("warning", f"could not write the fit cache in {self.cache_dir} ({err}): the fit is not saved")
+            log("warning", f"could not write the fit cache in {self.cache_dir} ({err}): {what} not saved")
             if tmp is not None:
                 Path(tmp).unlink(missing_ok=True)
             return None
-        log("info", f"saved the fitted radio map to {path}")
+        log("info", f"saved {what} to {path}")
         self.saved.append(path)
         return path
 
@@ -279,7 +358,8 @@ def read_arrays(meta: dict[str, Any], data: memoryview) -> dict[str, np.ndarray]
 def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None, log: Log = _no_log, *,
                    refit: bool = False) -> Positioner:
     """``pos.fit(rm)``, except that with a ``store`` each powed k-NN part is loaded from its saved fit when
-    one matches (unless ``refit``), and a part fitted is saved. Powed k-NN parts then drop what only the
+    one matches (unless ``refit``), and a part fitted is saved (bounded by the store's floor plans, read
+    here when the part has none yet). Powed k-NN parts then drop what only the
     fit needed (:meth:`PowedKnn.release_fit_data`). The fixes are those of ``pos.fit(rm)``."""
     for index, part in enumerate(_leaves(pos)):
         if not isinstance(part, PowedKnn):
@@ -287,12 +367,19 @@ def fit_positioner(pos: Positioner, rm: RadioMap, store: FitStore | None = None,
             continue
         if store is not None and not refit and store.load(part, index, rm, log):
             continue
+        if store is not None and store.floor_plans is not None and part.walkable is None:
+            part.walkable = load_floor_plans(store.floor_plans)[0]     # not parsed while a saved fit served
+        if store is not None and store.floor_plans is None and part.walkable is not None:
+            raise ConfigError("a positioner bounded by floor plans and a fit store without them: its fit would be "
+                              "saved under the wrong key")
         t0 = time.thread_time()
         part.fit(rm)
         part.release_fit_data()
         if store is not None:
             log("info", f"fitted the radio map ({rm.n_scans} scans) in {time.thread_time() - t0:.1f} s CPU")
             store.save(part, index, log)
+    if store is not None and not store.map_is_current():
+        store.save_map(rm, log)
     release_free_memory()
     return pos
 
