@@ -19,7 +19,7 @@ Tables, all methods on the same scans in one run:
    positions of that run;
 4. map sizes.
 Any site (``--site SITE_DIR``, the layout ``indoor-loc import ms-indoor`` reads): the same tables over the
-floors found there, the split over each floor's walks that have waypoints; floors' storey indices from
+floors found there, the split over each floor's walks with two or more waypoints; floors' storey indices from
 their names (:func:`indoor_loc.datasets.ms_indoor.floor_levels`) or ``--floor-levels NAME=LEVEL,...``;
 ``--floors`` selects floors. Every floor of a site other than ms_site2 is held out. On ms_site2 the
 output is the ``--dataset ms_site2`` one.
@@ -118,12 +118,12 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
               notes: list[str] | None = None, metadata: Path | None = None) -> dict[str, dict[str, Any]]:
     """Per floor of a site directory in the Microsoft format: map (RadioMap of the survey walks), test
     scans, truth (N, 2), level, z, walkable area, site id. The documented split runs over the floor's
-    walks that have waypoints (a walk without any has no truth). A floor without survey scans is left
-    out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
+    walks with two or more waypoints (a walk with fewer has no span of truth). A floor without survey scans is
+    left out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
     ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor.floor_levels`),
     ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor.read_site`);
     what was left out or guessed is appended to ``notes``."""
-    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_waypoints, read_site, read_trace,
+    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, read_site, read_trace,
                                                scans_with_truth, split_map_test)
     from indoor_loc.errors import ConfigError, MapError
     notes = [] if notes is None else notes
@@ -140,10 +140,10 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         if fl.level_rule.startswith("fallback"):
             notes.append(f"floor {fl.name}: storey index {fl.level:g} by {fl.level_rule} (--floor-levels to set it)")
         ids = {p.name.split(".")[0]: p for p in fl.trace_files}
-        with_truth = [i for i in ids if has_waypoints(ids[i])]
+        with_truth = [i for i in ids if has_truth_span(ids[i])]
         if len(with_truth) < len(ids):
-            notes.append(f"floor {fl.name}: {len(ids) - len(with_truth)} of {len(ids)} walks have no waypoints "
-                         "(no truth): not used")
+            notes.append(f"floor {fl.name}: {len(ids) - len(with_truth)} of {len(ids)} walks have fewer than "
+                         "two waypoints (no truth): not used")
         survey, test = split_map_test(with_truth)
         z = fl.z_m(STOREY_HEIGHT_M)
         site_id = ""
@@ -289,7 +289,7 @@ def run(args) -> int:
         report["site"] = {"path": str(root), "site_id": sid, "notes": notes,
                           "floors": {n: {"z_m": f["z"], "test_scans": len(f["scans"])} for n, f in floors.items()}}
         print(f"site {root} (Microsoft Indoor Location Competition 2.0 format{', SiteID ' + sid if sid else ''}): "
-              "per floor, survey walks (1st/3rd/5th of every five\nwalks with waypoints, by id) build the map, test "
+              "per floor, survey walks (1st/3rd/5th of every five\nwalks with a waypoint span, by id) build the map, test "
               "walks (2nd/4th) are positioned; errors in m over located scans;\nin50/in95 = % of truths inside the "
               "50/95 % ellipse; same-scan mean = mean on the scans the baseline located / the\nbaseline's there; "
               + (f"choices made on {', '.join(TUNED_ON)} (tuned), the rest held out.\n" if ms_site2 else
