@@ -280,3 +280,42 @@ def test_eval_of_an_import_with_floor_directories_and_no_route_markers(tmp_path,
     assert pooled["scan_m"]["mean"] == pytest.approx(1.0)            # at the three waypoint stamps
     assert cli_main(["eval", str(run), "--truth", str(run)]) == 2
     assert "is not a directory" in capsys.readouterr().err
+
+
+def test_eval_at_the_scans_of_an_import(tmp_path, capsys):
+    """``--at-scans``: the scan-time error at every ``wifi/scan`` inside the waypoint span, against
+    the waypoints interpolated there (a scan before the first waypoint is not scored)."""
+    pytest.importorskip("rclpy")
+    import json
+
+    from indoor_loc.bag import BagWriter
+    from indoor_loc.cli import main as cli_main
+    from indoor_loc.commands.eval import truth_from_import
+    from indoor_loc.measurements import Fix
+    from indoor_loc.wifi.types import WifiScan
+    from msg_adapters.path import path_to_msg
+    from msg_adapters.pose import fix_to_msg
+    from msg_adapters.wifi_scan import scan_to_msg
+
+    s = 10**9
+    user = "b1_5dd38ffd27889b0006b76aca"
+    t_wp = np.array([10, 20, 30], dtype=np.int64) * s
+    wp = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    (tmp_path / "imp" / "B1").mkdir(parents=True)
+    with BagWriter(tmp_path / "imp" / "B1" / "abc.mcap") as bag:
+        bag.write(f"/{user}/ground_truth", path_to_msg(t_wp, wp), int(t_wp[0]))
+        for t in (5, 25, 15):                                   # unsorted; 5 s lies before the first waypoint
+            scan = WifiScan(t * s, ("aa:bb:cc:dd:ee:ff",), np.array([-60.0]), np.array([2412.0]))
+            bag.write(f"/{user}/wifi/scan", scan_to_msg(scan), t * s)
+    truth = truth_from_import(tmp_path / "imp", at_scans=True)[user]
+    assert truth.scan_ns.tolist() == [15 * s, 25 * s]
+    np.testing.assert_allclose(truth.scan_xy, [[5.0, 0.0], [10.0, 5.0]])
+    assert truth_from_import(tmp_path / "imp")[user].scan_ns.tolist() == t_wp.tolist()     # default: waypoints
+    run = tmp_path / "run.mcap"
+    with BagWriter(run) as bag:       # 2 m off at 15 s; (11, 5) at 25 s: 1 m off
+        for t, xy in zip([10 * s, 15 * s, 20 * s, 30 * s], [[0.0, 1.0], [5.0, 2.0], [11.0, 0.0], [11.0, 10.0]]):
+            bag.write(f"/{user}/wifi/fix", fix_to_msg(Fix(int(t), np.array(xy), np.eye(2))), int(t))
+    out = tmp_path / "scores.json"
+    assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--at-scans", "--json", str(out)]) == 0
+    pooled = json.loads(out.read_text())["pooled"]
+    assert pooled["scan_m"]["n"] == 2 and pooled["scan_m"]["mean"] == pytest.approx(1.5)

@@ -81,6 +81,7 @@ def test_trace_quirks_are_recovered_or_counted(tmp_path):
         f"x\taa:bb:cc:00:00:06\t-81\t2437\t{t + 99}\n",                 # ssid with a tab, then a run-on
         f"{t + 100}\tTYPE_WIFI\tbad\taa:bb:cc:00:00:07\tstrong\t2412\t{t}\n",
         f"{t + 100}\tTYPE_WIFI\tshort\n",
+        f"not a record{t + 100}\tTYPE_WIFI\tglued\taa:bb:cc:00:00:08\t-82\t2412\t{t + 98}\n",   # junk, then a run-on
         f"{t + 150}\tTYPE_BEACON\tuuid\t1\t2\t-60\t-70\t1.5\tdd:ee:ff:00:00:01\t{t + 150}\n",
         f"{t + 160}\tTYPE_WAYPOINT\t5.0\n",                              # short waypoint
         f"{t + 200}\tTYPE_WAYPOINT\t3.0\t2.0\n",
@@ -93,13 +94,13 @@ def test_trace_quirks_are_recovered_or_counted(tmp_path):
     assert tr.floor == "LG1" and tr.device == "ACME P 2" and tr.header["startTime"] == "1574240200000"
     assert tr.header["endTime"] == "1574240200300"
     assert len(tr.acc) == 2 and len(tr.gyro) == 1 and tr.gyro.t_ns[0] == (T0 + 10) * 1_000_000
-    assert tr.dropped["malformed_acc"] == 2 and tr.dropped["malformed"] == 1
+    assert tr.dropped["malformed_acc"] == 2 and tr.dropped["malformed"] == 2       # the stamp, the junk
     assert tr.dropped["malformed_wifi"] == 2 and tr.dropped["malformed_waypoint"] == 1
     assert tr.beacons == 1 and tr.row_counts["TYPE_SOMETHING_NEW"] == 1
     assert len(tr.waypoint_t) == 2
     (scan,) = tr.scans
     got = {b: (r, f, a) for b, r, f, a in zip(scan.bssid, scan.rssi_dbm, scan.freq_mhz, scan.age_ms)}
-    assert set(got) == {f"aa:bb:cc:00:00:0{i}" for i in range(1, 7)}
+    assert set(got) == {f"aa:bb:cc:00:00:0{i}" for i in (1, 2, 3, 4, 5, 6, 8)}
     assert got["aa:bb:cc:00:00:01"] == (-50, 2412, 10)
     assert got["aa:bb:cc:00:00:02"][1:] == (0, 20)                     # frequency unknown = 0
     assert got["aa:bb:cc:00:00:03"][1] == 5180 and math.isnan(got["aa:bb:cc:00:00:03"][2])
@@ -107,7 +108,7 @@ def test_trace_quirks_are_recovered_or_counted(tmp_path):
     assert got["aa:bb:cc:00:00:06"] == (-81, 2437, 1)
     assert scan.ssid[scan.bssid.index("aa:bb:cc:00:00:05")] == "tab\tin ssid"
     odd = "\n".join(tr.oddities)
-    for text in ("2 lines held records run together", "2 WiFi readings without a frequency",
+    for text in ("3 lines held records run together", "2 WiFi readings without a frequency",
                  "2 WiFi readings without a last-seen time", "2 rows dropped: malformed_acc",
                  "rows not used: TYPE_SOMETHING_NEW 1"):
         assert text in odd, (text, odd)
@@ -371,3 +372,59 @@ def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
     from indoor_loc.errors import DatasetError
     with pytest.raises(DatasetError, match="metadata directory"):
         import_ms_indoor(_args(site, tmp_path / "out2", metadata=tmp_path / "nope"))
+    # the bench finds them too, or takes them from --metadata for another layout
+    from indoor_loc.bench.wifi_ms import load_site
+    floors = load_site(site, only=["1F"])
+    assert floors["1F"]["walkable"] is not None and floors["1F"]["walks"] == (2, 1)
+    moved = tmp_path / "plans"
+    (tmp_path / "metadata" / "5f00aa").rename(moved)
+    assert load_site(site, only=["1F"])["1F"]["walkable"] is None
+    assert load_site(site, only=["1F"], metadata=moved)["1F"]["walkable"] is not None
+
+
+def test_ms_site2_rewritten_with_the_quirks_reads_back_record_for_record(tmp_path):
+    """F8 of ms_site2 with other sites' quirks (test/ms_quirks.py): every record reads back equal, but
+    the WiFi frequencies removed; the floor is found under its new name with its plan's extent."""
+    from collections import Counter
+
+    from conftest import dataset
+    from ms_quirks import JUNK, rewrite
+    from indoor_loc.datasets.ms_indoor import list_traces
+    src = dataset("ms_site2")
+    joined = rewrite(src, tmp_path / "q", floors={"F8": "Roof top"}, stride=3)    # 8 walks, every quirk
+    assert joined > 1000
+    (roof,) = [f for f in read_site(tmp_path / "q").floors if f.name == "Roof top"]
+    assert roof.level_rule.startswith("fallback") and "no floor_info.json" in roof.notes
+    assert (roof.width_m, roof.height_m) == pytest.approx((236.7118, 219.7468), abs=1e-3)
+    pairs = list(zip(list_traces(src / "F8" / "path_data_files")[::3], roof.trace_files))
+    assert len(pairs) == 8
+    for p, q in pairs:
+        a, b = read_trace(p), read_trace(q)
+        for k in ("acc", "gyro", "mag", "acc_uncal", "gyro_uncal", "mag_uncal", "rotvec"):
+            np.testing.assert_array_equal(getattr(a, k).t_ns, getattr(b, k).t_ns)
+            np.testing.assert_array_equal(getattr(a, k).values, getattr(b, k).values)
+        np.testing.assert_array_equal(a.waypoint_t, b.waypoint_t)
+        np.testing.assert_array_equal(a.waypoint_xy, b.waypoint_xy)
+        assert a.header == b.header and a.beacons == b.beacons
+        assert a.row_counts + Counter({"TYPE_WIFI": 1}) == b.row_counts       # the short WiFi row
+        assert b.dropped == Counter({"malformed": 1, "malformed_wifi": 1}), (q, b.dropped, JUNK)
+        assert len(a.scans) == len(b.scans)
+        for x, y in zip(a.scans, b.scans):
+            assert (x.stamp_ns, x.bssid, x.ssid) == (y.stamp_ns, y.bssid, y.ssid)
+            np.testing.assert_array_equal(x.rssi_dbm, y.rssi_dbm)
+            np.testing.assert_array_equal(x.age_ms, y.age_ms)
+
+
+def test_wifi_fix_of_an_imported_mezzanine_walk_carries_its_level(tmp_path):
+    """indoor-loc run --nodes wifi with the importer's params.yaml: the fixes of a walk on M (a
+    mezzanine, storey index 0.5) are at z = 2.5 m, the floor's height in the map and the plans."""
+    from indoor_loc.bag import read_bag
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    from indoor_loc.pipeline.offline import run_offline
+    site = make_site(tmp_path / "site")
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(site, out, floors="G,M,Roof")) == 0
+    bag = out / "M" / f"{wid(2, 1)}.mcap"
+    run_offline([bag], tmp_path / "run.mcap", nodes=["wifi"], params=out / "params.yaml", progress=False)
+    fixes = [m.msg for m in read_bag(tmp_path / "run.mcap") if m.topic.endswith("/wifi/fix")]
+    assert len(fixes) == 10 and {f.pose.pose.position.z for f in fixes} == {2.5}

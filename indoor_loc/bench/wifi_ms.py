@@ -115,18 +115,19 @@ def locate_walks(pos, scans: list[WifiScan], shift_db: float = 0.0) -> list[Fix]
 
 
 def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[str] | None = None,
-              notes: list[str] | None = None) -> dict[str, dict[str, Any]]:
+              notes: list[str] | None = None, metadata: Path | None = None) -> dict[str, dict[str, Any]]:
     """Per floor of a site directory in the Microsoft format: map (RadioMap of the survey walks), test
     scans, truth (N, 2), level, z, walkable area, site id. The documented split runs over the floor's
     walks that have waypoints (a walk without any has no truth). A floor without survey scans is left
     out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
     ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor.floor_levels`),
-    ``only`` selects floors by name; what was left out or guessed is appended to ``notes``."""
+    ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor.read_site`);
+    what was left out or guessed is appended to ``notes``."""
     from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_waypoints, read_site, read_trace,
                                                scans_with_truth, split_map_test)
     from indoor_loc.errors import ConfigError, MapError
     notes = [] if notes is None else notes
-    site = read_site(root, levels=levels)
+    site = read_site(root, levels=levels, metadata=metadata)
     names = [fl.name for fl in site.floors]
     if only:
         bad = [n for n in only if n not in names]
@@ -261,7 +262,7 @@ def run(args) -> int:
     try:
         only = [t.strip() for t in (getattr(args, "floors", "") or "").split(",") if t.strip()]
         floors = load_site(root, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""),
-                           only=only or None, notes=notes)
+                           only=only or None, notes=notes, metadata=getattr(args, "metadata", None))
     except (ConfigError, DatasetError) as err:
         print(f"bench wifi {what}: {err}")
         return 2

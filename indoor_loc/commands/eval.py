@@ -25,10 +25,11 @@ import numpy as np
 
 from indoor_loc.contract import namespace_of_topic
 from indoor_loc.errors import ConfigError, DatasetError
-from indoor_loc.eval.metrics import WalkErrors, WalkScore, pool, score, walk_errors
+from indoor_loc.eval.metrics import WalkErrors, WalkScore, interpolate_xy, pool, score, walk_errors
 from indoor_loc.eval.trajectory import Trajectory, Truth, read_csv_dir, truth_from_putmc, write_csv
 
 ROUTE_TOPIC = "ground_truth/route"
+SCAN_TOPIC = "wifi/scan"
 LINE_LIST = 5          # visualization_msgs/Marker.LINE_LIST
 
 
@@ -50,6 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", type=Path, help="write one PNG per walk into this directory")
     parser.add_argument("--write-csv", type=Path, help="also write the trajectories read as <user>.csv here")
     parser.add_argument("--keep-stale", action="store_true", help="with --dataset: keep stale samples' scans")
+    parser.add_argument("--at-scans", action="store_true",
+                        help="with --truth: score the scan-time error at every wifi/scan of the imported bags "
+                             "inside the truth's time span, against the truth interpolated there (linear between "
+                             "ground_truth samples, as the Microsoft traces' waypoints are), instead of at the "
+                             "ground_truth samples themselves")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -140,16 +146,21 @@ def frame_warnings(frames: dict[str, set[str]], truth_frame: str = "map") -> lis
     return out
 
 
-def truth_from_import(import_dir: Path) -> dict[str, Truth]:
+def truth_from_import(import_dir: Path, *, at_scans: bool = False) -> dict[str, Truth]:
     """Truth per user from imported bags: ``ground_truth`` (time-stamped true positions: PUTMC's
     scan positions, the simulator's samples, the Microsoft traces' waypoints) and the LINE_LIST
     markers of ``ground_truth/route`` (consecutive point pairs = segments). A user without route
     markers (``import ms-indoor``: the walk is linear between its waypoints) gets the segments
     between consecutive ``ground_truth`` points as its route. The bags are ``import_dir/*.mcap`` or,
-    when there are none, ``import_dir/*/*.mcap`` (``import ms-indoor``'s ``OUT/<floor>/``)."""
+    when there are none, ``import_dir/*/*.mcap`` (``import ms-indoor``'s ``OUT/<floor>/``).
+
+    ``at_scans``: the scored instants are the user's ``wifi/scan`` stamps inside the ``ground_truth``
+    span, each with the truth interpolated linearly there (see :func:`truth_at`), instead of the
+    ``ground_truth`` samples."""
     from indoor_loc.bag import read_bag
     from msg_adapters.markers import marker_points
     from msg_adapters.path import path_from_msg
+    from msg_adapters.time import stamp_to_ns
 
     if not Path(import_dir).is_dir():
         raise DatasetError(f"--truth {import_dir} is not a directory (give the output directory of "
@@ -158,11 +169,15 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
     if not bags:
         raise DatasetError(f"{import_dir}: no .mcap bags (run `indoor-loc import` first)")
     from indoor_loc.bag import bag_topics
-    wanted = [t for t in bag_topics(bags) if t.endswith(("/" + ROUTE_TOPIC, "/ground_truth"))]
+    ends = ("/" + ROUTE_TOPIC, "/ground_truth") + (("/" + SCAN_TOPIC,) if at_scans else ())
+    wanted = [t for t in bag_topics(bags) if t.endswith(ends)]
     gt: dict[str, tuple] = {}
     segs: dict[str, np.ndarray] = {}
+    scans: dict[str, list[int]] = {}
     for m in read_bag(bags, topics=wanted):
-        if m.topic.endswith("/" + ROUTE_TOPIC):
+        if m.topic.endswith("/" + SCAN_TOPIC):
+            scans.setdefault(_user_of(m.topic, SCAN_TOPIC, ""), []).append(stamp_to_ns(m.msg.header.stamp))
+        elif m.topic.endswith("/" + ROUTE_TOPIC):
             user = _user_of(m.topic, ROUTE_TOPIC, "")
             pts = [marker_points(mk)[:, :2] for mk in m.msg.markers if mk.type == LINE_LIST and mk.points]
             if pts:
@@ -180,8 +195,21 @@ def truth_from_import(import_dir: Path) -> dict[str, Truth]:
                 raise DatasetError(f"{import_dir}: {user} has no {ROUTE_TOPIC} markers and fewer than two "
                                    "ground_truth points to draw its route from")
             segs[user] = np.stack([xy[:-1], xy[1:]], axis=1)
+        if at_scans:
+            t, xy = truth_at(t, xy, np.asarray(scans.get(user, []), np.int64))
         out[user] = Truth(user, segs[user], t, xy)
     return out
+
+
+def truth_at(t: np.ndarray, xy: np.ndarray, at_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The instants of ``at_ns`` inside [t[0], t[-1]] (sorted) and the truth there, linear between the
+    samples ``t`` (K,) ns, ``xy`` (K, 2) m (none without two samples)."""
+    at = np.sort(np.asarray(at_ns, np.int64))
+    if len(t) < 2:
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    at = at[(at >= t[0]) & (at <= t[-1])]
+    est, _ = interpolate_xy(t, xy, at)
+    return at, est
 
 
 # ---------------------------------------------------------------------------------------------
@@ -232,7 +260,7 @@ def main(args: argparse.Namespace) -> int:
     if not trajs:
         raise ConfigError("nothing to score: give bags (with --topic) and/or --csv-dir")
     if args.truth:
-        truths = truth_from_import(args.truth)
+        truths = truth_from_import(args.truth, at_scans=args.at_scans)
     else:
         walks = sorted(int(u[4:]) for u in trajs if u.startswith("walk") and u[4:].isdigit())
         truths = truth_from_putmc(args.dataset, walks or None, keep_stale=args.keep_stale)

@@ -306,9 +306,10 @@ _MAC_RE = re.compile(r"^[0-9a-f]{2}([:-][0-9a-f]{2}){5}$")
 def _split_run_on(line: str) -> list[str]:
     """A line as its records. In some of the competition's files a line lacks its end, so the next
     record (a 13-digit Unix-ms stamp then ``TYPE_…``, or a ``#`` header) follows on the same line, its
-    stamp glued to the previous record's last field; each record starts where such a start is found."""
-    if line.count("TYPE_") + line.count("#") <= 1:
-        return [line]
+    stamp glued to the previous record's last field (or to text that is no record); each record starts
+    where such a start is found, and what comes before the first is a (malformed) record of its own."""
+    if line.count("TYPE_") <= 1 and "#" not in line[1:] and (line[:1].isdigit() or line[:1] == "#"):
+        return [line]                        # one record from the start of the line: the usual case
     cuts = [m.start() for m in _RECORD_START.finditer(line) if m.start() > 0]
     if not cuts:
         return [line]
