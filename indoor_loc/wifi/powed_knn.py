@@ -860,6 +860,7 @@ class PowedKnn(Positioner):
         self._near = self._kernel_den = self._kernel_csc = self._kernel_sums = None
         self._prior = self._prior_raw = None
         self._prior_scale = []
+        self._field_floors, self._field_detect = np.zeros(0), 0.0
 
     def fitted_state(self) -> dict[str, np.ndarray]:
         """Everything :meth:`locate` needs after :meth:`fit`, as named arrays (no Python objects), for
