@@ -323,6 +323,27 @@ def test_bench_on_any_site(tmp_path, capsys):
     assert bench_wifi.run(args) == 2
 
 
+def test_bench_tags_the_floors_that_chose_the_methods_by_the_floor_recorded_on(tmp_path, capsys, monkeypatch):
+    """On a copy of the site whose methods were chosen on some floors, with those floors renamed, the
+    tags follow the walks' header FloorName, not the directory's name."""
+    from indoor_loc.bench import wifi as bench_wifi
+    from indoor_loc.bench import wifi_ms
+    site = make_site(tmp_path / "site")
+    (site / "G").rename(site / "GF")                       # recorded as G, stored under GF
+    monkeypatch.setattr(wifi_ms, "MS_SITE2_ID", "5f00000000000000000000aa")
+    monkeypatch.setattr(wifi_ms, "TUNED_ON", ("G",))
+    args = argparse.Namespace(data=tmp_path / "none", site=site, dataset="", floors="GF,LG1", floor_levels="",
+                              json=None, quick=False)
+    assert bench_wifi.run(args) == 0
+    text = capsys.readouterr().out
+    assert "choices made on GF (ms_site2's G) (tuned), the rest held out." in text
+    assert "1. floor GF (tuned): " in text and "1. floor LG1 (held out): " in text
+    args.floors = "LG1"
+    assert bench_wifi.run(args) == 0
+    text = capsys.readouterr().out
+    assert "choices made on ms_site2's G, none of them here (all held out)." in text
+
+
 def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys):
     from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     d = tmp_path / "site" / "F2" / "path_data_files"

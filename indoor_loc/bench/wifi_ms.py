@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -147,11 +148,13 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         survey, test = split_map_test(with_truth)
         z = fl.z_m(STOREY_HEIGHT_M)
         site_id = ""
+        recorded_on: Counter = Counter()      # the walks' header FloorName: the floor they were recorded as
         ms: list[WifiScan] = []
         mp, src = [], []
         for tid in survey:
             tr = read_trace(ids[tid], imu=False)
             site_id = site_id or tr.header.get("SiteID", "")
+            recorded_on[tr.floor] += 1
             sc, xy = scans_with_truth(tr)
             ms += sc
             mp.append(xy)
@@ -161,6 +164,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         for tid in test:
             tr = read_trace(ids[tid], imu=False)
             site_id = site_id or tr.header.get("SiteID", "")
+            recorded_on[tr.floor] += 1
             sc, xy = scans_with_truth(tr)
             ts += sc
             tp.append(xy)
@@ -179,7 +183,8 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
             except MapError as err:
                 notes.append(f"floor {fl.name}: plan not used: {err}")
         out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp) if tp else np.zeros((0, 2)), "z": z,
-                        "walks": (len(survey), len(test)), "walkable": walkable, "site_id": site_id}
+                        "walks": (len(survey), len(test)), "walkable": walkable, "site_id": site_id,
+                       "recorded_on": recorded_on.most_common(1)[0][0] if recorded_on else ""}
     if not out:
         raise ConfigError(f"{root}: no floor with survey scans inside a waypoint span")
     return out
@@ -273,7 +278,10 @@ def run(args) -> int:
             print(f"   {n}")
         return 2
     ms_site2 = any(f["site_id"] == MS_SITE2_ID for f in floors.values())
-    tuned_on = TUNED_ON if ms_site2 else ()
+    # ms_site2's floors that chose the methods, by the floor the walks were recorded on (a renamed copy too)
+    tuned_on = {n: f["recorded_on"] for n, f in floors.items()
+                if f["site_id"] == MS_SITE2_ID and f["recorded_on"] in TUNED_ON}
+    tuned_text = ", ".join(n if n == was else f"{n} (ms_site2's {was})" for n, was in tuned_on.items())
     report: dict[str, Any] = {"floors": {}, "pooled": {}, "floor_detection": {}}
     if not site_arg:
         print("ms_site2 (Microsoft Indoor Location Competition 2.0, site 2): per floor, survey walks (1st/3rd/5th of "
@@ -292,8 +300,9 @@ def run(args) -> int:
               "per floor, survey walks (1st/3rd/5th of every five\nwalks with a waypoint span, by id) build the map, test "
               "walks (2nd/4th) are positioned; errors in m over located scans;\nin50/in95 = % of truths inside the "
               "50/95 % ellipse; same-scan mean = mean on the scans the baseline located / the\nbaseline's there; "
-              + (f"choices made on {', '.join(TUNED_ON)} (tuned), the rest held out.\n" if ms_site2 else
-                 "no floor of this site was used to choose methods (all held out).\n")
+              + (f"choices made on {tuned_text} (tuned), the rest held out.\n" if tuned_on else
+                 f"choices made on ms_site2's {', '.join(TUNED_ON)}, none of them here (all held out).\n"
+                 if ms_site2 else "no floor of this site was used to choose methods (all held out).\n")
               + "floors: " + ", ".join(f"{n} z={f['z']:g} m" for n, f in floors.items()))
         for n in notes:
             print(f"   {n}")
