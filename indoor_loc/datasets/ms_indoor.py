@@ -693,7 +693,7 @@ def site_floors(site_dir: str | Path, *, levels: dict[str, float] | None = None,
     return read_site(site_dir, levels=levels, metadata=metadata).floors
 
 
-_WAYPOINT_STAMP = re.compile(r"(\d+)\tTYPE_WAYPOINT\t")
+_WAYPOINT_STAMP = re.compile(r"(\d{1,13})\tTYPE_WAYPOINT\t")      # a stamp glued to digits before it: its own 13
 
 
 def has_truth_span(path: Path) -> bool:
