@@ -229,6 +229,7 @@ def test_import_of_a_site_with_every_quirk(tmp_path, capsys):
     assert import_ms_indoor(_args(site, out)) == 0
     printed = capsys.readouterr().out
     assert "floor Roof: level 1 by fallback" in printed
+    assert "floors LG1 z=-5 m, G z=0 m, M z=2.5 m, Roof z=5 m)" in printed        # not P1, B3: no walks
     z = {"B3": -20.0, "P1": -25.0, "LG1": -5.0, "G": 0.0, "M": 2.5, "Roof": 5.0}
     rm = load_radiomap(out / "radiomap")
     assert rm.floors == {k: v for k, v in z.items() if k not in ("P1", "B3")}     # no walks there

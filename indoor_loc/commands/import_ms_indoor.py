@@ -221,7 +221,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     print(_table(rows))
     if rm.n_scans:
         print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
-              + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+              + ", ".join(f"{k} z={v:g} m" for k, v in rm.floors.items()) + ")")
     else:
         print(f"\nradio map: NONE — {NO_MAP}")
     print(f"params:    {out / 'params.yaml'}\nsplit:     {out / 'split.yaml'}\nreport:    {out / 'import_report.md'}")
