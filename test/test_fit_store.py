@@ -247,6 +247,8 @@ def test_wifi_fix_stage_loads_the_saved_fit_and_gives_the_same_fixes(site, tmp_p
     assert "saved the fitted radio map" in err and len(list(cache.glob("wifi_fit_*.fit"))) == 1
     second, err = run()
     assert "loaded the fitted radio map" in err and "fitted the radio map (" not in err
+    diag = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache))).extra_diagnostics()
+    assert diag["fit.cache"].startswith(f"loaded {cache}/wifi_fit_")
     assert len(plain) == len(scans)
     for a, b, c in zip(plain, first, second):
         assert a.pose == b.pose == c.pose
