@@ -23,7 +23,7 @@ Floor heights: ``z = storey index × --storey-height-m`` (default 5 m). The inde
 name (:func:`indoor_loc.datasets.ms_indoor.floor_levels`: B1 → −1, F1/1F/L1/G → 0, F3 → 2, M → 0.5,
 LG<n>, then B<n>, then P<n> stacking below ground), ``--floor-levels NAME=LEVEL,...`` overriding it; a
 name of no known convention gets the next index above the highest floor, named in the report's
-"Floors" table. Walks without any waypoint have no truth: they are written and positioned but take no
+"Floors" table. Walks with fewer than two waypoints have no truth: they are written and positioned but take no
 part in the split (role ``no truth``) and build no map. A floor without ``floor_info.json`` takes its
 extent from its GeoJSON plan's lon/lat extent; a plan that cannot be placed or drawn is not copied
 (the report says why), so the nodes never load it.
