@@ -247,6 +247,8 @@ def test_wifi_fix_stage_loads_the_saved_fit_and_gives_the_same_fixes(site, tmp_p
     assert "saved the fitted radio map" in err and len(list(cache.glob("wifi_fit_*.fit"))) == 1
     second, err = run()
     assert "loaded the fitted radio map" in err and "fitted the radio map (" not in err
+    diag = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache))).extra_diagnostics()
+    assert diag["fit.cache"].startswith(f"loaded {cache}/wifi_fit_")
     assert len(plain) == len(scans)
     for a, b, c in zip(plain, first, second):
         assert a.pose == b.pose == c.pose
@@ -343,3 +345,50 @@ def test_the_store_bounds_a_fit_by_its_plans_and_refuses_a_bounded_fit_without_t
         fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm,
                        FitStore(mapdir, "", tmp_path / "b"))
     assert not (tmp_path / "b").exists()                 # nothing was written
+
+
+def _same_value(a, b, where: str) -> None:
+    """a and b hold the same values (arrays bit for bit, sparse matrices by their arrays, objects by their
+    attributes)."""
+    from scipy import sparse
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.dtype == b.dtype and a.shape == b.shape, where
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"), where
+    elif sparse.issparse(a) or sparse.issparse(b):
+        assert sparse.issparse(a) and sparse.issparse(b) and a.shape == b.shape, where
+        a, b = sparse.csr_matrix(a), sparse.csr_matrix(b)
+        for f in ("data", "indices", "indptr"):
+            _same_value(getattr(a, f), getattr(b, f), f"{where}.{f}")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same_value(x, y, f"{where}[{i}]")
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _same_value(a[k], b[k], f"{where}[{k!r}]")
+    elif hasattr(a, "__dict__") and not callable(a):
+        assert type(a) is type(b), where
+        _same_value(vars(a), vars(b), where)
+    else:
+        assert a == b or (a != a and b != b), f"{where}: {a!r} != {b!r}"
+
+
+def test_a_loaded_fit_holds_every_attribute_of_a_fitted_one(site, tmp_path):
+    """Every attribute the positioner keeps after a fit (and release_fit_data) is restored by a load with the
+    same value: state added to the fit but not to fitted_state()/load_fitted_state() fails here."""
+    mapdir, plans, _ = site
+    rm = load_radiomap(mapdir)
+    walkable, _ = load_floor_plans(plans)
+    store = FitStore(mapdir, plans, tmp_path / "cache")
+    fitted = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store)
+    loaded = fit_positioner(PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable), rm, store)
+    assert store.loaded
+    a, b = vars(fitted), vars(loaded)
+    assert a.keys() == b.keys()
+    for k in a:
+        if k in ("radio_map", "walkable"):
+            assert a[k] is b[k] if k == "radio_map" else (a[k] is not None and b[k] is not None)
+            continue
+        _same_value(a[k], b[k], k)

@@ -137,10 +137,11 @@ def _plan(multi: bool) -> dict:
          if multi else {"type": "Polygon", "coordinates": shop}}]}
 
 
-def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: bool = True, gz: bool = False,
+def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: int = 2, gz: bool = False,
           x_end: float = 55.0):
     """One walk across the floor (y = 5 + 6 k, x 5 -> 55 m in 25 s): IMU at 10 Hz, a WiFi scan every
-    2.5 s from per-floor APs (path loss in distance, 6 dB per floor between floors), two waypoints."""
+    2.5 s from per-floor APs (path loss in distance, 6 dB per floor between floors), two waypoints (or
+    ``waypoints`` = 1: the first, 0: none)."""
     t0 = T0 + 10_000_000 * floor_ix + 100_000 * k
     y = 5.0 + 6.0 * (k % 6)
     aps = [(f"aa:00:00:00:{f:02x}:{j:02x}", 10.0 + 20.0 * (j % 3), 8.0 + 24.0 * (j // 3), f)
@@ -158,8 +159,7 @@ def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: bool
             rss = -35.0 - 25.0 * math.log10(d) - 6.0 * abs(f - floor_ix) * 3 + rng.normal(0, 2)
             if rss > -95:
                 out.append(f"{t}\tTYPE_WIFI\tmall\t{b}\t{rss:.0f}\t2412\t{t - 300}\n")
-    if waypoints:
-        out.append(f"{t0}\tTYPE_WAYPOINT\t5.0\t{y}\n{t0 + 25_000}\tTYPE_WAYPOINT\t{x_end}\t{y}\n")
+    out += [f"{t0}\tTYPE_WAYPOINT\t5.0\t{y}\n", f"{t0 + 25_000}\tTYPE_WAYPOINT\t{x_end}\t{y}\n"][:waypoints]
     text = "".join(out)
     if gz:
         path.with_name(path.name + ".gz").write_bytes(gzip.compress(text.encode()))
@@ -188,7 +188,7 @@ def make_site(root: Path) -> Path:
         for k in range(5):
             _walk(d / f"{wid(ix, k)}.txt", floor, ix, k, rng, gz=k == 1, x_end=61.0 if floor == "M" and k == 4 else 55.0)
         if floor == "G":
-            _walk(d / f"{wid(ix, 9)}.txt", floor, ix, 9, rng, waypoints=False)
+            _walk(d / f"{wid(ix, 9)}.txt", floor, ix, 9, rng, waypoints=0)
     (root / "P1" / "path_data_files").mkdir(parents=True)
     (root / "P1" / "floor_info.json").write_text(json.dumps({"map_info": {"width": 60.0, "height": 40.0}}))
     (root / "docs").mkdir()
@@ -229,6 +229,7 @@ def test_import_of_a_site_with_every_quirk(tmp_path, capsys):
     assert import_ms_indoor(_args(site, out)) == 0
     printed = capsys.readouterr().out
     assert "floor Roof: level 1 by fallback" in printed
+    assert "floors LG1 z=-5 m, G z=0 m, M z=2.5 m, Roof z=5 m)" in printed        # not P1, B3: no walks
     z = {"B3": -20.0, "P1": -25.0, "LG1": -5.0, "G": 0.0, "M": 2.5, "Roof": 5.0}
     rm = load_radiomap(out / "radiomap")
     assert rm.floors == {k: v for k, v in z.items() if k not in ("P1", "B3")}     # no walks there
@@ -302,7 +303,7 @@ def test_bench_on_any_site(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "no floor of this site was used to choose methods (all held out)" in text
     assert "floor Roof: storey index 1 by fallback" in text
-    assert "floor G: 1 of 6 walks have no waypoints (no truth): not used" in text
+    assert "floor G: 1 of 6 walks have fewer than two waypoints (no truth): not used" in text
     assert "2. pooled over the four floors (floor known)" in text
     for floor in ("LG1", "G", "M", "Roof"):
         assert f"1. floor {floor} (held out): " in text
@@ -323,13 +324,34 @@ def test_bench_on_any_site(tmp_path, capsys):
     assert bench_wifi.run(args) == 2
 
 
+def test_bench_tags_the_floors_that_chose_the_methods_by_the_floor_recorded_on(tmp_path, capsys, monkeypatch):
+    """On a copy of the site whose methods were chosen on some floors, with those floors renamed, the
+    tags follow the walks' header FloorName, not the directory's name."""
+    from indoor_loc.bench import wifi as bench_wifi
+    from indoor_loc.bench import wifi_ms
+    site = make_site(tmp_path / "site")
+    (site / "G").rename(site / "GF")                       # recorded as G, stored under GF
+    monkeypatch.setattr(wifi_ms, "MS_SITE2_ID", "5f00000000000000000000aa")
+    monkeypatch.setattr(wifi_ms, "TUNED_ON", ("G",))
+    args = argparse.Namespace(data=tmp_path / "none", site=site, dataset="", floors="GF,LG1", floor_levels="",
+                              json=None, quick=False)
+    assert bench_wifi.run(args) == 0
+    text = capsys.readouterr().out
+    assert "choices made on GF (ms_site2's G) (tuned), the rest held out." in text
+    assert "1. floor GF (tuned): " in text and "1. floor LG1 (held out): " in text
+    args.floors = "LG1"
+    assert bench_wifi.run(args) == 0
+    text = capsys.readouterr().out
+    assert "choices made on ms_site2's G, none of them here (all held out)." in text
+
+
 def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys):
     from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     d = tmp_path / "site" / "F2" / "path_data_files"
     d.mkdir(parents=True)
     rng = np.random.default_rng(1)
     for k in range(2):
-        _walk(d / f"{wid(0, k)}.txt", "F2", 0, k, rng, waypoints=False)
+        _walk(d / f"{wid(0, k)}.txt", "F2", 0, k, rng, waypoints=0)
     out = tmp_path / "out"
     assert import_ms_indoor(_args(tmp_path / "site", out)) == 0
     assert "radio map: NONE — no survey scan lies inside a waypoint span" in capsys.readouterr().out
@@ -345,6 +367,29 @@ def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys)
     (out / "radiomap" / "radiomap.yaml").write_text("stale")
     assert import_ms_indoor(_args(tmp_path / "site", out, overwrite=True)) == 0
     assert not (out / "radiomap").exists()
+
+
+def test_a_walk_with_one_waypoint_has_no_truth(tmp_path):
+    """One waypoint spans no time: the walk is imported as 'no truth', without a one-point ground_truth
+    (which an evaluation cannot interpolate), and stays out of the split."""
+    from indoor_loc.bag import read_bag
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    from indoor_loc.datasets.ms_indoor import has_truth_span
+    d = tmp_path / "site" / "F2" / "path_data_files"
+    d.mkdir(parents=True)
+    rng = np.random.default_rng(2)
+    for k, n in enumerate((2, 1, 2, 2)):
+        _walk(d / f"{wid(0, k)}.txt", "F2", 0, k, rng, waypoints=n)
+    assert [has_truth_span(d / f"{wid(0, k)}.txt") for k in range(4)] == [True, False, True, True]
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(tmp_path / "site", out)) == 0
+    split = yaml.safe_load((out / "split.yaml").read_text())["F2"]
+    assert split["no_truth"] == [wid(0, 1)] and wid(0, 1) not in split["survey"] + split["test"]
+    topics = {m.topic for m in read_bag(out / "F2" / f"{wid(0, 1)}.mcap")}
+    assert f"/f2_{wid(0, 1)}/wifi/scan" in topics and not any(t.endswith("ground_truth") for t in topics)
+    report = (out / "import_report.md").read_text()
+    assert f"| F2 | {wid(0, 1)} | no truth |" in report
+    assert f"{wid(0, 1)}: one waypoint: no span to interpolate the truth over" in report
 
 
 def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
@@ -372,6 +417,14 @@ def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
     from indoor_loc.errors import DatasetError
     with pytest.raises(DatasetError, match="metadata directory"):
         import_ms_indoor(_args(site, tmp_path / "out2", metadata=tmp_path / "nope"))
+    # the bench finds them too, or takes them from --metadata for another layout
+    from indoor_loc.bench.wifi_ms import load_site
+    floors = load_site(site, only=["1F"])
+    assert floors["1F"]["walkable"] is not None and floors["1F"]["walks"] == (2, 1)
+    moved = tmp_path / "plans"
+    (tmp_path / "metadata" / "5f00aa").rename(moved)
+    assert load_site(site, only=["1F"])["1F"]["walkable"] is None
+    assert load_site(site, only=["1F"], metadata=moved)["1F"]["walkable"] is not None
 
 
 def test_ms_site2_rewritten_with_the_quirks_reads_back_record_for_record(tmp_path):

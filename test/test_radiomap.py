@@ -48,6 +48,14 @@ def test_round_trip(tmp_path):
     assert man["units"]["position"] == "m" and man["frame_id"] == "map"
 
 
+def test_round_trip_keeps_source_labels_holding_a_nul(tmp_path):
+    """A source label may hold any character the CSV file holds, a NUL too: labels stay with their scans."""
+    rm = small_map()
+    rm.source[2] = "walk\x0001"
+    save_radiomap(rm, tmp_path / "m")
+    assert load_radiomap(tmp_path / "m").source == ["survey", "survey", "walk\x0001", "walk,02"]
+
+
 def test_version_and_format_checks(tmp_path):
     d = save_radiomap(small_map(), tmp_path / "m")
     man = yaml.safe_load((d / MANIFEST).read_text())

@@ -40,6 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--floors", default="", help="wifi --site/ms_site2: comma-separated floor names (default all)")
     parser.add_argument("--floor-levels", default="", help="wifi --site/ms_site2: storey index per floor, "
                                                            "NAME=LEVEL,... (default: from the floor names)")
+    parser.add_argument("--metadata", type=Path, help="wifi --site: the floors' plan files as <floor>/... when "
+                                                      "the site's floor directories hold only traces")
     parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
     parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay")
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")

@@ -19,7 +19,7 @@ Tables, all methods on the same scans in one run:
    positions of that run;
 4. map sizes.
 Any site (``--site SITE_DIR``, the layout ``indoor-loc import ms-indoor`` reads): the same tables over the
-floors found there, the split over each floor's walks that have waypoints; floors' storey indices from
+floors found there, the split over each floor's walks with two or more waypoints; floors' storey indices from
 their names (:func:`indoor_loc.datasets.ms_indoor.floor_levels`) or ``--floor-levels NAME=LEVEL,...``;
 ``--floors`` selects floors. Every floor of a site other than ms_site2 is held out. On ms_site2 the
 output is the ``--dataset ms_site2`` one.
@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -115,18 +116,19 @@ def locate_walks(pos, scans: list[WifiScan], shift_db: float = 0.0) -> list[Fix]
 
 
 def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[str] | None = None,
-              notes: list[str] | None = None) -> dict[str, dict[str, Any]]:
+              notes: list[str] | None = None, metadata: Path | None = None) -> dict[str, dict[str, Any]]:
     """Per floor of a site directory in the Microsoft format: map (RadioMap of the survey walks), test
     scans, truth (N, 2), level, z, walkable area, site id. The documented split runs over the floor's
-    walks that have waypoints (a walk without any has no truth). A floor without survey scans is left
-    out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
+    walks with two or more waypoints (a walk with fewer has no span of truth). A floor without survey scans is
+    left out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
     ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor.floor_levels`),
-    ``only`` selects floors by name; what was left out or guessed is appended to ``notes``."""
-    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_waypoints, read_site, read_trace,
+    ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor.read_site`);
+    what was left out or guessed is appended to ``notes``."""
+    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, read_site, read_trace,
                                                scans_with_truth, split_map_test)
     from indoor_loc.errors import ConfigError, MapError
     notes = [] if notes is None else notes
-    site = read_site(root, levels=levels)
+    site = read_site(root, levels=levels, metadata=metadata)
     names = [fl.name for fl in site.floors]
     if only:
         bad = [n for n in only if n not in names]
@@ -139,18 +141,20 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         if fl.level_rule.startswith("fallback"):
             notes.append(f"floor {fl.name}: storey index {fl.level:g} by {fl.level_rule} (--floor-levels to set it)")
         ids = {p.name.split(".")[0]: p for p in fl.trace_files}
-        with_truth = [i for i in ids if has_waypoints(ids[i])]
+        with_truth = [i for i in ids if has_truth_span(ids[i])]
         if len(with_truth) < len(ids):
-            notes.append(f"floor {fl.name}: {len(ids) - len(with_truth)} of {len(ids)} walks have no waypoints "
-                         "(no truth): not used")
+            notes.append(f"floor {fl.name}: {len(ids) - len(with_truth)} of {len(ids)} walks have fewer than "
+                         "two waypoints (no truth): not used")
         survey, test = split_map_test(with_truth)
         z = fl.z_m(STOREY_HEIGHT_M)
         site_id = ""
+        recorded_on: Counter = Counter()      # the walks' header FloorName: the floor they were recorded as
         ms: list[WifiScan] = []
         mp, src = [], []
         for tid in survey:
             tr = read_trace(ids[tid], imu=False)
             site_id = site_id or tr.header.get("SiteID", "")
+            recorded_on[tr.floor] += 1
             sc, xy = scans_with_truth(tr)
             ms += sc
             mp.append(xy)
@@ -160,6 +164,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         for tid in test:
             tr = read_trace(ids[tid], imu=False)
             site_id = site_id or tr.header.get("SiteID", "")
+            recorded_on[tr.floor] += 1
             sc, xy = scans_with_truth(tr)
             ts += sc
             tp.append(xy)
@@ -178,7 +183,8 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
             except MapError as err:
                 notes.append(f"floor {fl.name}: plan not used: {err}")
         out[fl.name] = {"map": rm, "scans": ts, "truth": np.vstack(tp) if tp else np.zeros((0, 2)), "z": z,
-                        "walks": (len(survey), len(test)), "walkable": walkable, "site_id": site_id}
+                        "walks": (len(survey), len(test)), "walkable": walkable, "site_id": site_id,
+                       "recorded_on": recorded_on.most_common(1)[0][0] if recorded_on else ""}
     if not out:
         raise ConfigError(f"{root}: no floor with survey scans inside a waypoint span")
     return out
@@ -261,7 +267,7 @@ def run(args) -> int:
     try:
         only = [t.strip() for t in (getattr(args, "floors", "") or "").split(",") if t.strip()]
         floors = load_site(root, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""),
-                           only=only or None, notes=notes)
+                           only=only or None, notes=notes, metadata=getattr(args, "metadata", None))
     except (ConfigError, DatasetError) as err:
         print(f"bench wifi {what}: {err}")
         return 2
@@ -272,7 +278,10 @@ def run(args) -> int:
             print(f"   {n}")
         return 2
     ms_site2 = any(f["site_id"] == MS_SITE2_ID for f in floors.values())
-    tuned_on = TUNED_ON if ms_site2 else ()
+    # ms_site2's floors that chose the methods, by the floor the walks were recorded on (a renamed copy too)
+    tuned_on = {n: f["recorded_on"] for n, f in floors.items()
+                if f["site_id"] == MS_SITE2_ID and f["recorded_on"] in TUNED_ON}
+    tuned_text = ", ".join(n if n == was else f"{n} (ms_site2's {was})" for n, was in tuned_on.items())
     report: dict[str, Any] = {"floors": {}, "pooled": {}, "floor_detection": {}}
     if not site_arg:
         print("ms_site2 (Microsoft Indoor Location Competition 2.0, site 2): per floor, survey walks (1st/3rd/5th of "
@@ -288,11 +297,12 @@ def run(args) -> int:
         report["site"] = {"path": str(root), "site_id": sid, "notes": notes,
                           "floors": {n: {"z_m": f["z"], "test_scans": len(f["scans"])} for n, f in floors.items()}}
         print(f"site {root} (Microsoft Indoor Location Competition 2.0 format{', SiteID ' + sid if sid else ''}): "
-              "per floor, survey walks (1st/3rd/5th of every five\nwalks with waypoints, by id) build the map, test "
+              "per floor, survey walks (1st/3rd/5th of every five\nwalks with a waypoint span, by id) build the map, test "
               "walks (2nd/4th) are positioned; errors in m over located scans;\nin50/in95 = % of truths inside the "
               "50/95 % ellipse; same-scan mean = mean on the scans the baseline located / the\nbaseline's there; "
-              + (f"choices made on {', '.join(TUNED_ON)} (tuned), the rest held out.\n" if ms_site2 else
-                 "no floor of this site was used to choose methods (all held out).\n")
+              + (f"choices made on {tuned_text} (tuned), the rest held out.\n" if tuned_on else
+                 f"choices made on ms_site2's {', '.join(TUNED_ON)}, none of them here (all held out).\n"
+                 if ms_site2 else "no floor of this site was used to choose methods (all held out).\n")
               + "floors: " + ", ".join(f"{n} z={f['z']:g} m" for n, f in floors.items()))
         for n in notes:
             print(f"   {n}")

@@ -23,7 +23,7 @@ Floor heights: ``z = storey index × --storey-height-m`` (default 5 m). The inde
 name (:func:`indoor_loc.datasets.ms_indoor.floor_levels`: B1 → −1, F1/1F/L1/G → 0, F3 → 2, M → 0.5,
 LG<n>, then B<n>, then P<n> stacking below ground), ``--floor-levels NAME=LEVEL,...`` overriding it; a
 name of no known convention gets the next index above the highest floor, named in the report's
-"Floors" table. Walks without any waypoint have no truth: they are written and positioned but take no
+"Floors" table. Walks with fewer than two waypoints have no truth: they are written and positioned but take no
 part in the split (role ``no truth``) and build no map. A floor without ``floor_info.json`` takes its
 extent from its GeoJSON plan's lon/lat extent; a plan that cannot be placed or drawn is not copied
 (the report says why), so the nodes never load it.
@@ -46,8 +46,8 @@ from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
 
 
-NO_MAP = ("no survey scan lies inside a waypoint span (walks without waypoints cannot build a map): no "
-          "radiomap/ and no wifi_fix_node in params.yaml; position these walks against a radio map built "
+NO_MAP = ("no survey scan lies inside a waypoint span (walks with fewer than two waypoints cannot build a map): "
+          "no radiomap/ and no wifi_fix_node in params.yaml; position these walks against a radio map built "
           "elsewhere")
 
 
@@ -89,7 +89,7 @@ def _select(text: str, ids: list[str], what: str) -> list[str]:
 
 
 def import_ms_indoor(args: argparse.Namespace) -> int:
-    from indoor_loc.datasets.ms_indoor import (has_waypoints, heading_offsets, parse_floor_levels, read_site,
+    from indoor_loc.datasets.ms_indoor import (has_truth_span, heading_offsets, parse_floor_levels, read_site,
                                                read_trace, scans_with_truth, split_map_test)
     from indoor_loc.datasets.ms_indoor_bags import trace_bag_counts, walk_namespace, write_trace_bag
 
@@ -129,14 +129,14 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
     for fl in floors:
         ids = all_ids[fl.name]
-        truth = {p.name.split(".")[0]: has_waypoints(p) for p in fl.trace_files}
+        truth = {p.name.split(".")[0]: has_truth_span(p) for p in fl.trace_files}
         no_truth = [i for i in ids if not truth[i]]
         if user_survey is None:
             survey, test = split_map_test([i for i in ids if truth[i]])
         else:
             survey = [i for i in ids if i in user_survey]
             test = [i for i in ids if i not in user_survey and truth[i]]
-            oddities += [f"{i}: a survey walk without waypoints: it cannot build the radio map"
+            oddities += [f"{i}: a survey walk with fewer than two waypoints: it cannot build the radio map"
                          for i in survey if not truth[i]]
         split[fl.name] = {"z_m": floor_z[fl.name], "survey": survey, "test": test}
         if no_truth:
@@ -221,7 +221,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     print(_table(rows))
     if rm.n_scans:
         print(f"\nradio map: {rm_dir} ({rm.n_scans} scans, {rm.n_aps} APs, floors "
-              + ", ".join(f"{k} z={v:g} m" for k, v in floor_z.items()) + ")")
+              + ", ".join(f"{k} z={v:g} m" for k, v in rm.floors.items()) + ")")
     else:
         print(f"\nradio map: NONE — {NO_MAP}")
     print(f"params:    {out / 'params.yaml'}\nsplit:     {out / 'split.yaml'}\nreport:    {out / 'import_report.md'}")
@@ -338,7 +338,7 @@ def _floors_note(floor_rows: list[dict], ignored: tuple[str, ...], dropped: dict
     the site's dropped rows by reason."""
     lines = ["## Floors", "", "Storey index (0 = ground; z = index × storey height) from the floor's name, "
              "or `--floor-levels`; a `fallback` index is a guess: set it with `--floor-levels NAME=LEVEL`.", "",
-             "| floor | index | z m | from | walks | without waypoints | notes |", "|---|---|---|---|---|---|---|"]
+             "| floor | index | z m | from | walks | without a waypoint span | notes |", "|---|---|---|---|---|---|---|"]
     for r in floor_rows:
         lines.append(f"| {r['floor']} | {r['level']:g} | {r['z']:g} | {r['rule']} | {r['walks']} | {r['no_truth']} | "
                      + ("; ".join(r["notes"]) or "") + " |")

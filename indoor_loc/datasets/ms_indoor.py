@@ -279,6 +279,8 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
         oddities.append(f"{no_seen} WiFi readings without a last-seen time (age unknown)")
     if not len(wt):
         oddities.append("no waypoints: nothing to score or map")
+    elif len(wt) < 2:
+        oddities.append("one waypoint: no span to interpolate the truth over, nothing to score or map")
     for k, v in sorted(dropped.items()):
         oddities.append(f"{v} rows dropped: {k}")
     for name, s in sers.items():
@@ -691,13 +693,23 @@ def site_floors(site_dir: str | Path, *, levels: dict[str, float] | None = None,
     return read_site(site_dir, levels=levels, metadata=metadata).floors
 
 
-def has_waypoints(path: Path) -> bool:
-    """Whether a trace file holds a ``TYPE_WAYPOINT`` row (read until the first; unreadable: False)."""
+_WAYPOINT_STAMP = re.compile(r"(\d{1,13})\tTYPE_WAYPOINT\t")      # a stamp glued to digits before it: its own 13
+
+
+def has_truth_span(path: Path) -> bool:
+    """Whether a trace file holds ``TYPE_WAYPOINT`` rows at two or more distinct times, a span over
+    which the true position interpolates (read until the second; unreadable: False). A walk with one
+    waypoint has no truth to score or map with."""
+    seen: set[str] = set()
     try:
         with _open_text(Path(path)) as fh:
-            return any("\tTYPE_WAYPOINT\t" in line for line in fh)
+            for line in fh:
+                seen.update(_WAYPOINT_STAMP.findall(line))
+                if len(seen) > 1:
+                    return True
     except (OSError, EOFError, gzip.BadGzipFile):
         return False
+    return False
 
 
 def split_map_test(trace_ids: list[str]) -> tuple[list[str], list[str]]:

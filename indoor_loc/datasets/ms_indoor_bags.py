@@ -13,7 +13,8 @@ a ROS name cannot start with a digit), log time = header stamp = the trace's Uni
   no figure in these files).
 - ``wifi/scan`` (schema ``wifi_scan.v1``, frame ``<ns>/wifi_link``): one per scan with ``age_ms``.
 - ``ground_truth`` (nav_msgs/Path, frame ``map``, latched, written once at the first stamp): the
-  waypoints, stamped, z = the floor's height (positions between waypoints are linear in time).
+  waypoints, stamped, z = the floor's height (positions between waypoints are linear in time); not
+  written for a walk with fewer than two waypoints (no span to interpolate over).
 """
 from __future__ import annotations
 
@@ -54,7 +55,7 @@ def _causal(t_query: np.ndarray, t_ref: np.ndarray) -> np.ndarray:
 def trace_bag_counts(trace: Trace) -> dict[str, int]:
     """Messages per relative topic that :func:`write_trace_bag` writes."""
     return {"imu/data_raw": len(trace.acc), "imu/mag": len(trace.mag), "imu/data": len(trace.rotvec),
-            "wifi/scan": len(trace.scans), "ground_truth": int(len(trace.waypoint_t) > 0)}
+            "wifi/scan": len(trace.scans), "ground_truth": int(len(trace.waypoint_t) > 1)}
 
 
 def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: str | None = None
@@ -79,7 +80,7 @@ def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: 
     idx = np.concatenate([np.arange(len(e[0])) for e in events])
     order = np.lexsort((kinds, stamps))
     with BagWriter(path) as bag:
-        if len(trace.waypoint_t):
+        if len(trace.waypoint_t) > 1:          # one waypoint spans no time: no truth to interpolate
             t0 = int(min(trace.start_ns, trace.waypoint_t[0]))
             bag.add_topic(t_gt, "nav_msgs/msg/Path", qos_profiles=LATCHED)
             bag.write(t_gt, path_to_msg(trace.waypoint_t, trace.waypoint_xy, None, frame_id="map", stamp_ns=t0,

@@ -45,7 +45,8 @@ fitted, the previous one keeps answering.
 Saved fits (``fit_cache``, on by default; :mod:`indoor_loc.wifi.fit_store`): the fit of the map named by
 ``radiomap`` is saved in ``fit_cache_dir`` (default ``<radiomap>/fit_cache``) and loaded at the next start
 on the same map files, floor plans, parameters and code (the pooled map: 0.8 s instead of the fit); a
-stale or unreadable file is logged, fitted again and replaced. ``indoor-loc radiomap fit`` saves it ahead
+stale or unreadable file is logged, fitted again and replaced; diagnostics give ``fit.cache`` (the file loaded
+or saved). ``indoor-loc radiomap fit`` saves it ahead
 of time. A map given otherwise (:meth:`set_radio_map`) is fitted. After a fit the positioner drops the
 data only the fit used; the fixes are the same either way.
 """
@@ -331,6 +332,9 @@ class WifiFixStage(Stage):
             out["error"] = "no radio map configured (parameter radiomap is ''): scans are dropped"
         if self.floor_plans:
             out["floor_plans"] = str(len(self.floor_plans))
+        if self._store is not None and (self._store.loaded or self._store.saved):   # what the fit store did last
+            out["fit.cache"] = f"loaded {self._store.loaded[-1]}" if self._store.loaded else \
+                f"saved {self._store.saved[-1]}"
         if self.radio_map is not None:
             out["map.scans"] = str(self.radio_map.n_scans)
             out["map.aps"] = str(self.radio_map.n_aps)

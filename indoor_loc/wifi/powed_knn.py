@@ -728,7 +728,7 @@ class PowedKnn(Positioner):
         a candidate."""
         p = self.params
         views = self._views if views is None else views
-        parts = []
+        parts = []                                   # (rows, weights, D, view) of the views with a candidate
         for d, v in zip(ds, views):
             cand = np.flatnonzero(allowed & (d < 1.0))
             if len(cand) == 0:
@@ -736,23 +736,22 @@ class PowedKnn(Positioner):
             k = int(p.smooth_k) if v.grid else int(p.k)
             best = cand[np.argsort(d[cand], kind="stable")[:min(k, len(cand))]]
             s = 1.0 / (d[best] + p.epsilon)
-            parts.append((best, s / s.sum(), d[best]))
+            parts.append((best, s / s.sum(), d[best], v))
         if not parts:
             return None
-        rows = np.concatenate([b for b, _, _ in parts])
+        rows = np.concatenate([b for b, _, _, _ in parts])
         share = np.ones(len(parts))
         if off is not None:
-            used = [v for d, v in zip(ds, views) if np.any(allowed & (d < 1.0))]
-            g_w = [(b, x) for (b, x, _), v in zip(parts, used) if v.grid]
+            g_w = [(b, x) for b, x, _, v in parts if v.grid]
             if g_w and len(g_w) < len(parts) and any(off[b].any() for b, _ in g_w):
                 on = float(np.mean([x @ ~off[b] for b, x in g_w]))        # the grid estimates' weight on the survey
-                share = np.array([1.0 if v.grid else on for v in used])
+                share = np.array([1.0 if v.grid else on for _, _, _, v in parts])
         if np.all(share == 1.0):
-            w = np.concatenate([x for _, x, _ in parts]) / len(parts)
+            w = np.concatenate([x for _, x, _, _ in parts]) / len(parts)
         else:
-            w = np.concatenate([x * f for (_, x, _), f in zip(parts, share)]) / share.sum()
+            w = np.concatenate([x * f for (_, x, _, _), f in zip(parts, share)]) / share.sum()
         return (w @ (self._pos if pos is None else pos)[rows], rows, w, float(parts[0][2][0]),
-                np.concatenate([x for _, _, x in parts]))
+                np.concatenate([x for _, _, x, _ in parts]))
 
     def reset(self) -> None:
         """Forget the learnt device offset (a new phone)."""
@@ -860,6 +859,7 @@ class PowedKnn(Positioner):
         self._near = self._kernel_den = self._kernel_csc = self._kernel_sums = None
         self._prior = self._prior_raw = None
         self._prior_scale = []
+        self._field_floors, self._field_detect = np.zeros(0), 0.0
 
     def fitted_state(self) -> dict[str, np.ndarray]:
         """Everything :meth:`locate` needs after :meth:`fit`, as named arrays (no Python objects), for
