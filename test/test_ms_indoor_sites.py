@@ -86,6 +86,7 @@ def test_trace_quirks_are_recovered_or_counted(tmp_path):
         f"{t + 160}\tTYPE_WAYPOINT\t5.0\n",                              # short waypoint
         f"{t + 200}\tTYPE_WAYPOINT\t3.0\t2.0\n",
         f"{t + 210}\tTYPE_SOMETHING_NEW\t1\n",
+        f"{'9' * 20}\tTYPE_ACCELEROMETER\t0.1\t0.2\t9.8\t3\n",         # a stamp no int64 ns can hold
         "#\tendTime:1574240200300\n",
     ]
     p = tmp_path / "5f0000000000000000000003.txt"
@@ -96,7 +97,7 @@ def test_trace_quirks_are_recovered_or_counted(tmp_path):
     assert len(tr.acc) == 2 and len(tr.gyro) == 1 and tr.gyro.t_ns[0] == (T0 + 10) * 1_000_000
     assert tr.dropped["malformed_acc"] == 2 and tr.dropped["malformed"] == 2       # the stamp, the junk
     assert tr.dropped["malformed_wifi"] == 2 and tr.dropped["malformed_waypoint"] == 1
-    assert tr.beacons == 1 and tr.row_counts["TYPE_SOMETHING_NEW"] == 1
+    assert tr.beacons == 1 and tr.row_counts["TYPE_SOMETHING_NEW"] == 1 and tr.dropped["stamp_range"] == 1
     assert len(tr.waypoint_t) == 2
     (scan,) = tr.scans
     got = {b: (r, f, a) for b, r, f, a in zip(scan.bssid, scan.rssi_dbm, scan.freq_mhz, scan.age_ms)}

@@ -198,6 +198,9 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
                     except ValueError:
                         dropped["malformed"] += 1
                         continue
+                    if not 0 <= t <= _MAX_STAMP_MS:           # its ns would not fit the int64 stamps
+                        dropped["stamp_range"] += 1
+                        continue
                     spec = _SENSORS.get(typ)
                     if spec is not None:
                         if not imu:
@@ -294,6 +297,8 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
                  dropped=dropped, **sers)
 
 
+#: the latest Unix-ms stamp whose ns fit an int64 (the year 2262)
+_MAX_STAMP_MS = (2 ** 63 - 1) // 1_000_000
 #: a record's start inside a line: a 13-digit Unix-ms stamp and a row type, or a header key
 _RECORD_START = re.compile(r"\d{13}\tTYPE_|#\t[A-Za-z]+:")
 #: header keys of the format, by lower-case spelling (files differ in case and separators)
