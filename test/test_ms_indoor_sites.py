@@ -408,6 +408,23 @@ def test_a_walk_with_one_waypoint_has_no_truth(tmp_path):
     assert f"{wid(0, 1)}: one waypoint: no span to interpolate the truth over" in report
 
 
+def test_walk_ids_with_dots_stay_apart(tmp_path):
+    """A walk's id is its file name without .txt[.gz], dots and all: two walks named alike up to a
+    dot are two walks (not one, the other lost)."""
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    d = tmp_path / "site" / "F2" / "path_data_files"
+    d.mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    ids = [f"{wid(0, 0)}.{v}" for v in ("a", "b", "c", "d", "e")]
+    for k, i in enumerate(ids):
+        _walk(d / f"{i}.txt", "F2", 0, k, rng)
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(tmp_path / "site", out)) == 0
+    split = yaml.safe_load((out / "split.yaml").read_text())["F2"]
+    assert sorted(split["survey"] + split["test"]) == ids
+    assert sorted(p.name for p in (out / "F2").glob("*.mcap")) == [f"{i}.mcap" for i in ids]
+
+
 def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):
     """``train/<site>/<floor>/*.txt`` with the plans in ``metadata/<site>/<floor>/``: found on their own."""
     from indoor_loc.commands.import_ms_indoor import import_ms_indoor
