@@ -168,6 +168,21 @@ def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: int 
         path.write_text(text)
 
 
+def test_geojson_extent_in_metres_and_malformed_plans(tmp_path):
+    """A lon/lat plan's extent in metres (the 60 × 40 m outline); a plan of no usable coordinates,
+    whatever its shape, is a MapError (read_site notes it), never another exception."""
+    from indoor_loc.datasets.ms_indoor import geojson_extent_m
+    from indoor_loc.errors import MapError
+    p = tmp_path / "geojson_map.json"
+    p.write_text(json.dumps(_plan(True)))
+    assert np.allclose(geojson_extent_m(p), (60.0, 40.0), atol=1e-3)
+    for text in ('{"features": null}', "[]", '{"features": [null, 5, {"geometry": 3}, {"geometry": {}}]}',
+                 '{"features": [{"geometry": {"coordinates": [[1e400, 2], [3, "a"]]}}]}', "not json"):
+        p.write_text(text)
+        with pytest.raises(MapError):
+            geojson_extent_m(p)
+
+
 def wid(ix: int, k: int) -> str:
     """Walk id of the k-th walk of the ix-th floor written (ids sort by floor, then walk)."""
     return f"5f{ix}{k:021d}"

@@ -549,7 +549,8 @@ def geojson_extent_m(path: Path) -> tuple[float, float]:
             for v in o:
                 walk(v)
     for ft in (data.get("features") or []) if isinstance(data, dict) else []:
-        walk(((ft or {}).get("geometry") or {}).get("coordinates") if isinstance(ft, dict) else None)
+        geom = ft.get("geometry") if isinstance(ft, dict) else None
+        walk(geom.get("coordinates") if isinstance(geom, dict) else None)
     a = np.array(pts, float).reshape(-1, 2)
     a = a[np.isfinite(a).all(axis=1)]
     if len(a) < 2:
