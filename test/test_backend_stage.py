@@ -210,14 +210,16 @@ def test_front_end_fixes_feed_the_stage():
             outs += st.process(topic, msg, 0, "bob")
             noise = rng.normal(0, 2.0, 2)
             fix_err.append(np.linalg.norm(noise))
-            fix = Fix(stamp, walk.true_xy_at([stamp])[0] + noise, 4.0 * np.eye(2))
+            fix = Fix(stamp, walk.true_xy_at([stamp])[0] + noise, 4.0 * np.eye(2), z=-5.0)
             outs += st.process("wifi/fix", fix_to_msg(fix), 0, "bob")
         else:
             outs += st.process(topic, msg, 0, "bob")
     outs += st.process("wifi/fix", fix_to_msg(Fix(walk.truth_t[-1], np.zeros(2), np.eye(2)), frame_id="odom"), 0, "bob")
     assert st.diag.rejected["wrong_frame"] == 1
     outs += st.finish()
-    stamps, xy, _ = path_from_msg([m for t, m in outs if t == "backend/bob/path"][-1])
+    path = [m for t, m in outs if t == "backend/bob/path"][-1]
+    stamps, xy, _ = path_from_msg(path)
+    assert {ps.pose.position.z for ps in path.poses} == {-5.0}                   # the fixes' floor
     assert st.graph.wifi.n == len(fix_err) and st.graph.users["bob"].scans_localised == len(fix_err)
     assert np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 0.6 * np.mean(fix_err)
 

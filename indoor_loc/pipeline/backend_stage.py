@@ -3,7 +3,8 @@
 Inputs, from every user namespace (a multi-user stage, see :mod:`indoor_loc.pipeline.stage`):
 ``pdr/odom`` (one message per stepometer hop; per interval ``steps = |p_i − p_(i−1)| /
 odom_step_length_m`` and ``Δψ = wrap(yaw_i − yaw_(i−1))``, the contract of ``imu_node``) and
-``wifi/scan`` (and ``wifi/fix`` with ``wifi_source: fix``: the front end's fixes as position factors).
+``wifi/scan`` (and ``wifi/fix`` with ``wifi_source: fix``: the front end's fixes as position factors;
+their floor height, of the newest fix, is the z of the user's outputs — a walk on one floor).
 Outputs: ``backend/<user>/pose`` (PoseWithCovarianceStamped, the newest pose with its
 marginal covariance, at every new pose), ``backend/<user>/path`` (the user's whole optimised
 trajectory: every ``path_period_s`` of stamp time, when the user finishes and at the end of input,
@@ -90,6 +91,7 @@ class _UserInput:
     prev_odom: Any = None                              # last odometry sample taken (x, y, yaw, stamp)
     last_path_ns: int | None = None
     dropped_late: int = 0
+    floor_z: float = 0.0                               # z (floor height) of the user's newest fix taken, m
 
 
 class BackendStage(Stage):
@@ -184,6 +186,7 @@ class BackendStage(Stage):
                 new_pose |= self._take_odom(user, b, payload)
             elif kind == 1:
                 self.graph.add_fix(user, payload.stamp_ns, payload.xy, payload.cov)
+                b.floor_z = payload.z
                 new_pose = True
             else:
                 pose, _match = self.graph.add_scan(user, payload)
@@ -218,14 +221,14 @@ class BackendStage(Stage):
         cov = self.graph.marginal_cov(i)
         cov_xy, yaw_var = (cov[:2, :2], float(cov[2, 2])) if cov is not None else (np.eye(2) * 1e2, 1e2)
         msg = pose_to_msg(int(self.graph.poses.stamp[i]), x[:2], float(x[2]), cov_xy, frame_id=self.params.frame_id,
-                          yaw_var=yaw_var)
+                          yaw_var=yaw_var, z=self._buffer(user).floor_z)
         return (BACKEND_POSE.format(user=user), msg)
 
     def _path_output(self, user: str) -> Output:
         st, x = self.graph.trajectory(user)
         stamp = int(st[-1]) if len(st) else 0
         return (BACKEND_PATH.format(user=user), path_to_msg(st, x[:, :2], x[:, 2], frame_id=self.params.frame_id,
-                                                            stamp_ns=stamp))
+                                                            stamp_ns=stamp, z=self._buffer(user).floor_z))
 
     def _map_output(self, stamp_ns: int) -> Output:
         rm = self.graph.wifi_radio_map()
