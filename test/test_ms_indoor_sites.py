@@ -337,7 +337,9 @@ def test_bench_on_any_site(tmp_path, capsys):
     args.floors = "F9"
     assert bench_wifi.run(args) == 2 and "--floors: no floor(s) ['F9']" in capsys.readouterr().out
     args.floors, args.dataset = "", "putmc"
-    assert bench_wifi.run(args) == 2
+    assert bench_wifi.run(args) == 2 and "--site is a site of the Microsoft format" in capsys.readouterr().out
+    args.site, args.floors, args.floor_levels = None, "F1", ""      # no PUTMC option: said, not ignored
+    assert bench_wifi.run(args) == 2 and "--floors select floors of --site" in capsys.readouterr().out
 
 
 def test_bench_tags_the_floors_that_chose_the_methods_by_the_floor_recorded_on(tmp_path, capsys, monkeypatch):
