@@ -183,6 +183,23 @@ def test_geojson_extent_in_metres_and_malformed_plans(tmp_path):
             geojson_extent_m(p)
 
 
+def test_a_damaged_gz_walk_is_a_dataset_error(tmp_path):
+    """A .txt.gz whose deflate stream is damaged (zlib.error, no OSError) is an unreadable walk, which the
+    importer skips and reports, not an exception that stops it."""
+    from indoor_loc.datasets.ms_indoor import has_truth_span
+    from indoor_loc.errors import DatasetError
+    d = tmp_path / "F2" / "path_data_files"
+    d.mkdir(parents=True)
+    _walk(d / f"{wid(0, 0)}.txt", "F2", 0, 0, np.random.default_rng(5), gz=True)
+    p = d / f"{wid(0, 0)}.txt.gz"
+    raw = bytearray(p.read_bytes())
+    raw[30:60] = bytes(range(200, 230))
+    p.write_bytes(bytes(raw))
+    with pytest.raises(DatasetError, match="cannot read trace"):
+        read_trace(p)
+    assert has_truth_span(p) is False
+
+
 def wid(ix: int, k: int) -> str:
     """Walk id of the k-th walk of the ix-th floor written (ids sort by floor, then walk)."""
     return f"5f{ix}{k:021d}"

@@ -34,6 +34,7 @@ import gzip
 import json
 import math
 import re
+import zlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -241,7 +242,7 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
                         wp.append((t, x, y))
                     elif typ == "TYPE_BEACON":
                         beacons += 1
-    except (OSError, EOFError, gzip.BadGzipFile) as err:
+    except (OSError, EOFError, zlib.error) as err:          # (gzip.BadGzipFile is an OSError)
         raise DatasetError(f"cannot read trace {path}: {err}") from err
     if not counts:
         raise DatasetError(f"trace {path} has no data rows")
@@ -713,7 +714,7 @@ def has_truth_span(path: Path) -> bool:
                 seen.update(_WAYPOINT_STAMP.findall(line))
                 if len(seen) > 1:
                     return True
-    except (OSError, EOFError, gzip.BadGzipFile):
+    except (OSError, EOFError, zlib.error):
         return False
     return False
 
