@@ -337,7 +337,9 @@ def test_bench_on_any_site(tmp_path, capsys):
     args.floors = "F9"
     assert bench_wifi.run(args) == 2 and "--floors: no floor(s) ['F9']" in capsys.readouterr().out
     args.floors, args.dataset = "", "putmc"
-    assert bench_wifi.run(args) == 2
+    assert bench_wifi.run(args) == 2 and "--site is a site of the Microsoft format" in capsys.readouterr().out
+    args.site, args.floors, args.floor_levels = None, "F1", ""      # no PUTMC option: said, not ignored
+    assert bench_wifi.run(args) == 2 and "--floors select floors of --site" in capsys.readouterr().out
 
 
 def test_bench_tags_the_floors_that_chose_the_methods_by_the_floor_recorded_on(tmp_path, capsys, monkeypatch):
@@ -406,6 +408,23 @@ def test_a_walk_with_one_waypoint_has_no_truth(tmp_path):
     report = (out / "import_report.md").read_text()
     assert f"| F2 | {wid(0, 1)} | no truth |" in report
     assert f"{wid(0, 1)}: one waypoint: no span to interpolate the truth over" in report
+
+
+def test_walk_ids_with_dots_stay_apart(tmp_path):
+    """A walk's id is its file name without .txt[.gz], dots and all: two walks named alike up to a
+    dot are two walks (not one, the other lost)."""
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    d = tmp_path / "site" / "F2" / "path_data_files"
+    d.mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    ids = [f"{wid(0, 0)}.{v}" for v in ("a", "b", "c", "d", "e")]
+    for k, i in enumerate(ids):
+        _walk(d / f"{i}.txt", "F2", 0, k, rng)
+    out = tmp_path / "out"
+    assert import_ms_indoor(_args(tmp_path / "site", out)) == 0
+    split = yaml.safe_load((out / "split.yaml").read_text())["F2"]
+    assert sorted(split["survey"] + split["test"]) == ids
+    assert sorted(p.name for p in (out / "F2").glob("*.mcap")) == [f"{i}.mcap" for i in ids]
 
 
 def test_the_kaggle_layout_traces_in_train_plans_in_metadata(tmp_path):

@@ -214,6 +214,11 @@ def run(args) -> int:
     if dataset != "putmc":
         print(f"bench wifi: unknown --dataset {dataset!r} (putmc or ms_site2)")
         return 2
+    site_only = [opt for opt, attr in (("--floors", "floors"), ("--floor-levels", "floor_levels"),
+                                       ("--metadata", "metadata")) if getattr(args, attr, None)]
+    if site_only:
+        print(f"bench wifi: {', '.join(site_only)} select floors of --site or --dataset ms_site2, not of PUTMC")
+        return 2
     data = Path(getattr(args, "data", "../shared/datasets"))
     quick = bool(getattr(args, "quick", False))
     root = data / "putmc"

@@ -125,7 +125,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
     ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor.read_site`);
     what was left out or guessed is appended to ``notes``."""
     from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, read_site, read_trace,
-                                               scans_with_truth, split_map_test)
+                                               scans_with_truth, split_map_test, trace_id_of)
     from indoor_loc.errors import ConfigError, MapError
     notes = [] if notes is None else notes
     site = read_site(root, levels=levels, metadata=metadata)
@@ -140,7 +140,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
             continue
         if fl.level_rule.startswith("fallback"):
             notes.append(f"floor {fl.name}: storey index {fl.level:g} by {fl.level_rule} (--floor-levels to set it)")
-        ids = {p.name.split(".")[0]: p for p in fl.trace_files}
+        ids = {trace_id_of(p): p for p in fl.trace_files}
         with_truth = [i for i in ids if has_truth_span(ids[i])]
         if len(with_truth) < len(ids):
             notes.append(f"floor {fl.name}: {len(ids) - len(with_truth)} of {len(ids)} walks have fewer than "

@@ -90,7 +90,7 @@ def _select(text: str, ids: list[str], what: str) -> list[str]:
 
 def import_ms_indoor(args: argparse.Namespace) -> int:
     from indoor_loc.datasets.ms_indoor import (has_truth_span, heading_offsets, parse_floor_levels, read_site,
-                                               read_trace, scans_with_truth, split_map_test)
+                                               read_trace, scans_with_truth, split_map_test, trace_id_of)
     from indoor_loc.datasets.ms_indoor_bags import trace_bag_counts, walk_namespace, write_trace_bag
 
     if not (args.storey_height_m > 0):
@@ -111,7 +111,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         raise ConfigError(f"OUT_DIR {out} is inside the dataset directory {src}: refusing to write there")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"OUT_DIR {out} exists and is not a directory")
-    all_ids = {f.name: [p.name.split(".")[0] for p in f.trace_files] for f in floors}
+    all_ids = {f.name: [trace_id_of(p) for p in f.trace_files] for f in floors}
     flat = sorted(i for v in all_ids.values() for i in v)
     walks = set(_select(args.walks, flat, "--walks"))
     user_survey = set(_select(args.survey_walks, flat, "--survey-walks")) if args.survey_walks.strip() else None
@@ -129,7 +129,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
     for fl in floors:
         ids = all_ids[fl.name]
-        truth = {p.name.split(".")[0]: has_truth_span(p) for p in fl.trace_files}
+        truth = {trace_id_of(p): has_truth_span(p) for p in fl.trace_files}
         no_truth = [i for i in ids if not truth[i]]
         if user_survey is None:
             survey, test = split_map_test([i for i in ids if truth[i]])
@@ -146,7 +146,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                            "walks": len(ids), "no_truth": len(no_truth),
                            "notes": list(fl.notes) + ([plan_note] if plan_note else [])})
         for p in fl.trace_files:
-            tid = p.name.split(".")[0]
+            tid = trace_id_of(p)
             if tid not in walks and tid not in survey:
                 continue
             try:
