@@ -392,3 +392,63 @@ def test_a_loaded_fit_holds_every_attribute_of_a_fitted_one(site, tmp_path):
             assert a[k] is b[k] if k == "radio_map" else (a[k] is not None and b[k] is not None)
             continue
         _same_value(a[k], b[k], k)
+
+
+def test_loads_of_one_file_share_one_mapping(site, tmp_path):
+    """Stages of several users in one process (one walk per namespace) map a saved fit once: their arrays
+    are views of the same memory, so the process's resident size counts those pages once; a file
+    replaced under the same name is mapped anew."""
+    mapdir, plans, scans = site
+    walkable, _ = load_floor_plans(plans)
+    rm = load_radiomap(mapdir)
+    store = FitStore(mapdir, plans, tmp_path / "cache")
+
+    def make():
+        return PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable)
+
+    def grid_values(pos):
+        return [rd.val for v in pos._views for rd, _, _ in v.parts]
+    expect = _fixes(fit_positioner(make(), rm, store), scans)      # (a positioner learns its device offset)
+    a, b = (fit_positioner(make(), rm, store) for _ in range(2))
+    assert any(x.size for x in grid_values(a))
+    assert all(np.shares_memory(x, y) for x, y in zip(grid_values(a), grid_values(b)) if x.size)
+    _assert_same(_fixes(a, scans), expect)
+
+    path = store.path(make(), 0)
+    meta, data = read_header(path)
+    arrays = {k: np.array(v) for k, v in read_arrays(meta, data).items()}
+    meta = {k: v for k, v in meta.items() if k not in ("arrays", "data_bytes", "crc32")}
+    del data
+    tmp = path.with_suffix(".new")
+    with open(tmp, "wb") as fh:
+        write_arrays(fh, meta, arrays)
+    tmp.replace(path)                                 # as the store replaces a file: a new inode
+    c = fit_positioner(make(), rm, store)
+    assert not any(np.shares_memory(x, y) for x, y in zip(grid_values(a), grid_values(c)) if x.size)
+    _assert_same(_fixes(c, scans), expect)
+
+
+def test_damaged_saved_map_arrays_are_replaced_at_the_next_fit(site, tmp_path):
+    """The map arrays' file is checked only when read: one refused there (a damaged byte) is written
+    again by the next fit, even though the fit itself was loaded, and read at the start after."""
+    mapdir, plans, scans = site
+    walkable, _ = load_floor_plans(plans)
+    rm = load_radiomap(mapdir)
+
+    def make():
+        return PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable)
+    store = FitStore(mapdir, plans, tmp_path / "cache")
+    fit_positioner(make(), rm, store)
+    path = store.map_path()
+    blob = bytearray(path.read_bytes())
+    blob[-8] ^= 0x10
+    path.write_bytes(bytes(blob))
+
+    again = FitStore(mapdir, plans, tmp_path / "cache")
+    lines, log = _logger()
+    assert again.load_map(log) is None and "unreadable" in lines[0][1] and not again.map_is_current()
+    fit_positioner(make(), rm, again, log)
+    assert any("loaded the fitted radio map" in t for _, t in lines)
+    assert any("saved the radio map's arrays" in t for _, t in lines) and again.map_is_current()
+    back = FitStore(mapdir, plans, tmp_path / "cache").load_map()
+    assert back is not None and np.array_equal(back.rssi_dbm, rm.rssi_dbm, equal_nan=True)

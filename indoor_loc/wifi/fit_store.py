@@ -39,7 +39,9 @@ import os
 import re
 import struct
 import tempfile
+import threading
 import time
+import weakref
 import zlib
 from pathlib import Path
 from typing import Any, Callable
@@ -128,6 +130,8 @@ class FitStore:
         #: the files loaded and written by this store
         self.loaded: list[Path] = []
         self.saved: list[Path] = []
+        #: the saved map arrays were refused as unreadable by :meth:`load_map`: the next fit replaces them
+        self.map_refused = False
 
     def map_digest(self) -> str:
         """SHA-256 of the format, the code and the map's files (computed once)."""
@@ -230,9 +234,13 @@ class FitStore:
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
             log("warning", f"fit cache {path} is unreadable ({type(err).__name__}: {err}): refused, reading the "
                            f"radio map's files")
+            self.map_refused = True
             return None
 
     def map_is_current(self) -> bool:
+        """Whether the saved map arrays carry the map's key (the header only is read) and were not refused."""
+        if self.map_refused:
+            return False
         try:
             meta, _ = read_header(self.map_path())
         except (OSError, ValueError):
@@ -252,7 +260,10 @@ class FitStore:
             arrays["age_ms"] = rm.age_ms
         meta = {"map": {"bssids": list(rm.bssids), "ssids": list(rm.ssids), "source": list(rm.source),
                         "frame_id": rm.frame_id, "floors": dict(rm.floors)}}
-        return self._write(self.map_path(), self.map_digest(), meta, arrays, log, "the radio map's arrays")
+        out = self._write(self.map_path(), self.map_digest(), meta, arrays, log, "the radio map's arrays")
+        if out is not None:
+            self.map_refused = False
+        return out
 
     def _write(self, path: Path, key: str, extra: dict[str, Any], arrays: dict[str, np.ndarray], log: Log,
                what: str) -> Path | None:
@@ -289,6 +300,14 @@ ALIGN = 64
 #: arrays left in the file's mapping instead of copied (read only; the processes that load one file share
 #: its pages): the values and rows of the grid's inverted indexes, most of the file
 SHARED = re.compile(r"part\d+_(row|val)")
+
+
+#: one read-only mapping per file per process while any array uses it (by device, inode, size and modification
+#: time: files are replaced by renaming, never rewritten in place), so the stages of many users in one process
+#: (``indoor-loc run`` with one walk per namespace) share one mapping, and the process's resident size counts
+#: its pages once instead of once per stage
+_MAPPED: "weakref.WeakValueDictionary[tuple[int, int, int, int], mmap.mmap]" = weakref.WeakValueDictionary()
+_MAPPED_LOCK = threading.Lock()
 
 
 def _aligned(n: int) -> int:
@@ -335,7 +354,12 @@ def read_header(path: Path) -> tuple[dict[str, Any], memoryview]:
         size = os.fstat(fh.fileno()).st_size
         if size != start + int(meta.get("data_bytes", -1)):
             raise ValueError(f"{size} bytes, the header describes {start + int(meta.get('data_bytes', 0))}")
-        mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+        st = os.fstat(fh.fileno())
+        ident = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+        with _MAPPED_LOCK:
+            mm = _MAPPED.get(ident)
+            if mm is None:
+                mm = _MAPPED[ident] = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
     return meta, memoryview(mm)[start:]
 
 
