@@ -281,6 +281,19 @@ def test_eval_of_an_import_with_floor_directories_and_no_route_markers(tmp_path,
     assert cli_main(["eval", str(run), "--truth", str(run)]) == 2
     assert "is not a directory" in capsys.readouterr().err
 
+    # a walk whose truth is one point (no route to draw) is left out, the others are still scored
+    with BagWriter(tmp_path / "imp" / "F3" / "one.mcap") as bag:
+        bag.write("/f3_one/ground_truth", path_to_msg(t_wp[:1], wp[:1]), int(t_wp[0]))
+    with BagWriter(tmp_path / "run2.mcap") as bag:
+        for t, xy in zip([10 * s, 20 * s], [[0.0, 1.0], [11.0, 0.0]]):
+            for user in ("f3_5dd38ffd27889b0006b76aca", "f3_one"):
+                bag.write(f"/{user}/wifi/fix", fix_to_msg(Fix(int(t), np.array(xy), np.eye(2))), int(t))
+    assert set(truth_from_import(tmp_path / "imp")) == {"f3_5dd38ffd27889b0006b76aca"}
+    assert cli_main(["eval", str(tmp_path / "run2.mcap"), "--truth", str(tmp_path / "imp")]) == 0
+    captured = capsys.readouterr()
+    assert "f3_one has no" in captured.err and "not scored" in captured.out
+    assert any(ln.startswith("f3_5dd38ffd27889b0006b76aca") for ln in captured.out.splitlines())
+
 
 def test_eval_at_the_scans_of_an_import(tmp_path, capsys):
     """``--at-scans``: the scan-time error at every ``wifi/scan`` inside the waypoint span, against

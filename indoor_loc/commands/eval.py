@@ -156,7 +156,8 @@ def truth_from_import(import_dir: Path, *, at_scans: bool = False) -> dict[str, 
 
     ``at_scans``: the scored instants are the user's ``wifi/scan`` stamps inside the ``ground_truth``
     span, each with the truth interpolated linearly there (see :func:`truth_at`), instead of the
-    ``ground_truth`` samples."""
+    ``ground_truth`` samples. A user with neither route markers nor two ``ground_truth`` points is left
+    out (a warning on stderr; the caller reports it as not scored), so the other users are still scored."""
     from indoor_loc.bag import read_bag
     from msg_adapters.markers import marker_points
     from msg_adapters.path import path_from_msg
@@ -192,8 +193,9 @@ def truth_from_import(import_dir: Path, *, at_scans: bool = False) -> dict[str, 
         t, xy = gt.get(user, (np.zeros(0, dtype=np.int64), np.zeros((0, 2))))
         if user not in segs:
             if len(xy) < 2:
-                raise DatasetError(f"{import_dir}: {user} has no {ROUTE_TOPIC} markers and fewer than two "
-                                   "ground_truth points to draw its route from")
+                print(f"WARNING: {import_dir}: {user} has no {ROUTE_TOPIC} markers and fewer than two ground_truth "
+                      "points to draw its route from: not scored", file=sys.stderr)
+                continue
             segs[user] = np.stack([xy[:-1], xy[1:]], axis=1)
         if at_scans:
             t, xy = truth_at(t, xy, np.asarray(scans.get(user, []), np.int64))
