@@ -176,15 +176,34 @@ def test_changed_map_plans_or_params_are_not_served_the_old_fit(site, tmp_path):
     assert "is stale" in lines[0][1]
 
 
-@pytest.mark.parametrize("damage", ["truncated", "garbage", "bit_flip", "inconsistent", "wrong_format"])
-def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
+def _fitting(site, tmp_path):
+    """(map, test scans, a store in tmp_path/cache, a maker of the plan-bounded powed k-NN) on ``site``."""
     mapdir, plans, scans = site
     walkable, _ = load_floor_plans(plans)
-    rm = load_radiomap(mapdir)
-    store = FitStore(mapdir, plans, tmp_path / "cache")
 
     def make():
         return PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable)
+    return load_radiomap(mapdir), scans, FitStore(mapdir, plans, tmp_path / "cache"), make
+
+
+def _rewrite(path: Path, edit=None) -> None:
+    """Write the saved file ``path`` again with its arrays (``edit(meta, arrays)`` first): a new file
+    renamed over the old one, as the store writes."""
+    meta, data = read_header(path)
+    arrays = {k: np.array(v) for k, v in read_arrays(meta, data).items()}
+    meta = {k: v for k, v in meta.items() if k not in ("arrays", "data_bytes", "crc32")}
+    del data
+    if edit is not None:
+        edit(meta, arrays)
+    tmp = path.with_suffix(".new")
+    with open(tmp, "wb") as fh:
+        write_arrays(fh, meta, arrays)
+    tmp.replace(path)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "bit_flip", "inconsistent", "wrong_format"])
+def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
+    rm, scans, store, make = _fitting(site, tmp_path)
     expect = _fixes(fit_positioner(make(), rm, store), scans)
     path = store.path(make(), 0)
     blob = path.read_bytes()
@@ -196,18 +215,10 @@ def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
         flipped = bytearray(blob)
         flipped[len(blob) - 1000] ^= 0x10
         path.write_bytes(bytes(flipped))
+    elif damage == "inconsistent":                    # the right key, but arrays that do not fit the map
+        _rewrite(path, lambda meta, arrays: arrays.update(home=arrays["home"][:-1]))
     else:
-        meta, data = read_header(path)
-        arrays = {k: np.array(v) for k, v in read_arrays(meta, data).items()}
-        meta = {k: v for k, v in meta.items() if k not in ("arrays", "data_bytes", "crc32")}
-        del data
-        if damage == "inconsistent":                  # the right key, but arrays that do not fit the map
-            arrays["home"] = arrays["home"][:-1]
-        else:
-            meta["version"] = 99
-        path.unlink()
-        with open(path, "wb") as fh:
-            write_arrays(fh, meta, arrays)
+        _rewrite(path, lambda meta, arrays: meta.update(version=99))
     lines, log = _logger()
     pos = fit_positioner(make(), rm, store, log)
     assert lines[0][0] == "warning" and str(path) in lines[0][1] and "refused" in lines[0][1]
@@ -398,13 +409,7 @@ def test_loads_of_one_file_share_one_mapping(site, tmp_path):
     """Stages of several users in one process (one walk per namespace) map a saved fit once: their arrays
     are views of the same memory, so the process's resident size counts those pages once; a file
     replaced under the same name is mapped anew."""
-    mapdir, plans, scans = site
-    walkable, _ = load_floor_plans(plans)
-    rm = load_radiomap(mapdir)
-    store = FitStore(mapdir, plans, tmp_path / "cache")
-
-    def make():
-        return PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable)
+    rm, scans, store, make = _fitting(site, tmp_path)
 
     def grid_values(pos):
         return [rd.val for v in pos._views for rd, _, _ in v.parts]
@@ -414,15 +419,7 @@ def test_loads_of_one_file_share_one_mapping(site, tmp_path):
     assert all(np.shares_memory(x, y) for x, y in zip(grid_values(a), grid_values(b)) if x.size)
     _assert_same(_fixes(a, scans), expect)
 
-    path = store.path(make(), 0)
-    meta, data = read_header(path)
-    arrays = {k: np.array(v) for k, v in read_arrays(meta, data).items()}
-    meta = {k: v for k, v in meta.items() if k not in ("arrays", "data_bytes", "crc32")}
-    del data
-    tmp = path.with_suffix(".new")
-    with open(tmp, "wb") as fh:
-        write_arrays(fh, meta, arrays)
-    tmp.replace(path)                                 # as the store replaces a file: a new inode
+    _rewrite(store.path(make(), 0))                   # as the store replaces a file: a new inode
     c = fit_positioner(make(), rm, store)
     assert not any(np.shares_memory(x, y) for x, y in zip(grid_values(a), grid_values(c)) if x.size)
     _assert_same(_fixes(c, scans), expect)
@@ -431,13 +428,8 @@ def test_loads_of_one_file_share_one_mapping(site, tmp_path):
 def test_damaged_saved_map_arrays_are_replaced_at_the_next_fit(site, tmp_path):
     """The map arrays' file is checked only when read: one refused there (a damaged byte) is written
     again by the next fit, even though the fit itself was loaded, and read at the start after."""
-    mapdir, plans, scans = site
-    walkable, _ = load_floor_plans(plans)
-    rm = load_radiomap(mapdir)
-
-    def make():
-        return PowedKnn(PowedKnnParams(field_weight=0.05), walkable=walkable)
-    store = FitStore(mapdir, plans, tmp_path / "cache")
+    rm, scans, store, make = _fitting(site, tmp_path)
+    mapdir, plans, _ = site
     fit_positioner(make(), rm, store)
     path = store.map_path()
     blob = bytearray(path.read_bytes())
