@@ -350,3 +350,41 @@ def test_one_outlying_fix_moves_the_estimate_only_as_far_as_the_inject_mass_allo
         pf.update_position(np.array([12.0, 0.0]), cov, rng)
     assert abs(pf.estimate()[0][0] - 12.0) < 1.5
     assert settled(PfParams().inject_mass).estimate()[0][0] > 8.0
+
+
+def _walk_with_a_wrong_fix_run_at_the_end():
+    # a walker goes east at 1 m/s along a 100 m corridor; the WiFi fixes are right (1.5 m) but report
+    # a broad covariance (8 m, as a fingerprint matcher in a large open hall does), and the last
+    # three are 25 m behind him (a wrong match that persists), so the causal filter follows them there
+    g = build_graph(range(11), np.array([[10.0 * i, 0.0] for i in range(11)]), [(i, i + 1) for i in range(10)])
+    tr = GraphTracker(g, transition_table(g, TransitionParams()), PfParams(n_particles=500, yaw_offset_sigma_rad=0.0),
+                      rng=np.random.default_rng(11))
+    noise = np.random.default_rng(12)
+    cov = np.eye(2) * 64.0
+    t, x = 0, 20.0
+    truth = {}
+    tr.odom(t, 0.0, 0.0, 0.0)
+    for k in range(1, 121):                                         # 60 s, a PDR hop every 0.5 s
+        t += 500_000_000
+        x += 0.5
+        tr.odom(t, x - 20.0, 0.0, 0.0)
+        truth[t] = x
+        if k % 4 == 0:
+            off = -25.0 if k > 108 else 0.0
+            tr.fix(t, np.array([x + off, 0.0]) + noise.normal(0, 1.5, 2), cov)
+    return tr, truth
+
+
+def test_smoother_does_not_chain_the_past_to_particles_redrawn_at_a_wrong_fix():
+    # the particles redrawn around a fix (sensor resetting) have no predecessor: the backward
+    # simulation draws theirs from the filter's weights instead of chaining them to the nearest
+    # particle, which would drag the smoothed past towards the wrong fixes
+    tr, truth = _walk_with_a_wrong_fix_run_at_the_end()
+    assert abs(tr.estimates[-1].xy[0] - (max(truth.values()) - 25.0)) < 6.0      # the causal filter followed them
+    before = [t for t in truth if 5e9 <= t < 54e9]                                # before the wrong fixes
+    causal = {e.stamp_ns: e.xy for e in tr.estimates}
+    smoothed = {e.stamp_ns: e.xy for e in tr.smooth(50)}
+    err_c = np.mean([np.hypot(*(causal[t] - [truth[t], 0.0])) for t in before])
+    err_s = np.mean([np.hypot(*(smoothed[t] - [truth[t], 0.0])) for t in before])
+    assert err_c < 1.0
+    assert err_s < 1.5, err_s                   # chained to the nearest redrawn particle: 4.1 m

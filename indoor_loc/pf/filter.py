@@ -256,6 +256,9 @@ class GraphParticleFilter:
         self.p: Particles | None = None
         self.n_resample = 0
         self.n_reinit = 0
+        # which particles the latest measurement redrew (sensor resetting) rather than the motion
+        # model moved there, carried through resampling; the smoother's transition density needs it
+        self.redrawn: np.ndarray | None = None
         self._heading = graph.link_heading()
         self._kappa = 1.0 / self.params.heading_sigma_rad ** 2
         self.ix = LinkIndex(graph)
@@ -472,6 +475,7 @@ class GraphParticleFilter:
         redrawn around the fix. Returns True if re-initialised."""
         p, pp = self.p, self.params
         assert p is not None
+        self.redrawn = None
         mean = np.asarray(mean, float)
         S = pp.fix_cov_scale * np.asarray(cov, float) + pp.fix_sigma_extra_m ** 2 * np.eye(2)
         xy = self.xy()
@@ -537,6 +541,8 @@ class GraphParticleFilter:
         assert p is not None
         n, k = len(p), len(link)
         idx = np.argpartition(p.log_w, k - 1)[:k]
+        self.redrawn = np.zeros(n, bool)
+        self.redrawn[idx] = True
         donors = rng.integers(0, n, k)
         p.link[idx] = link
         p.pos[idx] = t * self.ix.length[link]
@@ -588,6 +594,8 @@ class GraphParticleFilter:
             idx = systematic_resample(p.weights, rng)
         self.p = p.take(idx)
         self.p.log_w = np.full(len(idx), -np.log(len(idx)))
+        if self.redrawn is not None:
+            self.redrawn = self.redrawn[idx]
         self.n_resample += 1
         return True
 

@@ -60,6 +60,7 @@ class _Step:
     distance_m: float         # PDR distance that led here from the previous step (0 for fixes)
     heading_rad: float        # PDR heading of that interval (nan if none)
     dt_s: float
+    redrawn: np.ndarray | None = None   # (N,) bool: redrawn around this step's measurement (sensor resetting)
 
 
 @dataclass(frozen=True)
@@ -237,6 +238,8 @@ class GraphTracker:
         self.pf.maybe_resample(self.rng)
         if self.keep_history and self.history:
             self._snapshot(self.history[-1])        # smoother uses the resampled set's positions too
+            self.history[-1].redrawn = self.pf.redrawn
+        self.pf.redrawn = None
         return self._check(stamp_ns) or est
 
     # -- divergence monitoring ----------------------------------------------------------------
@@ -348,6 +351,13 @@ class GraphTracker:
                 logk = -0.5 * (chord / reach) ** 2
             else:
                 logk = -0.5 * (chord / sigma_d_m) ** 2
+            if nxt.redrawn is not None:
+                # a particle redrawn around the measurement (sensor resetting) did not come from any
+                # particle at t: the filter's transition is the mixture (1 − m)·motion + m·q(x̃), and
+                # for such an x̃ the motion term is zero, so its predecessor is drawn from the
+                # filter's weights at t alone. Chaining it to the nearest particle instead drags the
+                # whole past towards where a wrong fix pulled the filter.
+                logk = np.where(nxt.redrawn[picks[t + 1]][:, None], 0.0, logk)
             lw = cur.log_w[None, :] + logk
             lw -= lw.max(axis=1, keepdims=True)
             pw = np.exp(lw)
