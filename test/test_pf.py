@@ -375,16 +375,21 @@ def _walk_with_a_wrong_fix_run_at_the_end():
     return tr, truth
 
 
-def test_smoother_does_not_chain_the_past_to_particles_redrawn_at_a_wrong_fix():
-    # the particles redrawn around a fix (sensor resetting) have no predecessor: the backward
-    # simulation draws theirs from the filter's weights instead of chaining them to the nearest
-    # particle, which would drag the smoothed past towards the wrong fixes
+def test_mixture_smoother_does_not_chain_the_past_to_particles_redrawn_at_a_wrong_fix():
+    # with the filter's own transition at a fix (mixture), a particle redrawn far from every
+    # particle (sensor resetting at a wrong fix) takes its predecessor from the filter's weights
+    # instead of the nearest particle, which drags the smoothed past towards the wrong fixes
     tr, truth = _walk_with_a_wrong_fix_run_at_the_end()
     assert abs(tr.estimates[-1].xy[0] - (max(truth.values()) - 25.0)) < 6.0      # the causal filter followed them
     before = [t for t in truth if 5e9 <= t < 54e9]                                # before the wrong fixes
-    causal = {e.stamp_ns: e.xy for e in tr.estimates}
-    smoothed = {e.stamp_ns: e.xy for e in tr.smooth(50)}
-    err_c = np.mean([np.hypot(*(causal[t] - [truth[t], 0.0])) for t in before])
-    err_s = np.mean([np.hypot(*(smoothed[t] - [truth[t], 0.0])) for t in before])
-    assert err_c < 1.0
-    assert err_s < 1.5, err_s                   # chained to the nearest redrawn particle: 4.1 m
+
+    def err(ests):
+        xy = {e.stamp_ns: e.xy for e in ests}
+        return np.mean([np.hypot(*(xy[t] - [truth[t], 0.0])) for t in before])
+
+    assert err(tr.estimates) < 1.0
+    chained, mixed = err(tr.smooth(50)), err(tr.smooth(50, redrawn="mixture"))
+    assert mixed < 1.5, mixed
+    assert mixed < chained - 1.0, (mixed, chained)                               # the default chains: 4.1 m
+    with pytest.raises(ValueError):
+        tr.smooth(5, redrawn="nearest")

@@ -256,9 +256,10 @@ class GraphParticleFilter:
         self.p: Particles | None = None
         self.n_resample = 0
         self.n_reinit = 0
-        # which particles the latest measurement redrew (sensor resetting) rather than the motion
-        # model moved there, carried through resampling; the smoother's transition density needs it
-        self.redrawn: np.ndarray | None = None
+        # (N,) after a WiFi fix: the log density q(x) of the draw that put each particle there when
+        # the fix redrew it (sensor resetting), -inf for the particles the motion model moved there;
+        # carried through resampling. The smoother's transition density at the fix needs it.
+        self.redrawn_log_q: np.ndarray | None = None
         self._heading = graph.link_heading()
         self._kappa = 1.0 / self.params.heading_sigma_rad ** 2
         self.ix = LinkIndex(graph)
@@ -475,7 +476,7 @@ class GraphParticleFilter:
         redrawn around the fix. Returns True if re-initialised."""
         p, pp = self.p, self.params
         assert p is not None
-        self.redrawn = None
+        self.redrawn_log_q = None
         mean = np.asarray(mean, float)
         S = pp.fix_cov_scale * np.asarray(cov, float) + pp.fix_sigma_extra_m ** 2 * np.eye(2)
         xy = self.xy()
@@ -505,6 +506,11 @@ class GraphParticleFilter:
             if k:
                 idx = self.inject(*self.sample_gaussian(mean, cov, k, rng), rng)
                 m2[idx] = mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, S)
+                # the density they were drawn from (sample_gaussian's, in the plane)
+                draw = np.asarray(cov, float) + pp.init_sigma_extra_m ** 2 * np.eye(2)
+                self.redrawn_log_q = np.full(n, -np.inf)
+                self.redrawn_log_q[idx] = (-0.5 * mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, draw)
+                                           - np.log(2 * np.pi) - 0.5 * np.log(np.linalg.det(draw)))
         log_l = self._fix_log_likelihood(m2, S)
         p.log_w = normalise_log(p.log_w + log_l)
         return reinit
@@ -541,8 +547,6 @@ class GraphParticleFilter:
         assert p is not None
         n, k = len(p), len(link)
         idx = np.argpartition(p.log_w, k - 1)[:k]
-        self.redrawn = np.zeros(n, bool)
-        self.redrawn[idx] = True
         donors = rng.integers(0, n, k)
         p.link[idx] = link
         p.pos[idx] = t * self.ix.length[link]
@@ -594,8 +598,8 @@ class GraphParticleFilter:
             idx = systematic_resample(p.weights, rng)
         self.p = p.take(idx)
         self.p.log_w = np.full(len(idx), -np.log(len(idx)))
-        if self.redrawn is not None:
-            self.redrawn = self.redrawn[idx]
+        if self.redrawn_log_q is not None:
+            self.redrawn_log_q = self.redrawn_log_q[idx]
         self.n_resample += 1
         return True
 

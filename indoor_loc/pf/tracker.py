@@ -60,7 +60,7 @@ class _Step:
     distance_m: float         # PDR distance that led here from the previous step (0 for fixes)
     heading_rad: float        # PDR heading of that interval (nan if none)
     dt_s: float
-    redrawn: np.ndarray | None = None   # (N,) bool: redrawn around this step's measurement (sensor resetting)
+    redrawn_log_q: np.ndarray | None = None   # (N,) log draw density of particles redrawn at this fix, else -inf
 
 
 @dataclass(frozen=True)
@@ -238,8 +238,8 @@ class GraphTracker:
         self.pf.maybe_resample(self.rng)
         if self.keep_history and self.history:
             self._snapshot(self.history[-1])        # smoother uses the resampled set's positions too
-            self.history[-1].redrawn = self.pf.redrawn
-        self.pf.redrawn = None
+            self.history[-1].redrawn_log_q = self.pf.redrawn_log_q
+        self.pf.redrawn_log_q = None
         return self._check(stamp_ns) or est
 
     # -- divergence monitoring ----------------------------------------------------------------
@@ -317,14 +317,21 @@ class GraphTracker:
         return est
 
     # -- smoothing -------------------------------------------------------------------------------
-    def smooth(self, n_samples: int = 50, *, sigma_d_m: float = 0.6, sigma_speed: float = 1.0) -> list[Estimate]:
-        """Backward-simulation smoother over every segment (see the module docstring)."""
+    def smooth(self, n_samples: int = 50, *, sigma_d_m: float = 0.6, sigma_speed: float = 1.0,
+               redrawn: str = "chain") -> list[Estimate]:
+        """Backward-simulation smoother over every segment (see the module docstring). ``redrawn``:
+        how a particle redrawn around a fix (sensor resetting) finds its predecessor: ``chain`` =
+        the motion kernel alone (its nearest particles), ``mixture`` = the filter's own transition
+        at the fix, (1 − inject_mass)·motion + inject_mass·q(x̃)."""
+        if redrawn not in ("chain", "mixture"):
+            raise ValueError(f"redrawn must be chain or mixture, not {redrawn!r}")
         out: list[Estimate] = []
         for seg in self.segments + [self.history]:
-            out += self._smooth_segment(seg, n_samples, sigma_d_m, sigma_speed)
+            out += self._smooth_segment(seg, n_samples, sigma_d_m, sigma_speed, redrawn == "mixture")
         return out
 
-    def _smooth_segment(self, h: list[_Step], n_samples: int, sigma_d_m: float, sigma_speed: float) -> list[Estimate]:
+    def _smooth_segment(self, h: list[_Step], n_samples: int, sigma_d_m: float, sigma_speed: float,
+                        mixture: bool) -> list[Estimate]:
         if not h:
             return []
         rng = self.rng
@@ -346,18 +353,21 @@ class GraphTracker:
                                                    * np.exp(kappa * (np.cos(ang - nxt.heading_rad - cur.yaw_offset[None, :]) - 1))
                                                    + self.pf.params.heading_floor), 0.0)
                 logk = ld + lh
-            elif nxt.dt_s > 0:
-                reach = sigma_speed * nxt.dt_s + sigma_d_m
-                logk = -0.5 * (chord / reach) ** 2
             else:
-                logk = -0.5 * (chord / sigma_d_m) ** 2
-            if nxt.redrawn is not None:
-                # a particle redrawn around the measurement (sensor resetting) did not come from any
-                # particle at t: the filter's transition is the mixture (1 − m)·motion + m·q(x̃), and
-                # for such an x̃ the motion term is zero, so its predecessor is drawn from the
-                # filter's weights at t alone. Chaining it to the nearest particle instead drags the
-                # whole past towards where a wrong fix pulled the filter.
-                logk = np.where(nxt.redrawn[picks[t + 1]][:, None], 0.0, logk)
+                # no PDR distance (a fix): the speed model's reach over dt_s, or no motion at all
+                sig = sigma_speed * nxt.dt_s + sigma_d_m if nxt.dt_s > 0 else sigma_d_m
+                logk = -0.5 * (chord / sig) ** 2
+                if mixture and nxt.redrawn_log_q is not None:
+                    # sensor resetting made the filter's transition at a fix the mixture
+                    # (1 − m)·motion(x̃ | x) + m·q(x̃) (m = inject_mass, q the density the redrawn
+                    # particles were drawn from). A redrawn x̃ near the filter's particles at t (the
+                    # filter lagging the walker) is chained to them; one far from all of them (a
+                    # jump to a wrong fix) takes its predecessor from the filter's weights at t
+                    # alone, so it does not drag the smoothed past after it.
+                    m = self.pf.params.inject_mass
+                    lq = nxt.redrawn_log_q[picks[t + 1]][:, None]
+                    logk = np.where(np.isfinite(lq), np.logaddexp(np.log1p(-m) + logk - np.log(2 * np.pi * sig ** 2),
+                                                                  np.log(m) + lq), logk)
             lw = cur.log_w[None, :] + logk
             lw -= lw.max(axis=1, keepdims=True)
             pw = np.exp(lw)

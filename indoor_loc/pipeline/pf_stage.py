@@ -80,6 +80,12 @@ class PfStageParams:
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
     smooth: bool = P.field(True, "at the end of input publish the backward-simulation smoothed pf/path")
     smooth_samples: int = P.field(50, "backward-simulated trajectories averaged by the smoother")
+    smooth_redrawn: str = P.field("chain", "smoother: predecessor of a particle redrawn around a WiFi fix (sensor "
+                                           "resetting): chain = its nearest particles by the motion model (fixes "
+                                           "trusted to correct a lagging filter, as on PUTMC); mixture = the filter's "
+                                           "own transition, (1 - inject_mass) motion + inject_mass jump, so a jump far "
+                                           "from every particle does not drag the smoothed past (broad, sometimes "
+                                           "wrong fixes, as on the ms_site2 mall)")
     seed: int = P.field(0, "random seed of the filter (runs are reproducible)")
     frame_id: str = P.field("map", "frame of the graph and the estimates")
     scan: ScanFieldParams = P.group(ScanFieldParams, "scan likelihood on the links for wifi_update: scan "
@@ -94,6 +100,8 @@ class PfStageParams:
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
+        P.require(self.smooth_redrawn in ("chain", "mixture"), n, "smooth_redrawn", "chain or mixture",
+                  self.smooth_redrawn)
         P.require(self.wifi_update in ("fix", "scan"), n, "wifi_update", "fix or scan", self.wifi_update)
         P.require(self.wifi_update != "scan" or bool(self.radiomap), n, "radiomap", "a radio map directory when "
                   "wifi_update is scan", self.radiomap)
@@ -293,7 +301,8 @@ class PfStage(Stage):
     def finish(self) -> list[Output]:
         outs = self._apply_pending(lambda s: True)
         if self.params.smooth and self.tracker.initialised:
-            return outs + self._path(self.tracker.smooth(self.params.smooth_samples))
+            return outs + self._path(self.tracker.smooth(self.params.smooth_samples,
+                                                                    redrawn=self.params.smooth_redrawn))
         return outs + self._path(self.tracker.estimates)
 
     def extra_diagnostics(self) -> dict[str, str]:
