@@ -3,6 +3,7 @@ corrupt, and the wifi_fix stage / `indoor-loc radiomap fit` using them."""
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -201,7 +202,7 @@ def _rewrite(path: Path, edit=None) -> None:
     tmp.replace(path)
 
 
-@pytest.mark.parametrize("damage", ["truncated", "garbage", "bit_flip", "inconsistent", "wrong_format"])
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "bit_flip", "inconsistent", "wrong_format", "nested_header"])
 def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
     rm, scans, store, make = _fitting(site, tmp_path)
     expect = _fixes(fit_positioner(make(), rm, store), scans)
@@ -215,6 +216,9 @@ def test_a_corrupt_saved_fit_is_refused_and_replaced(site, tmp_path, damage):
         flipped = bytearray(blob)
         flipped[len(blob) - 1000] ^= 0x10
         path.write_bytes(bytes(flipped))
+    elif damage == "nested_header":                   # a header nested beyond the JSON parser's depth
+        header = b"[" * 100_000 + b"]" * 100_000
+        path.write_bytes(blob[:16] + struct.pack("<Q", len(header)) + header)
     elif damage == "inconsistent":                    # the right key, but arrays that do not fit the map
         _rewrite(path, lambda meta, arrays: arrays.update(home=arrays["home"][:-1]))
     else:

@@ -359,6 +359,23 @@ def test_bench_on_any_site(tmp_path, capsys):
     assert bench_wifi.run(args) == 2 and "--floors select floors of --site" in capsys.readouterr().out
 
 
+def test_bench_leaves_out_a_walk_it_cannot_read(tmp_path):
+    """A walk whose file is damaged after its waypoints (a .gz's trailing checksum) still counts as having
+    truth, but cannot be read: the bench leaves it out with a note, as the importer does, and goes on."""
+    from indoor_loc.bench.wifi_ms import load_site
+    site = make_site(tmp_path / "site")
+    p = site / "G" / "path_data_files" / f"{wid(1, 1)}.txt.gz"
+    raw = bytearray(p.read_bytes())
+    raw[-8:-4] = bytes(4 - i for i in range(4))
+    p.write_bytes(bytes(raw))
+    whole = load_site(make_site(tmp_path / "whole"), only=["G"])["G"]
+    notes: list[str] = []
+    g = load_site(site, only=["G"], notes=notes)["G"]
+    assert any(f"walk {wid(1, 1)} left out" in n and "cannot read" in n for n in notes)
+    assert g["walks"] == whole["walks"]                              # the split is the same
+    assert (g["map"].n_scans, len(g["scans"])) != (whole["map"].n_scans, len(whole["scans"]))
+
+
 def test_bench_tags_the_floors_that_chose_the_methods_by_the_floor_recorded_on(tmp_path, capsys, monkeypatch):
     """On a copy of the site whose methods were chosen on some floors, with those floors renamed, the
     tags follow the walks' header FloorName, not the directory's name."""

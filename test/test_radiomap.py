@@ -134,6 +134,21 @@ def test_add_fingerprints_grows_columns_and_keeps_original():
     assert back[4].bssid == (B[1], "aa:aa:aa:aa:aa:01")
 
 
+def test_survey_spacing_counts_a_repeated_position_once():
+    from indoor_loc.wifi.radiomap import nominal_spacing_m
+    bss = ("02:00:00:00:00:01",)
+
+    def scan(i):
+        return WifiScan(i, bss, np.array([-50.0]), np.array([2412.0]))
+    pts = [[0.0, 0.0]] * 5 + [[2.0, 0.0]] * 5 + [[2.0, 3.0]] * 5       # three points, each scanned 5 times
+    rm = add_fingerprints(empty_radiomap(), pts, [scan(i) for i in range(15)], "s")
+    assert nominal_spacing_m(rm) == pytest.approx(2.0)                  # nearest: 2, 2, 3 m
+    up = add_fingerprints(rm, [[0.0, 0.5]], [scan(15)], "t", z_m=5.0)   # alone on its floor: no pair there
+    assert nominal_spacing_m(up) == pytest.approx(2.0)
+    assert np.isnan(nominal_spacing_m(add_fingerprints(empty_radiomap(), [[1.0, 1.0]] * 2,
+                                                       [scan(0), scan(1)], "s")))
+
+
 def test_interpolate_positions():
     t = np.array([10, 20, 40], np.int64) * 10**9
     xy = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 20.0]])

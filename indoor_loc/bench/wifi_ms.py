@@ -124,8 +124,8 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
     ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor.floor_levels`),
     ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor.read_site`);
     what was left out or guessed is appended to ``notes``."""
-    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, read_site, read_trace,
-                                               scans_with_truth, split_map_test, trace_id_of)
+    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, read_site, scans_with_truth,
+                                               split_map_test, trace_id_of)
     from indoor_loc.errors import ConfigError, MapError
     notes = [] if notes is None else notes
     site = read_site(root, levels=levels, metadata=metadata)
@@ -151,8 +151,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
         recorded_on: Counter = Counter()      # the walks' header FloorName: the floor they were recorded as
         ms: list[WifiScan] = []
         mp, src = [], []
-        for tid in survey:
-            tr = read_trace(ids[tid], imu=False)
+        for tid, tr in _readable(fl.name, ids, survey, notes):
             site_id = site_id or tr.header.get("SiteID", "")
             recorded_on[tr.floor] += 1
             sc, xy = scans_with_truth(tr)
@@ -161,8 +160,7 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
             src += [f"{fl.name}/{tid}"] * len(sc)
         ts: list[WifiScan] = []
         tp = []
-        for tid in test:
-            tr = read_trace(ids[tid], imu=False)
+        for _, tr in _readable(fl.name, ids, test, notes):
             site_id = site_id or tr.header.get("SiteID", "")
             recorded_on[tr.floor] += 1
             sc, xy = scans_with_truth(tr)
@@ -187,6 +185,20 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
                        "recorded_on": recorded_on.most_common(1)[0][0] if recorded_on else ""}
     if not out:
         raise ConfigError(f"{root}: no floor with survey scans inside a waypoint span")
+    return out
+
+
+def _readable(floor: str, paths: dict[str, Path], ids: list[str], notes: list[str]) -> list[tuple[str, Any]]:
+    """(id, trace) of the walks ``ids`` that can be read; an unreadable one (a damaged file) is left out
+    with a line in ``notes``, as the importer skips and reports it."""
+    from indoor_loc.datasets.ms_indoor import read_trace
+    from indoor_loc.errors import DatasetError
+    out = []
+    for tid in ids:
+        try:
+            out.append((tid, read_trace(paths[tid], imu=False)))
+        except DatasetError as err:
+            notes.append(f"floor {floor}: walk {tid} left out: {err}")
     return out
 
 

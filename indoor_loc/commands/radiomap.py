@@ -199,7 +199,8 @@ def info_lines(directory: Path) -> list[str]:
              f"  scans {s['counts']['scans']}, APs {s['counts']['aps']}, readings {s['counts']['readings']}",
              f"  APs per scan: {s['aps_per_scan']}",
              f"  bounds (m): x {s['bounds_m']['x']}, y {s['bounds_m']['y']}",
-             f"  median nearest-neighbour spacing: {nominal_spacing_m(rm):.2f} m",
+             f"  survey spacing (median distance to the nearest other surveyed position on the floor): "
+             f"{nominal_spacing_m(rm):.2f} m",
              "  sources: " + ", ".join(f"{k} {v}" for k, v in s["sources"].items())]
     heard = ~np.isnan(rm.rssi_dbm)
     if heard.any():

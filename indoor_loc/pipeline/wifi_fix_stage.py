@@ -284,7 +284,8 @@ class WifiFixStage(Stage):
         if self.positioner is None and self.fitting is None:
             if self.fit_error:
                 raise InvalidMessageError("fit_failed", self.fit_error)
-            raise InvalidMessageError("no_map", "no radio map configured (parameter radiomap is '')")
+            raise InvalidMessageError("no_map", "no radio map configured (parameter radiomap is ''; set it, e.g. "
+                                       "-p radiomap:=DIR, a directory from `indoor-loc radiomap build` or an importer)")
         if self._last_scan_ns is not None and scan.stamp_ns < self._last_scan_ns:
             raise InvalidMessageError("stamp_backwards", f"scan stamp {scan.stamp_ns} ns is before the previous "
                                                          f"scan's {self._last_scan_ns} ns")
@@ -329,7 +330,8 @@ class WifiFixStage(Stage):
         if self.fit_error:
             out["error"] = self.fit_error
         elif self.radio_map is None and self.fitting is None:
-            out["error"] = "no radio map configured (parameter radiomap is ''): scans are dropped"
+            out["error"] = ("no radio map configured (parameter radiomap is ''): scans are dropped; set it, e.g. "
+                            "-p radiomap:=DIR (`indoor-loc radiomap build` or an importer writes one)")
         if self.floor_plans:
             out["floor_plans"] = str(len(self.floor_plans))
         if self._store is not None and (self._store.loaded or self._store.saved):   # what the fit store did last

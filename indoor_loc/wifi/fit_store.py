@@ -347,7 +347,10 @@ def read_header(path: Path) -> tuple[dict[str, Any], memoryview]:
         n = struct.unpack("<Q", head[16:])[0]
         if n > 1 << 24:
             raise ValueError(f"header of {n} bytes")
-        meta = json.loads(fh.read(n))
+        try:
+            meta = json.loads(fh.read(n))
+        except RecursionError as err:                 # a header nested beyond the parser's depth
+            raise ValueError(f"header unreadable: {err}") from err
         if not isinstance(meta, dict):
             raise ValueError("header is not a mapping")
         start = _aligned(24 + n)

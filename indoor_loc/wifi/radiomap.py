@@ -397,13 +397,16 @@ def interpolate_positions(stamps_ns: ArrayLike, path_stamps_ns: ArrayLike,
 
 
 def nominal_spacing_m(rm: RadioMap) -> float:
-    """Median distance from a map scan to its nearest other map scan, m (NaN with < 2 scans)."""
+    """Survey spacing: median distance from a surveyed position to the nearest other surveyed position
+    on its floor, m. Scans repeated at one position count once (a survey point scanned ten times is one
+    point, not ten at 0 m); NaN when no floor has two distinct positions."""
     p = np.asarray(rm.positions, float)
-    if len(p) < 2:
-        return math.nan
-    best = np.full(len(p), np.inf)
-    for s in range(0, len(p), 512):
-        d = np.linalg.norm(p[s:s + 512, None, :] - p[None, :, :], axis=2)
-        d[np.arange(len(d)), np.arange(s, s + len(d))] = np.inf
-        best[s:s + 512] = d.min(axis=1)
-    return float(np.median(best))
+    z = np.asarray(rm.z_m, float)
+    best: list[np.ndarray] = []
+    for level in np.unique(z):
+        q = np.unique(p[z == level], axis=0)
+        for s in range(0, len(q) if len(q) > 1 else 0, 512):
+            d = np.linalg.norm(q[s:s + 512, None, :] - q[None, :, :], axis=2)
+            d[np.arange(len(d)), np.arange(s, s + len(d))] = np.inf
+            best.append(d.min(axis=1))
+    return float(np.median(np.concatenate(best))) if best else math.nan
