@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from backend_synth import SEC, corridor_walk, feed, scan_at, survey
-from indoor_loc.backend.graph import GraphParams, MultiUserGraph
+from indoor_loc.backend.graph import FIX_GRAPH_PARAMS, GraphParams, MultiUserGraph
 from indoor_loc.errors import ConfigError
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
 
@@ -333,3 +333,11 @@ def test_front_end_fixes_as_position_factors():
     assert np.mean(e) < 0.6 * np.mean(fix_err) and np.max(e) < 5.0            # the wild fix is bounded
     with pytest.raises(ConfigError, match="wifi_source"):
         GraphParams(wifi_source="both").validate()
+    # a bad fix is refused before anything changes (a NaN pose or a factor without an inverse
+    # would poison every later solve)
+    g2 = MultiUserGraph(GraphParams(**FIX_GRAPH_PARAMS), None)
+    for xy, cov in [([np.nan, 0.0], np.eye(2)), ([0.0, 0.0], np.zeros((2, 2))),
+                    ([0.0, 0.0], np.array([[1.0, 2.0], [2.0, 1.0]])), ([0.0, 0.0], np.diag([np.inf, 1.0]))]:
+        with pytest.raises(ValueError, match="not finite / positive definite"):
+            g2.add_fix("u", SEC, np.array(xy), cov)
+    assert g2.poses.n == 0 and g2.wifi.n == 0 and not g2.users

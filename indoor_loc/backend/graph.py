@@ -339,11 +339,18 @@ class MultiUserGraph:
         """A position fix of user ``name`` from the WiFi front end (``wifi_source: fix``): a factor
         pulling the pose at ``stamp_ns`` to ``xy`` (2,) with information ``wifi_info`` × ``cov`` (2, 2)⁻¹,
         as a hyperedge to one fixed position. It starts the user; it attaches to the last pose or adds
-        one by the same rule as a scan. Returns the pose index."""
+        one by the same rule as a scan. Returns the pose index. A non-finite ``xy`` or a ``cov`` that is
+        not a finite symmetric positive-definite 2×2 matrix is a ValueError, raised before anything
+        changes (it would poison every later solve)."""
+        xy = np.asarray(xy, float).reshape(2)
+        cov = np.asarray(cov, float).reshape(2, 2)
+        if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(cov)) and cov[0, 1] == cov[1, 0]
+                and cov[0, 0] > 0 and np.linalg.det(cov) > 0):
+            raise ValueError(f"{name}: fix at {stamp_ns}: position {xy.tolist()} or covariance {cov.tolist()} "
+                             "not finite / positive definite")
         tr = self.users.get(name) or self.user(name)
         self._check_order(tr, stamp_ns, "fix")
         tr.last_event_ns = int(stamp_ns)
-        xy = np.asarray(xy, float).reshape(2)
         i = self._scan_pose(tr, stamp_ns, xy)
         tr.scans_localised += 1
         refs = np.full(self.k, self.map.add_point(xy), np.int64)
