@@ -332,3 +332,6 @@ def test_eval_at_the_scans_of_an_import(tmp_path, capsys):
     assert cli_main(["eval", str(run), "--truth", str(tmp_path / "imp"), "--at-scans", "--json", str(out)]) == 0
     pooled = json.loads(out.read_text())["pooled"]
     assert pooled["scan_m"]["n"] == 2 and pooled["scan_m"]["mean"] == pytest.approx(1.5)
+    capsys.readouterr()
+    assert cli_main(["eval", str(run), "--dataset", str(tmp_path), "--at-scans"]) != 0     # not silently ignored
+    assert "--at-scans needs --truth" in capsys.readouterr().err

@@ -251,6 +251,9 @@ def evaluate(trajs: dict[str, Trajectory], truths: dict[str, Truth]) -> tuple[li
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.at_scans and not args.truth:
+        raise ConfigError("--at-scans needs --truth (an import's bags: their wifi/scan stamps are the instants "
+                          "scored); with --dataset the truth is PUTMC's scan positions already")
     trajs: dict[str, Trajectory] = {}
     frames: dict[str, set[str]] = {}
     if args.bags:
