@@ -232,3 +232,18 @@ def test_without_a_survey_scans_are_rejected_not_silently_lost():
     for _, topic, msg in _messages(corridor_walk("eve", 2, 20, 0, rng)):
         st.process(topic, msg, 0, "eve")
     assert st.diag.rejected["no_survey"] > 0 and st.finish() == []
+    assert "no radio map" in st.extra_diagnostics()["error"]       # said once at start-up too
+    assert "error" not in BackendStage(BackendParams(window_poses=0, wifi_source="fix")).extra_diagnostics()
+
+
+def test_with_fixes_scans_before_any_fix_are_counted_not_silently_lost():
+    """``wifi_source: fix`` and no ``wifi/fix`` arriving (no front end running): nothing can start
+    the user; its scans show as unlocalised in the diagnostics instead of nothing at all."""
+    rng = np.random.default_rng(3)
+    st = _stage(wifi_source="fix", joint=False)
+    n_scans = 0
+    for _, topic, msg in _messages(corridor_walk("eve", 2, 20, 0, rng)):
+        st.process(topic, msg, 0, "eve")
+        n_scans += topic == "wifi/scan"
+    assert st.finish() == [] and n_scans > 0
+    assert st.extra_diagnostics()["user.eve.scans_unlocalised"] == str(n_scans)

@@ -188,8 +188,8 @@ class UserTrack:
     acc_steps: float = 0.0                            # since the last pose
     acc_dtheta: float = 0.0
     finished: bool = False
-    scans_localised: int = 0
-    scans_unlocalised: int = 0
+    scans_localised: int = 0                          # scans WKNN localised (wifi_source fix: fixes taken)
+    scans_unlocalised: int = 0                        # scans not localised (wifi_source fix: before any fix)
     scans_from_users: int = 0                         # hyperedges with >= 1 other user's scan
 
 
@@ -321,7 +321,7 @@ class MultiUserGraph:
             match = self.map.match(scan, user=tr.index, joint=self.params.joint,
                                    pose_xy=self.poses.x[:self.poses.n, :2], survey=not by_fix)
         if match is None:
-            if not by_fix:
+            if not by_fix or not tr.started:      # with fixes: a scan before the user's first fix
                 tr.scans_unlocalised += 1
             if not tr.started or (by_fix and not self.params.joint):
                 return None, None

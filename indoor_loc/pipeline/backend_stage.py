@@ -270,6 +270,9 @@ class BackendStage(Stage):
 
     def extra_diagnostics(self) -> dict[str, str]:
         out = {k: str(v) for k, v in self.graph.counts().items()}
+        if self._no_survey:    # said once at start-up (node log, indoor-loc run), not only per rejected scan
+            out["error"] = ("no radio map (radiomap ''): with wifi_source 'scan' a user starts at a scan WKNN "
+                            "localises against the survey, so none can; set radiomap (an importer writes one)")
         for u, tr in self.graph.users.items():
             b = self.inputs_by_user.get(u)
             out[f"user.{u}.step_length_m"] = f"{self.graph.step_len[tr.index]:.3f}"
