@@ -363,6 +363,7 @@ def _walk_with_a_wrong_fix_run_at_the_end():
     cov = np.eye(2) * 64.0
     t, x = 0, 20.0
     truth = {}
+    tr.fixes = {}                                                   # stamp -> fix mean, for the checks
     tr.odom(t, 0.0, 0.0, 0.0)
     for k in range(1, 121):                                         # 60 s, a PDR hop every 0.5 s
         t += 500_000_000
@@ -371,7 +372,8 @@ def _walk_with_a_wrong_fix_run_at_the_end():
         truth[t] = x
         if k % 4 == 0:
             off = -25.0 if k > 108 else 0.0
-            tr.fix(t, np.array([x + off, 0.0]) + noise.normal(0, 1.5, 2), cov)
+            tr.fixes[t] = np.array([x + off, 0.0]) + noise.normal(0, 1.5, 2)
+            tr.fix(t, tr.fixes[t], cov)
     return tr, truth
 
 
@@ -393,3 +395,24 @@ def test_mixture_smoother_does_not_chain_the_past_to_particles_redrawn_at_a_wron
     assert mixed < chained - 1.0, (mixed, chained)                               # the default chains: 4.1 m
     with pytest.raises(ValueError):
         tr.smooth(5, redrawn="nearest")
+
+
+def test_redrawn_draw_densities_follow_the_particles_through_resampling():
+    # the smoother's mixture needs, per particle of a fix step's (resampled) set, the density q it
+    # was drawn from: -inf for the particles the motion model brought there, the Gaussian draw
+    # density (fix covariance + init_sigma_extra_m²) at its position for the redrawn ones
+    tr, _ = _walk_with_a_wrong_fix_run_at_the_end()
+    draw = np.eye(2) * 64.0 + tr.pf.params.init_sigma_extra_m ** 2 * np.eye(2)
+    steps = [h for seg in tr.segments + [tr.history] for h in seg if h.redrawn_log_q is not None]
+    assert len(steps) == len(tr.fixes) - 1 and tr.pf.n_resample > 0           # the first fix initialises
+    resampled = 0
+    for h in steps:
+        q = h.redrawn_log_q
+        fin = np.isfinite(q)
+        assert q.shape == (len(h.xy),) and 0 < fin.sum() < len(q) and np.all(q[~fin] == -np.inf)
+        d = h.xy[fin] - tr.fixes[h.stamp_ns]
+        want = (-0.5 * np.einsum("ij,jk,ik->i", d, np.linalg.inv(draw), d) - np.log(2 * np.pi)
+                - 0.5 * np.log(np.linalg.det(draw)))
+        np.testing.assert_allclose(q[fin], want, atol=1e-9)
+        resampled += np.all(h.log_w == h.log_w[0])        # equal weights: this fix's set was resampled
+    assert resampled > 0                                  # the index carry-over was exercised
