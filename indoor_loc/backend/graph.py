@@ -85,8 +85,8 @@ WIFI_SOURCES = ("scan", "fix")
 #: each ``wifi/fix`` a position factor weighted by its own (calibrated) covariance, a Huber kernel at
 #: the usual 1.345 σ for the wrong ones, the paper's PDR information; users separate. On a mall
 #: (ms_site2) the paper's WKNN hyperedges are worse than the front end they would replace (plain WKNN
-#: errs ~20 % more than its fixes there). Users are separate: on B1 the joint configuration gave
-#: 16.67 m mean error at the scan times against 3.96 m — WKNN against other users' scans alone takes
+#: errs 1.24× (B1) to 1.70× (F7) as much as its fixes on the scans it locates there). Users are
+#: separate: on B1 the joint configuration gave 16.67 m mean error at the scan times against 3.96 m — WKNN against other users' scans alone takes
 #: the k most similar of a few walks' scans however dissimilar, often across the floor — and 4.37 m
 #: (p95 14.58 against 9.60 m) when the survey competes and only matches naming another user's scan
 #: are kept. Chosen on ms_site2's B1.
