@@ -86,10 +86,10 @@ WIFI_SOURCES = ("scan", "fix")
 #: the usual 1.345 σ for the wrong ones, the paper's PDR information; users separate. On a mall
 #: (ms_site2) the paper's WKNN hyperedges are worse than the front end they would replace (plain WKNN
 #: errs 1.24× (B1) to 1.70× (F7) as much as its fixes on the scans it locates there). Users are
-#: separate: on B1 the joint configuration gave 16.67 m mean error at the scan times against 3.96 m — WKNN against other users' scans alone takes
-#: the k most similar of a few walks' scans however dissimilar, often across the floor — and 4.37 m
-#: (p95 14.58 against 9.60 m) when the survey competes and only matches naming another user's scan
-#: are kept. Chosen on ms_site2's B1.
+#: separate: on B1 the joint configuration gave 16.67 m mean error at the scan times against
+#: 3.96 m — WKNN against other users' scans alone takes the k most similar of a few walks' scans
+#: however dissimilar, often across the floor — and 4.37 m (p95 14.58 against 9.60 m) when the
+#: survey competes and only matches naming another user's scan are kept. Chosen on ms_site2's B1.
 FIX_GRAPH_PARAMS: dict = {"wifi_source": "fix", "joint": False, "wifi_info": 1.0, "robust_kernel": "huber",
                           "robust_threshold_m": 1.345}
 
