@@ -247,3 +247,22 @@ def test_with_fixes_scans_before_any_fix_are_counted_not_silently_lost():
         n_scans += topic == "wifi/scan"
     assert st.finish() == [] and n_scans > 0
     assert st.extra_diagnostics()["user.eve.scans_unlocalised"] == str(n_scans)
+
+
+def test_with_fixes_only_a_user_without_odometry_is_not_held_until_it_leaves():
+    """``wifi_source: fix`` and only ``wifi/fix`` (no PDR): a fix waits ``max_scan_wait_s`` of newer
+    fixes, as a scan does, not for odometry that never comes; without motion every fix pulls the
+    one pose (a user standing still)."""
+    from indoor_loc.measurements import Fix
+    from msg_adapters.pose import fix_to_msg
+    rng = np.random.default_rng(4)
+    st = _stage(wifi_source="fix", joint=False, max_scan_wait_s=5.0)
+    outs = []
+    for k in range(20):
+        fix = Fix(k * SEC, np.array([3.0, 4.0]) + rng.normal(0, 1.0, 2), np.eye(2))
+        outs += st.process("wifi/fix", fix_to_msg(fix), 0, "ann")
+    poses = [m for t, m in outs if t == "backend/ann/pose"]
+    assert poses and len(st.inputs_by_user["ann"].heap) <= 6          # before: nothing until the end
+    outs += st.finish()
+    stamps, xy, _ = path_from_msg([m for t, m in outs if t == "backend/ann/path"][-1])
+    assert len(stamps) == 1 and np.linalg.norm(xy[0] - [3.0, 4.0]) < 1.0

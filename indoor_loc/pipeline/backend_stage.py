@@ -164,9 +164,12 @@ class BackendStage(Stage):
 
     def _on_fix(self, msg, recv_ns: int, user: str) -> list[Output]:
         """A front-end fix (``wifi_source: fix``); it sorts before its own scan (same stamp), so the
-        scan attaches to the fix's pose."""
+        scan attaches to the fix's pose. A fix has its scan's stamp: it moves the scans' wait mark too,
+        so a user without odometry is not held back until it leaves."""
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)
         self._push(user, fix.stamp_ns, 1, fix)
+        b = self._buffer(user)
+        b.newest_scan_ns = fix.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, fix.stamp_ns)
         return self._release(user)
 
     def _release(self, user: str, *, everything: bool = False) -> list[Output]:
