@@ -85,7 +85,8 @@ class PfStageParams:
                                            "trusted to correct a lagging filter, as on PUTMC); mixture = the filter's "
                                            "own transition, (1 - inject_mass) motion + inject_mass jump, so a jump far "
                                            "from every particle does not drag the smoothed past (broad, sometimes "
-                                           "wrong fixes, as on the ms_site2 mall)")
+                                           "wrong fixes, as on the ms_site2 mall); wifi_update fix only (the scan "
+                                           "update's redrawn particles are always chained)")
     seed: int = P.field(0, "random seed of the filter (runs are reproducible)")
     frame_id: str = P.field("map", "frame of the graph and the estimates")
     scan: ScanFieldParams = P.group(ScanFieldParams, "scan likelihood on the links for wifi_update: scan "
