@@ -142,3 +142,61 @@ def test_a_fixed_user_list_is_followed_and_nobody_else(ros_domain, tmp_path):
         assert "'dave'" not in node_proc.output()
     finally:
         node_proc.stop()
+
+
+def test_front_end_fixes_live(ros_domain, tmp_path):
+    """``wifi_source: fix`` over DDS without a survey: the node subscribes to the user's
+    ``wifi/fix`` too, starts the user at its first fix, publishes poses as the walk goes and, when
+    the user leaves, its path at the fixes' floor height."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry, Path
+
+    from indoor_loc.measurements import Fix
+    from msg_adapters.pose import fix_to_msg
+    from msg_adapters.time import stamp_to_ns
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**/backend_node:\n  ros__parameters:\n    wifi_source: fix\n    joint: false\n"
+                      "    wifi_info: 1.0\n    robust_kernel: huber\n    robust_threshold_m: 1.345\n"
+                      "    user_timeout_s: 2.0\n")
+    node_proc = Peer([sys.executable, "-m", "indoor_loc.nodes.backend_node", "--ros-args", "--params-file",
+                      str(params)], env=child_env())
+    rng = np.random.default_rng(32)
+    walk = corridor_walk("ann", 2, 30, 0, rng)
+    try:
+        with ros_node("probe") as (node, ex):
+            poses: list = []
+            paths: list = []
+            node.create_subscription(PoseWithCovarianceStamped, "/backend/ann/pose", poses.append,
+                                     qos_profile(Qos.RELIABLE))
+            node.create_subscription(Path, "/backend/ann/path", paths.append, qos_profile(Qos.LATCHED))
+            assert spin_until(ex, lambda: node.count_publishers("/diagnostics") > 0, 60), node_proc.output()
+            pubs = {"pdr/odom": node.create_publisher(Odometry, "/ann/pdr/odom", qos_profile(Qos.RELIABLE)),
+                    "wifi/scan": node.create_publisher(DiagnosticArray, "/ann/wifi/scan", qos_profile(Qos.RELIABLE)),
+                    "wifi/fix": node.create_publisher(PoseWithCovarianceStamped, "/ann/wifi/fix",
+                                                      qos_profile(Qos.RELIABLE))}
+            assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 40), \
+                node_proc.output()
+            fix_err = []
+            for topic, msg in _messages(walk):
+                pubs[topic].publish(msg)
+                if topic == "wifi/scan":           # its fix after it, as wifi_fix_node publishes it
+                    t = stamp_to_ns(msg.header.stamp)
+                    noise = rng.normal(0, 1.5, 2)
+                    fix_err.append(np.linalg.norm(noise))
+                    pubs["wifi/fix"].publish(fix_to_msg(Fix(t, walk.true_xy_at([t])[0] + noise, 2.25 * np.eye(2),
+                                                            z=-5.0)))
+                spin_until(ex, lambda: False, 0.002)
+            assert spin_until(ex, lambda: len(poses) > 5, 40), node_proc.output()
+            for p in pubs.values():
+                node.destroy_publisher(p)
+            assert spin_until(ex, lambda: len(paths) >= 1, 40), node_proc.output()
+            stamps, xy, _ = path_from_msg(paths[-1])
+            assert len(stamps) > 10 and {ps.pose.position.z for ps in paths[-1].poses} == {-5.0}
+            assert np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 0.8 * np.mean(fix_err)
+        node_proc.signal(signal.SIGINT)
+        assert node_proc.wait(timeout=40) == 0, node_proc.output()
+        assert "Traceback" not in node_proc.output()
+    finally:
+        node_proc.stop()
