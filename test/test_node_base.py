@@ -6,6 +6,7 @@ import math
 import os
 import signal
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -99,6 +100,18 @@ def test_invalid_parameters_stop_the_process(tmp_path, ros_domain):
             peer.stop()
         assert rc == 2, f"{k}: rc {rc}\n{peer.output()}"
         assert cases[k][1] in peer.output(), f"{k}: {peer.output()}"
+
+
+def test_a_node_that_cannot_start_ends_even_if_its_last_steps_stall():
+    """After a start-up error the process ends within a bounded time with the error's status, whatever
+    its report and the middleware's shutdown do meanwhile (here: a step that never returns)."""
+    import subprocess
+    code = ("import time; from indoor_loc.nodes.base import exit_after; "
+            "exit_after(0.5, 2, 'stuck_node'); time.sleep(60)")
+    t0 = time.monotonic()
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 2 and time.monotonic() - t0 < 20
+    assert "[stuck_node] still not ended 0.5 s after its start-up error: exiting" in res.stderr
 
 
 def test_a_subscription_that_matched_late_says_so():

@@ -38,6 +38,7 @@ from __future__ import annotations
 import array
 import argparse
 import heapq
+import os
 import signal
 import struct
 import sys
@@ -753,6 +754,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
         print(f"[{name}] configuration error: {err}", file=sys.stderr)
         status = 2
         if node is None:          # start-up failed: say so in /diagnostics too, not only on stderr
+            exit_after(STARTUP_ERROR_WAIT_S + STARTUP_ERROR_ACK_S + STARTUP_ERROR_GRACE_S, status, name)
             report_startup_error(name, f"configuration error: {err}")
     finally:
         ignore_signals(old)
@@ -778,6 +780,23 @@ STARTUP_ERROR_ALONE_S = 4.0
 #: subscriber whose own side of the match completes later gets the message resent only while this
 #: node still exists, which on a loaded machine can take seconds.
 STARTUP_ERROR_ACK_S = 5.0
+#: ... and the report plus the middleware's shutdown get this much more before the process exits
+#: regardless (s): a node that cannot start always ends, also if DDS stalls in its shutdown.
+STARTUP_ERROR_GRACE_S = 15.0
+
+
+def exit_after(seconds: float, status: int, name: str) -> threading.Timer:
+    """Make sure this process ends within ``seconds`` with ``status``: a daemon timer that says so on
+    stderr and ends the process at once (``os._exit``: no clean-up is left to wait for). For a node
+    that is already exiting with an error, whose last steps talk to the middleware."""
+    def _exit() -> None:
+        print(f"[{name}] still not ended {seconds:g} s after its start-up error: exiting", file=sys.stderr,
+              flush=True)
+        os._exit(status)
+    timer = threading.Timer(seconds, _exit)
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 def report_startup_error(node_name: str, message: str, *, wait_s: float = STARTUP_ERROR_WAIT_S,
