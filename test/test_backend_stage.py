@@ -139,7 +139,7 @@ def test_offline_run_one_backend_for_all_users(tmp_path, order):
 def test_putmc_walks_joint_with_step_length():
     """Three real walks (2, 7 by the taller walker, 22) through the graph, the paper's joint +
     step-length configuration, sequentially: route distance and scan-time error stay within what
-    the whole-dataset run gives (README)."""
+    the whole-dataset run gives (docs/benchmarks/backend.md)."""
     from indoor_loc.backend.putmc_events import walk_events
     from indoor_loc.datasets.putmc import Putmc
     from indoor_loc.eval.metrics import point_segment_distance, scan_time_errors

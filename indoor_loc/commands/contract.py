@@ -1,4 +1,4 @@
-"""``indoor-loc contract``: print the message contract (README table)."""
+"""``indoor-loc contract``: print the message contract (the table in docs/nodes.md)."""
 from __future__ import annotations
 
 import argparse
