@@ -391,3 +391,30 @@ def test_each_pose_takes_the_floor_of_its_nearest_fix():
             for t, m in outs if t == "backend/bob/pose"]
     assert all(z == (0.0 if t < 17 * SEC else 5.0) for t, z in live if not 17 * SEC <= t <= 19 * SEC)
     assert {z for _, z in live} == {0.0, 5.0}
+
+
+def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path):
+    """``wifi_source: fix`` never matches against the survey: the stage reads only its scan positions
+    (for backend/wifi_map), none of its fingerprints enter the graph; with save_map the whole survey is
+    loaded, so the saved map keeps it. A damaged map file still stops the start-up."""
+    from indoor_loc.backend.wifi_map import survey_positions
+    from indoor_loc.errors import MapError
+    from indoor_loc.wifi.radiomap import load_radiomap
+    rm = survey(0, 60, np.random.default_rng(1))
+    d = save_radiomap(rm, tmp_path / "map")
+    np.testing.assert_array_equal(survey_positions(d), load_radiomap(d).positions)
+    _, stream = _fix_stream(44)
+    st, outs, _ = _run(stream, radiomap=str(d))
+    assert st.graph.map.n == 0 and st.graph.map.n_loaded_fixed == 0
+    markers = [m for t, m in outs if t == "backend/wifi_map"][-1].markers
+    drawn = np.array([(p.x, p.y) for mk in markers for p in mk.points])
+    np.testing.assert_allclose(drawn, rm.positions)
+    st2, _, _ = _run(stream, radiomap=str(d), save_map=str(tmp_path / "saved"))
+    assert st2.graph.map.n == rm.n_scans
+    assert load_radiomap(tmp_path / "saved").n_scans == rm.n_scans
+    fp = d / "fingerprints.csv"
+    lines = fp.read_text().splitlines(keepends=True)
+    for cut in (3, 40):                         # truncated: readings of the last scan, whole scans
+        fp.write_text("".join(lines[:-cut]))
+        with pytest.raises(MapError, match="manifest says"):
+            BackendStage(BackendParams(radiomap=str(d), **FIX_KW))

@@ -49,6 +49,7 @@ import numpy as np
 
 from indoor_loc.params import field as pfield, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
+from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.markers import points_markers
@@ -67,7 +68,8 @@ class BackendParams(GraphParams):
     (same names, defaults and docs, declared once)."""
     radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = none: with wifi_source "
                            "'scan' no user can start (a user starts at a scan localised against the survey), so "
-                           "scans are rejected as 'no_survey'; with 'fix' the fixes place the users")
+                           "scans are rejected as 'no_survey'; with 'fix' the fixes place the users and only the "
+                           "map's scan positions are read, for backend/wifi_map (all of it with save_map)")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
@@ -160,8 +162,15 @@ class BackendStage(Stage):
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
         super().__init__(params, namespace=namespace)
+        # wifi_source 'fix': the survey's fingerprints never enter the graph (the front end's fixes carry
+        # it), so only its positions are read, for the drawing — unless the map is to be saved with them
+        self._drawn_survey = np.zeros((0, 2))
         if survey is None and params.radiomap:
-            survey = load_radiomap(Path(params.radiomap).expanduser())     # MapError -> start-up fails
+            where = Path(params.radiomap).expanduser()                     # MapError -> start-up fails
+            if params.wifi_source == "fix" and not params.save_map:
+                self._drawn_survey = survey_positions(where)
+            else:
+                survey = load_radiomap(where)
         self.graph = MultiUserGraph(params.graph_params(), survey)
         self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         self.inputs_by_user: dict[str, _UserInput] = {}
@@ -328,9 +337,8 @@ class BackendStage(Stage):
         return (BACKEND_PATH.format(user=user), msg)
 
     def _map_output(self, stamp_ns: int) -> Output:
-        rm = self.graph.wifi_radio_map()
-        return ("backend/wifi_map", points_markers("wifi_map", rm.positions, self.params.frame_id, stamp_ns,
-                                                   scale=0.25))
+        xy = np.vstack([self._drawn_survey, self.graph.wifi_radio_map().positions])
+        return ("backend/wifi_map", points_markers("wifi_map", xy, self.params.frame_id, stamp_ns, scale=0.25))
 
     def _started_users(self) -> list[str]:
         return [u for u, tr in self.graph.users.items() if tr.poses]
