@@ -134,8 +134,12 @@ class _FrontEnd:
         global _DATASET
         _DATASET = self.ds
         if self.jobs > 1:
+            import gc
             import multiprocessing
 
+            # the objects this process has now are left out of the collector's passes (the workers'
+            # too): a pass writes to every object it visits, and each page so written is copied
+            gc.freeze()
             self.pool = multiprocessing.get_context("fork").Pool(self.jobs)
             # ordered, one walk per task: walk n's events arrive as soon as walks 1…n are done
             self._it: Iterator = self.pool.imap(_front_end, self.numbers)
@@ -156,6 +160,8 @@ class _FrontEnd:
             self.pool.close()
             self.pool.join()
             self.pool = None
+            import gc
+            gc.unfreeze()
         _DATASET = None
 
 
