@@ -84,3 +84,11 @@ def test_bench_in_process_rows_time_both_and_check_the_poses():
     assert list(rows) == list(CONFIGS)
     for r in rows.values():
         assert set(r) == {1, 2} and all(0 < v < 60 for t in r.values() for v in t)
+
+
+def test_time_only_entry_refuses_an_unknown_configuration(capsys):
+    from indoor_loc.bench.backend import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--configs", "joint, step-length est.; nope"])
+    assert e.value.code == 2 and "unknown configuration(s) ['nope']" in capsys.readouterr().err

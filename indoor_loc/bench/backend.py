@@ -118,14 +118,15 @@ def _load() -> str:
     return "load average " + " / ".join(f"{v:.2f}" for v in os.getloadavg()) + " (1 / 5 / 15 min)"
 
 
-def in_process(data_dir: Path, runs: int, jobs: int = JOBS,
-               walks: Sequence[int] | None = None) -> dict[str, dict[int, tuple[float, float]]]:
+def in_process(data_dir: Path, runs: int, jobs: int = JOBS, walks: Sequence[int] | None = None,
+               names: Sequence[str] = tuple(CONFIGS)) -> dict[str, dict[int, tuple[float, float]]]:
     """Each configuration from scratch (:func:`from_scratch`: front end + graph) in this process with
     1 and ``jobs`` processes, alternating, ``runs`` times each; per configuration and jobs the least
     wall time and the least CPU time (all processes) of the runs. Checks that both give the same poses
     and step lengths. ``walks``: only these (default: all)."""
     out: dict[str, dict[int, tuple[float, float]]] = {}
-    for name, params in CONFIGS.items():
+    for name in names:
+        params = CONFIGS[name]
         best: dict[int, tuple[float, float]] = {1: (np.inf, np.inf), jobs: (np.inf, np.inf)}
         poses = {}
         for _ in range(runs):
@@ -172,7 +173,8 @@ def fresh_processes(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONF
                 imp = min(x["cpu_process_s"] - x["cpu_work_s"] for x in r)
                 reftxt = f"{ref[0]}–{ref[1]} s, {REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB" if ref else "–"
                 workers = f"; {max(x['rss_workers_peak_mb'] for x in r):.0f}" if j > 1 else ""
-                print(f"| {name} | {j} | **{work_w:.2f}** / {work_c:.2f} | **{proc_w:.2f}** / {proc_c:.2f} ({imp:.2f}) "
+                procs = "1" if j == 1 else f"1 + {j} workers"
+                print(f"| {name} | {procs} | **{work_w:.2f}** / {work_c:.2f} | **{proc_w:.2f}** / {proc_c:.2f} ({imp:.2f}) "
                       f"| {max(x['rss_peak_mb'] for x in r):.0f} ({max(x['rss_imports_mb'] for x in r):.0f}{workers}) "
                       f"| {reftxt if j == 1 else ''} |")
                 out[name if j == 1 else f"{name} (jobs {j})"] = {"runs": r}
@@ -312,7 +314,7 @@ def run(args: argparse.Namespace) -> int:
           f"{'s' if runs > 1 else ''}, CPU of all the processes; {_load()} before:\n")
     scratch_rows = in_process(data_dir, runs)
     print(f"| configuration | graph s wall / CPU | front end + graph s wall / CPU | from scratch, 1 process: "
-          f"s wall / CPU | from scratch, {JOBS} processes: s wall / CPU | reference C++ s wall "
+          f"s wall / CPU | from scratch, 1 + {JOBS} workers: s wall / CPU (all processes) | reference C++ s wall "
           "(loading, stepometer, WKNN, 15 LM its; 1 thread) |")
     print("|---|---|---|---|---|---|")
     for name, r in results.items():
@@ -364,3 +366,47 @@ def run(args: argparse.Namespace) -> int:
         out["from_scratch_in_process"] = {name: {str(j): v for j, v in r.items()} for name, r in scratch_rows.items()}
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
+
+
+def time_only(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONFIGS), jobs: int = JOBS) -> dict:
+    """Only the bench's timing of each configuration from scratch, with 1 and ``jobs`` processes,
+    alternating, least of ``runs``: in this process (:func:`in_process`) and in fresh processes
+    (:func:`fresh_processes`). Prints both tables; returns their figures."""
+    print(f"# indoor-loc bench backend, time only — PUTMC, 24 walks, {runs} runs each\n")
+    print(f"In this process (after the imports; one untimed run first), {_load()} before:\n")
+    from_scratch(data_dir, CONFIGS[names[0]], jobs=jobs)           # files in the page cache, workers forked once
+    rows = in_process(data_dir, runs, jobs, names=names)
+    print(f"| configuration | 1 process: s wall / CPU | 1 + {jobs} workers: s wall / CPU (all processes) "
+          "| reference C++ s wall (1 thread) |")
+    print("|---|---|---|---|")
+    for name in names:
+        one, par = rows[name][1], rows[name][jobs]
+        ref = REF_TIME_S["joint" if "joint" in name else "separate"] if name in REFERENCE else None
+        print(f"| {name} | {one[0]:.2f} / {one[1]:.2f} | **{par[0]:.2f}** / {par[1]:.2f} | "
+              f"{f'{ref[0]}–{ref[1]}' if ref else '–'} |")
+    print(f"\n{_load()} after.")
+    fresh = fresh_processes(data_dir, runs, names, jobs)
+    return {"in_process": {name: {str(j): v for j, v in r.items()} for name, r in rows.items()}, "fresh_process": fresh}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m indoor_loc.bench.backend",
+                                 description="Only the timing tables of `indoor-loc bench backend`: each configuration "
+                                             "from scratch with 1 and N processes, in this process and in fresh ones.")
+    ap.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory (holding putmc/)")
+    ap.add_argument("--runs", type=int, default=5, help="runs of each configuration and process count (least taken)")
+    ap.add_argument("--configs", default="", help="semicolon-separated configurations (default: all)")
+    ap.add_argument("--json", type=Path, help="also write the figures as JSON here")
+    args = ap.parse_args(argv)
+    names = [c.strip() for c in args.configs.split(";") if c.strip()] or list(CONFIGS)
+    unknown = [c for c in names if c not in CONFIGS]
+    if unknown or args.runs < 1:
+        ap.error(f"unknown configuration(s) {unknown}; one of {list(CONFIGS)}" if unknown else "--runs must be >= 1")
+    out = time_only(args.data, args.runs, names)
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
