@@ -1,7 +1,7 @@
 """The message contract: every topic the package reads or writes, with type, QoS and frame.
 
 Topic names are relative, so one user's nodes live under a namespace (``/alice/imu/data``).
-The README's table is generated from ``TOPICS`` (``indoor-loc contract``). Message types are given
+``indoor-loc contract`` prints ``TOPICS`` as a table (the users' table is in docs/nodes.md). Message types are given
 as ``"pkg/msg/Name"`` strings so this module stays importable without any ROS package.
 """
 from __future__ import annotations

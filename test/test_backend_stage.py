@@ -139,7 +139,7 @@ def test_offline_run_one_backend_for_all_users(tmp_path, order):
 def test_putmc_walks_joint_with_step_length():
     """Three real walks (2, 7 by the taller walker, 22) through the graph, the paper's joint +
     step-length configuration, sequentially: route distance and scan-time error stay within what
-    the whole-dataset run gives (README)."""
+    the whole-dataset run gives (docs/benchmarks/backend.md)."""
     from indoor_loc.backend.putmc_events import walk_events
     from indoor_loc.datasets.putmc import Putmc
     from indoor_loc.eval.metrics import point_segment_distance, scan_time_errors
@@ -266,3 +266,155 @@ def test_with_fixes_only_a_user_without_odometry_is_not_held_until_it_leaves():
     outs += st.finish()
     stamps, xy, _ = path_from_msg([m for t, m in outs if t == "backend/ann/path"][-1])
     assert len(stamps) == 1 and np.linalg.norm(xy[0] - [3.0, 4.0]) < 1.0
+
+
+# -- waiting for fixes (wifi_source: fix) -------------------------------------------------------------
+FIX_KW = dict(wifi_source="fix", joint=False, wifi_info=1.0, robust_kernel="huber", robust_threshold_m=1.345)
+
+
+def _fix_stream(seed, *, z_of=lambda stamp: 0.0, n_x=50):
+    """A walk's odometry and scans with each scan's fix right after it (what an offline run, whose
+    WiFi node answers at once, delivers): [(stamp, topic, msg)]."""
+    from indoor_loc.measurements import Fix
+    from msg_adapters.pose import fix_to_msg
+    rng = np.random.default_rng(seed)
+    walk = corridor_walk("bob", 2, n_x, 0, rng, scan_period_s=2.0)
+    out = []
+    for stamp, topic, msg in _messages(walk):
+        out.append((stamp, topic, msg))
+        if topic == "wifi/scan":
+            fix = Fix(stamp, walk.true_xy_at([stamp])[0] + rng.normal(0, 2.0, 2), 4.0 * np.eye(2), z=z_of(stamp))
+            out.append((stamp, "wifi/fix", fix_to_msg(fix)))
+    return walk, out
+
+
+def _delayed(stream, lag_s, *, never=lambda stamp: False):
+    """The same messages with each fix delivered once the odometry is ``lag_s`` past its stamp (a slow
+    WiFi node); fixes for which ``never(stamp)`` holds are not delivered at all."""
+    out, held = [], []
+    for stamp, topic, msg in stream:
+        if topic == "wifi/fix":
+            if not never(stamp):
+                held.append((stamp, topic, msg))
+            continue
+        out.append((stamp, topic, msg))
+        if topic == "pdr/odom":
+            while held and stamp - held[0][0] >= lag_s * SEC:
+                out.append(held.pop(0))
+    return out + held
+
+
+def _run(stream, **kw):
+    st = BackendStage(BackendParams(wknn=WKNN, **{**FIX_KW, **kw}))
+    outs = []
+    for _, topic, msg in stream:
+        outs += st.process(topic, msg, 0, "bob")
+    during = len([1 for t, _ in outs if t == "backend/bob/pose"])
+    outs += st.finish()
+    return st, outs, during
+
+
+def _final_path(outs):
+    path = [m for t, m in outs if t == "backend/bob/path"][-1]
+    stamps, xy, yaw = path_from_msg(path)
+    return stamps, xy, yaw, np.array([ps.pose.position.z for ps in path.poses])
+
+
+def test_fixes_two_seconds_late_are_all_taken_and_give_the_on_time_result():
+    """A WiFi node answering 2 s after each scan (4× the reorder window) while odometry flows: no fix
+    is lost, they are inserted in stamp order, and the path (live windows on) equals the one the
+    same messages give with every fix on time; poses still come during the walk. Without the wait
+    (fix_wait_s 0) the same stream loses the fixes as too_late."""
+    walk, on_time = _fix_stream(41)
+    late = _delayed(on_time, 2.0)
+    n_fix = sum(t == "wifi/fix" for _, t, _ in on_time)
+    assert [m for _, t, m in late if t == "wifi/fix"] != [] and late != on_time
+    st0, outs0, _ = _run(on_time)
+    st1, outs1, during = _run(late)
+    assert sum(st1.diag.rejected.values()) == 0 and st1.graph.wifi.n == n_fix == st0.graph.wifi.n
+    a, b = _final_path(outs0), _final_path(outs1)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
+    assert during > 10                                                    # not held until the end
+    d = st1.extra_diagnostics()
+    assert d["user.bob.fixes_waited_for"] == str(n_fix) and d["fix_wait.fixes_waited_for"] == str(n_fix)
+    assert 2.0 <= float(d["fix_wait.lag_max_s"]) < 2.5 and d["fix_wait.scans_given_up"] == "0"
+    assert st0.extra_diagnostics()["fix_wait.fixes_waited_for"] == "0"
+    st2, _, _ = _run(late, fix_wait_s=0.0)                                # the window alone
+    assert st2.diag.rejected["too_late"] >= n_fix - 2 and st2.graph.wifi.n <= 2
+
+
+def test_a_scan_without_a_fix_is_settled_by_the_next_fix_or_given_up_after_fix_wait_s():
+    """A scan the WiFi node declines (no fix) is settled by the next scan's fix (fixes come in stamp
+    order): nothing is given up and the result is the on-time one. When the WiFi node stops, each
+    scan holds the user's events at most fix_wait_s of stamp time, is given up and counted, poses keep
+    coming, and a fix arriving after that is counted too_late, not taken silently."""
+    walk, on_time = _fix_stream(42)
+    fix_stamps = [s for s, t, _ in on_time if t == "wifi/fix"]
+    declined = fix_stamps[5]
+    st0, outs0, _ = _run([m for m in on_time if not (m[1] == "wifi/fix" and m[0] == declined)])
+    st1, outs1, _ = _run(_delayed(on_time, 2.0, never=lambda s: s == declined))
+    a, b = _final_path(outs0), _final_path(outs1)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert st1.extra_diagnostics()["fix_wait.scans_given_up"] == "0" and sum(st1.diag.rejected.values()) == 0
+
+    # the WiFi node stops answering at the 8th scan
+    stop = fix_stamps[8]
+    stream = _delayed(on_time, 2.0, never=lambda s: s >= stop)
+    st = BackendStage(BackendParams(wknn=WKNN, fix_wait_s=5.0, **FIX_KW))
+    held_max = 0
+    for _, topic, msg in stream:
+        st.process(topic, msg, 0, "bob")
+        b = st.inputs_by_user["bob"]
+        if b.taken_ns is not None and b.newest_odom_ns is not None:
+            held_max = max(held_max, b.newest_odom_ns - b.taken_ns)
+    n_lost = len([s for s in fix_stamps if s >= stop])
+    d = st.extra_diagnostics()
+    assert 5 * SEC <= held_max <= 5.5 * SEC                     # held for fix_wait_s, no longer
+    assert int(d["fix_wait.scans_given_up"]) + int(d["fix_wait.scans_waiting"]) == n_lost
+    assert int(d["fix_wait.scans_waiting"]) <= 3                 # only the last fix_wait_s of scans
+    assert st.process("wifi/fix", [m for s, t, m in on_time if t == "wifi/fix" and s == stop][0], 0, "bob") == []
+    assert st.diag.rejected["too_late"] == 1 and "given up" in st.diag.last_error
+    st.finish()
+    assert st.extra_diagnostics()["fix_wait.scans_given_up"] == str(n_lost)     # the end settles the rest
+
+
+def test_each_pose_takes_the_floor_of_its_nearest_fix():
+    """A user going up a storey half-way: every pose of the path (and each live pose) is at the floor
+    height of the fix nearest to it in time, not the newest fix's."""
+    walk, stream = _fix_stream(43, z_of=lambda stamp: 0.0 if stamp < 18 * SEC else 5.0)
+    st, outs, _ = _run(stream)
+    stamps, _, _, z = _final_path(outs)
+    fixes = np.array([(s, 0.0 if s < 18 * SEC else 5.0) for s, t, _ in stream if t == "wifi/fix"])
+    nearest = fixes[np.argmin(np.abs(stamps[:, None] - fixes[None, :, 0]), axis=1), 1]
+    assert set(z) == {0.0, 5.0} and np.array_equal(z, nearest)
+    live = [(m.header.stamp.sec * SEC + m.header.stamp.nanosec, m.pose.pose.position.z)
+            for t, m in outs if t == "backend/bob/pose"]
+    assert all(z == (0.0 if t < 17 * SEC else 5.0) for t, z in live if not 17 * SEC <= t <= 19 * SEC)
+    assert {z for _, z in live} == {0.0, 5.0}
+
+
+def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path):
+    """``wifi_source: fix`` never matches against the survey: the stage reads only its scan positions
+    (for backend/wifi_map), none of its fingerprints enter the graph; with save_map the whole survey is
+    loaded, so the saved map keeps it. A damaged map file still stops the start-up."""
+    from indoor_loc.backend.wifi_map import survey_positions
+    from indoor_loc.errors import MapError
+    from indoor_loc.wifi.radiomap import load_radiomap
+    rm = survey(0, 60, np.random.default_rng(1))
+    d = save_radiomap(rm, tmp_path / "map")
+    np.testing.assert_array_equal(survey_positions(d), load_radiomap(d).positions)
+    _, stream = _fix_stream(44)
+    st, outs, _ = _run(stream, radiomap=str(d))
+    assert st.graph.map.n == 0 and st.graph.map.n_loaded_fixed == 0
+    markers = [m for t, m in outs if t == "backend/wifi_map"][-1].markers
+    drawn = np.array([(p.x, p.y) for mk in markers for p in mk.points])
+    np.testing.assert_allclose(drawn, rm.positions)
+    st2, _, _ = _run(stream, radiomap=str(d), save_map=str(tmp_path / "saved"))
+    assert st2.graph.map.n == rm.n_scans
+    assert load_radiomap(tmp_path / "saved").n_scans == rm.n_scans
+    fp = d / "fingerprints.csv"
+    lines = fp.read_text().splitlines(keepends=True)
+    for cut in (3, 40):                         # truncated: readings of the last scan, whole scans
+        fp.write_text("".join(lines[:-cut]))
+        with pytest.raises(MapError, match="manifest says"):
+            BackendStage(BackendParams(radiomap=str(d), **FIX_KW))

@@ -3,20 +3,23 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import pytest
 
 from conftest import dataset
-from indoor_loc.bench.backend_run import CONFIG_NAMES, READING, STEPS, configs, load, scratch
+from indoor_loc.bench.backend_run import CONFIG_NAMES, READING, STEPS, configs, from_scratch, load, scratch
 
 #: what the measured process must not import: ROS, plotting, the bench and evaluation front ends
 HEAVY = ("rclpy", "matplotlib", "indoor_loc.bench.backend", "indoor_loc.pipeline", "indoor_loc.nodes")
 
 
-def test_fresh_process_reports_its_work_imports_and_memory():
+def test_fresh_process_reports_its_work_imports_and_memory(tmp_path):
     data = dataset("putmc").parent
-    (r,) = scratch(data, "joint, step-length est.", 1, walks=[1, 2])
-    assert r["config"] == "joint, step-length est." and r["walks"] == 2 and r["poses"] > 20
+    (r,) = scratch(data, "joint, step-length est.", 1, walks=[1, 2], jobs=2, pycache=tmp_path)
+    assert r["config"] == "joint, step-length est." and r["walks"] == 2 and r["poses"] > 20 and r["jobs"] == 2
+    assert list(tmp_path.rglob("backend_run*.pyc"))           # byte code written where asked
+    assert r["wall_process_s"] > r["wall_work_s"] > 0 and r["rss_workers_peak_mb"] > 0
     # the process's CPU time holds start-up, imports and the work, each measured apart
     assert 0 < r["cpu_front_s"] < r["cpu_work_s"]
     assert r["cpu_process_s"] >= r["cpu_start_s"] + r["cpu_imports_s"] + r["cpu_work_s"] - 0.02
@@ -50,3 +53,42 @@ def test_front_end_in_two_processes_gives_the_same_events_and_counts_their_cpu()
     assert set(two.parts) == {READING, STEPS}
     assert two.parts[STEPS][1] > 0.2 * one.parts[STEPS][1]
     assert two.load_cpu_s > two.parts[STEPS][1]
+
+
+def test_from_scratch_with_workers_gives_the_same_graph_and_counts_their_cpu():
+    from indoor_loc.bench.backend import errors, summary
+
+    data = dataset("putmc").parent
+    for name in ("separate, step-length est.", "joint, step-length est."):
+        params = configs()[name]
+        one = from_scratch(data, params, [4, 1, 7], jobs=1)
+        c0 = time.process_time()
+        two = from_scratch(data, params, [4, 1, 7], jobs=2)
+        own_cpu = time.process_time() - c0
+        assert one.jobs == 1 and two.jobs == 2 and one.data.walks == two.data.walks == [1, 4, 7]
+        a, b = one.graph, two.graph
+        assert a.poses.n == b.poses.n > 30
+        for col in ("x", "stamp", "user"):
+            assert a.poses.view(col).tobytes() == b.poses.view(col).tobytes()
+        assert a.step_len.tobytes() == b.step_len.tobytes() and len(a.step_len) == 3
+        assert summary(list(errors(one.data, a).values())) == summary(list(errors(two.data, b).values()))
+        # the stepometer ran only in the workers, and their CPU time is in the work's
+        assert two.cpu_s - own_cpu >= 0.9 * two.data.parts[STEPS][1] > 0
+        assert one.cpu_s >= one.data.load_cpu_s > 0
+
+
+def test_bench_in_process_rows_time_both_and_check_the_poses():
+    from indoor_loc.bench.backend import CONFIGS, in_process
+
+    rows = in_process(dataset("putmc").parent, 1, jobs=2, walks=[2, 3])
+    assert list(rows) == list(CONFIGS)
+    for r in rows.values():
+        assert set(r) == {1, 2} and all(0 < v < 60 for t in r.values() for v in t)
+
+
+def test_time_only_entry_refuses_an_unknown_configuration(capsys):
+    from indoor_loc.bench.backend import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--configs", "joint, step-length est.; nope"])
+    assert e.value.code == 2 and "unknown configuration(s) ['nope']" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""Done as the README says, over DDS in separate processes: import one PUTMC walk, start imu_node,
+"""Done as docs/nodes.md ("Running live") says, over DDS in separate processes: import one PUTMC walk, start imu_node,
 wifi_fix_node and pdr_kf_node in the walk's namespace with the importer's params.yaml, `recorder -a`
 and `player -r 5 --wait-for-subscribers --min-subscribers imu/data=2 wifi/scan=2`; the recorded
 outputs equal the offline `indoor-loc run` of the same bag (message counts per topic, positions
@@ -27,7 +27,7 @@ OUTPUTS = ("pdr/odom", "wifi/fix", "pdr_kf/pose")
 
 
 def _node(module: str, params, *extra: str, **kw) -> Peer:
-    # a replay, as the README's recipe says: the player publishes reliable, the nodes take their
+    # a replay, as the recipe in docs/nodes.md says: the player publishes reliable, the nodes take their
     # sensor inputs reliable too (the default, best effort, suits real drivers)
     return Peer([sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={NS}", "--params-file", str(params),
                  "-p", "sensor_reliability:=reliable", *extra], **kw)

@@ -461,7 +461,7 @@ def test_pdr_step_uncertainty_grows_along_track_variance_and_speed_variance():
     assert a.cov[0, 0] == pytest.approx((0.1 * 0.42) ** 2)
     assert b.cov[0, 0] == pytest.approx((0.1 * 0.42) ** 2 + (0.7 * 0.3) ** 2)
     assert b.speed_var == pytest.approx(b.cov[0, 0] / 0.32 ** 2)
-    # the consumer's recovery of the count's standard deviation (README contract)
+    # the consumer's recovery of the count's standard deviation (message contract, docs/nodes.md)
     dt = 0.32
     rec = math.sqrt(b.speed_var * dt * dt - (0.1 * 0.42) ** 2) / 0.7
     assert rec == pytest.approx(0.3)

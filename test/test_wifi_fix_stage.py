@@ -180,7 +180,7 @@ def test_two_floors_fix_carries_the_floor_and_fallback_is_counted(tmp_path):
 
 def test_scan_stamps_going_backwards_are_rejected(map_dir):
     """A scan older than the last one accepted is rejected and counted (``stamp_backwards``), as
-    the README says; equal and later stamps go on."""
+    the message contract in docs/nodes.md says; equal and later stamps go on."""
     st = make({"radiomap": str(map_dir)})
     assert len(st.process("wifi/scan", scan_to_msg(scan_at([4, 4], 10 * 10**9)), 1)) == 1
     assert st.process("wifi/scan", scan_to_msg(scan_at([4, 4], 9 * 10**9)), 2) == []

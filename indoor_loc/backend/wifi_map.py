@@ -14,11 +14,15 @@ The number of user rows is capped (``max_rows``): the oldest learnt rows are dro
 """
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
+from indoor_loc.wifi.radiomap import FINGERPRINTS_FILE, FP_COLUMNS, FP_COLUMNS_V2, read_manifest
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from indoor_loc.wifi.wknn import Wknn, WknnParams, neighbour_fix
 
@@ -249,3 +253,44 @@ class EvolvingMap:
     @property
     def n_user_rows(self) -> int:
         return self._n_user_rows
+
+
+def survey_positions(directory: str | Path) -> np.ndarray:
+    """(N, 2) positions of a radio map directory's scans, in file order, without their readings: what
+    the back-end draws of a survey it does not match against (``wifi_source: fix``). Reads only the
+    fingerprints' first columns (a fraction of :func:`~indoor_loc.wifi.radiomap.load_radiomap`'s time
+    and none of its memory on a large map). MapError when the files are missing, foreign or damaged,
+    or hold another number of scans or readings than the manifest says."""
+    d = Path(directory)
+    man = read_manifest(d)
+    path = d / (man.get("files") or {}).get("fingerprints", FINGERPRINTS_FILE)
+    expected = FP_COLUMNS if man.get("version") == 1 else FP_COLUMNS_V2
+    i_id, i_x, i_y = (expected.index(c) for c in ("scan_id", "x", "y"))
+    xy: list[tuple[float, float]] = []
+    last = None
+    n_rows = 0
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = csv.reader(fh)
+            header = next(rows, None)
+            if tuple(header or ()) != expected:
+                raise MapError(f"{d}: fingerprints columns {header}, expected {list(expected)}")
+            for r in rows:
+                n_rows += 1
+                if r[i_id] != last:
+                    last = r[i_id]
+                    xy.append((float(r[i_x]), float(r[i_y])))
+    except OSError as err:
+        raise MapError(f"cannot read radio map {d}: {err}") from err
+    except (IndexError, ValueError) as err:
+        raise MapError(f"{d}: malformed radio map row: {err}") from err
+    out = np.array(xy, float).reshape(-1, 2)
+    counts = man.get("counts") or {k: man[k] for k in ("scans",) if k in man}
+    # a scan without readings is one row with an empty BSSID: rows = readings + such scans
+    for key, n, ok in (("scans", len(out), lambda m: m == len(out)),
+                       ("readings", n_rows, lambda m: m <= n_rows <= m + len(out))):
+        if key in counts and not ok(int(counts[key])):
+            raise MapError(f"{d}: manifest says {counts[key]} {key}, files hold {n} (truncated or edited?)")
+    if not np.all(np.isfinite(out)):
+        raise MapError(f"{d}: a scan position is not finite")
+    return out

@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import resource
+import tempfile
 import tracemalloc
 from dataclasses import replace
 from pathlib import Path
@@ -35,8 +37,8 @@ from typing import Sequence
 import numpy as np
 
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
-from indoor_loc.bench.backend_run import (DEFAULT, READING, STEPS, Putmc, configs, load, run_graph,
-                                          run_graph_timed, scratch)
+from indoor_loc.bench.backend_run import (DEFAULT, READING, STEPS, Putmc, configs, from_scratch, load,
+                                          run_graph, run_graph_timed, scratch)
 from indoor_loc.eval.metrics import paper_score, point_segment_distance, scan_time_errors
 from indoor_loc.wifi.types import RadioMap
 
@@ -57,9 +59,9 @@ REF_KEYS = {"separate, no step-length est.": "iUC_false_sLE_false", "separate, s
             "joint, no step-length est.": "iUC_true_sLE_false", "joint, step-length est.": "iUC_true_sLE_true"}
 REF_TIME_S = {"separate": (0.6, 0.95), "joint": (1.0, 1.6)}
 REF_MEMORY_MB = (15, 18)
-#: worker processes of the parallel front end timed beside (wall time; not less work)
-JOBS = 2
-#: the configurations timed in fresh processes with ``--quick`` (all of them otherwise), and with ``--jobs``
+#: worker processes of the parallel front end timed beside one process: the cores this process may use
+JOBS = max(2, len(os.sched_getaffinity(0)))
+#: the configurations timed in fresh processes with ``--quick`` (all of them otherwise)
 QUICK_FRESH = ("separate, no step-length est.", "joint, step-length est.")
 
 
@@ -112,43 +114,71 @@ def _fmt(v: float, nd: int = 2) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
 
 
-def fresh_processes(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONFIGS)) -> dict[str, dict]:
-    """Each configuration of ``names`` from scratch in ``runs`` fresh processes that import only what
-    the work needs (:mod:`indoor_loc.bench.backend_run`); prints a table (least CPU time of the
-    runs, largest peak memory) and returns the runs."""
-    print(f"\nEach configuration from scratch in a fresh process (`python -m indoor_loc.bench.backend_run`, "
-          f"{runs} run{'s' if runs > 1 else ''}, least CPU), importing only the PUTMC reader, the stepometer and "
-          "the graph (numpy, scipy.signal/.sparse/.optimize, PyYAML; no ROS, no plotting): the work (front end "
-          "+ graph) as above, the whole process's CPU time (interpreter start-up and imports included), and "
-          "its peak resident memory. The reference's figures are wall times of one C++ process each.\n")
-    print("| configuration | work s CPU (front end + graph) / wall | whole process s CPU (of which start-up "
-          "+ imports) | peak RSS MB (of which after imports) | reference C++ s wall, MB |")
-    print("|---|---|---|---|---|")
-    out: dict[str, dict] = {}
+def _load() -> str:
+    return "load average " + " / ".join(f"{v:.2f}" for v in os.getloadavg()) + " (1 / 5 / 15 min)"
+
+
+def in_process(data_dir: Path, runs: int, jobs: int = JOBS, walks: Sequence[int] | None = None,
+               names: Sequence[str] = tuple(CONFIGS)) -> dict[str, dict[int, tuple[float, float]]]:
+    """Each configuration from scratch (:func:`from_scratch`: front end + graph) in this process with
+    1 and ``jobs`` processes, alternating, ``runs`` times each; per configuration and jobs the least
+    wall time and the least CPU time (all processes) of the runs. Checks that both give the same poses
+    and step lengths. ``walks``: only these (default: all)."""
+    out: dict[str, dict[int, tuple[float, float]]] = {}
     for name in names:
-        rs = scratch(data_dir, name, runs)
-        best = min(rs, key=lambda r: r["cpu_work_s"])
-        proc = min(r["cpu_process_s"] for r in rs)
-        ref = REF_TIME_S["joint" if "joint" in name else "separate"] if name in REFERENCE else None
-        reftxt = f"{ref[0]}–{ref[1]} s, {REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB" if ref else "–"
-        print(f"| {name} | **{best['cpu_work_s']:.2f}** / {best['wall_work_s']:.2f} | {proc:.2f} "
-              f"({proc - best['cpu_work_s']:.2f}) | **{max(r['rss_peak_mb'] for r in rs):.0f}** "
-              f"({max(r['rss_imports_mb'] for r in rs):.0f}) | {reftxt} |")
-        out[name] = {"runs": rs}
-    print(f"\nThe same with the front end shared out among {JOBS} forked processes (`--jobs {JOBS}`: walks read "
-          "and stepped in parallel while the first process reads the survey). Not less work — the CPU time is "
-          "all the processes' — so only the wall time can drop, and only with a free core; the graph stays "
-          "in one process.\n")
-    print("| configuration | work s wall (least of runs) | work s CPU, all processes | front end s wall / CPU "
-          "| reference C++ s wall |")
-    print("|---|---|---|---|---|")
-    for name in QUICK_FRESH:
-        rs = scratch(data_dir, name, runs, jobs=JOBS)
-        best = min(rs, key=lambda r: r["wall_work_s"])
-        ref = REF_TIME_S["joint" if "joint" in name else "separate"]
-        print(f"| {name} | **{best['wall_work_s']:.2f}** | {best['cpu_work_s']:.2f} | {best['wall_front_s']:.2f} / "
-              f"{best['cpu_front_s']:.2f} | {ref[0]}–{ref[1]} |")
-        out[f"{name} (jobs {JOBS})"] = {"runs": rs}
+        params = CONFIGS[name]
+        best: dict[int, tuple[float, float]] = {1: (np.inf, np.inf), jobs: (np.inf, np.inf)}
+        poses = {}
+        for _ in range(runs):
+            for j in (1, jobs):
+                sc = from_scratch(data_dir, params, walks, jobs=j)
+                best[j] = (min(best[j][0], sc.wall_s), min(best[j][1], sc.cpu_s))
+                poses[j] = sc.graph.poses.view("x").tobytes() + sc.graph.step_len.tobytes()
+        if poses[1] != poses[jobs]:
+            raise RuntimeError(f"{name}: {jobs} processes gave other poses than one")
+        out[name] = best
+    return out
+
+
+def fresh_processes(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONFIGS),
+                    jobs: int = JOBS) -> dict[str, dict]:
+    """Each configuration of ``names`` from scratch in fresh processes that import only what the work
+    needs (:mod:`indoor_loc.bench.backend_run`), with 1 and ``jobs`` processes sharing the front end,
+    alternating, ``runs`` times each, the package's modules compiled once beforehand (as an installed
+    package's are); prints a table (least times of the runs, largest peak memory) and returns the runs."""
+    print(f"\nEach configuration from scratch in a fresh process (`python -m indoor_loc.bench.backend_run`, "
+          f"{runs} run{'s' if runs > 1 else ''} each with 1 and {jobs} processes, alternating; least of the runs), "
+          "importing only the PUTMC reader, the stepometer and the graph (numpy, scipy.signal/.sparse/.optimize, "
+          "PyYAML; no ROS, no plotting), with byte code compiled by a first, untimed run (a `PYTHONPYCACHEPREFIX` "
+          "in a temporary directory, as an installed package has its .pyc): the work (front end + graph), the "
+          "whole process (interpreter start-up, imports and exit included; wall timed around the process) and "
+          f"its peak resident memory. CPU: all the processes'. The reference's figures are wall times of one "
+          f"single-threaded C++ process each. {_load()} before.\n")
+    print("| configuration | processes | work s wall / CPU | whole process s wall / CPU (of which start-up + "
+          "imports, CPU) | peak RSS MB (after imports; largest worker) | reference C++ s wall, MB |")
+    print("|---|---|---|---|---|---|")
+    out: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="indoor_loc_pyc_") as pyc:
+        scratch(data_dir, names[0], 1, walks=[1], pycache=pyc)          # compiles; not timed
+        for name in names:
+            rs: dict[int, list[dict]] = {1: [], jobs: []}
+            for _ in range(runs):
+                for j in (1, jobs):
+                    rs[j] += scratch(data_dir, name, 1, jobs=j, pycache=pyc)
+            ref = REF_TIME_S["joint" if "joint" in name else "separate"] if name in REFERENCE else None
+            for j in (1, jobs):
+                r = rs[j]
+                work_w, work_c = min(x["wall_work_s"] for x in r), min(x["cpu_work_s"] for x in r)
+                proc_w, proc_c = min(x["wall_process_s"] for x in r), min(x["cpu_process_s"] for x in r)
+                imp = min(x["cpu_process_s"] - x["cpu_work_s"] for x in r)
+                reftxt = f"{ref[0]}–{ref[1]} s, {REF_MEMORY_MB[0]}–{REF_MEMORY_MB[1]} MB" if ref else "–"
+                workers = f"; {max(x['rss_workers_peak_mb'] for x in r):.0f}" if j > 1 else ""
+                procs = "1" if j == 1 else f"1 + {j} workers"
+                print(f"| {name} | {procs} | **{work_w:.2f}** / {work_c:.2f} | **{proc_w:.2f}** / {proc_c:.2f} ({imp:.2f}) "
+                      f"| {max(x['rss_peak_mb'] for x in r):.0f} ({max(x['rss_imports_mb'] for x in r):.0f}{workers}) "
+                      f"| {reftxt if j == 1 else ''} |")
+                out[name if j == 1 else f"{name} (jobs {j})"] = {"runs": r}
+    print(f"\n{_load()} after.")
     return out
 
 
@@ -276,19 +306,30 @@ def run(args: argparse.Namespace) -> int:
         print(f"| {part} | {cold.parts[part][0]:.2f} / {cold.parts[part][1]:.2f} | "
               f"{data.parts[part][0]:.2f} / {data.parts[part][1]:.2f} |")
     print(f"| **front end** | {cold.load_s:.2f} / {cold.load_cpu_s:.2f} | {data.load_s:.2f} / {data.load_cpu_s:.2f} |\n")
-    print("Per configuration from scratch (front end + graph, as the reference times each configuration):\n")
-    print("| configuration | graph s wall / CPU | from scratch: front end + graph s wall / CPU | reference C++ s wall "
-          "(loading, stepometer, WKNN, 15 LM its) |")
-    print("|---|---|---|---|")
+    runs = 1 if quick else 3
+    print(f"Per configuration from scratch (front end + graph, as the reference times each configuration), in this "
+          f"process: the sum of the first pass's front end and the graph's best run, then `from_scratch` run with "
+          f"1 and with {JOBS} processes (the walks' front ends in {JOBS} forked workers while this process puts "
+          f"each walk into the graph as it arrives; the same poses), alternating, least of {runs} run"
+          f"{'s' if runs > 1 else ''}, CPU of all the processes; {_load()} before:\n")
+    scratch_rows = in_process(data_dir, runs)
+    print(f"| configuration | graph s wall / CPU | front end + graph s wall / CPU | from scratch, 1 process: "
+          f"s wall / CPU | from scratch, 1 + {JOBS} workers: s wall / CPU (all processes) | reference C++ s wall "
+          "(loading, stepometer, WKNN, 15 LM its; 1 thread) |")
+    print("|---|---|---|---|---|---|")
     for name, r in results.items():
         ref = REF_TIME_S["joint" if "joint" in name else "separate"]
+        one, par = scratch_rows[name][1], scratch_rows[name][JOBS]
         print(f"| {name} | {r['wall_s']:.2f} / {r['cpu_s']:.2f} | {r['wall_s'] + cold.load_s:.2f} / "
-              f"**{r['cpu_s'] + cold.load_cpu_s:.2f}** | {ref[0]}–{ref[1]} |")
+              f"{r['cpu_s'] + cold.load_cpu_s:.2f} | {one[0]:.2f} / **{one[1]:.2f}** | **{par[0]:.2f}** / {par[1]:.2f} "
+              f"| {ref[0]}–{ref[1]} |")
     live = replace(CONFIGS[DEFAULT], window_poses=30)
     g_live, wall_live, cpu_live = run_graph_timed(data, live)
     p_live = summary(list(errors(data, g_live).values()))
     print(f"| default, live mode (window of 30 poses optimised at every scan, then the final optimisation) "
-          f"| {wall_live:.2f} / {cpu_live:.2f} | {wall_live + cold.load_s:.2f} / {cpu_live + cold.load_cpu_s:.2f} | – |")
+          f"| {wall_live:.2f} / {cpu_live:.2f} | {wall_live + cold.load_s:.2f} / {cpu_live + cold.load_cpu_s:.2f} "
+          "| – | – | – |")
+    print(f"\n{_load()} after.")
     paper = [r for name, r in results.items() if name in REFERENCE]
     shared_wall = cold.load_s + sum(r["wall_s"] for r in paper)
     shared_cpu = cold.load_cpu_s + sum(r["cpu_s"] for r in paper)
@@ -322,5 +363,50 @@ def run(args: argparse.Namespace) -> int:
         out["shared_front_end"] = {"wall_s": shared_wall, "cpu_s": shared_cpu, "configurations": len(paper)}
         out["rss_mb"] = {"peak": rss, "before_data": rss0}
         out["fresh_process"] = fresh
+        out["from_scratch_in_process"] = {name: {str(j): v for j, v in r.items()} for name, r in scratch_rows.items()}
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
+
+
+def time_only(data_dir: Path, runs: int, names: Sequence[str] = tuple(CONFIGS), jobs: int = JOBS) -> dict:
+    """Only the bench's timing of each configuration from scratch, with 1 and ``jobs`` processes,
+    alternating, least of ``runs``: in this process (:func:`in_process`) and in fresh processes
+    (:func:`fresh_processes`). Prints both tables; returns their figures."""
+    print(f"# indoor-loc bench backend, time only — PUTMC, 24 walks, {runs} runs each\n")
+    print(f"In this process (after the imports; one untimed run first), {_load()} before:\n")
+    from_scratch(data_dir, CONFIGS[names[0]], jobs=jobs)           # files in the page cache, workers forked once
+    rows = in_process(data_dir, runs, jobs, names=names)
+    print(f"| configuration | 1 process: s wall / CPU | 1 + {jobs} workers: s wall / CPU (all processes) "
+          "| reference C++ s wall (1 thread) |")
+    print("|---|---|---|---|")
+    for name in names:
+        one, par = rows[name][1], rows[name][jobs]
+        ref = REF_TIME_S["joint" if "joint" in name else "separate"] if name in REFERENCE else None
+        print(f"| {name} | {one[0]:.2f} / {one[1]:.2f} | **{par[0]:.2f}** / {par[1]:.2f} | "
+              f"{f'{ref[0]}–{ref[1]}' if ref else '–'} |")
+    print(f"\n{_load()} after.")
+    fresh = fresh_processes(data_dir, runs, names, jobs)
+    return {"in_process": {name: {str(j): v for j, v in r.items()} for name, r in rows.items()}, "fresh_process": fresh}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m indoor_loc.bench.backend",
+                                 description="Only the timing tables of `indoor-loc bench backend`: each configuration "
+                                             "from scratch with 1 and N processes, in this process and in fresh ones.")
+    ap.add_argument("--data", type=Path, default=Path("../shared/datasets"), help="datasets directory (holding putmc/)")
+    ap.add_argument("--runs", type=int, default=5, help="runs of each configuration and process count (least taken)")
+    ap.add_argument("--configs", default="", help="semicolon-separated configurations (default: all)")
+    ap.add_argument("--json", type=Path, help="also write the figures as JSON here")
+    args = ap.parse_args(argv)
+    names = [c.strip() for c in args.configs.split(";") if c.strip()] or list(CONFIGS)
+    unknown = [c for c in names if c not in CONFIGS]
+    if unknown or args.runs < 1:
+        ap.error(f"unknown configuration(s) {unknown}; one of {list(CONFIGS)}" if unknown else "--runs must be >= 1")
+    out = time_only(args.data, args.runs, names)
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

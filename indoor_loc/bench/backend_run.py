@@ -105,33 +105,64 @@ def load(data: Path, walks: Sequence[int] | None = None, jobs: int = 1) -> Putmc
         ds = Dataset(Path(data) / "putmc")
     numbers = [n for n in ds.walk_numbers if walks is None or n in walks]
     ev, truth, seg = {}, {}, {}
-    global _DATASET
-    _DATASET = ds
-    pool = None
-    try:
-        if jobs > 1 and len(numbers) > 1:
-            import multiprocessing
-
-            pool = multiprocessing.get_context("fork").Pool(min(jobs, len(numbers)))
-            results: Iterator[tuple[WalkEvents, tuple, dict]] = pool.imap(_front_end, numbers)
-        else:
-            results = map(_front_end, numbers)          # one after another, below
+    with _FrontEnd(ds, numbers, jobs) as front:
         with clock.part(READING):
             survey = ds.survey_map()                    # (while the workers, if any, take the walks)
-        for n, (e, tr, parts) in zip(numbers, results):
+        for n, e, tr, parts in front.results():
             ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
             clock.add(parts)
-    finally:
-        if pool is not None:
-            pool.close()
-            pool.join()             # the workers have exited: their CPU time is in RUSAGE_CHILDREN
-        _DATASET = None
     cpu = time.process_time() - c0 + _children_cpu_s() - k0
     return Putmc(numbers, ev, truth, seg, survey, time.perf_counter() - t0, cpu, clock.parts)
 
 
-#: the dataset :func:`_front_end` reads from: set by :func:`load` (and inherited by its forked workers)
+#: the dataset :func:`_front_end` reads from: set by :class:`_FrontEnd` (and inherited by its forked workers)
 _DATASET: Any = None
+
+
+class _FrontEnd:
+    """The front end of walks ``numbers`` of dataset ``ds``, walk by walk in walk order
+    (:meth:`results`): computed one after another in this process as they are asked for (``jobs`` 1),
+    or by ``jobs`` worker processes forked on entry, which work ahead while this process does
+    something else (the graph of the walks already received). On exit the workers have exited and
+    been waited for, so their CPU time is in ``RUSAGE_CHILDREN``."""
+
+    def __init__(self, ds: Any, numbers: Sequence[int], jobs: int = 1) -> None:
+        self.ds, self.numbers, self.jobs = ds, list(numbers), max(1, min(int(jobs), len(numbers)))
+        self.pool: Any = None
+
+    def __enter__(self) -> _FrontEnd:
+        global _DATASET
+        _DATASET = self.ds
+        if self.jobs > 1:
+            import gc
+            import multiprocessing
+
+            # the objects this process has now are left out of the collector's passes (the workers'
+            # too): a pass writes to every object it visits, and each page so written is copied
+            gc.freeze()
+            self.pool = multiprocessing.get_context("fork").Pool(self.jobs)
+            # ordered, one walk per task: walk n's events arrive as soon as walks 1…n are done
+            self._it: Iterator = self.pool.imap(_front_end, self.numbers)
+        else:
+            self._it = map(_front_end, self.numbers)
+        return self
+
+    def results(self) -> Iterator[tuple[int, WalkEvents, tuple, dict]]:
+        """(walk number, its events, its truth (scan stamps, true scan xy), the parts' times)."""
+        for n, (e, tr, parts) in zip(self.numbers, self._it):
+            yield n, e, tr, parts
+
+    def __exit__(self, exc_type: Any, *_: Any) -> None:
+        global _DATASET
+        if self.pool is not None:
+            if exc_type is not None:
+                self.pool.terminate()
+            self.pool.close()
+            self.pool.join()
+            self.pool = None
+            import gc
+            gc.unfreeze()
+        _DATASET = None
 
 
 def _front_end(n: int) -> tuple[WalkEvents, tuple, dict]:
@@ -153,6 +184,17 @@ def _children_cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
+def _feed(g: MultiUserGraph, events: WalkEvents) -> None:
+    """One walk's hops and scans into the graph, in stamp order; then its user is finished."""
+    name = events.name
+    for _, kind, payload in events.events():
+        if kind == 0:
+            g.add_hop(name, *payload)        # type: ignore[misc]
+        else:
+            g.add_scan(name, payload)        # type: ignore[arg-type]
+    g.finish_user(name)
+
+
 def run_graph(data: Putmc, params: GraphParams, survey: RadioMap | None = None) -> tuple[MultiUserGraph, float]:
     """Walks 1…24 one after another, then one optimisation; returns the graph and the wall time."""
     from indoor_loc.backend.graph import MultiUserGraph
@@ -160,15 +202,57 @@ def run_graph(data: Putmc, params: GraphParams, survey: RadioMap | None = None) 
     t0 = time.perf_counter()
     g = MultiUserGraph(params, data.survey if survey is None else survey)
     for n in data.walks:
-        name = data.events[n].name
-        for _, kind, payload in data.events[n].events():
-            if kind == 0:
-                g.add_hop(name, *payload)        # type: ignore[misc]
-            else:
-                g.add_scan(name, payload)        # type: ignore[arg-type]
-        g.finish_user(name)
+        _feed(g, data.events[n])
     g.optimize()
     return g, time.perf_counter() - t0
+
+
+@dataclass
+class Scratch:
+    """One configuration from scratch (:func:`from_scratch`): the front end's output (with its parts'
+    times), the optimised graph, and the work's wall and CPU time (s) — CPU of this process and of its
+    workers, if any."""
+    data: Putmc
+    graph: MultiUserGraph
+    wall_s: float
+    cpu_s: float
+    jobs: int
+
+
+def from_scratch(data: Path, params: GraphParams, walks: Sequence[int] | None = None, jobs: int = 1) -> Scratch:
+    """The work the reference times for one configuration: the front end of every walk (reading,
+    stepometer, headings), the graph (walks 1…24 one after another, WKNN) and one optimisation.
+
+    ``jobs`` > 1: the walks' front ends are computed by that many forked worker processes, ahead of
+    this one, which meanwhile reads the survey and puts each walk into the graph as soon as its
+    events arrive (in walk order: the graph, and so every pose and score, is the same as with
+    ``jobs`` 1, which computes a walk's front end and then puts it in the graph, one walk after
+    another). The optimisation is one process's work either way. Not less work: the CPU time is
+    this process's and the workers' (waited for, ``RUSAGE_CHILDREN``), so only the wall time can drop.
+    The front end's times per part (``data.parts``) are summed over the processes; ``data.load_s``
+    is the wall time until the last walk's events arrived."""
+    from indoor_loc.backend.graph import MultiUserGraph
+    from indoor_loc.datasets.putmc import Putmc as Dataset
+
+    clock = _Clock()
+    t0, c0, k0 = time.perf_counter(), time.process_time(), _children_cpu_s()
+    with clock.part(READING):
+        ds = Dataset(Path(data) / "putmc")
+    numbers = [n for n in ds.walk_numbers if walks is None or n in walks]
+    ev, truth, seg = {}, {}, {}
+    with _FrontEnd(ds, numbers, jobs) as front:
+        with clock.part(READING):
+            survey = ds.survey_map()                    # (while the workers, if any, take the walks)
+        g = MultiUserGraph(params, survey)
+        for n, e, tr, parts in front.results():
+            ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
+            clock.add(parts)
+            _feed(g, e)
+        load_s = time.perf_counter() - t0
+    g.optimize()
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0 + _children_cpu_s() - k0
+    front_cpu = sum(c for _, c in clock.parts.values())
+    return Scratch(Putmc(numbers, ev, truth, seg, survey, load_s, front_cpu, clock.parts), g, wall, cpu, front.jobs)
 
 
 def run_graph_timed(data: Putmc, params: GraphParams,
@@ -208,38 +292,44 @@ def measure(data: Path, config: str, walks: Sequence[int] | None = None, jobs: i
     import indoor_loc.backend.graph  # noqa: F401
     import indoor_loc.backend.putmc_events  # noqa: F401
     import indoor_loc.datasets.putmc  # noqa: F401
+    import indoor_loc.eval.metrics  # noqa: F401  (the reader's route check: imported once, before any fork)
     params = configs()[config]
     cpu_imports = time.process_time() - c0
     rss_imports = _peak_rss_mb()
-    w0, c1 = time.perf_counter(), time.process_time()
-    data_ = load(data, walks, jobs)
-    g, _ = run_graph(data_, params)
-    cpu_work = time.process_time() - c1 + _children_cpu_s()      # (no children before the work)
-    wall_work = time.perf_counter() - w0
-    return {"config": config, "jobs": jobs, "walks": len(data_.walks), "poses": int(g.poses.n),
+    s = from_scratch(data, params, walks, jobs)
+    return {"config": config, "jobs": s.jobs, "walks": len(s.data.walks), "poses": int(s.graph.poses.n),
             "cpu_start_s": cpu_start, "cpu_numpy_s": cpu_numpy, "cpu_imports_s": cpu_imports,
-            "cpu_front_s": data_.load_cpu_s, "wall_front_s": data_.load_s, "cpu_work_s": cpu_work,
-            "wall_work_s": wall_work, "cpu_process_s": _process_cpu_s() + _children_cpu_s(),
+            "cpu_front_s": s.data.load_cpu_s, "wall_front_s": s.data.load_s, "cpu_work_s": s.cpu_s,
+            "wall_work_s": s.wall_s, "cpu_process_s": _process_cpu_s() + _children_cpu_s(),
             "rss_start_mb": rss_start, "rss_imports_mb": rss_imports, "rss_peak_mb": _peak_rss_mb(),
+            "rss_workers_peak_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
             "modules": sorted(m for m in sys.modules if m.split(".")[0] in {"scipy", "indoor_loc", "yaml"}
                               and m.count(".") <= 1)}
 
 
 def scratch(data: Path, config: str, runs: int = 1, walks: Sequence[int] | None = None, jobs: int = 1,
-            timeout_s: float = 300.0) -> list[dict[str, Any]]:
+            timeout_s: float = 300.0, pycache: str | Path | None = None) -> list[dict[str, Any]]:
     """:func:`measure` in ``runs`` fresh processes (``python -m indoor_loc.bench.backend_run``), one
-    after another; their JSON results."""
+    after another; their JSON results, each with ``wall_process_s``: the process's wall time from its
+    start to its exit, timed here. ``pycache``: the processes read and write byte code there
+    (``PYTHONPYCACHEPREFIX``, even where ``PYTHONDONTWRITEBYTECODE`` is set), so that a run after the
+    first finds the modules compiled; default: the environment's setting."""
     cmd = [sys.executable, "-m", "indoor_loc.bench.backend_run", str(data), config, "--jobs", str(jobs)]
     if walks is not None:
         cmd += ["--walks", ",".join(str(n) for n in walks)]
     root = str(Path(__file__).resolve().parents[2])        # this package, first on the child's path
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p))
+    if pycache is not None:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        env["PYTHONPYCACHEPREFIX"] = str(pycache)
     out = []
     for _ in range(runs):
+        t0 = time.perf_counter()
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False, env=env)
+        wall = time.perf_counter() - t0
         if res.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed ({res.returncode}): {res.stderr.strip()[-2000:]}")
-        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        out.append(dict(json.loads(res.stdout.strip().splitlines()[-1]), wall_process_s=wall))
     return out
 
 
@@ -263,7 +353,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("data", type=Path, help="datasets directory (holding putmc/)")
     ap.add_argument("config", help=f"configuration, one of: {'; '.join(CONFIG_NAMES)}")
     ap.add_argument("--walks", type=_walk_numbers, help="comma-separated walk numbers (default: all)")
-    ap.add_argument("--jobs", type=_positive, default=1, help="processes sharing the front end (default 1)")
+    ap.add_argument("--jobs", type=_positive, default=1,
+                    help="processes computing the walks' front ends while this one builds the graph (default 1)")
     args = ap.parse_args(argv)
     if args.config not in CONFIG_NAMES:
         ap.error(f"unknown configuration {args.config!r}; one of {list(CONFIG_NAMES)}")

@@ -1,4 +1,4 @@
-"""``indoor-loc contract``: print the message contract (README table)."""
+"""``indoor-loc contract``: print the message contract as the code declares it (``indoor_loc/contract.py``)."""
 from __future__ import annotations
 
 import argparse

@@ -4,7 +4,8 @@ Inputs, from every user namespace (a multi-user stage, see :mod:`indoor_loc.pipe
 ``pdr/odom`` (one message per stepometer hop; per interval ``steps = |p_i − p_(i−1)| /
 odom_step_length_m`` and ``Δψ = wrap(yaw_i − yaw_(i−1))``, the contract of ``imu_node``) and
 ``wifi/scan`` (and ``wifi/fix`` with ``wifi_source: fix``: the front end's fixes as position factors;
-their floor height, of the newest fix, is the z of the user's outputs — a walk on one floor).
+each pose's z is the floor height of the user's fix nearest to it in time, so a user changing floors
+gets a path at the right heights).
 Outputs: ``backend/<user>/pose`` (PoseWithCovarianceStamped, the newest pose with its
 marginal covariance, at every new pose), ``backend/<user>/path`` (the user's whole optimised
 trajectory: every ``path_period_s`` of stamp time, when the user finishes and at the end of input,
@@ -17,11 +18,26 @@ the newest ``pdr/odom`` of that user is ``reorder_window_s`` past its stamp (a s
 until PDR has reached it — the stepometer reports a hop about half a window late), or once a newer
 scan is ``max_scan_wait_s`` ahead (PDR stopped). Late messages within that window are inserted in
 stamp order; a message older than what the graph already holds is counted (``too_late``) and
-dropped. Method, insertion policy, solver and the bound on the graph's size:
+dropped.
+
+Waiting for fixes (``wifi_source: fix``). A ``wifi/fix`` is computed from a ``wifi/scan``, so it reaches
+the back-end later than its scan by the WiFi node's processing time — on a large map easily more than
+``reorder_window_s`` — while the user's odometry keeps flowing. A scan seen on ``wifi/scan`` whose fix
+has not come yet therefore holds that user's events from its stamp on: they are taken into the graph
+once the fix comes (so it is inserted at its place in stamp order), or once the absence of a fix is
+known: the WiFi node locates a user's scans in stamp order, so a fix of a later scan settles every
+earlier scan that got none (the node declined it). A scan waits at most ``fix_wait_s`` of the user's
+stamp time (its newest odometry or scan); then it is given up and counted (``scans_given_up``; its fix,
+should it still come, is ``too_late``). Pose output latency thus grows only by the WiFi node's real lag,
+and the graph — and every path — is the one the same messages give when each fix comes at once
+(offline runs). ``/diagnostics`` count, per user and in all, the fixes waited for (arriving more than
+``reorder_window_s`` behind the user's odometry), the longest such lag, scans given up and scans
+waiting. Method, insertion policy, solver and the bound on the graph's size:
 :mod:`indoor_loc.backend.graph`.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import heapq
 import math
@@ -33,6 +49,7 @@ import numpy as np
 
 from indoor_loc.params import field as pfield, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
+from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.markers import points_markers
@@ -51,7 +68,8 @@ class BackendParams(GraphParams):
     (same names, defaults and docs, declared once)."""
     radiomap: str = pfield("", "pre-surveyed radio map directory (fixed map scans); '' = none: with wifi_source "
                            "'scan' no user can start (a user starts at a scan localised against the survey), so "
-                           "scans are rejected as 'no_survey'; with 'fix' the fixes place the users")
+                           "scans are rejected as 'no_survey'; with 'fix' the fixes place the users and only the "
+                           "map's scan positions are read, for backend/wifi_map (all of it with save_map)")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
@@ -60,6 +78,8 @@ class BackendParams(GraphParams):
     odom_step_length_m: float = pfield(0.65, "step length imu_node used: steps = |Δp| / this, m")
     reorder_window_s: float = pfield(0.5, "events wait until the user's pdr/odom is this far past them, s")
     max_scan_wait_s: float = pfield(10.0, "a scan waits at most this long (stamp time of newer scans) for PDR, s")
+    fix_wait_s: float = pfield(5.0, "wifi_source 'fix': a scan whose wifi/fix has not come holds its user's events "
+                                    "at most this long (the user's stamp time), then it is given up and counted, s")
     path_period_s: float = pfield(0.0, "republish a user's path at most this often (stamp time, after a window "
                                        "optimisation), s; 0 = only when the user finishes and at the end")
     save_map: str = pfield("", "directory to save the evolving WiFi map to at the end (radio map format); '' = no")
@@ -71,6 +91,7 @@ class BackendParams(GraphParams):
         require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
         require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
         require(self.max_scan_wait_s >= 0, n, "max_scan_wait_s", ">= 0", self.max_scan_wait_s)
+        require(self.fix_wait_s >= 0, n, "fix_wait_s", ">= 0", self.fix_wait_s)
         require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
         require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         require(all(isinstance(u, str) and u.strip("/") for u in self.users), n, "users", "namespace names",
@@ -91,7 +112,46 @@ class _UserInput:
     prev_odom: Any = None                              # last odometry sample taken (x, y, yaw, stamp)
     last_path_ns: int | None = None
     dropped_late: int = 0
-    floor_z: float = 0.0                               # z (floor height) of the user's newest fix taken, m
+    # waiting for fixes (wifi_source fix)
+    fix_known_ns: int | None = None                    # newest wifi/fix stamp received
+    pending_scans: list = field(default_factory=list)  # sorted stamps of scans whose fix has not come
+    fixes_waited: int = 0                              # fixes more than reorder_window_s behind the odometry
+    max_fix_lag_ns: int = 0                            # the largest such lag (stamp time), ns
+    scans_given_up: int = 0                            # scans whose fix did not come within fix_wait_s
+    floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
+
+
+@dataclass
+class _FloorRuns:
+    """The floor heights of a user's fixes taken, as runs of equal z: ``(first stamp, last stamp, z)``.
+    :meth:`z_at` gives each stamp the z of the fix nearest to it in time (a floor change is placed
+    half-way between the last fix on the old floor and the first on the new one)."""
+    first: list = field(default_factory=list)
+    last: list = field(default_factory=list)
+    z: list = field(default_factory=list)
+
+    def add(self, stamp_ns: int, z: float) -> None:
+        if self.z and self.z[-1] == z:
+            self.last[-1] = max(self.last[-1], stamp_ns)
+        else:
+            self.first.append(stamp_ns)
+            self.last.append(stamp_ns)
+            self.z.append(float(z))
+
+    def z_at(self, stamps_ns) -> np.ndarray:
+        """z (m) at each of ``stamps_ns`` (0 before any fix)."""
+        t = np.asarray(stamps_ns, np.int64)
+        if not self.z:
+            return np.zeros(t.shape)
+        # boundaries half-way between one run's last fix and the next run's first
+        mid = (np.asarray(self.last[:-1], np.float64) + np.asarray(self.first[1:], np.float64)) / 2
+        return np.asarray(self.z)[np.searchsorted(mid, t.astype(np.float64), side="left")]
+
+    def forget_before(self, stamp_ns: int) -> None:
+        """Drop runs no stamp at or after ``stamp_ns`` can take z from (bounds memory with the graph)."""
+        k = bisect.bisect_left(self.last, stamp_ns) - 1      # runs [0, k) end before the one ending before it
+        if k > 0:
+            del self.first[:k], self.last[:k], self.z[:k]
 
 
 class BackendStage(Stage):
@@ -102,8 +162,15 @@ class BackendStage(Stage):
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
         super().__init__(params, namespace=namespace)
+        # wifi_source 'fix': the survey's fingerprints never enter the graph (the front end's fixes carry
+        # it), so only its positions are read, for the drawing — unless the map is to be saved with them
+        self._drawn_survey = np.zeros((0, 2))
         if survey is None and params.radiomap:
-            survey = load_radiomap(Path(params.radiomap).expanduser())     # MapError -> start-up fails
+            where = Path(params.radiomap).expanduser()                     # MapError -> start-up fails
+            if params.wifi_source == "fix" and not params.save_map:
+                self._drawn_survey = survey_positions(where)
+            else:
+                survey = load_radiomap(where)
         self.graph = MultiUserGraph(params.graph_params(), survey)
         self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         self.inputs_by_user: dict[str, _UserInput] = {}
@@ -140,8 +207,10 @@ class BackendStage(Stage):
         b = self._buffer(user)
         if b.taken_ns is not None and stamp < b.taken_ns:
             b.dropped_late += 1
+            why = ("a fix after its scan was given up (fix_wait_s)" if kind == 1 and self.params.fix_wait_s > 0
+                   else "later than reorder_window_s")
             raise InvalidMessageError("too_late", f"{user}: stamp {stamp} older than the graph's newest "
-                                                  f"{b.taken_ns} by more than reorder_window_s")
+                                                  f"{b.taken_ns}: {why}")
         self._seq += 1
         heapq.heappush(b.heap, (stamp, kind, self._seq, payload))
 
@@ -160,6 +229,9 @@ class BackendStage(Stage):
         self._push(user, scan.stamp_ns, 2, scan)
         b = self._buffer(user)
         b.newest_scan_ns = scan.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, scan.stamp_ns)
+        if self.params.wifi_source == "fix" and self.params.fix_wait_s > 0 and (
+                b.fix_known_ns is None or scan.stamp_ns > b.fix_known_ns):
+            bisect.insort(b.pending_scans, scan.stamp_ns)       # its fix is still to come
         return self._release(user)
 
     def _on_fix(self, msg, recv_ns: int, user: str) -> list[Output]:
@@ -170,6 +242,14 @@ class BackendStage(Stage):
         self._push(user, fix.stamp_ns, 1, fix)
         b = self._buffer(user)
         b.newest_scan_ns = fix.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, fix.stamp_ns)
+        if b.newest_odom_ns is not None:
+            lag = b.newest_odom_ns - fix.stamp_ns
+            if lag > self.params.reorder_window_s * 1e9:     # held for: the window alone would have lost it
+                b.fixes_waited += 1
+                b.max_fix_lag_ns = max(b.max_fix_lag_ns, lag)
+        b.fix_known_ns = fix.stamp_ns if b.fix_known_ns is None else max(b.fix_known_ns, fix.stamp_ns)
+        # this scan's fix, or a later one: every scan up to its stamp is settled (fixes come in stamp order)
+        del b.pending_scans[:bisect.bisect_right(b.pending_scans, b.fix_known_ns)]
         return self._release(user)
 
     def _release(self, user: str, *, everything: bool = False) -> list[Output]:
@@ -178,18 +258,21 @@ class BackendStage(Stage):
         p = self.params
         odom_mark = -math.inf if b.newest_odom_ns is None else b.newest_odom_ns - p.reorder_window_s * 1e9
         scan_mark = -math.inf if b.newest_scan_ns is None else b.newest_scan_ns - p.max_scan_wait_s * 1e9
+        barrier = self._fix_barrier(b, everything)
         new_pose = False
         while b.heap:
             stamp, kind, _, payload = b.heap[0]
             if not (everything or stamp <= odom_mark or (kind >= 1 and stamp <= scan_mark)):
                 break
+            if barrier is not None and (stamp, kind) >= (barrier, 1):
+                break                          # a scan's fix is still to come: it goes in before these
             heapq.heappop(b.heap)
             b.taken_ns = stamp
             if kind == 0:
                 new_pose |= self._take_odom(user, b, payload)
             elif kind == 1:
                 self.graph.add_fix(user, payload.stamp_ns, payload.xy, payload.cov)
-                b.floor_z = payload.z
+                b.floors.add(payload.stamp_ns, payload.z)
                 new_pose = True
             else:
                 pose, _match = self.graph.add_scan(user, payload)
@@ -202,6 +285,20 @@ class BackendStage(Stage):
                 b.last_path_ns = b.taken_ns
                 outs.append(self._path_output(user))
         return outs
+
+    def _fix_barrier(self, b: _UserInput, everything: bool) -> int | None:
+        """Stamp of the oldest scan still waiting for its fix (events from there on are held), or None.
+        Scans waiting longer than ``fix_wait_s`` of the user's stamp time — or all, at the end of the
+        user's input — are given up and counted."""
+        if not b.pending_scans:
+            return None
+        clock = max(v for v in (b.newest_odom_ns, b.newest_scan_ns) if v is not None)
+        horizon = math.inf if everything else clock - self.params.fix_wait_s * 1e9
+        k = bisect.bisect_left(b.pending_scans, horizon)
+        if k:
+            b.scans_given_up += k
+            del b.pending_scans[:k]
+        return b.pending_scans[0] if b.pending_scans else None
 
     def _take_odom(self, user: str, b: _UserInput, od) -> bool:
         prev = b.prev_odom
@@ -223,20 +320,25 @@ class BackendStage(Stage):
         x = self.graph.poses.x[i]
         cov = self.graph.marginal_cov(i)
         cov_xy, yaw_var = (cov[:2, :2], float(cov[2, 2])) if cov is not None else (np.eye(2) * 1e2, 1e2)
-        msg = pose_to_msg(int(self.graph.poses.stamp[i]), x[:2], float(x[2]), cov_xy, frame_id=self.params.frame_id,
-                          yaw_var=yaw_var, z=self._buffer(user).floor_z)
+        stamp = int(self.graph.poses.stamp[i])
+        msg = pose_to_msg(stamp, x[:2], float(x[2]), cov_xy, frame_id=self.params.frame_id,
+                          yaw_var=yaw_var, z=float(self._buffer(user).floors.z_at([stamp])[0]))
         return (BACKEND_POSE.format(user=user), msg)
 
     def _path_output(self, user: str) -> Output:
         st, x = self.graph.trajectory(user)
         stamp = int(st[-1]) if len(st) else 0
-        return (BACKEND_PATH.format(user=user), path_to_msg(st, x[:, :2], x[:, 2], frame_id=self.params.frame_id,
-                                                            stamp_ns=stamp, z=self._buffer(user).floor_z))
+        msg = path_to_msg(st, x[:, :2], x[:, 2], frame_id=self.params.frame_id, stamp_ns=stamp)
+        floors = self._buffer(user).floors
+        if len(st):
+            floors.forget_before(int(st[0]))            # older poses have left the graph
+        for ps, z in zip(msg.poses, floors.z_at(st).tolist()):   # each pose at the floor of its nearest fix
+            ps.pose.position.z = z
+        return (BACKEND_PATH.format(user=user), msg)
 
     def _map_output(self, stamp_ns: int) -> Output:
-        rm = self.graph.wifi_radio_map()
-        return ("backend/wifi_map", points_markers("wifi_map", rm.positions, self.params.frame_id, stamp_ns,
-                                                   scale=0.25))
+        xy = np.vstack([self._drawn_survey, self.graph.wifi_radio_map().positions])
+        return ("backend/wifi_map", points_markers("wifi_map", xy, self.params.frame_id, stamp_ns, scale=0.25))
 
     def _started_users(self) -> list[str]:
         return [u for u, tr in self.graph.users.items() if tr.poses]
@@ -286,6 +388,17 @@ class BackendStage(Stage):
             if b is not None:
                 out[f"user.{u}.buffered"] = str(len(b.heap))
                 out[f"user.{u}.dropped_late"] = str(b.dropped_late)
+                if self.params.wifi_source == "fix":
+                    out[f"user.{u}.fixes_waited_for"] = str(b.fixes_waited)
+                    out[f"user.{u}.fix_lag_max_s"] = f"{b.max_fix_lag_ns * 1e-9:.2f}"
+                    out[f"user.{u}.scans_given_up"] = str(b.scans_given_up)
+                    out[f"user.{u}.scans_waiting_for_fix"] = str(len(b.pending_scans))
+        if self.params.wifi_source == "fix":
+            bs = self.inputs_by_user.values()
+            out["fix_wait.fixes_waited_for"] = str(sum(b.fixes_waited for b in bs))
+            out["fix_wait.lag_max_s"] = f"{max((b.max_fix_lag_ns for b in bs), default=0) * 1e-9:.2f}"
+            out["fix_wait.scans_given_up"] = str(sum(b.scans_given_up for b in bs))
+            out["fix_wait.scans_waiting"] = str(sum(len(b.pending_scans) for b in bs))
         if self.graph.last_solve is not None:
             s = self.graph.last_solve
             out["last_solve.poses"] = str(s.n_poses)

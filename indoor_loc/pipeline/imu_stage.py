@@ -18,7 +18,7 @@ Inputs
 (:mod:`indoor_loc.imu.vqf_filter`) on the same inputs; ``auto`` = the orientation of ``imu/data`` if
 that topic arrives from elsewhere (our own output echoed back is recognised by its stamps and
 ignored), else :data:`AUTO_FILTER`, the filter ``indoor-loc bench heading`` finds better on walking
-phones (VQF, see the README's "Heading on walking phones").
+phones (VQF, see docs/benchmarks/heading.md).
 Heading = yaw (ZYX, CCW from the world x axis) of the device->world quaternion plus
 ``heading_offset_rad`` (π/2 for a phone walking along its +y axis). No heading at all
 (accelerometer only): the yaw is held and published with variance 1e6 rad² (unknown).
@@ -59,7 +59,7 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 
 HEADING_SOURCES = ("auto", "aekf", "vqf", "orientation")
 #: the filter ``auto`` runs when no external orientation arrives: the better one on walking phones in
-#: ``indoor-loc bench heading`` (TyRex walking trials, README "Heading on walking phones").
+#: ``indoor-loc bench heading`` (TyRex walking trials, docs/benchmarks/heading.md).
 AUTO_FILTER = "vqf"
 
 
@@ -79,7 +79,7 @@ class ImuStageParams:
     base_frame: str = field("", "pdr/odom child frame; '' = '<namespace>/base_link'")
     mag_max_delay_s: float = field(0.1, "an imu/data_raw sample waits at most this long (stamp time) for "
                                         "imu/mag samples up to its stamp; later ones are dropped and counted, s")
-    mag_bias_x: float = field(0.0, "hard-iron bias subtracted from imu/mag x, T (README: how to estimate it)")
+    mag_bias_x: float = field(0.0, "hard-iron bias subtracted from imu/mag x, T (docs/nodes.md: how to estimate it)")
     mag_bias_y: float = field(0.0, "hard-iron bias subtracted from imu/mag y, T")
     mag_bias_z: float = field(0.0, "hard-iron bias subtracted from imu/mag z, T")
     stepometer: StepometerParams = group(StepometerParams, "FFT stepometer (indoor_loc/imu/stepometer.py)")

@@ -175,7 +175,7 @@ MIN_BIN_SCANS = 40                                    # cross-validated scans pe
 
 @dataclass(frozen=True)
 class PowedKnnParams:
-    """Powed k-NN parameters (defaults chosen on ms_site2 B1/F7, see README)."""
+    """Powed k-NN parameters (defaults chosen on ms_site2 B1/F7, see docs/benchmarks/wifi.md)."""
     k: int = field(4, "number of nearest map scans averaged")
     floor_dbm: float = field(-100.0, "RSS mapped to 0 in the positive representation; weaker readings are "
                                        "treated as not heard (dBm)")

@@ -1,0 +1,77 @@
+"""Every relative link in README.md and docs/ points to an existing file and, when it names an anchor,
+to a heading of that file (GitHub's anchor rules: lower case, punctuation dropped, spaces to
+hyphens, repeated headings numbered -1, -2, ...)."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\[\]]*\])*\]\(([^()\s]+)\)")
+
+
+def prose(text: str) -> str:
+    """The text outside fenced code blocks and inline code spans (links there are not links)."""
+    out, fence = [], False
+    for line in text.splitlines():
+        if line.lstrip().startswith("```"):
+            fence = not fence
+            continue
+        if not fence:
+            out.append(re.sub(r"`[^`]*`", "``", line))
+    return "\n".join(out)
+
+
+def slug(heading: str) -> str:
+    text = heading.strip().lower()
+    text = re.sub(r"[^\w\- ]", "", text)  # \w keeps letters, digits and '_' (also non-ASCII letters)
+    return text.replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    seen: dict[str, int] = {}
+    result = set()
+    fence = False
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.lstrip().startswith("```"):
+            fence = not fence
+            continue
+        m = None if fence else re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
+        if m:
+            base = slug(m.group(1))
+            n = seen.get(base, 0)
+            seen[base] = n + 1
+            result.add(base if n == 0 else f"{base}-{n}")
+    return result
+
+
+def test_slug_follows_github_rules() -> None:
+    assert slug("Running live: params, shutdown, loss") == "running-live-params-shutdown-loss"
+    assert slug("Making a graph, and the TLL particle filter (`tll_pf`)") == (
+        "making-a-graph-and-the-tll-particle-filter-tll_pf")
+    assert slug("Replay bags offline: `indoor-loc run`") == "replay-bags-offline-indoor-loc-run"
+
+
+def test_docs_pages_exist() -> None:
+    assert (ROOT / "docs" / "nodes.md").is_file()
+    assert len(PAGES) > 5
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_resolve(page: Path) -> None:
+    text = prose(page.read_text(encoding="utf-8"))
+    bad = []
+    for target in LINK.findall(text):
+        if re.match(r"[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto: ...
+            continue
+        path_part, _, anchor = target.partition("#")
+        dest = (page.parent / path_part).resolve() if path_part else page
+        if not dest.exists():
+            bad.append(f"{target}: no file {dest}")
+            continue
+        if anchor and (dest.suffix != ".md" or anchor not in anchors(dest)):
+            bad.append(f"{target}: no heading #{anchor} in {dest.relative_to(ROOT)}")
+    assert not bad, "\n".join(bad)
