@@ -166,7 +166,7 @@ def test_cross_validated_covariance_follows_the_building(rng):
                               [f"w{i % 5}" for i in range(len(g))])
         pos = PowedKnn().fit(rm)
         assert pos.calibration["scans"] == len(g)
-        sig.append(float(np.median(pos.sigma_table[1])))
+        sig.append(pos.sigma_m(0.3))
     assert sig[1] > 1.5 * sig[0]
 
 
@@ -284,9 +284,10 @@ def test_interpolated_map_beats_single_noisy_scans():
 def test_covariance_is_calibrated_per_recording_time_stratum(strata):
     """A map with recording times: the calibration treats the fixes whose nearest matched map scan was
     recorded within ``cov_recent_s`` of the scan (same survey session) apart from the others — one sigma table
-    each ('tables', on the best-match distance), or one table times a factor per stratum ('factor', the default,
-    on its default quantities); a fix takes its stratum's sigma, its position does not depend on it; a
-    pre-surveyed map (no times) keeps one table, as with ``cov_recent_s`` 0."""
+    each ('tables', the default, on the best-match distance), or one table times a factor per stratum
+    ('factor', here on the score of the best-match distance and the views' disagreement); a fix takes its
+    stratum's sigma, its position does not depend on it; a pre-surveyed map (no times) keeps one table, as
+    with ``cov_recent_s`` 0."""
     r = np.random.default_rng(5)
     rss = _field(r, 40, [0.0])
     bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
@@ -296,7 +297,7 @@ def test_covariance_is_calibrated_per_recording_time_stratum(strata):
     rows = rss(g, np.zeros(len(g), int), 4.0)
     scans = [replace(s, stamp_ns=int(session[i] * day + i * 2 * 10**9)) for i, s in enumerate(_scans(rows, bssids))]
     rm = add_fingerprints(empty_radiomap(), g, scans, [f"w{i % 10}" for i in range(len(g))])
-    mode = {"cov_strata": strata} | ({"cov_quantities": "d1"} if strata == "tables" else {})
+    mode = {"cov_strata": strata, "cov_quantities": "d1" if strata == "tables" else "d1,views_m"}
     pos = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).fit(rm)
     one = PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0, **mode)).fit(rm)
     cal = pos.calibration

@@ -99,25 +99,30 @@ test walk enters a part of its floor the survey walks did not cover but the floo
 Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ² I, σ calibrated on the map itself
 at ``fit`` time by leaving walks out: the map's sources (walks) are dealt into at most ``cov_folds`` folds
 and each map scan is positioned against the map without its fold's walks (the grid interpolated again
-without them). σ follows a *score* of each fix: with ``cov_quantities`` 'd1' the distance D₁ of the best
-match (a poor best match means a scan the map does not explain); with several quantities (the default:
-D₁ and ``views_m``) the least-squares prediction of the log cross-validated error from them, fitted on the
-cross-validated scans of this map, so each building weighs them by how well they rank its own errors.
-``views_m`` is the largest distance between the estimates the fix averages (ages weighted or ignored,
-against the map scans or the grid): when the hypotheses on what a cached reading is worth and on the map's
-spatial scale put the user in different places, the scan is ambiguous and the fix often wrong — a
-second mode of the posterior that D₁ of the best candidate cannot see. The (score, error) pairs are
-sorted by the score into equal-count bins (at most ``cov_bins``, at least 40 scans each), and in each bin σ
-is set so that the ``cov_quantile`` ellipse of an isotropic 2-D Gaussian holds that share of the bin's
-cross-validated errors: σ = q-quantile(error) / sqrt(−2 ln(1 − q)); σ is made non-decreasing in the score
-and interpolated between bin centres (constant beyond the end ones). Every fix carries its quantities in
-``info["features"]`` (also the weight ``far`` of its candidates beyond 5 m of it, the spread of each view's
-candidates, the APs matched, D₁ against the k-th match) and the calibration their rank correlation
-(Spearman) with the cross-validated errors (``calibration["spearman"]``). On ms_site2's tuned floors (B1,
-F7), their documented test walks and a third of their survey walks left out in turn (positioned against
-the rest), D₁ ranks F7's errors well (Spearman 0.60–0.74) and B1's hardly (−0.03–0.26); ``views_m`` and
-``far`` add a little on B1's test walks (0.22, 0.21 alone); the neighbours' spread, the grid's share on the
-survey, D₁ against the k-th match and the APs matched rank no better or change sign between sets.
+without them). σ follows a *score* of each fix: with ``cov_quantities`` 'd1' (the default) the distance D₁
+of the best match (a poor best match means a scan the map does not explain, and its error tends to be
+larger); with several quantities the least-squares prediction of the log cross-validated error from them,
+fitted on the cross-validated scans of this map. The (score, error) pairs are sorted by the score into
+equal-count bins (at most ``cov_bins``, at least 40 scans each), and in each bin σ is set so that the
+``cov_quantile`` ellipse of an isotropic 2-D Gaussian holds that share of the bin's cross-validated errors:
+σ = q-quantile(error) / sqrt(−2 ln(1 − q)); σ is made non-decreasing in the score and interpolated between
+bin centres (constant beyond the end ones).
+Every fix carries the quantities that might rank its error in ``info["features"]``: D₁ and D₁ against the
+k-th match (``d_ratio``), the largest distance between the estimates it averages (``views_m``: ages weighted
+or ignored, against the map scans or the grid — hypotheses that disagree mean an ambiguous scan), the
+weight of its candidates beyond 5 m of it (``far``, a second mode), the weighted spread of each view's
+candidates (``spread_m``), the distance between the map scans' and the grid's estimates (``view_gap_m``),
+the grid's share on the survey (``survey_share``) and the APs matched (``n_aps``); the calibration keeps
+their rank correlation (Spearman) with the cross-validated errors (``calibration["spearman"]``). On
+ms_site2 none of them ranks the errors better than D₁ on every floor, and which one does best differs
+between the map's cross-validation and the test walks: on the test walks D₁ gives B1 0.19, F3 0.56, F7
+0.74, F8 0.37, while ``views_m`` gives B1 0.22 and F8 0.39 but F3 0.10, D₁ against the k-th match F3 0.62,
+the spread F8 0.56 (cross-validated on F8's map: −0.29 for ``views_m``, 0.16 for the spread). A σ on D₁ and
+``views_m`` (fitted per building) with the strata as factors (below), chosen on B1 and F7 with a third of
+their survey walks left out in turn, ranked the errors better there (Spearman of σ with the error B1 0.11 →
+0.25, F7 0.70 → 0.73) and on held-out F3 (0.34 → 0.42; F8 0.32 → 0.26), but F3's ellipses then held 37/68 %
+of its test truths (50/95 %) instead of 61/85 (F8 58/88 instead of 56/87) — so it is an option, not the
+default.
 Positioning errors are heavy-tailed (a scan matched to the wrong part of a
 mall is tens of metres off), so a σ fitted to the mean error — or a line in D₁ — leaves the 95 %
 ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
@@ -137,14 +142,15 @@ before it shares their transient state: it matches them better (a smaller D₁) 
 session at the same distance from the survey, and D₁ alone says less about its error. The calibration
 therefore treats apart the cross-validated scans whose nearest matched map scan (in recording time) is
 within ``cov_recent_s`` of them and the rest, and a fix is calibrated by its own stratum (a stratum with
-fewer than 40 scans, or a map without recording times, uses all scans). With ``cov_strata`` 'factor' (the
-default) σ is the one table over all scans times one factor per stratum, the factor whose ellipse holds
-that stratum's share of its scans' errors divided by the table's σ; with 'tables' each stratum has its own
-table. Per-stratum tables are fitted on a few dozen scans a bin and their levels can swap between strata:
-on ms_site2 F7, with a third of the survey walks left out, the σ of the tables ranked the errors at
-−0.40 (Spearman) where D₁ ranks them at 0.60, and the shared table with factors at 0.54. A user positioned
-days after the survey gets the second stratum; a replay of the survey session's other walks mostly the
-first. The positions do not depend on the covariance.
+fewer than 40 scans, or a map without recording times, uses all scans). With ``cov_strata`` 'tables' (the
+default) each stratum has its own table; with 'factor' σ is the one table over all scans times one factor
+per stratum, the factor whose ellipse holds that stratum's share of its scans' errors divided by the
+table's σ. Per-stratum tables are fitted on a few dozen scans a bin and their levels can swap between
+strata: on ms_site2 F7 with a third of the survey walks left out in turn, the tables' σ ranked the left-out
+walks' errors at −0.40, 0.52 and 0.54 (Spearman, per third) where one table ranks them at 0.60, 0.74 and
+0.51, and one table with factors at 0.51, 0.75, 0.77 (B1: 0.13, 0.19, 0.00; 0.43, 0.40, 0.04; 0.32, 0.34,
+0.03). A user positioned days after the survey gets the second stratum; a replay of the survey session's
+other walks mostly the first. The positions do not depend on the covariance.
 """
 from __future__ import annotations
 
@@ -200,10 +206,10 @@ class PowedKnnParams:
     cov_recent_s: float = field(600.0, "fixes whose nearest matched map scan was recorded within this time of the scan "
                                        "(the same survey session) get a sigma calibrated on such scans only, the "
                                        "others one calibrated on the rest (s; 0 = one calibration for all)")
-    cov_strata: str = field("factor", "how the recording-time strata calibrate sigma: 'factor' (one sigma table over "
-                                      "all cross-validated scans, times a factor per stratum that makes its ellipse "
-                                      "hold its own scans) or 'tables' (one table per stratum)")
-    cov_quantities: str = field("d1,views_m", "comma-separated per-fix quantities sigma is calibrated on: 'd1' alone "
+    cov_strata: str = field("tables", "how the recording-time strata calibrate sigma: 'tables' (one table per stratum) "
+                                      "or 'factor' (one sigma table over all cross-validated scans, times a factor per "
+                                      "stratum that makes its ellipse hold its own scans)")
+    cov_quantities: str = field("d1", "comma-separated per-fix quantities sigma is calibrated on: 'd1' alone "
                                               "bins the best-match distance; several are combined into the "
                                               "least-squares prediction of the log cross-validated error (one of "
                                               f"{', '.join(COV_QUANTITIES)})")
