@@ -418,3 +418,22 @@ def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path):
         fp.write_text("".join(lines[:-cut]))
         with pytest.raises(MapError, match="manifest says"):
             BackendStage(BackendParams(radiomap=str(d), **FIX_KW))
+
+
+def test_floor_runs_nearest_fix_and_forgetting_keeps_what_later_poses_need():
+    """The per-user floor record: z of the nearest fix (a tie goes to the earlier floor), and
+    forgetting the runs before a stamp changes no z at or after it."""
+    from indoor_loc.pipeline.backend_stage import _FloorRuns
+    fr = _FloorRuns()
+    for t, z in ((0, 0.0), (2, 0.0), (4, 5.0), (6, 5.0), (8, 0.0), (20, 10.0)):
+        fr.add(t * SEC, z)
+    assert fr.z == [0.0, 5.0, 0.0, 10.0]                  # runs, not one entry per fix
+    t = np.arange(0, 49) * SEC // 2
+    fixes = np.array([0, 2, 4, 6, 8, 20]) * SEC
+    zs = np.array([0.0, 0.0, 5.0, 5.0, 0.0, 10.0])
+    want = zs[np.argmin(np.abs(t[:, None] - fixes[None]), axis=1)]
+    np.testing.assert_array_equal(fr.z_at(t), want)
+    fr.forget_before(9 * SEC)
+    assert fr.z == [0.0, 10.0]
+    np.testing.assert_array_equal(fr.z_at(t[t >= 9 * SEC]), want[t >= 9 * SEC])
+    assert _FloorRuns().z_at([5]).tolist() == [0.0]

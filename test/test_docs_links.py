@@ -75,3 +75,20 @@ def test_relative_links_resolve(page: Path) -> None:
         if anchor and (dest.suffix != ".md" or anchor not in anchors(dest)):
             bad.append(f"{target}: no heading #{anchor} in {dest.relative_to(ROOT)}")
     assert not bad, "\n".join(bad)
+
+
+def test_every_docs_page_is_reachable_from_the_readme() -> None:
+    """A page nobody links to is lost to readers: each docs page is reached from README.md."""
+    reached, todo = set(), [ROOT / "README.md"]
+    while todo:
+        page = todo.pop()
+        if page in reached:
+            continue
+        reached.add(page)
+        for target in LINK.findall(prose(page.read_text(encoding="utf-8"))):
+            path_part = target.partition("#")[0]
+            dest = (page.parent / path_part).resolve()
+            if path_part and dest.suffix == ".md" and dest.is_file():
+                todo.append(dest)
+    orphans = [str(p.relative_to(ROOT)) for p in PAGES if p.resolve() not in reached]
+    assert not orphans, f"not linked from README.md (directly or through a linked page): {orphans}"
