@@ -33,8 +33,9 @@ and the graph — and every path — is the one the same messages give when each
 (offline runs); to rounding, as users' poses may interleave differently in the shared arrays (joint,
 a scan may also meet another set of other users' scans, as with any wait). ``/diagnostics`` count,
 per user and in all, the fixes waited for (arriving more than ``reorder_window_s`` behind the
-user's odometry), the longest such lag, scans given up and scans waiting. Method, insertion policy, solver and the bound on the graph's size:
-:mod:`indoor_loc.backend.graph`.
+user's odometry), the longest such lag, scans given up and scans waiting.
+
+Method, insertion policy, solver and the bound on the graph's size: :mod:`indoor_loc.backend.graph`.
 """
 from __future__ import annotations
 
