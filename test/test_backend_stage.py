@@ -437,3 +437,16 @@ def test_floor_runs_nearest_fix_and_forgetting_keeps_what_later_poses_need():
     assert fr.z == [0.0, 10.0]
     np.testing.assert_array_equal(fr.z_at(t[t >= 9 * SEC]), want[t >= 9 * SEC])
     assert _FloorRuns().z_at([5]).tolist() == [0.0]
+
+
+def test_fixes_whose_covariance_is_asymmetric_by_rounding_are_taken():
+    """A producer's covariance off by an ulp (R @ D @ R.T, an inverse) passes the adapter's tolerance;
+    the graph then takes the fix (it needs an exactly symmetric matrix) instead of failing on it later,
+    inside the release of another message."""
+    _, stream = _fix_stream(45)
+    for _, topic, msg in stream:
+        if topic == "wifi/fix":
+            msg.pose.covariance[1] += 4e-15
+    st, outs, _ = _run(stream)
+    assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
+    assert st.graph.wifi.n == sum(t == "wifi/fix" for _, t, _ in stream)
