@@ -332,6 +332,9 @@ def test_covariance_is_calibrated_per_recording_time_stratum(strata):
         assert base.info["sigma_m"] == one.sigma_m(base.info["d1"], None, base.info["features"])
         differ += int(near.info["sigma_m"] != far.info["sigma_m"])
     assert differ >= 3                                     # the two strata's sigmas differ where the fixes fall
+    saved = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).load_fitted_state(rm, pos.fitted_state())
+    late = replace(queries[0], stamp_ns=int(30 * day))
+    np.testing.assert_array_equal(saved.locate(late).cov, pos.locate(late).cov)        # the calibration is saved
     surveyed = add_fingerprints(empty_radiomap(), g, [replace(s, stamp_ns=0) for s in scans],
                                 [f"w{i % 10}" for i in range(len(g))])
     pre = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).fit(surveyed)
