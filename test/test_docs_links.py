@@ -92,3 +92,24 @@ def test_every_docs_page_is_reachable_from_the_readme() -> None:
                 todo.append(dest)
     orphans = [str(p.relative_to(ROOT)) for p in PAGES if p.resolve() not in reached]
     assert not orphans, f"not linked from README.md (directly or through a linked page): {orphans}"
+
+
+def test_readme_results_figures_are_on_their_pages() -> None:
+    """The README's Results section summarises the docs pages: each block (a bold title, its links
+    and its table) may only state decimal figures found on the pages it links to, so a figure
+    updated there and not in the summary (or mistyped) shows up."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert "\n## Results\n" in readme
+    section = readme.split("\n## Results\n", 1)[1].split("\n## ", 1)[0]
+    blocks = re.split(r"\n(?=\*\*)", section)[1:]
+    assert len(blocks) >= 4
+    missing = []
+    for block in blocks:
+        pages = {(ROOT / t.partition("#")[0]).resolve() for t in LINK.findall(prose(block))
+                 if t.partition("#")[0].endswith(".md")}
+        assert pages, f"a Results block links no page: {block[:60]!r}"
+        text = "\n".join(p.read_text(encoding="utf-8") for p in pages)
+        for fig in sorted(set(re.findall(r"(?<![\w.])\d+\.\d+(?![\w.])", block))):
+            if not re.search(rf"(?<![\w.]){re.escape(fig)}(?![\w.])", text):
+                missing.append(f"{fig} (block {block.splitlines()[0][:50]!r})")
+    assert not missing, "figures of the README's Results not on the pages they link to:\n" + "\n".join(missing)

@@ -332,6 +332,9 @@ def test_covariance_is_calibrated_per_recording_time_stratum(strata):
         assert base.info["sigma_m"] == one.sigma_m(base.info["d1"], None, base.info["features"])
         differ += int(near.info["sigma_m"] != far.info["sigma_m"])
     assert differ >= 3                                     # the two strata's sigmas differ where the fixes fall
+    saved = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).load_fitted_state(rm, pos.fitted_state())
+    late = replace(queries[0], stamp_ns=int(30 * day))
+    np.testing.assert_array_equal(saved.locate(late).cov, pos.locate(late).cov)        # the calibration is saved
     surveyed = add_fingerprints(empty_radiomap(), g, [replace(s, stamp_ns=0) for s in scans],
                                 [f"w{i % 10}" for i in range(len(g))])
     pre = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).fit(surveyed)
@@ -340,3 +343,38 @@ def test_covariance_is_calibrated_per_recording_time_stratum(strata):
     np.testing.assert_array_equal(f.cov, PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0, **mode))
                                   .fit(surveyed).locate(queries[0]).cov)
 
+
+
+def test_fix_quantities_tell_an_aliased_scan_from_a_unique_one():
+    """A map where the scans of one stretch (x < 15 m) were copied 100 m away (the same readings: a look-alike
+    corridor): a scan from that stretch gets candidates on both copies — its weight beyond 5 m of the fix
+    (``far``) and its candidates' spread are large — while a scan from elsewhere gets neither; every fix
+    carries the quantities, and the calibration their rank correlation with its cross-validated errors."""
+    r = np.random.default_rng(11)
+    rss = _field(r, 40, [0.0])
+    bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+    g = _grid()
+    rows = rss(g, np.zeros(len(g), int), 2.0)
+    copy = g[:, 0] < 15.0
+    pos_map = np.vstack([g, g[copy] + [100.0, 0.0]])
+    scans = _scans(np.vstack([rows, rows[copy]]), bssids)
+    src = [f"w{i % 5}" for i in range(len(g))] + [f"c{i % 5}" for i in range(int(copy.sum()))]
+    pos = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(add_fingerprints(empty_radiomap(), pos_map, scans, src))
+    assert set(pos.calibration["spearman"]) >= {"d1", "views_m", "far", "n_aps"}
+    assert all(-1.0 <= v <= 1.0 for v in pos.calibration["spearman"].values() if np.isfinite(v))
+    pts = np.array([[6.0, 10.0], [7.5, 20.0], [40.0, 10.0], [48.0, 20.0]])
+    fixes = pos.locate_many(_scans(rss(pts, np.zeros(len(pts), int), 2.0), bssids))
+    q = [f.info["features"] for f in fixes]
+    for f in q:
+        assert 0.0 <= f["far"] <= 1.0 and f["views_m"] >= 0.0 and 0.0 <= f["d1"] <= 1.0 and 0.0 <= f["d_ratio"] <= 1.0
+        assert f["n_aps"] > 0 and f["survey_share"] == 1.0           # no path-loss field: the grid is on the survey
+    aliased, unique = q[:2], q[2:]
+    assert min(f["far"] for f in aliased) > 0.3 > 0.05 > max(f["far"] for f in unique)
+    assert min(f["spread_m"] for f in aliased) > 20.0 > 5.0 > max(f["spread_m"] for f in unique)
+
+
+@pytest.mark.parametrize("bad", [{"cov_quantities": "d1,nope"}, {"cov_quantities": "d1,d1"}, {"cov_quantities": " "},
+                                 {"cov_strata": "both"}])
+def test_covariance_settings_are_checked(bad):
+    with pytest.raises(ConfigError):
+        PowedKnn(PowedKnnParams(**bad))
