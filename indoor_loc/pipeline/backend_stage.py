@@ -209,8 +209,8 @@ class BackendStage(Stage):
         b = self._buffer(user)
         if b.taken_ns is not None and stamp < b.taken_ns:
             b.dropped_late += 1
-            why = ("a fix after its scan was given up (fix_wait_s)" if kind == 1 and self.params.fix_wait_s > 0
-                   else "later than reorder_window_s")
+            why = ("a fix whose scan was given up after fix_wait_s, a duplicate or out of stamp order"
+                   if kind == 1 and self.params.fix_wait_s > 0 else "later than reorder_window_s")
             raise InvalidMessageError("too_late", f"{user}: stamp {stamp} older than the graph's newest "
                                                   f"{b.taken_ns}: {why}")
         self._seq += 1
