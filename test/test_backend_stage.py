@@ -393,18 +393,22 @@ def test_each_pose_takes_the_floor_of_its_nearest_fix():
     assert {z for _, z in live} == {0.0, 5.0}
 
 
-def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path):
+def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path, monkeypatch):
     """``wifi_source: fix`` never matches against the survey: the stage reads only its scan positions
-    (for backend/wifi_map), none of its fingerprints enter the graph; with save_map the whole survey is
-    loaded, so the saved map keeps it. A damaged map file still stops the start-up."""
+    (for backend/wifi_map; the whole map is never loaded), none of its fingerprints enter the graph;
+    with save_map the whole survey is loaded, so the saved map keeps it. A damaged map file still stops
+    the start-up."""
     from indoor_loc.backend.wifi_map import survey_positions
     from indoor_loc.errors import MapError
+    from indoor_loc.pipeline import backend_stage
     from indoor_loc.wifi.radiomap import load_radiomap
     rm = survey(0, 60, np.random.default_rng(1))
     d = save_radiomap(rm, tmp_path / "map")
     np.testing.assert_array_equal(survey_positions(d), load_radiomap(d).positions)
     _, stream = _fix_stream(44)
-    st, outs, _ = _run(stream, radiomap=str(d))
+    with monkeypatch.context() as mp:
+        mp.setattr(backend_stage, "load_radiomap", lambda where: pytest.fail(f"the whole map {where} was loaded"))
+        st, outs, _ = _run(stream, radiomap=str(d))
     assert st.graph.map.n == 0 and st.graph.map.n_loaded_fixed == 0
     markers = [m for t, m in outs if t == "backend/wifi_map"][-1].markers
     drawn = np.array([(p.x, p.y) for mk in markers for p in mk.points])
