@@ -80,8 +80,10 @@ def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None)
 
     The x/y covariance must be a symmetric positive-definite 2x2 block (a fix is a Gaussian
     measurement; a negative, singular or asymmetric one would corrupt any filter it reaches):
-    otherwise ``"bad_covariance"``. With ``frame_id`` given, a fix in another frame is
-    ``"wrong_frame"`` (it cannot be fused in this frame without a transform)."""
+    otherwise ``"bad_covariance"``. An asymmetry within float rounding (a covariance computed as
+    ``R @ D @ R.T`` or by inversion) is accepted and the block returned symmetrised, as the consumers
+    require it exactly. With ``frame_id`` given, a fix in another frame is ``"wrong_frame"`` (it
+    cannot be fused in this frame without a transform)."""
     s = pose_from_msg(msg)
     if frame_id is not None and s.frame_id != frame_id:
         raise InvalidMessageError("wrong_frame", f"fix in frame {s.frame_id!r}, expected {frame_id!r}")
@@ -90,7 +92,7 @@ def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None)
         raise InvalidMessageError("bad_covariance", f"fix covariance not symmetric: {c.tolist()}")
     if not (c[0, 0] > 0 and c[1, 1] > 0 and c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0):
         raise InvalidMessageError("bad_covariance", f"fix covariance not positive definite: {c.tolist()}")
-    return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=s.cov_xy, z=float(msg.pose.pose.position.z),
+    return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=(c + c.T) / 2, z=float(msg.pose.pose.position.z),
                z_var=float(msg.pose.covariance[14]))
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 
 import numpy as np
 
@@ -145,32 +146,65 @@ def test_a_fixed_user_list_is_followed_and_nobody_else(ros_domain, tmp_path):
 
 
 def test_front_end_fixes_live(ros_domain, tmp_path):
-    """``wifi_source: fix`` over DDS without a survey: the node subscribes to the user's
-    ``wifi/fix`` too, starts the user at its first fix, publishes poses as the walk goes and, when
-    the user leaves, its path at the fixes' floor height."""
+    """``wifi_source: fix`` over DDS without a survey, from a slow WiFi node: each fix is published
+    only once the odometry is 2 s (stamp time) past it — four times the reorder window. The node
+    subscribes to the user's ``wifi/fix`` too, starts the user at its first fix, publishes poses as
+    the walk goes, loses no fix (counted as waited for in ``/diagnostics``) and, when the user leaves,
+    publishes the path the same messages give offline with every fix on time, at the fixes' floor."""
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from nav_msgs.msg import Odometry, Path
 
     from indoor_loc.measurements import Fix
+    from indoor_loc.pipeline.backend_stage import BackendParams, BackendStage
     from msg_adapters.pose import fix_to_msg
     from msg_adapters.time import stamp_to_ns
 
+    graph = dict(wifi_source="fix", joint=False, wifi_info=1.0, robust_kernel="huber", robust_threshold_m=1.345)
     params = tmp_path / "params.yaml"
-    params.write_text("/**/backend_node:\n  ros__parameters:\n    wifi_source: fix\n    joint: false\n"
-                      "    wifi_info: 1.0\n    robust_kernel: huber\n    robust_threshold_m: 1.345\n"
-                      "    user_timeout_s: 2.0\n")
+    params.write_text("/**/backend_node:\n  ros__parameters:\n"
+                      + "".join(f"    {k}: {v}\n" for k, v in graph.items()) + "    user_timeout_s: 2.0\n")
     node_proc = Peer([sys.executable, "-m", "indoor_loc.nodes.backend_node", "--ros-args", "--params-file",
                       str(params)], env=child_env())
     rng = np.random.default_rng(32)
     walk = corridor_walk("ann", 2, 30, 0, rng)
+    on_time, fix_err = [], []          # (topic, msg), each fix right after its scan
+    for topic, msg in _messages(walk):
+        on_time.append((topic, msg))
+        if topic == "wifi/scan":
+            t = stamp_to_ns(msg.header.stamp)
+            noise = rng.normal(0, 1.5, 2)
+            fix_err.append(np.linalg.norm(noise))
+            on_time.append(("wifi/fix", fix_to_msg(Fix(t, walk.true_xy_at([t])[0] + noise, 2.25 * np.eye(2), z=-5.0))))
+    late, held = [], []                # the slow WiFi node: a fix once the odometry is 2 s past it
+    for topic, msg in on_time:
+        if topic == "wifi/fix":
+            held.append((topic, msg))
+            continue
+        late.append((topic, msg))
+        while topic == "pdr/odom" and held and (stamp_to_ns(msg.header.stamp)
+                                                 - stamp_to_ns(held[0][1].header.stamp) >= 2 * SEC):
+            late.append(held.pop(0))
+    late += held
+    newest, n_waited = -1, 0           # fixes more than the reorder window behind the odometry
+    for topic, msg in late:
+        t = stamp_to_ns(msg.header.stamp)
+        newest = max(newest, t) if topic == "pdr/odom" else newest
+        n_waited += topic == "wifi/fix" and newest - t > 0.5 * SEC
+    assert n_waited >= len(fix_err) - 1
+    offline = BackendStage(BackendParams(**graph))
+    for topic, msg in on_time:
+        offline.process(topic, msg, 0, "ann")
+    want = path_from_msg([m for t, m in offline.finish_user("ann") if t == "backend/ann/path"][-1])
     try:
         with ros_node("probe") as (node, ex):
             poses: list = []
             paths: list = []
+            diags: list = []
             node.create_subscription(PoseWithCovarianceStamped, "/backend/ann/pose", poses.append,
                                      qos_profile(Qos.RELIABLE))
             node.create_subscription(Path, "/backend/ann/path", paths.append, qos_profile(Qos.LATCHED))
+            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
             assert spin_until(ex, lambda: node.count_publishers("/diagnostics") > 0, 60), node_proc.output()
             pubs = {"pdr/odom": node.create_publisher(Odometry, "/ann/pdr/odom", qos_profile(Qos.RELIABLE)),
                     "wifi/scan": node.create_publisher(DiagnosticArray, "/ann/wifi/scan", qos_profile(Qos.RELIABLE)),
@@ -178,22 +212,33 @@ def test_front_end_fixes_live(ros_domain, tmp_path):
                                                       qos_profile(Qos.RELIABLE))}
             assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 40), \
                 node_proc.output()
-            fix_err = []
-            for topic, msg in _messages(walk):
+            t_wall, t_odom = time.monotonic(), 0      # 10x real time: the window is 50 ms of wall time
+            for topic, msg in late:
+                if topic == "pdr/odom":
+                    t_odom = stamp_to_ns(msg.header.stamp)
+                spin_until(ex, lambda: False, max(t_wall + t_odom / SEC / 10 - time.monotonic(), 0.002))
                 pubs[topic].publish(msg)
-                if topic == "wifi/scan":           # its fix after it, as wifi_fix_node publishes it
-                    t = stamp_to_ns(msg.header.stamp)
-                    noise = rng.normal(0, 1.5, 2)
-                    fix_err.append(np.linalg.norm(noise))
-                    pubs["wifi/fix"].publish(fix_to_msg(Fix(t, walk.true_xy_at([t])[0] + noise, 2.25 * np.eye(2),
-                                                            z=-5.0)))
-                spin_until(ex, lambda: False, 0.002)
             assert spin_until(ex, lambda: len(poses) > 5, 40), node_proc.output()
+
+            def fix_wait():
+                for arr in reversed(diags):
+                    for st in arr.status:
+                        kv = {v.key: v.value for v in st.values}
+                        if "fix_wait.fixes_waited_for" in kv and kv.get("user.ann.poses"):
+                            return kv
+                return {}
+            assert spin_until(ex, lambda: fix_wait().get("in.ann/wifi/fix.count") == str(len(fix_err)), 30), \
+                str({k: v for k, v in fix_wait().items() if "fix" in k or "rej" in k})
+            # the count depends on when each fix met the odometry at the node (DDS orders topics separately)
+            assert abs(int(fix_wait()["fix_wait.fixes_waited_for"]) - n_waited) <= 1, (fix_wait(), n_waited)
+            assert fix_wait()["fix_wait.scans_given_up"] == "0" and fix_wait().get("rejected.total") == "0"
             for p in pubs.values():
                 node.destroy_publisher(p)
             assert spin_until(ex, lambda: len(paths) >= 1, 40), node_proc.output()
-            stamps, xy, _ = path_from_msg(paths[-1])
+            stamps, xy, yaw = path_from_msg(paths[-1])
             assert len(stamps) > 10 and {ps.pose.position.z for ps in paths[-1].poses} == {-5.0}
+            assert np.array_equal(stamps, want[0])
+            np.testing.assert_allclose(xy, want[1], atol=1e-9)            # what the on-time stream gives
             assert np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 0.8 * np.mean(fix_err)
         node_proc.signal(signal.SIGINT)
         assert node_proc.wait(timeout=40) == 0, node_proc.output()

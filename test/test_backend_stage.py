@@ -393,18 +393,22 @@ def test_each_pose_takes_the_floor_of_its_nearest_fix():
     assert {z for _, z in live} == {0.0, 5.0}
 
 
-def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path):
+def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path, monkeypatch):
     """``wifi_source: fix`` never matches against the survey: the stage reads only its scan positions
-    (for backend/wifi_map), none of its fingerprints enter the graph; with save_map the whole survey is
-    loaded, so the saved map keeps it. A damaged map file still stops the start-up."""
+    (for backend/wifi_map; the whole map is never loaded), none of its fingerprints enter the graph;
+    with save_map the whole survey is loaded, so the saved map keeps it. A damaged map file still stops
+    the start-up."""
     from indoor_loc.backend.wifi_map import survey_positions
     from indoor_loc.errors import MapError
+    from indoor_loc.pipeline import backend_stage
     from indoor_loc.wifi.radiomap import load_radiomap
     rm = survey(0, 60, np.random.default_rng(1))
     d = save_radiomap(rm, tmp_path / "map")
     np.testing.assert_array_equal(survey_positions(d), load_radiomap(d).positions)
     _, stream = _fix_stream(44)
-    st, outs, _ = _run(stream, radiomap=str(d))
+    with monkeypatch.context() as mp:
+        mp.setattr(backend_stage, "load_radiomap", lambda where: pytest.fail(f"the whole map {where} was loaded"))
+        st, outs, _ = _run(stream, radiomap=str(d))
     assert st.graph.map.n == 0 and st.graph.map.n_loaded_fixed == 0
     markers = [m for t, m in outs if t == "backend/wifi_map"][-1].markers
     drawn = np.array([(p.x, p.y) for mk in markers for p in mk.points])
@@ -418,3 +422,35 @@ def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path):
         fp.write_text("".join(lines[:-cut]))
         with pytest.raises(MapError, match="manifest says"):
             BackendStage(BackendParams(radiomap=str(d), **FIX_KW))
+
+
+def test_floor_runs_nearest_fix_and_forgetting_keeps_what_later_poses_need():
+    """The per-user floor record: z of the nearest fix (a tie goes to the earlier floor), and
+    forgetting the runs before a stamp changes no z at or after it."""
+    from indoor_loc.pipeline.backend_stage import _FloorRuns
+    fr = _FloorRuns()
+    for t, z in ((0, 0.0), (2, 0.0), (4, 5.0), (6, 5.0), (8, 0.0), (20, 10.0)):
+        fr.add(t * SEC, z)
+    assert fr.z == [0.0, 5.0, 0.0, 10.0]                  # runs, not one entry per fix
+    t = np.arange(0, 49) * SEC // 2
+    fixes = np.array([0, 2, 4, 6, 8, 20]) * SEC
+    zs = np.array([0.0, 0.0, 5.0, 5.0, 0.0, 10.0])
+    want = zs[np.argmin(np.abs(t[:, None] - fixes[None]), axis=1)]
+    np.testing.assert_array_equal(fr.z_at(t), want)
+    fr.forget_before(9 * SEC)
+    assert fr.z == [0.0, 10.0]
+    np.testing.assert_array_equal(fr.z_at(t[t >= 9 * SEC]), want[t >= 9 * SEC])
+    assert _FloorRuns().z_at([5]).tolist() == [0.0]
+
+
+def test_fixes_whose_covariance_is_asymmetric_by_rounding_are_taken():
+    """A producer's covariance off by an ulp (R @ D @ R.T, an inverse) passes the adapter's tolerance;
+    the graph then takes the fix (it needs an exactly symmetric matrix) instead of failing on it later,
+    inside the release of another message."""
+    _, stream = _fix_stream(45)
+    for _, topic, msg in stream:
+        if topic == "wifi/fix":
+            msg.pose.covariance[1] += 4e-15
+    st, outs, _ = _run(stream)
+    assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
+    assert st.graph.wifi.n == sum(t == "wifi/fix" for _, t, _ in stream)

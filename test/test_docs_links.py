@@ -75,3 +75,41 @@ def test_relative_links_resolve(page: Path) -> None:
         if anchor and (dest.suffix != ".md" or anchor not in anchors(dest)):
             bad.append(f"{target}: no heading #{anchor} in {dest.relative_to(ROOT)}")
     assert not bad, "\n".join(bad)
+
+
+def test_every_docs_page_is_reachable_from_the_readme() -> None:
+    """A page nobody links to is lost to readers: each docs page is reached from README.md."""
+    reached, todo = set(), [ROOT / "README.md"]
+    while todo:
+        page = todo.pop()
+        if page in reached:
+            continue
+        reached.add(page)
+        for target in LINK.findall(prose(page.read_text(encoding="utf-8"))):
+            path_part = target.partition("#")[0]
+            dest = (page.parent / path_part).resolve()
+            if path_part and dest.suffix == ".md" and dest.is_file():
+                todo.append(dest)
+    orphans = [str(p.relative_to(ROOT)) for p in PAGES if p.resolve() not in reached]
+    assert not orphans, f"not linked from README.md (directly or through a linked page): {orphans}"
+
+
+def test_readme_results_figures_are_on_their_pages() -> None:
+    """The README's Results section summarises the docs pages: each block (a bold title, its links
+    and its table) may only state decimal figures found on the pages it links to, so a figure
+    updated there and not in the summary (or mistyped) shows up."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert "\n## Results\n" in readme
+    section = readme.split("\n## Results\n", 1)[1].split("\n## ", 1)[0]
+    blocks = re.split(r"\n(?=\*\*)", section)[1:]
+    assert len(blocks) >= 4
+    missing = []
+    for block in blocks:
+        pages = {(ROOT / t.partition("#")[0]).resolve() for t in LINK.findall(prose(block))
+                 if t.partition("#")[0].endswith(".md")}
+        assert pages, f"a Results block links no page: {block[:60]!r}"
+        text = "\n".join(p.read_text(encoding="utf-8") for p in pages)
+        for fig in sorted(set(re.findall(r"(?<![\w.])\d+\.\d+(?![\w.])", block))):
+            if not re.search(rf"(?<![\w.]){re.escape(fig)}(?![\w.])", text):
+                missing.append(f"{fig} (block {block.splitlines()[0][:50]!r})")
+    assert not missing, "figures of the README's Results not on the pages they link to:\n" + "\n".join(missing)

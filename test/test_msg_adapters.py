@@ -314,7 +314,10 @@ def test_fix_round_trip():
     p = pose_from_msg(msg)
     assert p.stamp_ns == STAMP and np.array_equal(p.xy, fix.xy) and np.array_equal(p.cov_xy, cov) and p.yaw == 0.0
     back = fix_from_msg(msg)
-    assert back.ok and np.array_equal(back.xy, fix.xy)
+    assert back.ok and np.array_equal(back.xy, fix.xy) and np.array_equal(back.cov, cov)
+    msg.pose.covariance[1] += 1e-15                 # asymmetric by rounding: taken, returned symmetric
+    back = fix_from_msg(msg)
+    assert back.cov[0, 1] == back.cov[1, 0] and abs(back.cov[0, 1] - 0.5) < 1e-14
     with pytest.raises(InvalidMessageError) as e:
         fix_to_msg(Fix(stamp_ns=1, xy=np.zeros(2), cov=np.eye(2), ok=False, reason="too few APs"))
     assert reason(e) == "fix_not_ok"

@@ -280,11 +280,14 @@ def test_interpolated_map_beats_single_noisy_scans():
     assert err["both"] < 0.9 * err["map"], err
 
 
-def test_covariance_is_calibrated_per_recording_time_stratum():
-    """A map with recording times: the calibration keeps one sigma table for fixes whose nearest matched map
-    scan was recorded within ``cov_recent_s`` of the scan (same survey session) and one for the others; a fix
-    takes its stratum's sigma, its position does not depend on it; a pre-surveyed map (no times) keeps one
-    table, as with ``cov_recent_s`` 0."""
+@pytest.mark.parametrize("strata", ["tables", "factor"])
+def test_covariance_is_calibrated_per_recording_time_stratum(strata):
+    """A map with recording times: the calibration treats the fixes whose nearest matched map scan was
+    recorded within ``cov_recent_s`` of the scan (same survey session) apart from the others — one sigma table
+    each ('tables', the default, on the best-match distance), or one table times a factor per stratum
+    ('factor', here on the score of the best-match distance and the views' disagreement); a fix takes its
+    stratum's sigma, its position does not depend on it; a pre-surveyed map (no times) keeps one table, as
+    with ``cov_recent_s`` 0."""
     r = np.random.default_rng(5)
     rss = _field(r, 40, [0.0])
     bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
@@ -294,10 +297,16 @@ def test_covariance_is_calibrated_per_recording_time_stratum():
     rows = rss(g, np.zeros(len(g), int), 4.0)
     scans = [replace(s, stamp_ns=int(session[i] * day + i * 2 * 10**9)) for i, s in enumerate(_scans(rows, bssids))]
     rm = add_fingerprints(empty_radiomap(), g, scans, [f"w{i % 10}" for i in range(len(g))])
-    pos = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(rm)
-    one = PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0)).fit(rm)
+    mode = {"cov_strata": strata, "cov_quantities": "d1" if strata == "tables" else "d1,views_m"}
+    pos = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).fit(rm)
+    one = PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0, **mode)).fit(rm)
     cal = pos.calibration
-    assert len(pos.sigma_tables) == 2 and one.sigma_tables == ()
+    if strata == "tables":
+        assert len(pos.sigma_tables) == 2 and pos.sigma_factors == () and len(pos.cov_coef) == 0
+    else:
+        assert len(pos.sigma_factors) == 2 and pos.sigma_tables == () and pos.sigma_factors[0] != pos.sigma_factors[1]
+        assert len(pos.cov_coef) == 3 and cal["quantities"] == ["d1", "views_m"]
+    assert one.sigma_tables == () and one.sigma_factors == ()
     assert 0 < cal["recent_scans"] < cal["scans"]
     pts = r.uniform([3, 3], np.array(SIZE) - 3, size=(10, 2))
     queries = _scans(rss(pts, np.zeros(len(pts), int), 4.0), bssids)
@@ -309,17 +318,63 @@ def test_covariance_is_calibrated_per_recording_time_stratum():
         np.testing.assert_array_equal(near.xy, base.xy)
         np.testing.assert_array_equal(far.xy, base.xy)
         assert far.info["lag_s"] > 600.0
-        assert far.info["sigma_m"] == pos.sigma_m(far.info["d1"], math.inf) == max(
-            1.0, float(np.interp(far.info["d1"], *pos.sigma_tables[1])))
         stratum = 0 if near.info["lag_s"] <= 600.0 else 1
-        assert near.info["sigma_m"] == max(1.0, float(np.interp(near.info["d1"], *pos.sigma_tables[stratum])))
-        assert base.info["sigma_m"] == one.sigma_m(base.info["d1"])
+        feats = far.info["features"]
+        assert far.info["sigma_m"] == pos.sigma_m(far.info["d1"], math.inf, feats)
+        if strata == "tables":
+            assert far.info["sigma_m"] == max(1.0, float(np.interp(far.info["d1"], *pos.sigma_tables[1])))
+            assert near.info["sigma_m"] == max(1.0, float(np.interp(near.info["d1"], *pos.sigma_tables[stratum])))
+        else:
+            x = pos.cov_coef @ [1.0, feats["d1"], math.log1p(feats["views_m"])]
+            shape = max(1.0, float(np.interp(x, *pos.sigma_table)))
+            assert far.info["sigma_m"] == pytest.approx(max(1.0, shape * pos.sigma_factors[1]), rel=1e-12)
+            assert near.info["sigma_m"] == pytest.approx(max(1.0, shape * pos.sigma_factors[stratum]), rel=1e-12)
+        assert base.info["sigma_m"] == one.sigma_m(base.info["d1"], None, base.info["features"])
         differ += int(near.info["sigma_m"] != far.info["sigma_m"])
-    assert differ >= 3                                     # the two strata's tables differ where the fixes fall
+    assert differ >= 3                                     # the two strata's sigmas differ where the fixes fall
+    saved = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).load_fitted_state(rm, pos.fitted_state())
+    late = replace(queries[0], stamp_ns=int(30 * day))
+    np.testing.assert_array_equal(saved.locate(late).cov, pos.locate(late).cov)        # the calibration is saved
     surveyed = add_fingerprints(empty_radiomap(), g, [replace(s, stamp_ns=0) for s in scans],
                                 [f"w{i % 10}" for i in range(len(g))])
-    pre = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(surveyed)
-    assert pre.sigma_tables == () and "recent_scans" not in pre.calibration
+    pre = PowedKnn(PowedKnnParams(offset_gain=0.0, **mode)).fit(surveyed)
+    assert pre.sigma_tables == () and pre.sigma_factors == () and "recent_scans" not in pre.calibration
     f = pre.locate(queries[0])
-    np.testing.assert_array_equal(f.cov, PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0)).fit(surveyed)
-                                  .locate(queries[0]).cov)
+    np.testing.assert_array_equal(f.cov, PowedKnn(PowedKnnParams(offset_gain=0.0, cov_recent_s=0.0, **mode))
+                                  .fit(surveyed).locate(queries[0]).cov)
+
+
+
+def test_fix_quantities_tell_an_aliased_scan_from_a_unique_one():
+    """A map where the scans of one stretch (x < 15 m) were copied 100 m away (the same readings: a look-alike
+    corridor): a scan from that stretch gets candidates on both copies — its weight beyond 5 m of the fix
+    (``far``) and its candidates' spread are large — while a scan from elsewhere gets neither; every fix
+    carries the quantities, and the calibration their rank correlation with its cross-validated errors."""
+    r = np.random.default_rng(11)
+    rss = _field(r, 40, [0.0])
+    bssids = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+    g = _grid()
+    rows = rss(g, np.zeros(len(g), int), 2.0)
+    copy = g[:, 0] < 15.0
+    pos_map = np.vstack([g, g[copy] + [100.0, 0.0]])
+    scans = _scans(np.vstack([rows, rows[copy]]), bssids)
+    src = [f"w{i % 5}" for i in range(len(g))] + [f"c{i % 5}" for i in range(int(copy.sum()))]
+    pos = PowedKnn(PowedKnnParams(offset_gain=0.0)).fit(add_fingerprints(empty_radiomap(), pos_map, scans, src))
+    assert set(pos.calibration["spearman"]) >= {"d1", "views_m", "far", "n_aps"}
+    assert all(-1.0 <= v <= 1.0 for v in pos.calibration["spearman"].values() if np.isfinite(v))
+    pts = np.array([[6.0, 10.0], [7.5, 20.0], [40.0, 10.0], [48.0, 20.0]])
+    fixes = pos.locate_many(_scans(rss(pts, np.zeros(len(pts), int), 2.0), bssids))
+    q = [f.info["features"] for f in fixes]
+    for f in q:
+        assert 0.0 <= f["far"] <= 1.0 and f["views_m"] >= 0.0 and 0.0 <= f["d1"] <= 1.0 and 0.0 <= f["d_ratio"] <= 1.0
+        assert f["n_aps"] > 0 and f["survey_share"] == 1.0           # no path-loss field: the grid is on the survey
+    aliased, unique = q[:2], q[2:]
+    assert min(f["far"] for f in aliased) > 0.3 > 0.05 > max(f["far"] for f in unique)
+    assert min(f["spread_m"] for f in aliased) > 20.0 > 5.0 > max(f["spread_m"] for f in unique)
+
+
+@pytest.mark.parametrize("bad", [{"cov_quantities": "d1,nope"}, {"cov_quantities": "d1,d1"}, {"cov_quantities": " "},
+                                 {"cov_strata": "both"}])
+def test_covariance_settings_are_checked(bad):
+    with pytest.raises(ConfigError):
+        PowedKnn(PowedKnnParams(**bad))

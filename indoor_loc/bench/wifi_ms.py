@@ -12,7 +12,10 @@ Tables, all methods on the same scans in one run:
 1. per floor (floor known: that floor's map) — each method's located count, mean / median / 75 % /
    95 % / max error over located scans, 50 % / 95 % ellipse consistency, scans/s, and the mean on
    the scans the plain WKNN baseline located, with its ratio to the baseline's mean there; below it,
-   the default's ellipses per recording-time stratum of its covariance calibration, and the default's and
+   the default's ellipses per recording-time stratum of its covariance calibration, the rank correlation
+   (Spearman) with the error of each per-fix quantity the covariance may be calibrated on and of the fixes'
+   sigma (the default's, and the rejected candidate's: the row "sigma(D1+views) x stratum"), on the test
+   scans and on the calibration's cross-validated map scans, and the default's and
    the baseline's means per UTC date of the test scans, with the test walks' speed;
 2. pooled over floors (the same per-floor runs);
 3. floor detection against the pooled four-floor map: accuracy per floor and the error of the
@@ -37,7 +40,11 @@ The covariance's recording-time strata (``cov_recent_s``; the row "one sigma tab
 without them, and each floor prints the default's ellipses per stratum) were chosen on B1 and F7; F3 and F8
 were looked at three times (the diagnosis, a rejected candidate, the strata). The share-weighted views of the
 default (``field_survey_share``; the row "views weigh the same" is without it) were chosen on B1 and F7, with a
-third of their survey walks left out in turn to score scans far from the survey; F3 and F8 were run once.
+third of their survey walks left out in turn to score scans far from the survey; F3 and F8 were run once. So was
+the covariance candidate of the row "sigma(D1+views) x stratum" (``cov_quantities`` the best-match distance and the
+views' disagreement, the strata as one factor each: ``cov_strata`` 'factor'): chosen on B1 and F7 with a third of
+their survey walks left out in turn, it ranked the errors better there and on F3, but F3's ellipses held far fewer
+of its truths (37/68 against 61/85), so the default stayed sigma(D1) with a table per stratum.
 """
 from __future__ import annotations
 
@@ -74,7 +81,13 @@ OURS = "powed k-NN + path-loss field in plan"
 #: the same, the estimates against the map scans and against the grid weighing the same wherever the grid puts
 #: the user (before field_survey_share)
 EQUAL_VIEWS = "field in plan, views weigh the same"
-PLAN_ROWS = (OURS, EQUAL_VIEWS)
+#: the same, sigma calibrated on a score of the best-match distance and the views' disagreement, the recording-time
+#: strata as one factor each on a shared table (a candidate rejected on the held-out floors; the default keeps
+#: sigma(D1) with a table per stratum)
+COMBINED = "field in plan, sigma(D1+views) x stratum"
+PLAN_ROWS = (OURS, EQUAL_VIEWS, COMBINED)
+#: per-fix quantities whose rank correlation with the error each floor prints (fix info["features"]; sigma last)
+RANKED = ("d1", "views_m", "far", "spread_m", "view_gap_m", "d_ratio", "survey_share", "n_aps")
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [
@@ -84,6 +97,7 @@ METHODS: list[tuple[str, str, dict, float]] = [
                                                  "error_type": "rms"}, 0.0),
     (OURS, "powed", dict(FIELD_PLAN), 0.0),
     (EQUAL_VIEWS, "powed", {**FIELD_PLAN, "field_survey_share": False}, 0.0),
+    (COMBINED, "powed", {**FIELD_PLAN, "cov_strata": "factor", "cov_quantities": "d1,views_m"}, 0.0),
     (NO_FIELD, "powed", {}, 0.0),
     ("powed, one sigma table (no strata)", "powed", {"cov_recent_s": 0.0}, 0.0),
     ("powed, map scans only (no grid)", "powed", {"smooth_m": 0.0}, 0.0),
@@ -329,6 +343,8 @@ def run(args) -> int:
         ref_ok = ref_e = None
         report["floors"][name] = {"tag": tag, "map_scans": rm.n_scans, "map_aps": rm.n_aps, "methods": {}}
         strata: dict[str, dict[str, Any]] = {}
+        ranks: dict[str, Any] = {"test": {}, "cv": {}, "quantities": []}
+        ranks_combined = float("nan")
         for label, meth, params, shift in METHODS:
             pos = make_positioner(meth, params)
             if label in PLAN_ROWS and isinstance(pos, PowedKnn):
@@ -348,7 +364,16 @@ def run(args) -> int:
             report["floors"][name]["methods"][label] = s
             if label == OURS and isinstance(pos, PowedKnn):
                 strata = ellipses_by_stratum(pos, fixes, m2)
+                ranks = rank_correlations(pos, fixes, e)
+            if label == COMBINED:
+                ranks_combined = rank_correlations(None, fixes, e)["test"].get("sigma_m", float("nan"))
         report["floors"][name]["ellipse_strata"] = strata
+        ranks["test"]["sigma_m (d1+views_m x stratum)"] = ranks_combined
+        report["floors"][name]["rank_correlations"] = ranks
+        print("   Spearman rank correlation with the error of the default's fixes (test scans | cross-validated map "
+              "scans): " + "; ".join(f"{k} {v:.2f}" + (f" | {ranks['cv'][k]:.2f}" if k in ranks["cv"] else "")
+                                     for k, v in ranks["test"].items())
+              + f"; sigma calibrated on {'+'.join(ranks['quantities'])}")
         print("   ellipses of the default by the time from a scan to its nearest matched map scan (its sigma table): "
               + "; ".join(f"{k} {d['fixes']} fixes, in50/in95 {d['in50']:.0f}/{d['in95']:.0f} (calibrated on "
                           f"{d['calibration_scans']} scans)" for k, d in strata.items()))
@@ -468,6 +493,27 @@ def by_gap(truth: np.ndarray, rm: RadioMap, errs: tuple) -> list[dict[str, Any]]
     return out
 
 
+def rank_correlations(pos: PowedKnn | None, fixes: list[Fix], e: np.ndarray) -> dict[str, Any]:
+    """Spearman's rank correlation with the error of each per-fix quantity of :data:`RANKED` and of the fixes'
+    sigma, over the located fixes ("test"), and of the quantities over the calibration's cross-validated map
+    scans ("cv", from ``pos.calibration``), with the quantities sigma was calibrated on."""
+    from scipy.stats import spearmanr
+    ok = np.array([f.ok for f in fixes], bool) & np.isfinite(e)
+    out: dict[str, Any] = {"test": {}, "cv": {}, "quantities": []}
+    if ok.sum() < 3:
+        return out
+    for key in (*RANKED, "sigma_m"):
+        x = np.array([(f.info["sigma_m"] if key == "sigma_m" else f.info["features"][key]) if f.ok else np.nan
+                      for f in fixes])
+        g = ok & np.isfinite(x)
+        if g.sum() >= 3 and np.ptp(x[g]) > 0:
+            out["test"][key] = float(spearmanr(x[g], e[g]).statistic)
+    if pos is not None:
+        out["cv"] = dict(pos.calibration.get("spearman", {}))
+        out["quantities"] = list(pos.calibration.get("quantities", ["d1"]))
+    return out
+
+
 def ellipses_by_stratum(pos: PowedKnn, fixes: list[Fix], m2: np.ndarray) -> dict[str, dict[str, Any]]:
     """In50/in95 (%) of the located fixes per recording-time stratum of the covariance calibration
     (``cov_recent_s``: within it, or later), with the stratum's cross-validated scan count."""
@@ -477,7 +523,7 @@ def ellipses_by_stratum(pos: PowedKnn, fixes: list[Fix], m2: np.ndarray) -> dict
     out: dict[str, dict[str, Any]] = {}
     for key, sel, n_cal in ((f"<= {lim / 60:g} min", lag <= lim, n_recent),
                             ("later", lag > lim, n_all - n_recent)):
-        if not pos.sigma_tables or n_cal < MIN_BIN_SCANS:
+        if not (pos.sigma_tables or pos.sigma_factors) or n_cal < MIN_BIN_SCANS:
             n_cal = n_all                                    # that stratum uses the table of all scans
         if sel.any():
             out[key] = {"fixes": int(sel.sum()), "in50": float(100 * np.mean(m2[sel] <= CHI2_2_50)),

@@ -30,10 +30,12 @@ earlier scan that got none (the node declined it). A scan waits at most ``fix_wa
 stamp time (its newest odometry or scan); then it is given up and counted (``scans_given_up``; its fix,
 should it still come, is ``too_late``). Pose output latency thus grows only by the WiFi node's real lag,
 and the graph — and every path — is the one the same messages give when each fix comes at once
-(offline runs). ``/diagnostics`` count, per user and in all, the fixes waited for (arriving more than
-``reorder_window_s`` behind the user's odometry), the longest such lag, scans given up and scans
-waiting. Method, insertion policy, solver and the bound on the graph's size:
-:mod:`indoor_loc.backend.graph`.
+(offline runs); to rounding, as users' poses may interleave differently in the shared arrays (joint,
+a scan may also meet another set of other users' scans, as with any wait). ``/diagnostics`` count,
+per user and in all, the fixes waited for (arriving more than ``reorder_window_s`` behind the
+user's odometry), the longest such lag, scans given up and scans waiting.
+
+Method, insertion policy, solver and the bound on the graph's size: :mod:`indoor_loc.backend.graph`.
 """
 from __future__ import annotations
 
@@ -207,8 +209,8 @@ class BackendStage(Stage):
         b = self._buffer(user)
         if b.taken_ns is not None and stamp < b.taken_ns:
             b.dropped_late += 1
-            why = ("a fix after its scan was given up (fix_wait_s)" if kind == 1 and self.params.fix_wait_s > 0
-                   else "later than reorder_window_s")
+            why = ("a fix whose scan was given up after fix_wait_s, a duplicate or out of stamp order"
+                   if kind == 1 and self.params.fix_wait_s > 0 else "later than reorder_window_s")
             raise InvalidMessageError("too_late", f"{user}: stamp {stamp} older than the graph's newest "
                                                   f"{b.taken_ns}: {why}")
         self._seq += 1

@@ -96,16 +96,34 @@ On ms_site2 (four floors, 954 test scans) this is right for 953; the nearest map
 right for 934–940 and a per-floor field ceiling (Σ_a min(x_a, C_f(a))) for 942 — both fail where a
 test walk enters a part of its floor the survey walks did not cover but the floor above did.
 
-Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ(D₁)² I, where D₁ is the
-distance of the best match: a poor best match means a scan the map does not explain, and its
-error tends to be larger. σ(D) is calibrated on the map itself at ``fit`` time by
-leaving walks out: the map's sources (walks) are dealt into at most ``cov_folds`` folds and each map
-scan is positioned against the map without its fold's walks (the grid interpolated again without
-them), the (D₁, error) pairs are sorted by D₁ into equal-count bins (at most ``cov_bins``, at least
-40 scans each), and in each bin σ is set so that the ``cov_quantile`` ellipse of an isotropic 2-D
-Gaussian holds that share of the bin's cross-validated errors: σ = q-quantile(error) /
-sqrt(−2 ln(1 − q)); σ is made non-decreasing in D₁ and interpolated between bin centres (constant
-beyond the end ones). Positioning errors are heavy-tailed (a scan matched to the wrong part of a
+Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ² I, σ calibrated on the map itself
+at ``fit`` time by leaving walks out: the map's sources (walks) are dealt into at most ``cov_folds`` folds
+and each map scan is positioned against the map without its fold's walks (the grid interpolated again
+without them). σ follows a *score* of each fix: with ``cov_quantities`` 'd1' (the default) the distance D₁
+of the best match (a poor best match means a scan the map does not explain, and its error tends to be
+larger); with several quantities the least-squares prediction of the log cross-validated error from them,
+fitted on the cross-validated scans of this map. The (score, error) pairs are sorted by the score into
+equal-count bins (at most ``cov_bins``, at least 40 scans each), and in each bin σ is set so that the
+``cov_quantile`` ellipse of an isotropic 2-D Gaussian holds that share of the bin's cross-validated errors:
+σ = q-quantile(error) / sqrt(−2 ln(1 − q)); σ is made non-decreasing in the score and interpolated between
+bin centres (constant beyond the end ones).
+Every fix carries the quantities that might rank its error in ``info["features"]``: D₁ and D₁ against the
+k-th match (``d_ratio``), the largest distance between the estimates it averages (``views_m``: ages weighted
+or ignored, against the map scans or the grid — hypotheses that disagree mean an ambiguous scan), the
+weight of its candidates beyond 5 m of it (``far``, a second mode), the weighted spread of each view's
+candidates (``spread_m``), the distance between the map scans' and the grid's estimates (``view_gap_m``),
+the grid's share on the survey (``survey_share``) and the APs matched (``n_aps``); the calibration keeps
+their rank correlation (Spearman) with the cross-validated errors (``calibration["spearman"]``). On
+ms_site2 none of them ranks the errors better than D₁ on every floor, and which one does best differs
+between the map's cross-validation and the test walks: on the test walks D₁ gives B1 0.19, F3 0.56, F7
+0.74, F8 0.37, while ``views_m`` gives B1 0.22 and F8 0.39 but F3 0.10, D₁ against the k-th match F3 0.62,
+the spread F8 0.56 (cross-validated on F8's map: −0.29 for ``views_m``, 0.16 for the spread). A σ on D₁ and
+``views_m`` (fitted per building) with the strata as factors (below), chosen on B1 and F7 with a third of
+their survey walks left out in turn, ranked the errors better there (Spearman of σ with the error B1 0.11 →
+0.25, F7 0.70 → 0.73) and on held-out F3 (0.34 → 0.42; F8 0.32 → 0.26), but F3's ellipses then held 37/68 %
+of its test truths (50/95 %) instead of 61/85 (F8 58/88 instead of 56/87) — so it is an option, not the
+default.
+Positioning errors are heavy-tailed (a scan matched to the wrong part of a
 mall is tens of metres off), so a σ fitted to the mean error — or a line in D₁ — leaves the 95 %
 ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
 covariance honest where a downstream filter gates on it, at the price of a 50 % ellipse that holds
@@ -122,15 +140,17 @@ fingerprinting", MobiQuitous 2004; Mendoza-Silva et al., "Long-term WiFi fingerp
 research on robust indoor positioning", Data 3(1), 2018) — so a scan matched to map scans recorded minutes
 before it shares their transient state: it matches them better (a smaller D₁) than a scan from another
 session at the same distance from the survey, and D₁ alone says less about its error. The calibration
-therefore keeps two tables: one from the cross-validated scans whose nearest matched map scan (in
-recording time) is within ``cov_recent_s`` of them, one from the rest, and a fix takes the table of its
-own stratum (a stratum with fewer than 40 scans, or a map without recording times, uses the table of
-all scans). A user positioned days after the survey gets the second; a replay of the survey session's
-other walks mostly the first. On ms_site2 (test walks interleaved with the survey walks, so mostly
-within minutes of them) the share of test truths inside the 50 % / 95 % ellipses went, per floor,
-B1 95/99 → 94/99, F7 74/97 → 61/93 (tuned on; 600 s compared with 300 and 1800 s there), F3 39/83 →
-59/87 and F8 67/100 → 55/89 (held out: looked at for the diagnosis, a rejected candidate and this one);
-the positions do not change.
+therefore treats apart the cross-validated scans whose nearest matched map scan (in recording time) is
+within ``cov_recent_s`` of them and the rest, and a fix is calibrated by its own stratum (a stratum with
+fewer than 40 scans, or a map without recording times, uses all scans). With ``cov_strata`` 'tables' (the
+default) each stratum has its own table; with 'factor' σ is the one table over all scans times one factor
+per stratum, the factor whose ellipse holds that stratum's share of its scans' errors divided by the
+table's σ. Per-stratum tables are fitted on a few dozen scans a bin and their levels can swap between
+strata: on ms_site2 F7 with a third of the survey walks left out in turn, the tables' σ ranked the left-out
+walks' errors at −0.40, 0.52 and 0.54 (Spearman, per third) where one table ranks them at 0.60, 0.74 and
+0.51, and one table with factors at 0.51, 0.75, 0.77 (B1: 0.13, 0.19, 0.00; 0.43, 0.40, 0.04; 0.32, 0.34,
+0.03). A user positioned days after the survey gets the second stratum; a replay of the survey session's
+other walks mostly the first. The positions do not depend on the covariance.
 """
 from __future__ import annotations
 
@@ -152,6 +172,9 @@ from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, Wif
 AP_WEIGHTINGS = ("idf", "none")
 AGE_VIEWS = ("weighted", "both")
 SMOOTH_VIEWS = ("grid", "both")
+#: per-fix quantities the covariance calibration may rank the fixes by (PowedKnn fix info["features"])
+COV_QUANTITIES = ("d1", "views_m", "far", "spread_m", "view_gap_m", "d_ratio", "survey_share", "n_aps")
+COV_STRATA = ("factor", "tables")
 KERNEL_CUTOFF = 3.0                                   # the smoothing kernel is cut at this many bandwidths
 MIN_BIN_SCANS = 40                                    # cross-validated scans per bin of the covariance calibration
 
@@ -183,6 +206,13 @@ class PowedKnnParams:
     cov_recent_s: float = field(600.0, "fixes whose nearest matched map scan was recorded within this time of the scan "
                                        "(the same survey session) get a sigma calibrated on such scans only, the "
                                        "others one calibrated on the rest (s; 0 = one calibration for all)")
+    cov_strata: str = field("tables", "how the recording-time strata calibrate sigma: 'tables' (one table per stratum) "
+                                      "or 'factor' (one sigma table over all cross-validated scans, times a factor per "
+                                      "stratum that makes its ellipse hold its own scans)")
+    cov_quantities: str = field("d1", "comma-separated per-fix quantities sigma is calibrated on: 'd1' alone "
+                                              "bins the best-match distance; several are combined into the "
+                                              "least-squares prediction of the log cross-validated error (one of "
+                                              f"{', '.join(COV_QUANTITIES)})")
     smooth_m: float = field(4.0, "bandwidth of the Gaussian kernel regression that interpolates the map's readings "
                                  "over a grid of candidate positions per floor (m); 0 = match the map scans themselves")
     smooth_grid_m: float = field(1.0, "spacing of the candidate grid (m)")
@@ -243,9 +273,30 @@ class PowedKnnParams:
         require(int(self.cov_bins) >= 1, n, "cov_bins", "an integer >= 1", self.cov_bins)
         require(math.isfinite(self.cov_recent_s) and self.cov_recent_s >= 0, n, "cov_recent_s", ">= 0 s",
                 self.cov_recent_s)
+        require(self.cov_strata in COV_STRATA, n, "cov_strata", f"one of {list(COV_STRATA)}", self.cov_strata)
+        names = cov_quantity_names(self.cov_quantities)
+        require(len(names) >= 1 and len(set(names)) == len(names) and all(q in COV_QUANTITIES for q in names), n,
+                "cov_quantities", f"distinct names among {list(COV_QUANTITIES)}, comma-separated", self.cov_quantities)
         require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
         require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
                   "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
+
+
+def cov_quantity_names(text: str) -> list[str]:
+    """The names of a ``cov_quantities`` setting."""
+    return [t.strip() for t in str(text).split(",") if t.strip()]
+
+
+def cov_columns(names: list[str], q: dict[str, Any]) -> np.ndarray:
+    """(N, len(names)) the quantities ``q`` (name -> value or (N,) values) on the scale the calibration's
+    least-squares fit uses: distances in metres and AP counts by their logarithm (log(1 + m), log n), the rest as
+    they are (the best-match distance, shares and ratios in [0, 1]). A quantity missing from ``q`` counts as 0."""
+    cols = []
+    for name in names:
+        v = np.atleast_1d(np.asarray(q.get(name, 0.0), float))
+        cols.append(np.log1p(np.maximum(v, 0.0)) if name.endswith("_m") else
+                    np.log(np.maximum(v, 1.0)) if name == "n_aps" else v)
+    return np.column_stack(cols)
 
 
 def powed(rssi_dbm: ArrayLike, floor_dbm: float, beta: float) -> np.ndarray:
@@ -352,11 +403,19 @@ class PowedKnn(Positioner):
         self._floors: np.ndarray = np.zeros(0)
         self._floor_names: dict[float, str] = {}
         self._home = np.zeros(0, np.int64)           # (A,) index of each AP's home floor (-1: never heard)
-        self.sigma_table = (np.zeros(1), np.full(1, self.params.cov_floor_m))   # (D1 bin centres, sigma per bin)
-        #: (recent, older) tables: fixes matched to map scans recorded within cov_recent_s of the scan, the others
+        self.sigma_table = (np.zeros(1), np.full(1, self.params.cov_floor_m))   # (score bin centres, sigma per bin)
+        #: cov_strata 'tables': (recent, older) tables: fixes matched to map scans recorded within cov_recent_s of
+        #: the scan, the others
         self.sigma_tables: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+        #: cov_strata 'factor': (recent, older) factors on sigma_table's sigma
+        self.sigma_factors: tuple[float, ...] = ()
+        #: the score's coefficients on (1, cov_columns(quantities)): its prediction of the log error (empty: the
+        #: score is the best-match distance itself)
+        self.cov_coef = np.zeros(0)
         self.calibration: dict[str, Any] = {}
         self._last_query = (np.zeros(0, np.int64), np.zeros(0))
+        self._last_features: dict[str, float] = {}       # per-fix quantities of the last estimate (_features)
+        self._cv_features: dict[str, np.ndarray] = {}     # the same per cross-validated scan, with its error
         self.offset_db = 0.0                          # online device RSS offset (state; reset() clears it)
 
     def fit(self, radio_map: RadioMap) -> "PowedKnn":
@@ -427,7 +486,7 @@ class PowedKnn(Positioner):
         self._z = np.concatenate([map_z, grid_z])
         self._off = self._off_survey(np.ones(len(pos), bool))
         self.sigma_table = (np.zeros(1), np.full(1, p.cov_floor_m))
-        self.sigma_tables = ()
+        self.sigma_tables, self.sigma_factors, self.cov_coef = (), (), np.zeros(0)
         self.calibration = {}
         if p.cov_calibration:
             self._calibrate(list(radio_map.source), map_z)
@@ -438,6 +497,7 @@ class PowedKnn(Positioner):
                 for view in self._views:
                     if view.grid:
                         view.parts.append((rd[view.values], sm[view.values], rows))
+        self._last_features = {}
         return self
 
     def _off_survey(self, keep: np.ndarray) -> np.ndarray | None:
@@ -577,6 +637,7 @@ class PowedKnn(Positioner):
         d1 = np.full(m, np.nan)
         err = np.full(m, np.nan)
         lag = np.full(m, np.inf)                  # s from each scan to its nearest matched map scan (recording time)
+        feats: dict[str, np.ndarray] = {}
         assert self.radio_map is not None
         stamps = np.asarray(self.radio_map.stamps_ns, np.int64)
         rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
@@ -623,30 +684,56 @@ class PowedKnn(Positioner):
                     d1[i] = est[3]
                     err[i] = float(np.hypot(*(est[0] - self._pos[i])))
                     lag[i] = self._lag_s(est[1], int(stamps[i]))
+                    for key, val in self._last_features.items():
+                        feats.setdefault(key, np.full(m, np.nan))[i] = val
+                    feats.setdefault("n_aps", np.full(m, np.nan))[i] = len(c)
         self._kernel_sums = None
         ok = np.isfinite(err)
         if ok.sum() < 10:
             return
         d1, err, lag = d1[ok], err[ok], lag[ok]
-        self.sigma_table = self._sigma_bins(d1, err)
+        self._cv_features = {key: val[ok] for key, val in feats.items()} | {"error_m": err, "lag_s": lag}
+        names = cov_quantity_names(p.cov_quantities)
+        if names != ["d1"]:
+            # the score: the least-squares prediction of the log error from the quantities (scans with all of them)
+            a = np.column_stack([np.ones(len(err)), cov_columns(names, self._cv_features)])
+            good = np.all(np.isfinite(a), axis=1)
+            if good.sum() >= 10:
+                self.cov_coef = np.linalg.lstsq(a[good], np.log(np.maximum(err[good], p.cov_floor_m)), rcond=None)[0]
+        score = self.cov_score(self._cv_features) if len(self.cov_coef) else d1
+        self.sigma_table = self._sigma_bins(score, err)
         self.calibration = {"scans": int(len(err)), "mean_error_m": float(np.mean(err)),
-                            "quantile": p.cov_quantile, "d1": self.sigma_table[0].tolist(),
-                            "sigma_m": self.sigma_table[1].tolist()}
+                            "quantile": p.cov_quantile, "quantities": names if len(self.cov_coef) else ["d1"],
+                            "coef": self.cov_coef.tolist(), "score": self.sigma_table[0].tolist(),
+                            "sigma_m": self.sigma_table[1].tolist(),
+                            "spearman": {key: _spearman(val, err) for key, val in self._cv_features.items()
+                                         if key in COV_QUANTITIES}}
         recent = lag <= p.cov_recent_s
         if p.cov_recent_s > 0 and np.ptp(stamps) > 0:     # a map with recording times (not a pre-surveyed one)
-            self.sigma_tables = tuple(self._sigma_bins(d1[s], err[s]) if s.sum() >= MIN_BIN_SCANS
-                                      else self.sigma_table for s in (recent, ~recent))
+            strata = (recent, ~recent)
+            if p.cov_strata == "tables":
+                self.sigma_tables = tuple(self._sigma_bins(score[s], err[s]) if s.sum() >= MIN_BIN_SCANS
+                                          else self.sigma_table for s in strata)
+                self.calibration.update(recent_sigma_m=self.sigma_tables[0][1].tolist(),
+                                        recent_score=self.sigma_tables[0][0].tolist(),
+                                        older_sigma_m=self.sigma_tables[1][1].tolist(),
+                                        older_score=self.sigma_tables[1][0].tolist())
+            else:
+                # one shape over all scans; per stratum, the factor whose ellipse holds its share of the stratum's
+                # errors (a stratum under MIN_BIN_SCANS keeps the shape)
+                shape = np.maximum(np.interp(score, *self.sigma_table), p.cov_floor_m)
+                scale = math.sqrt(-2.0 * math.log(1.0 - p.cov_quantile))
+                self.sigma_factors = tuple(float(np.quantile(err[s] / shape[s], p.cov_quantile)) / scale
+                                           if s.sum() >= MIN_BIN_SCANS else 1.0 for s in strata)
+                self.calibration.update(factors=list(self.sigma_factors))
             self.calibration.update(recent_scans=int(recent.sum()), recent_mean_error_m=float(np.mean(err[recent]))
-                                    if recent.any() else float("nan"),
-                                    recent_sigma_m=self.sigma_tables[0][1].tolist(),
-                                    recent_d1=self.sigma_tables[0][0].tolist(),
-                                    older_sigma_m=self.sigma_tables[1][1].tolist(),
-                                    older_d1=self.sigma_tables[1][0].tolist())
+                                    if recent.any() else float("nan"))
 
     def _sigma_bins(self, d1: np.ndarray, err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cross-validated (best-match distance, error) -> (bin centres, sigma per bin): equal-count bins of
-        the distance (at most ``cov_bins``, at least 40 scans each), per bin the sigma whose ``cov_quantile``
-        ellipse holds that share of the bin's errors, made non-decreasing in the distance."""
+        """Cross-validated (score, error) -> (bin centres, sigma per bin): equal-count bins of the score (the
+        best-match distance or the predicted log error; at most ``cov_bins``, at least 40 scans each), per bin
+        the sigma whose ``cov_quantile`` ellipse holds that share of the bin's errors, made non-decreasing in
+        the score."""
         p = self.params
         order = np.argsort(d1, kind="stable")
         bins = np.array_split(order, int(np.clip(len(order) // MIN_BIN_SCANS, 1, int(p.cov_bins))))
@@ -664,13 +751,28 @@ class PowedKnn(Positioner):
             return math.inf
         return float(np.min(np.abs(np.asarray(self.radio_map.stamps_ns, np.int64)[r] - int(stamp_ns)))) / 1e9
 
-    def sigma_m(self, d1: float, lag_s: float | None = None) -> float:
-        """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m; with ``lag_s``
-        (s from the scan to its nearest matched map scan) the table of its recording-time stratum."""
+    def cov_score(self, q: dict[str, Any]) -> np.ndarray:
+        """The calibration's score of fixes with quantities ``q`` (name -> value or (N,) values; fix
+        ``info["features"]``): the predicted log error, or the best-match distance when sigma is calibrated on it
+        alone."""
+        if not len(self.cov_coef):
+            return np.atleast_1d(np.asarray(q["d1"], float))
+        names = self.calibration.get("quantities") or cov_quantity_names(self.params.cov_quantities)
+        return self.cov_coef[0] + cov_columns(names, q) @ self.cov_coef[1:]
+
+    def sigma_m(self, d1: float, lag_s: float | None = None, features: dict[str, float] | None = None) -> float:
+        """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m, with the other
+        quantities of the calibration's score in ``features`` (fix ``info["features"]``); with ``lag_s`` (s from
+        the scan to its nearest matched map scan) that of its recording-time stratum."""
+        x = float(self.cov_score({**(features or {}), "d1": d1})[0]) if len(self.cov_coef) else d1
         centres, sig = self.sigma_table
-        if lag_s is not None and self.sigma_tables:
-            centres, sig = self.sigma_tables[0 if lag_s <= self.params.cov_recent_s else 1]
-        return max(self.params.cov_floor_m, float(np.interp(d1, centres, sig)))
+        stratum = None if lag_s is None else 0 if lag_s <= self.params.cov_recent_s else 1
+        if stratum is not None and self.sigma_tables:
+            centres, sig = self.sigma_tables[stratum]
+        s = max(self.params.cov_floor_m, float(np.interp(x, centres, sig)))
+        if stratum is not None and self.sigma_factors:
+            s *= self.sigma_factors[stratum]
+        return max(self.params.cov_floor_m, s)
 
     # ------------------------------------------------------------------------------------------
     def distances(self, scan: WifiScan) -> tuple[np.ndarray, int, int]:
@@ -750,8 +852,10 @@ class PowedKnn(Positioner):
             w = np.concatenate([x for _, x, _, _ in parts]) / len(parts)
         else:
             w = np.concatenate([x * f for (_, x, _, _), f in zip(parts, share)]) / share.sum()
-        return (w @ (self._pos if pos is None else pos)[rows], rows, w, float(parts[0][2][0]),
-                np.concatenate([x for _, _, x, _ in parts]))
+        p_all = self._pos if pos is None else pos
+        xy = w @ p_all[rows]
+        self._last_features = _features(xy, p_all, parts, float(share.min()))
+        return (xy, rows, w, float(parts[0][2][0]), np.concatenate([x for _, _, x, _ in parts]))
 
     def reset(self) -> None:
         """Forget the learnt device offset (a new phone)."""
@@ -839,12 +943,13 @@ class PowedKnn(Positioner):
         dev = f - xy
         spread = (w[:, None] * dev).T @ dev
         lag = self._lag_s(best, scan.stamp_ns)
-        sigma = self.sigma_m(d1, lag)
+        feats = {**self._last_features, "n_aps": float(n_known)}
+        sigma = self.sigma_m(d1, lag, feats)
         cov = p.cov_scale * spread + sigma ** 2 * np.eye(2)
         info = {"rows": best, "weights": w, "distance": dist, "positions": f,
                 "candidates": int(sum(np.count_nonzero(allowed & (d < 1.0)) for d in ds[:1])),
                 "sigma_m": sigma, "d1": d1, "lag_s": lag,
-                "floor_p": floor_p, "floor": self._floor_names.get(z_best, "")}
+                "floor_p": floor_p, "floor": self._floor_names.get(z_best, ""), "features": feats}
         z_best = float(self._z[best[0]])
         return Fix(scan.stamp_ns, xy, cov, ok=True, info=info, z=z_best,
                    z_var=float(sum(pp * (z - z_best) ** 2 for z, pp in floor_p.items())))
@@ -852,7 +957,7 @@ class PowedKnn(Positioner):
     # -- fitted state: save / load (indoor_loc.wifi.fit_store) and memory after the fit ------------
     def release_fit_data(self) -> None:
         """Drop what only :meth:`fit` uses: the map values (M, A), the reach matrix, the kernel by columns
-        and its row sums, the path-loss prior. :meth:`locate` needs none of them, so the fixes do not
+        and its row sums, the path-loss prior, the cross-validated scans' quantities. :meth:`locate` needs none of them, so the fixes do not
         change; a later :meth:`fit` builds them again. (The kernel by rows stays: a fix on grid points
         only spreads its weights over the map scans with it, for the device offset.)"""
         self._vals = []
@@ -860,6 +965,7 @@ class PowedKnn(Positioner):
         self._prior = self._prior_raw = None
         self._prior_scale = []
         self._field_floors, self._field_detect = np.zeros(0), 0.0
+        self._cv_features, self._last_features = {}, {}
 
     def fitted_state(self) -> dict[str, np.ndarray]:
         """Everything :meth:`locate` needs after :meth:`fit`, as named arrays (no Python objects), for
@@ -871,6 +977,7 @@ class PowedKnn(Positioner):
             "floors": self._floors, "home": self._home, "map_views_equal": np.array(self._map_views_equal),
             "sigma_d1": self.sigma_table[0], "sigma_s": self.sigma_table[1],
             "n_sigma_tables": np.array(len(self.sigma_tables), np.int64),
+            "sigma_factors": np.array(self.sigma_factors, float), "cov_coef": np.asarray(self.cov_coef, float),
             "calibration": np.array(json.dumps(self.calibration)),
             "views": np.array([[v.aged, v.values, v.grid, v.twin] for v in self._views], np.int64).reshape(-1, 4)}
         for i, (d1, sig) in enumerate(self.sigma_tables):
@@ -939,6 +1046,8 @@ class PowedKnn(Positioner):
             tables = tuple((np.asarray(state[f"sigma{i}_d1"]), np.asarray(state[f"sigma{i}_s"]))
                            for i in range(int(state["n_sigma_tables"])))
             sigma_table = (np.asarray(state["sigma_d1"]), np.asarray(state["sigma_s"]))
+            factors = tuple(float(x) for x in np.asarray(state["sigma_factors"], float).ravel())
+            coef = np.asarray(state["cov_coef"], float).ravel()
             calibration = json.loads(str(state["calibration"]))
             floors = np.asarray(state["floors"])
             map_views_equal = bool(state["map_views_equal"])
@@ -959,6 +1068,7 @@ class PowedKnn(Positioner):
         self._map_views_equal = map_views_equal
         self._off = off
         self.sigma_table, self.sigma_tables, self.calibration = sigma_table, tables, calibration
+        self.sigma_factors, self.cov_coef = factors, coef
         return self
 
 
@@ -972,3 +1082,41 @@ def _sorensen(c: np.ndarray, q: np.ndarray, readings: ApReadings, sums: np.ndarr
     shared = np.bincount(rows, weights=mins, minlength=m)
     d = 1.0 - 2.0 * shared / np.maximum(q.sum() + sums, 1e-300)
     return np.clip(d, 0.0, 1.0)
+
+
+#: radius (m) around a fix beyond which its candidates' weight counts as a second hypothesis
+FAR_M = 5.0
+
+
+def _features(xy: np.ndarray, pos: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, Any]],
+              survey_share: float) -> dict[str, float]:
+    """Per-fix quantities that may say how far off a fix is: the best-match distance ``d1`` and its ratio to the
+    first view's k-th, the weighted spread (m) of each view's candidates about the view's own estimate,
+    averaged over views (``spread_m``), the distance between the estimates against the map scans and against
+    the grid (``view_gap_m``, 0 without a grid), the largest distance between two views' estimates
+    (``views_m``), the weight of the candidates farther than :data:`FAR_M` from the fix (``far``), and the
+    grid's share on the survey (``survey_share``, 1 without the field)."""
+    est, spread, far = [], [], 0.0
+    for rows, x, _, _ in parts:
+        p = pos[rows]
+        e = x @ p
+        est.append(e)
+        spread.append(math.sqrt(float(x @ np.sum((p - e) ** 2, axis=1))))
+        far += float(x @ (np.hypot(*(p - xy).T) > FAR_M)) / len(parts)
+    grid = [e for e, (_, _, _, v) in zip(est, parts) if v.grid]
+    scans = [e for e, (_, _, _, v) in zip(est, parts) if not v.grid]
+    gap = float(np.hypot(*(np.mean(grid, axis=0) - np.mean(scans, axis=0)))) if grid and scans else 0.0
+    e_all = np.array(est)
+    views = float(np.max(np.hypot(*(e_all[:, None] - e_all[None]).reshape(-1, 2).T)))
+    d = parts[0][2]
+    return {"d1": float(d[0]), "d_ratio": float(d[0] / max(float(d[-1]), 1e-12)), "spread_m": float(np.mean(spread)),
+            "view_gap_m": gap, "views_m": views, "far": far, "survey_share": survey_share}
+
+
+def _spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman's rank correlation of x and y over the pairs where both are finite (NaN with fewer than 3)."""
+    from scipy.stats import spearmanr
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 3 or np.ptp(x[ok]) == 0 or np.ptp(y[ok]) == 0:
+        return float("nan")
+    return float(spearmanr(x[ok], y[ok]).statistic)
