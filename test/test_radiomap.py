@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.errors import MapError
 from indoor_loc.wifi.radiomap import (FINGERPRINTS_FILE, MANIFEST, add_fingerprints, empty_radiomap,
                                       interpolate_positions, load_radiomap, map_scans, save_radiomap)
@@ -80,6 +81,11 @@ def test_truncated_or_bad_files(tmp_path):
     (d / FINGERPRINTS_FILE).write_text("\n".join(lines[:2] + ["11,5,1.5,2.25,survey,02:00:00:00:00:01,,loud,5180"]))
     with pytest.raises(MapError, match="malformed"):
         load_radiomap(d)
+    # a quote opening a field and never closed: the rest of the file becomes one field, over csv's limit
+    (d / FINGERPRINTS_FILE).write_text("\n".join(lines[:2] + ['"11,' + "5,1.5,2.25\n" * 20_000]))
+    for read in (load_radiomap, survey_positions):
+        with pytest.raises(MapError, match="malformed"):
+            read(d)
 
 
 def test_save_rejects_inconsistent_maps(tmp_path):

@@ -282,7 +282,7 @@ def survey_positions(directory: str | Path) -> np.ndarray:
                     xy.append((float(r[i_x]), float(r[i_y])))
     except OSError as err:
         raise MapError(f"cannot read radio map {d}: {err}") from err
-    except (IndexError, ValueError) as err:
+    except (IndexError, ValueError, csv.Error) as err:
         raise MapError(f"{d}: malformed radio map row: {err}") from err
     out = np.array(xy, float).reshape(-1, 2)
     counts = man.get("counts") or {k: man[k] for k in ("scans",) if k in man}

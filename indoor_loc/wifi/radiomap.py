@@ -232,6 +232,8 @@ def load_radiomap(directory: str | Path) -> RadioMap:
             fp_rows = list(reader)
     except OSError as err:
         raise MapError(f"cannot read radio map {d}: {err}") from err
+    except csv.Error as err:            # e.g. a quote never closed: the rest of the file one huge field
+        raise MapError(f"{d}: malformed radio map file: {err}") from err
     try:
         if not ap_rows:
             seen: dict[str, dict[str, Any]] = {}
