@@ -14,11 +14,10 @@ from indoor_loc.bench.backend_run import CONFIG_NAMES, READING, STEPS, configs, 
 HEAVY = ("rclpy", "matplotlib", "indoor_loc.bench.backend", "indoor_loc.pipeline", "indoor_loc.nodes")
 
 
-def test_fresh_process_reports_its_work_imports_and_memory(tmp_path):
+def test_fresh_process_reports_its_work_imports_and_memory():
     data = dataset("putmc").parent
-    (r,) = scratch(data, "joint, step-length est.", 1, walks=[1, 2], jobs=2, pycache=tmp_path)
+    (r,) = scratch(data, "joint, step-length est.", 1, walks=[1, 2], jobs=2)
     assert r["config"] == "joint, step-length est." and r["walks"] == 2 and r["poses"] > 20 and r["jobs"] == 2
-    assert list(tmp_path.rglob("backend_run*.pyc"))           # byte code written where asked
     assert r["wall_process_s"] > r["wall_work_s"] > 0 and r["rss_workers_peak_mb"] > 0
     # the process's CPU time holds start-up, imports and the work, each measured apart
     assert 0 < r["cpu_front_s"] < r["cpu_work_s"]
@@ -34,7 +33,8 @@ def test_unknown_configuration_is_refused_with_the_known_ones(tmp_path):
     assert res.returncode == 2
     assert "unknown configuration 'nope'" in res.stderr and "separate, step-length est." in res.stderr
     with pytest.raises(RuntimeError, match="failed"):
-        scratch(tmp_path, "nope")
+        scratch(tmp_path, "nope", pycache=tmp_path / "pyc")
+    assert list((tmp_path / "pyc").rglob("backend_run*.pyc"))           # byte code written where asked
     assert list(configs()) == list(CONFIG_NAMES)
 
 
@@ -78,10 +78,11 @@ def test_from_scratch_with_workers_gives_the_same_graph_and_counts_their_cpu():
 
 
 def test_bench_in_process_rows_time_both_and_check_the_poses():
-    from indoor_loc.bench.backend import CONFIGS, in_process
+    from indoor_loc.bench.backend import DEFAULT, in_process
 
-    rows = in_process(dataset("putmc").parent, 1, jobs=2, walks=[2, 3])
-    assert list(rows) == list(CONFIGS)
+    names = ("separate, no step-length est.", DEFAULT)
+    rows = in_process(dataset("putmc").parent, 1, jobs=2, walks=[2, 3], names=names)
+    assert tuple(rows) == names
     for r in rows.values():
         assert set(r) == {1, 2} and all(0 < v < 60 for t in r.values() for v in t)
 
