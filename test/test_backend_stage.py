@@ -438,3 +438,143 @@ def test_fixes_whose_covariance_is_asymmetric_by_rounding_are_taken():
     st, outs, _ = _run(stream)
     assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
     assert st.graph.wifi.n == sum(t == "wifi/fix" for _, t, _ in stream)
+
+
+# -- the users' clocks: stamps far ahead, stalled odometry, jumps back -------------------------------------
+def _shifted(msg, dt_ns):
+    """A copy of a stamped message ``dt_ns`` later (a wrong clock)."""
+    import copy
+    from msg_adapters.time import stamp_from_ns, stamp_to_ns
+    out = copy.deepcopy(msg)
+    out.header.stamp = stamp_from_ns(stamp_to_ns(msg.header.stamp) + dt_ns)
+    return out
+
+
+def test_a_scan_stamped_an_hour_ahead_is_rejected_and_does_not_switch_the_wait_off():
+    """One scan stamped an hour ahead (a scanner clock glitch) amid fixes 2 s late: it is rejected
+    ('future_stamp', counted per user) instead of moving the user's clock, so no scan is given up, no
+    fix is lost and the path is the one without it."""
+    _, on_time = _fix_stream(47)
+    late = delay_fixes(on_time, 2.0)
+    i = [k for k, m in enumerate(late) if m[1] == "wifi/scan"][3]
+    glitch = late[:i + 1] + [(late[i][0], "wifi/scan", _shifted(late[i][2], 3600 * SEC))] + late[i + 1:]
+    st0, outs0, _ = _run(late)
+    st, outs, _ = _run(glitch)
+    assert st.diag.rejected == Counter({"future_stamp": 1}) and "max_future_s" in st.diag.last_error
+    d = st.extra_diagnostics()
+    assert d["user.bob.future_stamps"] == "1" and d["future_stamps"] == "1"
+    assert d["fix_wait.scans_given_up"] == "0" and st.graph.wifi.n == st0.graph.wifi.n
+    a, b = _final_path(outs0), _final_path(outs)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+@pytest.mark.parametrize("case", ["stalled_odometry", "window_longer_than_fix_wait"])
+def test_scans_given_up_counts_only_scans_whose_fix_can_no_longer_be_used(case):
+    """The fix-wait counters are true: with the user's odometry stalled (scans and fixes going on, the
+    fixes then 6 s behind their scans, beyond fix_wait_s of scan time; 2 s before) or with reorder_window_s > fix_wait_s, every fix
+    is still taken, so no scan is counted as given up; a fix that never comes is counted."""
+    _, on_time = _fix_stream(48)
+    n_fix = sum(t == "wifi/fix" for _, t, _ in on_time)
+    never = [s for s, t, _ in on_time if t == "wifi/fix"][-3]          # the WiFi node declines none but this
+    if case == "stalled_odometry":
+        stall = 15 * SEC
+        kw = {}
+        stream, held = [], []
+        for stamp, topic, msg in on_time:
+            if topic == "pdr/odom" and stamp > stall:
+                continue
+            if topic == "wifi/fix":
+                if stamp != never:
+                    held.append((stamp, topic, msg))
+                continue
+            stream.append((stamp, topic, msg))
+            while held and stamp - held[0][0] >= (6 if held[0][0] > stall else 2) * SEC:
+                stream.append(held.pop(0))
+        stream += held
+    else:
+        kw = dict(reorder_window_s=3.0, fix_wait_s=1.0, time_jump_s=10.0)
+        stream = delay_fixes(on_time, 2.0, never=lambda s: s == never)
+    st, outs, _ = _run(stream, **kw)
+    d = st.extra_diagnostics()
+    # every delivered fix is taken; the declined scan is settled by the next fix (stalled: nothing
+    # passes it meanwhile) or given up (fix_wait_s 1 s: the graph passes it before the next fix comes)
+    assert st.graph.wifi.n == n_fix - 1 and sum(st.diag.rejected.values()) == 0, st.diag.last_error
+    declined = 0 if case == "stalled_odometry" else 1
+    assert d["fix_wait.scans_given_up"] == str(declined) and d["fix_wait.scans_waiting"] == "0"
+    # the WiFi node stops before the last scan: that one is given up too, and counted, at the end
+    cut = [k for k, m in enumerate(stream) if m[1] == "wifi/fix"][-1]
+    st2, _, _ = _run(stream[:cut] + [m for m in stream[cut:] if m[1] != "wifi/fix"], **kw)
+    assert st2.graph.wifi.n == n_fix - 2
+    assert st2.extra_diagnostics()["fix_wait.scans_given_up"] == str(declined + 1)
+
+
+def _replayed(msgs, times=2):
+    """A bag played in a loop: the same messages, stamps and all, ``times`` over."""
+    return [m for _ in range(times) for m in msgs]
+
+
+def test_a_replay_loop_starts_the_user_afresh_and_the_second_track_is_as_good():
+    """The same walk played twice (``indoor-loc play --loop``: stamps go back to the start): the jump
+    is detected on the odometry, said once (a notice naming the user) and counted; the first track's
+    path is published at the jump and stays in the graph (a finished user's track), the user's path
+    then restarts with the second track, which is as good as the first; nothing is dropped."""
+    rng = np.random.default_rng(49)
+    walk = corridor_walk("dan", 2, 50, 0, rng)
+    msgs = _messages(walk)
+    for joint in (True, False):
+        st = _stage(joint=joint)
+        outs = []
+        for _, topic, msg in _replayed(msgs):
+            outs += st.process(topic, msg, 0, "dan")
+        at_jump = [m for t, m in outs if t == "backend/dan/path"]
+        outs += st.finish()
+        assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
+        d = st.extra_diagnostics()
+        assert d["time_jumps"] == "1" and d["user.dan.time_jumps"] == "1"
+        assert d["users"] == "1" and d["tracks"] == "2"
+        assert len(st.notices) == 1 and "dan" in st.notices[0] and "jumped back" in st.notices[0]
+        assert len(at_jump) == 1                                        # the first track, at the jump
+        first = path_from_msg(at_jump[0])
+        second = path_from_msg([m for t, m in outs if t == "backend/dan/path"][-1])
+        assert np.array_equal(first[0], second[0])                      # the same stamps, a new track
+        err = [np.mean(np.linalg.norm(p[1] - walk.true_xy_at(p[0]), axis=1)) for p in (first, second)]
+        assert err[0] < 1.0 and err[1] <= err[0] * 1.05 + 0.05, err
+        assert len(st.graph.trajectory("dan")[0]) == len(second[0])
+
+
+def test_one_stale_odometry_message_is_dropped_not_taken_for_a_jump():
+    """An odometry message stamped 20 s back (a straggler, or a wrong stamp) amid a flowing walk is
+    held one message, then dropped as too_late, counted: the user is not restarted."""
+    rng = np.random.default_rng(50)
+    msgs = _messages(corridor_walk("eve", 2, 50, 0, rng))
+    odo = [k for k, m in enumerate(msgs) if m[1] == "pdr/odom"]
+    stale = (msgs[odo[5]][0], "pdr/odom", msgs[odo[5]][2])
+    stream = msgs[:odo[80]] + [stale] + msgs[odo[80]:]
+    st = _stage()
+    for _, topic, msg in stream:
+        st.process(topic, msg, 0, "eve")
+    st.finish()
+    assert st.diag.rejected == Counter({"too_late": 1}) and st.extra_diagnostics()["time_jumps"] == "0"
+    assert st.notices == [] and st.graph.counts()["tracks"] == 1
+
+
+def test_a_clock_jump_back_starts_every_user_afresh_at_once():
+    """``/clock`` going back (the node's hook, :meth:`BackendStage.clock_jump`): every user with input
+    starts afresh at once (one notice names them), its first track's path published then; the
+    replayed messages then need no confirmation and nothing is dropped."""
+    rng = np.random.default_rng(51)
+    walks = [corridor_walk("ann", 2, 30, 0, rng), corridor_walk("ben", 40, 20, 2 * SEC, rng)]
+    merged = sorted(((s, w.name, t, m) for w in walks for s, t, m in _messages(w)), key=lambda e: e[0])
+    st = _stage()
+    outs = []
+    for _, user, topic, msg in merged:
+        outs += st.process(topic, msg, 0, user)
+    assert BackendStage(BackendParams()).clock_jump(30 * SEC) == []           # no user yet: nothing to do
+    outs = st.run_clock_jump(30 * SEC, 0)
+    assert sorted(t for t, _ in outs if t.endswith("/path")) == ["backend/ann/path", "backend/ben/path"]
+    for _, user, topic, msg in merged:
+        outs += st.process(topic, msg, 0, user)
+    outs += st.finish()
+    d = st.extra_diagnostics()
+    assert sum(st.diag.rejected.values()) == 0 and d["time_jumps"] == "2" and d["tracks"] == "4"
+    assert len(st.notices) == 1 and "ann, ben" in st.notices[0]

@@ -250,8 +250,9 @@ class MultiUserGraph:
         self.map = EvolvingMap(params.wknn_params(), max_rows=params.max_map_rows)
         if survey is not None and survey.n_scans:
             self.map.add_fixed(survey)
-        self.users: dict[str, UserTrack] = {}
-        self.user_names: list[str] = []
+        self.users: dict[str, UserTrack] = {}         # each user's current track
+        self.tracks: list[UserTrack] = []              # every track by index (a restarted user's earlier ones too)
+        self.user_names: list[str] = []                # the user of each track
         self.step_len = np.zeros(0)
         self.poses = _Growing(x=((3,), float), user=((), np.int64), stamp=((), np.int64), frozen=((), bool))
         self.pdr = _Growing(prev=((), np.int64), cur=((), np.int64), steps=((), float), dtheta=((), float))
@@ -272,6 +273,7 @@ class MultiUserGraph:
         tr = self.users.get(name)
         if tr is None:
             tr = self.users[name] = UserTrack(len(self.user_names), name)
+            self.tracks.append(tr)
             self.user_names.append(name)
             self.step_len = np.append(self.step_len, self.params.step_prior_m)
         return tr
@@ -422,6 +424,16 @@ class MultiUserGraph:
         if name in self.users:
             self.users[name].finished = True
 
+    def restart_user(self, name: str) -> None:
+        """Start user ``name`` afresh (its stamps went back: a replay loop, a clock reset): its
+        current track is finished and detached — kept as a finished user's track is (optimised
+        until the bound freezes it, its scans in the map, which the new track may match as another
+        user's in the joint configuration) — and its next event begins a new track, with a new
+        step length at its prior."""
+        tr = self.users.pop(name, None)
+        if tr is not None:
+            tr.finished = True
+
     def _bound(self, tr: UserTrack) -> np.ndarray | None:
         """Freeze the oldest poses of ``tr`` beyond ``max_user_poses`` and the oldest-inserted poses
         beyond ``max_active_poses`` (finished users first); drop frozen poses beyond
@@ -438,7 +450,7 @@ class MultiUserGraph:
             self.n_frozen += len(old)
         excess = self.poses.n - self.n_frozen - self.params.max_active_poses
         if excess > 0:
-            finished = np.array([self.users[u].finished for u in self.user_names])
+            finished = np.array([t.finished for t in self.tracks])
             cand = np.flatnonzero(~frozen)
             order = np.argsort(~finished[self.poses.user[cand]], kind="stable")   # finished users' poses first
             pick = cand[order[:excess]]
@@ -493,7 +505,7 @@ class MultiUserGraph:
         self.map.renumber(pose_map)
         fix_map = self.map.collect_fixed(refs.ravel(), self.map.n_loaded_fixed)
         refs[refs < 0] = -1 - fix_map[-1 - refs[refs < 0]]
-        for t in self.users.values():
+        for t in self.tracks:
             if t.poses:
                 idx = pose_map[np.asarray(t.poses, np.int64)]
                 t.poses = [int(v) for v in idx[idx >= 0]]
@@ -740,4 +752,4 @@ class MultiUserGraph:
         return {"poses": self.poses.n, "frozen_poses": self.n_frozen, "dropped_poses": self.n_dropped,
                 "pdr_edges": self.pdr.n,
                 "wifi_edges": self.wifi.n, "map_rows": self.map.n, "map_user_rows": self.map.n_user_rows,
-                "users": len(self.user_names)}
+                "users": len(self.users), "tracks": len(self.tracks)}

@@ -1,12 +1,54 @@
-"""``ros2 run indoor_loc backend_node``: the multi-user factor-graph back-end (one node for all users)."""
+"""``ros2 run indoor_loc backend_node``: the multi-user factor-graph back-end (one node for all users).
+
+Clock jumps back are said as one WARN each (the stage's notices): a user's own stamps going back
+(:class:`~indoor_loc.pipeline.backend_stage.BackendStage`), and, under ``use_sim_time``, ``/clock``
+going back by more than ``time_jump_s`` (a bag played with ``--loop`` or a simulation restarted),
+which starts every user afresh at once.
+"""
 from __future__ import annotations
 
-from indoor_loc.nodes.base import run_stage_node
+from typing import Any
+
+from rclpy.clock import JumpThreshold, TimeJump
+from rclpy.duration import Duration
+
+from indoor_loc.nodes.base import StageNode, run_stage_node
 from indoor_loc.pipeline.backend_stage import BackendStage
 
 
+class BackendNode(StageNode):
+    """:class:`StageNode` for :class:`BackendStage`: logs its notices, follows ``/clock`` jumps back."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__(BackendStage, **node_kwargs)
+        stage = self.backend
+        self._jump_handle = None
+        if stage.params.time_jump_s:
+            self._jump_handle = self.get_clock().create_jump_callback(
+                JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-int(stage.params.time_jump_s * 1e9)),
+                              on_clock_change=False),
+                post_callback=self._on_clock_jump)
+
+    @property
+    def backend(self) -> BackendStage:
+        assert isinstance(self.stage, BackendStage)
+        return self.stage
+
+    def _on_clock_jump(self, jump: TimeJump) -> None:
+        """``/clock`` went back (sim time): every user starts afresh."""
+        now_ns = self.get_clock().now().nanoseconds
+        self._publish(self.backend.run_clock_jump(-jump.delta.nanoseconds, now_ns))
+        self._log_rejections()
+
+    def _log_rejections(self) -> None:
+        super()._log_rejections()
+        notices, self.backend.notices[:] = list(self.backend.notices), []
+        for text in notices:
+            self.get_logger().warning(text)
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(BackendStage, args)
+    return run_stage_node(BackendStage, args, node_factory=BackendNode)
 
 
 if __name__ == "__main__":

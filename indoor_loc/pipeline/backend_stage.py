@@ -53,7 +53,7 @@ from indoor_loc.params import field as pfield, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
-from indoor_loc.errors import InvalidMessageError
+from indoor_loc.errors import InvalidInputError, InvalidMessageError
 from msg_adapters.markers import points_markers
 from msg_adapters.odom import odom_from_msg
 from msg_adapters.path import path_to_msg
@@ -81,7 +81,16 @@ class BackendParams(GraphParams):
     reorder_window_s: float = pfield(0.5, "events wait until the user's pdr/odom is this far past them, s")
     max_scan_wait_s: float = pfield(10.0, "a scan waits at most this long (stamp time of newer scans) for PDR, s")
     fix_wait_s: float = pfield(5.0, "wifi_source 'fix': a scan whose wifi/fix has not come holds its user's events "
-                                    "at most this long (the user's stamp time), then it is given up and counted, s")
+                                    "at most this long (the user's clock: its pdr/odom, scans without odometry), "
+                                    "then they go on without it, s")
+    max_future_s: float = pfield(60.0, "a scan or fix stamped more than this ahead of its user's newest pdr/odom is "
+                                       "rejected ('future_stamp': a wrong stamp, or odometry stalled) instead of "
+                                       "moving the user's clock, s")
+    time_jump_s: float = pfield(2.0, "a user's pdr/odom (scans for a user without odometry) stamped more than this "
+                                     "before its newest, the next one too, is a clock jump back (a replay loop, a "
+                                     "sim-time restart, a clock reset): WARN, counted, the user starts afresh (its "
+                                     "track so far kept as a finished user's); /clock going back this far "
+                                     "(use_sim_time) restarts every user; > reorder_window_s; 0 = off, s")
     path_period_s: float = pfield(0.0, "republish a user's path at most this often (stamp time, after a window "
                                        "optimisation), s; 0 = only when the user finishes and at the end")
     save_map: str = pfield("", "directory to save the evolving WiFi map to at the end (radio map format); '' = no")
@@ -94,6 +103,9 @@ class BackendParams(GraphParams):
         require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
         require(self.max_scan_wait_s >= 0, n, "max_scan_wait_s", ">= 0", self.max_scan_wait_s)
         require(self.fix_wait_s >= 0, n, "fix_wait_s", ">= 0", self.fix_wait_s)
+        require(self.max_future_s > 0, n, "max_future_s", "> 0", self.max_future_s)
+        require(self.time_jump_s == 0 or self.time_jump_s > self.reorder_window_s, n, "time_jump_s",
+                "0 (off) or > reorder_window_s (a message late within the window is not a jump)", self.time_jump_s)
         require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
         require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         require(all(isinstance(u, str) and u.strip("/") for u in self.users), n, "users", "namespace names",
@@ -119,8 +131,22 @@ class _UserInput:
     pending_scans: list = field(default_factory=list)  # sorted stamps of scans whose fix has not come
     fixes_waited: int = 0                              # fixes more than reorder_window_s behind the odometry
     max_fix_lag_ns: int = 0                            # the largest such lag (stamp time), ns
-    scans_given_up: int = 0                            # scans whose fix did not come within fix_wait_s
+    scans_given_up: int = 0                            # scans whose fix can no longer be used (graph past them)
+    future_stamps: int = 0                             # scans/fixes rejected: more than max_future_s ahead
+    time_jumps: int = 0                                # clock jumps back: the user started afresh
     floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
+    held: list = field(default_factory=list)           # (topic, msg, stamp) held while a jump back is unconfirmed
+
+    def clock_ns(self) -> int | None:
+        """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
+        (or fix) stamp."""
+        return self.newest_odom_ns if self.newest_odom_ns is not None else self.newest_scan_ns
+
+    def afresh(self) -> "_UserInput":
+        """A new buffer for the user starting afresh, keeping its counters."""
+        return _UserInput(dropped_late=self.dropped_late, fixes_waited=self.fixes_waited,
+                          max_fix_lag_ns=self.max_fix_lag_ns, scans_given_up=self.scans_given_up,
+                          future_stamps=self.future_stamps, time_jumps=self.time_jumps)
 
 
 @dataclass
@@ -177,6 +203,9 @@ class BackendStage(Stage):
         self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._seq = 0
+        #: things a node should log as WARN (drained by it): clock jumps
+        self.notices: list[str] = []
+        self._replaying = False
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/scan", self._on_scan)
         if params.wifi_source == "fix":
@@ -216,8 +245,120 @@ class BackendStage(Stage):
         self._seq += 1
         heapq.heappush(b.heap, (stamp, kind, self._seq, payload))
 
+    def _jump_guard(self, user: str, topic: str, msg: Any, stamp_ns: int, recv_ns: int) -> list[Output] | None:
+        """Clock jumps back. A message of the user's clock (its ``pdr/odom``; ``wifi/scan`` for a user
+        without odometry) stamped more than ``time_jump_s`` before the clock is held, and so is every
+        later message that far back; the next clock message decides: also that far back, the jump is
+        confirmed (:meth:`_start_afresh`, the held messages then go into the new track); back in step
+        with the clock, the held ones were stragglers and take the usual way (a message older than the
+        graph's newest is ``too_late``, counted) — one late or wrongly stamped message never restarts a
+        user. Returns None when the message goes on as usual, else the outputs (nothing while held)."""
+        p = self.params
+        b = self._buffer(user)
+        clock = b.clock_ns()
+        if not p.time_jump_s or clock is None or self._replaying:
+            return None
+        is_clock = topic == "pdr/odom" or (topic == "wifi/scan" and b.newest_odom_ns is None)
+        if stamp_ns < clock - p.time_jump_s * 1e9:
+            if is_clock and any(h[0] == topic for h in b.held):
+                return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns)
+            if is_clock or b.held:
+                b.held.append((topic, msg, stamp_ns))
+                return []
+            return None                              # a straggler scan or fix: too_late as usual
+        if is_clock and b.held:                      # in step again: the held ones were stragglers
+            outs = self._replay(user, b, recv_ns)
+            return outs + self._replay_one(user, topic, msg, recv_ns)
+        return None
+
+    def _replay(self, user: str, b: _UserInput, recv_ns: int) -> list[Output]:
+        """Hand the user's held messages to their handlers the usual way (no jump check)."""
+        held, b.held = b.held, []
+        outs: list[Output] = []
+        for topic, msg, _ in held:
+            outs += self._replay_one(user, topic, msg, recv_ns)
+        return outs
+
+    def _replay_one(self, user: str, topic: str, msg: Any, recv_ns: int) -> list[Output]:
+        handler = {"pdr/odom": self._on_odom, "wifi/scan": self._on_scan, "wifi/fix": self._on_fix}[topic]
+        self._replaying = True
+        try:
+            return handler(msg, recv_ns, user)
+        except InvalidInputError as err:             # counted under its reason, as Stage.process does
+            self._reject(err.reason, f"{user}/{topic}: {err}")
+            return []
+        finally:
+            self._replaying = False
+
+    def _start_afresh(self, user: str, clock_ns: int, held: list, recv_ns: int) -> list[Output]:
+        """The user's clock jumped back: its track so far is finished and the user starts afresh
+        with the ``held`` messages (:meth:`_new_track`). A notice (WARN) and the count say so."""
+        outs = self._new_track(user)
+        b = self.inputs_by_user[user]
+        b.held = held
+        first = held[0]
+        self.notices.append(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
+                            f"({clock_ns} -> {first[2]} ns: a replay loop, a sim-time restart or a clock reset): "
+                            f"the user starts afresh, its track so far kept as a finished user's "
+                            f"(jump {b.time_jumps} of this user)")
+        return outs + self._replay(user, b, recv_ns)
+
+    def _new_track(self, user: str) -> list[Output]:
+        """Finish the user's track (everything buffered taken, window optimised, its path published,
+        as when a user leaves; it stays in the graph as a finished user's track) and give the user a
+        fresh input buffer (its counters kept, one more time jump) for a new track."""
+        p = self.params
+        held, self.inputs_by_user[user].held = self.inputs_by_user[user].held, []
+        outs = self._release(user, everything=True)
+        self.graph.finish_user(user)
+        tr = self.graph.users.get(user)
+        if tr is not None and tr.poses:
+            if p.window_poses:
+                self.graph.optimize_window(user)
+            outs.append(self._path_output(user))
+        self.graph.restart_user(user)
+        b = self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
+        b.time_jumps += 1
+        b.held = held
+        return outs
+
+    def clock_jump(self, back_ns: int, recv_ns: int = 0) -> list[Output]:
+        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns``: every user
+        with input starts afresh at once (messages held as a possible jump go into the new tracks)."""
+        users = [u for u, b in self.inputs_by_user.items() if b.clock_ns() is not None]
+        if not users:
+            return []
+        self.notices.append(f"/clock jumped back {back_ns * 1e-9:.3f} s (a replay loop or a simulation restart): "
+                            f"every user starts afresh, their tracks so far kept as finished users' "
+                            f"({', '.join(users)})")
+        outs: list[Output] = []
+        for user in users:
+            outs += self._new_track(user)
+            outs += self._replay(user, self.inputs_by_user[user], recv_ns)
+        return outs
+
+    def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
+        """:meth:`clock_jump` for the node, guarded like :meth:`Stage.run_tick`."""
+        self.diag.now_ns = now_ns
+        return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns))
+
+    def _check_future(self, user: str, stamp_ns: int, what: str) -> _UserInput:
+        """Refuse a scan or fix stamped more than ``max_future_s`` ahead of the user's odometry: it would
+        move the user's clock (and give up every scan waiting for its fix) on one wrong stamp."""
+        b = self._buffer(user)
+        if b.newest_odom_ns is not None and stamp_ns > b.newest_odom_ns + self.params.max_future_s * 1e9:
+            b.future_stamps += 1
+            raise InvalidMessageError(
+                "future_stamp", f"{user}: {what} stamp {stamp_ns} is {(stamp_ns - b.newest_odom_ns) * 1e-9:.1f} s "
+                                f"ahead of the user's odometry (newest {b.newest_odom_ns}), more than max_future_s "
+                                f"({self.params.max_future_s:g} s): a wrong stamp, or the user's pdr/odom stalled")
+        return b
+
     def _on_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
         od = odom_from_msg(msg)
+        jump = self._jump_guard(user, "pdr/odom", msg, od.stamp_ns, recv_ns)
+        if jump is not None:
+            return jump
         self._push(user, od.stamp_ns, 0, od)
         b = self._buffer(user)
         b.newest_odom_ns = od.stamp_ns if b.newest_odom_ns is None else max(b.newest_odom_ns, od.stamp_ns)
@@ -228,6 +369,10 @@ class BackendStage(Stage):
         if self._no_survey:
             raise InvalidMessageError("no_survey", "no radio map (radiomap ''): a user starts at a scan WKNN "
                                                    "localises against the survey, so none can; set radiomap")
+        jump = self._jump_guard(user, "wifi/scan", msg, scan.stamp_ns, recv_ns)
+        if jump is not None:
+            return jump
+        self._check_future(user, scan.stamp_ns, "wifi/scan")
         self._push(user, scan.stamp_ns, 2, scan)
         b = self._buffer(user)
         b.newest_scan_ns = scan.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, scan.stamp_ns)
@@ -241,6 +386,10 @@ class BackendStage(Stage):
         scan attaches to the fix's pose. A fix has its scan's stamp: it moves the scans' wait mark too,
         so a user without odometry is not held back until it leaves."""
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)
+        jump = self._jump_guard(user, "wifi/fix", msg, fix.stamp_ns, recv_ns)
+        if jump is not None:
+            return jump
+        self._check_future(user, fix.stamp_ns, "wifi/fix")
         self._push(user, fix.stamp_ns, 1, fix)
         b = self._buffer(user)
         b.newest_scan_ns = fix.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, fix.stamp_ns)
@@ -279,6 +428,7 @@ class BackendStage(Stage):
             else:
                 pose, _match = self.graph.add_scan(user, payload)
                 new_pose |= pose is not None
+        self._give_up(b, everything)
         outs: list[Output] = []
         if new_pose:
             outs.append(self._pose_output(user))
@@ -289,18 +439,24 @@ class BackendStage(Stage):
         return outs
 
     def _fix_barrier(self, b: _UserInput, everything: bool) -> int | None:
-        """Stamp of the oldest scan still waiting for its fix (events from there on are held), or None.
-        Scans waiting longer than ``fix_wait_s`` of the user's stamp time — or all, at the end of the
-        user's input — are given up and counted."""
-        if not b.pending_scans:
+        """Stamp of the oldest scan still holding its user's events for its fix, or None. A scan holds
+        them at most ``fix_wait_s`` of the user's clock (:meth:`_UserInput.clock_ns`) — none at the end
+        of the user's input; it keeps waiting for its fix until the graph passes it (:meth:`_give_up`)."""
+        clock = b.clock_ns()
+        if everything or not b.pending_scans or clock is None:
             return None
-        clock = max(v for v in (b.newest_odom_ns, b.newest_scan_ns) if v is not None)
-        horizon = math.inf if everything else clock - self.params.fix_wait_s * 1e9
-        k = bisect.bisect_left(b.pending_scans, horizon)
+        k = bisect.bisect_left(b.pending_scans, clock - self.params.fix_wait_s * 1e9)
+        return b.pending_scans[k] if k < len(b.pending_scans) else None
+
+    @staticmethod
+    def _give_up(b: _UserInput, everything: bool) -> None:
+        """Count as given up the scans waiting for a fix that can no longer be used: the graph holds
+        a newer event (the fix would be too_late), or the user's input ended."""
+        k = len(b.pending_scans) if everything else (
+            0 if b.taken_ns is None else bisect.bisect_left(b.pending_scans, b.taken_ns))
         if k:
             b.scans_given_up += k
             del b.pending_scans[:k]
-        return b.pending_scans[0] if b.pending_scans else None
 
     def _take_odom(self, user: str, b: _UserInput, od) -> bool:
         prev = b.prev_odom
@@ -349,7 +505,8 @@ class BackendStage(Stage):
         """The user's input ended: take everything buffered, publish its path (window-optimised)."""
         if user not in self.inputs_by_user:
             return []
-        outs = self._release(user, everything=True)
+        outs = self._replay(user, self.inputs_by_user[user], 0)     # an unconfirmed jump: stragglers
+        outs += self._release(user, everything=True)
         self.graph.finish_user(user)
         if user in self.graph.users and self.graph.users[user].poses:
             if self.params.window_poses:
@@ -361,6 +518,7 @@ class BackendStage(Stage):
         """End of input: take everything, optimise the whole graph, publish every path and the map."""
         outs: list[Output] = []
         for user in list(self.inputs_by_user):
+            outs += self._replay(user, self.inputs_by_user[user], 0)
             outs += self._release(user, everything=True)
         if not self.graph.poses.n:
             return outs
@@ -380,21 +538,24 @@ class BackendStage(Stage):
         if self._no_survey:    # said once at start-up (node log, indoor-loc run), not only per rejected scan
             out["error"] = ("no radio map (radiomap ''): with wifi_source 'scan' a user starts at a scan WKNN "
                             "localises against the survey, so none can; set radiomap (an importer writes one)")
-        for u, tr in self.graph.users.items():
-            b = self.inputs_by_user.get(u)
+        for u, tr in self.graph.users.items():          # each user's current track
             out[f"user.{u}.step_length_m"] = f"{self.graph.step_len[tr.index]:.3f}"
             out[f"user.{u}.poses"] = str(len(tr.poses))
             out[f"user.{u}.scans_localised"] = str(tr.scans_localised)
             out[f"user.{u}.scans_unlocalised"] = str(tr.scans_unlocalised)
             out[f"user.{u}.scans_matched_to_users"] = str(tr.scans_from_users)
-            if b is not None:
-                out[f"user.{u}.buffered"] = str(len(b.heap))
-                out[f"user.{u}.dropped_late"] = str(b.dropped_late)
-                if self.params.wifi_source == "fix":
-                    out[f"user.{u}.fixes_waited_for"] = str(b.fixes_waited)
-                    out[f"user.{u}.fix_lag_max_s"] = f"{b.max_fix_lag_ns * 1e-9:.2f}"
-                    out[f"user.{u}.scans_given_up"] = str(b.scans_given_up)
-                    out[f"user.{u}.scans_waiting_for_fix"] = str(len(b.pending_scans))
+        for u, b in self.inputs_by_user.items():
+            out[f"user.{u}.buffered"] = str(len(b.heap))
+            out[f"user.{u}.dropped_late"] = str(b.dropped_late)
+            out[f"user.{u}.future_stamps"] = str(b.future_stamps)
+            out[f"user.{u}.time_jumps"] = str(b.time_jumps)
+            if self.params.wifi_source == "fix":
+                out[f"user.{u}.fixes_waited_for"] = str(b.fixes_waited)
+                out[f"user.{u}.fix_lag_max_s"] = f"{b.max_fix_lag_ns * 1e-9:.2f}"
+                out[f"user.{u}.scans_given_up"] = str(b.scans_given_up)
+                out[f"user.{u}.scans_waiting_for_fix"] = str(len(b.pending_scans))
+        out["time_jumps"] = str(sum(b.time_jumps for b in self.inputs_by_user.values()))
+        out["future_stamps"] = str(sum(b.future_stamps for b in self.inputs_by_user.values()))
         if self.params.wifi_source == "fix":
             bs = self.inputs_by_user.values()
             out["fix_wait.fixes_waited_for"] = str(sum(b.fixes_waited for b in bs))
