@@ -21,7 +21,11 @@ ones):
   the last hop to the scan is extrapolated at the last hop's step rate and taken off the next hop;
 - a scan WKNN cannot localise (fewer than k candidates) gets no hyperedge but still a pose by the
   same rule (from PDR) once the user has started, and joins the map there (joint configuration): a
-  user walking beyond the survey leaves fingerprints that later users can match.
+  user walking beyond the survey leaves fingerprints that later users can match;
+- a user whose stamps jumped back (a replay loop, a clock reset) is restarted
+  (:meth:`MultiUserGraph.restart_user`): its track so far is kept as a finished user's and its next
+  event begins a new track (its own step length), so a user is a sequence of tracks, the last one
+  current (``users``; every track by index in ``tracks``).
 
 Solver: ``scipy.optimize.least_squares`` on the whitened residuals of all factors touching the
 chosen variables, with the analytic Jacobian assembled in a few vectorised numpy calls: MINPACK's
