@@ -79,3 +79,20 @@ def feed(graph, walk: Walk) -> None:
             graph.add_hop(walk.name, *payload)
         else:
             graph.add_scan(walk.name, payload)
+
+
+def delay_fixes(stream: list, lag_s: float, *, never=lambda stamp: False) -> list:
+    """One user's messages ``[(stamp_ns, topic, msg)]`` as a slow WiFi node delivers them: each
+    ``wifi/fix`` once the ``pdr/odom`` is ``lag_s`` past its stamp (the rest at the end); fixes for
+    which ``never(stamp)`` holds are not delivered at all."""
+    out, held = [], []
+    for stamp, topic, msg in stream:
+        if topic == "wifi/fix":
+            if not never(stamp):
+                held.append((stamp, topic, msg))
+            continue
+        out.append((stamp, topic, msg))
+        if topic == "pdr/odom":
+            while held and stamp - held[0][0] >= lag_s * SEC:
+                out.append(held.pop(0))
+    return out + held

@@ -10,7 +10,7 @@ import numpy as np
 
 import pytest
 
-from backend_synth import SEC, corridor_walk, survey
+from backend_synth import SEC, corridor_walk, delay_fixes, survey
 from helpers_dds import Peer, child_env, ros_node, spin_until
 from indoor_loc.contract import Qos
 from indoor_loc.imu.pdr import Pdr, PdrParams
@@ -176,16 +176,8 @@ def test_front_end_fixes_live(ros_domain, tmp_path):
             noise = rng.normal(0, 1.5, 2)
             fix_err.append(np.linalg.norm(noise))
             on_time.append(("wifi/fix", fix_to_msg(Fix(t, walk.true_xy_at([t])[0] + noise, 2.25 * np.eye(2), z=-5.0))))
-    late, held = [], []                # the slow WiFi node: a fix once the odometry is 2 s past it
-    for topic, msg in on_time:
-        if topic == "wifi/fix":
-            held.append((topic, msg))
-            continue
-        late.append((topic, msg))
-        while topic == "pdr/odom" and held and (stamp_to_ns(msg.header.stamp)
-                                                 - stamp_to_ns(held[0][1].header.stamp) >= 2 * SEC):
-            late.append(held.pop(0))
-    late += held
+    # the slow WiFi node: a fix once the odometry is 2 s past it
+    late = [(t, m) for _, t, m in delay_fixes([(stamp_to_ns(m.header.stamp), t, m) for t, m in on_time], 2.0)]
     newest, n_waited = -1, 0           # fixes more than the reorder window behind the odometry
     for topic, msg in late:
         t = stamp_to_ns(msg.header.stamp)

@@ -9,7 +9,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from backend_synth import SEC, corridor_walk, feed, survey
+from backend_synth import SEC, corridor_walk, delay_fixes, feed, survey
 from conftest import dataset
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.bag import BagWriter, read_bag
@@ -288,22 +288,6 @@ def _fix_stream(seed, *, z_of=lambda stamp: 0.0, n_x=50):
     return walk, out
 
 
-def _delayed(stream, lag_s, *, never=lambda stamp: False):
-    """The same messages with each fix delivered once the odometry is ``lag_s`` past its stamp (a slow
-    WiFi node); fixes for which ``never(stamp)`` holds are not delivered at all."""
-    out, held = [], []
-    for stamp, topic, msg in stream:
-        if topic == "wifi/fix":
-            if not never(stamp):
-                held.append((stamp, topic, msg))
-            continue
-        out.append((stamp, topic, msg))
-        if topic == "pdr/odom":
-            while held and stamp - held[0][0] >= lag_s * SEC:
-                out.append(held.pop(0))
-    return out + held
-
-
 def _run(stream, **kw):
     st = BackendStage(BackendParams(wknn=WKNN, **{**FIX_KW, **kw}))
     outs = []
@@ -326,7 +310,7 @@ def test_fixes_two_seconds_late_are_all_taken_and_give_the_on_time_result():
     same messages give with every fix on time; poses still come during the walk. Without the wait
     (fix_wait_s 0) the same stream loses the fixes as too_late."""
     walk, on_time = _fix_stream(41)
-    late = _delayed(on_time, 2.0)
+    late = delay_fixes(on_time, 2.0)
     n_fix = sum(t == "wifi/fix" for _, t, _ in on_time)
     assert [m for _, t, m in late if t == "wifi/fix"] != [] and late != on_time
     st0, outs0, _ = _run(on_time)
@@ -352,14 +336,14 @@ def test_a_scan_without_a_fix_is_settled_by_the_next_fix_or_given_up_after_fix_w
     fix_stamps = [s for s, t, _ in on_time if t == "wifi/fix"]
     declined = fix_stamps[5]
     st0, outs0, _ = _run([m for m in on_time if not (m[1] == "wifi/fix" and m[0] == declined)])
-    st1, outs1, _ = _run(_delayed(on_time, 2.0, never=lambda s: s == declined))
+    st1, outs1, _ = _run(delay_fixes(on_time, 2.0, never=lambda s: s == declined))
     a, b = _final_path(outs0), _final_path(outs1)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
     assert st1.extra_diagnostics()["fix_wait.scans_given_up"] == "0" and sum(st1.diag.rejected.values()) == 0
 
     # the WiFi node stops answering at the 8th scan
     stop = fix_stamps[8]
-    stream = _delayed(on_time, 2.0, never=lambda s: s >= stop)
+    stream = delay_fixes(on_time, 2.0, never=lambda s: s >= stop)
     st = BackendStage(BackendParams(wknn=WKNN, fix_wait_s=5.0, **FIX_KW))
     held_max = 0
     for _, topic, msg in stream:

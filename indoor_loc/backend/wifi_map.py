@@ -257,10 +257,11 @@ class EvolvingMap:
 
 def survey_positions(directory: str | Path) -> np.ndarray:
     """(N, 2) positions of a radio map directory's scans, in file order, without their readings: what
-    the back-end draws of a survey it does not match against (``wifi_source: fix``). Reads only the
-    fingerprints' first columns (a fraction of :func:`~indoor_loc.wifi.radiomap.load_radiomap`'s time
-    and none of its memory on a large map). MapError when the files are missing, foreign or damaged,
-    or hold another number of scans or readings than the manifest says."""
+    the back-end draws of a survey it does not match against (``wifi_source: fix``). Of each fingerprint
+    row it keeps only the scan's position, once per scan (a fraction of
+    :func:`~indoor_loc.wifi.radiomap.load_radiomap`'s time and none of its memory on a large map).
+    MapError when the files are missing, foreign or damaged, or hold another number of scans or
+    readings than the manifest says."""
     d = Path(directory)
     man = read_manifest(d)
     path = d / (man.get("files") or {}).get("fingerprints", FINGERPRINTS_FILE)
