@@ -63,7 +63,7 @@ REF_TIME_S = {"separate": (0.6, 0.95), "joint": (1.0, 1.6)}
 REF_MEMORY_MB = (15, 18)
 #: worker processes of the parallel front end timed beside one process: the cores this process may use
 #: (at least 2, so that the rows show what workers cost where there is no second core)
-JOBS = max(2, len(os.sched_getaffinity(0)))
+JOBS = max(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 #: the configurations timed in fresh processes with ``--quick`` (all of them otherwise)
 QUICK_FRESH = ("separate, no step-length est.", "joint, step-length est.")
 
