@@ -93,3 +93,29 @@ def test_time_only_entry_refuses_an_unknown_configuration(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--configs", "joint, step-length est.; nope"])
     assert e.value.code == 2 and "unknown configuration(s) ['nope']" in capsys.readouterr().err
+
+
+def test_a_walk_that_cannot_be_read_stops_the_workers_with_its_error(monkeypatch):
+    import multiprocessing
+
+    from indoor_loc.datasets.putmc import Putmc
+    from indoor_loc.errors import DatasetError, InvalidInputError
+
+    data = dataset("putmc").parent
+    real = Putmc.walk
+
+    def walk(self, n, **kw):                  # patched before the fork: the workers have it too
+        if n == 2:
+            raise DatasetError("walk 2: acc.txt is damaged")
+        if n == 3:
+            raise InvalidInputError("acc", "a NaN stamp")
+        return real(self, n, **kw)
+
+    monkeypatch.setattr(Putmc, "walk", walk)
+    for jobs in (1, 2):
+        with pytest.raises(DatasetError, match="walk 2: acc.txt is damaged"):
+            from_scratch(data, configs()["separate, no step-length est."], [1, 2, 4], jobs=jobs)
+        with pytest.raises(InvalidInputError) as err:
+            load(data, [1, 3], jobs=jobs)
+        assert (str(err.value), err.value.reason) == ("acc: a NaN stamp", "acc")     # as raised, also from a worker
+        assert multiprocessing.active_children() == []

@@ -19,7 +19,9 @@ Sections: Table 2 side by side (pooled and per sequence), the importer's default
 ``PUTMC_GRAPH_PARAMS``) on the odd walks its parameters were chosen on and on the held-out even ones,
 estimated step length per sequence, the reduced-map experiment (survey kept at 90…50 %, seeded
 draws), wall and CPU time and peak memory, in this process and (each configuration from scratch) in
-fresh processes (:mod:`indoor_loc.bench.backend_run`).
+fresh processes (:mod:`indoor_loc.bench.backend_run`), each from scratch with one process and with
+the walks' front ends in worker processes (one per core). ``python -m indoor_loc.bench.backend``
+prints only the timing tables.
 """
 from __future__ import annotations
 
@@ -60,7 +62,8 @@ REF_KEYS = {"separate, no step-length est.": "iUC_false_sLE_false", "separate, s
 REF_TIME_S = {"separate": (0.6, 0.95), "joint": (1.0, 1.6)}
 REF_MEMORY_MB = (15, 18)
 #: worker processes of the parallel front end timed beside one process: the cores this process may use
-JOBS = max(2, len(os.sched_getaffinity(0)))
+#: (at least 2, so that the rows show what workers cost where there is no second core)
+JOBS = max(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 #: the configurations timed in fresh processes with ``--quick`` (all of them otherwise)
 QUICK_FRESH = ("separate, no step-length est.", "joint, step-length est.")
 

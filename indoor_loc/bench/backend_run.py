@@ -7,9 +7,11 @@ timed (one process per configuration: loading, stepometer, WKNN, 15 LM iteration
 JSON line: the work's CPU and wall time, the process's CPU time in all (interpreter start-up and
 imports included) and its peak resident memory::
 
-    python -m indoor_loc.bench.backend_run DATA_DIR "separate, no step-length est."
+    python -m indoor_loc.bench.backend_run DATA_DIR "separate, no step-length est." [--jobs N]
 
-:func:`scratch` runs it from the bench.
+``--jobs N``: the walks' front ends in N forked workers while this process builds the graph
+(:func:`from_scratch`; the same poses, the CPU time of all the processes). :func:`scratch` runs it
+from the bench.
 """
 from __future__ import annotations
 
