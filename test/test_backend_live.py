@@ -237,3 +237,62 @@ def test_front_end_fixes_live(ros_domain, tmp_path):
         assert "Traceback" not in node_proc.output()
     finally:
         node_proc.stop()
+
+
+@pytest.mark.parametrize("sim_time", [False, True])
+def test_a_bag_played_in_a_loop_starts_the_user_afresh_live(ros_domain, tmp_path, sim_time):
+    """``indoor-loc play --loop`` of one user's bag (stamps go back to the start at each loop): the
+    node says the jump once per loop as a WARN naming the user (from its odometry; with
+    ``use_sim_time`` and the player's ``--clock``, from ``/clock``), counts it in ``/diagnostics``,
+    publishes each finished track's path, and keeps localising the user in the next pass — before,
+    every message after the first loop was dropped as too_late."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Path
+
+    from indoor_loc.bag import BagWriter
+    from msg_adapters.time import stamp_to_ns
+
+    rm = save_radiomap(survey(0, 60, np.random.default_rng(1)), tmp_path / "map")
+    params = tmp_path / "params.yaml"
+    params.write_text(f"/**/backend_node:\n  ros__parameters:\n    radiomap: {rm}\n    users: [lou]\n"
+                      f"    use_sim_time: {str(sim_time).lower()}\n"
+                      "    wknn: {shared_threshold: 0.75, shared_strict: false}\n")
+    walk = corridor_walk("lou", 2, 26, 0, np.random.default_rng(33))
+    bag = tmp_path / "lou.mcap"
+    with BagWriter(bag) as w:
+        for topic, msg in _messages(walk):
+            w.write(f"/lou/{topic}", msg, stamp_to_ns(msg.header.stamp))
+    node_proc = Peer([sys.executable, "-m", "indoor_loc.nodes.backend_node", "--ros-args", "--params-file",
+                      str(params)], env=child_env())
+    player = None
+    try:
+        with ros_node("probe") as (node, ex):
+            paths: list = []
+            diags: list = []
+            node.create_subscription(Path, "/backend/lou/path", paths.append, qos_profile(Qos.LATCHED))
+            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: node.count_publishers("/diagnostics") > 0, 60), node_proc.output()
+            player = Peer([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "-r", "5", "--loop",
+                           "--wait-for-subscribers", "30"] + (["--clock"] if sim_time else []), env=child_env())
+
+            def jumps() -> int:
+                for arr in reversed(diags):
+                    for st in arr.status:
+                        kv = {v.key: v.value for v in st.values}
+                        if "user.lou.time_jumps" in kv:
+                            return int(kv["user.lou.time_jumps"])
+                return 0
+            assert spin_until(ex, lambda: jumps() >= 2, 90), node_proc.output() + player.output()
+            said = r"/clock jumped back .*: lou" if sim_time else r"lou: pdr/odom stamp jumped back"
+            assert node_proc.wait_seen(r"WARN.*" + said, 10), node_proc.output()
+            assert len(paths) >= 2                                  # each finished track's path
+            for path in paths[:2]:
+                stamps, xy, _ = path_from_msg(path)
+                assert len(stamps) > 10 and np.mean(np.linalg.norm(xy - walk.true_xy_at(stamps), axis=1)) < 1.5
+            player.signal(signal.SIGINT)
+            assert player.wait(timeout=30) is not None
+        assert "Traceback" not in node_proc.output()
+    finally:
+        if player is not None:
+            player.stop()
+        node_proc.stop()

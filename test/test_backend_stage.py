@@ -559,9 +559,10 @@ def test_one_stale_odometry_message_is_dropped_not_taken_for_a_jump():
 
 
 def test_a_clock_jump_back_starts_every_user_afresh_at_once():
-    """``/clock`` going back (the node's hook, :meth:`BackendStage.clock_jump`): every user with input
-    starts afresh at once (one notice names them), its first track's path published then; the
-    replayed messages then need no confirmation and nothing is dropped."""
+    """``/clock`` going back (the node's hook, :meth:`BackendStage.clock_jump`): every user whose
+    clock is ahead of it starts afresh at its first message of the new pass (no confirmation; one
+    notice names them all), its first track's path published then; nothing is dropped. A user
+    already behind the new time is left alone."""
     rng = np.random.default_rng(51)
     walks = [corridor_walk("ann", 2, 30, 0, rng), corridor_walk("ben", 40, 20, 2 * SEC, rng)]
     merged = sorted(((s, w.name, t, m) for w in walks for s, t, m in _messages(w)), key=lambda e: e[0])
@@ -569,12 +570,16 @@ def test_a_clock_jump_back_starts_every_user_afresh_at_once():
     outs = []
     for _, user, topic, msg in merged:
         outs += st.process(topic, msg, 0, user)
-    assert BackendStage(BackendParams()).clock_jump(30 * SEC) == []           # no user yet: nothing to do
-    outs = st.run_clock_jump(30 * SEC, 0)
-    assert sorted(t for t, _ in outs if t.endswith("/path")) == ["backend/ann/path", "backend/ben/path"]
-    for _, user, topic, msg in merged:
+    assert st.clock_jump(30 * SEC, 10**12) == [] and st.notices == []      # not back of any user's clock
+    assert st.run_clock_jump(30 * SEC, 0) == [] and len(st.notices) == 1 and "ann, ben" in st.notices[0]
+    outs = []
+    for k, (_, user, topic, msg) in enumerate(merged):
         outs += st.process(topic, msg, 0, user)
+        if k == 0:                                   # ann's first message of the new pass: restarted at once
+            assert user == "ann" and [t for t, _ in outs if t.endswith("/path")] == ["backend/ann/path"]
+    paths = [t for t, _ in outs if t.endswith("/path")]
+    assert sorted(paths) == ["backend/ann/path", "backend/ben/path"]          # the first tracks, at the jump
     outs += st.finish()
     d = st.extra_diagnostics()
     assert sum(st.diag.rejected.values()) == 0 and d["time_jumps"] == "2" and d["tracks"] == "4"
-    assert len(st.notices) == 1 and "ann, ben" in st.notices[0]
+    assert len(st.notices) == 1

@@ -136,6 +136,7 @@ class _UserInput:
     time_jumps: int = 0                                # clock jumps back: the user started afresh
     floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
     held: list = field(default_factory=list)           # (topic, msg, stamp) held while a jump back is unconfirmed
+    jump_armed: bool = False                           # /clock went back: the next jump back needs no confirmation
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -260,6 +261,8 @@ class BackendStage(Stage):
             return None
         is_clock = topic == "pdr/odom" or (topic == "wifi/scan" and b.newest_odom_ns is None)
         if stamp_ns < clock - p.time_jump_s * 1e9:
+            if is_clock and b.jump_armed:            # /clock said so already
+                return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns, said=True)
             if is_clock and any(h[0] == topic for h in b.held):
                 return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns)
             if is_clock or b.held:
@@ -290,17 +293,19 @@ class BackendStage(Stage):
         finally:
             self._replaying = False
 
-    def _start_afresh(self, user: str, clock_ns: int, held: list, recv_ns: int) -> list[Output]:
+    def _start_afresh(self, user: str, clock_ns: int, held: list, recv_ns: int, said: bool = False) -> list[Output]:
         """The user's clock jumped back: its track so far is finished and the user starts afresh
-        with the ``held`` messages (:meth:`_new_track`). A notice (WARN) and the count say so."""
+        with the ``held`` messages (:meth:`_new_track`). A notice (WARN; unless ``said`` by the
+        ``/clock`` one) and the count say so."""
         outs = self._new_track(user)
         b = self.inputs_by_user[user]
         b.held = held
         first = held[0]
-        self.notices.append(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
+        if not said:
+            self.notices.append(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
                             f"({clock_ns} -> {first[2]} ns: a replay loop, a sim-time restart or a clock reset): "
                             f"the user starts afresh, its track so far kept as a finished user's "
-                            f"(jump {b.time_jumps} of this user)")
+                                f"(jump {b.time_jumps} of this user)")
         return outs + self._replay(user, b, recv_ns)
 
     def _new_track(self, user: str) -> list[Output]:
@@ -322,19 +327,26 @@ class BackendStage(Stage):
         b.held = held
         return outs
 
-    def clock_jump(self, back_ns: int, recv_ns: int = 0) -> list[Output]:
-        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns``: every user
-        with input starts afresh at once (messages held as a possible jump go into the new tracks)."""
-        users = [u for u, b in self.inputs_by_user.items() if b.clock_ns() is not None]
+    def clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
+        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns`` to ``now_ns``:
+        every user whose clock is more than ``time_jump_s`` ahead of it starts afresh — at once if
+        messages of its new pass are already held, else at its first one (no confirmation needed;
+        messages of the old pass still in flight go into the old track). One notice names them."""
+        p = self.params
+        users = [u for u, b in self.inputs_by_user.items()
+                 if p.time_jump_s and (b.clock_ns() or 0) > now_ns + p.time_jump_s * 1e9]
         if not users:
             return []
         self.notices.append(f"/clock jumped back {back_ns * 1e-9:.3f} s (a replay loop or a simulation restart): "
-                            f"every user starts afresh, their tracks so far kept as finished users' "
-                            f"({', '.join(users)})")
+                            f"these users start afresh, their tracks so far kept as finished users': "
+                            f"{', '.join(users)}")
         outs: list[Output] = []
         for user in users:
-            outs += self._new_track(user)
-            outs += self._replay(user, self.inputs_by_user[user], recv_ns)
+            b = self.inputs_by_user[user]
+            if any(h[0] == "pdr/odom" or b.newest_odom_ns is None for h in b.held):
+                outs += self._start_afresh(user, b.clock_ns() or 0, b.held, now_ns, said=True)
+            else:
+                b.jump_armed = True
         return outs
 
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
