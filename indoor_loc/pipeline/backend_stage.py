@@ -26,14 +26,24 @@ the back-end later than its scan by the WiFi node's processing time — on a lar
 has not come yet therefore holds that user's events from its stamp on: they are taken into the graph
 once the fix comes (so it is inserted at its place in stamp order), or once the absence of a fix is
 known: the WiFi node locates a user's scans in stamp order, so a fix of a later scan settles every
-earlier scan that got none (the node declined it). A scan waits at most ``fix_wait_s`` of the user's
-stamp time (its newest odometry or scan); then it is given up and counted (``scans_given_up``; its fix,
-should it still come, is ``too_late``). Pose output latency thus grows only by the WiFi node's real lag,
+earlier scan that got none (the node declined it). A scan holds them at most ``fix_wait_s`` of the
+user's clock (below); once the graph has taken a later event its fix can no longer be used (it would be
+``too_late``) and only then is it counted as given up (``scans_given_up``). Pose output latency thus grows only by the WiFi node's real lag,
 and the graph — and every path — is the one the same messages give when each fix comes at once
 (offline runs); to rounding, as users' poses may interleave differently in the shared arrays (joint,
 a scan may also meet another set of other users' scans, as with any wait). ``/diagnostics`` count,
 per user and in all, the fixes waited for (arriving more than ``reorder_window_s`` behind the
 user's odometry), the longest such lag, scans given up and scans waiting.
+
+Clocks. A user's clock is its newest ``pdr/odom`` stamp (its newest scan or fix for a user without
+odometry). A scan or fix stamped more than ``max_future_s`` ahead of the user's odometry is rejected
+(``future_stamp``) rather than moving the clock. A jump back — the clock message more than
+``time_jump_s`` before the clock, confirmed by the next one (a bag replayed in a loop, a simulation
+restarted, a device clock reset), or ``/clock`` going back (:meth:`BackendStage.clock_jump`, called by
+the node) — finishes the user's track as when it leaves (kept in the graph as a finished user's; its
+scans stay in the map) and starts the user afresh: ``backend/<user>/path`` restarts with the new
+track, a notice is logged (WARN) and ``time_jumps`` counted. A lone message that far back is a
+straggler and takes the usual way (``too_late``).
 
 Method, insertion policy, solver and the bound on the graph's size: :mod:`indoor_loc.backend.graph`.
 """
@@ -63,6 +73,9 @@ from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
 
 NODE_NAME = "backend_node"
+#: At most this many messages of one user are held while a jump back waits for its confirmation
+#: (the user's next odometry, normally within a second); beyond, they take the usual way.
+HELD_MAX = 1000
 
 @dataclass(frozen=True)
 class BackendParams(GraphParams):
@@ -266,8 +279,9 @@ class BackendStage(Stage):
             if is_clock and any(h[0] == topic for h in b.held):
                 return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns)
             if is_clock or b.held:
+                outs = self._replay(user, b, recv_ns) if len(b.held) >= HELD_MAX else []   # bounded
                 b.held.append((topic, msg, stamp_ns))
-                return []
+                return outs
             return None                              # a straggler scan or fix: too_late as usual
         if is_clock and b.held:                      # in step again: the held ones were stragglers
             outs = self._replay(user, b, recv_ns)
