@@ -1,4 +1,4 @@
-"""What a slow WiFi node does to the back-end, on a recorded run: ``python test/backend_fix_delay.py
+"""What a slow WiFi node does to the back-end, on a recorded run: ``python -m indoor_loc.bench.fix_delay
 RUN.mcap PARAMS.yaml INPUT_BAGS --delays 2 4 7``.
 
 RUN.mcap is an ``indoor-loc run … --nodes imu,wifi,backend`` output (its ``pdr/odom`` and
@@ -62,13 +62,15 @@ def run(params: BackendParams, msgs):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    assert __doc__ is not None
+    ap = argparse.ArgumentParser(prog="python -m indoor_loc.bench.fix_delay", description=__doc__.split("\n\n")[0])
     ap.add_argument("run")
     ap.add_argument("params")
     ap.add_argument("inputs", help="comma-separated input bags (their wifi/scan)")
     ap.add_argument("--delays", type=float, nargs="+", default=[2.0, 4.0, 7.0])
     a = ap.parse_args()
-    raw = yaml.safe_load(open(a.params))["/**/backend_node"]["ros__parameters"]
+    with open(a.params) as f:
+        raw = yaml.safe_load(f)["/**/backend_node"]["ros__parameters"]
     params = params_from_dict(BackendParams, raw)
     msgs = messages(a.run, a.inputs.split(","))
     st0, base = run(params, msgs)
