@@ -583,3 +583,18 @@ def test_a_clock_jump_back_starts_every_user_afresh_at_once():
     d = st.extra_diagnostics()
     assert sum(st.diag.rejected.values()) == 0 and d["time_jumps"] == "2" and d["tracks"] == "4"
     assert len(st.notices) == 1
+
+
+def test_the_end_of_input_right_after_a_jump_back_still_publishes_the_map(tmp_path):
+    """The input ends just after a jump back is confirmed (the new pass's first two odometry
+    messages, no pose on the new track yet): the end of input still optimises, publishes the map
+    and saves it — the restarted user's first track holds the newest poses."""
+    msgs = _messages(corridor_walk("dan", 2, 50, 0, np.random.default_rng(49)))
+    second_odom = [k for k, m in enumerate(msgs) if m[1] == "pdr/odom"][1]
+    st = _stage(save_map=str(tmp_path / "map"))
+    for _, topic, msg in msgs + msgs[:second_odom + 1]:
+        st.process(topic, msg, 0, "dan")
+    assert st.extra_diagnostics()["time_jumps"] == "1" and not any(t.poses for t in st.graph.users.values())
+    outs = st.run_finish()
+    assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
+    assert [t for t, _ in outs] == ["backend/wifi_map"] and (tmp_path / "map").is_dir()

@@ -552,7 +552,8 @@ class BackendStage(Stage):
         users = self._started_users()
         outs += [self._pose_output(u) for u in users]
         outs += [self._path_output(u) for u in users]
-        end = max(int(self.graph.poses.stamp[self.graph.users[u].poses[-1]]) for u in users)
+        # every track's newest pose: a user restarted by a jump back may not have a pose on its new track yet
+        end = int(self.graph.poses.view("stamp").max())
         outs.append(self._map_output(end))
         if self.params.save_map:
             save_radiomap(self.graph.wifi_radio_map(), Path(self.params.save_map).expanduser(),
