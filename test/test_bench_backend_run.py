@@ -119,3 +119,29 @@ def test_a_walk_that_cannot_be_read_stops_the_workers_with_its_error(monkeypatch
             load(data, [1, 3], jobs=jobs)
         assert (str(err.value), err.value.reason) == ("acc: a NaN stamp", "acc")     # as raised, also from a worker
         assert multiprocessing.active_children() == []
+
+
+def _sigint_in_worker(n: int) -> tuple[bool, int, dict]:
+    """Stands in for a walk's front end: whether this process ignores SIGINT, and its pid."""
+    import os
+    import signal
+    return signal.getsignal(signal.SIGINT) == signal.SIG_IGN, os.getpid(), {}
+
+
+def test_the_workers_leave_ctrl_c_to_the_process_that_forked_them(monkeypatch):
+    """Ctrl-C reaches the whole process group: the workers ignore it and the forking process, which
+    takes it, ends them — a worker interrupted while holding the task queue's lock would leave
+    ``Pool.terminate`` waiting for it for ever."""
+    import multiprocessing
+    import os
+    import signal
+
+    from indoor_loc.bench import backend_run
+
+    monkeypatch.setattr(backend_run, "_front_end", _sigint_in_worker)      # before the fork: the workers run it
+    with backend_run._FrontEnd(None, [1, 2, 3, 4], jobs=2) as front:
+        got = [(ignored, pid) for _, ignored, pid, _ in front.results()]
+    assert len(got) == 4 and all(ignored for ignored, _ in got), got
+    assert os.getpid() not in {pid for _, pid in got}
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler    # this process still takes Ctrl-C
+    assert multiprocessing.active_children() == []

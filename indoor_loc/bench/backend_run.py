@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -142,9 +143,15 @@ class _FrontEnd:
             # the objects this process has now are left out of the collector's passes (the workers'
             # too): a pass writes to every object it visits, and each page so written is copied
             gc.freeze()
-            self.pool = multiprocessing.get_context("fork").Pool(self.jobs)
-            # ordered, one walk per task: walk n's events arrive as soon as walks 1…n are done
-            self._it: Iterator = self.pool.imap(_front_end, self.numbers)
+            try:
+                # Ctrl-C reaches the whole process group: the workers ignore it and this process ends
+                # them (a worker interrupted while holding the task queue's lock would hang terminate())
+                self.pool = multiprocessing.get_context("fork").Pool(self.jobs, initializer=_ignore_sigint)
+                # ordered, one walk per task: walk n's events arrive as soon as walks 1…n are done
+                self._it: Iterator = self.pool.imap(_front_end, self.numbers)
+            except BaseException:
+                self.__exit__(BaseException)
+                raise
         else:
             self._it = map(_front_end, self.numbers)
         return self
@@ -156,15 +163,21 @@ class _FrontEnd:
 
     def __exit__(self, exc_type: Any, *_: Any) -> None:
         global _DATASET
-        if self.pool is not None:
-            if exc_type is not None:
-                self.pool.terminate()
-            self.pool.close()
-            self.pool.join()
-            self.pool = None
+        if self.jobs > 1:
+            if self.pool is not None:
+                if exc_type is not None:
+                    self.pool.terminate()
+                self.pool.close()
+                self.pool.join()
+                self.pool = None
             import gc
             gc.unfreeze()
         _DATASET = None
+
+
+def _ignore_sigint() -> None:
+    """A worker's initializer: SIGINT is for the process that forked it (:class:`_FrontEnd`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _front_end(n: int) -> tuple[WalkEvents, tuple, dict]:
