@@ -329,6 +329,8 @@ def test_covariance_is_calibrated_per_recording_time_stratum(strata):
             shape = max(1.0, float(np.interp(x, *pos.sigma_table)))
             assert far.info["sigma_m"] == pytest.approx(max(1.0, shape * pos.sigma_factors[1]), rel=1e-12)
             assert near.info["sigma_m"] == pytest.approx(max(1.0, shape * pos.sigma_factors[stratum]), rel=1e-12)
+            with pytest.raises(ValueError, match="views_m"):           # not taken as 0: said
+                pos.sigma_m(far.info["d1"], math.inf, {k: v for k, v in feats.items() if k != "views_m"})
         assert base.info["sigma_m"] == one.sigma_m(base.info["d1"], None, base.info["features"])
         differ += int(near.info["sigma_m"] != far.info["sigma_m"])
     assert differ >= 3                                     # the two strata's sigmas differ where the fixes fall

@@ -290,10 +290,14 @@ def cov_quantity_names(text: str) -> list[str]:
 def cov_columns(names: list[str], q: dict[str, Any]) -> np.ndarray:
     """(N, len(names)) the quantities ``q`` (name -> value or (N,) values) on the scale the calibration's
     least-squares fit uses: distances in metres and AP counts by their logarithm (log(1 + m), log n), the rest as
-    they are (the best-match distance, shares and ratios in [0, 1]). A quantity missing from ``q`` counts as 0."""
+    they are (the best-match distance, shares and ratios in [0, 1]). ValueError when ``q`` lacks one of ``names``
+    (the score of a fix without it would be wrong, not merely less informed)."""
+    missing = [name for name in names if name not in q]
+    if missing:
+        raise ValueError(f"expected the per-fix quantities {names} (a fix's info['features']), got no {missing}")
     cols = []
     for name in names:
-        v = np.atleast_1d(np.asarray(q.get(name, 0.0), float))
+        v = np.atleast_1d(np.asarray(q[name], float))
         cols.append(np.log1p(np.maximum(v, 0.0)) if name.endswith("_m") else
                     np.log(np.maximum(v, 1.0)) if name == "n_aps" else v)
     return np.column_stack(cols)
@@ -762,8 +766,9 @@ class PowedKnn(Positioner):
 
     def sigma_m(self, d1: float, lag_s: float | None = None, features: dict[str, float] | None = None) -> float:
         """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m, with the other
-        quantities of the calibration's score in ``features`` (fix ``info["features"]``); with ``lag_s`` (s from
-        the scan to its nearest matched map scan) that of its recording-time stratum."""
+        quantities of the calibration's score in ``features`` (fix ``info["features"]``; needed, ValueError without
+        them, when ``cov_quantities`` names more than 'd1'); with ``lag_s`` (s from the scan to its nearest matched
+        map scan) that of its recording-time stratum."""
         x = float(self.cov_score({**(features or {}), "d1": d1})[0]) if len(self.cov_coef) else d1
         centres, sig = self.sigma_table
         stratum = None if lag_s is None else 0 if lag_s <= self.params.cov_recent_s else 1
