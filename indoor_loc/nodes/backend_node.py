@@ -2,8 +2,11 @@
 
 Clock jumps back are said as one WARN each (the stage's notices): a user's own stamps going back
 (:class:`~indoor_loc.pipeline.backend_stage.BackendStage`), and, under ``use_sim_time``, ``/clock``
-going back by more than ``time_jump_s`` (a bag played with ``--loop`` or a simulation restarted),
-which starts every user afresh at once.
+going back by more than ``time_jump_s`` (a bag played with ``--loop`` or a simulation restarted):
+every user whose clock is ahead of it starts afresh at its first message of the new pass (no second
+message needed; messages of the old pass still in flight go into the old track). The jump callback
+runs in the executor's thread (``/clock`` is this node's subscription, spun by a single-threaded
+executor), never alongside a message callback.
 """
 from __future__ import annotations
 
@@ -35,7 +38,7 @@ class BackendNode(StageNode):
         return self.stage
 
     def _on_clock_jump(self, jump: TimeJump) -> None:
-        """``/clock`` went back (sim time): every user starts afresh."""
+        """``/clock`` went back (sim time): every user ahead of it starts afresh at its next message."""
         now_ns = self.get_clock().now().nanoseconds
         self._publish(self.backend.run_clock_jump(-jump.delta.nanoseconds, now_ns))
         self._log_rejections()
