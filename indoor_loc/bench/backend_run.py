@@ -100,22 +100,49 @@ def load(data: Path, walks: Sequence[int] | None = None, jobs: int = 1) -> Putmc
     (default: all). ``jobs`` > 1: the walks are shared out among that many forked worker processes
     while this one reads the survey — not less work, so the CPU times are those of all the processes
     (this one's and the workers', each part summed over them) and only the wall time can drop."""
+    t0, c0, k0 = time.perf_counter(), time.process_time(), _children_cpu_s()
+    with _walks(data, walks, jobs) as w:
+        for _ in w.events():
+            pass
+    cpu = time.process_time() - c0 + _children_cpu_s() - k0
+    return w.putmc(time.perf_counter() - t0, cpu)
+
+
+class _Walks:
+    """What :func:`_walks` yields: the survey, each walk's events as they come (:meth:`events`), and
+    the dataset in :class:`Putmc` form once they all came (:meth:`putmc`)."""
+
+    def __init__(self, ds: Any, numbers: list[int], survey: RadioMap, front: _FrontEnd, clock: _Clock) -> None:
+        self.ds, self.numbers, self.survey, self.front, self.clock = ds, numbers, survey, front, clock
+        self.ev: dict[int, WalkEvents] = {}
+        self.truth: dict[int, tuple] = {}
+        self.seg: dict[int, Any] = {}
+
+    def events(self) -> Iterator[WalkEvents]:
+        """Each walk's events, in walk order, as they come (its truth, segments and parts' times kept)."""
+        for n, e, tr, parts in self.front.results():
+            self.ev[n], self.truth[n], self.seg[n] = e, tr, self.ds.routes[n].segments
+            self.clock.add(parts)
+            yield e
+
+    def putmc(self, load_s: float, cpu_s: float) -> Putmc:
+        return Putmc(self.numbers, self.ev, self.truth, self.seg, self.survey, load_s, cpu_s, self.clock.parts)
+
+
+@contextmanager
+def _walks(data: Path, walks: Sequence[int] | None, jobs: int) -> Iterator[_Walks]:
+    """The PUTMC dataset opened and its survey read (timed as reading), with the front ends of walks
+    ``walks`` (default: all) computed by :class:`_FrontEnd` meanwhile; on exit its workers are waited for."""
     from indoor_loc.datasets.putmc import Putmc as Dataset
 
     clock = _Clock()
-    t0, c0, k0 = time.perf_counter(), time.process_time(), _children_cpu_s()
     with clock.part(READING):
         ds = Dataset(Path(data) / "putmc")
     numbers = [n for n in ds.walk_numbers if walks is None or n in walks]
-    ev, truth, seg = {}, {}, {}
     with _FrontEnd(ds, numbers, jobs) as front:
         with clock.part(READING):
             survey = ds.survey_map()                    # (while the workers, if any, take the walks)
-        for n, e, tr, parts in front.results():
-            ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
-            clock.add(parts)
-    cpu = time.process_time() - c0 + _children_cpu_s() - k0
-    return Putmc(numbers, ev, truth, seg, survey, time.perf_counter() - t0, cpu, clock.parts)
+        yield _Walks(ds, numbers, survey, front, clock)
 
 
 #: the dataset :func:`_front_end` reads from: set by :class:`_FrontEnd` (and inherited by its forked workers)
@@ -247,27 +274,17 @@ def from_scratch(data: Path, params: GraphParams, walks: Sequence[int] | None = 
     The front end's times per part (``data.parts``) are summed over the processes; ``data.load_s``
     is the wall time until the last walk's events arrived."""
     from indoor_loc.backend.graph import MultiUserGraph
-    from indoor_loc.datasets.putmc import Putmc as Dataset
 
-    clock = _Clock()
     t0, c0, k0 = time.perf_counter(), time.process_time(), _children_cpu_s()
-    with clock.part(READING):
-        ds = Dataset(Path(data) / "putmc")
-    numbers = [n for n in ds.walk_numbers if walks is None or n in walks]
-    ev, truth, seg = {}, {}, {}
-    with _FrontEnd(ds, numbers, jobs) as front:
-        with clock.part(READING):
-            survey = ds.survey_map()                    # (while the workers, if any, take the walks)
-        g = MultiUserGraph(params, survey)
-        for n, e, tr, parts in front.results():
-            ev[n], truth[n], seg[n] = e, tr, ds.routes[n].segments
-            clock.add(parts)
+    with _walks(data, walks, jobs) as w:
+        g = MultiUserGraph(params, w.survey)
+        for e in w.events():
             _feed(g, e)
         load_s = time.perf_counter() - t0
     g.optimize()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0 + _children_cpu_s() - k0
-    front_cpu = sum(c for _, c in clock.parts.values())
-    return Scratch(Putmc(numbers, ev, truth, seg, survey, load_s, front_cpu, clock.parts), g, wall, cpu, front.jobs)
+    front_cpu = sum(c for _, c in w.clock.parts.values())
+    return Scratch(w.putmc(load_s, front_cpu), g, wall, cpu, w.front.jobs)
 
 
 def run_graph_timed(data: Putmc, params: GraphParams,
