@@ -598,3 +598,23 @@ def test_the_end_of_input_right_after_a_jump_back_still_publishes_the_map(tmp_pa
     outs = st.run_finish()
     assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
     assert [t for t, _ in outs] == ["backend/wifi_map"] and (tmp_path / "map").is_dir()
+
+
+def test_clock_settings_are_checked_and_time_jump_s_0_turns_restarts_off():
+    """``time_jump_s`` must be 0 (off) or beyond ``reorder_window_s`` (a message late within the window
+    is no jump) and ``max_future_s`` positive; with ``time_jump_s`` 0 a replay loop restarts no one:
+    the second pass is dropped as too_late, counted."""
+    from indoor_loc.errors import ConfigError
+    for bad in (dict(time_jump_s=0.5), dict(time_jump_s=-1.0), dict(time_jump_s=3.0, reorder_window_s=3.0),
+                dict(max_future_s=0.0), dict(max_future_s=float("nan"))):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            BackendParams(**bad).validate()
+    msgs = _messages(corridor_walk("dan", 2, 30, 0, np.random.default_rng(52)))
+    st = _stage(time_jump_s=0.0)
+    for _, topic, msg in _replayed(msgs):
+        st.process(topic, msg, 0, "dan")
+    st.finish()
+    assert st.notices == [] and st.extra_diagnostics()["time_jumps"] == "0" and st.graph.counts()["tracks"] == 1
+    # all of the second pass but its last messages (stamped within reorder_window_s of the first pass's
+    # end, where the graph has not taken the first pass yet) is too_late: counted, nothing else rejected
+    assert set(st.diag.rejected) == {"too_late"} and st.diag.rejected["too_late"] >= 0.9 * len(msgs)
