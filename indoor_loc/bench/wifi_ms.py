@@ -61,7 +61,7 @@ from indoor_loc.bench.wifi import CHI2_2_50, CHI2_2_95, _jsonable
 from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.powed_knn import MIN_BIN_SCANS, PowedKnn
+from indoor_loc.wifi.powed_knn import COV_QUANTITIES, MIN_BIN_SCANS, PowedKnn
 from indoor_loc.wifi.radio_field import PLAN_FIELD_WEIGHT
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from indoor_loc.wifi.walkable import floors_walkable, plan_walkable
@@ -87,7 +87,7 @@ EQUAL_VIEWS = "field in plan, views weigh the same"
 COMBINED = "field in plan, sigma(D1+views) x stratum"
 PLAN_ROWS = (OURS, EQUAL_VIEWS, COMBINED)
 #: per-fix quantities whose rank correlation with the error each floor prints (fix info["features"]; sigma last)
-RANKED = ("d1", "views_m", "far", "spread_m", "view_gap_m", "d_ratio", "survey_share", "n_aps")
+RANKED = COV_QUANTITIES
 
 #: (label, method, params, dB added to every test scan: another phone)
 METHODS: list[tuple[str, str, dict, float]] = [
