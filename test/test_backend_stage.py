@@ -644,3 +644,25 @@ def test_a_held_message_that_fails_is_counted_and_the_others_held_go_on():
     for _, topic, msg in msgs:
         clean.process(topic, msg, 0, "eve")
     assert st.graph.counts() == clean.graph.counts()                     # every in-step message taken
+
+
+def test_a_fix_of_the_old_pass_arriving_after_the_jump_does_not_cost_the_new_pass_its_fixes():
+    """A replay loop with the WiFi node's fixes 3 s late: the old pass's last fix comes after the new
+    pass's first odometry. It is refused ('before_jump', counted) instead of entering the new track at
+    the old pass's stamp — which set the new track's clock and fix wait 35 s ahead and dropped all of
+    the new pass's fixes as too_late; its scan, of the old track, was given up at the jump."""
+    _, on_time = _fix_stream(48)
+    n_fix = sum(t == "wifi/fix" for _, t, _ in on_time)
+    late = delay_fixes(on_time, 3.0)
+    cut = max(k for k, m in enumerate(late) if m[1] != "wifi/fix") + 1
+    first_pass, in_flight = late[:cut], late[cut:]
+    assert len(in_flight) == 1
+    odo = [k for k, m in enumerate(late) if m[1] == "pdr/odom"][3]
+    st, outs, _ = _run(first_pass + late[:odo] + in_flight + late[odo:])
+    d = st.extra_diagnostics()
+    assert st.diag.rejected == Counter({"before_jump": 1}) and d["time_jumps"] == "1" and d["tracks"] == "2"
+    assert st.graph.wifi.n == 2 * n_fix - 1 and d["fix_wait.scans_given_up"] == "1"
+    # the new track is the one of the loop without the fix in flight
+    st0, outs0, _ = _run(first_pass + late)
+    a, b = _final_path(outs0), _final_path(outs)
+    assert np.array_equal(a[0], b[0]) and np.allclose(a[1], b[1], atol=1e-6)

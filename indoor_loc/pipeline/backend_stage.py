@@ -43,7 +43,9 @@ restarted, a device clock reset), or ``/clock`` going back (:meth:`BackendStage.
 the node) — finishes the user's track as when it leaves (kept in the graph as a finished user's; its
 scans stay in the map) and starts the user afresh: ``backend/<user>/path`` restarts with the new
 track, a notice is logged (WARN) and ``time_jumps`` counted. A lone message that far back is a
-straggler and takes the usual way (``too_late``).
+straggler and takes the usual way (``too_late``). After a jump, a scan or fix stamped more than
+``time_jump_s`` ahead of the user's clock but not after the clock before the jump is of the old track,
+still in flight (a lagging fix): refused (``before_jump``), not put into the new track.
 
 Method, insertion policy, solver and the bound on the graph's size: :mod:`indoor_loc.backend.graph`.
 """
@@ -151,6 +153,7 @@ class _UserInput:
     floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
     held: list = field(default_factory=list)           # (topic, msg, stamp) held while a jump back is unconfirmed
     jump_armed: bool = False                           # /clock went back: the next jump back needs no confirmation
+    before_jump_ns: int | None = None                  # the clock before the user's last jump back (its old track's end)
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -319,6 +322,7 @@ class BackendStage(Stage):
         outs = self._new_track(user)
         b = self.inputs_by_user[user]
         b.held = held
+        b.before_jump_ns = clock_ns
         first = held[0]
         if not said:
             self.notices.append(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
@@ -375,8 +379,19 @@ class BackendStage(Stage):
 
     def _check_future(self, user: str, stamp_ns: int, what: str) -> _UserInput:
         """Refuse a scan or fix stamped more than ``max_future_s`` ahead of the user's odometry: it would
-        move the user's clock (and give up every scan waiting for its fix) on one wrong stamp."""
+        move the user's clock (and give up every scan waiting for its fix) on one wrong stamp. Refuse
+        too, after a jump back, one stamped more than ``time_jump_s`` ahead of the user's clock but not
+        after the clock before the jump: a message of the old track still in flight (a fix the WiFi
+        node sends seconds after its scan), which would set the new track's clock and fix wait to the
+        old track's stamps and so drop the new track's fixes as too_late."""
         b = self._buffer(user)
+        clock = b.clock_ns()
+        if (b.before_jump_ns is not None and clock is not None
+                and clock + self.params.time_jump_s * 1e9 < stamp_ns <= b.before_jump_ns):
+            raise InvalidMessageError(
+                "before_jump", f"{user}: {what} stamp {stamp_ns} is {(stamp_ns - clock) * 1e-9:.1f} s ahead of the "
+                               f"user's clock since it jumped back from {b.before_jump_ns}: a message of the track "
+                               f"before the jump still in flight (its wifi/fix lagging), not of the new one")
         if b.newest_odom_ns is not None and stamp_ns > b.newest_odom_ns + self.params.max_future_s * 1e9:
             b.future_stamps += 1
             raise InvalidMessageError(
