@@ -598,3 +598,49 @@ def test_the_end_of_input_right_after_a_jump_back_still_publishes_the_map(tmp_pa
     outs = st.run_finish()
     assert sum(st.diag.rejected.values()) == 0, st.diag.last_error
     assert [t for t, _ in outs] == ["backend/wifi_map"] and (tmp_path / "map").is_dir()
+
+
+def test_clock_settings_are_checked_and_time_jump_s_0_turns_restarts_off():
+    """``time_jump_s`` must be 0 (off) or beyond ``reorder_window_s`` (a message late within the window
+    is no jump) and ``max_future_s`` positive; with ``time_jump_s`` 0 a replay loop restarts no one:
+    the second pass is dropped as too_late, counted."""
+    from indoor_loc.errors import ConfigError
+    for bad in (dict(time_jump_s=0.5), dict(time_jump_s=-1.0), dict(time_jump_s=3.0, reorder_window_s=3.0),
+                dict(max_future_s=0.0), dict(max_future_s=float("nan"))):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            BackendParams(**bad).validate()
+    msgs = _messages(corridor_walk("dan", 2, 30, 0, np.random.default_rng(52)))
+    st = _stage(time_jump_s=0.0)
+    for _, topic, msg in _replayed(msgs):
+        st.process(topic, msg, 0, "dan")
+    st.finish()
+    assert st.notices == [] and st.extra_diagnostics()["time_jumps"] == "0" and st.graph.counts()["tracks"] == 1
+    # all of the second pass but its last messages (stamped within reorder_window_s of the first pass's
+    # end, where the graph has not taken the first pass yet) is too_late: counted, nothing else rejected
+    assert set(st.diag.rejected) == {"too_late"} and st.diag.rejected["too_late"] >= 0.9 * len(msgs)
+
+
+def test_a_held_message_that_fails_is_counted_and_the_others_held_go_on():
+    """Messages held for a jump's confirmation are handed on one by one: one failing inside (an
+    internal error) is counted, and neither the other held ones nor the message that released them
+    are lost uncounted."""
+    msgs = _messages(corridor_walk("eve", 2, 50, 0, np.random.default_rng(50)))
+    odo = [k for k, m in enumerate(msgs) if m[1] == "pdr/odom"]
+    scan = [k for k, m in enumerate(msgs) if m[1] == "wifi/scan"][1]
+    stale_odom, stale_scan = msgs[odo[5]], msgs[scan]
+    stream = msgs[:odo[80]] + [stale_odom, stale_scan] + msgs[odo[80]:]
+    st = _stage()
+    real = st._on_odom
+
+    def on_odom(msg, recv_ns, user):
+        if msg is stale_odom[2]:
+            raise RuntimeError("broken")
+        return real(msg, recv_ns, user)
+    st._on_odom = on_odom
+    for _, topic, msg in stream:
+        st.process(topic, msg, 0, "eve")
+    assert st.diag.rejected == Counter({"internal_error": 1, "too_late": 1})
+    clean = _stage()
+    for _, topic, msg in msgs:
+        clean.process(topic, msg, 0, "eve")
+    assert st.graph.counts() == clean.graph.counts()                     # every in-step message taken

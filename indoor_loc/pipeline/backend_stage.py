@@ -53,6 +53,7 @@ import bisect
 import dataclasses
 import heapq
 import math
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -303,6 +304,10 @@ class BackendStage(Stage):
             return handler(msg, recv_ns, user)
         except InvalidInputError as err:             # counted under its reason, as Stage.process does
             self._reject(err.reason, f"{user}/{topic}: {err}")
+            return []
+        except Exception as err:  # noqa: BLE001 - as Stage.process: counted, and the other held messages go on
+            self._reject("internal_error", f"{user}/{topic}: {type(err).__name__}: {err}\n"
+                                           f"{traceback.format_exc(limit=4)}")
             return []
         finally:
             self._replaying = False
