@@ -1,7 +1,8 @@
 """The message contract: every topic the package reads or writes, with type, QoS and frame.
 
 Topic names are relative, so one user's nodes live under a namespace (``/alice/imu/data``).
-``indoor-loc contract`` prints ``TOPICS`` as a table (the users' table is in docs/nodes.md). Message types are given
+``indoor-loc contract`` prints ``TOPICS`` and ``USER_TOPICS`` as a table (the users' table is in
+docs/nodes.md). Message types are given
 as ``"pkg/msg/Name"`` strings so this module stays importable without any ROS package.
 """
 from __future__ import annotations
@@ -44,6 +45,10 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "WiFi scan, schema wifi_scan.v1: status[0] name='scan' (schema, ap_count, source); then one "
           "status per AP: name=BSSID (lower-case, colon-separated), message=SSID, values rssi_dbm, "
           "frequency_mhz[, age_ms]. header.stamp = scan time"),
+    Topic("wifi/scan_raw", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, "<user>/wifi_link",
+          "A driver's WiFi scan in the wifi/scan schema, before wifi_scan_node normalises it"),
+    Topic("wifi/scan_json", "std_msgs/msg/String", Qos.RELIABLE, "",
+          "A driver's WiFi scan as JSON text (e.g. CMU cabot's), parsed by wifi_scan_node"),
     Topic("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, "<user>/odom -> <user>/base_link",
           "Integrated PDR pose, one message per stepometer hop (stamped at the hop's end). Per interval: "
           "steps = |p_i - p_(i-1)| / step_length_m (each hop is laid straight along its mean heading), "
@@ -58,9 +63,14 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "orientation = heading of the footstep vector, yaw variance its first-order variance (1e6 = unknown)"),
     Topic("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "RTS-smoothed history of the linear PDR Kalman filter (republished periodically and at the end)"),
+    Topic("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
+          "A pose to (re)initialise the particle filter around, as RViz's 2D Pose Estimate sends it"),
     Topic("pf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.LATCHED, "map",
           "Particle-filter pose estimate (transient_local like amcl_pose)"),
     Topic("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT, "map", "Particle cloud"),
+    Topic("pf/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
+          "Particle-filter history: the filtered estimates (republished every path_period_s), then the "
+          "backward-simulation smoothed path at the end of input"),
     Topic("ground_truth", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "Ground-truth route or time-stamped trajectory of the user, when known"),
     Topic("ground_truth/route", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map",
@@ -73,9 +83,16 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("/clock", "rosgraph_msgs/msg/Clock", Qos.RELIABLE, "", "Bag time from the player (use_sim_time)"),
 ]}
 
-# Back-end per-user topics are parameterised by the user name.
-BACKEND_PATH = "backend/{user}/path"    # nav_msgs/msg/Path
-BACKEND_POSE = "backend/{user}/pose"    # geometry_msgs/msg/PoseWithCovarianceStamped
+#: Topics of multi-user stages, parameterised by the user name (``{user}``), outside any namespace.
+USER_TOPICS: dict[str, Topic] = {t.name: t for t in [
+    Topic("backend/{user}/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
+          "Multi-user back-end: the user's whole optimised trajectory (z = floor height of its nearest fix), "
+          "republished as the graph changes and when the user leaves"),
+    Topic("backend/{user}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
+          "Multi-user back-end: the user's newest optimised pose with its marginal covariance"),
+]}
+BACKEND_PATH = "backend/{user}/path"
+BACKEND_POSE = "backend/{user}/pose"
 
 
 def msg_class(type_name: str) -> type:

@@ -51,7 +51,8 @@ CANONICAL_BY_TYPE = {
     "rosgraph_msgs/msg/Clock": "/clock",
 }
 _OWN = {"imu/data_raw", "imu/mag", "imu/data", "wifi/scan", "pdr/odom", "wifi/fix", "pf/pose", "pf/particles",
-        "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock"}
+        "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json"}
+SCAN_JSON = '{"bssid": "aa:bb:cc:dd:ee:01", "rssi": -61, "ssid": "café"}'
 
 
 def values_topic(topic: str) -> str:
@@ -95,6 +96,9 @@ def build(topic: str):
         return arr
     if topic == "/clock":
         return Clock(clock=stamp_from_ns(T0 + 12))
+    if topic == "wifi/scan_json":
+        from std_msgs.msg import String
+        return String(data=SCAN_JSON)
     raise KeyError(f"no test message for contract topic {topic!r}")
 
 
@@ -156,6 +160,8 @@ def check(topic: str, msg) -> None:
         assert (d.level, d.message, d.hardware_id, d.values) == (1, "2 rejected", "/alice", {"rejected.nan": "2"})
     elif topic == "/clock":
         assert stamp_to_ns(msg.clock) == T0 + 12
+    elif topic == "wifi/scan_json":
+        assert msg.data == SCAN_JSON
     else:
         raise KeyError(topic)
 
