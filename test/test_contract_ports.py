@@ -21,15 +21,17 @@ def world(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.mark.parametrize("name", sorted(STAGES))
-@pytest.mark.parametrize("wifi_source", ["scan", "fix"])
-def test_every_port_of_every_stage_is_in_the_contract(world, name, wifi_source):
+#: every stage with its world's params, and the parameters that change a stage's ports
+CASES = [(name, {}) for name in sorted(STAGES)] + [
+    ("backend", {"wifi_source": "fix"}), ("pf", {"wifi_update": "scan", "radiomap": "radiomap"})]
+
+
+@pytest.mark.parametrize(("name", "overrides"), CASES,
+                         ids=[n + "".join(f"-{v}" for v in o.values()) for n, o in CASES])
+def test_every_port_of_every_stage_is_in_the_contract(world, name, overrides):
     cls = stage_class(name)
     values = params_for_node(load_params_file(world / "params.yaml"), cls.NODE_NAME, "/walker0")
-    if name == "backend":
-        values = {**values, "wifi_source": wifi_source}
-    elif wifi_source == "fix":
-        pytest.skip("wifi_source is a back-end parameter")
+    values = {**values, **{k: str(world / v) if k == "radiomap" else v for k, v in overrides.items()}}
     stage = cls(params_from_dict(cls.PARAMS, values), namespace="" if cls.MULTI_USER else "/walker0")
     ports = [*stage.inputs(), *stage.outputs()]
     user_ports = list(stage.user_outputs()) if cls.MULTI_USER else []
