@@ -136,6 +136,33 @@ def test_offline_run_one_backend_for_all_users(tmp_path, order):
     assert {m.msg.status[0].name for m in msgs if m.topic == "/diagnostics"} == {"/backend_node"}
 
 
+def test_an_offline_run_of_a_replay_loop_says_the_jump_once(tmp_path, capsys):
+    """A recording of a bag played twice in a row (``indoor-loc play --loop``: the header stamps go
+    back to the start while the log time goes on): ``indoor-loc run`` prints the back-end's notice of
+    the jump once on stderr, as the live node logs it, and lists it in the run's summary."""
+    walk = corridor_walk("dan", 2, 30, 0, np.random.default_rng(49))
+    msgs = _messages(walk)
+    bag = tmp_path / "loop.mcap"
+    second = msgs[-1][0] + 5 * SEC                            # the log time of the second pass
+    with BagWriter(bag) as w:
+        for k, (stamp, topic, msg) in enumerate(msgs + msgs):
+            w.write(f"/dan/{topic}", msg, stamp if k < len(msgs) else second + stamp)
+    rm = save_radiomap(survey(0, 60, np.random.default_rng(1)), tmp_path / "map")
+    params = tmp_path / "params.yaml"
+    params.write_text(f"backend_node:\n  ros__parameters:\n    radiomap: {rm}\n"
+                      f"    wknn: {{shared_threshold: 0.75, shared_strict: false}}\n")
+    capsys.readouterr()
+    s = offline.run_offline([bag], tmp_path / "out.mcap", nodes=["backend"], params=params, progress=False)
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "jumped back" in line]
+    assert len(said) == 1, err
+    assert said[0].startswith("indoor-loc run: warning: /backend_node: dan: pdr/odom stamp jumped back")
+    assert [n for n, _ in s.notices] == ["/backend_node"] and s.notices[0][1] in said[0]
+    assert s.per_stage["/backend_node"]["rejected.total"] == "0"
+    last = [m.msg for m in read_bag([tmp_path / "out.mcap"]) if m.topic == "/diagnostics"][-1]
+    assert {kv.key: kv.value for kv in last.status[0].values}["time_jumps"] == "1"
+
+
 def test_putmc_walks_joint_with_step_length():
     """Three real walks (2, 7 by the taller walker, 22) through the graph, the paper's joint +
     step-length configuration, sequentially: route distance and scan-time error stay within what

@@ -20,7 +20,8 @@ from indoor_loc.pipeline.backend_stage import BackendStage
 
 
 class BackendNode(StageNode):
-    """:class:`StageNode` for :class:`BackendStage`: logs its notices, follows ``/clock`` jumps back."""
+    """:class:`StageNode` for :class:`BackendStage`: follows ``/clock`` jumps back (the stage's notices
+    are logged as every stage's, by :class:`StageNode`)."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__(BackendStage, **node_kwargs)
@@ -42,12 +43,6 @@ class BackendNode(StageNode):
         now_ns = self.get_clock().now().nanoseconds
         self._publish(self.backend.run_clock_jump(-jump.delta.nanoseconds, now_ns))
         self._log_rejections()
-
-    def _log_rejections(self) -> None:
-        super()._log_rejections()
-        notices, self.backend.notices[:] = list(self.backend.notices), []
-        for text in notices:
-            self.get_logger().warning(text)
 
 
 def main(args: list[str] | None = None) -> int:

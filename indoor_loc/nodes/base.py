@@ -11,7 +11,9 @@
   (a node parameter, any namespace) makes them reliable, so a replay from the reliable player is
   never dropped in DDS. A publisher whose QoS cannot match a subscription is logged as an ERROR and
   counted (``rejected.incompatible_qos``, WARN in ``/diagnostics``), never a silent lack of input.
-- A bad message is logged (throttled), counted and dropped; the node keeps running.
+- A bad message is logged (throttled), counted and dropped; the node keeps running. The stage's
+  notices (:meth:`Stage.take_notices`: a user's clock jumping back, say) are logged as WARN, each
+  once, after every call into the stage.
 - Fast path: an input the stage takes in runs (``Stage.batch_handles``) of a type
   :mod:`indoor_loc.bag.bulk` decodes (``sensor_msgs/Imu``, ``MagneticField``) is subscribed raw (CDR
   bytes, no Python message per sample). Each callback also takes whatever is already queued on the
@@ -438,6 +440,7 @@ class StageNode(Node):
             self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
             self._finished_users.add(user)
             self._publish(self.stage.run_finish_user(user))
+            self._log_rejections()
             if not self._fixed_users:
                 for sub in self.user_subs.pop(user):
                     self.destroy_subscription(sub)
@@ -579,6 +582,7 @@ class StageNode(Node):
                 self.get_logger().error(f"cannot publish on {topic!r}: {err}", throttle_duration_sec=5.0)
 
     def _log_rejections(self) -> None:
+        """After a call into the stage: the latest rejection (throttled) and every notice (each once)."""
         total = sum(self.stage.diag.rejected.values())
         if total != self._last_rejected:
             self._last_rejected = total
@@ -586,6 +590,8 @@ class StageNode(Node):
                 f"dropped message ({self.stage.diag.last_error_reason}; {total} so far): "
                 f"{self.stage.diag.last_error.splitlines()[0] if self.stage.diag.last_error else ''}",
                 throttle_duration_sec=5.0)
+        for text in self.stage.take_notices():
+            self.get_logger().warning(text)
 
     def _on_timer(self) -> None:
         self._refresh_publisher_counts()
@@ -600,6 +606,7 @@ class StageNode(Node):
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
         self._publish(self.stage.run_finish())
+        self._log_rejections()
         # the end-of-input outputs (a final smoothed path) must reach reliable subscribers before
         # the process ends: wait (bounded) until every reliable publisher's messages are acked
         # (a loaded machine can take seconds); what is still unacknowledged then is said, not lost silently

@@ -221,8 +221,6 @@ class BackendStage(Stage):
         self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._seq = 0
-        #: things a node should log as WARN (drained by it): clock jumps
-        self.notices: list[str] = []
         self._replaying = False
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/scan", self._on_scan)
@@ -325,10 +323,10 @@ class BackendStage(Stage):
         b.before_jump_ns = clock_ns
         first = held[0]
         if not said:
-            self.notices.append(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
-                            f"({clock_ns} -> {first[2]} ns: a replay loop, a sim-time restart or a clock reset): "
-                            f"the user starts afresh, its track so far kept as a finished user's "
-                                f"(jump {b.time_jumps} of this user)")
+            self.notice(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
+                        f"({clock_ns} -> {first[2]} ns: a replay loop, a sim-time restart or a clock reset): "
+                        f"the user starts afresh, its track so far kept as a finished user's "
+                        f"(jump {b.time_jumps} of this user)")
         return outs + self._replay(user, b, recv_ns)
 
     def _new_track(self, user: str) -> list[Output]:
@@ -360,9 +358,8 @@ class BackendStage(Stage):
                  if p.time_jump_s and (b.clock_ns() or 0) > now_ns + p.time_jump_s * 1e9]
         if not users:
             return []
-        self.notices.append(f"/clock jumped back {back_ns * 1e-9:.3f} s (a replay loop or a simulation restart): "
-                            f"these users start afresh, their tracks so far kept as finished users': "
-                            f"{', '.join(users)}")
+        self.notice(f"/clock jumped back {back_ns * 1e-9:.3f} s (a replay loop or a simulation restart): "
+                    f"these users start afresh, their tracks so far kept as finished users': {', '.join(users)}")
         outs: list[Output] = []
         for user in users:
             b = self.inputs_by_user[user]

@@ -21,6 +21,10 @@ recent-loss window changed; otherwise that status is written again with the new 
 message, :data:`REUSE_DIAGNOSTICS`). (Namespaces are independent, so the output bag may hold one user's outputs
 written a little later than another's; their stamps and contents are the same.)
 
+A stage's notices (:meth:`Stage.take_notices`: the back-end's word on a user's clock jumping back,
+say), which a live node logs as WARN, are printed on stderr, each once, as they come (``indoor-loc
+run: warning: /backend_node: ...``), and listed in :attr:`RunSummary.notices`.
+
 Multi-user stages (``Stage.MULTI_USER``, the back-end) are one instance across all bags in the root
 namespace: they receive every user's messages (from the bags and from the per-user stages) with the
 user's name, and their outputs are written under the root (``/backend/walk07/path``).
@@ -76,6 +80,8 @@ class RunSummary:
     wall_s: float = 0.0
     cpu_s: float = 0.0                 # CPU time of this process during the run
     order: str = "merged"
+    #: the stages' notices in the order said: (node, e.g. ``/backend_node``, text)
+    notices: list[tuple[str, str]] = field(default_factory=list)
 
 
 def with_producers(nodes: list[str], idle: list[str], available: set[str]) -> list[str]:
@@ -287,10 +293,23 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
         from tqdm import tqdm
         bar = tqdm(total=total, unit="msg", desc="indoor-loc run", file=sys.stderr, mininterval=0.5)
 
+    def say_notices(ns: str, s: Stage) -> None:
+        """The stage's notices, each once, on stderr (beside the progress bar, if any)."""
+        for text in s.take_notices():
+            node = join_ns(ns, s.NODE_NAME)
+            summary.notices.append((node, text))
+            line = f"indoor-loc run: warning: {node}: {text}"
+            if bar is not None:
+                bar.write(line, file=sys.stderr)
+            else:
+                print(line, file=sys.stderr)
+
     partial = out.with_name(out.name + ".partial")
     try:
         with BagWriter(partial) as writer:
             def emit(ns: str, producer: Stage | None, outs: list[tuple[str, Any]], now_ns: int) -> None:
+                if producer is not None and producer.notices:
+                    say_notices(ns, producer)
                 for rel, msg in outs:
                     stamp = header_ns(msg)
                     writer.write(join_ns(ns, rel), msg, stamp if stamp else now_ns)
@@ -341,11 +360,13 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                         if type(s).tick is not Stage.tick:
                             touched(s)
                         emit(ns, s, s.run_tick(now_ns), now_ns)
+                        say_notices(ns, s)      # also those of batches that published nothing
                         write_diagnostics(ns, s, now_ns)
                 for s in multi:
                     if type(s).tick is not Stage.tick:
                         touched(s)
                     emit("", s, s.run_tick(now_ns), now_ns)
+                    say_notices("", s)
                     write_diagnostics("", s, now_ns)
 
             decode = MessageDecoder()
@@ -508,6 +529,8 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
                 tick(end, sorted(stages))
         os.replace(partial, out)
     finally:
+        for ns, st in [(ns, st) for ns, lst in stages.items() for st in lst] + [("", st) for st in multi]:
+            say_notices(ns, st)      # none is left normally (the last tick took them); a failed run's too
         if partial.exists():
             partial.unlink()
         if bar is not None:

@@ -18,6 +18,11 @@ the contract, or input the core refuses) is counted under its reason and dropped
 exception is counted as ``internal_error`` and reported in ``last_error`` (the node logs it,
 throttled). Nothing else is lost: the stage state is unchanged by a rejected message because
 handlers validate (via msg_adapters) before touching state.
+
+Notices: what a stage has to say once, beyond its counters (a user's clock jumping back, say), it
+hands to :meth:`Stage.notice`; the driver takes them with :meth:`Stage.take_notices` after each call
+and says each once — the node as a WARN in its log (``nodes/base.py``), ``indoor-loc run`` on stderr
+(``pipeline/offline.py``).
 """
 from __future__ import annotations
 
@@ -132,6 +137,8 @@ class Stage:
         self.diag = StageDiagnostics()
         self._handlers: dict[str, Callable[[Any, int], list[Output]]] = {}
         self._batch: dict[str, Callable[[Any, int], list[Output]]] = {}
+        #: what the stage has to say (WARN), oldest first, until a driver takes it (:meth:`take_notices`)
+        self.notices: list[str] = []
 
     # -- declared by subclasses ---------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -228,6 +235,15 @@ class Stage:
     def extra_diagnostics(self) -> dict[str, str]:
         """Stage-specific key/values added to the node's DiagnosticStatus."""
         return {}
+
+    def notice(self, text: str) -> None:
+        """Something the driver should say once, as a warning (see the module doc)."""
+        self.notices.append(text)
+
+    def take_notices(self) -> list[str]:
+        """The notices not taken yet, oldest first; each is returned once."""
+        out, self.notices = self.notices, []
+        return out
 
     # -- driver entry point ------------------------------------------------------------------------
     def process(self, topic: str, msg: Any, recv_ns: int, user: str | None = None) -> list[Output]:
