@@ -612,6 +612,52 @@ def test_a_clock_jump_back_starts_every_user_afresh_at_once():
     assert len(st.notices) == 1
 
 
+@pytest.mark.parametrize("case", ["old_clock_goes_on", "new_clock_past_the_user", "user_left"])
+def test_a_clock_jump_arming_expires_when_the_new_pass_cannot_be_coming(case):
+    """``/clock`` goes back while a user's new pass never comes. The user is armed (its next jump back
+    needs no confirmation) only while its new pass may still be on its way; the arming ends when
+    - the user's odometry goes on in step with its old clock more than ``time_jump_s`` of the new
+      clock after the jump (sooner, it is the old pass still in flight: the user stays armed);
+    - the new clock is past the user's clock (a pass replayed on ``/clock`` is no longer that far back);
+    - the user leaves.
+    Then one stale odometry message is held and dropped as too_late, counted, as without the jump; it
+    does not restart the user."""
+    msgs = _messages(corridor_walk("ann", 2, 50, 0, np.random.default_rng(53)))
+    odo = [k for k, m in enumerate(msgs) if m[1] == "pdr/odom"]
+    cut = odo[60] + 1
+    st = _stage()
+    for stamp, topic, msg in msgs[:cut]:
+        st.process(topic, msg, stamp, "ann")                 # the node's clock: the stamps
+    clock = msgs[odo[60]][0]
+    now = 1 * SEC
+    assert st.run_clock_jump(clock - now, now) == [] and len(st.take_notices()) == 1
+    b = st.inputs_by_user["ann"]
+    assert b.armed_at_ns == now
+    stale = (0, "pdr/odom", msgs[odo[5]][2])
+    if case == "old_clock_goes_on":
+        rest = msgs[cut:]
+        early = [k for k, m in enumerate(rest) if m[1] == "pdr/odom"][1] + 1
+        for _, topic, msg in rest[:early]:                    # the old pass in flight, just after the jump
+            st.process(topic, msg, now + SEC // 2, "ann")
+        assert b.armed_at_ns == now
+        later = rest[early:]
+        stream = later[:10] + [stale] + later[10:]
+        recv = now + 3 * SEC                                  # > time_jump_s (2 s) after the jump
+    elif case == "new_clock_past_the_user":
+        stream, recv = [stale], clock + SEC
+    else:
+        st.run_finish_user("ann")
+        assert b.armed_at_ns is None
+        stream, recv = [stale], now
+    for _, topic, msg in stream:
+        st.process(topic, msg, recv, "ann")
+    st.run_finish()
+    d = st.extra_diagnostics()
+    assert d["time_jumps"] == "0" and d["tracks"] == "1" and st.take_notices() == []
+    assert st.diag.rejected == Counter({"too_late": 1}), st.diag.last_error
+    assert st.inputs_by_user["ann"].armed_at_ns is None
+
+
 def test_the_end_of_input_right_after_a_jump_back_still_publishes_the_map(tmp_path):
     """The input ends just after a jump back is confirmed (the new pass's first two odometry
     messages, no pose on the new track yet): the end of input still optimises, publishes the map

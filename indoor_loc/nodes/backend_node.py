@@ -4,9 +4,9 @@ Clock jumps back are said as one WARN each (the stage's notices): a user's own s
 (:class:`~indoor_loc.pipeline.backend_stage.BackendStage`), and, under ``use_sim_time``, ``/clock``
 going back by more than ``time_jump_s`` (a bag played with ``--loop`` or a simulation restarted):
 every user whose clock is ahead of it starts afresh at its first message of the new pass (no second
-message needed; messages of the old pass still in flight go into the old track). The jump callback
-runs in the executor's thread (``/clock`` is this node's subscription, spun by a single-threaded
-executor), never alongside a message callback.
+message needed, while that pass may still be coming; messages of the old pass still in flight go
+into the old track). The jump callback runs in the executor's thread (``/clock`` is this node's
+subscription, spun by a single-threaded executor), never alongside a message callback.
 """
 from __future__ import annotations
 

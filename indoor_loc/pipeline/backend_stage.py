@@ -40,9 +40,10 @@ odometry). A scan or fix stamped more than ``max_future_s`` ahead of the user's 
 (``future_stamp``) rather than moving the clock. A jump back — the clock message more than
 ``time_jump_s`` before the clock, confirmed by the next one (a bag replayed in a loop, a simulation
 restarted, a device clock reset), or ``/clock`` going back (:meth:`BackendStage.clock_jump`, called by
-the node) — finishes the user's track as when it leaves (kept in the graph as a finished user's; its
-scans stay in the map) and starts the user afresh: ``backend/<user>/path`` restarts with the new
-track, a notice is logged (WARN) and ``time_jumps`` counted. A lone message that far back is a
+the node; no confirmation needed while the user's new pass may still be coming) — finishes the user's
+track as when it leaves (kept in the graph as a finished user's; its scans stay in the map) and starts
+the user afresh: ``backend/<user>/path`` restarts with the new track, a notice is logged (WARN) and
+``time_jumps`` counted. A lone message that far back is a
 straggler and takes the usual way (``too_late``). After a jump, a scan or fix stamped more than
 ``time_jump_s`` ahead of the user's clock but not after the clock before the jump is of the old track,
 still in flight (a lagging fix): refused (``before_jump``), not put into the new track.
@@ -152,7 +153,8 @@ class _UserInput:
     time_jumps: int = 0                                # clock jumps back: the user started afresh
     floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
     held: list = field(default_factory=list)           # (topic, msg, stamp) held while a jump back is unconfirmed
-    jump_armed: bool = False                           # /clock went back: the next jump back needs no confirmation
+    armed_at_ns: int | None = None                     # /clock went back to this: the next jump back needs no
+                                                       # confirmation (until :meth:`BackendStage._disarm`)
     before_jump_ns: int | None = None                  # the clock before the user's last jump back (its old track's end)
 
     def clock_ns(self) -> int | None:
@@ -275,8 +277,10 @@ class BackendStage(Stage):
         if not p.time_jump_s or clock is None or self._replaying:
             return None
         is_clock = topic == "pdr/odom" or (topic == "wifi/scan" and b.newest_odom_ns is None)
-        if stamp_ns < clock - p.time_jump_s * 1e9:
-            if is_clock and b.jump_armed:            # /clock said so already
+        far_back = stamp_ns < clock - p.time_jump_s * 1e9
+        self._disarm(b, clock, is_clock and not far_back, recv_ns)
+        if far_back:
+            if is_clock and b.armed_at_ns is not None:    # /clock said so already
                 return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns, said=True)
             if is_clock and any(h[0] == topic for h in b.held):
                 return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns)
@@ -366,8 +370,21 @@ class BackendStage(Stage):
             if any(h[0] == "pdr/odom" or b.newest_odom_ns is None for h in b.held):
                 outs += self._start_afresh(user, b.clock_ns() or 0, b.held, now_ns, said=True)
             else:
-                b.jump_armed = True
+                b.armed_at_ns = now_ns
         return outs
+
+    def _disarm(self, b: _UserInput, clock_ns: int, in_step: bool, recv_ns: int) -> None:
+        """End the arming of a user by a ``/clock`` jump (:meth:`clock_jump`) once its new pass can no
+        longer be on its way: a clock message in step with the user's old clock received more than
+        ``time_jump_s`` of the new clock after the jump (the user goes on with its old clock — a
+        message of the old pass still in flight comes sooner), or the new clock past the user's clock
+        (a pass replayed on ``/clock`` would no longer be stamped that far back). A jump back then
+        needs its confirmation as any other (:meth:`_jump_guard`), so a lone late message does not
+        restart the user."""
+        if b.armed_at_ns is None:
+            return
+        if recv_ns > clock_ns or (in_step and recv_ns > b.armed_at_ns + self.params.time_jump_s * 1e9):
+            b.armed_at_ns = None
 
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """:meth:`clock_jump` for the node, guarded like :meth:`Stage.run_tick`."""
@@ -548,6 +565,7 @@ class BackendStage(Stage):
         """The user's input ended: take everything buffered, publish its path (window-optimised)."""
         if user not in self.inputs_by_user:
             return []
+        self.inputs_by_user[user].armed_at_ns = None                 # its new pass did not come
         outs = self._replay(user, self.inputs_by_user[user], 0)     # an unconfirmed jump: stragglers
         outs += self._release(user, everything=True)
         self.graph.finish_user(user)
