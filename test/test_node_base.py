@@ -50,6 +50,33 @@ def test_help_prints_usage(capsys):
     assert "gain (default 1.0)" in out and "imu/data_raw [sensor_msgs/msg/Imu]" in out and "/diagnostics" in out
 
 
+def test_help_names_the_topics_other_parameter_values_select(capsys):
+    """A node's --help lists its topics with the default parameters, then the topics each other value
+    of a port-changing parameter subscribes or publishes, naming the parameter (the back-end with
+    wifi_source fix also takes wifi/fix; the PF with wifi_update scan takes wifi/scan instead of
+    wifi/fix; imu_node with heading_source orientation does not publish imu/data; wifi_scan_node
+    with an interface tool subscribes nothing)."""
+    from indoor_loc.nodes import backend_node, imu_node, tll_pf_node, wifi_scan_node
+    expected = {      # module: [(the list it amends, the line's start)]
+        backend_node: [("subscribes", "  with wifi_source 'fix' (default 'scan'): also /<user>/wifi/fix "
+                                      "[geometry_msgs/msg/PoseWithCovarianceStamped]")],
+        tll_pf_node: [("subscribes", "  with wifi_update 'scan' (default 'fix'): wifi/scan "
+                                     "[diagnostic_msgs/msg/DiagnosticArray] instead of wifi/fix "
+                                     "[geometry_msgs/msg/PoseWithCovarianceStamped]")],
+        imu_node: [("publishes", "  with heading_source 'orientation' (default 'auto'): without imu/data "
+                                 "[sensor_msgs/msg/Imu]")],
+        wifi_scan_node: [("subscribes", "  with source 'iw' or 'nmcli' (default 'topic'): without wifi/scan_raw ")],
+    }
+    for module, lines in expected.items():
+        assert module.main([module.__name__, "--help"]) == 0
+        out = capsys.readouterr().out.splitlines()
+        for section, want in lines:
+            hits = [k for k, line in enumerate(out) if line.startswith(want)]
+            assert len(hits) == 1, (module.__name__, want, out[-6:])
+            above = next(line for line in reversed(out[:hits[0]]) if not line.startswith("  "))
+            assert above.startswith(section + ":"), (module.__name__, out[-6:])
+
+
 def test_parameters_from_command_line(ros_domain):
     with ros_node("probe") as (probe, _):
         node = StageNode(DummyStage, context=probe.context, namespace="/alice",

@@ -19,6 +19,10 @@ from indoor_loc.nodes.base import StageNode, run_stage_node
 from indoor_loc.pipeline.backend_stage import BackendStage
 
 
+#: parameter values that change the node's topics, named in its ``--help``
+PORT_PARAMS = {"wifi_source": ("fix",)}
+
+
 class BackendNode(StageNode):
     """:class:`StageNode` for :class:`BackendStage`: follows ``/clock`` jumps back (the stage's notices
     are logged as every stage's, by :class:`StageNode`)."""
@@ -46,7 +50,7 @@ class BackendNode(StageNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(BackendStage, args, node_factory=BackendNode)
+    return run_stage_node(BackendStage, args, node_factory=BackendNode, port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":

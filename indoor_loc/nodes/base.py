@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import array
 import argparse
+import copy
+import dataclasses
 import heapq
 import os
 import signal
@@ -46,7 +48,7 @@ import struct
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Mapping, Sequence
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -730,8 +732,10 @@ def spin_node(node: Node, taken: Callable[[], int] | None = None) -> None:
 
 
 def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
-                   node_factory: Callable[[], StageNode] | None = None) -> int:
-    """``main()`` of every stage node: ``-h``/``--help`` prints :func:`node_usage`; otherwise
+                   node_factory: Callable[[], StageNode] | None = None,
+                   port_params: Mapping[str, Sequence[Any]] | None = None) -> int:
+    """``main()`` of every stage node: ``-h``/``--help`` prints :func:`node_usage` (with the topics
+    the values of ``port_params`` select); otherwise
     ``rclpy.init(args)`` (``--ros-args -r __ns:=/alice --params-file F -p k:=v`` as usual), build
     the node (``node_factory()`` or ``StageNode(stage_cls)``) and spin until SIGINT/SIGTERM.
 
@@ -740,7 +744,7 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     argv = list(sys.argv if args is None else args)
     user_args = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
     if any(a in ("-h", "--help") for a in user_args):
-        print(node_usage(stage_cls))
+        print(node_usage(stage_cls, port_params))
         return 0
     name = stage_cls.NODE_NAME
     try:
@@ -857,7 +861,41 @@ def params_file_args(argv: list[str]) -> list[str]:
     return out
 
 
-def node_usage(stage_cls: type[Stage]) -> str:
+def _ports_text(ports: Sequence[Any], prefix: str = "") -> str:
+    return ", ".join(f"{prefix}{p.topic} [{p.type}]" for p in ports)
+
+
+def _port_variants(stage: Stage, port_params: Mapping[str, Sequence[Any]], prefix: str) -> tuple[list[str], list[str]]:
+    """Help lines (subscriptions, publications) for the topics other values of a parameter select:
+    the ports of ``stage`` with each value of ``port_params`` (``{parameter: [other values]}``, top-level
+    parameters), compared with its own. Only the ports are asked for (a copy of the stage with the
+    other value), so a value that needs files to start (a radio map) is described all the same."""
+    subs: list[str] = []
+    pubs: list[str] = []
+    for name, values in port_params.items():
+        default = getattr(stage.params, name)
+        for lines, ports in ((subs, lambda s: s.inputs()), (pubs, lambda s: s.outputs() + s.user_outputs())):
+            said: dict[str, list[Any]] = {}      # what changes -> the values that change it so
+            for value in values:
+                alt = copy.copy(stage)
+                alt.params = dataclasses.replace(stage.params, **{name: value})
+                mine, other = ports(stage), ports(alt)
+                added = [p for p in other if p not in mine]
+                gone = [p for p in mine if p not in other]
+                if added and gone:
+                    said.setdefault(f"{_ports_text(added, prefix)} instead of {_ports_text(gone, prefix)}", []).append(value)
+                elif added or gone:
+                    said.setdefault(f"also {_ports_text(added, prefix)}" if added else
+                                    f"without {_ports_text(gone, prefix)}", []).append(value)
+            for text, vals in said.items():
+                lines.append(f"  with {name} {' or '.join(repr(v) for v in vals)} (default {default!r}): {text}")
+    return subs, pubs
+
+
+def node_usage(stage_cls: type[Stage], port_params: Mapping[str, Sequence[Any]] | None = None) -> str:
+    """The node's ``--help``: usage, the stage's doc, its parameters and its topics with the default
+    parameters, and, for each value of ``port_params`` (``{parameter: [other values]}``), the topics
+    that value subscribes or publishes instead or as well."""
     lines = [f"usage: ros2 run indoor_loc {stage_cls.NODE_NAME} [--ros-args -r __ns:=/USER "
              f"--params-file FILE -p NAME:=VALUE ...]", "", (stage_cls.__doc__ or "").strip(), "", "parameters:"]
     for name, f, default in leaves(stage_cls.PARAMS):
@@ -869,10 +907,12 @@ def node_usage(stage_cls: type[Stage]) -> str:
         return "\n".join(lines)
     lines.append("")
     per_user = "/<user>/" if stage.MULTI_USER else ""
-    lines.append("subscribes: " + ", ".join(f"{per_user}{p.topic} [{p.type}]" for p in stage.inputs())
+    subs, pubs = _port_variants(stage, port_params or {}, per_user)
+    lines.append("subscribes: " + _ports_text(stage.inputs(), per_user)
                  + (" in every user namespace (parameter users, else discovered)" if per_user else ""))
-    lines.append("publishes:  " + ", ".join(f"{p.topic} [{p.type}]" for p in stage.outputs() + stage.user_outputs())
-                 + ", /diagnostics")
+    lines += subs
+    lines.append("publishes:  " + _ports_text(stage.outputs() + stage.user_outputs()) + ", /diagnostics")
+    lines += pubs
     return "\n".join(lines)
 
 

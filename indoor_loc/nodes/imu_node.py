@@ -5,8 +5,12 @@ from indoor_loc.nodes.base import run_stage_node
 from indoor_loc.pipeline.imu_stage import ImuStage
 
 
+#: parameter values that change the node's topics, named in its ``--help``
+PORT_PARAMS = {"heading_source": ("orientation",)}
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(ImuStage, args)
+    return run_stage_node(ImuStage, args, port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":

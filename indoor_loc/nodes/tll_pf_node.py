@@ -11,6 +11,10 @@ from indoor_loc.nodes.base import StageNode, run_stage_node
 from indoor_loc.pipeline.pf_stage import PfStage
 
 
+#: parameter values that change the node's topics, named in its ``--help``
+PORT_PARAMS = {"wifi_update": ("scan",)}
+
+
 class TllPfNode(StageNode):
     def __init__(self) -> None:
         super().__init__(PfStage)
@@ -28,7 +32,7 @@ class TllPfNode(StageNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(PfStage, args, node_factory=TllPfNode)
+    return run_stage_node(PfStage, args, node_factory=TllPfNode, port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":

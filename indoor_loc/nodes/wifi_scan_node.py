@@ -16,7 +16,10 @@ from typing import Any
 
 from indoor_loc.nodes.base import StageNode, run_stage_node
 from indoor_loc.pipeline.wifi_scan_stage import IFACE_INPUT, WifiScanStage
-from indoor_loc.wifi.iface import ScanAttempt
+from indoor_loc.wifi.iface import TOOLS, ScanAttempt
+
+#: parameter values that change the node's topics, named in its ``--help``
+PORT_PARAMS = {"source": TOOLS}
 
 
 class WifiScanNode(StageNode):
@@ -70,7 +73,7 @@ class WifiScanNode(StageNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(WifiScanStage, args, node_factory=WifiScanNode)
+    return run_stage_node(WifiScanStage, args, node_factory=WifiScanNode, port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":
