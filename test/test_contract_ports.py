@@ -1,7 +1,10 @@
 """Every topic a stage reads or writes is in the message contract (``indoor_loc/contract.py``), with
-the contract's message type and QoS role, for every stage built from a simulated world's params."""
+the contract's message type and QoS role, for every stage built from a simulated world's params and
+again for each parameter value its node names as changing its topics (``PORT_PARAMS``)."""
 from __future__ import annotations
 
+import dataclasses
+import importlib
 from pathlib import Path
 
 import pytest
@@ -21,9 +24,24 @@ def world(tmp_path_factory) -> Path:
     return out
 
 
-#: every stage with its world's params, and the parameters that change a stage's ports
-CASES = [(name, {}) for name in sorted(STAGES)] + [
-    ("backend", {"wifi_source": "fix"}), ("pf", {"wifi_update": "scan", "radiomap": "radiomap"})]
+#: the node module of each stage, whose ``PORT_PARAMS`` name the parameter values that change its topics
+NODE_MODULES = {"imu": "imu_node", "wifi": "wifi_fix_node", "wifi_scan": "wifi_scan_node", "pdr_kf": "pdr_kf_node",
+                "backend": "backend_node", "pf": "tll_pf_node"}
+#: extra parameters a port-changing value needs to build the stage
+NEEDS = {("pf", "wifi_update", "scan"): {"radiomap": "radiomap"}}
+
+
+def _cases() -> list[tuple[str, dict]]:
+    """Every stage with its world's params, then once per value its node's ``PORT_PARAMS`` name."""
+    cases: list[tuple[str, dict]] = [(name, {}) for name in sorted(STAGES)]
+    for name in sorted(STAGES):
+        module = importlib.import_module(f"indoor_loc.nodes.{NODE_MODULES[name]}")
+        for key, values in getattr(module, "PORT_PARAMS", {}).items():
+            cases += [(name, {key: v, **NEEDS.get((name, key, v), {})}) for v in values]
+    return cases
+
+
+CASES = _cases()
 
 
 @pytest.mark.parametrize(("name", "overrides"), CASES,
@@ -32,6 +50,7 @@ def test_every_port_of_every_stage_is_in_the_contract(world, name, overrides):
     cls = stage_class(name)
     values = params_for_node(load_params_file(world / "params.yaml"), cls.NODE_NAME, "/walker0")
     values = {**values, **{k: str(world / v) if k == "radiomap" else v for k, v in overrides.items()}}
+    assert set(overrides) <= {f.name for f in dataclasses.fields(cls.PARAMS)}, overrides
     stage = cls(params_from_dict(cls.PARAMS, values), namespace="" if cls.MULTI_USER else "/walker0")
     ports = [*stage.inputs(), *stage.outputs()]
     user_ports = list(stage.user_outputs()) if cls.MULTI_USER else []
