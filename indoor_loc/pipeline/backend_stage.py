@@ -429,13 +429,10 @@ class BackendStage(Stage):
         if self._no_survey:
             raise InvalidMessageError("no_survey", "no radio map (radiomap ''): a user starts at a scan WKNN "
                                                    "localises against the survey, so none can; set radiomap")
-        jump = self._jump_guard(user, "wifi/scan", msg, scan.stamp_ns, recv_ns)
+        jump = self._take_wifi(user, "wifi/scan", msg, scan.stamp_ns, recv_ns, 2, scan)
         if jump is not None:
             return jump
-        self._check_future(user, scan.stamp_ns, "wifi/scan")
-        self._push(user, scan.stamp_ns, 2, scan)
         b = self._buffer(user)
-        b.newest_scan_ns = scan.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, scan.stamp_ns)
         if self.params.wifi_source == "fix" and self.params.fix_wait_s > 0 and (
                 b.fix_known_ns is None or scan.stamp_ns > b.fix_known_ns):
             bisect.insort(b.pending_scans, scan.stamp_ns)       # its fix is still to come
@@ -446,13 +443,10 @@ class BackendStage(Stage):
         scan attaches to the fix's pose. A fix has its scan's stamp: it moves the scans' wait mark too,
         so a user without odometry is not held back until it leaves."""
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)
-        jump = self._jump_guard(user, "wifi/fix", msg, fix.stamp_ns, recv_ns)
+        jump = self._take_wifi(user, "wifi/fix", msg, fix.stamp_ns, recv_ns, 1, fix)
         if jump is not None:
             return jump
-        self._check_future(user, fix.stamp_ns, "wifi/fix")
-        self._push(user, fix.stamp_ns, 1, fix)
         b = self._buffer(user)
-        b.newest_scan_ns = fix.stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, fix.stamp_ns)
         if b.newest_odom_ns is not None:
             lag = b.newest_odom_ns - fix.stamp_ns
             if lag > self.params.reorder_window_s * 1e9:     # held for: the window alone would have lost it
@@ -462,6 +456,19 @@ class BackendStage(Stage):
         # this scan's fix, or a later one: every scan up to its stamp is settled (fixes come in stamp order)
         del b.pending_scans[:bisect.bisect_right(b.pending_scans, b.fix_known_ns)]
         return self._release(user)
+
+    def _take_wifi(self, user: str, topic: str, msg, stamp_ns: int, recv_ns: int, order: int,
+                   event) -> list[Output] | None:
+        """A scan's or fix's way in: held if it belongs to a jump back (its outputs returned), refused
+        if stamped too far ahead, else queued and the scans' wait mark moved to its stamp (None)."""
+        jump = self._jump_guard(user, topic, msg, stamp_ns, recv_ns)
+        if jump is not None:
+            return jump
+        self._check_future(user, stamp_ns, topic)
+        self._push(user, stamp_ns, order, event)
+        b = self._buffer(user)
+        b.newest_scan_ns = stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, stamp_ns)
+        return None
 
     def _release(self, user: str, *, everything: bool = False) -> list[Output]:
         """Take the user's due events into the graph, in stamp order; outputs for new poses."""
