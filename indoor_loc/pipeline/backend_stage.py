@@ -386,10 +386,8 @@ class BackendStage(Stage):
         if recv_ns > clock_ns or (in_step and recv_ns > b.armed_at_ns + self.params.time_jump_s * 1e9):
             b.armed_at_ns = None
 
-    def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
-        """:meth:`clock_jump` for the node, guarded like :meth:`Stage.run_tick`."""
-        self.diag.now_ns = now_ns
-        return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns))
+    def clock_jump_threshold_ns(self) -> int:
+        return int(self.params.time_jump_s * 1e9)
 
     def _check_future(self, user: str, stamp_ns: int, what: str) -> _UserInput:
         """Refuse a scan or fix stamped more than ``max_future_s`` ahead of the user's odometry: it would

@@ -288,6 +288,19 @@ class Stage:
         self.diag.now_ns = now_ns
         return self._guarded("tick", lambda: self.tick(now_ns))
 
+    def clock_jump_threshold_ns(self) -> int:
+        """How far back the node's clock must jump (ns) for :meth:`run_clock_jump`; 0 = never."""
+        return 0
+
+    def clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
+        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns`` to ``now_ns``."""
+        return []
+
+    def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
+        """:meth:`clock_jump` for drivers, guarded like :meth:`run_tick`."""
+        self.diag.now_ns = now_ns
+        return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns))
+
     def run_finish_user(self, user: str) -> list[Output]:
         """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`."""
         return self._guarded("finish_user", lambda: self.finish_user(user))
