@@ -13,7 +13,7 @@ from enum import Enum
 
 
 class Qos(str, Enum):
-    """QoS profiles by role (see nodes/base.py for the rclpy profiles)."""
+    """QoS profiles by role (see nodes/qos.py for the rclpy profiles)."""
     SENSOR = "sensor"        # best effort, keep last 200: raw high-rate input (also matches reliable pubs)
     RELIABLE = "reliable"    # reliable, volatile, keep last 50: estimates and scans
     LATCHED = "latched"      # reliable, transient_local, keep last 1: maps, last pose (like amcl_pose)

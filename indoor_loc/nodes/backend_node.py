@@ -15,7 +15,8 @@ from typing import Any
 from rclpy.clock import JumpThreshold, TimeJump
 from rclpy.duration import Duration
 
-from indoor_loc.nodes.base import StageNode, run_stage_node
+from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.backend_stage import BackendStage
 
 

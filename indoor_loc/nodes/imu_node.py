@@ -1,7 +1,7 @@
 """``ros2 run indoor_loc imu_node``: FFT stepometer + AEKF/orientation heading -> pdr/odom, imu/data."""
 from __future__ import annotations
 
-from indoor_loc.nodes.base import run_stage_node
+from indoor_loc.nodes.process import run_stage_node
 from indoor_loc.pipeline.imu_stage import ImuStage
 
 

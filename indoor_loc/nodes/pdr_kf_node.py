@@ -1,7 +1,7 @@
 """``ros2 run indoor_loc pdr_kf_node``: Raitoharju et al. 2015 linear PDR Kalman filter + RTS smoother."""
 from __future__ import annotations
 
-from indoor_loc.nodes.base import run_stage_node
+from indoor_loc.nodes.process import run_stage_node
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage
 
 

@@ -46,8 +46,10 @@ from indoor_loc.bag.reader import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.base import (DIAGNOSTICS_PERIOD_S, check_stop, ignore_signals, qos_profile, raise_on_signals,
-                                   restore_signals, run_option_node)
+from indoor_loc.nodes.help import run_option_node
+from indoor_loc.nodes.process import check_stop, ignore_signals, raise_on_signals, restore_signals
+from indoor_loc.nodes.qos import qos_profile
+from indoor_loc.nodes.stage_node import DIAGNOSTICS_PERIOD_S
 from msg_adapters.diagnostics import status_array
 
 NODE_NAME = "player"

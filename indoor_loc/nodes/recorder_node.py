@@ -49,8 +49,11 @@ from indoor_loc.bag.writer import DEFAULT_CHUNK_SIZE
 from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import Qos, msg_class
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.base import (DIAGNOSTICS_PERIOD_S, SequenceGaps, ignore_signals, qos_profile, raise_on_signals,
-                                   restore_signals, run_option_node, spin_node)
+from indoor_loc.nodes.help import run_option_node
+from indoor_loc.nodes.liveness import SequenceGaps
+from indoor_loc.nodes.process import ignore_signals, raise_on_signals, restore_signals, spin_node
+from indoor_loc.nodes.qos import qos_profile
+from indoor_loc.nodes.stage_node import DIAGNOSTICS_PERIOD_S
 from indoor_loc.output_paths import check_output
 from msg_adapters.diagnostics import RECENT_NS, status_array
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from std_srvs.srv import Empty
 
-from indoor_loc.nodes.base import StageNode, run_stage_node
+from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.pf_stage import PfStage
 
 

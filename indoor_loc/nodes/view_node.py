@@ -35,7 +35,7 @@ from rclpy.qos import DurabilityPolicy
 from indoor_loc.bag.schemas import message_definition
 from indoor_loc.contract import msg_class
 from indoor_loc.errors import ConfigError
-from indoor_loc.nodes.base import run_option_node
+from indoor_loc.nodes.help import run_option_node
 from indoor_loc.nodes.recorder_node import is_hidden, subscription_qos
 
 NODE_NAME = "view"

@@ -20,7 +20,8 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from indoor_loc.nodes.base import StageNode, run_stage_node
+from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
 from indoor_loc.wifi.types import Positioner, RadioMap
 

@@ -14,7 +14,8 @@ import time
 from typing import Any
 
 
-from indoor_loc.nodes.base import StageNode, run_stage_node
+from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.wifi_scan_stage import IFACE_INPUT, WifiScanStage
 from indoor_loc.wifi.iface import TOOLS, ScanAttempt
 

@@ -1,0 +1,505 @@
+"""StageNode: runs a :class:`~indoor_loc.pipeline.stage.Stage` as an rclpy node.
+
+- ROS parameters are declared from the stage's Params dataclass (defaults and docs in one place);
+  invalid values, ill-typed values and unknown names (a typo in a params file) stop start-up with
+  a clear error and exit status 2; later ``ros2 param set`` calls on them are refused (parameters
+  are read at start-up).
+- Subscriptions/publishers come from the stage's ports with the contract's QoS, overridable the
+  standard ROS 2 way (``qos_overrides./<ns>/<topic>.subscription.reliability|depth|history`` and
+  ``….publisher.…`` parameters, rclpy ``QoSOverridingOptions``). Inputs of the *sensor* profile are
+  best effort, so they match real drivers' best-effort publishers; ``sensor_reliability: reliable``
+  (a node parameter, any namespace) makes them reliable, so a replay from the reliable player is
+  never dropped in DDS. A publisher whose QoS cannot match a subscription is logged as an ERROR and
+  counted (``rejected.incompatible_qos``, WARN in ``/diagnostics``), never a silent lack of input.
+- A bad message is logged (throttled), counted and dropped; the node keeps running. The stage's
+  notices (:meth:`Stage.take_notices`: a user's clock jumping back, say) are logged as WARN, each
+  once, after every call into the stage.
+- Fast path: an input the stage takes in runs (``Stage.batch_handles``) of a type
+  :mod:`indoor_loc.bag.bulk` decodes (``sensor_msgs/Imu``, ``MagneticField``) is subscribed raw (CDR
+  bytes, no Python message per sample). Each callback also takes whatever is already queued on the
+  node's raw inputs (up to ``TAKE_MAX``), merges the topics in header-stamp order (each topic in its
+  arrival order) and hands each run of one topic to ``Stage.process_batch``, decoded in bulk with the
+  adapters' checks; a run that does not decode in bulk, or holds a message the adapter would reject,
+  is deserialised and processed message by message, so each rejection keeps its reason. Nothing is
+  held back for later: a timer tick sees every message taken before it, as before.
+- ``/diagnostics`` gets one DiagnosticStatus about once a second (on the node's clock, so in bag
+  time under ``use_sim_time``).
+- SIGINT and SIGTERM end the node cleanly: the messages DDS had delivered to the node before the
+  signal are processed first (bounded by ``DRAIN_TIMEOUT_S``; a second signal stops at once), then the
+  stage's ``finish()`` outputs are published before the context shuts down.
+- Multi-user stages (``Stage.MULTI_USER``): the node subscribes to the stage's inputs in every
+  user namespace — those of the stage's ``users`` parameter, or, when it is empty, every namespace
+  in which a publisher of one of the inputs appears (the ROS graph is polled every
+  ``DISCOVERY_PERIOD_S``). A user whose input publishers have all been gone for the stage's
+  ``user_timeout_s`` has left: ``finish_user`` runs (its outputs are published) and a discovered
+  user's subscriptions are destroyed; it is followed again if it comes back. Per-user output
+  publishers (``backend/<user>/path``) are created on first use.
+"""
+from __future__ import annotations
+
+import array
+import heapq
+import struct
+import time
+from typing import Any, Callable
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
+from rclpy.serialization import deserialize_message
+
+from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
+from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
+from indoor_loc.errors import ConfigError, IndoorLocError
+from indoor_loc.nodes.liveness import SequenceGaps
+from indoor_loc.nodes.qos import RELIABILITY, SENSOR_RELIABILITY_PARAM, publisher_qos, qos_profile, subscription_qos
+from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
+                               params_from_dict, params_to_dict)
+from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
+from msg_adapters.diagnostics import stage_diagnostics
+
+#: How often a node publishes its /diagnostics status (s, on its clock).
+DIAGNOSTICS_PERIOD_S = 1.0
+#: How long a stopping node waits for subscribers to acknowledge its last outputs (s).
+FINISH_ACK_TIMEOUT_S = 8.0
+#: How often a multi-user node polls the ROS graph for users joining and leaving (s).
+DISCOVERY_PERIOD_S = 1.0
+#: Parameters every rclpy node may carry besides the stage's own (not "unknown").
+_BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
+#: Raw sensor inputs (see ``StageNode`` "Fast path"): at most this many messages are taken from the
+#: subscriptions per callback, so one burst cannot hold up timers and other inputs for long.
+TAKE_MAX = 2048
+
+
+def _ros_value(value: Any) -> Any:
+    """A Params default as a ROS parameter value (tuples -> lists; empty lists -> unset)."""
+    if isinstance(value, tuple):
+        value = list(value)
+    if isinstance(value, list) and not value:
+        return None
+    return value
+
+
+def _py_value(value: Any) -> Any:
+    """A ROS parameter value as plain Python (arrays -> lists)."""
+    if isinstance(value, (list, tuple, array.array)):
+        return list(value)
+    return value
+
+
+class StageNode(Node):
+    """An rclpy Node that feeds a Stage and publishes what it returns."""
+
+    def __init__(self, stage_cls: type[Stage], **node_kwargs: Any) -> None:
+        super().__init__(stage_cls.NODE_NAME, **node_kwargs)
+        try:
+            self._build(stage_cls)
+        except BaseException:
+            # a node that cannot start leaves nothing behind in the graph (its name is free for the
+            # start-up error report, see :func:`report_startup_error`)
+            self.destroy_node()
+            raise
+
+    def _build(self, stage_cls: type[Stage]) -> None:
+        self._stage_cls = stage_cls
+        self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> sequence-gap counter
+        self.taken = 0                              # input messages handled (all topics)
+        self.last_rx_ns = 0                         # reception time (system clock) of the last one
+        self.sensor_reliability = self._declare_sensor_reliability()
+        values = self._declare_params(stage_cls.PARAMS)
+        params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
+        self.stage: Stage = stage_cls(params, namespace=self.get_namespace())
+        self.add_on_set_parameters_callback(self._on_set_params)
+        self._pubs = {p.topic: self._create_publisher(msg_class(p.type), p.topic, publisher_qos(p.qos))
+                      for p in self.stage.outputs()}
+        # inputs the stage takes in runs (raw CDR, decoded in bulk): topic -> (subscription, gaps, type)
+        self._raw: dict[str, tuple[Any, SequenceGaps, str]] = {}
+        self._subs = [] if self.stage.MULTI_USER else [
+            self._subscribe_raw(p) if self._batchable(p) else self._subscribe(p, p.topic, self._callback(p.topic))
+            for p in self.stage.inputs()]
+        if not self.stage.MULTI_USER:
+            self._check_qos_overrides()
+        # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
+        self.user_subs: dict[str, list] = {}
+        self._user_seen: dict[str, float] = {}
+        self._finished_users: set[str] = set()
+        self._fixed_users = tuple(getattr(self.stage.params, "users", ()) or ())
+        if self.stage.MULTI_USER:
+            for user in self._fixed_users:
+                self._follow(user_of_namespace(user))
+            self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
+        self._last_rejected = 0
+        self._refresh_publisher_counts()
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
+        self.get_logger().info(
+            f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
+            f"out {[p.topic for p in self.stage.outputs()]}")
+        standing = self.stage.extra_diagnostics().get("error")
+        if standing:   # a required input (radio map, graph) is missing: say so now, not per message
+            self.get_logger().error(f"{stage_cls.NODE_NAME} cannot work: {standing}")
+
+    def check_params_files(self, paths: list[str]) -> list[str]:
+        """Log an ERROR for every key of these params files that names this node but does not
+        reach it (a bare ``node_name:`` key while the node runs in a namespace: rcl ignores it
+        without a word). Returns the messages."""
+        msgs = []
+        for path in paths:
+            try:
+                files = load_params_file(path)
+            except ConfigError:
+                continue          # rcl already refused or accepted the file; nothing to add
+            for key in misplaced_keys(files, self.get_name(), self.get_namespace()):
+                msgs.append(f"params file {path}: key {key!r} does not apply to {self.get_fully_qualified_name()} "
+                            f"(rcl matches a bare node name only in the root namespace); its parameters are "
+                            f"NOT in force. Key it {node_key(self.get_name())!r} to reach the node in any namespace")
+        for m in msgs:
+            self.get_logger().error(m)
+        return msgs
+
+    # -- QoS -------------------------------------------------------------------------------------
+    def _declare_sensor_reliability(self) -> str:
+        desc = ParameterDescriptor(
+            description="reliability of the subscriptions to sensor inputs (imu/*): "
+                        "best_effort (matches every publisher, e.g. real drivers) or reliable (a replay: "
+                        "nothing dropped in DDS; a best-effort publisher then does not match)",
+            read_only=True)
+        value = self.declare_parameter(SENSOR_RELIABILITY_PARAM, "best_effort", desc).value
+        if value not in RELIABILITY:
+            raise ConfigError(f"{SENSOR_RELIABILITY_PARAM}: expected one of {sorted(RELIABILITY)}, got {value!r}")
+        return str(value)
+
+    def _subscribe(self, port: Any, topic: str, callback: Callable[[Any, Any], None], raw: bool = False):
+        """A subscription to ``port`` on ``topic`` with its QoS (overridable by parameters)."""
+        events = SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible(topic, "publisher"))
+        try:
+            return self.create_subscription(
+                msg_class(port.type), topic, callback, subscription_qos(port.qos, self.sensor_reliability),
+                qos_overriding_options=QoSOverridingOptions.with_default_policies(), event_callbacks=events,
+                raw=raw)
+        except (InvalidQosOverridesError, RuntimeError, ValueError) as err:
+            raise ConfigError(f"QoS of subscription {topic!r}: {err}") from err
+
+    def _create_publisher(self, cls: type, topic: str, qos: QoSProfile):
+        events = PublisherEventCallbacks(incompatible_qos=self._on_incompatible(topic, "subscription"),
+                                         matched=self._on_matched(topic))
+        try:
+            return self.create_publisher(cls, topic, qos, event_callbacks=events,
+                                         qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        except (InvalidQosOverridesError, RuntimeError, ValueError) as err:
+            raise ConfigError(f"QoS of publisher {topic!r}: {err}") from err
+
+    def _on_matched(self, topic: str) -> Callable[[Any], None]:
+        """Log each change of an output's matched subscriptions: DDS matches a new subscriber
+        asynchronously, and what is published before it matched never reaches it (volatile), so
+        a tool that must not miss the first outputs (a recorder) waits for this line."""
+        def cb(status: Any) -> None:
+            self.get_logger().info(f"{topic}: {status.current_count} matched subscription(s)")
+        return cb
+
+    def _on_incompatible(self, topic: str, other: str) -> Callable[[Any], None]:
+        def cb(event: Any) -> None:
+            policy = getattr(getattr(event, "last_policy_kind", None), "name", "?").lower()
+            reason = "incompatible_qos"
+            self.stage._reject(reason, f"{topic}: a {other} with incompatible QoS ({policy}) does not match")
+            self.get_logger().error(
+                f"{self.resolve_topic_name(topic)}: a {other} with incompatible QoS ({policy}) cannot be matched; "
+                f"its messages do NOT reach this node ({event.total_count} so far). "
+                f"{'Set sensor_reliability or ' if other == 'publisher' else ''}qos_overrides."
+                f"{self.resolve_topic_name(topic)}.{'subscription' if other == 'publisher' else 'publisher'}"
+                f".reliability to match", throttle_duration_sec=5.0)
+        return cb
+
+    def _check_qos_overrides(self) -> None:
+        """A ``qos_overrides.`` parameter naming no topic of this node (a typo, or a topic written
+        without the node's namespace) would be ignored by rclpy without a word: refuse it."""
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        stray = sorted(n for n in overrides if n.startswith("qos_overrides.") and not self.has_parameter(n))
+        if stray:
+            known = sorted(n for n in self._parameters if n.startswith("qos_overrides."))
+            raise ConfigError(f"{self.get_fully_qualified_name()}: QoS override(s) {stray} name no topic of this "
+                              f"node (topics are fully qualified, with the namespace); expected some of {known}")
+
+    # -- parameters ------------------------------------------------------------------------------
+    def _declare_params(self, params_cls: type) -> dict[str, Any]:
+        """Declare one ROS parameter per Params field and return the values in force (nested for
+        groups: a group's fields are declared with dotted names, ``stepometer.window_s``).
+
+        Parameters are dynamically typed so ``step_length_m: 1`` in a YAML file (an int for a
+        float) is coerced by :func:`params_from_dict` instead of failing inside rclpy; type errors
+        are reported there as ConfigError. Overrides naming no field are a ConfigError too.
+        """
+        values: dict[str, Any] = {}
+        names = []
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        for name, f, default in leaves(params_cls):
+            if isinstance(default, dict):
+                # a free-form mapping (its owner validates it): each ``name.key`` given is declared
+                for key in sorted(k for k in overrides if k.startswith(name + ".")):
+                    names.append(key)
+                    desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                               read_only=True)
+                    values[key] = _py_value(self.declare_parameter(key, None, desc).value)
+                continue
+            names.append(name)
+            desc = ParameterDescriptor(description=f.metadata.get("doc", ""), dynamic_typing=True,
+                                       read_only=True)   # read at start-up; a change needs a restart
+            p = self.declare_parameter(name, _ros_value(default), desc)
+            value = _py_value(p.value)
+            if value is None and isinstance(default, (list, tuple)):
+                value = type(default)()
+            if value is not None or default is None:
+                values[name] = value
+        unknown = sorted(n for n in overrides if not self.has_parameter(n)
+                         and n not in _BUILTIN_PARAMS and not n.startswith("qos_overrides."))
+        if unknown:
+            names = sorted(names)
+            raise ConfigError(f"{params_cls.__name__}: unknown parameter(s) {unknown} for "
+                              f"{self.get_fully_qualified_name()}; expected some of {names}")
+        return nest_dotted(values)
+
+    def _on_set_params(self, changes: list) -> SetParametersResult:
+        fields = {name for name, _, _ in leaves(self._stage_cls.PARAMS)}
+        ours = [p for p in changes if p.name in fields]
+        if not ours:
+            return SetParametersResult(successful=True)   # use_sim_time and friends
+        current = flatten(params_to_dict(self.stage.params))
+        current.update({p.name: _py_value(p.value) for p in ours})
+        try:
+            params_from_dict(self._stage_cls.PARAMS, current)
+        except IndoorLocError as err:
+            return SetParametersResult(successful=False, reason=str(err))
+        # Parameters are read at start-up; changing them live needs a restart of the node.
+        return SetParametersResult(successful=False, reason="parameters are read-only at run time; restart the node")
+
+    # -- users (multi-user stages) -------------------------------------------------------------------
+    def _follow(self, user: str) -> None:
+        if not user or user in self.user_subs:
+            return
+        ns = namespace_of_user(user)
+        self.user_subs[user] = [self._subscribe(p, join_ns(ns, p.topic), self._callback(p.topic, user))
+                                for p in self.stage.inputs()]
+        for port in self.stage.user_outputs():      # ready (and matched) before the first output
+            self._publisher(port.topic.format(user=user))
+        self._user_seen[user] = self._monotonic()
+        self._finished_users.discard(user)
+        self.get_logger().info(f"following user {user!r}")
+
+    @staticmethod
+    def _monotonic() -> float:
+        return time.monotonic()
+
+    def _discover_users(self) -> None:
+        """Follow new users (namespaces publishing one of the inputs) and notice users leaving."""
+        now = self._monotonic()
+        if not self._fixed_users:
+            rels = [p.topic for p in self.stage.inputs()]
+            for name, _types in self.get_topic_names_and_types():
+                for rel in rels:
+                    ns = namespace_of_topic(name, rel)
+                    if ns:
+                        user = user_of_namespace(ns)
+                        if user and self.count_publishers(name) > 0:
+                            self._follow(user)
+        timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))
+        for user in list(self.user_subs):
+            ns = namespace_of_user(user)
+            if any(self.count_publishers(join_ns(ns, p.topic)) > 0 for p in self.stage.inputs()):
+                self._user_seen[user] = now
+                self._finished_users.discard(user)
+                continue
+            if user in self._finished_users or now - self._user_seen[user] < timeout:
+                continue
+            self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
+            self._finished_users.add(user)
+            self._publish(self.stage.run_finish_user(user))
+            self._log_rejections()
+            if not self._fixed_users:
+                for sub in self.user_subs.pop(user):
+                    self.destroy_subscription(sub)
+                self._user_seen.pop(user, None)
+
+    # -- messages ----------------------------------------------------------------------------------
+    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
+        resolved = join_ns(namespace_of_user(user), topic) if user else topic
+        gaps = self._gaps.setdefault(resolved, SequenceGaps(self._late_start(resolved)))
+
+        def recount() -> int:
+            return self.count_publishers(resolved)
+
+        def cb(msg: Any, info: Any) -> None:
+            self.taken += 1
+            self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
+            now_ns = self.get_clock().now().nanoseconds
+            lost = gaps.gap(info, recount)
+            if lost:
+                self.stage.diag.count_lost(topic, lost, now_ns)
+                self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
+                                          f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
+            self._publish(self.stage.process(topic, msg, now_ns, user))
+            self._log_rejections()
+        return cb
+
+    def _late_start(self, topic: str) -> Callable[[int], None]:
+        """Said once when an input's first message is not its publisher's first: normal when a node
+        joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
+        WARN; start the player once every subscriber has matched, see ``--min-subscribers``)."""
+        def said(n: int) -> None:
+            replay = self.sensor_reliability == "reliable"
+            (self.get_logger().warning if replay else self.get_logger().info)(
+                f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
+                f"published before this subscription matched" + ("; a replay started too early" if replay else ""))
+        return said
+
+    # -- fast path: raw sensor inputs handled in runs ----------------------------------------------
+    def _batchable(self, port: Any) -> bool:
+        """Whether ``port`` is taken raw and handled in runs: a per-user stage with a batch path for
+        it (:meth:`Stage.batch_handles`) and a message type :func:`indoor_loc.bag.bulk.bulk_items` decodes."""
+        return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
+
+    def _subscribe_raw(self, port: Any):
+        gaps = self._gaps.setdefault(port.topic, SequenceGaps(self._late_start(port.topic)))
+        sub = self._subscribe(port, port.topic, self._raw_callback(port.topic), raw=True)
+        self._raw[port.topic] = (sub, gaps, port.type)
+        return sub
+
+    def _raw_callback(self, topic: str) -> Callable[[bytes, Any], None]:
+        def cb(data: bytes, info: Any) -> None:
+            self._take_raw({topic: [self._received(topic, data, info)]})
+        return cb
+
+    def _received(self, topic: str, data: bytes, info: Any) -> tuple[int, int, bytes]:
+        """Book one raw message as the per-message callback does (count, reception time, sequence
+        gaps); returns ``(header stamp ns, node-clock receive ns, data)``."""
+        self.taken += 1
+        self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
+        now_ns = self.get_clock().now().nanoseconds
+        gaps = self._raw[topic][1]
+        lost = gaps.gap(info, lambda: self.count_publishers(topic))
+        if lost:
+            self.stage.diag.count_lost(topic, lost, now_ns)
+            self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
+                                      f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
+        return _cdr_stamp_ns(data), now_ns, data
+
+    def _take_raw(self, pending: dict[str, list[tuple[int, int, bytes]]]) -> None:
+        """Take every message already queued on the raw inputs (at most :data:`TAKE_MAX`), merge the
+        topics in header-stamp order (each topic keeps its arrival order) and hand each run of one
+        topic to the stage's batch path, decoded in bulk; a run that does not decode in bulk (or
+        holds a message the adapter rejects) is deserialised and processed message by message, so
+        every rejection is counted under its own reason as before."""
+        n = sum(len(v) for v in pending.values())
+        for topic, (sub, _gaps, _type) in self._raw.items():
+            queue = pending.setdefault(topic, [])
+            while n < TAKE_MAX:
+                with sub.handle:
+                    got = sub.handle.take_message(sub.msg_type, True)
+                if got is None:
+                    break
+                queue.append(self._received(topic, got[0], got[1]))
+                n += 1
+        merged = heapq.merge(*([(stamp, topic, recv, data) for stamp, recv, data in q]
+                               for topic, q in pending.items() if q), key=lambda m: m[0])
+        run_topic: str | None = None
+        run: list[tuple[int, bytes]] = []
+        for _stamp, topic, recv, data in merged:
+            if topic != run_topic and run:
+                self._process_run(run_topic, run)   # type: ignore[arg-type]
+                run = []
+            run_topic = topic
+            run.append((recv, data))
+        if run:
+            self._process_run(run_topic, run)       # type: ignore[arg-type]
+        self._log_rejections()
+
+    def _process_run(self, topic: str, run: list[tuple[int, bytes]]) -> None:
+        type_name = self._raw[topic][2]
+        recv = [r for r, _ in run]
+        items = bulk_items(type_name, [d for _, d in run])
+        if items is not None:
+            self._publish([(t, m) for _, t, m in self.stage.process_batch(topic, items, recv)])
+            return
+        cls = msg_class(type_name)
+        for recv_ns, data in run:
+            try:
+                msg = deserialize_message(data, cls)
+            except Exception as err:  # noqa: BLE001 - a node never dies on a message
+                self.stage.diag.now_ns = recv_ns
+                self.stage._reject("undecodable", f"{topic}: {type(err).__name__}: {err}")
+                continue
+            self._publish(self.stage.process(topic, msg, recv_ns))
+
+    def _refresh_publisher_counts(self) -> None:
+        for topic, gaps in self._gaps.items():
+            gaps.publishers = self.count_publishers(topic)
+
+    def _publisher(self, topic: str):
+        pub = self._pubs.get(topic)
+        if pub is None and self.stage.MULTI_USER:
+            port = self.stage.output_port(topic)
+            if port is not None:
+                pub = self._pubs[topic] = self._create_publisher(msg_class(port.type), topic, publisher_qos(port.qos))
+        return pub
+
+    def _publish(self, outs: list) -> None:
+        for topic, msg in outs:
+            pub = self._publisher(topic)
+            if pub is None:
+                self.stage._reject("internal_error", f"stage returned undeclared output topic {topic!r}")
+                self.get_logger().error(f"stage returned undeclared output topic {topic!r}", throttle_duration_sec=5.0)
+                continue
+            try:
+                pub.publish(msg)
+            except TypeError as err:     # wrong message class for the port: a stage bug, not fatal
+                self.stage._reject("internal_error", f"publish on {topic!r}: {err}")
+                self.get_logger().error(f"cannot publish on {topic!r}: {err}", throttle_duration_sec=5.0)
+
+    def _log_rejections(self) -> None:
+        """After a call into the stage: the latest rejection (throttled) and every notice (each once)."""
+        total = sum(self.stage.diag.rejected.values())
+        if total != self._last_rejected:
+            self._last_rejected = total
+            self.get_logger().warning(
+                f"dropped message ({self.stage.diag.last_error_reason}; {total} so far): "
+                f"{self.stage.diag.last_error.splitlines()[0] if self.stage.diag.last_error else ''}",
+                throttle_duration_sec=5.0)
+        for text in self.stage.take_notices():
+            self.get_logger().warning(text)
+
+    def _on_timer(self) -> None:
+        self._refresh_publisher_counts()
+        now_ns = self.get_clock().now().nanoseconds
+        self._publish(self.stage.run_tick(now_ns))
+        self._log_rejections()
+        self._diag_pub.publish(self.diagnostics_msg(now_ns))
+
+    def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
+        return stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)
+
+    def shutdown(self) -> None:
+        """Publish the stage's end-of-input outputs (call while the context is still valid)."""
+        self._publish(self.stage.run_finish())
+        self._log_rejections()
+        # the end-of-input outputs (a final smoothed path) must reach reliable subscribers before
+        # the process ends: wait (bounded) until every reliable publisher's messages are acked
+        # (a loaded machine can take seconds); what is still unacknowledged then is said, not lost silently
+        for topic, pub in self._pubs.items():
+            if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count() > 0:
+                if not pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S)):
+                    self.get_logger().warning(
+                        f"stopping: {topic}: not every subscriber acknowledged the last messages within "
+                        f"{FINISH_ACK_TIMEOUT_S:g} s; they may have missed the end of the output")
+
+
+def _cdr_stamp_ns(data: bytes) -> int:
+    """``header.stamp`` (ns) of a little-endian CDR message that starts with a ``std_msgs/Header``
+    (every bulk-decoded type); 0 when it cannot be read (the message then sorts first; the stage
+    judges it)."""
+    if len(data) < 12 or data[:2] != b"\x00\x01":
+        return 0
+    sec, nsec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nsec
