@@ -7,7 +7,11 @@ their ROS parameters from the fields, offline runs read the same YAML files.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import numbers
 import re
+import types
+import typing
 from pathlib import Path
 from typing import Any, Iterator, Mapping, TypeVar
 
@@ -80,11 +84,12 @@ def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | N
                  if (g := group_class(f)) is not None and k in {x.name for x in dataclasses.fields(g)}]
         hint = f" (did you mean {hints}?)" if hints else ""
         raise ConfigError(f"{cls.__name__}: unknown parameter(s) {unknown}{hint}; expected some of {sorted(fields)}")
+    declared = field_types(cls)
     for name, value in list(values.items()):
         f = fields[name]
         sub = group_class(f)
         if sub is None:
-            values[name] = _coerce(cls.__name__, f, value)
+            values[name] = _coerce(cls.__name__, f, value, declared.get(name))
         elif isinstance(value, Mapping):
             try:   # leaves not given keep the group's default (which may differ from sub())
                 values[name] = params_from_dict(sub, {**params_to_dict(field_default(f)), **nest_dotted(value)})
@@ -102,24 +107,91 @@ def params_from_dict(cls: type[ParamsT], values: Mapping[str, Any] | ParamsT | N
     return obj
 
 
-def _coerce(owner: str, f: dataclasses.Field[Any], value: Any) -> Any:
-    default = field_default(f)
-    if default is None or value is None:
+def field_types(cls: type) -> dict[str, Any]:
+    """``{field name: type}`` of a Params class, resolved (with ``from __future__ import annotations``
+    the annotations are strings; :func:`typing.get_type_hints` evaluates them). A class whose annotations
+    do not resolve (one defined in a function, naming its local classes) gives {}: its fields are then
+    checked against the types of their defaults."""
+    return dict(_field_types(cls))
+
+
+@functools.lru_cache(maxsize=None)
+def _field_types(cls: type) -> tuple[tuple[str, Any], ...]:
+    try:
+        return tuple(typing.get_type_hints(cls).items())
+    except (NameError, TypeError):
+        return ()
+
+
+def _coerce(owner: str, f: dataclasses.Field[Any], value: Any, tp: Any = None) -> Any:
+    """``value`` as the field's declared type ``tp`` (its annotation), else as the type of its default.
+
+    An int where a float belongs is taken (``step_length_m: 1``), and a float with no fraction where an int
+    belongs (``k: 4.0``); a float with one (``n_particles: 1.5``), a bool (an int subclass: ``harmonics: true``
+    must not mean 1) or a string where a number belongs are refused, and so are list elements of the wrong
+    type. Types this does not know (``list`` without an element type, dicts) are taken as given."""
+    where = f"{owner}.{f.name}"
+    if value is None:
         return value
-    if isinstance(default, bool):
+    if tp is None or tp is Any:
+        default = field_default(f)
+        if default is None:
+            return value
+        tp = type(default)
+    return _as_type(where, tp, value)
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _as_type(where: str, tp: Any, value: Any) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin is typing.Union or origin is types.UnionType:
+        if value is None and type(None) in args:
+            return None
+        alternatives = [a for a in args if a is not type(None)]
+        if len(alternatives) == 1:
+            return _as_type(where, alternatives[0], value)
+        for alt in alternatives:
+            try:
+                return _as_type(where, alt, value)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r} ({type(value).__name__})")
+    if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{owner}.{f.name}: expected a bool, got {value!r}")
+            raise ConfigError(f"{where}: expected a bool, got {value!r} ({type(value).__name__})")
         return value
-    if isinstance(value, bool):   # bool is an int subclass: `harmonics: true` must not mean 1
-        raise ConfigError(f"{owner}.{f.name}: expected {type(default).__name__}, got {value!r}")
-    if isinstance(default, float) and isinstance(value, int):
-        return float(value)
-    if isinstance(default, int) and isinstance(value, float) and value.is_integer():
-        return int(value)
-    if isinstance(default, (list, tuple)) and isinstance(value, (list, tuple)):
-        return type(default)(value)
-    if type(default) is not type(value) and not (isinstance(default, (int, float)) and isinstance(value, (int, float))):
-        raise ConfigError(f"{owner}.{f.name}: expected {type(default).__name__}, got {value!r}")
+    if tp is int:
+        if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+            return int(value)
+        if isinstance(value, numbers.Real) and not isinstance(value, bool) and float(value).is_integer():
+            return int(float(value))
+        what = " (a whole number)" if isinstance(value, numbers.Real) and not isinstance(value, bool) else ""
+        raise ConfigError(f"{where}: expected int{what}, got {value!r} ({type(value).__name__})")
+    if tp is float:
+        if isinstance(value, numbers.Real) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{where}: expected float, got {value!r} ({type(value).__name__})")
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected str, got {value!r} ({type(value).__name__})")
+        return value
+    container = origin or tp
+    if container in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a {container.__name__}, got {value!r} ({type(value).__name__})")
+        if container is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(f"{where}: expected {len(args)} elements, got {value!r}")
+            return tuple(_as_type(f"{where}[{i}]", a, v) for i, (a, v) in enumerate(zip(args, value)))
+        elem = args[0] if args else Any
+        items = [v if elem is Any else _as_type(f"{where}[{i}]", elem, v) for i, v in enumerate(value)]
+        return container(items)
+    if isinstance(container, type) and not isinstance(value, container):
+        raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r} ({type(value).__name__})")
     return value
 
 

@@ -1,6 +1,7 @@
 """Params helpers: strict construction, ROS-style params files, dotted/nested keys."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -172,3 +173,92 @@ def test_a_group_may_carry_its_own_defaults_and_leaves_merge_over_them():
     assert TunedParams().inner == InnerParams(taps=8)
     assert [(n, d) for n, _, d in leaves(TunedParams)] == [("inner.window_s", 2.0), ("inner.taps", 8)]
     assert params_from_dict(TunedParams, {"inner": {"window_s": 3.0}}).inner == InnerParams(window_s=3.0, taps=8)
+
+
+# -- one type check for every stage's parameters ----------------------------------------------------
+def _typed_leaves(cls: type, prefix: str = ""):
+    """(dotted name, owner class name, leaf name, declared type, default) of every plain parameter."""
+    import dataclasses
+
+    from indoor_loc.params import field_default, field_types, group_class
+    types = field_types(cls)
+    for f in dataclasses.fields(cls):
+        sub = group_class(f)
+        if sub is not None:
+            yield from _typed_leaves(sub, f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", cls.__name__, f.name, types[f.name], field_default(f)
+
+
+def _stage_params():
+    from indoor_loc.pipeline.registry import STAGES, stage_class
+    return [stage_class(name).PARAMS for name in STAGES]
+
+
+@pytest.mark.parametrize("params_cls", _stage_params(), ids=lambda c: c.__name__)
+def test_every_int_parameter_refuses_a_fraction_a_bool_and_a_string(params_cls):
+    ints = [leaf for leaf in _typed_leaves(params_cls) if leaf[3] is int]
+    for dotted, owner, name, _, default in ints:
+        for bad, got in ((default + 0.5, f"{default + 0.5!r} (float)"), (True, "True (bool)"),
+                         (str(default), f"{str(default)!r} (str)")):
+            with pytest.raises(ConfigError, match=re.escape(f"{owner}.{name}: expected int")) as err:
+                params_from_dict(params_cls, {dotted: bad})
+            assert got in str(err.value), (dotted, str(err.value))
+        # a float with no fraction is the int it spells (a YAML `k: 4.0`)
+        value = params_from_dict(params_cls, {dotted: float(default)})
+        for part in dotted.split("."):
+            value = getattr(value, part)
+        assert value == default and type(value) is int, dotted
+
+
+def test_the_stages_have_int_parameters_and_their_types_resolve():
+    counts = {cls.__name__: sum(leaf[3] is int for leaf in _typed_leaves(cls)) for cls in _stage_params()}
+    assert counts["PfStageParams"] >= 6 and counts["WifiFixParams"] >= 10 and counts["ImuStageParams"] >= 3, counts
+
+
+def test_a_float_parameter_takes_an_int_and_list_elements_are_checked():
+    from indoor_loc.pipeline.pf_stage import PfStageParams
+    from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams
+    from indoor_loc.pipeline.wifi_scan_stage import WifiScanParams
+    p = params_from_dict(PfStageParams, {"max_fix_delay_s": 2})
+    assert p.max_fix_delay_s == 2.0 and type(p.max_fix_delay_s) is float
+    w = params_from_dict(WifiFixParams, {"pathloss.n_bounds": [1, 4]})
+    assert w.pathloss.n_bounds == [1.0, 4.0] and all(type(v) is float for v in w.pathloss.n_bounds)
+    with pytest.raises(ConfigError, match=re.escape("PathLossParams.n_bounds[1]: expected float, got 'x' (str)")):
+        params_from_dict(WifiFixParams, {"pathloss.n_bounds": [1.5, "x"]})
+    with pytest.raises(ConfigError, match=re.escape("NormalizeParams.bands[0]: expected str, got 2.4 (float)")):
+        params_from_dict(WifiScanParams, {"normalize.bands": [2.4]})
+    with pytest.raises(ConfigError, match=re.escape("PathLossParams.n_bounds: expected a list, got 2.0")):
+        params_from_dict(WifiFixParams, {"pathloss.n_bounds": 2.0})
+
+
+@pytest.mark.parametrize("n", [-5, 0])
+def test_a_particle_count_below_one_is_refused(n):
+    from indoor_loc.pipeline.pf_stage import PfStageParams
+    with pytest.raises(ConfigError, match=re.escape(f"n_particles: expected >= 1, got {n}")):
+        params_from_dict(PfStageParams, {"n_particles": n})
+
+
+def test_a_params_class_with_unresolvable_annotations_is_checked_against_its_defaults():
+    @dataclass(frozen=True)
+    class Local:
+        count: LocalType = field(3, "count")   # noqa: F821 - a name get_type_hints cannot resolve
+
+    with pytest.raises(ConfigError, match=re.escape("Local.count: expected int (a whole number), got 1.5")):
+        params_from_dict(Local, {"count": 1.5})
+    assert params_from_dict(Local, {"count": 2.0}).count == 2
+
+
+def test_tll_pf_with_a_fractional_particle_count_exits_2_at_start_up(ros_domain):
+    """`tll_pf -p n_particles:=1.5` used to start and then fail every message (internal_error)."""
+    import sys
+
+    from helpers_dds import Peer
+    peer = Peer([sys.executable, "-m", "indoor_loc.nodes.tll_pf_node", "--ros-args", "-p", "n_particles:=1.5"])
+    try:
+        rc = peer.wait(timeout=60)
+    finally:
+        peer.stop()
+    assert rc == 2, peer.output()
+    assert "configuration error: PfStageParams.n_particles: expected int (a whole number), got 1.5 (float)" \
+        in peer.output(), peer.output()
