@@ -22,6 +22,9 @@
   adapters' checks; a run that does not decode in bulk, or holds a message the adapter would reject,
   is deserialised and processed message by message, so each rejection keeps its reason. Nothing is
   held back for later: a timer tick sees every message taken before it, as before.
+- The node's clock going back (``/clock`` under ``use_sim_time``: a bag played in a loop, a
+  simulation restarted) by at least the stage's :meth:`Stage.clock_jump_threshold_ns` (0: not
+  followed) calls :meth:`Stage.run_clock_jump`; its outputs are published and its notices logged.
 - ``/diagnostics`` gets one DiagnosticStatus about once a second (on the node's clock, so in bag
   time under ``use_sim_time``).
 - SIGINT and SIGTERM end the node cleanly: the messages DDS had delivered to the node before the
@@ -45,6 +48,7 @@ from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import JumpHandle, JumpThreshold, TimeJump
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -136,6 +140,7 @@ class StageNode(Node):
         self._last_rejected = 0
         self._refresh_publisher_counts()
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
+        self._jump_handle = self._follow_clock_jumps()
         self.get_logger().info(
             f"{stage_cls.NODE_NAME} up: in {[p.topic for p in self.stage.inputs()]}, "
             f"out {[p.topic for p in self.stage.outputs()]}")
@@ -469,6 +474,24 @@ class StageNode(Node):
                 throttle_duration_sec=5.0)
         for text in self.stage.take_notices():
             self.get_logger().warning(text)
+
+    # -- the node's clock going back ---------------------------------------------------------------
+    def _follow_clock_jumps(self) -> JumpHandle | None:
+        """Call the stage's :meth:`Stage.run_clock_jump` when the node's clock goes back by at least
+        its :meth:`Stage.clock_jump_threshold_ns` (0: never). Under ``use_sim_time`` that is ``/clock``
+        going back (a bag played in a loop, a simulation restarted); the callback runs in the
+        executor's thread (``/clock`` is this node's subscription), never beside a message callback."""
+        threshold_ns = int(self.stage.clock_jump_threshold_ns())
+        if threshold_ns <= 0:
+            return None
+        return self.get_clock().create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-threshold_ns), on_clock_change=False),
+            post_callback=self._on_clock_jump)
+
+    def _on_clock_jump(self, jump: TimeJump) -> None:
+        now_ns = self.get_clock().now().nanoseconds
+        self._publish(self.stage.run_clock_jump(-jump.delta.nanoseconds, now_ns))
+        self._log_rejections()
 
     def _on_timer(self) -> None:
         self._refresh_publisher_counts()
