@@ -55,6 +55,7 @@ from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams
 from msg_adapters.imu import ImuSample, imu_from_msg, imu_to_msg, mag_from_msg
 from msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
+from indoor_loc.pipeline.time_policy import Order, TimeParams
 
 
 HEADING_SOURCES = ("auto", "aekf", "vqf", "orientation")
@@ -87,6 +88,7 @@ class ImuStageParams:
                                          "heading comes from the AEKF")
     vqf: VqfParams = group(VqfParams, "VQF orientation (indoor_loc/imu/vqf_filter.py), used when the heading "
                                       "comes from VQF")
+    time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -109,27 +111,16 @@ class ImuStage(Stage):
     """FFT stepometer + heading (AEKF, VQF or given orientation) -> pdr/odom [+ imu/data]."""
     NODE_NAME = "imu_node"
     PARAMS = ImuStageParams
+    STAMP_ORDER = {"imu/data_raw": Order.STRICT, "imu/mag": Order.STRICT, "imu/data": Order.STRICT}
 
     def __init__(self, params: ImuStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
         ns = namespace.strip("/")
         self.odom_frame = params.odom_frame or (f"{ns}/odom" if ns else "odom")
         self.base_frame = params.base_frame or (f"{ns}/base_link" if ns else "base_link")
-        self.stepometer = Stepometer(params.stepometer)
-        self.pdr = Pdr(params.pdr_params())
-        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.stepometer.window_s))
-        self.filter_name = AUTO_FILTER if params.heading_source in ("auto", "orientation") else params.heading_source
-        self.filter: Aekf | VqfFilter = Aekf(params.aekf) if self.filter_name == "aekf" else VqfFilter(params.vqf)
-        self.mag_sync = MagSync(params.mag_max_delay_s)
         self._mag_bias = np.array([params.mag_bias_x, params.mag_bias_y, params.mag_bias_z])
-        self._last_mag_ns: int | None = None
-        self._acc_topic: str | None = None          # which input feeds the stepometer
-        self._last_raw_ns: int | None = None
-        self._last_orient_ns: int | None = None
-        self._external_orientation = params.heading_source == "orientation"
-        self._published_stamps: deque = deque(maxlen=512)   # our imu/data stamps (echo detection)
-        self._published_set: set = set()
         self.counts = {"mag_used": 0, "no_gyro": 0, "odom": 0}
+        self._fresh_state()
         self.on("imu/data_raw", self._on_raw)
         self.on("imu/mag", self._on_mag)
         self.on("imu/data", self._on_orientation)
@@ -137,6 +128,30 @@ class ImuStage(Stage):
         self.on_batch("imu/data_raw", self._raw_sample)
         self.on_batch("imu/mag", self._mag_sample)
         self.on_batch("imu/data", self._orientation_sample)
+
+    def _fresh_state(self) -> None:
+        """The estimators' state as before the first message (start-up, and a jump back in time)."""
+        params = self.params
+        self.stepometer = Stepometer(params.stepometer)
+        self.pdr = Pdr(params.pdr_params())
+        self.headings = HeadingHistory(horizon_s=max(10.0, 4.0 * params.stepometer.window_s))
+        self.filter_name = AUTO_FILTER if params.heading_source in ("auto", "orientation") else params.heading_source
+        self.filter: Aekf | VqfFilter = Aekf(params.aekf) if self.filter_name == "aekf" else VqfFilter(params.vqf)
+        self.mag_sync = MagSync(params.mag_max_delay_s)
+        self._last_mag_ns: int | None = None
+        self._acc_topic: str | None = None          # which input feeds the stepometer
+        self._last_raw_ns: int | None = None
+        self._last_orient_ns: int | None = None
+        self._external_orientation = params.heading_source == "orientation"
+        self._published_stamps: deque = deque(maxlen=512)   # our imu/data stamps (echo detection)
+        self._published_set: set = set()
+
+    def reset_user(self, user: str) -> list[Output]:
+        """A jump back in time: the hops of the old pass still in the stepometer are published, then
+        every estimator starts afresh (the odometry from the origin again)."""
+        outs = self.finish()
+        self._fresh_state()
+        return outs
 
     # -- ports ------------------------------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -268,7 +283,7 @@ class ImuStage(Stage):
         the heading history in column operations between the samples that complete a window — the
         same values, state and outputs as one sample at a time (``Stepometer.extend_steady``)."""
         arrays = getattr(items, "arrays", None)
-        if topic != "imu/data" or arrays is None or not self._orientation_run_ok(items):
+        if topic != "imu/data" or arrays is None or not self._orientation_run_ok(items, recv_ns):
             return super().process_batch(topic, items, recv_ns)
         n = len(items)
         t_all = arrays.sec * 1_000_000_000 + arrays.nanosec
@@ -313,6 +328,7 @@ class ImuStage(Stage):
             if not trigger:
                 break
         if i:
+            self.time.accepted("", topic, stamps[i - 1])
             stats.count += i
             stats.first_ns = recv_ns[0] if stats.first_ns is None else stats.first_ns
             stats.last_ns = recv_ns[i - 1]
@@ -321,7 +337,7 @@ class ImuStage(Stage):
             out += super().process_batch(topic, items[i:], recv_ns[i:])
         return out
 
-    def _orientation_run_ok(self, items: list) -> bool:
+    def _orientation_run_ok(self, items: list, recv_ns: list[int]) -> bool:
         """Whether :meth:`_orientation_sample` would take every item of the run the same plain way:
         orientation already the heading source, its acceleration feeding the stepometer, every item
         with an orientation, stamps increasing, none of them our own output echoed back."""
@@ -330,6 +346,8 @@ class ImuStage(Stage):
             return False
         t = items.arrays.sec * 1_000_000_000 + items.arrays.nanosec
         if (self._last_orient_ns is not None and int(t[0]) <= self._last_orient_ns) or np.any(np.diff(t) <= 0):
+            return False
+        if not self.time.passes_run("", "imu/data", t.tolist(), list(recv_ns), Order.STRICT):
             return False
         return not self._published_set or not any(int(v) in self._published_set for v in t)
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from indoor_loc.params import field, require
+from indoor_loc.params import field, group, require
 from indoor_loc.contract import Qos
 from indoor_loc.measurements import Fix
 from indoor_loc.errors import ConfigError
@@ -32,6 +32,7 @@ from msg_adapters.odom import PdrOdomReader
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
+from indoor_loc.pipeline.time_policy import Order, TimeParams
 
 
 @dataclass(frozen=True)
@@ -54,9 +55,11 @@ class PdrKfStageParams:
     path_max_poses: int = field(20000, "pdr_kf/path keeps the newest this many poses (≈ 1.8 h at 0.32 s hops); older "
                                          "ones leave the message (bounded size and memory)")
     frame_id: str = field("map", "frame of the estimates")
+    time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
 
     def validate(self) -> None:
         n = type(self).__name__
+        self.time.validate()
         require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
         require(self.smooth_lag_s > 0, n, "smooth_lag_s", "> 0", self.smooth_lag_s)
@@ -92,9 +95,21 @@ class PdrKfStage(Stage):
     """Linear PDR Kalman filter + RTS smoother (Raitoharju et al. 2015): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
+    STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING}
 
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
+        self.n_epochs = 0
+        self.smoother_runs = 0
+        self.restarts = 0
+        self.late_fixes = 0                                # fixes that arrived after later hops were applied
+        self._fresh_state()
+        self.on("pdr/odom", self._on_odom)
+        self.on("wifi/fix", self._on_fix)
+
+    def _fresh_state(self) -> None:
+        """The filter, smoother and queues as before the first message (start-up, a jump back in time)."""
+        params = self.params
         self.kf: LinearPdrKf | None = None
         self._odom = PdrOdomReader(params.step_length_m)
         # Fixed-lag smoothing of the current segment: the epochs still inside the window, each
@@ -104,18 +119,19 @@ class PdrKfStage(Stage):
         self._epochs: list[list] = []
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
         self._final: deque[tuple[int, float, float, float]] = deque(maxlen=params.path_max_poses)
-        self.n_epochs = 0
-        self.smoother_runs = 0
         self._rejected_in_row = 0
-        self.restarts = 0
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
         self._held: deque[tuple[int, Any, Any]] = deque()  # (stamp, odom, interval) held for odom_hold_s
         self._last_odom_ns: int | None = None             # stamp of the last odom applied
-        self.late_fixes = 0                                # fixes that arrived after later hops were applied
         self._seq = 0
         self._last_smooth_ns: int | None = None
-        self.on("pdr/odom", self._on_odom)
-        self.on("wifi/fix", self._on_fix)
+
+    def reset_user(self, user: str) -> list[Output]:
+        """A jump back in time: the old pass ends as at the end of input (its smoothed path published),
+        then the filter waits for the new pass's first fix."""
+        outs = self.finish()
+        self._fresh_state()
+        return outs
 
     def inputs(self) -> list[Port]:
         return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),

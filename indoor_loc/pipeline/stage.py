@@ -37,6 +37,7 @@ import numpy as np
 
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidInputError
+from indoor_loc.pipeline.time_policy import Held, Order, TimeParams, TimePolicy, Verdict
 
 Output = tuple[str, Any]  # (relative topic, message)
 
@@ -77,6 +78,7 @@ class StageDiagnostics:
     last_reject_ns: int | None = None   # node clock at the latest rejection (recent-window health)
     last_loss_ns: int | None = None     # node clock when a loss was last seen
     last_internal_ns: int | None = None  # node clock of the latest internal error
+    time_jumps: int = 0                 # confirmed jumps back (a user's state reset), see pipeline/time_policy.py
     now_ns: int | None = None           # node clock of the message or tick being handled
 
     def count_lost(self, topic: str, n: int, now_ns: int) -> None:
@@ -102,6 +104,7 @@ class StageDiagnostics:
         for topic, n in sorted(self.lost.items()):
             out[f"lost.{topic}"] = str(n)
         out["lost.total"] = str(sum(self.lost.values()))
+        out["time_jumps"] = str(self.time_jumps)
         if self.process_s:
             t = np.fromiter(self.process_s, float, len(self.process_s)) * 1e3
             p50, p99 = np.percentile(t, [50, 99])
@@ -130,6 +133,9 @@ class Stage:
     PARAMS: ClassVar[type] = object
     #: One instance for all users (inputs from every namespace, handlers get the user, per-user outputs).
     MULTI_USER: ClassVar[bool] = False
+    #: How each input topic's stamps must follow each other (:class:`~indoor_loc.pipeline.time_policy.Order`);
+    #: a topic not named here: ``NONDECREASING``.
+    STAMP_ORDER: ClassVar[dict[str, Order]] = {}
 
     def __init__(self, params: Any, *, namespace: str = "") -> None:
         self.params = params
@@ -139,6 +145,8 @@ class Stage:
         self._batch: dict[str, Callable[[Any, int], list[Output]]] = {}
         #: what the stage has to say (WARN), oldest first, until a driver takes it (:meth:`take_notices`)
         self.notices: list[str] = []
+        #: the stamps every input message is judged by (the params' ``time`` group; pipeline/time_policy.py)
+        self.time = TimePolicy(getattr(params, "time", None) or TimeParams())
 
     # -- declared by subclasses ---------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -194,7 +202,6 @@ class Stage:
         message), ...]``."""
         handler = self._batch[topic]
         diag = self.diag
-        published = diag.published
         out: list[tuple[int, str, Any]] = []
         if not items:
             return out
@@ -206,16 +213,7 @@ class Stage:
         stats.last_ns = recv_ns[len(items) - 1]
         for item, recv in zip(items, recv_ns):
             diag.now_ns = recv
-            try:
-                outs = handler(item, recv)
-            except InvalidInputError as err:
-                self._reject(err.reason, f"{topic}: {err}")
-                continue
-            except Exception as err:  # noqa: BLE001 - a node never dies on a message
-                self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
-                continue
-            for o_topic, o_msg in outs:
-                published[o_topic] += 1
+            for o_topic, o_msg in self._judged(topic, handler, item, recv, "", True):
                 out.append((recv, o_topic, o_msg))
         diag.process_s.append((time.perf_counter() - t0) / len(items))   # one entry per run: its mean
         return out
@@ -269,17 +267,105 @@ class Stage:
         self.diag.now_ns = recv_ns
         t0 = time.perf_counter()
         try:
-            outs = handler(msg, recv_ns)
-        except InvalidInputError as err:
-            self._reject(err.reason, f"{user + '/' if user else ''}{topic}: {err}")
-            return []
-        except Exception as err:  # noqa: BLE001 - a node never dies on a message
-            self._reject("internal_error", f"{topic}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
-            return []
+            return self._judged(topic, handler, msg, recv_ns, user or "", False)
         finally:
             self.diag.process_s.append(time.perf_counter() - t0)
+
+    # -- time (one policy for every stage: pipeline/time_policy.py) ---------------------------------
+    def stamp_of(self, topic: str, msg: Any) -> int | None:
+        """The stamp (ns) a message is judged by: its ``header.stamp``; None (not judged) without a
+        header. A stage whose input carries its stamp elsewhere (JSON text) says so here."""
+        header = getattr(msg, "header", None)
+        if header is None:
+            return None
+        stamp = header.stamp
+        sec, nsec = int(stamp.sec), int(stamp.nanosec)
+        if sec < 0 or not 0 <= nsec < 1_000_000_000:
+            raise InvalidInputError("bad_stamp", f"{topic}: header.stamp {sec}.{nsec:09d} s is not a valid time")
+        return sec * 1_000_000_000 + nsec
+
+    def stamp_order(self, topic: str) -> Order:
+        return self.STAMP_ORDER.get(topic, Order.NONDECREASING)
+
+    def reset_user(self, user: str) -> list[Output]:
+        """A confirmed jump back in ``user``'s stamps (``""``: this per-user stage's one user): start
+        its state afresh as if no message had come (publish what ends with the old pass first, e.g. its
+        path). Stages with state override it; the time policy's own state is reset by the caller."""
+        return []
+
+    def _handler_for(self, topic: str, user: str, batch: bool) -> Callable[[Any, int], list[Output]]:
+        if batch:
+            return self._batch[topic]
+        handler = self._handlers[topic]
+        return functools.partial(handler, user=user) if self.MULTI_USER else handler
+
+    def _judged(self, topic: str, handler: Callable[[Any, int], list[Output]], item: Any, recv_ns: int,
+                user: str, batch: bool) -> list[Output]:
+        """One message (or batch item) through the time policy and, if it passes, its handler;
+        rejections are counted by reason, nothing is raised."""
+        who = f"{user}/{topic}" if user else topic
+        try:
+            stamp = int(item.stamp_ns) if batch else self.stamp_of(topic, item)
+            verdict = Verdict.PASS if stamp is None else self.time.judge(
+                user, topic, stamp, recv_ns, self.stamp_order(topic))
+        except InvalidInputError as err:
+            self._reject(err.reason, f"{who}: {err}")
+            return []
+        if verdict == Verdict.HOLD:
+            assert stamp is not None
+            dropped = self.time.hold(user, Held(topic, item, recv_ns, stamp, batch))
+            if dropped is not None:
+                self._reject_held(user, [dropped])
+            return []
+        if verdict == Verdict.JUMP:
+            assert stamp is not None
+            return self._jump(user, Held(topic, item, recv_ns, stamp, batch))
+        if stamp is not None and self.time.in_step(user, topic):
+            self._reject_held(user, self.time.drop_held(user))
+        try:
+            outs = handler(item, recv_ns)
+        except InvalidInputError as err:
+            self._reject(err.reason, f"{who}: {err}")
+            return []
+        except Exception as err:  # noqa: BLE001 - a node never dies on a message
+            self._reject("internal_error", f"{who}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+            return []
+        if stamp is not None:
+            self.time.accepted(user, topic, stamp)
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1
+        return outs
+
+    def _reject_held(self, user: str, held: list[Held]) -> None:
+        for h in held:
+            self._reject("stale_stamp", f"{user + '/' if user else ''}{h.topic}: stamp {h.stamp_ns} ns is more than "
+                                        f"time.jump_s before the topic's newest and the topic went on in step: a "
+                                        f"straggler or a wrong stamp, not a jump back")
+
+    def _jump(self, user: str, first: Held) -> list[Output]:
+        """A jump back confirmed by ``first``: the user's state reset, the held messages and ``first``
+        handled as the new pass's first (their order kept)."""
+        mark = self.time.user(user).marks.get(first.topic)
+        outs, held = self._reset_and_restart(user)
+        return outs + self._replay_held(user, held + [first], mark, first)
+
+    def _reset_and_restart(self, user: str) -> tuple[list[Output], list[Held]]:
+        """Reset the user's state in the stage and in the time policy; returns the outputs of the
+        reset and the messages held for the new pass."""
+        outs = self._guarded("reset_user", lambda: self.reset_user(user))
+        held = self.time.restart(user)
+        self.diag.time_jumps += 1
+        return outs, held
+
+    def _replay_held(self, user: str, held: list[Held], mark: int | None, first: Held | None) -> list[Output]:
+        if first is not None:
+            back = "" if mark is None else f" {(mark - first.stamp_ns) * 1e-9:.3f} s"
+            self.notice(f"{user + ': ' if user else ''}{first.topic} stamps jumped back{back} (a replay loop, a "
+                        f"restarted simulation or a clock reset): state reset, the new pass handled from its first "
+                        f"message (time jump {self.time.user(user).jumps})")
+        outs: list[Output] = []
+        for h in held:
+            outs += self._judged(h.topic, self._handler_for(h.topic, user, h.batch), h.item, h.recv_ns, user, h.batch)
         return outs
 
     def run_tick(self, now_ns: int) -> list[Output]:
@@ -289,12 +375,28 @@ class Stage:
         return self._guarded("tick", lambda: self.tick(now_ns))
 
     def clock_jump_threshold_ns(self) -> int:
-        """How far back the node's clock must jump (ns) for :meth:`run_clock_jump`; 0 = never."""
-        return 0
+        """How far back the node's clock must jump (ns) for :meth:`run_clock_jump` (``time.jump_s``)."""
+        return self.time.jump_ns
 
     def clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
-        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns`` to ``now_ns``."""
-        return []
+        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns`` to ``now_ns``:
+        every user whose stamps are ahead of it starts afresh at once (:meth:`reset_user`), one notice."""
+        users = self.time.clock_jump(now_ns)
+        if not users:
+            return []
+        names = ", ".join(u or self.namespace or "/" for u in users)
+        self.notice(f"the clock jumped back {back_ns * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s (a replay loop or a "
+                    f"restarted simulation): state reset for {names}")
+        outs: list[Output] = []
+        for user in users:
+            reset, held = self._reset_and_restart(user)
+            outs += reset + self._replay_held(user, held, None, None)
+        return outs
+
+    def drop_held(self, user: str) -> None:
+        """End of a user's input with a jump back still unconfirmed: its held messages were stragglers."""
+        if user in self.time.users and self.time.users[user].held:
+            self._reject_held(user, self.time.drop_held(user))
 
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """:meth:`clock_jump` for drivers, guarded like :meth:`run_tick`."""

@@ -66,6 +66,7 @@ from indoor_loc.errors import InvalidMessageError
 from msg_adapters.pose import fix_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
+from indoor_loc.pipeline.time_policy import TimeParams
 from indoor_loc.wifi.coverage import CoverageParams
 from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner, plan_files
 from indoor_loc.wifi.methods import METHODS, make_chain
@@ -104,6 +105,7 @@ class WifiFixParams:
     coverage: CoverageParams = group(CoverageParams, "coverage areas (indoor_loc/wifi/coverage.py; coverage.*)")
     powed: PowedKnnParams = group(PowedKnnParams, "powed k-NN (indoor_loc/wifi/powed_knn.py; powed.k, "
                                                   "powed.age_tau_ms, ...)")
+    time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -182,7 +184,6 @@ class WifiFixStage(Stage):
                 self.positioner = self.fit_positioner(self.radio_map)
             else:               # radio_map is the configured map; it answers once end_fit installs it
                 self.begin_fit(self.radio_map)
-        self._last_scan_ns: int | None = None     # stamp of the last scan accepted (older ones: stamp_backwards)
         self.on("wifi/scan", self._on_scan)
 
     def inputs(self) -> list[Port]:
@@ -286,10 +287,6 @@ class WifiFixStage(Stage):
                 raise InvalidMessageError("fit_failed", self.fit_error)
             raise InvalidMessageError("no_map", "no radio map configured (parameter radiomap is ''; set it, e.g. "
                                        "-p radiomap:=DIR, a directory from `indoor-loc radiomap build` or an importer)")
-        if self._last_scan_ns is not None and scan.stamp_ns < self._last_scan_ns:
-            raise InvalidMessageError("stamp_backwards", f"scan stamp {scan.stamp_ns} ns is before the previous "
-                                                         f"scan's {self._last_scan_ns} ns")
-        self._last_scan_ns = scan.stamp_ns
         if self.positioner is None:        # the map is being fitted: located when it is ready
             if len(self.pending) >= self.pending_max:
                 old, _ = self.pending.popleft()

@@ -1,0 +1,246 @@
+"""One time policy for every stage: which message stamps a stage takes, and what a clock jump does.
+
+Every stage (:class:`~indoor_loc.pipeline.stage.Stage`) judges each input message's stamp here
+before its handler sees it, with the parameters of the ``time`` group (:class:`TimeParams`,
+``time.max_future_s``, ``time.jump_s``, ``time.jump_confirm`` in every node's params):
+
+- **future**: a stamp more than ``max_future_s`` ahead of the node's clock (ROS time, sim time under
+  ``use_sim_time``; offline the bag's log time) is rejected (``future_stamp``) without touching
+  anything. With no clock yet (sim time before the first ``/clock``) the check waits for one.
+- **order**, per *source* (one input topic of one user; the newest accepted stamp is its
+  *watermark*): a stamp at or before the watermark, but within ``jump_s`` of it, is judged by the
+  topic's :class:`Order` — ``STRICT`` inputs (IMU samples, odometry hops) need a later stamp
+  (``non_monotonic_stamp``), ``NONDECREASING`` ones (scans, fixes) an equal or later one
+  (``stamp_backwards``), ``ANY`` passes (the stage reorders, e.g. the back-end's window). The
+  watermark moves only when the stage's handler accepted the message (it did not raise).
+- **jumps back**: a stamp more than ``jump_s`` before its source's watermark is either a straggler
+  (a wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a
+  simulation restarted, a device clock reset). It is held, with every later message of the user
+  that far back, until the source decides: ``jump_confirm`` messages of the source in a row, each
+  in step with the one before, confirm the jump — or at once when the node's clock agrees (the
+  source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in the
+  clock's future). A confirmed jump resets the user's state in the stage
+  (:meth:`Stage.reset_user`), counts ``time_jumps``, says it once (WARN), and the held messages
+  are handled as the new pass's first. A message of the source back in step with its watermark
+  shows the held ones were stragglers: each is rejected (``stale_stamp``), counted. Ordering
+  *across* a user's topics is never a jump (a user's first scan before its first odometry, fixes
+  that lag the odometry by the WiFi node's latency): each topic is a source of its own.
+- **the node's clock going back** (rclpy's clock-jump callback, :meth:`Stage.run_clock_jump`) by
+  more than ``jump_s`` resets every user whose watermarks are ahead of the new clock, at once.
+- **after a jump**, a message stamped more than ``jump_s`` ahead of the user's new pass but not
+  after the old pass's newest stamp is of the old pass, still in flight (a fix that lags its
+  scan): rejected (``before_jump``), so it cannot set the new pass's watermarks to the old stamps.
+
+The policy holds stamps and held messages only; it never looks inside a message. The driver
+(:class:`Stage`) asks :meth:`TimePolicy.judge` and acts on the :class:`Verdict`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+from enum import IntEnum
+from typing import Any
+
+from indoor_loc.errors import InvalidInputError
+from indoor_loc.params import field, require
+
+NS = 1_000_000_000
+#: At most this many messages of one user are held while a jump back waits for its confirmation;
+#: beyond, the oldest is rejected (``stale_stamp``).
+HELD_MAX = 1000
+
+
+class Order(IntEnum):
+    """How the stamps of one input topic must follow each other (within ``jump_s``)."""
+    STRICT = 0          # each after the previous (IMU samples, odometry hops)
+    NONDECREASING = 1   # equal stamps allowed (scans, fixes)
+    ANY = 2             # any order: the stage reorders (a reorder window)
+    EXEMPT = 3          # not judged at all (initialpose: a person's command, often stamped 0)
+
+
+@dataclass(frozen=True)
+class TimeParams:
+    """The ``time`` parameters of every node (see the module doc)."""
+    max_future_s: float = field(10.0, "a message stamped more than this ahead of the node's clock (sim time under "
+                                      "use_sim_time) is rejected (future_stamp), nothing changed, s")
+    jump_s: float = field(2.0, "a stamp this much before its topic's newest accepted one is a jump back: held until "
+                               "jump_confirm messages in a row (or the node's clock) confirm it — then the user's state "
+                               "is reset (time_jumps, WARN) — or the topic goes on in step (stale_stamp, counted); "
+                               "the node's clock going back this far resets at once, s")
+    jump_confirm: int = field(3, "messages of one topic in a row, each in step with the previous, that confirm a "
+                                 "jump back (a replay loop, a restarted simulation, a device clock reset)")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        require(self.max_future_s > 0, n, "max_future_s", "> 0", self.max_future_s)
+        require(self.jump_s > 0, n, "jump_s", "> 0", self.jump_s)
+        require(self.jump_confirm >= 1, n, "jump_confirm", ">= 1", self.jump_confirm)
+
+
+class Verdict(IntEnum):
+    PASS = 0        # hand the message to its handler; call :meth:`TimePolicy.accepted` if it took it
+    HOLD = 1        # held (a possible jump back): :meth:`TimePolicy.hold` it
+    JUMP = 2        # a jump back confirmed by this message: reset the user, then :meth:`TimePolicy.restart`
+
+
+@dataclass
+class Held:
+    """A message held while a jump back waits for its confirmation."""
+    topic: str
+    item: Any           # the message, or a batch item (``batch``)
+    recv_ns: int
+    stamp_ns: int
+    batch: bool = False
+
+
+@dataclass
+class _UserTime:
+    marks: dict[str, int] = dc_field(default_factory=dict)    # topic -> newest accepted stamp (watermark)
+    held: list[Held] = dc_field(default_factory=list)
+    cand_topic: str | None = None       # the source whose far-back run is being judged
+    cand_last: int = 0                  # its latest far-back stamp
+    cand_count: int = 0                 # far-back messages of that source in a row
+    fence_ns: int | None = None         # after a jump: the old pass's newest stamp (see before_jump)
+    jumps: int = 0
+
+    def front(self) -> int | None:
+        return max(self.marks.values()) if self.marks else None
+
+
+class TimePolicy:
+    """Stamps judged per user and topic (the module doc); ``user`` is ``""`` for a per-user stage."""
+
+    def __init__(self, params: TimeParams) -> None:
+        params.validate()
+        self.params = params
+        self.future_ns = int(params.max_future_s * NS)
+        self.jump_ns = int(params.jump_s * NS)
+        self.users: dict[str, _UserTime] = {}
+        self.rejected_held = 0
+
+    def user(self, user: str) -> _UserTime:
+        u = self.users.get(user)
+        if u is None:
+            u = self.users[user] = _UserTime()
+        return u
+
+    def judge(self, user: str, topic: str, stamp_ns: int, now_ns: int | None, order: Order) -> Verdict:
+        """What to do with a message; raises :class:`InvalidInputError` for one to reject (nothing
+        changed). A ``PASS`` of the held run's source back in step drops the held messages first
+        (:meth:`drop_held` gives them to the caller to count)."""
+        if order == Order.EXEMPT:
+            return Verdict.PASS
+        if now_ns and stamp_ns > now_ns + self.future_ns:
+            raise InvalidInputError(
+                "future_stamp", f"stamp {stamp_ns * 1e-9:.3f} s is {(stamp_ns - now_ns) * 1e-9:.1f} s ahead of the "
+                                f"node's clock ({now_ns * 1e-9:.3f} s), more than time.max_future_s "
+                                f"({self.params.max_future_s:g} s)")
+        u = self.user(user)
+        if u.fence_ns is not None:
+            self._check_fence(u, topic, stamp_ns, now_ns)
+        mark = u.marks.get(topic)
+        if mark is None:            # a topic's first message: held only if it is as far back as a held run
+            return Verdict.HOLD if u.held and stamp_ns < (u.front() or 0) - self.jump_ns else Verdict.PASS
+        if stamp_ns < mark - self.jump_ns:                       # far back: a straggler or a new pass
+            if u.cand_topic is None or topic != u.cand_topic:
+                if u.cand_topic is None:
+                    u.cand_topic, u.cand_last, u.cand_count = topic, stamp_ns, 1
+                    return Verdict.JUMP if self._clock_agrees(mark, now_ns, u) else Verdict.HOLD
+                return Verdict.HOLD                              # another topic of the same run
+            if not (u.cand_last <= stamp_ns <= u.cand_last + self.jump_ns):
+                u.cand_last, u.cand_count = stamp_ns, 1          # not in step: the run starts again
+                return Verdict.HOLD
+            u.cand_last, u.cand_count = stamp_ns, u.cand_count + 1
+            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(mark, now_ns, u):
+                return Verdict.JUMP
+            return Verdict.HOLD
+        if u.held and topic != u.cand_topic:
+            return Verdict.HOLD if stamp_ns < (u.front() or 0) - self.jump_ns else Verdict.PASS
+        if stamp_ns < mark or (stamp_ns == mark and order == Order.STRICT):
+            if order == Order.STRICT:
+                raise InvalidInputError("non_monotonic_stamp", f"{topic} stamp {stamp_ns} ns is not after the "
+                                                               f"previous one's {mark} ns")
+            if order == Order.NONDECREASING:
+                raise InvalidInputError("stamp_backwards", f"{topic} stamp {stamp_ns} ns is before the previous "
+                                                           f"one's {mark} ns")
+        return Verdict.PASS
+
+    def _clock_agrees(self, mark: int, now_ns: int | None, u: _UserTime) -> bool:
+        """The node's clock confirms a jump back: the source's old pass is ahead of it by more than ``jump_s``."""
+        return bool(now_ns) and mark > int(now_ns or 0) + self.jump_ns
+
+    def _check_fence(self, u: _UserTime, topic: str, stamp_ns: int, now_ns: int | None) -> None:
+        front = u.front()
+        ref = front if front is not None else now_ns
+        if ref is None or ref == 0:
+            return
+        if front is not None and front > u.fence_ns:             # the new pass is past the old one's end
+            u.fence_ns = None
+            return
+        if ref + self.jump_ns < stamp_ns <= u.fence_ns:          # type: ignore[operator]
+            raise InvalidInputError(
+                "before_jump", f"{topic} stamp {stamp_ns} ns is {(stamp_ns - ref) * 1e-9:.1f} s ahead of the new pass "
+                               f"since the clock jumped back from {u.fence_ns} ns: a message of the pass before the "
+                               f"jump still in flight")
+
+    def in_step(self, user: str, topic: str) -> bool:
+        """Whether a PASS of ``topic`` ends the held run as stragglers (the run's own source back in step)."""
+        u = self.users.get(user)
+        return u is not None and bool(u.held) and topic == u.cand_topic
+
+    def hold(self, user: str, held: Held) -> Held | None:
+        """Hold a message; returns the oldest held one if the bound made room (reject it)."""
+        u = self.user(user)
+        u.held.append(held)
+        return u.held.pop(0) if len(u.held) > HELD_MAX else None
+
+    def drop_held(self, user: str) -> list[Held]:
+        """The held run turned out to be stragglers: they go (the caller rejects each, ``stale_stamp``)."""
+        u = self.user(user)
+        held, u.held = u.held, []
+        u.cand_topic, u.cand_count = None, 0
+        self.rejected_held += len(held)
+        return held
+
+    def restart(self, user: str) -> list[Held]:
+        """After the user's state was reset for a jump back: watermarks cleared, the old pass fenced
+        off, one more jump counted. Returns the held messages, to be handled as the new pass's first."""
+        u = self.user(user)
+        held, front = u.held, u.front()
+        u.marks, u.held, u.cand_topic, u.cand_count = {}, [], None, 0
+        if front is not None:
+            u.fence_ns = front if u.fence_ns is None else max(u.fence_ns, front)
+        u.jumps += 1
+        return held
+
+    def accepted(self, user: str, topic: str, stamp_ns: int) -> None:
+        """The stage took a message: its source's watermark moves to the stamp (never back)."""
+        u = self.user(user)
+        mark = u.marks.get(topic)
+        if mark is None or stamp_ns > mark:
+            u.marks[topic] = stamp_ns
+
+    def passes_run(self, user: str, topic: str, stamps: list[int], now_ns: list[int], order: Order) -> bool:
+        """Whether a whole run of one topic would PASS one by one with nothing held (every stamp in
+        order after the watermark, none ahead of its clock), so the caller may handle it in one go
+        (then :meth:`accepted` its last stamp taken). False: judge the messages one by one."""
+        if order == Order.EXEMPT:
+            return True
+        u = self.users.get(user)
+        if u is not None and (u.held or u.fence_ns is not None):
+            return False
+        prev = None if u is None else u.marks.get(topic)
+        for t, now in zip(stamps, now_ns):
+            if now and t > now + self.future_ns:
+                return False
+            if prev is not None and (t < prev or (t == prev and order == Order.STRICT)):
+                return False
+            prev = t
+        return True
+
+    def clock_jump(self, now_ns: int) -> list[str]:
+        """The node's clock went back to ``now_ns``: the users whose watermarks are more than ``jump_s``
+        ahead of it (the caller resets each, then calls :meth:`restart`)."""
+        return [name for name, u in self.users.items() if (u.front() or 0) > now_ns + self.jump_ns]
+
+    def jumps(self) -> int:
+        return sum(u.jumps for u in self.users.values())
