@@ -15,9 +15,9 @@ Link choices at nodes follow the ``rule`` table computed from the graph, or a le
 was made for this very graph file).
 
 Fixes (and scans) wait until PDR has reached their stamp (the stepometer publishes about half a window late),
-bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. A stamp more than
-``time_jump_s`` older than the newest seen (a bag played in a loop, a restarted recording) resets
-the filter instead of being rejected.
+bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. Stamps are judged by
+the time policy every stage shares (:mod:`indoor_loc.pipeline.time_policy`); a confirmed jump back (a
+bag played in a loop, a restarted recording) resets the filter (:meth:`PfStage.reset_user`).
 """
 from __future__ import annotations
 
@@ -43,6 +43,7 @@ from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
 from indoor_loc.wifi.radiomap import load_radiomap
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
+from indoor_loc.pipeline.time_policy import Order, TimeParams
 
 POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
@@ -75,7 +76,6 @@ class PfStageParams:
     fix_dof: float = P.field(6.0, "WiFi fix likelihood: 0 = Gaussian, > 0 = Student-t with this many degrees of freedom")
     inject_mass: float = P.field(0.15, "prior probability mass of the particles redrawn around each WiFi fix")
     max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
-    time_jump_s: float = P.field(1.0, "a stamp this much older than the newest seen resets the filter (bag loops) (s)")
     particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
     smooth: bool = P.field(True, "at the end of input publish the backward-simulation smoothed pf/path")
@@ -93,11 +93,12 @@ class PfStageParams:
                                                      "(scan.sigma_db, scan.kernel_m, ...)")
     monitor: MonitorParams = P.group(MonitorParams, "divergence monitoring by the linear PDR Kalman filter "
                                                     "(monitor.enabled, monitor.gate_prob, ...)")
+    time: TimeParams = P.group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
 
     def validate(self) -> None:
         n = type(self).__name__
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
-        P.require(self.time_jump_s > 0, n, "time_jump_s", "> 0", self.time_jump_s)
+        self.time.validate()
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
@@ -126,6 +127,8 @@ class PfStage(Stage):
     """TLL particle filter: pdr/odom + wifi/fix (+ initialpose) -> pf/pose, pf/particles, pf/path, map/graph."""
     NODE_NAME = "tll_pf"
     PARAMS = PfStageParams
+    STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING, "wifi/scan": Order.NONDECREASING,
+                   "initialpose": Order.EXEMPT}
 
     def __init__(self, params: PfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
@@ -166,11 +169,19 @@ class PfStage(Stage):
                                     rng=np.random.default_rng(params.seed), monitor=params.monitor)
         self._seq = 0
         self._last_odom_ns: int | None = None
-        self._newest: dict[str, int] = {}
         self._graph_sent = False
         self._n_pose = 0
         self._last_path_ns: int | None = None
-        self.time_jumps = 0
+
+    def reset_user(self, user: str) -> list[Output]:
+        """A jump back in time: the old pass's path is published (as at the end of input), then the
+        filter waits for the new pass's first fix or initial pose (as at start-up)."""
+        outs = self.finish()
+        self.tracker.reset()
+        self._pending.clear()
+        self._last_odom_ns = None
+        self._last_path_ns = None
+        return outs
 
     def inputs(self) -> list[Port]:
         wifi = (Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)
@@ -186,8 +197,8 @@ class PfStage(Stage):
                 Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
-    def _start(self, stamp_ns: int, topic: str = "") -> list[Output]:
-        """map/graph once; a backwards time jump resets the filter."""
+    def _start(self, stamp_ns: int) -> list[Output]:
+        """map/graph once."""
         if self.graph is None:
             raise InvalidMessageError("no_graph", "graph_file is not set: give the tll_pf node a building graph "
                                       "(format indoor_loc.graph v1; `indoor-loc import putmc` writes one)")
@@ -196,24 +207,11 @@ class PfStage(Stage):
             self._graph_sent = True
             outs.append(("map/graph", graph_markers(self.graph.node_xyz[:, :2], self.graph.link_nodes.astype(np.int64),
                                                     self.params.frame_id, stamp_ns, ns="map/graph")))
-        # per input topic: pdr/odom legitimately runs a second or two behind wifi/fix
-        newest = self._newest.get(topic)
-        if newest is not None and stamp_ns < newest - int(self.params.time_jump_s * 1e9):
-            self.time_jumps += 1
-            self.tracker.reset()
-            self._pending.clear()
-            self._last_odom_ns = None
-            self._newest = {}
-            self._last_path_ns = None
-        self._newest[topic] = stamp_ns if topic not in self._newest else max(self._newest[topic], stamp_ns)
         return outs
 
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
         od = odom_from_msg(msg)
-        outs = self._start(od.stamp_ns, "pdr/odom")
-        if self._last_odom_ns is not None and od.stamp_ns <= self._last_odom_ns:
-            from indoor_loc.errors import InvalidMessageError
-            raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {self._last_odom_ns}")
+        outs = self._start(od.stamp_ns)
         outs += self._apply_pending(lambda s: s < od.stamp_ns)
         self._last_odom_ns = od.stamp_ns
         est = self.tracker.odom(od.stamp_ns, od.x, od.y, od.yaw)
@@ -237,7 +235,7 @@ class PfStage(Stage):
         return self._queue(scan.stamp_ns, "wifi/scan", scan)
 
     def _queue(self, stamp_ns: int, topic: str, payload) -> list[Output]:
-        outs = self._start(stamp_ns, topic)
+        outs = self._start(stamp_ns)
         self._seq += 1
         bisect.insort(self._pending, (stamp_ns, self._seq, payload))
         if self._last_odom_ns is None:                 # no PDR (yet): the speed model moves particles
@@ -248,7 +246,7 @@ class PfStage(Stage):
 
     def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:
         ps = pose_from_msg(msg)
-        outs = self._start(ps.stamp_ns, "initialpose")
+        outs = self._start(ps.stamp_ns)
         cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
         return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov))
 
@@ -313,7 +311,7 @@ class PfStage(Stage):
         d = {"graph": f"{self.graph.n_nodes} nodes, {self.graph.n_links} links", "rule": self.transitions.rule,
              "wifi_update": self.params.wifi_update,
              "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
-                           else "hit" if self.cache_hit else "computed"), "time_jumps": str(self.time_jumps),
+                           else "hit" if self.cache_hit else "computed"),
              "pending_fixes": str(len(self._pending))}
         if pf.p is None:
             d["initialised"] = "false (waiting for the first wifi/fix or initialpose)"

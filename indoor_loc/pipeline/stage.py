@@ -114,6 +114,13 @@ class StageDiagnostics:
         return out
 
 
+def _item_stamp(item: Any) -> int:
+    """The stamp (ns) of a batch item: what an adapter returns (a sample with ``stamp_ns``, or a
+    ``(stamp_ns, values)`` pair)."""
+    stamp = getattr(item, "stamp_ns", None)
+    return int(item[0] if stamp is None else stamp)
+
+
 def user_of_namespace(namespace: str) -> str:
     """``/walk07`` -> ``walk07`` (the user name a multi-user stage sees; ``""`` for the root)."""
     return namespace.strip("/")
@@ -305,7 +312,7 @@ class Stage:
         rejections are counted by reason, nothing is raised."""
         who = f"{user}/{topic}" if user else topic
         try:
-            stamp = int(item.stamp_ns) if batch else self.stamp_of(topic, item)
+            stamp = _item_stamp(item) if batch else self.stamp_of(topic, item)
             verdict = Verdict.PASS if stamp is None else self.time.judge(
                 user, topic, stamp, recv_ns, self.stamp_order(topic))
         except InvalidInputError as err:

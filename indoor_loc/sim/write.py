@@ -165,10 +165,7 @@ def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
         "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
         # the particle filter on the building graph (its TLL table is cached beside graph.yaml)
-        # time_jump_s: live, a WiFi fix arrives about 2 s before the PDR hops of the same time (the
-        # stepometer reports half a window late), so "older than the newest stamp" must allow more
-        # than that; a bag played in a loop still jumps back by the whole run
-        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file), "time_jump_s": 10.0}},
+        "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file)}},
         # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
