@@ -95,6 +95,81 @@ BACKEND_PATH = "backend/{user}/path"
 BACKEND_POSE = "backend/{user}/pose"
 
 
+@dataclass(frozen=True)
+class Bound:
+    """A physical limit an input value must keep: ``lo <= value <= hi`` in ``unit`` (per axis for a
+    vector), else the message is rejected under ``reason`` with a detail naming the field, the value
+    and the bound. ``applies`` names the topics and fields; ``why`` says why no real input exceeds it."""
+    name: str
+    lo: float
+    hi: float
+    unit: str
+    applies: str
+    why: str
+    reason: str = "out_of_range"
+
+    def holds(self, value: float) -> bool:
+        return self.lo <= value <= self.hi
+
+
+#: Yaw (or yaw-rate) variance meaning "unknown" in ``pdr/odom``, ``wifi/fix`` and the estimates, rad²
+#: (robot_localization's "ignore this axis"); the largest variance an angle may carry.
+VAR_UNKNOWN = 1e6
+#: Relative tolerance of the covariance checks: ``|C - C^T| <= COV_RTOL * max(1, max|C|)`` (symmetric
+#: within rounding) and every eigenvalue ``>= -COV_RTOL * max(1, max|C|)`` (positive semi-definite
+#: within rounding).
+COV_RTOL = 1e-9
+#: A map-frame position (``wifi/fix``, ``initialpose``) farther than this outside the stage's map
+#: (bounding box of the building graph, the radio map's scan positions) is ``off_map``, m.
+OFF_MAP_MARGIN_M = 100.0
+
+#: The plausibility bounds every adapter applies (``msg_adapters/plausible.py``; ``indoor-loc contract``
+#: prints them, docs/nodes.md lists them).
+BOUNDS: dict[str, Bound] = {b.name: b for b in [
+    Bound("acceleration", -200.0, 200.0, "m/s^2", "imu/data_raw, imu/data: linear_acceleration, per axis",
+          "about 20 g: phone and robot IMUs saturate at 2-16 g full scale"),
+    Bound("angular_rate", -100.0, 100.0, "rad/s", "imu/data_raw, imu/data: angular_velocity, per axis "
+          "(unless angular_velocity_covariance[0] = -1: no gyroscope)",
+          "about 5700 deg/s: gyroscopes saturate at 2000-4000 deg/s full scale"),
+    Bound("magnetic_field", -5e-3, 5e-3, "T", "imu/mag: magnetic_field, per axis",
+          "5 mT: the Earth's field is 25-65 uT, indoor disturbances a few hundred uT, phone "
+          "magnetometers saturate at 1.3-4.9 mT"),
+    Bound("angle_variance", 0.0, VAR_UNKNOWN, "rad^2", "imu/data: orientation_covariance diagonal; pdr/odom: "
+          "pose yaw variance; wifi/fix, initialpose: yaw variance",
+          "1e6 rad^2 is the 'unknown' value the contract uses; a variance cannot be negative", "bad_covariance"),
+    Bound("rate_variance", 0.0, VAR_UNKNOWN, "rad^2/s^2 or m^2/s^2", "pdr/odom: twist.covariance[0] "
+          "(walking speed) and [35] (yaw rate)", "1e6 = unknown (yaw rate); a variance cannot be negative",
+          "bad_covariance"),
+    Bound("position_variance", 0.0, 1e10, "m^2", "pdr/odom: pose x/y variances; wifi/fix, initialpose: x/y and z "
+          "variances", "a standard deviation of 100 km says nothing any more; beyond is garbage",
+          "bad_covariance"),
+    Bound("fix_variance_min", 1e-6, 1e10, "m^2", "wifi/fix: smallest eigenvalue of the x/y covariance",
+          "no WiFi fix is better than a millimetre; a smaller variance makes its information overflow",
+          "bad_covariance"),
+    Bound("odom_position", -1e5, 1e5, "m", "pdr/odom: pose.position x, y, z",
+          "100 km of walking from the odometry origin is more than a day"),
+    Bound("odom_speed", -10.0, 10.0, "m/s", "pdr/odom: twist.linear.x (walking speed)",
+          "sprinters reach 10-12 m/s for seconds; walkers 1-2 m/s"),
+    Bound("odom_yaw_rate", -100.0, 100.0, "rad/s", "pdr/odom: twist.angular.z", "as angular_rate"),
+    Bound("odom_jump", 0.0, 10.0, "m", "pdr/odom: distance from the stream's previous accepted pose, less "
+          "odom_speed's bound times their stamp difference",
+          "a pedestrian does not move 10 m between two hops (0.3 s); a restarted odometry far from its "
+          "origin is taken once the stamps allow the distance", "odom_jump"),
+    Bound("map_position", -1e7, 1e7, "m", "wifi/fix, initialpose: pose.position x, y, z",
+          "a map frame is local; 1e7 m still holds UTM coordinates"),
+    Bound("off_map", 0.0, OFF_MAP_MARGIN_M, "m", "wifi/fix, initialpose: distance outside the stage's map "
+          "(tll_pf: the graph's bounding box; backend_node: the radio map's scan positions)",
+          "nobody is located 100 m outside the building the map covers", "off_map"),
+    Bound("rssi", -120.0, 0.0, "dBm", "wifi/scan, wifi/scan_raw: rssi_dbm",
+          "receivers report -100..-20 dBm; 0 dBm is at the antenna", "rssi_range"),
+    Bound("frequency", 700.0, 75000.0, "MHz", "wifi/scan, wifi/scan_raw: frequency_mhz (0 = unknown also passes)",
+          "802.11 channels lie from 0.9 GHz (802.11ah) to 71 GHz (802.11ad/ay); a value in GHz or kHz is a "
+          "unit mistake"),
+    Bound("age", 0.0, 3.6e6, "ms", "wifi/scan, wifi/scan_raw: age_ms",
+          "a cached reading older than an hour is not of this scan"),
+]}
+
+
 def msg_class(type_name: str) -> type:
     """Import a message class from ``"pkg/msg/Name"``."""
     pkg, kind, name = type_name.split("/")

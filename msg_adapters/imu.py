@@ -12,6 +12,7 @@ from geometry_msgs.msg import Quaternion, Vector3
 from sensor_msgs.msg import Imu, MagneticField
 
 from indoor_loc.errors import InvalidMessageError
+from msg_adapters.plausible import check_cov, check_xyz
 from msg_adapters.time import as_matrix, as_vector, require_len, stamp_from_ns, stamp_to_ns
 
 #: |‖q‖ - 1| above this rejects an orientation as ``"bad_quaternion"``.
@@ -33,10 +34,6 @@ class ImuSample(NamedTuple):
     orientation_cov: np.ndarray | None
 
 
-def _vec3(v: Vector3) -> list[float]:
-    return [v.x, v.y, v.z]
-
-
 def _check_quat(what: str, q: np.ndarray) -> None:
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
@@ -44,13 +41,20 @@ def _check_quat(what: str, q: np.ndarray) -> None:
 
 
 def imu_from_msg(msg: Imu) -> ImuSample:
-    """Validate and unpack an Imu message (``"nan"``, ``"negative_stamp"``, ``"bad_quaternion"``)."""
+    """Validate and unpack an Imu message (``"nan"``, ``"negative_stamp"``, ``"bad_quaternion"``;
+    ``"out_of_range"`` for an acceleration or rate beyond :data:`indoor_loc.contract.BOUNDS`,
+    ``"bad_covariance"`` for an orientation covariance that is not symmetric PSD with variances in
+    [0, 1e6] rad²). The acceleration and rate covariances are not used: only finite."""
     stamp = stamp_to_ns(msg.header.stamp)
-    acc = as_vector("linear_acceleration", _vec3(msg.linear_acceleration), 3)
+    a = msg.linear_acceleration
+    acc = as_vector("linear_acceleration", [a.x, a.y, a.z], 3)
+    check_xyz("linear_acceleration", a.x, a.y, a.z, "acceleration")
     require_len("linear_acceleration_covariance", msg.linear_acceleration_covariance, 9)
     gyro = None
     if msg.angular_velocity_covariance[0] != -1.0:
-        gyro = as_vector("angular_velocity", _vec3(msg.angular_velocity), 3)
+        w = msg.angular_velocity
+        gyro = as_vector("angular_velocity", [w.x, w.y, w.z], 3)
+        check_xyz("angular_velocity", w.x, w.y, w.z, "angular_rate")
         require_len("angular_velocity_covariance", msg.angular_velocity_covariance, 9)
     quat = cov = None
     if msg.orientation_covariance[0] != -1.0:
@@ -58,6 +62,7 @@ def imu_from_msg(msg: Imu) -> ImuSample:
         quat = as_vector("orientation", [o.x, o.y, o.z, o.w], 4)
         _check_quat("orientation", quat)
         cov = as_matrix("orientation_covariance", msg.orientation_covariance, 3)
+        check_cov("orientation_covariance", cov, "angle_variance")
     return ImuSample(stamp, msg.header.frame_id, acc, gyro, quat, cov)
 
 
@@ -93,9 +98,11 @@ def imu_to_msg(stamp_ns: int, frame_id: str, acc, gyro=None, quat_xyzw=None, ori
 
 
 def mag_from_msg(msg: MagneticField) -> tuple[int, np.ndarray]:
-    """(stamp_ns, magnetic field in tesla (3,), sensor frame)."""
+    """(stamp_ns, magnetic field in tesla (3,), sensor frame); ``"out_of_range"`` beyond 5 mT per axis."""
     stamp = stamp_to_ns(msg.header.stamp)
-    field_t = as_vector("magnetic_field", _vec3(msg.magnetic_field), 3)
+    f = msg.magnetic_field
+    field_t = as_vector("magnetic_field", [f.x, f.y, f.z], 3)
+    check_xyz("magnetic_field", f.x, f.y, f.z, "magnetic_field")
     require_len("magnetic_field_covariance", msg.magnetic_field_covariance, 9)
     return stamp, field_t
 

@@ -14,8 +14,10 @@ import numpy as np
 from geometry_msgs.msg import Quaternion
 from nav_msgs.msg import Odometry
 
+from indoor_loc.contract import BOUNDS
 from indoor_loc.errors import InvalidMessageError
 from indoor_loc.measurements import OdomPose, PdrInterval, PdrIntervalDecoder, PdrIntervals, pdr_intervals
+from msg_adapters.plausible import check, check_cov, check_xyz
 from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
 
 PLANAR_IDX = (0, 1, 5)          # x, y, yaw in a 6x6 ROS covariance
@@ -79,19 +81,57 @@ def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: 
     return msg
 
 
+#: the variances of the planar (x, y, yaw) covariance, by their bounds in the contract
+PLANAR_VAR_BOUNDS = ("position_variance", "position_variance", "angle_variance")
+
+
 def odom_from_msg(msg: Odometry) -> OdomPose:
-    """Validate and unpack a planar Odometry message (``"nan"``, ``"bad_quaternion"``, stamps)."""
+    """Validate and unpack a planar Odometry message (``"nan"``, ``"bad_quaternion"``, stamps;
+    ``"out_of_range"``: a position, walking speed or yaw rate beyond :data:`indoor_loc.contract.BOUNDS`;
+    ``"bad_covariance"``: a planar (x, y, yaw) covariance not symmetric PSD or with a variance out
+    of bounds, or a negative or huge ``twist.covariance[0]`` / ``[35]``)."""
     stamp = stamp_to_ns(msg.header.stamp)
     p = msg.pose.pose.position
     require_finite("pose.position", [p.x, p.y, p.z])
+    check_xyz("pose.position", p.x, p.y, p.z, "odom_position")
     yaw = quat_to_yaw(msg.pose.pose.orientation, "pose.orientation")
     cov = planar_cov_from_6x6(msg.pose.covariance)
+    check_cov("pose.covariance (x, y, yaw)", cov, PLANAR_VAR_BOUNDS)
     t = msg.twist.twist
     require_finite("twist", [t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z])
+    check("twist.linear.x", t.linear.x, "odom_speed")
+    check("twist.angular.z", t.angular.z, "odom_yaw_rate")
     require_finite("twist.covariance", msg.twist.covariance)
+    check("twist.covariance[0]", msg.twist.covariance[0], "rate_variance")
+    check("twist.covariance[35]", msg.twist.covariance[35], "rate_variance")
     return OdomPose(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
                     msg.header.frame_id, msg.child_frame_id, float(msg.twist.covariance[0]),
                     float(msg.twist.covariance[35]))
+
+
+class OdomJumpGuard:
+    """Refuses an odometry pose implausibly far from the last one accepted on its stream
+    (``"odom_jump"``): farther than ``BOUNDS["odom_jump"].hi`` m plus ``BOUNDS["odom_speed"].hi``
+    m/s times the stamp difference. :meth:`check` changes nothing; the stage calls :meth:`accept`
+    once it has taken the pose, so a refused pose never becomes the reference. A restarted
+    odometry (back at its origin) is taken once the stamps allow the distance."""
+
+    def __init__(self) -> None:
+        self.last: tuple[int, float, float] | None = None     # stamp_ns, x, y of the last accepted pose
+
+    def check(self, od: OdomPose) -> None:
+        if self.last is None:
+            return
+        t, x, y = self.last
+        d = math.hypot(od.x - x, od.y - y)
+        allowed = BOUNDS["odom_jump"].hi + BOUNDS["odom_speed"].hi * abs(od.stamp_ns - t) * 1e-9
+        if d > allowed:
+            raise InvalidMessageError("odom_jump", f"pose ({od.x:.6g}, {od.y:.6g}) m is {d:.6g} m from the previous "
+                                                   f"accepted ({x:.6g}, {y:.6g}) m, {(od.stamp_ns - t) * 1e-9:.3g} s "
+                                                   f"before: more than the {allowed:.6g} m a walker can cover")
+
+    def accept(self, od: OdomPose) -> None:
+        self.last = (od.stamp_ns, od.x, od.y)
 
 
 class PdrOdomReader:
@@ -102,6 +142,7 @@ class PdrOdomReader:
 
     def __init__(self, step_length_m: float) -> None:
         self.decoder = PdrIntervalDecoder(step_length_m)
+        self.guard = OdomJumpGuard()
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -109,12 +150,16 @@ class PdrOdomReader:
 
     def read(self, msg: Odometry) -> tuple[OdomPose, PdrInterval | None]:
         """Validate one message; returns it unpacked and the interval it closes (None for the first).
-        Raises :class:`InvalidMessageError` (the reader is then unchanged)."""
+        Raises :class:`InvalidMessageError` (the reader is then unchanged), also ``"odom_jump"``
+        (:class:`OdomJumpGuard`)."""
         od = odom_from_msg(msg)
         last = self.decoder.last_stamp_ns
         if last is not None and od.stamp_ns <= last:
             raise InvalidMessageError("non_monotonic_stamp", f"pdr/odom stamp {od.stamp_ns} <= previous {last}")
-        return od, self.decoder.update(od.stamp_ns, od.x, od.y, od.yaw, od.cov)
+        self.guard.check(od)
+        interval = self.decoder.update(od.stamp_ns, od.x, od.y, od.yaw, od.cov)
+        self.guard.accept(od)
+        return od, interval
 
 
 def pdr_intervals_from_msgs(msgs: list[Odometry], step_length_m: float) -> PdrIntervals:

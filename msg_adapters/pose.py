@@ -14,6 +14,7 @@ from geometry_msgs.msg import Pose, PoseArray, PoseWithCovarianceStamped
 
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.odom import quat_to_yaw, yaw_to_quat
+from msg_adapters.plausible import check, check_cov, check_xyz
 from msg_adapters.time import as_matrix, as_vector, require_finite, stamp_from_ns, stamp_to_ns
 from indoor_loc.measurements import Fix
 
@@ -65,22 +66,30 @@ def fix_to_msg(fix: Fix, frame_id: str = "map") -> PoseWithCovarianceStamped:
 
 
 def pose_from_msg(msg: PoseWithCovarianceStamped) -> PoseSample:
-    """Validate and unpack a planar pose (``"nan"``, ``"bad_quaternion"``, stamps)."""
+    """Validate and unpack a planar pose (``"nan"``, ``"bad_quaternion"``, stamps; ``"out_of_range"``:
+    a position beyond ``BOUNDS["map_position"]``; ``"bad_covariance"``: an x/y block not symmetric
+    PSD, or an x/y/z variance or the yaw variance out of its bound in :data:`indoor_loc.contract.BOUNDS`)."""
     stamp = stamp_to_ns(msg.header.stamp)
     p = msg.pose.pose.position
     xy = as_vector("pose.position", [p.x, p.y], 2)
     require_finite("pose.position.z", float(p.z))
+    check_xyz("pose.position", p.x, p.y, p.z, "map_position")
     yaw = quat_to_yaw(msg.pose.pose.orientation, "pose.orientation")
     full = as_matrix("pose.covariance", msg.pose.covariance, 6)
-    return PoseSample(stamp, xy, yaw, full[:2, :2].copy(), msg.header.frame_id)
+    cov_xy = full[:2, :2].copy()
+    check_cov("pose.covariance (x, y)", cov_xy, "position_variance")
+    check("pose.covariance[14] (z variance)", full[2, 2], "position_variance")
+    check("pose.covariance[35] (yaw variance)", full[5, 5], "angle_variance")
+    return PoseSample(stamp, xy, yaw, cov_xy, msg.header.frame_id)
 
 
 def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None) -> Fix:
     """A :class:`Fix` from a ``wifi/fix`` message (inverse of :func:`fix_to_msg`).
 
     The x/y covariance must be a symmetric positive-definite 2x2 block (a fix is a Gaussian
-    measurement; a negative, singular or asymmetric one would corrupt any filter it reaches):
-    otherwise ``"bad_covariance"``. An asymmetry within float rounding (a covariance computed as
+    measurement; a negative, singular or asymmetric one would corrupt any filter it reaches): its
+    smallest eigenvalue at least ``BOUNDS["fix_variance_min"]`` (1e-6 m²), otherwise
+    ``"bad_covariance"``. An asymmetry within float rounding (a covariance computed as
     ``R @ D @ R.T`` or by inversion) is accepted and the block returned symmetrised, as the consumers
     require it exactly. With ``frame_id`` given, a fix in another frame is ``"wrong_frame"`` (it
     cannot be fused in this frame without a transform)."""
@@ -88,10 +97,8 @@ def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None)
     if frame_id is not None and s.frame_id != frame_id:
         raise InvalidMessageError("wrong_frame", f"fix in frame {s.frame_id!r}, expected {frame_id!r}")
     c = s.cov_xy
-    if abs(c[0, 1] - c[1, 0]) > 1e-9 * max(1.0, abs(c[0, 1]), abs(c[1, 0])):
-        raise InvalidMessageError("bad_covariance", f"fix covariance not symmetric: {c.tolist()}")
-    if not (c[0, 0] > 0 and c[1, 1] > 0 and c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0):
-        raise InvalidMessageError("bad_covariance", f"fix covariance not positive definite: {c.tolist()}")
+    lam_min = float(np.linalg.eigvalsh((c + c.T) / 2)[0])
+    check("fix covariance smallest eigenvalue", lam_min, "fix_variance_min")
     return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=(c + c.T) / 2, z=float(msg.pose.pose.position.z),
                z_var=float(msg.pose.covariance[14]))
 

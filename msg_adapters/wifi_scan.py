@@ -15,13 +15,13 @@ import re
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from indoor_loc.contract import SCHEMA_WIFI_SCAN
+from indoor_loc.contract import BOUNDS, SCHEMA_WIFI_SCAN
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.time import stamp_from_ns, stamp_to_ns
 from indoor_loc.wifi.types import WifiScan
 
-RSSI_MIN_DBM = -120.0
-RSSI_MAX_DBM = 0.0
+RSSI_MIN_DBM = BOUNDS["rssi"].lo
+RSSI_MAX_DBM = BOUNDS["rssi"].hi
 SUMMARY_NAME = "scan"
 _BSSID_RE = re.compile(r"^[0-9a-f]{2}(:[0-9a-f]{2}){5}$")
 
@@ -60,19 +60,27 @@ def _check_arrays(bssid: tuple[str, ...], rssi: np.ndarray, freq: np.ndarray, ag
         i = int(bad[0])
         raise InvalidMessageError("rssi_range", f"AP {bssid[i]}: rssi {rssi[i]} dBm outside "
                                                 f"[{RSSI_MIN_DBM:g}, {RSSI_MAX_DBM:g}]")
-    if np.any(freq < 0):
-        i = int(np.flatnonzero(freq < 0)[0])
-        raise InvalidMessageError("bad_value", f"AP {bssid[i]}: frequency {freq[i]} MHz < 0")
-    if age is not None and np.any(age < 0):
-        i = int(np.flatnonzero(age < 0)[0])
-        raise InvalidMessageError("bad_value", f"AP {bssid[i]}: age {age[i]} ms < 0")
+    f_b = BOUNDS["frequency"]
+    bad = np.flatnonzero((freq != 0.0) & ((freq < f_b.lo) | (freq > f_b.hi)))
+    if bad.size:
+        i = int(bad[0])
+        raise InvalidMessageError(f_b.reason, f"AP {bssid[i]}: frequency_mhz = {freq[i]:.6g} outside [{f_b.lo:g}, "
+                                              f"{f_b.hi:g}] MHz and not 0 (unknown) ({f_b.name}: {f_b.why})")
+    if age is not None:
+        a_b = BOUNDS["age"]
+        bad = np.flatnonzero((age < a_b.lo) | (age > a_b.hi))
+        if bad.size:
+            i = int(bad[0])
+            raise InvalidMessageError(a_b.reason, f"AP {bssid[i]}: age_ms = {age[i]:.6g} outside [{a_b.lo:g}, "
+                                                  f"{a_b.hi:g}] ms ({a_b.name}: {a_b.why})")
 
 
 def scan_from_msg(msg: DiagnosticArray) -> WifiScan:
     """Validate and unpack a ``wifi_scan.v1`` DiagnosticArray into a :class:`WifiScan`.
 
     Reasons: ``schema_version``, ``empty_scan``, ``bad_bssid``, ``duplicate_bssid``, ``nan``,
-    ``rssi_range``, ``missing_field``, ``bad_value``, ``ap_count``, ``negative_stamp``.
+    ``rssi_range``, ``out_of_range`` (a frequency or age beyond :data:`indoor_loc.contract.BOUNDS`;
+    frequency 0 = unknown passes), ``missing_field``, ``bad_value``, ``ap_count``, ``negative_stamp``.
     ``age_ms`` is None when no AP carries one, NaN for the APs without one otherwise.
     """
     stamp = stamp_to_ns(msg.header.stamp)

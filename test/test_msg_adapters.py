@@ -181,10 +181,12 @@ def scans(draw) -> WifiScan:
     n = len(b)
     fl = st.floats(min_value=-120.0, max_value=0.0, allow_nan=False)
     rssi = np.array(draw(st.lists(fl, min_size=n, max_size=n)))
-    freq = np.array(draw(st.lists(st.floats(min_value=0.0, max_value=7200.0), min_size=n, max_size=n)))
+    # the contract's bounds (indoor_loc.contract.BOUNDS): 0 = unknown, else 700-75 000 MHz; ages up to an hour
+    freq = np.array(draw(st.lists(st.one_of(st.just(0.0), st.floats(min_value=700.0, max_value=7200.0)),
+                                  min_size=n, max_size=n)))
     ssid_chars = st.characters(blacklist_characters="\0", blacklist_categories=("Cs",))
     ssid = tuple(draw(st.lists(st.text(ssid_chars, max_size=32), min_size=n, max_size=n)))
-    age = draw(st.one_of(st.none(), st.lists(st.one_of(st.just(math.nan), st.floats(min_value=0, max_value=1e7)),
+    age = draw(st.one_of(st.none(), st.lists(st.one_of(st.just(math.nan), st.floats(min_value=0, max_value=3.6e6)),
                                              min_size=n, max_size=n)))
     if age is not None and all(math.isnan(a) for a in age):
         age = None   # "all unknown" is written as no age at all -> reads back as None

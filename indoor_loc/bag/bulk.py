@@ -21,6 +21,7 @@ from typing import NamedTuple
 import numpy as np
 
 from msg_adapters.imu import QUAT_NORM_TOL, ImuSample
+from msg_adapters.plausible import cov_rows_ok, rows_within
 from msg_adapters.time import MAX_STAMP_NS, NS_PER_S
 
 #: float64 fields after the header
@@ -167,23 +168,29 @@ class SampleRun(Sequence):
 
 def imu_samples(arr: ImuArrays) -> SampleRun | None:
     """Validated samples of a decoded run, one per message, equal to ``imu_from_msg`` of each; None
-    when any message would be rejected (the caller then takes them one by one, so each is counted
-    under its own reason)."""
+    when any message would be rejected — by the same tests, finiteness and the contract's bounds
+    (:mod:`msg_adapters.plausible`) — so the caller takes them one by one and each is counted under
+    its own reason."""
     gyro_on = arr.angular_velocity_cov[:, 0] != -1.0
     orient_on = arr.orientation_cov[:, 0] != -1.0
     q = arr.orientation_xyzw
     ok = (_stamps_ok(arr.sec, arr.nanosec) & _finite(arr.linear_acceleration) & _finite(arr.linear_acceleration_cov)
-          & (~gyro_on | (_finite(arr.angular_velocity) & _finite(arr.angular_velocity_cov)))
+          & rows_within(arr.linear_acceleration, "acceleration")
+          & (~gyro_on | (_finite(arr.angular_velocity) & _finite(arr.angular_velocity_cov)
+                         & rows_within(arr.angular_velocity, "angular_rate")))
           & (~orient_on | (_finite(q) & _finite(arr.orientation_cov)
                            & (np.abs(np.sqrt((q * q).sum(axis=1)) - 1.0) <= QUAT_NORM_TOL))))
     if not ok.all():
+        return None
+    if orient_on.any() and not cov_rows_ok(arr.orientation_cov[orient_on].reshape(-1, 3, 3), "angle_variance").all():
         return None
     return SampleRun(arr, (arr.sec * NS_PER_S + arr.nanosec).tolist(), gyro_on.tolist(), orient_on.tolist())
 
 
 def mag_samples(arr: MagArrays) -> list[tuple[int, np.ndarray]] | None:
     """``(stamp_ns, field T (3,))`` per message, as ``mag_from_msg``; None when any would be rejected."""
-    ok = _stamps_ok(arr.sec, arr.nanosec) & _finite(arr.magnetic_field) & _finite(arr.magnetic_field_cov)
+    ok = (_stamps_ok(arr.sec, arr.nanosec) & _finite(arr.magnetic_field) & _finite(arr.magnetic_field_cov)
+          & rows_within(arr.magnetic_field, "magnetic_field"))
     if not ok.all():
         return None
     f = arr.magnetic_field

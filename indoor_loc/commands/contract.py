@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from indoor_loc.contract import TOPICS, USER_TOPICS
+from indoor_loc.contract import BOUNDS, TOPICS, USER_TOPICS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -15,4 +15,11 @@ def main(args: argparse.Namespace) -> int:
     print("|---|---|---|---|---|")
     for t in [*TOPICS.values(), *USER_TOPICS.values()]:
         print(f"| `{t.name}` | `{t.type}` | {t.qos.value} | `{t.frame}` | {t.doc} |")
+    print()
+    print("Plausibility bounds: a finite value outside them rejects the message under the reason shown.")
+    print()
+    print("| bound | range | unit | applies to | rejected as | why |")
+    print("|---|---|---|---|---|---|")
+    for b in BOUNDS.values():
+        print(f"| `{b.name}` | [{b.lo:g}, {b.hi:g}] | {b.unit} | {b.applies} | `{b.reason}` | {b.why} |")
     return 0

@@ -5,7 +5,9 @@
 1. ``bad_bssid`` — not six hex octets (``:``, ``-`` or ``.``-grouped Cisco style are accepted and
    rewritten lower-case colon-separated);
 2. ``nan`` / ``rssi_range`` — RSSI not finite or outside [-120, 0] dBm (the message contract);
-3. ``bad_frequency`` — frequency not finite or negative (0 = unknown is kept);
+3. ``bad_frequency`` — frequency not finite or outside the contract's bound (700-75 000 MHz, 0 =
+   unknown is kept); ``bad_age`` — an age (when known) negative, infinite or over an hour
+   (``indoor_loc.contract.BOUNDS``);
 4. ``random_mac`` — locally administered address (bit 1 of the first octet set): randomised
    client MACs, phone hotspots and other moving or short-lived emitters are not landmarks
    (``keep_random_macs`` keeps them; many enterprise APs use locally administered BSSIDs for
@@ -32,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from indoor_loc import params
+from indoor_loc.contract import BOUNDS
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.params import require
 from indoor_loc.wifi.types import WifiScan
@@ -40,7 +43,7 @@ RSSI_MIN_DBM = -120.0
 RSSI_MAX_DBM = 0.0
 BANDS = ("2.4", "5", "6")
 
-DROP_REASONS = ("bad_bssid", "nan", "rssi_range", "bad_frequency", "random_mac", "bssid_deny",
+DROP_REASONS = ("bad_bssid", "nan", "rssi_range", "bad_frequency", "bad_age", "random_mac", "bssid_deny",
                 "bssid_not_allowed", "ssid_deny", "ssid_not_allowed", "band", "weak", "stale", "duplicate")
 
 
@@ -136,8 +139,10 @@ def _drop_reason(bssid: str | None, ssid: str, rssi: float, freq: float, age: fl
         return "nan"
     if not RSSI_MIN_DBM <= rssi <= RSSI_MAX_DBM:
         return "rssi_range"
-    if not math.isfinite(freq) or freq < 0:
+    if not math.isfinite(freq) or (freq != 0.0 and not BOUNDS["frequency"].holds(freq)):
         return "bad_frequency"
+    if not math.isnan(age) and not BOUNDS["age"].holds(age):
+        return "bad_age"
     if not p.keep_random_macs and is_locally_administered(bssid):
         return "random_mac"
     if p.bssid_deny and _matches(bssid, p.bssid_deny, fold=True):
