@@ -34,7 +34,7 @@ from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
 from msg_adapters.markers import graph_markers
-from msg_adapters.odom import odom_from_msg
+from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from indoor_loc.pf.filter import PfParams
@@ -42,6 +42,7 @@ from indoor_loc.pf.tracker import Estimate, GraphTracker, MonitorParams
 from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
 from indoor_loc.wifi.radiomap import load_radiomap
 from msg_adapters.wifi_scan import scan_from_msg
+from indoor_loc.pipeline.bounds import MapBox
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 
@@ -138,6 +139,8 @@ class PfStage(Stage):
         self.on("wifi/scan", self._on_scan)
         self.field: EdgeFingerprintField | None = None
         self.on("initialpose", self._on_initialpose)
+        self._odom_guard = OdomJumpGuard()
+        self.map_box: MapBox | None = None
         if not params.graph_file:
             # the node starts (so parameters can be inspected) but rejects every message, counted
             # under "no_graph" in /diagnostics
@@ -148,6 +151,7 @@ class PfStage(Stage):
             self.graph = load_graph(path)
         except MapError as err:
             raise ConfigError(f"tll_pf: graph_file: {err}") from err
+        self.map_box = MapBox.around(self.graph.node_xyz[:, :2])     # fixes and initial poses far off it: off_map
         if params.transitions_file:
             # a learned table (Dirichlet-updated link choices) replaces the rule's: it must have been
             # made for this very graph file, else the start-up fails (exit 2) rather than run on a
@@ -181,6 +185,7 @@ class PfStage(Stage):
         self._pending.clear()
         self._last_odom_ns = None
         self._last_path_ns = None
+        self._odom_guard = OdomJumpGuard()
         return outs
 
     def inputs(self) -> list[Port]:
@@ -211,10 +216,12 @@ class PfStage(Stage):
 
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
         od = odom_from_msg(msg)
+        self._odom_guard.check(od)                     # odom_jump: refused before anything moves
         outs = self._start(od.stamp_ns)
         outs += self._apply_pending(lambda s: s < od.stamp_ns)
         self._last_odom_ns = od.stamp_ns
         est = self.tracker.odom(od.stamp_ns, od.x, od.y, od.yaw)
+        self._odom_guard.accept(od)
         if est is not None:
             outs += self._publish(est)
         return outs
@@ -223,6 +230,8 @@ class PfStage(Stage):
         if self.params.wifi_update != "fix":
             raise InvalidMessageError("wrong_wifi_update", "wifi/fix received but wifi_update is scan")
         fix = fix_from_msg(msg)
+        if self.map_box is not None:
+            self.map_box.check("wifi/fix", fix.xy)
         return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, fix.cov))
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
@@ -246,6 +255,8 @@ class PfStage(Stage):
 
     def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:
         ps = pose_from_msg(msg)
+        if self.map_box is not None:
+            self.map_box.check("initialpose", ps.xy)
         outs = self._start(ps.stamp_ns)
         cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
         return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov))
