@@ -36,17 +36,15 @@ per user and in all, the fixes waited for (arriving more than ``reorder_window_s
 user's odometry), the longest such lag, scans given up and scans waiting.
 
 Clocks. A user's clock is its newest ``pdr/odom`` stamp (its newest scan or fix for a user without
-odometry). A scan or fix stamped more than ``max_future_s`` ahead of the user's odometry is rejected
-(``future_stamp``) rather than moving the clock. A jump back — the clock message more than
-``time_jump_s`` before the clock, confirmed by the next one (a bag replayed in a loop, a simulation
-restarted, a device clock reset), or ``/clock`` going back (:meth:`BackendStage.clock_jump`, called by
-the node; no confirmation needed while the user's new pass may still be coming) — finishes the user's
-track as when it leaves (kept in the graph as a finished user's; its scans stay in the map) and starts
-the user afresh: ``backend/<user>/path`` restarts with the new track, a notice is logged (WARN) and
-``time_jumps`` counted. A lone message that far back is a
-straggler and takes the usual way (``too_late``). After a jump, a scan or fix stamped more than
-``time_jump_s`` ahead of the user's clock but not after the clock before the jump is of the old track,
-still in flight (a lagging fix): refused (``before_jump``), not put into the new track.
+odometry). Stamps are judged per user and topic by the time policy every stage shares
+(:mod:`indoor_loc.pipeline.time_policy`; parameters ``time.*``): a message stamped more than
+``time.max_future_s`` ahead of the node's clock is rejected (``future_stamp``); a jump back (a bag
+replayed in a loop, a simulation restarted, a device clock reset: ``time.jump_confirm`` messages of one
+topic in step, or the node's clock going back) finishes the user's track as when it leaves (kept in
+the graph as a finished user's; its scans stay in the map) and starts the user afresh
+(:meth:`BackendStage.reset_user`): ``backend/<user>/path`` restarts with the new track, a notice is
+logged (WARN) and ``time_jumps`` counted; a lone message that far back is a straggler (``stale_stamp``).
+A user's first scan coming before its first odometry is not a jump (each topic is judged on its own).
 
 Method, insertion policy, solver and the bound on the graph's size: :mod:`indoor_loc.backend.graph`.
 """
@@ -56,30 +54,28 @@ import bisect
 import dataclasses
 import heapq
 import math
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from indoor_loc.params import field as pfield, require
+from indoor_loc.params import field as pfield, group, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
-from indoor_loc.errors import InvalidInputError, InvalidMessageError
+from indoor_loc.errors import InvalidMessageError
 from msg_adapters.markers import points_markers
-from msg_adapters.odom import odom_from_msg
+from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
+from indoor_loc.pipeline.bounds import MapBox
 from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
+from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
 
 NODE_NAME = "backend_node"
-#: At most this many messages of one user are held while a jump back waits for its confirmation
-#: (the user's next odometry, normally within a second); beyond, they take the usual way.
-HELD_MAX = 1000
 
 @dataclass(frozen=True)
 class BackendParams(GraphParams):
@@ -100,29 +96,24 @@ class BackendParams(GraphParams):
     fix_wait_s: float = pfield(5.0, "wifi_source 'fix': a scan whose wifi/fix has not come holds its user's events "
                                     "at most this long (the user's clock: its pdr/odom, scans without odometry), "
                                     "then they go on without it, s")
-    max_future_s: float = pfield(60.0, "a scan or fix stamped more than this ahead of its user's newest pdr/odom is "
-                                       "rejected ('future_stamp': a wrong stamp, or odometry stalled) instead of "
-                                       "moving the user's clock, s")
-    time_jump_s: float = pfield(2.0, "a user's pdr/odom (scans for a user without odometry) stamped more than this "
-                                     "before its newest, the next one too, is a clock jump back (a replay loop, a "
-                                     "sim-time restart, a clock reset): WARN, counted, the user starts afresh (its "
-                                     "track so far kept as a finished user's); /clock going back this far "
-                                     "(use_sim_time) restarts every user; > reorder_window_s; 0 = off, s")
     path_period_s: float = pfield(0.0, "republish a user's path at most this often (stamp time, after a window "
                                        "optimisation), s; 0 = only when the user finishes and at the end")
     save_map: str = pfield("", "directory to save the evolving WiFi map to at the end (radio map format); '' = no")
     frame_id: str = pfield("map", "frame of the estimates")
+    time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py); "
+                                         "a jump back starts the user afresh, its track so far kept as a finished "
+                                         "user's")
 
     def validate(self) -> None:
         n = type(self).__name__
+        self.time.validate()
         require(self.offline_order in ORDERS, n, "offline_order", f"one of {ORDERS}", self.offline_order)
         require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
         require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
         require(self.max_scan_wait_s >= 0, n, "max_scan_wait_s", ">= 0", self.max_scan_wait_s)
         require(self.fix_wait_s >= 0, n, "fix_wait_s", ">= 0", self.fix_wait_s)
-        require(self.max_future_s > 0, n, "max_future_s", "> 0", self.max_future_s)
-        require(self.time_jump_s == 0 or self.time_jump_s > self.reorder_window_s, n, "time_jump_s",
-                "0 (off) or > reorder_window_s (a message late within the window is not a jump)", self.time_jump_s)
+        require(self.time.jump_s > self.reorder_window_s, n, "time.jump_s",
+                "> reorder_window_s (a message late within the window is not a jump)", self.time.jump_s)
         require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
         require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         require(all(isinstance(u, str) and u.strip("/") for u in self.users), n, "users", "namespace names",
@@ -149,13 +140,8 @@ class _UserInput:
     fixes_waited: int = 0                              # fixes more than reorder_window_s behind the odometry
     max_fix_lag_ns: int = 0                            # the largest such lag (stamp time), ns
     scans_given_up: int = 0                            # scans whose fix can no longer be used (graph past them)
-    future_stamps: int = 0                             # scans/fixes rejected: more than max_future_s ahead
-    time_jumps: int = 0                                # clock jumps back: the user started afresh
     floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
-    held: list = field(default_factory=list)           # (topic, msg, stamp) held while a jump back is unconfirmed
-    armed_at_ns: int | None = None                     # /clock went back to this: the next jump back needs no
-                                                       # confirmation (until :meth:`BackendStage._disarm`)
-    before_jump_ns: int | None = None                  # the clock before the user's last jump back (its old track's end)
+    odom_guard: OdomJumpGuard = field(default_factory=OdomJumpGuard)   # odom_jump against the last accepted
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -165,8 +151,7 @@ class _UserInput:
     def afresh(self) -> "_UserInput":
         """A new buffer for the user starting afresh, keeping its counters."""
         return _UserInput(dropped_late=self.dropped_late, fixes_waited=self.fixes_waited,
-                          max_fix_lag_ns=self.max_fix_lag_ns, scans_given_up=self.scans_given_up,
-                          future_stamps=self.future_stamps, time_jumps=self.time_jumps)
+                          max_fix_lag_ns=self.max_fix_lag_ns, scans_given_up=self.scans_given_up)
 
 
 @dataclass
@@ -207,6 +192,8 @@ class BackendStage(Stage):
     NODE_NAME = NODE_NAME
     PARAMS = BackendParams
     MULTI_USER = True
+    #: the reorder buffer puts each user's events in stamp order (too_late beyond it)
+    STAMP_ORDER = {"pdr/odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY}
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
         super().__init__(params, namespace=namespace)
@@ -221,9 +208,11 @@ class BackendStage(Stage):
                 survey = load_radiomap(where)
         self.graph = MultiUserGraph(params.graph_params(), survey)
         self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
+        #: fixes farther than the off_map margin outside the radio map's scan positions are refused
+        self.map_box = MapBox.around(self._drawn_survey if survey is None else
+                                     np.vstack([self._drawn_survey, survey.positions]))
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._seq = 0
-        self._replaying = False
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/scan", self._on_scan)
         if params.wifi_source == "fix":
@@ -263,82 +252,14 @@ class BackendStage(Stage):
         self._seq += 1
         heapq.heappush(b.heap, (stamp, kind, self._seq, payload))
 
-    def _jump_guard(self, user: str, topic: str, msg: Any, stamp_ns: int, recv_ns: int) -> list[Output] | None:
-        """Clock jumps back. A message of the user's clock (its ``pdr/odom``; ``wifi/scan`` for a user
-        without odometry) stamped more than ``time_jump_s`` before the clock is held, and so is every
-        later message that far back; the next clock message decides: also that far back, the jump is
-        confirmed (:meth:`_start_afresh`, the held messages then go into the new track); back in step
-        with the clock, the held ones were stragglers and take the usual way (a message older than the
-        graph's newest is ``too_late``, counted) — one late or wrongly stamped message never restarts a
-        user. Returns None when the message goes on as usual, else the outputs (nothing while held)."""
-        p = self.params
-        b = self._buffer(user)
-        clock = b.clock_ns()
-        if not p.time_jump_s or clock is None or self._replaying:
-            return None
-        is_clock = topic == "pdr/odom" or (topic == "wifi/scan" and b.newest_odom_ns is None)
-        far_back = stamp_ns < clock - p.time_jump_s * 1e9
-        self._disarm(b, clock, is_clock and not far_back, recv_ns)
-        if far_back:
-            if is_clock and b.armed_at_ns is not None:    # /clock said so already
-                return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns, said=True)
-            if is_clock and any(h[0] == topic for h in b.held):
-                return self._start_afresh(user, clock, b.held + [(topic, msg, stamp_ns)], recv_ns)
-            if is_clock or b.held:
-                outs = self._replay(user, b, recv_ns) if len(b.held) >= HELD_MAX else []   # bounded
-                b.held.append((topic, msg, stamp_ns))
-                return outs
-            return None                              # a straggler scan or fix: too_late as usual
-        if is_clock and b.held:                      # in step again: the held ones were stragglers
-            outs = self._replay(user, b, recv_ns)
-            return outs + self._replay_one(user, topic, msg, recv_ns)
-        return None
-
-    def _replay(self, user: str, b: _UserInput, recv_ns: int) -> list[Output]:
-        """Hand the user's held messages to their handlers the usual way (no jump check)."""
-        held, b.held = b.held, []
-        outs: list[Output] = []
-        for topic, msg, _ in held:
-            outs += self._replay_one(user, topic, msg, recv_ns)
-        return outs
-
-    def _replay_one(self, user: str, topic: str, msg: Any, recv_ns: int) -> list[Output]:
-        handler = {"pdr/odom": self._on_odom, "wifi/scan": self._on_scan, "wifi/fix": self._on_fix}[topic]
-        self._replaying = True
-        try:
-            return handler(msg, recv_ns, user)
-        except InvalidInputError as err:             # counted under its reason, as Stage.process does
-            self._reject(err.reason, f"{user}/{topic}: {err}")
+    def reset_user(self, user: str) -> list[Output]:
+        """A jump back in the user's time (the shared time policy): finish the user's track (everything
+        buffered taken, window optimised, its path published, as when a user leaves; it stays in the
+        graph as a finished user's track) and give the user a fresh input buffer (its counters kept)
+        for a new track."""
+        if user not in self.inputs_by_user:
             return []
-        except Exception as err:  # noqa: BLE001 - as Stage.process: counted, and the other held messages go on
-            self._reject("internal_error", f"{user}/{topic}: {type(err).__name__}: {err}\n"
-                                           f"{traceback.format_exc(limit=4)}")
-            return []
-        finally:
-            self._replaying = False
-
-    def _start_afresh(self, user: str, clock_ns: int, held: list, recv_ns: int, said: bool = False) -> list[Output]:
-        """The user's clock jumped back: its track so far is finished and the user starts afresh
-        with the ``held`` messages (:meth:`_new_track`). A notice (WARN; unless ``said`` by the
-        ``/clock`` one) and the count say so."""
-        outs = self._new_track(user)
-        b = self.inputs_by_user[user]
-        b.held = held
-        b.before_jump_ns = clock_ns
-        first = held[0]
-        if not said:
-            self.notice(f"{user}: {first[0]} stamp jumped back {(clock_ns - first[2]) * 1e-9:.3f} s "
-                        f"({clock_ns} -> {first[2]} ns: a replay loop, a sim-time restart or a clock reset): "
-                        f"the user starts afresh, its track so far kept as a finished user's "
-                        f"(jump {b.time_jumps} of this user)")
-        return outs + self._replay(user, b, recv_ns)
-
-    def _new_track(self, user: str) -> list[Output]:
-        """Finish the user's track (everything buffered taken, window optimised, its path published,
-        as when a user leaves; it stays in the graph as a finished user's track) and give the user a
-        fresh input buffer (its counters kept, one more time jump) for a new track."""
         p = self.params
-        held, self.inputs_by_user[user].held = self.inputs_by_user[user].held, []
         outs = self._release(user, everything=True)
         self.graph.finish_user(user)
         tr = self.graph.users.get(user)
@@ -347,78 +268,16 @@ class BackendStage(Stage):
                 self.graph.optimize_window(user)
             outs.append(self._path_output(user))
         self.graph.restart_user(user)
-        b = self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
-        b.time_jumps += 1
-        b.held = held
+        self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
         return outs
-
-    def clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
-        """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns`` to ``now_ns``:
-        every user whose clock is more than ``time_jump_s`` ahead of it starts afresh — at once if
-        messages of its new pass are already held, else at its first one (no confirmation needed;
-        messages of the old pass still in flight go into the old track). One notice names them."""
-        p = self.params
-        users = [u for u, b in self.inputs_by_user.items()
-                 if p.time_jump_s and (b.clock_ns() or 0) > now_ns + p.time_jump_s * 1e9]
-        if not users:
-            return []
-        self.notice(f"/clock jumped back {back_ns * 1e-9:.3f} s (a replay loop or a simulation restart): "
-                    f"these users start afresh, their tracks so far kept as finished users': {', '.join(users)}")
-        outs: list[Output] = []
-        for user in users:
-            b = self.inputs_by_user[user]
-            if any(h[0] == "pdr/odom" or b.newest_odom_ns is None for h in b.held):
-                outs += self._start_afresh(user, b.clock_ns() or 0, b.held, now_ns, said=True)
-            else:
-                b.armed_at_ns = now_ns
-        return outs
-
-    def _disarm(self, b: _UserInput, clock_ns: int, in_step: bool, recv_ns: int) -> None:
-        """End the arming of a user by a ``/clock`` jump (:meth:`clock_jump`) once its new pass can no
-        longer be on its way: a clock message in step with the user's old clock received more than
-        ``time_jump_s`` of the new clock after the jump (the user goes on with its old clock — a
-        message of the old pass still in flight comes sooner), or the new clock past the user's clock
-        (a pass replayed on ``/clock`` would no longer be stamped that far back). A jump back then
-        needs its confirmation as any other (:meth:`_jump_guard`), so a lone late message does not
-        restart the user."""
-        if b.armed_at_ns is None:
-            return
-        if recv_ns > clock_ns or (in_step and recv_ns > b.armed_at_ns + self.params.time_jump_s * 1e9):
-            b.armed_at_ns = None
-
-    def clock_jump_threshold_ns(self) -> int:
-        return int(self.params.time_jump_s * 1e9)
-
-    def _check_future(self, user: str, stamp_ns: int, what: str) -> _UserInput:
-        """Refuse a scan or fix stamped more than ``max_future_s`` ahead of the user's odometry: it would
-        move the user's clock (and give up every scan waiting for its fix) on one wrong stamp. Refuse
-        too, after a jump back, one stamped more than ``time_jump_s`` ahead of the user's clock but not
-        after the clock before the jump: a message of the old track still in flight (a fix the WiFi
-        node sends seconds after its scan), which would set the new track's clock and fix wait to the
-        old track's stamps and so drop the new track's fixes as too_late."""
-        b = self._buffer(user)
-        clock = b.clock_ns()
-        if (b.before_jump_ns is not None and clock is not None
-                and clock + self.params.time_jump_s * 1e9 < stamp_ns <= b.before_jump_ns):
-            raise InvalidMessageError(
-                "before_jump", f"{user}: {what} stamp {stamp_ns} is {(stamp_ns - clock) * 1e-9:.1f} s ahead of the "
-                               f"user's clock since it jumped back from {b.before_jump_ns}: a message of the track "
-                               f"before the jump still in flight (its wifi/fix lagging), not of the new one")
-        if b.newest_odom_ns is not None and stamp_ns > b.newest_odom_ns + self.params.max_future_s * 1e9:
-            b.future_stamps += 1
-            raise InvalidMessageError(
-                "future_stamp", f"{user}: {what} stamp {stamp_ns} is {(stamp_ns - b.newest_odom_ns) * 1e-9:.1f} s "
-                                f"ahead of the user's odometry (newest {b.newest_odom_ns}), more than max_future_s "
-                                f"({self.params.max_future_s:g} s): a wrong stamp, or the user's pdr/odom stalled")
-        return b
 
     def _on_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
         od = odom_from_msg(msg)
-        jump = self._jump_guard(user, "pdr/odom", msg, od.stamp_ns, recv_ns)
-        if jump is not None:
-            return jump
+        if user in self.inputs_by_user:
+            self.inputs_by_user[user].odom_guard.check(od)      # odom_jump, before anything moves
         self._push(user, od.stamp_ns, 0, od)
         b = self._buffer(user)
+        b.odom_guard.accept(od)
         b.newest_odom_ns = od.stamp_ns if b.newest_odom_ns is None else max(b.newest_odom_ns, od.stamp_ns)
         return self._release(user)
 
@@ -427,10 +286,7 @@ class BackendStage(Stage):
         if self._no_survey:
             raise InvalidMessageError("no_survey", "no radio map (radiomap ''): a user starts at a scan WKNN "
                                                    "localises against the survey, so none can; set radiomap")
-        jump = self._take_wifi(user, "wifi/scan", msg, scan.stamp_ns, recv_ns, 2, scan)
-        if jump is not None:
-            return jump
-        b = self._buffer(user)
+        b = self._take_wifi(user, scan.stamp_ns, 2, scan)
         if self.params.wifi_source == "fix" and self.params.fix_wait_s > 0 and (
                 b.fix_known_ns is None or scan.stamp_ns > b.fix_known_ns):
             bisect.insort(b.pending_scans, scan.stamp_ns)       # its fix is still to come
@@ -441,10 +297,9 @@ class BackendStage(Stage):
         scan attaches to the fix's pose. A fix has its scan's stamp: it moves the scans' wait mark too,
         so a user without odometry is not held back until it leaves."""
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)
-        jump = self._take_wifi(user, "wifi/fix", msg, fix.stamp_ns, recv_ns, 1, fix)
-        if jump is not None:
-            return jump
-        b = self._buffer(user)
+        if self.map_box is not None:
+            self.map_box.check("wifi/fix", fix.xy)
+        b = self._take_wifi(user, fix.stamp_ns, 1, fix)
         if b.newest_odom_ns is not None:
             lag = b.newest_odom_ns - fix.stamp_ns
             if lag > self.params.reorder_window_s * 1e9:     # held for: the window alone would have lost it
@@ -455,18 +310,12 @@ class BackendStage(Stage):
         del b.pending_scans[:bisect.bisect_right(b.pending_scans, b.fix_known_ns)]
         return self._release(user)
 
-    def _take_wifi(self, user: str, topic: str, msg, stamp_ns: int, recv_ns: int, order: int,
-                   event) -> list[Output] | None:
-        """A scan's or fix's way in: held if it belongs to a jump back (its outputs returned), refused
-        if stamped too far ahead, else queued and the scans' wait mark moved to its stamp (None)."""
-        jump = self._jump_guard(user, topic, msg, stamp_ns, recv_ns)
-        if jump is not None:
-            return jump
-        self._check_future(user, stamp_ns, topic)
+    def _take_wifi(self, user: str, stamp_ns: int, order: int, event) -> _UserInput:
+        """A scan's or fix's way in: queued, and the scans' wait mark moved to its stamp."""
         self._push(user, stamp_ns, order, event)
         b = self._buffer(user)
         b.newest_scan_ns = stamp_ns if b.newest_scan_ns is None else max(b.newest_scan_ns, stamp_ns)
-        return None
+        return b
 
     def _release(self, user: str, *, everything: bool = False) -> list[Output]:
         """Take the user's due events into the graph, in stamp order; outputs for new poses."""
@@ -570,9 +419,8 @@ class BackendStage(Stage):
         """The user's input ended: take everything buffered, publish its path (window-optimised)."""
         if user not in self.inputs_by_user:
             return []
-        self.inputs_by_user[user].armed_at_ns = None                 # its new pass did not come
-        outs = self._replay(user, self.inputs_by_user[user], 0)     # an unconfirmed jump: stragglers
-        outs += self._release(user, everything=True)
+        self.drop_held(user)                          # an unconfirmed jump back: stragglers
+        outs = self._release(user, everything=True)
         self.graph.finish_user(user)
         if user in self.graph.users and self.graph.users[user].poses:
             if self.params.window_poses:
@@ -584,7 +432,7 @@ class BackendStage(Stage):
         """End of input: take everything, optimise the whole graph, publish every path and the map."""
         outs: list[Output] = []
         for user in list(self.inputs_by_user):
-            outs += self._replay(user, self.inputs_by_user[user], 0)
+            self.drop_held(user)
             outs += self._release(user, everything=True)
         if not self.graph.poses.n:
             return outs
@@ -614,15 +462,13 @@ class BackendStage(Stage):
         for u, b in self.inputs_by_user.items():
             out[f"user.{u}.buffered"] = str(len(b.heap))
             out[f"user.{u}.dropped_late"] = str(b.dropped_late)
-            out[f"user.{u}.future_stamps"] = str(b.future_stamps)
-            out[f"user.{u}.time_jumps"] = str(b.time_jumps)
+        for u, t in self.time.users.items():
+            out[f"user.{u}.time_jumps"] = str(t.jumps)
             if self.params.wifi_source == "fix":
                 out[f"user.{u}.fixes_waited_for"] = str(b.fixes_waited)
                 out[f"user.{u}.fix_lag_max_s"] = f"{b.max_fix_lag_ns * 1e-9:.2f}"
                 out[f"user.{u}.scans_given_up"] = str(b.scans_given_up)
                 out[f"user.{u}.scans_waiting_for_fix"] = str(len(b.pending_scans))
-        out["time_jumps"] = str(sum(b.time_jumps for b in self.inputs_by_user.values()))
-        out["future_stamps"] = str(sum(b.future_stamps for b in self.inputs_by_user.values()))
         if self.params.wifi_source == "fix":
             bs = self.inputs_by_user.values()
             out["fix_wait.fixes_waited_for"] = str(sum(b.fixes_waited for b in bs))
