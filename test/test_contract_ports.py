@@ -44,14 +44,21 @@ def _cases() -> list[tuple[str, dict]]:
 CASES = _cases()
 
 
-@pytest.mark.parametrize(("name", "overrides"), CASES,
-                         ids=[n + "".join(f"-{v}" for v in o.values()) for n, o in CASES])
-def test_every_port_of_every_stage_is_in_the_contract(world, name, overrides):
+def build_stage(world: Path, name: str, overrides: dict):
+    """Stage ``name`` with the world's params for ``/walker0`` (``overrides`` on top; a ``radiomap`` is
+    relative to the world)."""
     cls = stage_class(name)
     values = params_for_node(load_params_file(world / "params.yaml"), cls.NODE_NAME, "/walker0")
     values = {**values, **{k: str(world / v) if k == "radiomap" else v for k, v in overrides.items()}}
     assert set(overrides) <= {f.name for f in dataclasses.fields(cls.PARAMS)}, overrides
-    stage = cls(params_from_dict(cls.PARAMS, values), namespace="" if cls.MULTI_USER else "/walker0")
+    return cls(params_from_dict(cls.PARAMS, values), namespace="" if cls.MULTI_USER else "/walker0")
+
+
+@pytest.mark.parametrize(("name", "overrides"), CASES,
+                         ids=[n + "".join(f"-{v}" for v in o.values()) for n, o in CASES])
+def test_every_port_of_every_stage_is_in_the_contract(world, name, overrides):
+    cls = stage_class(name)
+    stage = build_stage(world, name, overrides)
     ports = [*stage.inputs(), *stage.outputs()]
     user_ports = list(stage.user_outputs()) if cls.MULTI_USER else []
     assert ports or user_ports
