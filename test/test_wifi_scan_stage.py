@@ -103,6 +103,7 @@ def _bad_messages() -> dict[str, DiagnosticArray]:
     wrong_schema.status[0].values[0].value = "wifi_scan.v0"
     empty = DiagnosticArray(status=[DiagnosticStatus(name="scan", values=[KeyValue(key="schema",
                                                                                    value="wifi_scan.v1")])])
+    empty.header.stamp = scan_to_msg(_scan(["00:11:22:33:44:55"], [-50.0])).header.stamp
     dup = scan_to_msg(_scan(["00:11:22:33:44:55", "00:11:22:33:44:66"], [-50.0, -60.0]))
     dup.status[2].name = "00:11:22:33:44:55"
     nan = scan_to_msg(_scan(["00:11:22:33:44:55"], [-50.0]))
@@ -131,7 +132,9 @@ def test_bad_messages_are_counted_and_dropped():
 
 def test_scan_json_topic_cabot_and_receive_time():
     st = _stage()
-    outs = st.process("wifi/scan_json", String(data=(DATA / "cabot_esp32.json").read_text()), T0 + 1)
+    # received 1 s after the JSON's own timestamp (a stamp more than time.max_future_s ahead of the
+    # node's clock would be rejected)
+    outs = st.process("wifi/scan_json", String(data=(DATA / "cabot_esp32.json").read_text()), T0 + 201 * 10**9)
     got = scan_from_msg(outs[0][1])
     assert got.stamp_ns == 1_700_000_200_500_000_000                 # the JSON's own timestamp
     assert got.as_dict() == {"00:1a:2b:3c:4d:5e": -69.0, "3c:37:86:5e:a1:10": -52.0}
@@ -247,7 +250,8 @@ def test_offline_run_over_a_bag(tmp_path):
         for i in range(3):
             raw = _scan(["00:11:22:33:44:55", "02:00:00:00:00:01"], [-50.0 - i, -40.0], stamp=T0 + i * 10**9)
             w.write("/walk01/wifi/scan_raw", scan_to_msg(raw), T0 + i * 10**9)
-        w.write("/walk01/wifi/scan_json", String(data=(DATA / "cabot_iw.json").read_text()), T0 + 3 * 10**9)
+        # logged (received) after the JSON's own timestamp, 1_700_000_123.25 s
+        w.write("/walk01/wifi/scan_json", String(data=(DATA / "cabot_iw.json").read_text()), T0 + 124 * 10**9)
     out = tmp_path / "out.mcap"
     summary = run_offline([bag], out, nodes=["wifi_scan"], progress=False)
     scans = [scan_from_msg(m.msg) for m in read_bag([out], topics=["/walk01/wifi/scan"])]

@@ -29,6 +29,7 @@ from msg_adapters.wifi_json import parse_json_msg
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.params import require
 from indoor_loc.pipeline.stage import Output, Port, Stage, rate_hz
+from indoor_loc.pipeline.time_policy import TimeParams
 from indoor_loc.errors import ScanCommandError
 from indoor_loc.wifi.iface import TOOLS, InterfaceScanner, ScanAttempt, build_command
 from indoor_loc.wifi.normalize import NormalizeParams, normalize_report
@@ -59,6 +60,8 @@ class WifiScanParams:
                                              "NetworkManager's scale) or 'half' (dBm = q/2 - 100)")
     normalize: NormalizeParams = params.group(NormalizeParams, "how readings are cleaned, for every source "
                                                                "(indoor_loc/wifi/normalize.py; normalize.*)")
+    time: TimeParams = params.group(TimeParams, "which stamps are taken, clock jumps "
+                                                "(indoor_loc/pipeline/time_policy.py)")
 
     def validate(self) -> None:
         o = type(self).__name__
@@ -94,6 +97,7 @@ class WifiScanStage(Stage):
         self._first_out_ns: int | None = None
         self._last_out_ns: int | None = None
         self.last_attempt: ScanAttempt | None = None
+        self._json: tuple[Any, ParseResult] | None = None    # the JSON scan parsed for its stamp (stamp_of)
         self.scanner: InterfaceScanner | None = None
         if p.source != "topic":
             override = p.iw_command if p.source == "iw" else p.nmcli_command
@@ -140,8 +144,20 @@ class WifiScanStage(Stage):
         scan = scan_from_msg(msg)       # raises InvalidMessageError -> counted by reason
         return self._publish(ParseResult(scan), self._frame(scan.frame_id), scan.stamp_ns)
 
+    def stamp_of(self, topic: str, msg: Any) -> int | None:
+        """A JSON scan's stamp is inside its text (or its reception time): parsed once, here, for the
+        time policy, and kept for :meth:`_on_json`."""
+        if topic != "wifi/scan_json":
+            return super().stamp_of(topic, msg)
+        self._json = (msg, parse_json_msg(msg, stamp_ns=self.diag.now_ns or 0,
+                                          signal_mapping=self.params.signal_mapping))
+        return self._json[1].scan.stamp_ns
+
     def _on_json(self, msg: Any, recv_ns: int) -> list[Output]:
-        result = parse_json_msg(msg, stamp_ns=recv_ns, signal_mapping=self.params.signal_mapping)
+        parsed = getattr(self, "_json", None)
+        result = parsed[1] if parsed is not None and parsed[0] is msg else \
+            parse_json_msg(msg, stamp_ns=recv_ns, signal_mapping=self.params.signal_mapping)
+        self._json = None
         return self._publish(result, self._frame(result.scan.frame_id), result.scan.stamp_ns)
 
     # -- common ------------------------------------------------------------------------------------------
@@ -154,9 +170,6 @@ class WifiScanStage(Stage):
         return f"{ns}/wifi_link" if ns else "wifi_link"
 
     def _publish(self, result: ParseResult, frame_id: str, stamp_ns: int) -> list[Output]:
-        if self._last_out_ns is not None and stamp_ns < self._last_out_ns:
-            raise InvalidMessageError("stamp_backwards", f"scan stamp {stamp_ns} ns is before the previous scan's "
-                                                         f"{self._last_out_ns} ns")
         self.scans_truncated += int(result.truncated)
         self.entries_skipped += result.skipped
         raw = result.scan
@@ -174,7 +187,7 @@ class WifiScanStage(Stage):
         self.aps_out += len(scan)
         self.last_aps = len(scan)
         self._first_out_ns = stamp_ns if self._first_out_ns is None else self._first_out_ns
-        self._last_out_ns = stamp_ns
+        self._last_out_ns = stamp_ns if self._last_out_ns is None else max(self._last_out_ns, stamp_ns)
         return [("wifi/scan", msg)]
 
     def scans_per_s(self) -> float:
