@@ -219,7 +219,7 @@ class BackendStage(Stage):
             self.on("wifi/fix", self._on_fix)
 
     def inputs(self) -> list[Port]:
-        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
+        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, required=True),
                 Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)] + (
                 [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
                 if self.params.wifi_source == "fix" else [])

@@ -155,7 +155,7 @@ class ImuStage(Stage):
 
     # -- ports ------------------------------------------------------------------------------------
     def inputs(self) -> list[Port]:
-        return [Port("imu/data_raw", "sensor_msgs/msg/Imu", Qos.SENSOR),
+        return [Port("imu/data_raw", "sensor_msgs/msg/Imu", Qos.SENSOR, required=True),
                 Port("imu/mag", "sensor_msgs/msg/MagneticField", Qos.SENSOR),
                 Port("imu/data", "sensor_msgs/msg/Imu", Qos.SENSOR)]
 

@@ -134,7 +134,7 @@ class PdrKfStage(Stage):
         return outs
 
     def inputs(self) -> list[Port]:
-        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
+        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, required=True),
                 Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
 
     def outputs(self) -> list[Port]:

@@ -191,9 +191,9 @@ class PfStage(Stage):
     def inputs(self) -> list[Port]:
         wifi = (Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)
                 if self.params.wifi_update == "scan" else Port("wifi/fix", POSE_T, Qos.RELIABLE))
-        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE),
+        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, required=True),
                 wifi,
-                Port("initialpose", POSE_T, Qos.RELIABLE)]
+                Port("initialpose", POSE_T, Qos.RELIABLE, stream=False)]
 
     def outputs(self) -> list[Port]:
         return [Port("pf/pose", POSE_T, Qos.LATCHED),

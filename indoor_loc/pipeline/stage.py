@@ -12,7 +12,7 @@ name (the namespace without its leading slash, :func:`user_of_namespace`), and b
 bag ends in a sequential offline run; its publishers leave the ROS graph live). Offline, one
 instance serves all bags (``indoor-loc run --order merged|sequential``, see ``pipeline/offline.py``);
 live, ``StageNode`` subscribes to the users of its ``users`` parameter or discovers them from the
-graph and follows them as they come and go (``nodes/base.py``).
+graph and follows them as they come and go (``nodes/stage_node.py``).
 ``Stage.process`` never raises on a message: an :class:`InvalidInputError` (a message that breaks
 the contract, or input the core refuses) is counted under its reason and dropped; any other
 exception is counted as ``internal_error`` and reported in ``last_error`` (the node logs it,
@@ -21,7 +21,7 @@ handlers validate (via msg_adapters) before touching state.
 
 Notices: what a stage has to say once, beyond its counters (a user's clock jumping back, say), it
 hands to :meth:`Stage.notice`; the driver takes them with :meth:`Stage.take_notices` after each call
-and says each once — the node as a WARN in its log (``nodes/base.py``), ``indoor-loc run`` on stderr
+and says each once — the node as a WARN in its log (``nodes/stage_node.py``), ``indoor-loc run`` on stderr
 (``pipeline/offline.py``).
 """
 from __future__ import annotations
@@ -47,6 +47,11 @@ class Port:
     topic: str        # relative topic name (contract.TOPICS key or a parameterised name)
     type: str         # "pkg/msg/Name"
     qos: Qos
+    #: an input the stage cannot work without: a live node says ERROR when it stops (else WARN)
+    required: bool = False
+    #: an input that keeps coming while its upstream runs, so its silence is a stall; False for an
+    #: occasional one (``initialpose``), which is never stalled
+    stream: bool = True
 
 
 def rate_hz(count: int, first_ns: int | None, last_ns: int | None) -> float:

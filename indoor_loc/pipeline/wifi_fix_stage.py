@@ -187,7 +187,7 @@ class WifiFixStage(Stage):
         self.on("wifi/scan", self._on_scan)
 
     def inputs(self) -> list[Port]:
-        return [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)]
+        return [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, required=True)]
 
     def outputs(self) -> list[Port]:
         return [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
