@@ -47,8 +47,9 @@ def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
 
     Level: ERROR when the stage reports a standing ``error`` (e.g. no radio map) or a message
     raised an internal error in the last ``RECENT_NS``; WARN when a message was rejected or lost in
-    that window; else OK (the counters stay cumulative). A rejection with no clock (offline without
-    a stamp) counts as recent.
+    that window, or the stage reports a standing ``warning`` (e.g. scans not fitting the radio map);
+    else OK (the counters stay cumulative). A rejection with no clock (offline without a stamp) counts
+    as recent.
     """
     arr = DiagnosticArray()
     arr.header.stamp = stamp_from_ns(now_ns)
@@ -74,6 +75,9 @@ def stage_diagnostics(name: str, stage, now_ns: int) -> DiagnosticArray:
     kv = dict(d.summary())
     extra = stage.extra_diagnostics()
     kv.update(extra)
+    if extra.get("warning") and st.level < DiagnosticStatus.WARN:   # a standing warning (e.g. map mismatch)
+        st.level = DiagnosticStatus.WARN
+        st.message = str(extra["warning"]) + (f"; {st.message}" if parts else "")
     if extra.get("error"):
         st.level = DiagnosticStatus.ERROR
         st.message = str(extra["error"]) + (f"; {st.message}" if parts else "")

@@ -25,6 +25,11 @@ writes (``OUT_DIR/floors``); with ``powed.field_weight`` > 0 the powed method's 
 then extends only over each floor's walkable area (:mod:`indoor_loc.wifi.walkable`). A missing or
 unreadable plan is a configuration error at start-up naming the path.
 
+Map mismatch (``map_check``, :mod:`indoor_loc.wifi.map_check`): when most of the last scans were declined,
+or they match the map far worse than the map's own scans match each other (leave-one-out), the scans do not
+fit the map (another place, or access points moved): said once as a notice (the node's WARN), and while it
+lasts a standing ``warning`` (WARN in ``/diagnostics``) with ``map_fit.*`` values.
+
 An unreadable radio map is a configuration error at start-up. With ``radiomap: ""`` the stage
 starts, drops every scan with reason ``no_map`` and says so under ``error`` in its diagnostics.
 A scan the method declines (too few shared APs, outlier conflict...) publishes nothing and is
@@ -69,6 +74,7 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import TimeParams
 from indoor_loc.wifi.coverage import CoverageParams
 from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner, plan_files
+from indoor_loc.wifi.map_check import MapCheck, MapCheckParams
 from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
@@ -106,6 +112,9 @@ class WifiFixParams:
     powed: PowedKnnParams = group(PowedKnnParams, "powed k-NN (indoor_loc/wifi/powed_knn.py; powed.k, "
                                                   "powed.age_tau_ms, ...)")
     time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
+    map_check: MapCheckParams = group(MapCheckParams, "whether the scans still fit the radio map: a WARN when most "
+                                                      "are declined or they match it far worse than its own scans "
+                                                      "(indoor_loc/wifi/map_check.py; map_check.*)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -184,6 +193,10 @@ class WifiFixStage(Stage):
                 self.positioner = self.fit_positioner(self.radio_map)
             else:               # radio_map is the configured map; it answers once end_fit installs it
                 self.begin_fit(self.radio_map)
+        #: whether the scans fit the radio map (map_check.*), built for the map in use
+        self.map_check: MapCheck | None = None
+        if self.radio_map is not None and params.map_check.enabled:
+            self.map_check = MapCheck(self.radio_map, params.map_check)
         self.on("wifi/scan", self._on_scan)
 
     def inputs(self) -> list[Port]:
@@ -301,10 +314,13 @@ class WifiFixStage(Stage):
         fix = self.positioner.locate(scan)
         if not fix.ok:
             self.declined[fix.reason or "declined"] += 1
+            self._check_map_fit(scan, declined=True)
             return []
         if not (np.all(np.isfinite(fix.xy)) and np.all(np.isfinite(fix.cov))):
             self.declined["non_finite"] += 1
+            self._check_map_fit(scan, declined=True)
             return []
+        self._check_map_fit(scan, declined=False)
         self.fixes += 1
         if "fallback_from" in fix.info:
             self.fallbacks[fix.info["fallback_from"] or "declined"] += 1
@@ -313,6 +329,16 @@ class WifiFixStage(Stage):
             self.floors[self.last_floor] += 1
         self.last_sigma_m = math.sqrt(max(float(np.max(np.linalg.eigvalsh(fix.cov))), 0.0))
         return [("wifi/fix", fix_to_msg(fix, frame_id=self.params.frame_id))]
+
+    def _check_map_fit(self, scan: WifiScan, declined: bool) -> None:
+        """Feed the map check (a new map in use gets a new one); say once when the scans stop fitting."""
+        if not self.params.map_check.enabled or self.radio_map is None:
+            return
+        if self.map_check is None or self.map_check.radio_map is not self.radio_map:
+            self.map_check = MapCheck(self.radio_map, self.params.map_check)
+        text = self.map_check.update(scan, declined)
+        if text:
+            self.notice(text)
 
     def extra_diagnostics(self) -> dict[str, str]:
         out = {"method": self.params.method, "radiomap": self.params.radiomap or "(none)",
@@ -345,4 +371,8 @@ class WifiFixStage(Stage):
             out["fit.located_late"] = str(self.located_late)
         if self.fixes:
             out["last_fix_sigma_m"] = f"{self.last_sigma_m:.2f}"
+        if self.map_check is not None and self.map_check.radio_map is self.radio_map:
+            out.update(self.map_check.summary())
+            if self.map_check.state.mismatch:       # a standing WARN while the scans do not fit the map
+                out["warning"] = self.map_check.describe()
         return out
