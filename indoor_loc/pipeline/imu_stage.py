@@ -120,6 +120,9 @@ class ImuStage(Stage):
         self.base_frame = params.base_frame or (f"{ns}/base_link" if ns else "base_link")
         self._mag_bias = np.array([params.mag_bias_x, params.mag_bias_y, params.mag_bias_z])
         self.counts = {"mag_used": 0, "no_gyro": 0, "odom": 0}
+        # our imu/data stamps (echo detection; kept across a reset: echoes of the old pass still come)
+        self._published_stamps: deque = deque(maxlen=512)
+        self._published_set: set = set()
         self._fresh_state()
         self.on("imu/data_raw", self._on_raw)
         self.on("imu/mag", self._on_mag)
@@ -143,8 +146,12 @@ class ImuStage(Stage):
         self._last_raw_ns: int | None = None
         self._last_orient_ns: int | None = None
         self._external_orientation = params.heading_source == "orientation"
-        self._published_stamps: deque = deque(maxlen=512)   # our imu/data stamps (echo detection)
-        self._published_set: set = set()
+
+    def stamp_of(self, topic: str, msg: Any) -> int | None:
+        """The node's own ``imu/data`` echoed back (it subscribes to the topic it publishes) is not
+        judged: the handler drops it."""
+        stamp = super().stamp_of(topic, msg)
+        return None if topic == "imu/data" and stamp in self._published_set else stamp
 
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in time: the hops of the old pass still in the stepometer are published, then

@@ -27,9 +27,10 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   that lag the odometry by the WiFi node's latency): each topic is a source of its own.
 - **the node's clock going back** (rclpy's clock-jump callback, :meth:`Stage.run_clock_jump`) by
   more than ``jump_s`` resets every user whose watermarks are ahead of the new clock, at once.
-- **after a jump**, a message stamped more than ``jump_s`` ahead of the user's new pass but not
-  after the old pass's newest stamp is of the old pass, still in flight (a fix that lags its
-  scan): rejected (``before_jump``), so it cannot set the new pass's watermarks to the old stamps.
+- **after a jump**, a topic's first message stamped more than ``jump_s`` ahead of the user's new
+  pass (its other topics, the node's clock) but not after the old pass's newest stamp is of the old
+  pass, still in flight (a fix that lags its scan): rejected (``before_jump``), so it cannot set the
+  new pass's watermarks to the old stamps.
 
 The policy holds stamps and held messages only; it never looks inside a message. The driver
 (:class:`Stage`) asks :meth:`TimePolicy.judge` and acts on the :class:`Verdict`.
@@ -169,14 +170,18 @@ class TimePolicy:
         return bool(now_ns) and mark > int(now_ns or 0) + self.jump_ns
 
     def _check_fence(self, u: _UserTime, topic: str, stamp_ns: int, now_ns: int | None) -> None:
+        """After a jump, the first message of a topic in the new pass: one stamped more than ``jump_s``
+        ahead of the new pass (the user's other topics, the node's clock) but not after the old pass's
+        newest stamp is of the old pass, still in flight (a fix lagging its scan). Later messages of the
+        topic are judged by its own watermark."""
         front = u.front()
-        ref = front if front is not None else now_ns
-        if ref is None or ref == 0:
-            return
         if front is not None and front > u.fence_ns:             # the new pass is past the old one's end
             u.fence_ns = None
             return
-        if ref + self.jump_ns < stamp_ns <= u.fence_ns:          # type: ignore[operator]
+        if topic in u.marks:
+            return
+        ref = max(front or 0, now_ns or 0)
+        if ref and ref + self.jump_ns < stamp_ns <= u.fence_ns:  # type: ignore[operator]
             raise InvalidInputError(
                 "before_jump", f"{topic} stamp {stamp_ns} ns is {(stamp_ns - ref) * 1e-9:.1f} s ahead of the new pass "
                                f"since the clock jumped back from {u.fence_ns} ns: a message of the pass before the "

@@ -1,0 +1,135 @@
+"""The shared time policy live, as separate processes over DDS: one wrongly stamped message never
+silences a node, and a bag replayed on a looping ``/clock`` gives the same outputs in every pass
+(pipeline/time_policy.py)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+
+from helpers_dds import Peer, child_env, ros_node, spin_until
+from indoor_loc.contract import Qos
+from indoor_loc.nodes.qos import qos_profile
+from indoor_loc.wifi.radiomap import save_radiomap
+from msg_adapters.diagnostics import diagnostics_from_msg
+from msg_adapters.odom import odom_from_msg
+from msg_adapters.pose import fix_from_msg
+from msg_adapters.wifi_scan import scan_to_msg
+from test_wifi_fix_stage import grid_map, scan_at
+
+pytestmark = pytest.mark.timeout(240)   # above the sum of the condition deadlines
+S = 1_000_000_000
+YEAR_2036_NS = 2_082_758_400 * S
+
+
+def _node(module: str, *ros_args: str) -> Peer:
+    return Peer([sys.executable, "-m", f"indoor_loc.nodes.{module}", "--ros-args", *ros_args], env=child_env())
+
+
+def _diag_of(diags: list, name: str):
+    for arr in reversed(diags):
+        d = diagnostics_from_msg(arr)
+        if name in d:
+            return d[name]
+    return None
+
+
+def test_one_scan_stamped_in_2036_does_not_silence_wifi_fix_node(ros_domain, tmp_path):
+    """Scans stamped now, one stamped in 2036 among them: the 2036 one is rejected (future_stamp) and
+    every later valid scan is located — before, the node refused every later scan as stamp_backwards
+    until it was restarted."""
+    map_dir = save_radiomap(grid_map(), tmp_path / "rm")
+    node_proc = _node("wifi_fix_node", "-r", "__ns:=/alice", "-p", f"radiomap:={map_dir}")
+    rng = np.random.default_rng(4)
+    try:
+        with ros_node("probe") as (node, ex):
+            fixes: list = []
+            diags: list = []
+            pub = node.create_publisher(DiagnosticArray, "/alice/wifi/scan", qos_profile(Qos.RELIABLE))
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/wifi/fix", fixes.append,
+                                     qos_profile(Qos.RELIABLE))
+            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and
+                              _diag_of(diags, "/alice/wifi_fix_node") is not None, 60), node_proc.output()
+
+            def send(stamp_ns: int) -> None:
+                pub.publish(scan_to_msg(scan_at(rng.uniform(0.5, 9.5, 2), stamp_ns)))
+            for _ in range(3):
+                send(time.time_ns())
+            assert spin_until(ex, lambda: len(fixes) == 3, 30), node_proc.output()
+            send(YEAR_2036_NS)
+            for _ in range(10):
+                send(time.time_ns())
+            assert spin_until(ex, lambda: len(fixes) == 13, 30), (len(fixes), node_proc.output())
+            assert all(fix_from_msg(f).stamp_ns < YEAR_2036_NS for f in fixes)
+
+            def rejected() -> dict:
+                d = _diag_of(diags, "/alice/wifi_fix_node")
+                return {k: v for k, v in d.values.items() if k.startswith("rejected.")} if d else {}
+            assert spin_until(ex, lambda: rejected().get("rejected.future_stamp") == "1", 30), rejected()
+            assert rejected()["rejected.total"] == "1"
+        assert "Traceback" not in node_proc.output()
+    finally:
+        node_proc.stop()
+
+
+def test_a_bag_played_twice_on_sim_time_gives_the_same_outputs_twice(ros_domain, tmp_path):
+    """A simulated walk played in a loop with ``/clock`` into ``use_sim_time`` nodes: at the loop the
+    clock goes back, imu_node and wifi_fix_node reset (one WARN each) and the second pass gives the
+    same pdr/odom and wifi/fix as the first — before, imu_node refused every IMU message of the second
+    pass and wifi_fix_node every scan (non_monotonic_stamp / stamp_backwards), so nothing came."""
+    out = tmp_path / "sim"
+    subprocess.run([sys.executable, "-m", "indoor_loc.cli", "sim", str(out), "--walkers", "1", "--duration", "16",
+                    "--seed", "3"], check=True, capture_output=True, env=child_env())
+    common = ["-r", "__ns:=/alice", "--params-file", str(out / "params.yaml"), "-p", "use_sim_time:=true",
+              "-p", "sensor_reliability:=reliable"]
+    nodes = [_node("imu_node", *common), _node("wifi_fix_node", *common)]
+    player = None
+    try:
+        with ros_node("probe") as (node, ex):
+            odoms: list = []
+            fixes: list = []
+            node.create_subscription(Odometry, "/alice/pdr/odom", odoms.append, qos_profile(Qos.RELIABLE))
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/wifi/fix", fixes.append,
+                                     qos_profile(Qos.RELIABLE))
+            player = Peer([sys.executable, "-m", "indoor_loc.nodes.player_node", str(out / "sim.mcap"), "-r", "2",
+                           "--loop", "--clock", "--min-subscribers", "0", "/alice/imu/data_raw=1",
+                           "/alice/imu/mag=1", "/alice/wifi/scan=1"], env=child_env())
+
+            def passes(msgs, stamp_of) -> list[list]:
+                """The messages split where their stamps go back (one list per pass)."""
+                out: list[list] = [[]]
+                for m in msgs:
+                    if out[-1] and stamp_of(m) < stamp_of(out[-1][-1]):
+                        out.append([])
+                    out[-1].append(m)
+                return out
+            odom_stamp = lambda m: odom_from_msg(m).stamp_ns          # noqa: E731
+            fix_stamp = lambda m: fix_from_msg(m).stamp_ns            # noqa: E731
+            # the third pass has begun: the second one is complete
+            assert spin_until(ex, lambda: len(passes(odoms, odom_stamp)) >= 3 and len(passes(fixes, fix_stamp)) >= 3,
+                              150), "\n".join(p.output()[-3000:] for p in nodes + [player])
+            player.signal()
+            for msgs, read in ((odoms, odom_from_msg), (fixes, fix_from_msg)):
+                first, second = passes(msgs, lambda m, read=read: read(m).stamp_ns)[:2]
+                assert len(first) > 3 and len(first) == len(second)
+                for a, b in zip(first, second):
+                    ra, rb = read(a), read(b)
+                    assert ra.stamp_ns == rb.stamp_ns
+                    xa = np.array([ra.x, ra.y]) if hasattr(ra, "x") else ra.xy
+                    xb = np.array([rb.x, rb.y]) if hasattr(rb, "x") else rb.xy
+                    np.testing.assert_allclose(xa, xb, atol=1e-9)
+        for p in nodes:
+            assert p.wait_seen(r"WARN.*clock jumped back .*state reset", 10), p.output()[-3000:]
+            assert "Traceback" not in p.output()
+    finally:
+        if player is not None:
+            player.stop()
+        for p in nodes:
+            p.stop()
