@@ -283,7 +283,7 @@ def test_a_bag_played_in_a_loop_starts_the_user_afresh_live(ros_domain, tmp_path
                             return int(kv["user.lou.time_jumps"])
                 return 0
             assert spin_until(ex, lambda: jumps() >= 2, 90), node_proc.output() + player.output()
-            said = r"/clock jumped back .*: lou" if sim_time else r"lou: pdr/odom stamp jumped back"
+            said = r"clock jumped back .*: state reset for lou" if sim_time else r"lou: pdr/odom stamps jumped back"
             assert node_proc.wait_seen(r"WARN.*" + said, 10), node_proc.output()
             assert len(paths) >= 2                                  # each finished track's path
             for path in paths[:2]:
