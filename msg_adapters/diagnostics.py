@@ -2,7 +2,7 @@
 reverse lookups tools and tests use."""
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
@@ -94,3 +94,38 @@ def diagnostics_from_msg(arr: DiagnosticArray) -> dict[str, StatusSummary]:
         out[st.name] = StatusSummary(st.name, level, st.message, st.hardware_id,
                                      {kv.key: kv.value for kv in st.values})
     return out
+
+
+def with_inputs(arr: DiagnosticArray, inputs: Sequence[Any], now_ns: int) -> DiagnosticArray:
+    """Add each input's liveness (``inputs``: ``InputReport`` of ``indoor_loc.nodes.liveness``) to the
+    status of ``arr`` (:func:`stage_diagnostics`): ``in.<topic>.state`` (waiting, flowing, stalled;
+    received for an occasional input), ``.age_s`` (node clock since its last message), ``.stall_after_s``,
+    ``.upstream_restarts``, and once they happened ``.last_gap_s`` (the latest stall that ended: time
+    without input) and ``.resubscribed``. A stalled input makes the status WARN, or ERROR if the stage
+    requires it; an upstream restart keeps it at WARN for ``RECENT_NS``."""
+    st = arr.status[0]
+    level = st.level
+    parts = []
+    values = []
+    for r in inputs:
+        key = f"in.{r.topic}"
+        values += [KeyValue(key=f"{key}.state", value=r.state),
+                   KeyValue(key=f"{key}.age_s", value="" if r.age_s is None else f"{r.age_s:.2f}"),
+                   KeyValue(key=f"{key}.stall_after_s", value=f"{r.stall_after_s:.2f}"),
+                   KeyValue(key=f"{key}.upstream_restarts", value=str(r.restarts))]
+        if r.last_gap_s is not None:
+            values.append(KeyValue(key=f"{key}.last_gap_s", value=f"{r.last_gap_s:.2f}"))
+        if r.resubscribed:
+            values.append(KeyValue(key=f"{key}.resubscribed", value=str(r.resubscribed)))
+        if r.state == "stalled":
+            level = max(level, DiagnosticStatus.ERROR if r.required else DiagnosticStatus.WARN)
+            parts.append(f"{r.topic} stalled (no message for {r.age_s:.1f} s)")
+        if r.restarts and _recent(r.last_restart_ns, now_ns):
+            level = max(level, DiagnosticStatus.WARN)
+            gap = f"; {r.last_gap_s:.1f} s without input" if r.last_gap_s is not None else ""
+            parts.append(f"{r.topic}: upstream restarted ({r.restarts}{gap})")
+    st.values = list(st.values) + values
+    if parts:
+        st.message = "; ".join(parts) + ("" if st.message == "ok" else f"; {st.message}")
+    st.level = level
+    return arr

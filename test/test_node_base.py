@@ -292,7 +292,7 @@ def test_lost_messages_are_counted_and_warnings_follow_a_recent_window(ros_domai
         node = StageNode(DummyStage, context=probe.context)
         try:
             writers = [1]
-            node.count_publishers = lambda topic: writers[0]           # one publisher in the graph
+            node._publisher_gids = lambda topic: frozenset([b"w1", b"w2"][:writers[0]])   # one publisher in the graph
             node._gaps["imu/data_raw"].publishers = 1
             cb = node._callback("imu/data_raw")
             for seq in (1, 2, 6, 7):                                  # 3 messages never arrived
@@ -303,7 +303,8 @@ def test_lost_messages_are_counted_and_warnings_follow_a_recent_window(ros_domai
             assert d.values["lost.imu/data_raw"] == "3" and d.values["lost.total"] == "3"
             assert d.level == 1 and "3 input messages lost" in d.message and "1 messages rejected" in d.message
             later = diagnostics_from_msg(node.diagnostics_msg(now + 11_000_000_000))["/dummy_node"]
-            assert later.level == 0 and later.values["lost.total"] == "3"     # counters stay, WARN does not
+            assert later.values["lost.total"] == "3" and "lost" not in later.message   # counters stay, WARN does not
+            assert later.level == 1 and later.values["in.imu/data_raw.state"] == "stalled"   # 11 s without input
             writers[0] = 2                                                    # a second writer joined:
             node._gaps["imu/data_raw"].publishers = 1                         # seen at the gap, no guessing
             cb(imu_to_msg(9, "f", [0.0, 0.0, 9.8]), {"publication_sequence_number": 20})

@@ -11,17 +11,20 @@
   (a node parameter, any namespace) makes them reliable, so a replay from the reliable player is
   never dropped in DDS. A publisher whose QoS cannot match a subscription is logged as an ERROR and
   counted (``rejected.incompatible_qos``, WARN in ``/diagnostics``), never a silent lack of input.
-- A bad message is logged (throttled), counted and dropped; the node keeps running. The stage's
-  notices (:meth:`Stage.take_notices`: a user's clock jumping back, say) are logged as WARN, each
-  once, after every call into the stage.
+- A bad message is logged (throttled), counted and dropped; the node keeps running. Every input is
+  subscribed raw and deserialised by the node, so a sample that does not decode (empty, truncated,
+  garbage) is counted ``undecodable``; a reliable subscription stuck behind a sample DDS refused (an
+  empty one) is found and made anew (:mod:`indoor_loc.nodes.inputs`). The stage's notices
+  (:meth:`Stage.take_notices`: a user's clock jumping back, say) are logged as WARN, each once, after
+  every call into the stage.
 - Fast path: an input the stage takes in runs (``Stage.batch_handles``) of a type
-  :mod:`indoor_loc.bag.bulk` decodes (``sensor_msgs/Imu``, ``MagneticField``) is subscribed raw (CDR
-  bytes, no Python message per sample). Each callback also takes whatever is already queued on the
-  node's raw inputs (up to ``TAKE_MAX``), merges the topics in header-stamp order (each topic in its
-  arrival order) and hands each run of one topic to ``Stage.process_batch``, decoded in bulk with the
-  adapters' checks; a run that does not decode in bulk, or holds a message the adapter would reject,
-  is deserialised and processed message by message, so each rejection keeps its reason. Nothing is
-  held back for later: a timer tick sees every message taken before it, as before.
+  :mod:`indoor_loc.bag.bulk` decodes (``sensor_msgs/Imu``, ``MagneticField``) gets no Python message
+  per sample: each callback takes whatever is queued on the node's fast inputs, merges them in stamp
+  order and hands each run of one topic to ``Stage.process_batch`` (:mod:`indoor_loc.nodes.inputs`).
+- Liveness: each input (each user's, for a multi-user stage) says in ``/diagnostics`` whether it is
+  waiting, flowing or stalled, how long since its last message, and how often its publisher
+  restarted (``in.<topic>.*``; a stalled input is a WARN, an ERROR if the stage marks it
+  ``Port.required``; :mod:`indoor_loc.nodes.liveness`).
 - The node's clock going back (``/clock`` under ``use_sim_time``: a bag played in a loop, a
   simulation restarted) by at least the stage's :meth:`Stage.clock_jump_threshold_ns` (0: not
   followed) calls :meth:`Stage.run_clock_jump`; its outputs are published and its notices logged.
@@ -41,8 +44,6 @@
 from __future__ import annotations
 
 import array
-import heapq
-import struct
 import time
 from typing import Any, Callable
 
@@ -54,17 +55,16 @@ from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallba
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
-from rclpy.serialization import deserialize_message
 
-from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import ConfigError, IndoorLocError
+from indoor_loc.nodes.inputs import Input, InputsMixin
 from indoor_loc.nodes.liveness import SequenceGaps
 from indoor_loc.nodes.qos import RELIABILITY, SENSOR_RELIABILITY_PARAM, publisher_qos, qos_profile, subscription_qos
 from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
                                params_from_dict, params_to_dict)
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
-from msg_adapters.diagnostics import stage_diagnostics
+from msg_adapters.diagnostics import stage_diagnostics, with_inputs
 
 #: How often a node publishes its /diagnostics status (s, on its clock).
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -74,9 +74,6 @@ FINISH_ACK_TIMEOUT_S = 8.0
 DISCOVERY_PERIOD_S = 1.0
 #: Parameters every rclpy node may carry besides the stage's own (not "unknown").
 _BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
-#: Raw sensor inputs (see ``StageNode`` "Fast path"): at most this many messages are taken from the
-#: subscriptions per callback, so one burst cannot hold up timers and other inputs for long.
-TAKE_MAX = 2048
 
 
 def _ros_value(value: Any) -> Any:
@@ -95,7 +92,7 @@ def _py_value(value: Any) -> Any:
     return value
 
 
-class StageNode(Node):
+class StageNode(InputsMixin, Node):
     """An rclpy Node that feeds a Stage and publishes what it returns."""
 
     def __init__(self, stage_cls: type[Stage], **node_kwargs: Any) -> None:
@@ -110,7 +107,9 @@ class StageNode(Node):
 
     def _build(self, stage_cls: type[Stage]) -> None:
         self._stage_cls = stage_cls
-        self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> sequence-gap counter
+        self._inputs: dict[str, Input] = {}         # resolved input topic -> its subscription and watch
+        self._gaps: dict[str, SequenceGaps] = {}    # resolved input topic -> its sequence-gap counter
+        self._raw: dict[str, Input] = {}            # inputs the stage takes in runs (fast path), by topic
         self.taken = 0                              # input messages handled (all topics)
         self.last_rx_ns = 0                         # reception time (system clock) of the last one
         self.sensor_reliability = self._declare_sensor_reliability()
@@ -120,15 +119,12 @@ class StageNode(Node):
         self.add_on_set_parameters_callback(self._on_set_params)
         self._pubs = {p.topic: self._create_publisher(msg_class(p.type), p.topic, publisher_qos(p.qos))
                       for p in self.stage.outputs()}
-        # inputs the stage takes in runs (raw CDR, decoded in bulk): topic -> (subscription, gaps, type)
-        self._raw: dict[str, tuple[Any, SequenceGaps, str]] = {}
-        self._subs = [] if self.stage.MULTI_USER else [
-            self._subscribe_raw(p) if self._batchable(p) else self._subscribe(p, p.topic, self._callback(p.topic))
-            for p in self.stage.inputs()]
         if not self.stage.MULTI_USER:
+            for p in self.stage.inputs():
+                self._open_input(p, p.topic)
             self._check_qos_overrides()
-        # multi-user stages: user -> its subscriptions; user -> when its publishers were last seen
-        self.user_subs: dict[str, list] = {}
+        # multi-user stages: user -> its inputs; user -> when its publishers were last seen
+        self.user_subs: dict[str, list[Input]] = {}
         self._user_seen: dict[str, float] = {}
         self._finished_users: set[str] = set()
         self._fixed_users = tuple(getattr(self.stage.params, "users", ()) or ())
@@ -138,7 +134,7 @@ class StageNode(Node):
             self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
-        self._refresh_publisher_counts()
+        self._watch_inputs(self.get_clock().now().nanoseconds)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
         self._jump_handle = self._follow_clock_jumps()
         self.get_logger().info(
@@ -178,10 +174,15 @@ class StageNode(Node):
             raise ConfigError(f"{SENSOR_RELIABILITY_PARAM}: expected one of {sorted(RELIABILITY)}, got {value!r}")
         return str(value)
 
-    def _subscribe(self, port: Any, topic: str, callback: Callable[[Any, Any], None], raw: bool = False):
-        """A subscription to ``port`` on ``topic`` with its QoS (overridable by parameters)."""
+    def _subscribe(self, port: Any, topic: str, callback: Callable[[Any, Any], None], raw: bool = False,
+                   qos: QoSProfile | None = None):
+        """A subscription to ``port`` on ``topic`` with its QoS (overridable by parameters), or with
+        ``qos`` as it is (a subscription made anew: its overrides are declared already)."""
         events = SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible(topic, "publisher"))
         try:
+            if qos is not None:
+                return self.create_subscription(msg_class(port.type), topic, callback, qos, event_callbacks=events,
+                                                raw=raw)
             return self.create_subscription(
                 msg_class(port.type), topic, callback, subscription_qos(port.qos, self.sensor_reliability),
                 qos_overriding_options=QoSOverridingOptions.with_default_policies(), event_callbacks=events,
@@ -286,8 +287,7 @@ class StageNode(Node):
         if not user or user in self.user_subs:
             return
         ns = namespace_of_user(user)
-        self.user_subs[user] = [self._subscribe(p, join_ns(ns, p.topic), self._callback(p.topic, user))
-                                for p in self.stage.inputs()]
+        self.user_subs[user] = [self._open_input(p, join_ns(ns, p.topic), user) for p in self.stage.inputs()]
         for port in self.stage.user_outputs():      # ready (and matched) before the first output
             self._publisher(port.topic.format(user=user))
         self._user_seen[user] = self._monotonic()
@@ -324,123 +324,9 @@ class StageNode(Node):
             self._publish(self.stage.run_finish_user(user))
             self._log_rejections()
             if not self._fixed_users:
-                for sub in self.user_subs.pop(user):
-                    self.destroy_subscription(sub)
+                for inp in self.user_subs.pop(user):
+                    self._close_input(inp)
                 self._user_seen.pop(user, None)
-
-    # -- messages ----------------------------------------------------------------------------------
-    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
-        resolved = join_ns(namespace_of_user(user), topic) if user else topic
-        gaps = self._gaps.setdefault(resolved, SequenceGaps(self._late_start(resolved)))
-
-        def recount() -> int:
-            return self.count_publishers(resolved)
-
-        def cb(msg: Any, info: Any) -> None:
-            self.taken += 1
-            self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
-            now_ns = self.get_clock().now().nanoseconds
-            lost = gaps.gap(info, recount)
-            if lost:
-                self.stage.diag.count_lost(topic, lost, now_ns)
-                self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
-                                          f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
-            self._publish(self.stage.process(topic, msg, now_ns, user))
-            self._log_rejections()
-        return cb
-
-    def _late_start(self, topic: str) -> Callable[[int], None]:
-        """Said once when an input's first message is not its publisher's first: normal when a node
-        joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
-        WARN; start the player once every subscriber has matched, see ``--min-subscribers``)."""
-        def said(n: int) -> None:
-            replay = self.sensor_reliability == "reliable"
-            (self.get_logger().warning if replay else self.get_logger().info)(
-                f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
-                f"published before this subscription matched" + ("; a replay started too early" if replay else ""))
-        return said
-
-    # -- fast path: raw sensor inputs handled in runs ----------------------------------------------
-    def _batchable(self, port: Any) -> bool:
-        """Whether ``port`` is taken raw and handled in runs: a per-user stage with a batch path for
-        it (:meth:`Stage.batch_handles`) and a message type :func:`indoor_loc.bag.bulk.bulk_items` decodes."""
-        return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
-
-    def _subscribe_raw(self, port: Any):
-        gaps = self._gaps.setdefault(port.topic, SequenceGaps(self._late_start(port.topic)))
-        sub = self._subscribe(port, port.topic, self._raw_callback(port.topic), raw=True)
-        self._raw[port.topic] = (sub, gaps, port.type)
-        return sub
-
-    def _raw_callback(self, topic: str) -> Callable[[bytes, Any], None]:
-        def cb(data: bytes, info: Any) -> None:
-            self._take_raw({topic: [self._received(topic, data, info)]})
-        return cb
-
-    def _received(self, topic: str, data: bytes, info: Any) -> tuple[int, int, bytes]:
-        """Book one raw message as the per-message callback does (count, reception time, sequence
-        gaps); returns ``(header stamp ns, node-clock receive ns, data)``."""
-        self.taken += 1
-        self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
-        now_ns = self.get_clock().now().nanoseconds
-        gaps = self._raw[topic][1]
-        lost = gaps.gap(info, lambda: self.count_publishers(topic))
-        if lost:
-            self.stage.diag.count_lost(topic, lost, now_ns)
-            self.get_logger().warning(f"{topic}: {lost} message(s) lost before reaching this node "
-                                      f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
-        return _cdr_stamp_ns(data), now_ns, data
-
-    def _take_raw(self, pending: dict[str, list[tuple[int, int, bytes]]]) -> None:
-        """Take every message already queued on the raw inputs (at most :data:`TAKE_MAX`), merge the
-        topics in header-stamp order (each topic keeps its arrival order) and hand each run of one
-        topic to the stage's batch path, decoded in bulk; a run that does not decode in bulk (or
-        holds a message the adapter rejects) is deserialised and processed message by message, so
-        every rejection is counted under its own reason as before."""
-        n = sum(len(v) for v in pending.values())
-        for topic, (sub, _gaps, _type) in self._raw.items():
-            queue = pending.setdefault(topic, [])
-            while n < TAKE_MAX:
-                with sub.handle:
-                    got = sub.handle.take_message(sub.msg_type, True)
-                if got is None:
-                    break
-                queue.append(self._received(topic, got[0], got[1]))
-                n += 1
-        merged = heapq.merge(*([(stamp, topic, recv, data) for stamp, recv, data in q]
-                               for topic, q in pending.items() if q), key=lambda m: m[0])
-        run_topic: str | None = None
-        run: list[tuple[int, bytes]] = []
-        for _stamp, topic, recv, data in merged:
-            if topic != run_topic and run:
-                self._process_run(run_topic, run)   # type: ignore[arg-type]
-                run = []
-            run_topic = topic
-            run.append((recv, data))
-        if run:
-            self._process_run(run_topic, run)       # type: ignore[arg-type]
-        self._log_rejections()
-
-    def _process_run(self, topic: str, run: list[tuple[int, bytes]]) -> None:
-        type_name = self._raw[topic][2]
-        recv = [r for r, _ in run]
-        items = bulk_items(type_name, [d for _, d in run])
-        if items is not None:
-            self._publish([(t, m) for _, t, m in self.stage.process_batch(topic, items, recv)])
-            return
-        cls = msg_class(type_name)
-        for recv_ns, data in run:
-            try:
-                msg = deserialize_message(data, cls)
-            except Exception as err:  # noqa: BLE001 - a node never dies on a message
-                self.stage.diag.now_ns = recv_ns
-                self.stage._reject("undecodable", f"{topic}: {type(err).__name__}: {err}")
-                continue
-            self._publish(self.stage.process(topic, msg, recv_ns))
-
-    def _refresh_publisher_counts(self) -> None:
-        for topic, gaps in self._gaps.items():
-            gaps.publishers = self.count_publishers(topic)
 
     def _publisher(self, topic: str):
         pub = self._pubs.get(topic)
@@ -494,14 +380,15 @@ class StageNode(Node):
         self._log_rejections()
 
     def _on_timer(self) -> None:
-        self._refresh_publisher_counts()
         now_ns = self.get_clock().now().nanoseconds
+        self._watch_inputs(now_ns)
         self._publish(self.stage.run_tick(now_ns))
         self._log_rejections()
         self._diag_pub.publish(self.diagnostics_msg(now_ns))
 
     def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
-        return stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)
+        arr = stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)
+        return with_inputs(arr, [inp.watch.report(now_ns) for inp in self._inputs.values()], now_ns)
 
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
@@ -516,13 +403,3 @@ class StageNode(Node):
                     self.get_logger().warning(
                         f"stopping: {topic}: not every subscriber acknowledged the last messages within "
                         f"{FINISH_ACK_TIMEOUT_S:g} s; they may have missed the end of the output")
-
-
-def _cdr_stamp_ns(data: bytes) -> int:
-    """``header.stamp`` (ns) of a little-endian CDR message that starts with a ``std_msgs/Header``
-    (every bulk-decoded type); 0 when it cannot be read (the message then sorts first; the stage
-    judges it)."""
-    if len(data) < 12 or data[:2] != b"\x00\x01":
-        return 0
-    sec, nsec = struct.unpack_from("<iI", data, 4)
-    return sec * 1_000_000_000 + nsec

@@ -1,0 +1,348 @@
+"""The inputs of a :class:`~indoor_loc.nodes.stage_node.StageNode`: one :class:`Input` per subscribed
+topic (per user for a multi-user stage), and how their messages reach the stage.
+
+- Every input is subscribed *raw* and deserialised here, so a sample that does not decode (empty,
+  truncated, garbage) is counted as ``undecodable`` and dropped. A deserialising subscription would
+  drop it inside the middleware without a word (``rmw_fastrtps`` skips a sample its type support
+  cannot read), leaving at most a sequence gap.
+- Liveness: each input has an :class:`~indoor_loc.nodes.liveness.InputWatch` (flowing, stalled,
+  upstream restarts, lost messages), fed with every message and, about once a second, with the
+  topic's publishers in the graph (:meth:`InputsMixin._watch_inputs`).
+- A reliable subscription that stops delivering: Fast DDS refuses a DATA submessage whose serialized
+  payload is empty (``MessageReceiver::proc_Submsg_Data``: "Serialized Payload value invalid"), so a
+  reliable reader never acknowledges that sample, asks for it again and again, and holds back every
+  later sample of that publisher until the publisher's history no longer has it (``depth`` samples
+  later; 1 000 for the nodes' reliable outputs, 10 000 for the player's: for a slow topic, never).
+  A best-effort reader just skips it (one lost message). So when a reliable input with one publisher
+  stalls, the node listens beside it best effort (a *probe*, raw). If the probe hears that
+  publisher's numbers going on past the next one while the subscription has nothing queued, the
+  subscription is stuck: the sample it waits for is counted ``undecodable``, the ones it holds back
+  unreachably as lost, the subscription is made anew (a new reader starts at the publisher's next
+  sample) and, until it delivers, the probe's messages are processed (each number once). The probe
+  is closed as soon as the subscription delivers again or the publisher leaves. While it is open,
+  the publisher sees one more matched subscription.
+- Fast path: an input the stage takes in runs (``Stage.batch_handles``) of a type
+  :mod:`indoor_loc.bag.bulk` decodes is handed over in runs (see :meth:`InputsMixin._take_raw`).
+"""
+from __future__ import annotations
+
+import heapq
+import struct
+from typing import Any, Callable
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+
+from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
+from indoor_loc.contract import join_ns, msg_class
+from indoor_loc.nodes.liveness import STALLED, InputWatch, SequenceGaps
+from indoor_loc.pipeline.stage import Port, namespace_of_user
+
+#: Raw sensor inputs (the fast path): at most this many messages are taken from the subscriptions
+#: per callback, so one burst cannot hold up timers and other inputs for long.
+TAKE_MAX = 2048
+#: QoS of a probe: best effort (it never waits for a sample), as deep as a burst between two looks.
+PROBE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+
+Booked = tuple[int, int, bytes]     # (header stamp ns, node-clock receive ns, data) of a raw message
+
+
+class Input:
+    """One subscribed input topic: its port, the resolved name, the user (multi-user stages), the
+    subscription and, while one is open, the probe beside it."""
+
+    def __init__(self, port: Port, resolved: str, user: str | None, fast: bool, watch: InputWatch) -> None:
+        self.port = port
+        self.topic = port.topic             # the stage's (relative) name
+        self.resolved = resolved
+        self.user = user
+        self.fast = fast
+        self.cls = msg_class(port.type)
+        self.watch = watch
+        self.sub: Any = None
+        self.callback: Callable[[Any, Any], None] = lambda data, info: None
+        self.probe: Any = None
+        self.probe_count = 0                # messages the subscription had delivered when the probe opened
+        self.recovering = False             # made anew, no message from it yet: the probe's are processed
+        self.skip_upto: int | None = None   # numbers up to this came through the probe already
+
+
+def _seq(info: Any) -> int | None:
+    return info.get("publication_sequence_number") if isinstance(info, dict) else None
+
+
+def _cdr_stamp_ns(data: bytes) -> int:
+    """``header.stamp`` (ns) of a little-endian CDR message that starts with a ``std_msgs/Header``
+    (every bulk-decoded type); 0 when it cannot be read (the message then sorts first; the stage
+    judges it)."""
+    if len(data) < 12 or data[:2] != b"\x00\x01":
+        return 0
+    sec, nsec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+class InputsMixin:
+    """The input side of StageNode (a mixin of it; uses its stage, clock, logger, ``_subscribe``,
+    ``_publish`` and ``_log_rejections``)."""
+
+    # provided by StageNode / rclpy Node
+    stage: Any
+    taken: int
+    last_rx_ns: int
+    sensor_reliability: str
+    _inputs: dict[str, Input]
+    _gaps: dict[str, SequenceGaps]
+    _raw: dict[str, Input]
+    get_clock: Callable[[], Any]
+    get_logger: Callable[[], Any]
+    resolve_topic_name: Callable[..., str]
+    get_publishers_info_by_topic: Callable[..., Any]
+    create_subscription: Callable[..., Any]
+    destroy_subscription: Callable[[Any], bool]
+    _subscribe: Callable[..., Any]
+    _publish: Callable[[list], None]
+    _log_rejections: Callable[[], None]
+
+    # -- opening and closing ---------------------------------------------------------------------------
+    def _open_input(self, port: Port, resolved: str, user: str | None = None) -> Input:
+        fast = self._batchable(port)
+        # named as the stage counts it: ``imu/data_raw``, ``alice/pdr/odom`` (multi-user)
+        watch = InputWatch(resolved.lstrip("/"), required=port.required, stream=port.stream,
+                           on_late_start=self._late_start(resolved))
+        inp = Input(port, resolved, user, fast, watch)
+        inp.callback = self._raw_callback(inp) if fast else self._message_callback(inp)
+        inp.sub = self._subscribe(port, resolved, inp.callback, raw=True)
+        self._inputs[resolved] = inp
+        self._gaps[resolved] = watch.gaps
+        if fast:
+            self._raw[inp.topic] = inp
+        return inp
+
+    def _close_input(self, inp: Input) -> None:
+        self._close_probe(inp)
+        self.destroy_subscription(inp.sub)
+        self._inputs.pop(inp.resolved, None)
+        self._gaps.pop(inp.resolved, None)
+
+    def _batchable(self, port: Port) -> bool:
+        """Whether ``port`` is handled in runs: a per-user stage with a batch path for it
+        (:meth:`Stage.batch_handles`) and a message type :func:`indoor_loc.bag.bulk.bulk_items` decodes."""
+        return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
+
+    def _late_start(self, topic: str) -> Callable[[int], None]:
+        """Said once when an input's first message is not its publisher's first: normal when a node
+        joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
+        WARN; start the player once every subscriber has matched, see ``--min-subscribers``)."""
+        def said(n: int) -> None:
+            replay = self.sensor_reliability == "reliable"
+            (self.get_logger().warning if replay else self.get_logger().info)(
+                f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
+                f"published before this subscription matched" + ("; a replay started too early" if replay else ""))
+        return said
+
+    # -- booking every message -----------------------------------------------------------------------------
+    def _publisher_gids(self, topic: str) -> frozenset[bytes]:
+        return frozenset(bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic))
+
+    def _book(self, inp: Input, info: Any, *, probe: bool = False) -> int | None:
+        """Count one message taken (liveness, sequence gaps, reception time); returns the node's
+        clock now, or None for a message already processed (a number the probe brought)."""
+        seq = _seq(info)
+        if not probe:
+            if inp.probe is not None:
+                self._close_probe(inp)           # the subscription delivers again
+            inp.recovering = False
+            if inp.skip_upto is not None and seq:
+                if seq <= inp.skip_upto:
+                    return None
+                inp.skip_upto = None
+        self.taken += 1
+        self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
+        now_ns = self.get_clock().now().nanoseconds
+        lost = inp.watch.message(info, now_ns, lambda: self._publisher_gids(inp.resolved))
+        if lost:
+            self.stage.diag.count_lost(inp.topic, lost, now_ns)
+            self.get_logger().warning(f"{inp.resolved}: {lost} message(s) lost before reaching this node "
+                                      f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
+        return now_ns
+
+    def _message_callback(self, inp: Input) -> Callable[[Any, Any], None]:
+        def cb(data: Any, info: Any) -> None:
+            self._on_message(inp, data, info)
+        return cb
+
+    def _on_message(self, inp: Input, data: Any, info: Any, *, probe: bool = False) -> None:
+        """One message (CDR bytes, or a message already deserialised) for the stage."""
+        now_ns = self._book(inp, info, probe=probe)
+        if now_ns is None:
+            return
+        msg = data
+        if isinstance(data, (bytes, bytearray)):
+            try:
+                msg = deserialize_message(bytes(data), inp.cls)
+            except Exception as err:  # noqa: BLE001 - a node never dies on a message
+                self.stage.diag.now_ns = now_ns
+                self.stage._reject("undecodable", f"{inp.resolved}: {len(data)} bytes: {type(err).__name__}: {err}")
+                self._log_rejections()
+                return
+        self._publish(self.stage.process(inp.topic, msg, now_ns, inp.user))
+        self._log_rejections()
+
+    def _callback(self, topic: str, user: str | None = None) -> Callable[[Any, Any], None]:
+        """The callback of the (per-message) input ``topic`` (of ``user``)."""
+        return self._message_callback(self._inputs[self._resolved(topic, user)])
+
+    @staticmethod
+    def _resolved(topic: str, user: str | None) -> str:
+        return join_ns(namespace_of_user(user), topic) if user else topic
+
+    # -- fast path: raw sensor inputs handled in runs ----------------------------------------------
+    def _raw_callback(self, inp: Input) -> Callable[[bytes, Any], None]:
+        def cb(data: bytes, info: Any) -> None:
+            booked = self._received(inp, data, info)
+            self._take_raw({inp.topic: [booked]} if booked else {})
+        return cb
+
+    def _received(self, inp: Input, data: bytes, info: Any, *, probe: bool = False) -> Booked | None:
+        """Book one raw message (:meth:`_book`); returns ``(header stamp ns, node-clock receive ns,
+        data)``, None for one already processed."""
+        now_ns = self._book(inp, info, probe=probe)
+        return None if now_ns is None else (_cdr_stamp_ns(data), now_ns, data)
+
+    def _take_raw(self, pending: dict[str, list[Booked]]) -> None:
+        """Take every message already queued on the raw inputs (at most :data:`TAKE_MAX`), merge the
+        topics in header-stamp order (each topic keeps its arrival order) and hand each run of one
+        topic to the stage's batch path, decoded in bulk; a run that does not decode in bulk (or
+        holds a message the adapter rejects) is deserialised and processed message by message, so
+        every rejection is counted under its own reason as before."""
+        n = sum(len(v) for v in pending.values())
+        for topic, inp in self._raw.items():
+            queue = pending.setdefault(topic, [])
+            while n < TAKE_MAX:
+                with inp.sub.handle:
+                    got = inp.sub.handle.take_message(inp.sub.msg_type, True)
+                if got is None:
+                    break
+                booked = self._received(inp, got[0], got[1])
+                if booked is not None:
+                    queue.append(booked)
+                n += 1
+        merged = heapq.merge(*([(stamp, topic, recv, data) for stamp, recv, data in q]
+                               for topic, q in pending.items() if q), key=lambda m: m[0])
+        run_topic: str | None = None
+        run: list[tuple[int, bytes]] = []
+        for _stamp, topic, recv, data in merged:
+            if topic != run_topic and run:
+                self._process_run(run_topic, run)   # type: ignore[arg-type]
+                run = []
+            run_topic = topic
+            run.append((recv, data))
+        if run:
+            self._process_run(run_topic, run)       # type: ignore[arg-type]
+        self._log_rejections()
+
+    def _process_run(self, topic: str, run: list[tuple[int, bytes]]) -> None:
+        inp = self._raw[topic]
+        recv = [r for r, _ in run]
+        items = bulk_items(inp.port.type, [d for _, d in run])
+        if items is not None:
+            self._publish([(t, m) for _, t, m in self.stage.process_batch(topic, items, recv)])
+            return
+        for recv_ns, data in run:
+            try:
+                msg = deserialize_message(data, inp.cls)
+            except Exception as err:  # noqa: BLE001 - a node never dies on a message
+                self.stage.diag.now_ns = recv_ns
+                self.stage._reject("undecodable", f"{topic}: {len(data)} bytes: {type(err).__name__}: {err}")
+                continue
+            self._publish(self.stage.process(topic, msg, recv_ns))
+
+    # -- liveness and stuck subscriptions -------------------------------------------------------------------
+    def _watch_inputs(self, now_ns: int) -> None:
+        """About once a second: each input's publishers in the graph (restarts, the count its sequence
+        gaps need); a stalled reliable input with one publisher gets a probe; a probe whose
+        subscription delivers again, or whose publisher left, is closed."""
+        for inp in list(self._inputs.values()):
+            gids = self._publisher_gids(inp.resolved)
+            inp.watch.publishers_seen(gids, now_ns)
+            if inp.probe is not None:
+                if not gids:
+                    self._close_probe(inp)
+                    inp.recovering = False
+            elif (len(gids) == 1 and inp.watch.state(now_ns) == STALLED
+                  and inp.sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE):
+                self._open_probe(inp)
+
+    def _open_probe(self, inp: Input) -> None:
+        inp.probe_count = inp.watch.count
+        inp.probe = self.create_subscription(inp.cls, inp.resolved, lambda data, info: self._on_probe(inp, data, info),
+                                             PROBE_QOS, raw=True)
+        self.get_logger().info(f"{inp.resolved}: stalled while its publisher is in the graph; listening beside "
+                               f"the subscription (best effort) for whether it still sends")
+
+    def _close_probe(self, inp: Input) -> None:
+        if inp.probe is not None:
+            self.destroy_subscription(inp.probe)
+            inp.probe = None
+
+    def _deliver(self, inp: Input, data: bytes, info: Any, *, probe: bool = False) -> None:
+        if inp.fast:
+            booked = self._received(inp, data, info, probe=probe)
+            self._take_raw({inp.topic: [booked]} if booked else {})
+        else:
+            self._on_message(inp, data, info, probe=probe)
+
+    def _drain(self, inp: Input) -> int:
+        """Hand on what is queued on the input's subscription now; returns how many there were."""
+        n = 0
+        while True:
+            with inp.sub.handle:
+                got = inp.sub.handle.take_message(inp.sub.msg_type, True)
+            if got is None:
+                return n
+            n += 1
+            self._deliver(inp, got[0], got[1])
+
+    def _on_probe(self, inp: Input, data: bytes, info: Any) -> None:
+        if inp.probe is None:
+            return
+        seq = _seq(info)
+        last = inp.watch.gaps.last
+        if inp.recovering:
+            if seq and (last is None or seq > last):
+                inp.skip_upto = seq              # before: handing it on may take the subscription's queue
+                self._deliver(inp, data, info, probe=True)
+            return
+        if inp.watch.count > inp.probe_count or self._drain(inp):
+            self._close_probe(inp)               # the subscription delivers after all
+            return
+        if not seq or last is None or seq <= last + 1:
+            return                               # nothing says it stopped short yet
+        self._resubscribe(inp, last, seq)
+        inp.skip_upto = seq
+        self._deliver(inp, data, info, probe=True)
+
+    def _resubscribe(self, inp: Input, last: int, seq: int) -> None:
+        """The subscription has delivered its publisher's #``last`` and nothing since, while the
+        probe hears #``seq``: #``last + 1`` is a sample it cannot take (counted ``undecodable``), those
+        up to #``seq - 1`` are held back behind it (lost); a new subscription takes over."""
+        now_ns = self.get_clock().now().nanoseconds
+        diag = self.stage.diag
+        diag.now_ns = now_ns
+        self.stage._reject("undecodable", f"{inp.resolved}: its publisher's message #{last + 1} never arrived: DDS "
+                                          f"refused it (an empty sample) and the reliable subscription waited for it")
+        held = seq - last - 2
+        if held > 0:
+            diag.count_lost(inp.topic, held, now_ns)
+        inp.watch.gaps.last = seq - 1
+        qos = inp.sub.qos_profile
+        self.destroy_subscription(inp.sub)
+        inp.sub = self._subscribe(inp.port, inp.resolved, inp.callback, raw=True, qos=qos)
+        inp.watch.resubscribed += 1
+        inp.recovering = True
+        self.get_logger().warning(
+            f"{inp.resolved}: the subscription stopped at its publisher's message #{last + 1} (refused by DDS: "
+            f"counted undecodable) while the publisher went on to #{seq}; {max(held, 0)} message(s) held back "
+            f"behind it are lost; subscribed anew")
+        self._log_rejections()
