@@ -1,0 +1,363 @@
+"""Every input port of every stage, any message in: the stage keeps its promises (hypothesis).
+
+Each stage is built from the simulated world's params (``test_contract_ports``' world, cases and
+``build_stage``) and fed its valid input stream -- the world's sensors, and what ``imu_node`` and
+``wifi_fix_node`` make of them -- with hostile messages of a port's type interleaved: a valid message
+with numeric fields set to NaN, inf, +-1e308, negatives, huge or tiny values, covariance arrays at
+random, strings at random, empty and 10 000-AP scans, JSON with absurd numbers. Promises:
+
+- no ``internal_error``: a message never makes a core estimator raise (also at the end of input);
+- every output finite;
+- every valid message is handled as without the hostile ones: each one's rejections are the clean
+  stream's, and when every hostile message was refused the outputs are exactly the clean stream's (a
+  refused message leaves no state).
+
+Hostile messages are stamped 1 ns after the valid message before them, so stamps say nothing about
+them (the time policy is tested elsewhere); one case gives them any stamp and asserts only the first
+two promises.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from collections import Counter
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+import test_contract_ports
+from test_contract_ports import CASES, build_stage
+from indoor_loc.bag import read_bag
+from msg_adapters.pose import pose_to_msg
+from msg_adapters.time import MAX_STAMP_NS, stamp_from_ns
+from msg_adapters.wifi_json import scan_to_json_msg
+from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
+
+SEC = 1_000_000_000
+#: the simulated world (a module fixture) every stage is built from, as in test_contract_ports
+world = test_contract_ports.world
+#: the IMU streams are cut to this long from their start (the stepometer hops a few times in it)
+IMU_S = 3.0
+USER = "walker0"
+INPUT_CASES = [(n, o) for n, o in CASES if not (n == "wifi_scan" and o.get("source", "topic") != "topic")]
+
+HOSTILE_FLOATS = [math.nan, math.inf, -math.inf, 1e308, -1e308, -1.0, 0.0, 1e6, -1e6, 1e-300, -1e-300, 5e4,
+                  1e12, 3.0, -0.5]
+hostile_float = st.one_of(st.sampled_from(HOSTILE_FLOATS), st.sampled_from(HOSTILE_FLOATS),
+                          st.floats(allow_nan=True, allow_infinity=True))
+
+
+# -- the valid streams ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def streams(world) -> dict[str, list[tuple[int, Any]]]:
+    return valid_streams(world)
+
+
+def valid_streams(world) -> dict[str, list[tuple[int, Any]]]:
+    """Valid messages per relative topic, ``(stamp_ns, msg)`` in stamp order: the world's IMU and
+    scans, imu_node's ``pdr/odom`` and ``imu/data``, wifi_fix_node's ``wifi/fix``, the driver topics
+    of wifi_scan_node (the scans as ``wifi/scan_raw`` and JSON) and one ``initialpose`` at the first fix."""
+    sim = [(m.topic.split("/", 2)[-1], m.msg) for m in read_bag(world / "sim.mcap")]
+    out: dict[str, list[tuple[int, Any]]] = {t: [] for t in ("imu/data_raw", "imu/mag", "wifi/scan", "pdr/odom",
+                                                              "imu/data", "wifi/fix", "wifi/scan_raw",
+                                                              "wifi/scan_json", "initialpose")}
+    imu, wifi = build_stage(world, "imu", {}), build_stage(world, "wifi", {})
+    t0 = None
+    for topic, msg in sim:
+        if topic not in ("imu/data_raw", "imu/mag", "wifi/scan"):
+            continue
+        stamp = _stamp(msg)
+        t0 = stamp if t0 is None else t0
+        produced = imu.process(topic, msg, stamp) if imu.handles(topic) else wifi.process(topic, msg, stamp)
+        for o_topic, o_msg in produced:
+            if o_topic != "imu/data" or stamp - t0 <= IMU_S * SEC:
+                out[o_topic].append((_stamp(o_msg), o_msg))
+        if topic == "wifi/scan" or stamp - t0 <= IMU_S * SEC:
+            out[topic].append((stamp, msg))
+    out["pdr/odom"] += [(_stamp(m), m) for t, m in imu.run_finish() if t == "pdr/odom"]
+    for stamp, msg in out["wifi/scan"]:
+        out["wifi/scan_raw"].append((stamp, msg))
+        out["wifi/scan_json"].append((stamp, scan_to_json_msg(scan_from_msg(msg))))
+    s0, fix = out["wifi/fix"][0]
+    p = fix.pose.pose.position
+    out["initialpose"].append((s0 + 1, pose_to_msg(s0 + 1, [p.x, p.y], 0.3, np.eye(2) * 0.25, yaw_var=0.07)))
+    assert not imu.diag.rejected and not wifi.diag.rejected
+    assert len(out["pdr/odom"]) > 5 and len(out["wifi/fix"]) >= 2 and len(out["imu/data"]) > 100
+    return out
+
+
+def _stamp(msg) -> int:
+    return msg.header.stamp.sec * SEC + msg.header.stamp.nanosec
+
+
+def _valid_stream(stage, streams) -> list[tuple[int, str, Any]]:
+    """The stage's inputs merged in stamp order (ties: topic order of ``inputs()``)."""
+    topics = [p.topic for p in stage.inputs()]
+    merged = [(s, k, t, m) for k, t in enumerate(topics) for s, m in streams[t]]
+    merged.sort(key=lambda r: (r[0], r[1]))
+    return [(s, t, m) for s, _, t, m in merged]
+
+
+# -- running a stream -------------------------------------------------------------------------------
+def _leaves(msg) -> Iterator[Any]:
+    """Every value of a ROS message (numbers, strings), recursively, in field order: what it says,
+    without the padding bytes its serialisation may carry."""
+    for name, typ in msg.get_fields_and_field_types().items():
+        v = getattr(msg, name)
+        if typ.startswith("sequence<") and "/" in typ or typ.endswith("]") and "/" in typ:
+            for item in v:
+                yield from _leaves(item)
+        elif hasattr(v, "get_fields_and_field_types"):
+            yield from _leaves(v)
+        elif isinstance(v, (str, bytes, int, float, bool)):
+            yield v
+        else:                                   # a number array
+            yield from (x.item() if hasattr(x, "item") else x for x in v)
+
+
+class Run:
+    """One stream through a fresh stage: outputs (their values, in order), the rejections each message
+    caused (a Counter per message, by reason) and the stage's counters at the end."""
+
+    def __init__(self, world, case, stream: list[tuple[int, str, Any]]) -> None:
+        name, overrides = case
+        stage = build_stage(world, name, overrides)
+        user = USER if stage.MULTI_USER else None
+        self.outputs: list[tuple[str, tuple]] = []
+        self.deltas: list[Counter] = []
+        for stamp, topic, msg in stream:
+            before = Counter(stage.diag.rejected)
+            outs = stage.process(topic, msg, stamp, user)
+            self.deltas.append(Counter(stage.diag.rejected) - before)
+            self._keep(outs)
+        before = Counter(stage.diag.rejected)
+        if stage.MULTI_USER:
+            self._keep(stage.run_finish_user(USER))
+        self._keep(stage.run_finish())
+        self.finish_delta = Counter(stage.diag.rejected) - before
+        self.rejected = Counter(stage.diag.rejected)
+        self.last_error = stage.diag.last_error
+        self.stage = stage
+
+    def _keep(self, outs) -> None:
+        for topic, msg in outs:
+            values = tuple(_leaves(msg))
+            bad = [v for v in values if isinstance(v, float) and not math.isfinite(v)]
+            assert not bad, f"{topic}: non-finite output values {bad[:5]}"
+            self.outputs.append((topic, values))
+
+
+_CLEAN: dict[str, Run] = {}
+
+
+def _clean(world, case, stream) -> Run:
+    key = repr(case)
+    if key not in _CLEAN:
+        _CLEAN[key] = Run(world, case, stream)
+        assert _CLEAN[key].rejected["internal_error"] == 0, _CLEAN[key].last_error
+    return _CLEAN[key]
+
+
+# -- hostile messages -------------------------------------------------------------------------------
+def _numeric_leaves(msg, prefix=()) -> list[tuple]:
+    """Paths to every float field and float-array element of a message (not the stamp's integers)."""
+    out = []
+    for name, typ in msg.get_fields_and_field_types().items():
+        v = getattr(msg, name)
+        if typ in ("double", "float"):
+            out.append(prefix + (name,))
+        elif typ.startswith("double[") or typ.startswith("float["):
+            out += [prefix + (name, i) for i in range(len(v))]
+        elif hasattr(v, "get_fields_and_field_types"):
+            out += _numeric_leaves(v, prefix + (name,))
+    return out
+
+
+def _set(msg, path, value) -> None:
+    *head, last = path
+    obj = msg
+    for p in head:
+        obj = getattr(obj, p)
+    if isinstance(last, int):
+        obj[last] = value
+    else:
+        setattr(obj, last, value)
+
+
+def _array_fields(msg, prefix=()) -> list[tuple[tuple, int]]:
+    out = []
+    for name, typ in msg.get_fields_and_field_types().items():
+        v = getattr(msg, name)
+        if typ.startswith("double["):
+            out.append((prefix + (name,), len(v)))
+        elif hasattr(v, "get_fields_and_field_types"):
+            out += _array_fields(v, prefix + (name,))
+    return out
+
+
+def _groups(msg) -> list[list[tuple]]:
+    """The numeric leaves grouped by the field holding them (a vector, a quaternion, a covariance), so
+    each field is as likely to be picked as any other however many numbers it holds."""
+    groups: dict[tuple, list[tuple]] = {}
+    for path in _numeric_leaves(msg):
+        groups.setdefault(path[:-1], []).append(path)
+    return list(groups.values())
+
+
+@st.composite
+def numeric_mutation(draw, base):
+    """A copy of ``base`` with 1-2 numeric fields hostile, or a covariance array at random."""
+    msg = copy.deepcopy(base)
+    if draw(st.integers(0, 3)) == 0:
+        arrays = _array_fields(msg)
+        path, n = draw(st.sampled_from(arrays))
+        values = draw(st.lists(st.one_of(hostile_float, st.floats(-10, 10)), min_size=n, max_size=n))
+        obj = msg
+        for p in path[:-1]:
+            obj = getattr(obj, p)
+        setattr(obj, path[-1], np.array(values, dtype=np.float64))
+        return msg
+    groups = _groups(msg)
+    for _ in range(draw(st.integers(1, 2))):
+        _set(msg, draw(st.sampled_from(draw(st.sampled_from(groups)))), draw(hostile_float))
+    return msg
+
+
+_HUGE: dict[str, Any] = {}
+
+
+def _huge_scan(base) -> Any:
+    """A valid 10 000-AP scan at ``base``'s stamp (made once)."""
+    if "scan" not in _HUGE:
+        from indoor_loc.wifi.types import WifiScan
+        rng = np.random.default_rng(5)
+        n = 10_000
+        bssid = tuple(f"00:{i >> 16 & 255:02x}:{i >> 8 & 255:02x}:{i & 255:02x}:00:01" for i in range(n))
+        _HUGE["scan"] = WifiScan(stamp_ns=_stamp(base), bssid=bssid, rssi_dbm=rng.uniform(-100, -30, n),
+                                 freq_mhz=np.full(n, 2412.0), ssid=("big",) * n)
+    return scan_to_msg(_HUGE["scan"])
+
+
+@st.composite
+def scan_mutation(draw, base):
+    """A hostile ``wifi_scan.v1`` DiagnosticArray from a valid one."""
+    kind = draw(st.sampled_from(["value", "value", "name", "summary", "empty", "huge"]))
+    if kind == "huge":
+        return _huge_scan(base)
+    msg = copy.deepcopy(base)
+    if kind == "empty":
+        msg.status = msg.status[:draw(st.integers(0, 1))]
+        return msg
+    if kind == "summary":
+        kv = draw(st.sampled_from(msg.status[0].values))
+        kv.value = draw(st.text(max_size=12))
+        return msg
+    ap = draw(st.sampled_from(msg.status[1:]))
+    if kind == "name":
+        ap.name = draw(st.text(max_size=20))
+        return msg
+    from diagnostic_msgs.msg import KeyValue
+    key = draw(st.sampled_from(["rssi_dbm", "frequency_mhz", "age_ms"]))
+    value = draw(st.one_of(hostile_float.map(repr), st.text(max_size=8)))
+    ap.values = [kv for kv in ap.values if kv.key != key] + [KeyValue(key=key, value=value)]
+    return msg
+
+
+@st.composite
+def json_mutation(draw, base):
+    """Hostile JSON text from a valid scan document: random text, or absurd numbers in it."""
+    from std_msgs.msg import String
+    if draw(st.booleans()):
+        return String(data=draw(st.text(max_size=40)))
+    doc = json.loads(base.data)
+    entry = draw(st.sampled_from(doc["data"]))
+    key = draw(st.sampled_from(["rssi", "frequency_mhz", "frequency_GHz", "last_seen_ms", "mac"]))
+    entry[key] = draw(st.one_of(hostile_float, st.text(max_size=8)))
+    return String(data=json.dumps(doc))
+
+
+def hostile_for(topic: str, base):
+    if topic in ("wifi/scan", "wifi/scan_raw"):
+        return scan_mutation(base)
+    if topic == "wifi/scan_json":
+        return json_mutation(base)
+    return numeric_mutation(base)
+
+
+def _restamp(msg, stamp_ns: int):
+    if hasattr(msg, "header"):
+        msg.header.stamp = stamp_from_ns(stamp_ns)
+    return msg
+
+
+@st.composite
+def mixed_streams(draw, valid: list[tuple[int, str, Any]], ports: list[str], any_stamp: bool):
+    """The valid stream with 1-3 hostile messages inserted: (stream, index of each valid message in it,
+    indices of the hostile ones)."""
+    picks = sorted(draw(st.lists(st.integers(0, len(valid)), min_size=1, max_size=3)))
+    stream: list[tuple[int, str, Any]] = []
+    valid_at, hostile_at = [], []
+    k = 0
+    for pos in picks:
+        while k < pos:
+            valid_at.append(len(stream))
+            stream.append(valid[k])
+            k += 1
+        topic = draw(st.sampled_from(ports))
+        same = [m for _, t, m in valid if t == topic]
+        prev = stream[-1][0] if stream else valid[0][0] - SEC
+        msg = draw(hostile_for(topic, same[min(k, len(same) - 1)] if same else valid[0][2]))
+        stamp = draw(st.integers(0, MAX_STAMP_NS)) if any_stamp else prev + 1
+        hostile_at.append(len(stream))
+        stream.append((stamp, topic, _restamp(msg, stamp)))
+    while k < len(valid):
+        valid_at.append(len(stream))
+        stream.append(valid[k])
+        k += 1
+    return stream, valid_at, hostile_at
+
+
+# -- the properties --------------------------------------------------------------------------------
+IDS = [n + "".join(f"-{v}" for v in o.values() if v != "radiomap") for n, o in INPUT_CASES]
+PROPERTY = settings(max_examples=6, deadline=None, derandomize=True,
+                    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
+                                           HealthCheck.data_too_large])
+
+
+@pytest.mark.parametrize("case", INPUT_CASES, ids=IDS)
+def test_any_message_on_any_port_keeps_the_stage_promises(world, streams, case):
+    probe = build_stage(world, *case)
+    ports = [p.topic for p in probe.inputs()]
+    valid = _valid_stream(probe, streams)
+    clean = _clean(world, case, valid)
+
+    @PROPERTY
+    @given(mixed_streams(valid, ports, any_stamp=False))
+    def check(mixed):
+        stream, valid_at, hostile_at = mixed
+        run = Run(world, case, stream)
+        assert run.rejected["internal_error"] == 0, run.last_error
+        assert [run.deltas[i] for i in valid_at] == clean.deltas, "a valid message was handled differently"
+        assert run.finish_delta == clean.finish_delta
+        if all(sum(run.deltas[i].values()) for i in hostile_at):          # every hostile message refused
+            assert run.outputs == clean.outputs, "a refused message changed what the stage published"
+
+    check()
+
+
+@pytest.mark.parametrize("case", [c for c in INPUT_CASES if not c[1]], ids=[n for n, o in INPUT_CASES if not o])
+def test_any_message_with_any_stamp_raises_nothing_and_outputs_stay_finite(world, streams, case):
+    probe = build_stage(world, *case)
+    ports = [p.topic for p in probe.inputs()]
+    valid = _valid_stream(probe, streams)
+
+    @settings(PROPERTY, max_examples=3)
+    @given(mixed_streams(valid, ports, any_stamp=True))
+    def check(mixed):
+        run = Run(world, case, mixed[0])          # outputs checked finite as they come
+        assert run.rejected["internal_error"] == 0, run.last_error
+
+    check()
