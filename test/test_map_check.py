@@ -16,7 +16,7 @@ from indoor_loc.sim.building import sample_building
 from indoor_loc.sim.rf import RssField, read_rss
 from indoor_loc.sim.scenario import SimConfig, simulate
 from indoor_loc.wifi.map_check import (MapCheck, MapCheckParams, MapCheckState, MapIndex, WindowStats, judge,
-                                       reference_residuals, residual_limit, verdicts)
+                                       map_reference, match_ratio, residual_limit, verdicts)
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from msg_adapters.diagnostics import diagnostics_from_msg, stage_diagnostics
@@ -74,21 +74,25 @@ def test_a_strong_ap_unknown_to_the_map_is_a_reading_the_map_cannot_explain():
     assert index.residual(more) > index.residual(base) + 0.1
 
 
+def _ref(rm: RadioMap, p: MapCheckParams) -> np.ndarray:
+    return map_reference(rm, p).residual
+
+
 def test_leave_one_out_skips_the_same_survey_point_and_the_same_walk():
     rm = _random_map(np.random.default_rng(5), m=20)
     twin = add_fingerprints(rm, np.asarray(rm.positions), [_scan(np.array(B)[~np.isnan(r)], r[~np.isnan(r)])
                                                            for r in np.asarray(rm.rssi_dbm)], "survey")
     p = MapCheckParams()
-    assert np.all(reference_residuals(twin, dataclasses.replace(p, exclude_m=0.0)) < 1e-12)   # each meets its twin
-    ref = reference_residuals(twin, p)
+    assert np.all(_ref(twin, dataclasses.replace(p, exclude_m=0.0)) < 1e-12)   # each meets its twin
+    ref = _ref(twin, p)
     assert len(ref) == twin.n_scans and np.all(ref > 0.0)
     # two walks over the same points: a fingerprint is matched against the other walk only
     walks = dataclasses.replace(twin, source=["w1"] * 20 + ["w2"] * 20,
                                 positions=np.asarray(twin.positions) + np.repeat([[0.0, 0.0], [0.3, 0.0]], 20, 0))
-    assert np.all(reference_residuals(walks, dataclasses.replace(p, exclude_m=0.0)) < 1e-12)
+    assert np.all(_ref(walks, dataclasses.replace(p, exclude_m=0.0)) < 1e-12)
     one_walk = dataclasses.replace(walks, source=["w1"] * 40)
-    assert np.all(reference_residuals(one_walk, dataclasses.replace(p, exclude_m=0.0)) < 1e-12)
-    assert np.all(reference_residuals(one_walk, dataclasses.replace(p, exclude_m=0.5)) > 0.0)
+    assert np.all(_ref(one_walk, dataclasses.replace(p, exclude_m=0.0)) < 1e-12)
+    assert np.all(_ref(one_walk, dataclasses.replace(p, exclude_m=0.5)) > 0.0)
 
 
 def test_online_updates_equal_the_batch_and_a_saved_state_continues():
@@ -238,7 +242,7 @@ def test_a_new_map_gets_its_own_reference_and_the_check_can_be_off(sim):
     st.set_radio_map(half)
     _feed(st, run.walkers[0].scans[:3], 1.0)
     assert st.map_check is not first and st.map_check.radio_map is half
-    assert len(st.map_check.reference) == half.n_scans
+    assert len(st.map_check.reference.residual) == half.n_scans
     off = WifiFixStage(params_from_dict(WifiFixParams, {"method": "wknn", "map_check": {"enabled": False}}),
                        radio_map=rm)
     _feed(off, run.walkers[0].scans[:3], 1.0)
@@ -251,3 +255,30 @@ def test_map_check_state_round_trips():
     c = st.copy()
     c.declined[0] = True
     assert not st.declined[0] and c.declined[2] and c.count == st.count
+
+
+def test_a_map_whose_positions_are_shuffled_is_suspect_from_the_start(sim):
+    """Fingerprints paired with the wrong positions fit every scan: the map's own leave-one-out says it."""
+    _, run, rm = sim
+    right = MapCheck(rm)
+    assert right.match_ratio < 0.3 and not right.map_suspect and right.describe_map() == ""
+    perm = np.random.default_rng(8).permutation(rm.n_scans)
+    wrong = dataclasses.replace(rm, positions=np.asarray(rm.positions)[perm], scan_ids=None, stamps_ns=None,
+                                source=[], z_m=None)
+    st = WifiFixStage(params_from_dict(WifiFixParams, {"method": "wknn"}), radio_map=wrong, namespace="/alice")
+    assert st.map_check is not None and st.map_check.match_ratio > 0.7 and st.map_check.map_suspect
+    notices = st.take_notices()
+    assert len(notices) == 1 and "disagrees with itself" in notices[0], notices
+    levels = _feed(st, run.walkers[0].scans[:10], 1.0)
+    assert levels == [1] * 10 and st.take_notices() == []                 # a standing WARN, said once
+    diag = st.extra_diagnostics()
+    assert "disagrees with itself" in diag["warning"] and diag["map_fit.state"] == "ok"   # the scans do fit it
+    assert float(diag["map_fit.map_match_ratio"]) > 0.7
+
+
+def test_match_ratio_needs_enough_matches():
+    from indoor_loc.wifi.map_check import MIN_MATCHES, Reference
+    few = Reference(np.zeros(5), np.full(MIN_MATCHES - 1, 10.0), 10.0)
+    assert math.isnan(match_ratio(few))
+    enough = Reference(np.zeros(5), np.r_[np.full(MIN_MATCHES - 1, 2.0), 50.0], 10.0)
+    assert match_ratio(enough) == pytest.approx(0.2)

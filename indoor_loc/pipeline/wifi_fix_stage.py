@@ -28,7 +28,9 @@ unreadable plan is a configuration error at start-up naming the path.
 Map mismatch (``map_check``, :mod:`indoor_loc.wifi.map_check`): when most of the last scans were declined,
 or they match the map far worse than the map's own scans match each other (leave-one-out), the scans do not
 fit the map (another place, or access points moved): said once as a notice (the node's WARN), and while it
-lasts a standing ``warning`` (WARN in ``/diagnostics``) with ``map_fit.*`` values.
+lasts a standing ``warning`` (WARN in ``/diagnostics``) with ``map_fit.*`` values. A map whose fingerprints
+disagree with their positions (its own scans' best matches as far away as any other scan) is said at start-up
+and stays a standing ``warning``.
 
 An unreadable radio map is a configuration error at start-up. With ``radiomap: ""`` the stage
 starts, drops every scan with reason ``no_map`` and says so under ``error`` in its diagnostics.
@@ -196,7 +198,7 @@ class WifiFixStage(Stage):
         #: whether the scans fit the radio map (map_check.*), built for the map in use
         self.map_check: MapCheck | None = None
         if self.radio_map is not None and params.map_check.enabled:
-            self.map_check = MapCheck(self.radio_map, params.map_check)
+            self._new_map_check(self.radio_map)
         self.on("wifi/scan", self._on_scan)
 
     def inputs(self) -> list[Port]:
@@ -334,11 +336,19 @@ class WifiFixStage(Stage):
         """Feed the map check (a new map in use gets a new one); say once when the scans stop fitting."""
         if not self.params.map_check.enabled or self.radio_map is None:
             return
-        if self.map_check is None or self.map_check.radio_map is not self.radio_map:
-            self.map_check = MapCheck(self.radio_map, self.params.map_check)
-        text = self.map_check.update(scan, declined)
+        mc = self.map_check
+        if mc is None or mc.radio_map is not self.radio_map:
+            mc = self._new_map_check(self.radio_map)
+        text = mc.update(scan, declined)
         if text:
             self.notice(text)
+
+    def _new_map_check(self, rm: RadioMap) -> MapCheck:
+        """The map check of ``rm`` (said once if the map disagrees with itself)."""
+        self.map_check = MapCheck(rm, self.params.map_check)
+        if self.map_check.map_suspect:
+            self.notice(self.map_check.describe_map())
+        return self.map_check
 
     def extra_diagnostics(self) -> dict[str, str]:
         out = {"method": self.params.method, "radiomap": self.params.radiomap or "(none)",
@@ -373,6 +383,9 @@ class WifiFixStage(Stage):
             out["last_fix_sigma_m"] = f"{self.last_sigma_m:.2f}"
         if self.map_check is not None and self.map_check.radio_map is self.radio_map:
             out.update(self.map_check.summary())
-            if self.map_check.state.mismatch:       # a standing WARN while the scans do not fit the map
-                out["warning"] = self.map_check.describe()
+            warnings = [self.map_check.describe_map()]       # standing WARNs: a suspect map, scans not fitting it
+            if self.map_check.state.mismatch:
+                warnings.append(self.map_check.describe())
+            if any(warnings):
+                out["warning"] = "; ".join(w for w in warnings if w)
         return out

@@ -31,11 +31,20 @@ leave-walks-out of :mod:`indoor_loc.wifi.powed_knn`'s calibration. Their ``resid
 bounded, and a large map of many weak APs reaches 0.9 on its own); back to *ok* when at most
 ``clear_declined_share`` were declined and the median is back at or below q. The one-scan :meth:`MapCheck.update`
 and the whole-array :func:`verdicts` give the same states.
+
+**The map against itself.** A map whose fingerprints sit at the wrong positions (paired by row order instead
+of by scan id, say) fits its scans perfectly and gives confident wrong fixes; the scans cannot tell. The
+same leave-one-out says it: on a map whose neighbours in RSS are neighbours in space, a fingerprint's best
+match lies a small share of the distance between two of its scans away (:func:`match_ratio`: 0.1–0.3 on the
+simulated office, PUTMC and ms_site2's floors), on one with shuffled positions about as far as any other
+scan (≈ 1). At ``max_match_ratio`` or more the map is suspect. A map moved as a whole (a wrong origin,
+a mirrored axis) keeps its neighbours and is not seen.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,8 +52,10 @@ from indoor_loc.params import field, require
 from indoor_loc.wifi.powed_knn import powed
 from indoor_loc.wifi.types import ApIndex, ApReadings, RadioMap, WifiScan
 
+#: fewest left-out fingerprints with a match that say whether the map agrees with itself
+MIN_MATCHES = 30
 #: states of :class:`MapCheck`
-STARTING, OK, MISMATCH, OFF = "starting", "ok", "mismatch", "off"
+STARTING, OK, MISMATCH = "starting", "ok", "mismatch"
 
 
 @dataclass(frozen=True)
@@ -58,6 +69,9 @@ class MapCheckParams:
     residual_quantile: float = field(0.99, "quantile of the map's own leave-one-out residuals a scan may reach (0-1)")
     residual_margin: float = field(0.5, "mismatch when the window's median residual is more than this share of the "
                                         "way from the map's quantile to 1 (a scan sharing no AP with the map) (0-1)")
+    max_match_ratio: float = field(0.5, "the map itself is suspect when its fingerprints' best matches (each left "
+                                        "out) lie a median this share of the median distance between two of its "
+                                        "scans or farther (0-1; fingerprints paired with random positions: about 1)")
     reference_scans: int = field(300, "at most this many map scans (evenly spaced) are left out in turn to get the "
                                       "map's own residuals (bounds the start-up time on large maps)")
     exclude_m: float = field(1.0, "a left-out map scan is matched against the map scans at least this far from it "
@@ -74,6 +88,7 @@ class MapCheckParams:
                 f"in [0, declined_share = {self.declined_share}]", self.clear_declined_share)
         require(0.0 < self.residual_quantile <= 1.0, n, "residual_quantile", "in (0, 1]", self.residual_quantile)
         require(0.0 <= self.residual_margin < 1.0, n, "residual_margin", "in [0, 1)", self.residual_margin)
+        require(0.0 < self.max_match_ratio <= 1.0, n, "max_match_ratio", "in (0, 1]", self.max_match_ratio)
         require(self.reference_scans >= 1, n, "reference_scans", ">= 1", self.reference_scans)
         require(math.isfinite(self.exclude_m) and self.exclude_m >= 0, n, "exclude_m", ">= 0", self.exclude_m)
         require(-120.0 <= self.floor_dbm < 0.0, n, "floor_dbm", "in [-120, 0) dBm", self.floor_dbm)
@@ -140,20 +155,29 @@ class MapIndex:
         return float(d.min()) if len(d) else 1.0
 
 
-def reference_residuals(radio_map: RadioMap, params: MapCheckParams, index: MapIndex | None = None) -> np.ndarray:
-    """Residuals (R,) of up to ``reference_scans`` evenly spaced map fingerprints, each left out and matched
-    against the map without the fingerprints closer than ``exclude_m`` to it (3-D, floor heights included) and,
-    when the map has several sources, without its own source. A fingerprint with nothing left to match
-    against gives no value."""
+class Reference(NamedTuple):
+    """The map matched against itself: ``residual`` (R,) of the left-out fingerprints, ``match_m`` (R',) the
+    distance (m) from each to its best match (those sharing an AP with some other), ``pairs_m`` the median
+    distance between two of the left-out fingerprints (m; NaN with fewer than two)."""
+    residual: np.ndarray
+    match_m: np.ndarray
+    pairs_m: float
+
+
+def map_reference(radio_map: RadioMap, params: MapCheckParams, index: MapIndex | None = None) -> Reference:
+    """Up to ``reference_scans`` evenly spaced map fingerprints, each left out and matched against the map
+    without the fingerprints closer than ``exclude_m`` to it (3-D, floor heights included) and, when the map
+    has several sources, without its own source: their residuals and how far their best matches lie. A
+    fingerprint with nothing left to match against gives no value."""
     index = MapIndex(radio_map, params) if index is None else index
     m = index.n
     if m < 2:
-        return np.zeros(0)
+        return Reference(np.zeros(0), np.zeros(0), math.nan)
     pick = np.unique(np.linspace(0, m - 1, min(m, params.reference_scans)).round().astype(np.int64))
     xyz = np.column_stack([np.asarray(radio_map.positions, float), np.asarray(radio_map.z_m, float)])
     labels = np.asarray(radio_map.source, dtype=object)
     by_source = len(set(radio_map.source)) > 1
-    out = []
+    out, match = [], []
     rss = np.asarray(radio_map.rssi_dbm, float)
     for i in pick:
         v = powed(rss[i], params.floor_dbm, params.beta)
@@ -167,9 +191,23 @@ def reference_residuals(radio_map: RadioMap, params: MapCheckParams, index: MapI
         if banned.all():
             continue
         rows, d = index.distances(cols, q, float(q.sum()))
-        d = d[~banned[rows]]
+        allowed = ~banned[rows]
+        rows, d = rows[allowed], d[allowed]
         out.append(float(d.min()) if len(d) else 1.0)
-    return np.asarray(out, float)
+        if len(d):
+            match.append(float(np.linalg.norm(xyz[rows[np.argmin(d)]] - xyz[i])))
+    sep = np.linalg.norm(xyz[pick][:, None] - xyz[pick][None], axis=2)[np.triu_indices(len(pick), 1)]
+    return Reference(np.asarray(out, float), np.asarray(match, float), float(np.median(sep)) if len(sep) else math.nan)
+
+
+def match_ratio(ref: Reference) -> float:
+    """Median distance of the map's fingerprints to their best matches over the median distance between two of
+    them: small on a map whose neighbours in RSS are neighbours in space (0.1–0.3 on the simulated office, PUTMC
+    and ms_site2's floors), about 1 when fingerprints and positions are paired at random (NaN with fewer than
+    :data:`MIN_MATCHES` matches)."""
+    if len(ref.match_m) < MIN_MATCHES or not ref.pairs_m > 0:
+        return math.nan
+    return float(np.median(ref.match_m)) / ref.pairs_m
 
 
 def window_stats(state: MapCheckState) -> WindowStats:
@@ -207,10 +245,13 @@ class MapCheck:
         self.params.validate()
         self.radio_map = radio_map
         self.index = MapIndex(radio_map, self.params)
-        self.reference = reference_residuals(radio_map, self.params, self.index)
+        self.reference = map_reference(radio_map, self.params, self.index)
+        res = self.reference.residual
         #: the map's own residual quantile (NaN when the map has too few fingerprints to leave one out)
-        self.map_q = float(np.quantile(self.reference, self.params.residual_quantile)) if len(self.reference) \
-            else math.nan
+        self.map_q = float(np.quantile(res, self.params.residual_quantile)) if len(res) else math.nan
+        #: how far the map's fingerprints match (:func:`match_ratio`); the map is suspect when it is this far
+        self.match_ratio = match_ratio(self.reference)
+        self.map_suspect = self.match_ratio >= self.params.max_match_ratio
         self.state = MapCheckState.empty(self.params.window)
 
     def update(self, scan: WifiScan, declined: bool) -> str:
@@ -252,12 +293,22 @@ class MapCheck:
         return ("the scans do not fit the radio map (" + "; ".join(why or ["see map_fit.*"]) +
                 "): is it the map of this place, and are its access points where they were?")
 
+    def describe_map(self) -> str:
+        """What is wrong with the map itself, in words ("" when nothing is)."""
+        if not self.map_suspect:
+            return ""
+        r = self.reference
+        return (f"the radio map disagrees with itself: its fingerprints' best matches (each left out) lie a median "
+                f"{np.median(r.match_m):.1f} m away, {self.match_ratio:.2f} of the median distance between two of its "
+                f"scans ({r.pairs_m:.1f} m): are its positions paired with the right fingerprints?")
+
     def summary(self) -> dict[str, str]:
         """Diagnostics values (``map_fit.*``)."""
         s = window_stats(self.state)
         out = {"map_fit.state": self.status, "map_fit.scans": str(s.scans),
                "map_fit.map_p{:g}".format(100 * self.params.residual_quantile): _fmt(self.map_q),
-               "map_fit.residual_limit": _fmt(residual_limit(self.map_q, self.params))}
+               "map_fit.residual_limit": _fmt(residual_limit(self.map_q, self.params)),
+               "map_fit.map_match_ratio": _fmt(self.match_ratio)}
         if s.scans:
             out["map_fit.declined_share"] = f"{s.declined_share:.2f}"
             out["map_fit.residual_p50"] = _fmt(s.residual_p50)
@@ -303,5 +354,5 @@ def _ordered(ring: np.ndarray, count: int) -> np.ndarray:
     return np.concatenate([ring[s:], ring[:s]])
 
 
-__all__ = ["MapCheck", "MapCheckParams", "MapCheckState", "MapIndex", "WindowStats", "judge", "reference_residuals",
-           "verdicts", "window_stats", "STARTING", "OK", "MISMATCH", "OFF"]
+__all__ = ["MapCheck", "MapCheckParams", "MapCheckState", "MapIndex", "Reference", "WindowStats", "judge",
+           "map_reference", "match_ratio", "residual_limit", "verdicts", "window_stats", "STARTING", "OK", "MISMATCH"]
