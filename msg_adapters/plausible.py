@@ -3,12 +3,14 @@ values already known finite (``msg_adapters.time.require_finite``), so a finite 
 (x = 1e308, a frequency of 1e308 MHz, a negative variance) is rejected by its reason before any
 stage state is touched.
 
-Scalars and 3-vectors are checked on Python floats (an IMU message at 200 Hz cannot afford numpy on
-three numbers); covariances with :func:`cov_rows_ok`, one vectorised test shared by the
-per-message adapters (a batch of one) and the bulk decoder (:mod:`indoor_loc.bag.bulk`), so both
-reject exactly the same messages.
+Scalars, 3-vectors and covariances are checked on Python floats (an IMU message at 200 Hz cannot
+afford numpy on nine numbers); the bulk decoder (:mod:`indoor_loc.bag.bulk`) runs the same
+arithmetic on columns (:func:`rows_within`, :func:`cov_rows_ok`), so both reject exactly the same
+messages.
 """
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -47,44 +49,72 @@ def rows_within(a: np.ndarray, bound: str) -> np.ndarray:
     return ((a >= b.lo) & (a <= b.hi)).all(axis=1)
 
 
-def _var_bounds(var_bounds: str | tuple[str, ...], n: int) -> tuple[np.ndarray, np.ndarray]:
+def _var_bounds(var_bounds: str | tuple[str, ...], n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
     names = (var_bounds,) * n if isinstance(var_bounds, str) else var_bounds
-    return (np.array([BOUNDS[k].lo for k in names]), np.array([BOUNDS[k].hi for k in names]))
+    return tuple(BOUNDS[k].lo for k in names), tuple(BOUNDS[k].hi for k in names)
+
+
+def _cov_tests(c: list, lo: tuple[float, ...], hi: tuple[float, ...], mx: Any) -> list:
+    """The covariance tests on the entries ``c[i][j]`` (floats, or (N,) arrays of them), as a list of
+    booleans (or bool arrays) in the order :func:`check_cov` reports them: symmetric, each variance in
+    bounds, each 2x2 principal minor and the 3x3 determinant not negative. Tolerances are relative
+    (``COV_RTOL``) to the entries' own scale -- ``|c_ij - c_ji|`` to the largest of
+    ``|c_ii|, |c_jj|, |c_ij|, |c_ji|``, a minor to the product of its variances -- so one test holds
+    for a yaw variance of 1e6 beside a tilt variance of 1e-4. The same arithmetic on floats and on
+    arrays (``mx``: ``max`` or ``np.maximum``), so a message and a bulk row give the same answer."""
+    n = len(c)
+    tol = COV_RTOL
+    sym = True
+    for i in range(n):
+        for j in range(i + 1, n):
+            scale = mx(mx(abs(c[i][i]), abs(c[j][j])), mx(abs(c[i][j]), abs(c[j][i])))
+            sym = sym & (abs(c[i][j] - c[j][i]) <= tol * scale)
+    var = [(c[i][i] >= lo[i]) & (c[i][i] <= hi[i]) for i in range(n)]
+    m = [[c[i][j] if i == j else 0.5 * (c[i][j] + c[j][i]) for j in range(n)] for i in range(n)]
+    minors = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = m[i][i] * m[j][j]
+            minors.append(d - m[i][j] * m[i][j] >= -tol * d)
+    if n == 3:
+        det = (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[1][2]) - m[0][1] * (m[0][1] * m[2][2] - m[1][2] * m[0][2])
+               + m[0][2] * (m[0][1] * m[1][2] - m[1][1] * m[0][2]))
+        minors.append(det >= -tol * (m[0][0] * m[1][1] * m[2][2]))
+    return [sym, *var, *minors]
 
 
 def cov_rows_ok(cov: np.ndarray, var_bounds: str | tuple[str, ...]) -> np.ndarray:
-    """(N,) bool for finite covariances ``cov`` (N, n, n): symmetric and positive semi-definite within
-    :data:`~indoor_loc.contract.COV_RTOL`, variance ``i`` (diagonal) within ``BOUNDS[var_bounds[i]]``
-    (one name: every variance)."""
-    c = np.asarray(cov, dtype=np.float64)
-    m, n = c.shape[0], c.shape[-1]
-    scale = np.maximum(1.0, np.abs(c).reshape(m, -1).max(axis=1, initial=0.0))
-    tol = COV_RTOL * scale
-    ct = np.swapaxes(c, 1, 2)
-    ok = np.abs(c - ct).reshape(m, -1).max(axis=1, initial=0.0) <= tol
+    """(N,) bool for finite (N, n, n) covariances (n = 2 or 3): symmetric and positive semi-definite
+    within :data:`~indoor_loc.contract.COV_RTOL`, variance ``i`` within ``BOUNDS[var_bounds[i]]`` (one
+    name: every variance). The vectorised :func:`check_cov`, for the bulk decoder."""
+    a = np.asarray(cov, dtype=np.float64)
+    n = a.shape[-1]
     lo, hi = _var_bounds(var_bounds, n)
-    diag = c[:, np.arange(n), np.arange(n)]
-    ok &= ((diag >= lo) & (diag <= hi)).all(axis=1)
-    if ok.any():
-        with np.errstate(all="ignore"):
-            lam = np.linalg.eigvalsh(0.5 * (c[ok] + ct[ok]))
-        ok[ok] = lam[:, 0] >= -tol[ok]
+    with np.errstate(all="ignore"):
+        tests = _cov_tests([[a[:, i, j] for j in range(n)] for i in range(n)], lo, hi, np.maximum)
+    ok = np.ones(len(a), dtype=bool)
+    for t in tests:
+        ok &= t
     return ok
 
 
-def check_cov(what: str, cov: np.ndarray, var_bounds: str | tuple[str, ...]) -> None:
-    """Raise ``bad_covariance`` unless the finite (n, n) ``cov`` passes :func:`cov_rows_ok`; the detail
-    says which test failed."""
-    c = np.asarray(cov, dtype=np.float64)
-    if cov_rows_ok(c[None], var_bounds)[0]:
+def check_cov(what: str, cov: Any, var_bounds: str | tuple[str, ...]) -> None:
+    """Raise ``bad_covariance`` unless the finite (n, n) covariance ``cov`` (n = 2 or 3) is symmetric
+    and positive semi-definite within :data:`~indoor_loc.contract.COV_RTOL` with its variances in their
+    bounds (``var_bounds``: the bound's name per variance, or one for all); the detail says which test
+    failed. Plain float arithmetic: the per-message path at IMU rates."""
+    rows = cov.tolist() if isinstance(cov, np.ndarray) else [list(r) for r in cov]
+    n = len(rows)
+    lo, hi = _var_bounds(var_bounds, n)
+    tests = _cov_tests(rows, lo, hi, max)
+    if all(tests):
         return
-    tol = COV_RTOL * max(1.0, float(np.abs(c).max()))
-    if float(np.abs(c - c.T).max()) > tol:
-        raise InvalidMessageError("bad_covariance", f"{what} is not symmetric: {c.tolist()}")
-    names = (var_bounds,) * len(c) if isinstance(var_bounds, str) else var_bounds
-    for i, name in enumerate(names):
-        b = BOUNDS[name]
-        if not b.lo <= c[i, i] <= b.hi:
-            raise InvalidMessageError("bad_covariance", f"{what} variance [{i}, {i}] = {c[i, i]:.6g} {b.unit} "
+    if not tests[0]:
+        raise InvalidMessageError("bad_covariance", f"{what} is not symmetric: {rows}")
+    names = (var_bounds,) * n if isinstance(var_bounds, str) else var_bounds
+    for i in range(n):
+        if not tests[1 + i]:
+            b = BOUNDS[names[i]]
+            raise InvalidMessageError("bad_covariance", f"{what} variance [{i}, {i}] = {rows[i][i]:.6g} {b.unit} "
                                                         f"outside [{b.lo:g}, {b.hi:g}] ({b.name}: {b.why})")
-    raise InvalidMessageError("bad_covariance", f"{what} is not positive semi-definite: {c.tolist()}")
+    raise InvalidMessageError("bad_covariance", f"{what} is not positive semi-definite: {rows}")

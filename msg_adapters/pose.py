@@ -7,6 +7,7 @@ A WiFi fix has no heading: its orientation is the identity and its yaw variance 
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -97,7 +98,8 @@ def fix_from_msg(msg: PoseWithCovarianceStamped, *, frame_id: str | None = None)
     if frame_id is not None and s.frame_id != frame_id:
         raise InvalidMessageError("wrong_frame", f"fix in frame {s.frame_id!r}, expected {frame_id!r}")
     c = s.cov_xy
-    lam_min = float(np.linalg.eigvalsh((c + c.T) / 2)[0])
+    a, b, d = float(c[0, 0]), 0.5 * (float(c[0, 1]) + float(c[1, 0])), float(c[1, 1])
+    lam_min = 0.5 * (a + d) - math.hypot(0.5 * (a - d), b)          # smallest eigenvalue of the 2x2 block
     check("fix covariance smallest eigenvalue", lam_min, "fix_variance_min")
     return Fix(stamp_ns=s.stamp_ns, xy=s.xy, cov=(c + c.T) / 2, z=float(msg.pose.pose.position.z),
                z_var=float(msg.pose.covariance[14]))
