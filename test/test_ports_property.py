@@ -12,9 +12,9 @@ random, strings at random, empty and 10 000-AP scans, JSON with absurd numbers. 
   stream's, and when every hostile message was refused the outputs are exactly the clean stream's (a
   refused message leaves no state).
 
-Hostile messages are stamped 1 ns after the valid message before them, so stamps say nothing about
-them (the time policy is tested elsewhere); one case gives them any stamp and asserts only the first
-two promises.
+Hostile messages are stamped 1 ns after the valid message of their topic before them (1 ns before
+its first), so stamps say nothing about them (the time policy is tested elsewhere); one case gives
+them any stamp and asserts only the first two promises.
 """
 from __future__ import annotations
 
@@ -307,10 +307,13 @@ def mixed_streams(draw, valid: list[tuple[int, str, Any]], ports: list[str], any
             stream.append(valid[k])
             k += 1
         topic = draw(st.sampled_from(ports))
-        same = [m for _, t, m in valid if t == topic]
-        prev = stream[-1][0] if stream else valid[0][0] - SEC
-        msg = draw(hostile_for(topic, same[min(k, len(same) - 1)] if same else valid[0][2]))
-        stamp = draw(st.integers(0, MAX_STAMP_NS)) if any_stamp else prev + 1
+        before = [(s, m) for s, t, m in valid[:k] if t == topic]
+        after = [(s, m) for s, t, m in valid[k:] if t == topic]
+        msg = draw(hostile_for(topic, (before or after)[-1 if before else 0][1] if before or after else valid[0][2]))
+        # just after the topic's previous valid message (its next one stays later), or just before its first
+        stamp = before[-1][0] + 1 if before else after[0][0] - 1 if after else valid[0][0]
+        if any_stamp:
+            stamp = draw(st.integers(0, MAX_STAMP_NS))
         hostile_at.append(len(stream))
         stream.append((stamp, topic, _restamp(msg, stamp)))
     while k < len(valid):
