@@ -1,7 +1,9 @@
 """std_msgs/String carrying scan JSON (CMU cabot ``/wireless/wifi`` style) <-> :class:`WifiScan`.
 
 The accepted JSON shapes are documented in :mod:`indoor_loc.wifi.parsers`. Readings come back raw
-(as written in the JSON, duplicates kept); :func:`indoor_loc.wifi.normalize.normalize` cleans them.
+(as written in the JSON, duplicates kept); :func:`indoor_loc.wifi.normalize.normalize` cleans them,
+dropping each reading outside the contract's bounds (``rssi_range``, ``bad_frequency``, ``bad_age``;
+``indoor_loc.contract.BOUNDS``) rather than the whole scan, as a driver's scan may hold one odd entry.
 """
 from __future__ import annotations
 
