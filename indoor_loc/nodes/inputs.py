@@ -8,19 +8,9 @@ topic (per user for a multi-user stage), and how their messages reach the stage.
 - Liveness: each input has an :class:`~indoor_loc.nodes.liveness.InputWatch` (flowing, stalled,
   upstream restarts, lost messages), fed with every message and, about once a second, with the
   topic's publishers in the graph (:meth:`InputsMixin._watch_inputs`).
-- A reliable subscription that stops delivering: Fast DDS refuses a DATA submessage whose serialized
-  payload is empty (``MessageReceiver::proc_Submsg_Data``: "Serialized Payload value invalid"), so a
-  reliable reader never acknowledges that sample, asks for it again and again, and holds back every
-  later sample of that publisher until the publisher's history no longer has it (``depth`` samples
-  later; 1 000 for the nodes' reliable outputs, 10 000 for the player's: for a slow topic, never).
-  A best-effort reader just skips it (one lost message). So when a reliable input with one publisher
-  stalls, the node listens beside it best effort (a *probe*, raw). If the probe hears that
-  publisher's numbers going on past the next one while the subscription has nothing queued, the
-  subscription is stuck: the sample it waits for is counted ``undecodable``, the ones it holds back
-  unreachably as lost, the subscription is made anew (a new reader starts at the publisher's next
-  sample) and, until it delivers, the probe's messages are processed (each number once). The probe
-  is closed as soon as the subscription delivers again or the publisher leaves. While it is open,
-  the publisher sees one more matched subscription.
+- A reliable subscription stuck behind a sample DDS refused (an empty one) is found with a probe and
+  made anew (:mod:`indoor_loc.nodes.stuck`); the sample it waited for is counted ``undecodable``, the
+  ones it held back as lost.
 - Fast path: an input the stage takes in runs (``Stage.batch_handles``) of a type
   :mod:`indoor_loc.bag.bulk` decodes is handed over in runs (see :meth:`InputsMixin._take_raw`).
 """
@@ -30,46 +20,32 @@ import heapq
 import struct
 from typing import Any, Callable
 
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
 
 from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 from indoor_loc.contract import join_ns, msg_class
-from indoor_loc.nodes.liveness import STALLED, InputWatch, SequenceGaps
+from indoor_loc.nodes.liveness import InputWatch, SequenceGaps
+from indoor_loc.nodes.stuck import StuckGuard, Watched
 from indoor_loc.pipeline.stage import Port, namespace_of_user
 
 #: Raw sensor inputs (the fast path): at most this many messages are taken from the subscriptions
 #: per callback, so one burst cannot hold up timers and other inputs for long.
 TAKE_MAX = 2048
-#: QoS of a probe: best effort (it never waits for a sample), as deep as a burst between two looks.
-PROBE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT,
-                       durability=DurabilityPolicy.VOLATILE)
 
 Booked = tuple[int, int, bytes]     # (header stamp ns, node-clock receive ns, data) of a raw message
 
 
-class Input:
-    """One subscribed input topic: its port, the resolved name, the user (multi-user stages), the
-    subscription and, while one is open, the probe beside it."""
+class Input(Watched):
+    """One subscribed input topic of a stage: its port and user (multi-user stages) besides the
+    subscription, watch and probe of :class:`~indoor_loc.nodes.stuck.Watched`."""
 
     def __init__(self, port: Port, resolved: str, user: str | None, fast: bool, watch: InputWatch) -> None:
+        super().__init__(resolved, msg_class(port.type), watch)
         self.port = port
         self.topic = port.topic             # the stage's (relative) name
-        self.resolved = resolved
         self.user = user
         self.fast = fast
-        self.cls = msg_class(port.type)
-        self.watch = watch
-        self.sub: Any = None
-        self.callback: Callable[[Any, Any], None] = lambda data, info: None
-        self.probe: Any = None
-        self.probe_count = 0                # messages the subscription had delivered when the probe opened
-        self.recovering = False             # made anew, no message from it yet: the probe's are processed
-        self.skip_upto: int | None = None   # numbers up to this came through the probe already
-
-
-def _seq(info: Any) -> int | None:
-    return info.get("publication_sequence_number") if isinstance(info, dict) else None
 
 
 def _cdr_stamp_ns(data: bytes) -> int:
@@ -82,7 +58,7 @@ def _cdr_stamp_ns(data: bytes) -> int:
     return sec * 1_000_000_000 + nsec
 
 
-class InputsMixin:
+class InputsMixin(StuckGuard):
     """The input side of StageNode (a mixin of it; uses its stage, clock, logger, ``_subscribe``,
     ``_publish`` and ``_log_rejections``)."""
 
@@ -148,15 +124,8 @@ class InputsMixin:
     def _book(self, inp: Input, info: Any, *, probe: bool = False) -> int | None:
         """Count one message taken (liveness, sequence gaps, reception time); returns the node's
         clock now, or None for a message already processed (a number the probe brought)."""
-        seq = _seq(info)
-        if not probe:
-            if inp.probe is not None:
-                self._close_probe(inp)           # the subscription delivers again
-            inp.recovering = False
-            if inp.skip_upto is not None and seq:
-                if seq <= inp.skip_upto:
-                    return None
-                inp.skip_upto = None
+        if not probe and not self._taken(inp, info):
+            return None
         self.taken += 1
         self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
         now_ns = self.get_clock().now().nanoseconds
@@ -261,88 +230,28 @@ class InputsMixin:
     # -- liveness and stuck subscriptions -------------------------------------------------------------------
     def _watch_inputs(self, now_ns: int) -> None:
         """About once a second: each input's publishers in the graph (restarts, the count its sequence
-        gaps need); a stalled reliable input with one publisher gets a probe; a probe whose
-        subscription delivers again, or whose publisher left, is closed."""
+        gaps need), and a stalled one looked into (:meth:`StuckGuard._guard_stuck`)."""
         for inp in list(self._inputs.values()):
             gids = self._publisher_gids(inp.resolved)
             inp.watch.publishers_seen(gids, now_ns)
-            if inp.probe is not None:
-                if not gids:
-                    self._close_probe(inp)
-                    inp.recovering = False
-            elif (len(gids) == 1 and inp.watch.state(now_ns) == STALLED
-                  and inp.sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE):
-                self._open_probe(inp)
+            self._guard_stuck(inp, gids, now_ns)
 
-    def _open_probe(self, inp: Input) -> None:
-        inp.probe_count = inp.watch.count
-        inp.probe = self.create_subscription(inp.cls, inp.resolved, lambda data, info: self._on_probe(inp, data, info),
-                                             PROBE_QOS, raw=True)
-        self.get_logger().info(f"{inp.resolved}: stalled while its publisher is in the graph; listening beside "
-                               f"the subscription (best effort) for whether it still sends")
-
-    def _close_probe(self, inp: Input) -> None:
-        if inp.probe is not None:
-            self.destroy_subscription(inp.probe)
-            inp.probe = None
-
-    def _deliver(self, inp: Input, data: bytes, info: Any, *, probe: bool = False) -> None:
-        if inp.fast:
-            booked = self._received(inp, data, info, probe=probe)
-            self._take_raw({inp.topic: [booked]} if booked else {})
+    def _deliver(self, w: Any, data: bytes, info: Any, *, probe: bool = False) -> None:
+        if w.fast:
+            booked = self._received(w, data, info, probe=probe)
+            self._take_raw({w.topic: [booked]} if booked else {})
         else:
-            self._on_message(inp, data, info, probe=probe)
+            self._on_message(w, data, info, probe=probe)
 
-    def _drain(self, inp: Input) -> int:
-        """Hand on what is queued on the input's subscription now; returns how many there were."""
-        n = 0
-        while True:
-            with inp.sub.handle:
-                got = inp.sub.handle.take_message(inp.sub.msg_type, True)
-            if got is None:
-                return n
-            n += 1
-            self._deliver(inp, got[0], got[1])
-
-    def _on_probe(self, inp: Input, data: bytes, info: Any) -> None:
-        if inp.probe is None:
-            return
-        seq = _seq(info)
-        last = inp.watch.gaps.last
-        if inp.recovering:
-            if seq and (last is None or seq > last):
-                inp.skip_upto = seq              # before: handing it on may take the subscription's queue
-                self._deliver(inp, data, info, probe=True)
-            return
-        if inp.watch.count > inp.probe_count or self._drain(inp):
-            self._close_probe(inp)               # the subscription delivers after all
-            return
-        if not seq or last is None or seq <= last + 1:
-            return                               # nothing says it stopped short yet
-        self._resubscribe(inp, last, seq)
-        inp.skip_upto = seq
-        self._deliver(inp, data, info, probe=True)
-
-    def _resubscribe(self, inp: Input, last: int, seq: int) -> None:
-        """The subscription has delivered its publisher's #``last`` and nothing since, while the
-        probe hears #``seq``: #``last + 1`` is a sample it cannot take (counted ``undecodable``), those
-        up to #``seq - 1`` are held back behind it (lost); a new subscription takes over."""
-        now_ns = self.get_clock().now().nanoseconds
+    def _refused(self, w: Any, refused_seq: int, held: int, now_ns: int) -> None:
+        """The sample a stuck subscription waited for is ``undecodable``; those it held back are lost."""
         diag = self.stage.diag
         diag.now_ns = now_ns
-        self.stage._reject("undecodable", f"{inp.resolved}: its publisher's message #{last + 1} never arrived: DDS "
+        self.stage._reject("undecodable", f"{w.resolved}: its publisher's message #{refused_seq} never arrived: DDS "
                                           f"refused it (an empty sample) and the reliable subscription waited for it")
-        held = seq - last - 2
-        if held > 0:
-            diag.count_lost(inp.topic, held, now_ns)
-        inp.watch.gaps.last = seq - 1
-        qos = inp.sub.qos_profile
-        self.destroy_subscription(inp.sub)
-        inp.sub = self._subscribe(inp.port, inp.resolved, inp.callback, raw=True, qos=qos)
-        inp.watch.resubscribed += 1
-        inp.recovering = True
-        self.get_logger().warning(
-            f"{inp.resolved}: the subscription stopped at its publisher's message #{last + 1} (refused by DDS: "
-            f"counted undecodable) while the publisher went on to #{seq}; {max(held, 0)} message(s) held back "
-            f"behind it are lost; subscribed anew")
+        if held:
+            diag.count_lost(w.topic, held, now_ns)
         self._log_rejections()
+
+    def _subscribe_again(self, w: Any, qos: QoSProfile) -> Any:
+        return self._subscribe(w.port, w.resolved, w.callback, raw=True, qos=qos)
