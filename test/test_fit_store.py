@@ -254,7 +254,7 @@ def test_wifi_fix_stage_loads_the_saved_fit_and_gives_the_same_fixes(site, tmp_p
 
     def run(**kw):
         st = WifiFixStage(_params(mapdir, plans, fit_cache_dir=str(cache), **kw))
-        out = [st.process("wifi/scan", scan_to_msg(s), i) for i, s in enumerate(scans)]
+        out = [st.process("wifi/scan", scan_to_msg(s), s.stamp_ns) for s in scans]   # the clock: the scans' time
         return [o[0][1] for o in out if o], capsys.readouterr().err
     plain, err = run(fit_cache=False)
     assert err == "" and not cache.exists()

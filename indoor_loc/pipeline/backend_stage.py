@@ -419,7 +419,6 @@ class BackendStage(Stage):
         """The user's input ended: take everything buffered, publish its path (window-optimised)."""
         if user not in self.inputs_by_user:
             return []
-        self.drop_held(user)                          # an unconfirmed jump back: stragglers
         outs = self._release(user, everything=True)
         self.graph.finish_user(user)
         if user in self.graph.users and self.graph.users[user].poses:
@@ -432,7 +431,6 @@ class BackendStage(Stage):
         """End of input: take everything, optimise the whole graph, publish every path and the map."""
         outs: list[Output] = []
         for user in list(self.inputs_by_user):
-            self.drop_held(user)
             outs += self._release(user, everything=True)
         if not self.graph.poses.n:
             return outs

@@ -181,10 +181,13 @@ class PfStage(Stage):
         """A jump back in time: the old pass's path is published (as at the end of input), then the
         filter waits for the new pass's first fix or initial pose (as at start-up)."""
         outs = self.finish()
-        self.tracker.reset()
+        params = self.params
+        self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),     # its seed again:
+                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)  # the same pass, the same output
         self._pending.clear()
         self._last_odom_ns = None
         self._last_path_ns = None
+        self._n_pose = 0
         self._odom_guard = OdomJumpGuard()
         return outs
 
@@ -247,8 +250,12 @@ class PfStage(Stage):
         outs = self._start(stamp_ns)
         self._seq += 1
         bisect.insort(self._pending, (stamp_ns, self._seq, payload))
-        if self._last_odom_ns is None:                 # no PDR (yet): the speed model moves particles
-            return outs + self._apply_pending(lambda s: True, speed=True)
+        if self._last_odom_ns is None:
+            # no PDR (yet): a fix waits max_fix_delay_s for it — the stepometer reports its first hop
+            # seconds after the first scan, and a pose applied now would be followed by older ones —
+            # then the speed model moves the particles (:meth:`tick` releases it on the node's clock)
+            horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
+            return outs + self._apply_pending(lambda s: s <= horizon, speed=True)
         horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
         last = self._last_odom_ns
         return outs + self._apply_pending(lambda s: s <= horizon or s < last)
@@ -266,6 +273,14 @@ class PfStage(Stage):
         if self.graph is None:
             return []
         return self._publish(self.tracker.global_localization(stamp_ns))
+
+    def tick(self, now_ns: int) -> list[Output]:
+        """Without PDR (yet): the fixes waiting longer than ``max_fix_delay_s`` of the node's clock go on
+        the speed model."""
+        if self._last_odom_ns is not None or not self._pending or not now_ns:
+            return []
+        horizon = now_ns - int(self.params.max_fix_delay_s * 1e9)
+        return self._apply_pending(lambda s: s <= horizon, speed=True)
 
     def _apply_pending(self, due, *, speed: bool = False) -> list[Output]:
         outs: list[Output] = []

@@ -416,11 +416,16 @@ class Stage:
         return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns))
 
     def run_finish_user(self, user: str) -> list[Output]:
-        """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`."""
+        """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`; the user's messages held for
+        an unconfirmed jump back were stragglers (counted, ``stale_stamp``)."""
+        self.drop_held(user)
         return self._guarded("finish_user", lambda: self.finish_user(user))
 
     def run_finish(self) -> list[Output]:
-        """:meth:`finish` for drivers, guarded like :meth:`run_tick`."""
+        """:meth:`finish` for drivers, guarded like :meth:`run_tick`; messages still held for an
+        unconfirmed jump back were stragglers (counted, ``stale_stamp``)."""
+        for user in list(self.time.users):
+            self.drop_held(user)
         return self._guarded("finish", self.finish)
 
     def _guarded(self, what: str, fn: Callable[[], list[Output]]) -> list[Output]:

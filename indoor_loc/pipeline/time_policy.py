@@ -17,7 +17,8 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   (a wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a
   simulation restarted, a device clock reset). It is held, with every later message of the user
   that far back, until the source decides: ``jump_confirm`` messages of the source in a row, each
-  in step with the one before, confirm the jump — or at once when the node's clock agrees (the
+  in step with the one before (a later stamp, advanced as much as the node's clock within
+  ``jump_s``: a replayed pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock agrees (the
   source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in the
   clock's future). A confirmed jump resets the user's state in the stage
   (:meth:`Stage.reset_user`), counts ``time_jumps``, says it once (WARN), and the held messages
@@ -99,6 +100,7 @@ class _UserTime:
     held: list[Held] = dc_field(default_factory=list)
     cand_topic: str | None = None       # the source whose far-back run is being judged
     cand_last: int = 0                  # its latest far-back stamp
+    cand_now: int = 0                   # the node's clock when it came (0: no clock)
     cand_count: int = 0                 # far-back messages of that source in a row
     fence_ns: int | None = None         # after a jump: the old pass's newest stamp (see before_jump)
     jumps: int = 0
@@ -144,18 +146,25 @@ class TimePolicy:
         if stamp_ns < mark - self.jump_ns:                       # far back: a straggler or a new pass
             if u.cand_topic is None or topic != u.cand_topic:
                 if u.cand_topic is None:
-                    u.cand_topic, u.cand_last, u.cand_count = topic, stamp_ns, 1
+                    u.cand_topic, u.cand_last, u.cand_now, u.cand_count = topic, stamp_ns, now_ns or 0, 1
                     return Verdict.JUMP if self._clock_agrees(mark, now_ns, u) else Verdict.HOLD
                 return Verdict.HOLD                              # another topic of the same run
-            if not (u.cand_last <= stamp_ns <= u.cand_last + self.jump_ns):
-                u.cand_last, u.cand_count = stamp_ns, 1          # not in step: the run starts again
+            in_step = self._in_step(u, stamp_ns, now_ns or 0)
+            u.cand_last, u.cand_now = stamp_ns, now_ns or 0
+            if not in_step:
+                u.cand_count = 1                                 # not in step: the run starts again
                 return Verdict.HOLD
-            u.cand_last, u.cand_count = stamp_ns, u.cand_count + 1
+            u.cand_count += 1
             if u.cand_count >= self.params.jump_confirm or self._clock_agrees(mark, now_ns, u):
                 return Verdict.JUMP
             return Verdict.HOLD
         if u.held and topic != u.cand_topic:
             return Verdict.HOLD if stamp_ns < (u.front() or 0) - self.jump_ns else Verdict.PASS
+        if u.held and now_ns and u.cand_now and stamp_ns <= mark and self._in_step(u, stamp_ns, now_ns):
+            # not after the old pass's newest, but in step with the held run by the node's clock (a
+            # short pass replayed: its stamps reach the old watermark before the run is confirmed)
+            u.cand_last, u.cand_now, u.cand_count = stamp_ns, now_ns or 0, u.cand_count + 1
+            return Verdict.JUMP if u.cand_count >= self.params.jump_confirm else Verdict.HOLD
         if stamp_ns < mark or (stamp_ns == mark and order == Order.STRICT):
             if order == Order.STRICT:
                 raise InvalidInputError("non_monotonic_stamp", f"{topic} stamp {stamp_ns} ns is not after the "
@@ -164,6 +173,16 @@ class TimePolicy:
                 raise InvalidInputError("stamp_backwards", f"{topic} stamp {stamp_ns} ns is before the previous "
                                                            f"one's {mark} ns")
         return Verdict.PASS
+
+    def _in_step(self, u: _UserTime, stamp_ns: int, now_ns: int) -> bool:
+        """A far-back message continues the held run: its stamp after the run's latest, and — with the
+        node's clock — advanced as much as the clock did, within ``jump_s`` (a pass being replayed moves
+        with the clock; wrong stamps do not)."""
+        if stamp_ns < u.cand_last:
+            return False
+        if now_ns and u.cand_now:
+            return abs((stamp_ns - u.cand_last) - (now_ns - u.cand_now)) <= self.jump_ns
+        return True
 
     def _clock_agrees(self, mark: int, now_ns: int | None, u: _UserTime) -> bool:
         """The node's clock confirms a jump back: the source's old pass is ahead of it by more than ``jump_s``."""
