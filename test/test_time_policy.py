@@ -116,7 +116,7 @@ STAMPED = [(n, o) for n, o in CASES if not (n == "wifi_scan" and o.get("source",
 
 
 @pytest.fixture(scope="module")
-def streams(world):
+def streams(world):  # noqa: F811 (the fixture)
     return valid_streams(world)
 
 
@@ -136,7 +136,7 @@ def _restamped(msg, stamp_ns: int):
 @pytest.mark.parametrize("kind", ["future_2036", "zero", "20s_back", "two_20s_back"])
 @pytest.mark.parametrize("case", STAMPED, ids=[f"{n}{'-' + '-'.join(map(str, o.values())) if o else ''}"
                                                for n, o in STAMPED])
-def test_wrongly_stamped_messages_leave_every_stage_as_without_them(world, streams, case, kind):
+def test_wrongly_stamped_messages_leave_every_stage_as_without_them(world, streams, case, kind):  # noqa: F811
     """One message (or two) of each stamped input port, copied from the valid stream with a wrong
     stamp — in 2036, 0, 20 s back — amid the valid stream (the node's clock: the valid stamps): it is
     rejected or held and dropped, counted, never resets anything, and the outputs are exactly the
@@ -168,7 +168,7 @@ def test_wrongly_stamped_messages_leave_every_stage_as_without_them(world, strea
 @pytest.mark.parametrize("case", STAMPED, ids=[f"{n}{'-' + '-'.join(map(str, o.values())) if o else ''}"
                                                for n, o in STAMPED])
 @pytest.mark.parametrize("clock", ["sim_time", "log_time"])
-def test_a_stream_replayed_gives_the_same_outputs_twice(world, streams, case, clock):
+def test_a_stream_replayed_gives_the_same_outputs_twice(world, streams, case, clock):  # noqa: F811
     """The valid stream twice in a row (a bag played in a loop): the stage resets once, says so, and
     the second pass gives exactly the first pass's outputs (the multi-user back-end, which keeps the
     first track in its graph, as many poses) — with the node's clock going back with the stamps
