@@ -14,7 +14,7 @@ from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.pf_stage import PfStage, PfStageParams
 from msg_adapters.odom import odom_to_msg
 from msg_adapters.path import path_from_msg
-from msg_adapters.pose import fix_to_msg, pose_from_msg, pose_to_msg
+from msg_adapters.pose import fix_from_msg, fix_to_msg, pose_from_msg, pose_to_msg
 
 STEP = 0.65
 
@@ -64,8 +64,8 @@ def _late_median_error(outs, t, truth) -> float:
     stamps = np.array([p.stamp_ns for p in poses])
     est = np.array([p.xy for p in poses])
     late = stamps >= t[-30]
-    idx = np.searchsorted(t, stamps[late])
-    return float(np.median(np.hypot(*(est[late] - truth[np.minimum(idx, len(t) - 1)]).T)))
+    idx = np.searchsorted(t, stamps[late], side="right") - 1        # the truth at the pose's time, not the next
+    return float(np.median(np.hypot(*(est[late] - truth[np.clip(idx, 0, len(t) - 1)]).T)))
 
 def test_tracks_a_walk_with_unknown_odom_rotation_and_smooths_on_the_graph(graph_file):
     rng = np.random.default_rng(7)
@@ -83,8 +83,12 @@ def test_tracks_a_walk_with_unknown_odom_rotation_and_smooths_on_the_graph(graph
     assert st.diag.rejected.total() == 0
     topics = [o[0] for o in outs]
     assert topics.count("map/graph") == 1 and "pf/particles" in topics
-    # after the first lap the filter has locked on: error at the last 30 intervals
-    assert _late_median_error(outs, t, truth) < 1.5
+    # after the first lap the filter has locked on: its error at the last 30 intervals is well below
+    # that of the fixes it is given there (sigma 2 m per axis: a median of 2.35 m expected)
+    late = [i for i in fixes if t[i] >= t[-30]]
+    fix_err = np.median([np.hypot(*(fix_from_msg(fixes[i]).xy - truth[i])) for i in late])
+    pf_err = _late_median_error(outs, t, truth)
+    assert pf_err < 0.8 * fix_err, (pf_err, fix_err)
     ts, xy, _ = path_from_msg([m for tp, m in outs if tp == "pf/path"][-1])
     assert len(ts) > 50
     assert st.graph.project(xy)[2].max() < 1e-6                 # every smoothed pose on the graph
