@@ -10,12 +10,15 @@ path (``imu/data_raw`` handed over in runs) and a multi-user stage's per-user su
 """
 from __future__ import annotations
 
+import re
+import signal
 import sys
+import time
 
 import pytest
 from rclpy.serialization import serialize_message
 
-from helpers_dds import PEERS, python_peer, ros_node, spin_until
+from helpers_dds import PEERS, Peer, python_peer, ros_node, spin_until
 from msg_adapters.imu import imu_from_msg, imu_to_msg
 from indoor_loc.nodes.stage_node import StageNode
 
@@ -94,3 +97,35 @@ def test_later_messages_are_processed_after_a_sample_the_node_cannot_take(ros_do
             sender.stop()
             ex.remove_node(node)
             node.destroy_node()
+
+
+def test_the_recorder_records_on_after_a_sample_it_cannot_take(ros_domain, tmp_path):
+    """The recorder's reliable subscription stuck behind an empty sample is made anew: the later
+    messages are in the bag; the refused one and those held back are counted lost."""
+    from indoor_loc.bag.reader import read_raw
+    from indoor_loc.nodes.inputs import _cdr_stamp_ns
+    samples, good = _samples()
+    path = tmp_path / "samples.bin"
+    write_samples(path, samples)
+    out = tmp_path / "rec.mcap"
+    topic = "/zlrec/imu/data_raw"
+    recorder = Peer([sys.executable, "-m", "indoor_loc.nodes.recorder_node", "-t", topic, "-o", str(out)])
+    sender = python_peer("raw_sender.py", str(path), topic, "sensor_msgs/msg/Imu", str(PERIOD_S))
+    try:
+        assert sender.wait(timeout=60) == 0, sender.output()[-2000:] + recorder.output()[-2000:]
+        assert recorder.wait_seen("subscribed anew", 10), recorder.output()[-3000:]
+        time.sleep(2.0)                                   # the last ones written
+        recorder.signal(signal.SIGINT)
+        assert recorder.wait(timeout=30) == 0, recorder.output()[-3000:]
+    finally:
+        sender.stop()
+        recorder.stop()
+    datas = [m.data for m in read_raw(out, [topic])]
+    assert [d for d in datas if len(d) <= 12] == samples[30:32]        # the truncated and garbage ones, as sent
+    stamps = [_cdr_stamp_ns(d) for d in datas if len(d) > 12]
+    lost = re.search(r"LOST before reaching the recorder: (\d+) messages", recorder.output())
+    assert lost is not None, recorder.output()[-2000:]
+    assert stamps[:40] == good[:40] and stamps[-1] == good[-1] and len(stamps) >= 60
+    assert stamps == sorted(set(stamps)) and set(stamps) <= set(good)
+    # the truncated and garbage samples are recorded as sent; the empty one and those held back are lost
+    assert len(stamps) + 2 + int(lost.group(1)) == len(samples), (len(stamps), lost.group(0))

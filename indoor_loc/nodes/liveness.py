@@ -24,6 +24,7 @@ WAITING = "waiting"     # no message yet (or the node has no clock yet: sim time
 FLOWING = "flowing"     # the last message is recent
 STALLED = "stalled"     # it was flowing and stopped: no message for longer than its stall limit
 RECEIVED = "received"   # an occasional input (``Port.stream`` False) has had a message; never stalled
+LEFT = "left"           # a multi-user stage's user who left (no publishers for its timeout): silence expected
 
 
 class SequenceGaps:

@@ -20,6 +20,10 @@
   publisher's source timestamp.
 - Loss is counted, never silent: gaps in each publisher's sequence numbers (while a topic has one
   publisher) are logged (WARN), summed in ``/diagnostics`` (WARN) and printed as ``LOST`` at exit.
+  The first numbers of a restarted publisher are not a loss (:class:`~indoor_loc.nodes.liveness.InputWatch`).
+- A reliable subscription stuck behind a sample DDS refused (an empty one) is found and made anew
+  (:mod:`indoor_loc.nodes.stuck`): that sample and those held back behind it are counted lost
+  (``refused.<topic>`` too), and recording goes on.
 - SIGINT / SIGTERM close the bag cleanly (summary and rosbag2 metadata written) after the messages
   DDS had delivered before the signal are written (a second signal stops at once; what is still
   queued when the spin ends is taken in one last pass). The open chunk is
@@ -50,10 +54,11 @@ from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import Qos, msg_class
 from indoor_loc.errors import BagError, ConfigError
 from indoor_loc.nodes.help import run_option_node
-from indoor_loc.nodes.liveness import SequenceGaps
+from indoor_loc.nodes.liveness import InputWatch, SequenceGaps
 from indoor_loc.nodes.process import ignore_signals, raise_on_signals, restore_signals, spin_node
 from indoor_loc.nodes.qos import qos_profile
 from indoor_loc.nodes.stage_node import DIAGNOSTICS_PERIOD_S
+from indoor_loc.nodes.stuck import StuckGuard, Watched
 from indoor_loc.output_paths import check_output
 from msg_adapters.diagnostics import RECENT_NS, status_array
 
@@ -191,7 +196,7 @@ class _WriterThread(threading.Thread):
         self.join()
 
 
-class RecorderNode(Node):
+class RecorderNode(StuckGuard, Node):
     """Subscribes (raw) to the selected topics and appends every message to a :class:`BagWriter`
     through a writer thread. Messages lost before reaching the recorder are counted from the
     publishers' sequence numbers and reported (log and ``/diagnostics`` WARN)."""
@@ -204,11 +209,12 @@ class RecorderNode(Node):
         self._wanted = None if topics is None else [self.resolve_topic_name(t) for t in topics]
         self._exclude = re.compile(exclude) if exclude else None
         self._include_hidden = include_hidden
-        self._subs: dict[str, Any] = {}
+        self._subs: dict[str, Watched] = {}     # topic -> its subscription, liveness and probe
         self._reported: set[tuple[str, str]] = set()
         self.received = 0
         self.last_rx_ns = 0            # reception time (system clock) of the last message
         self.lost: dict[str, int] = {}
+        self.refused: dict[str, int] = {}      # samples DDS refused (a stuck subscription made anew)
         self._gaps: dict[str, SequenceGaps] = {}
         self._thread = _WriterThread(writer)
         self._thread.start()
@@ -242,6 +248,7 @@ class RecorderNode(Node):
         values = {"topics": str(len(self._subs)), "received": str(self.received), "written": str(self._thread.written),
                   "backlog": str(len(self._thread.queue)), "max_backlog": str(self._thread.max_backlog),
                   "lost.total": str(lost), **{f"lost.{t}": str(n) for t, n in sorted(self.lost.items())},
+                  **{f"refused.{t}": str(n) for t, n in sorted(self.refused.items())},
                   "file": str(self.writer.path)}
         level = 2 if self._thread.error is not None else (1 if recent else 0)
         message = (f"writer failed: {self._thread.error}" if self._thread.error is not None
@@ -249,9 +256,12 @@ class RecorderNode(Node):
         return status_array(self.get_fully_qualified_name(), level, message, values, now_ns)
 
     def _publish_diagnostics(self) -> None:
-        for topic in self._gaps:
-            self._gaps[topic].publishers = self.count_publishers(topic)
-        self._diag_pub.publish(self.diagnostics(self.get_clock().now().nanoseconds))
+        now_ns = self.get_clock().now().nanoseconds
+        for topic, w in list(self._subs.items()):
+            gids = frozenset(bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic))
+            w.watch.publishers_seen(gids, now_ns)
+            self._guard_stuck(w, gids, now_ns)
+        self._diag_pub.publish(self.diagnostics(now_ns))
 
     def _poll(self) -> None:
         types = dict(self.get_topic_names_and_types())
@@ -279,7 +289,7 @@ class RecorderNode(Node):
     def _check_late_publishers(self, topic: str) -> None:
         # QoS is chosen when subscribing; a best-effort publisher that appears later does not
         # match a reliable subscription -- say so instead of silently missing its messages.
-        sub = self._subs[topic]
+        sub = self._subs[topic].sub
         if sub.qos_profile.reliability != ReliabilityPolicy.RELIABLE:
             return
         for info in self.get_publishers_info_by_topic(topic):
@@ -307,21 +317,33 @@ class RecorderNode(Node):
                 break
         self._thread.put(("t", topic, type_name, [offered_qos(p) for p in profiles], type_hash or None))
         qos = subscription_qos(profiles)
-        self._subs[topic] = self.create_subscription(cls, topic, self._callback(topic), qos, raw=True)
+        # a latched topic's silence is no stall (its watch never stalls, so it gets no probe)
+        watch = InputWatch(topic, stream=qos.durability != DurabilityPolicy.TRANSIENT_LOCAL, on_late_start=(
+            lambda n: self.get_logger().info(f"{topic}: the first message received is its publisher's #{n + 1}: "
+                                             f"{n} were published before this subscription matched")))
+        w = self._subs[topic] = Watched(topic, cls, watch)
+        self._gaps[topic] = watch.gaps
+        w.callback = self._callback(topic)
+        w.sub = self.create_subscription(cls, topic, w.callback, qos, raw=True)
         self._report(topic, f"recording [{type_name}] ({_policy_name(qos.reliability)}, "
                             f"{_policy_name(qos.durability)}, {len(profiles)} publisher(s))")
 
     def _callback(self, topic: str) -> Callable[[bytes, Any], None]:
-        gaps = self._gaps.setdefault(topic, SequenceGaps(
-            lambda n: self.get_logger().info(f"{topic}: the first message received is its publisher's #{n + 1}: "
-                                             f"{n} were published before this subscription matched")))
-        gaps.publishers = self.count_publishers(topic)
+        self._gaps[topic].publishers = self.count_publishers(topic)
 
         def cb(data: bytes, info: Any) -> None:   # the executor took one message: take the rest of the burst
             self._take_burst(topic, data, info)
         return cb
 
-    def _take_burst(self, topic: str, data: bytes, info: Any) -> None:
+    def _deliver(self, w: Any, data: bytes, info: Any, *, probe: bool = False) -> None:
+        self._take_burst(w.resolved, data, info, probe=probe)
+
+    def _refused(self, w: Any, refused_seq: int, held: int, now_ns: int) -> None:
+        """A stuck subscription's refused sample and those it held back never reach the bag: lost."""
+        self.refused[w.resolved] = self.refused.get(w.resolved, 0) + 1
+        self._count_lost(w.resolved, held + 1)
+
+    def _take_burst(self, topic: str, data: bytes, info: Any, *, probe: bool = False) -> None:
         """Book the message the executor took on ``topic`` and take every message already queued on
         every subscription (at most :data:`TAKE_MAX` per subscription), then hand the whole burst to
         the writer thread as one item. The executor's wait-set rebuild (most of the cost of a
@@ -331,7 +353,7 @@ class RecorderNode(Node):
         sim_ns = self._sim_now_ns()
         burst: list[tuple[str, bytes, int, int]] = []
         if isinstance(info, dict):
-            lost_now = self._book(burst, sim_ns, topic, data, info)
+            lost_now = self._book(burst, sim_ns, topic, data, info, probe=probe)
         else:
             lost_now = 0
             now = sim_ns or time.time_ns()
@@ -365,7 +387,8 @@ class RecorderNode(Node):
         """Take what DDS holds on every subscription into ``burst`` (at most ``limit`` messages per
         subscription, or its history depth); returns how many were counted lost on the way."""
         lost = 0
-        for t, sub in list(self._subs.items()):
+        for t, w in list(self._subs.items()):
+            sub = w.sub
             take = sub.handle.take_message
             cls = sub.msg_type
             with sub.handle:
@@ -377,15 +400,20 @@ class RecorderNode(Node):
         return lost
 
     def _book(self, burst: list[tuple[str, bytes, int, int]], sim_ns: int, topic: str, data: bytes,
-              info: dict) -> int:
+              info: dict, *, probe: bool = False) -> int:
         """Append one taken message with its log time -- the node clock at reception: DDS's
         reception time on the system clock, or (``use_sim_time``) ``sim_ns`` -- and count the
-        sequence gap before it; returns the messages counted lost."""
+        sequence gap before it (a message the probe of a stuck subscription brought already is left
+        out); returns the messages counted lost."""
+        w = self._subs[topic]
+        if not probe and not self._taken(w, info):
+            return 0
         rx = info.get("received_timestamp") or 0
         log = sim_ns or rx or time.time_ns()
         burst.append((topic, data, log, info.get("source_timestamp") or log))
         self.last_rx_ns = rx
-        lost = self._gaps[topic].gap(info, lambda: self.count_publishers(topic))
+        lost = w.watch.message(info, log, lambda: frozenset(
+            bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic)))
         if lost:
             self._count_lost(topic, lost)
         return lost

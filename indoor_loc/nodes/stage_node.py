@@ -59,7 +59,7 @@ from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverriding
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.errors import ConfigError, IndoorLocError
 from indoor_loc.nodes.inputs import Input, InputsMixin
-from indoor_loc.nodes.liveness import SequenceGaps
+from indoor_loc.nodes.liveness import LEFT, STALLED, SequenceGaps
 from indoor_loc.nodes.qos import RELIABILITY, SENSOR_RELIABILITY_PARAM, publisher_qos, qos_profile, subscription_qos
 from indoor_loc.params import (flatten, leaves, load_params_file, misplaced_keys, nest_dotted, node_key,
                                params_from_dict, params_to_dict)
@@ -388,7 +388,10 @@ class StageNode(InputsMixin, Node):
 
     def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
         arr = stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)
-        return with_inputs(arr, [inp.watch.report(now_ns) for inp in self._inputs.values()], now_ns)
+        reports = [inp.watch.report(now_ns) for inp in self._inputs.values()]
+        reports = [r._replace(state=LEFT) if inp.user in self._finished_users and r.state == STALLED else r
+                   for inp, r in zip(self._inputs.values(), reports)]
+        return with_inputs(arr, reports, now_ns)
 
     def shutdown(self) -> None:
         """Publish the stage's end-of-input outputs (call while the context is still valid)."""
