@@ -130,6 +130,11 @@ class TimePolicy:
         """What to do with a message; raises :class:`InvalidInputError` for one to reject (nothing
         changed). A ``PASS`` of the held run's source back in step drops the held messages first
         (:meth:`drop_held` gives them to the caller to count)."""
+        u = self.users.get(user)
+        if u is not None and not u.held and u.fence_ns is None:     # the common case, first (every IMU sample)
+            mark = u.marks.get(topic)
+            if mark is not None and stamp_ns > mark and (not now_ns or stamp_ns <= now_ns + self.future_ns):
+                return Verdict.PASS
         if order == Order.EXEMPT:
             return Verdict.PASS
         if now_ns and stamp_ns > now_ns + self.future_ns:
