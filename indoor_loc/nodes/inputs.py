@@ -86,6 +86,7 @@ class InputsMixin(StuckGuard):
         # named as the stage counts it: ``imu/data_raw``, ``alice/pdr/odom`` (multi-user)
         watch = InputWatch(resolved.lstrip("/"), required=port.required, stream=port.stream,
                            on_late_start=self._late_start(resolved))
+        watch.publishers = lambda: self._publisher_gids(resolved)
         inp = Input(port, resolved, user, fast, watch)
         inp.callback = self._raw_callback(inp) if fast else self._message_callback(inp)
         inp.sub = self._subscribe(port, resolved, inp.callback, raw=True)
@@ -129,7 +130,7 @@ class InputsMixin(StuckGuard):
         self.taken += 1
         self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
         now_ns = self.get_clock().now().nanoseconds
-        lost = inp.watch.message(info, now_ns, lambda: self._publisher_gids(inp.resolved))
+        lost = inp.watch.message(info, now_ns)
         if lost:
             self.stage.diag.count_lost(inp.topic, lost, now_ns)
             self.get_logger().warning(f"{inp.resolved}: {lost} message(s) lost before reaching this node "

@@ -108,6 +108,8 @@ class InputWatch:
         self.required = required
         self.stream = stream
         self.gaps = SequenceGaps(on_late_start)
+        #: the topic's publisher GIDs in the graph now (set by the node; asked when the numbers jump)
+        self.publishers: Callable[[], frozenset[bytes]] | None = None
         self.count = 0
         self.last_ns: int | None = None
         self._arrivals: deque[int] = deque(maxlen=PERIOD_WINDOW)
@@ -155,11 +157,22 @@ class InputWatch:
     def message(self, info: Any, now_ns: int,
                 publishers: Callable[[], frozenset[bytes]] | None = None) -> int:
         """Book one message taken (its rclpy message info; the node's clock now). ``publishers()``
-        (the topic's publisher GIDs in the graph now) is asked only when the numbers jump. Returns
-        how many messages were lost just before it."""
+        (the topic's publisher GIDs in the graph now; default :attr:`publishers`) is asked only when
+        the numbers jump. Returns how many messages were lost just before it."""
         seq = info.get("publication_sequence_number") if isinstance(info, dict) else None
-        stopped = self._silent(now_ns)
         last = self.gaps.last
+        last_ns = self.last_ns
+        if (seq is not None and last is not None and seq == last + 1 and now_ns and last_ns is not None
+                and last_ns <= now_ns <= last_ns + STALL_FLOOR_NS and not self._expect_new):
+            # the common case, kept cheap (every message of a 200 Hz input): the next number, soon
+            # after the last message (a stall limit is never below the floor)
+            self.count += 1
+            self.gaps.last = seq
+            self.last_ns = now_ns
+            self._arrivals.append(now_ns)
+            return 0
+        publishers = publishers or self.publishers
+        stopped = self._silent(now_ns)
         if seq and last is not None:
             if seq <= last:                          # numbered anew: another publisher
                 if self.gaps.publishers <= 1 or stopped:

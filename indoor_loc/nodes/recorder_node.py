@@ -258,7 +258,7 @@ class RecorderNode(StuckGuard, Node):
     def _publish_diagnostics(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
         for topic, w in list(self._subs.items()):
-            gids = frozenset(bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic))
+            gids = self._publisher_gids(topic)
             w.watch.publishers_seen(gids, now_ns)
             self._guard_stuck(w, gids, now_ns)
         self._diag_pub.publish(self.diagnostics(now_ns))
@@ -321,6 +321,7 @@ class RecorderNode(StuckGuard, Node):
         watch = InputWatch(topic, stream=qos.durability != DurabilityPolicy.TRANSIENT_LOCAL, on_late_start=(
             lambda n: self.get_logger().info(f"{topic}: the first message received is its publisher's #{n + 1}: "
                                              f"{n} were published before this subscription matched")))
+        watch.publishers = lambda: self._publisher_gids(topic)
         w = self._subs[topic] = Watched(topic, cls, watch)
         self._gaps[topic] = watch.gaps
         w.callback = self._callback(topic)
@@ -334,6 +335,9 @@ class RecorderNode(StuckGuard, Node):
         def cb(data: bytes, info: Any) -> None:   # the executor took one message: take the rest of the burst
             self._take_burst(topic, data, info)
         return cb
+
+    def _publisher_gids(self, topic: str) -> frozenset[bytes]:
+        return frozenset(bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic))
 
     def _deliver(self, w: Any, data: bytes, info: Any, *, probe: bool = False) -> None:
         self._take_burst(w.resolved, data, info, probe=probe)
@@ -412,8 +416,7 @@ class RecorderNode(StuckGuard, Node):
         log = sim_ns or rx or time.time_ns()
         burst.append((topic, data, log, info.get("source_timestamp") or log))
         self.last_rx_ns = rx
-        lost = w.watch.message(info, log, lambda: frozenset(
-            bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic)))
+        lost = w.watch.message(info, log)
         if lost:
             self._count_lost(topic, lost)
         return lost
