@@ -179,3 +179,34 @@ def test_a_killed_publisher_is_a_stall_and_its_restart_is_counted(ros_domain, tm
         for p in (sender, again, node):
             if p is not None:
                 p.stop()
+
+
+def test_a_multi_user_node_reports_each_users_inputs_and_a_user_who_left(ros_domain):
+    from dummy_node import DummyStage
+    from indoor_loc.nodes.stage_node import StageNode
+
+    class Users(DummyStage):
+        NODE_NAME = "users_node"
+        MULTI_USER = True
+
+        def _on_imu(self, msg, recv_ns, user=None):
+            return []
+
+    with ros_node("probe") as (probe, _):
+        node = StageNode(Users, context=probe.context)
+        try:
+            for user in ("dan", "eve"):
+                node._follow(user)
+                cb = node._callback("imu/data_raw", user)
+                for n in range(1, 4):
+                    cb(imu_to_msg(S + n, "f", [0.0, 0.0, 9.8]), _seq(n))
+            now = node.get_clock().now().nanoseconds
+            d = diagnostics_from_msg(node.diagnostics_msg(now + S))["/users_node"]
+            assert d.level == 0 and d.values["in.dan/imu/data_raw.state"] == FLOWING
+            assert d.values["in.eve/imu/data_raw.count"] == "3"
+            node._finished_users.add("dan")                     # dan left; eve went quiet
+            d = diagnostics_from_msg(node.diagnostics_msg(now + 5 * S))["/users_node"]
+            assert d.values["in.dan/imu/data_raw.state"] == "left" and d.values["in.eve/imu/data_raw.state"] == STALLED
+            assert d.level == 1 and "eve/imu/data_raw stalled" in d.message and "dan" not in d.message
+        finally:
+            node.destroy_node()
