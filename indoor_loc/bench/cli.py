@@ -1,4 +1,5 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live}``: benchmarks print tables, side by side with peers in one run."""
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos}``: benchmarks print tables,
+side by side with peers in one run."""
 from __future__ import annotations
 
 import argparse
@@ -14,6 +15,7 @@ BENCHES = {
     "pf": "indoor_loc.bench.pf",
     "throughput": "indoor_loc.bench.throughput",
     "live": "indoor_loc.bench.live",
+    "chaos": "indoor_loc.bench.chaos",
 }
 
 
@@ -28,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "of 300 (putmc; --dataset ms_site2 has no smaller run); backend: 5 reduced-map draws instead of "
         "50, one graph run per configuration instead of best of 3, fresh processes for 2 configurations "
         "x 1 run instead of all 5 x 3, --live at 10x only; pf: one run, the PDR and 10 s WiFi-only rows; "
-        "throughput: walks 1-3 instead of 1-12; live: users 1,2, rates 2,5, 30 s (each unless given)"))
+        "throughput: walks 1-3 instead of 1-12; live: users 1,2, rates 2,5, 30 s (each unless given); "
+        "chaos: 40 s of walking, 100 hostile messages per port"))
     parser.add_argument("--json", type=Path, help="also write the figures as JSON here")
     parser.add_argument("--live", action="store_true", help="backend: also replay all walks live over DDS "
                                                             "through backend_node at 1x and 10x")
@@ -50,7 +53,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--learn", action="store_true", help="pf: also score transitions learned from the odd walks on the even walks")
     parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4)")
     parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20)")
-    parser.add_argument("--duration", type=float, default=0.0, help="live: simulated seconds per user (default 60)")
+    parser.add_argument("--duration", type=float, default=0.0, help="live, chaos: simulated seconds per user "
+                                                                    "(default 60; chaos --soak: of the looped world, 300)")
+    parser.add_argument("--walkers", type=int, default=0, help="chaos: simulated walkers (default 1; --soak 2)")
+    parser.add_argument("--rate", type=float, default=0.0, help="chaos: replay rate (default 2; --soak 20)")
+    parser.add_argument("--cases", type=int, default=0, help="chaos: hostile messages drawn per input port and "
+                                                             "walker (default 2000; 10000 for the issue's figure)")
+    parser.add_argument("--faults", default="", help="chaos: comma-separated trials among hostile,kill,loop "
+                                                     "(default all; the clean reference always runs)")
+    parser.add_argument("--kill-nodes", default="", help="chaos: nodes to kill, e.g. imu_node,tll_pf (default all)")
+    parser.add_argument("--soak", type=float, default=0.0, help="chaos: soak instead: HOURS of simulated time at "
+                                                                "--rate, RSS and per-message cost over time")
     parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
                         help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 

@@ -61,7 +61,7 @@ class Trial:
         return any(self.missing.values()) or self.recorder_missing > 0
 
 
-class _Proc:
+class Proc:
     """A child process whose output lines are collected by a thread."""
 
     def __init__(self, cmd: list[str], env: dict[str, str]) -> None:
@@ -93,7 +93,7 @@ class _Proc:
         return rc
 
 
-def _wait(cond, timeout: float) -> bool:
+def wait_until(cond, timeout: float) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if cond():
@@ -150,29 +150,29 @@ def run_trial(sim: dict[str, Path], users: list[str], rate: float, work: Path, e
     trial = Trial(len(users), rate, sent=sum(info[t].count for t in topics))
     out = work / f"rec_{len(users)}u_{rate:g}x.mcap"
     py = sys.executable
-    rec = _Proc([py, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(out), "--overwrite", "--poll", "0.2",
+    rec = Proc([py, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(out), "--overwrite", "--poll", "0.2",
                  "--exclude", "^/diagnostics$|^/rosout$|^/parameter_events$"], env)
-    nodes: dict[tuple[str, str], _Proc] = {}
+    nodes: dict[tuple[str, str], Proc] = {}
     ex, diags, close = _diagnostics_listener()
     try:
         for u in users:
             for kind in NODES:
                 extra = ["-p", "odom_hold_s:=5.0"] if kind == "pdr_kf_node" else []
-                nodes[(u, kind)] = _Proc([py, "-m", f"indoor_loc.nodes.{kind}", "--ros-args", "-r", f"__ns:={ns[u]}",
+                nodes[(u, kind)] = Proc([py, "-m", f"indoor_loc.nodes.{kind}", "--ros-args", "-r", f"__ns:={ns[u]}",
                                           "--params-file", str(sim["params"]), "-p",
                                           f"sensor_reliability:={sensor_qos}", *extra], env)
 
         def matched() -> bool:
             ex.spin_once(timeout_sec=0.0)
             return all(p.has(rf"{MATCHED[k][0]}: {MATCHED[k][1]} matched") for (u, k), p in nodes.items())
-        if not _wait(matched, 120):
+        if not wait_until(matched, 120):
             trial.note = "nodes not matched within 120 s"
             return trial
         # every input a node takes has two subscribers, the node and the recorder: wait for both
         # (a non-zero count can be the recorder alone, and the node would miss the first messages)
         need = [f"{rel}=2" for rel in sorted({r for rels in BAG_INPUTS.values() for r in rels})
                 if any(t.endswith("/" + rel) for t in topics)]
-        player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
+        player = Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
                         "--wait-for-subscribers", "60", "--min-subscribers", *need, "--topics", *topics], env)
         while player.proc.poll() is None:
             ex.spin_once(timeout_sec=0.1)
@@ -274,13 +274,13 @@ def run_recorder_trial(sim: dict[str, Path], users: list[str], rate: float, work
     trial = RecorderTrial(len(users), rate, sent=sum(info[t].count for t in topics))
     out = work / f"rec_alone_{len(users)}u_{rate:g}x.mcap"
     py = sys.executable
-    rec = _Proc([py, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(out), "--overwrite", "--poll", "0.2",
+    rec = Proc([py, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(out), "--overwrite", "--poll", "0.2",
                  "--exclude", "^/diagnostics$|^/rosout$|^/parameter_events$"], env)
     try:
-        if not _wait(lambda: rec.has("recording all topics"), 60):
+        if not wait_until(lambda: rec.has("recording all topics"), 60):
             trial.note = "recorder did not start"
             return trial
-        player = _Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
+        player = Proc([py, "-m", "indoor_loc.nodes.player_node", str(sim["bag"]), "-r", f"{rate:g}",
                         "--wait-for-subscribers", "60", "--topics", *topics], env)
         player.proc.wait()
         player.stop()

@@ -1,0 +1,173 @@
+"""``indoor-loc bench chaos``: what the nodes do when their inputs and their neighbours misbehave.
+
+On the simulated walkers (:mod:`indoor_loc.sim`), every node (``imu_node``, ``wifi_fix_node``,
+``pdr_kf_node``, ``tll_pf`` per walker, one ``backend_node``) runs as its own process over DDS, fed
+by the bench's own publishers in each walker's namespace (the sensor stream of the simulated bag at
+``--rate``, serialised bytes as stored). Trials, each with fresh processes:
+
+- ``clean``: the stream alone; the reference of the others.
+- ``hostile``: per walker and input port (``imu/data_raw``, ``imu/mag``, ``imu/data``, ``wifi/scan``,
+  ``pdr/odom``, ``wifi/fix``, ``initialpose``) ``--cases`` messages drawn by hypothesis
+  (:mod:`indoor_loc.bench.hostile`) spread over the first two thirds of the stream, interleaved with
+  the valid messages on the same publisher, plus explicit cases (empty samples, bursts of duplicates,
+  100 000-AP scans, a user nobody configured); the last third is valid only. The recorder runs too
+  and is SIGKILLed at 60 % of the stream; its file is then recovered (``indoor-loc bag recover``).
+- ``kill <node>``: each node SIGKILLed at 25 % of the stream and started again at once.
+- ``clock loop``: every node on ``use_sim_time``; the stream is played twice with ``/clock``, the
+  clock going back to its start for the second pass (as ``indoor-loc play --loop --clock``); the
+  first pass is the reference of the second.
+
+Per trial and node: cases tried, deaths, hangs, sticky failures, silent losses, accuracy after
+recovery (definitions in docs/benchmarks/chaos.md). ``--soak HOURS`` runs the soak instead
+(:mod:`indoor_loc.bench.chaos_soak`). Exit status 0 whatever the figures; a broken promise is said
+on a line of its own.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from indoor_loc.bench.chaos_faults import (RECOVERY_S, SEC, Row, Trial, World, hostile_plan, judge, load_world,
+                                           run_trial)
+
+#: Hostile phase: the first two thirds of the stream.
+HOSTILE_SHARE = 2 / 3
+FAULTS = ("hostile", "kill", "loop")
+
+
+def bench_env() -> dict[str, str]:
+    """The environment of the bench's processes: its ROS_DOMAIN_ID (the user's, else 42), localhost only."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1",
+               RCUTILS_COLORIZED_OUTPUT="0")
+    env.setdefault("ROS_DOMAIN_ID", "42")
+    os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
+    return env
+
+
+def simulate(work: Path, walkers: int, duration: float, seed: int, *, imu_hz: float = 100.0) -> dict[str, Path]:
+    from indoor_loc.commands.sim import generate
+    from indoor_loc.sim.scenario import SimConfig
+    from indoor_loc.sim.walker import ImuParams
+    cfg = SimConfig(walkers=walkers, duration_s=duration, seed=seed,
+                    imu=dataclasses.replace(ImuParams(), rate_hz=imu_hz, mag_rate_hz=imu_hz / 2))
+    cfg.validate()
+    return generate(work / "sim", cfg, quiet=True)
+
+
+def _fmt(v: Any, spec: str = "") -> str:
+    return "–" if v is None else format(v, spec)
+
+
+def format_rows(rows: list[Row]) -> str:
+    lines = ["| fault | node | cases tried | deaths | hangs | sticky failures | silent losses | "
+             "accuracy after recovery (m, clean m) | note |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        acc = "–" if r.accuracy is None else f"{r.accuracy:.2f}× ({r.err_m:.2f}, {r.ref_err_m:.2f})"
+        note = r.note + (f"; {r.overcount} booked beyond what was sent" if r.overcount else "")
+        lines.append(f"| {r.fault} | {r.node} | {r.cases:,} | {r.deaths} | {r.hangs} | {_fmt(r.sticky)} | "
+                     f"{_fmt(r.silent)} | {acc} | {note.strip('; ')[:160]} |")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    if getattr(args, "soak", 0.0):
+        from indoor_loc.bench.chaos_soak import run_soak
+        return run_soak(args)
+    quick = bool(args.quick)
+    walkers = int(getattr(args, "walkers", 0) or 1)
+    duration = float(getattr(args, "duration", 0) or (40.0 if quick else 60.0))
+    rate = float(getattr(args, "rate", 0) or 2.0)
+    cases = int(getattr(args, "cases", 0) or (100 if quick else 2000))
+    faults = [f for f in (getattr(args, "faults", "") or ",".join(FAULTS)).split(",") if f]
+    kills = [k for k in (getattr(args, "kill_nodes", "") or "").split(",") if k]
+    env = bench_env()
+    t_start = time.monotonic()
+    result: dict[str, Any] = {"walkers": walkers, "duration_s": duration, "rate": rate, "cases_per_port": cases,
+                              "ros_domain_id": env["ROS_DOMAIN_ID"], "rows": [], "recorder": {}}
+    rows: list[Row] = []
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+
+    with tempfile.TemporaryDirectory(prefix="bench_chaos_") as tmp:
+        work = Path(tmp)
+        sim = simulate(work, walkers, duration, seed=int(getattr(args, "seed", 7) or 7))
+        world = load_world(sim)
+        log(f"\n## Fault benchmark: {walkers} walker(s) x {world.span_s:.0f} s simulated, replayed at {rate:g}x "
+            f"over DDS (ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}, {os.cpu_count()} CPUs)\n")
+        clean = run_trial(world, "clean", env, rate, work, log=log)
+        _say(clean, log)
+        if "hostile" in faults:
+            rows += _hostile(world, clean, env, rate, cases, work, result, log)
+        if "kill" in faults:
+            for key in (kills or list(clean.nodes)):
+                if key not in clean.nodes:
+                    key = next((k for k in clean.nodes if k.endswith("/" + key)), key)
+                t = run_trial(world, f"kill {key}", env, rate, work, kill=key, log=log)
+                _say(t, log)
+                ready = t.marks.get("restarted_ready") or t.marks.get("kill", t.wall0)
+                rows += judge(t, clean, world, from_ns=t.stream_ns_at(ready, world.t0_ns) + int(RECOVERY_S * SEC))
+        if "loop" in faults:
+            t = run_trial(world, "clock loop", env, rate, work, loop=True, log=log)
+            _say(t, log)
+            p2 = t.marks.get("pass2", float("inf"))
+            rows += judge(t, t, world, from_ns=world.t0_ns + int(RECOVERY_S * SEC), wall=(p2, float("inf")),
+                          ref_wall=(0.0, p2))
+    log("\n" + format_rows(rows))
+    rec = result["recorder"]
+    if rec:
+        log(f"\nrecorder SIGKILLed at 60 % of the hostile trial, then `indoor-loc bag recover`: "
+            f"{rec.get('recovered', 0):,} messages on {rec.get('topics', 0)} topics recovered "
+            f"({rec.get('sent_before_kill', 0):,} sent by the bench before the kill; bad chunks "
+            f"{rec.get('bad_chunks', '–')}, last chunk cut: {rec.get('truncated', '–')})"
+            + (f"; ERROR: {rec['error']}" if "error" in rec else ""))
+    broken = [(r, b) for r in rows for b in r.broken()]
+    for r, b in broken:
+        log(f"PROMISE BROKEN: {r.fault}: {r.node}: {b}")
+    if not broken:
+        log("every promise kept: 0 deaths, 0 hangs, 0 sticky failures, 0 silent losses, "
+            "accuracy after recovery within 10 % of the clean run")
+    log(f"\n({time.monotonic() - t_start:.0f} s wall clock)")
+    result["rows"] = [dataclasses.asdict(r) for r in rows]
+    result["broken"] = [f"{r.fault}: {r.node}: {b}" for r, b in broken]
+    if getattr(args, "json", None):
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def _say(t: Trial, log) -> None:
+    log(f"trial {t.name}: played in {t.play_s:.1f} s" + (f"; {t.note}" if t.note else ""))
+
+
+def _hostile(world: World, clean: Trial, env: dict[str, str], rate: float, cases: int, work: Path,
+             result: dict[str, Any], log) -> list[Row]:
+    phase_end = world.t0_ns + int(world.span_s * HOSTILE_SHARE * SEC)
+    bases = dict(world.decoded)
+    bases.update(clean.bases)
+    log(f"drawing {cases} hostile messages per port and walker (hypothesis) ...")
+    plan = hostile_plan(world, bases, cases, phase_end, log=log)
+    n = len(plan.events)
+    phase_s = world.span_s * HOSTILE_SHARE
+    h_rate = min(rate, phase_s * 800.0 / max(1, n))
+    if h_rate < rate:
+        log(f"  {n:,} hostile messages: replayed at {h_rate:.2f}x to keep them under 800/s")
+    t = run_trial(world, "hostile", env, h_rate, work, plan=plan, recorder_kill_at=0.6, log=log)
+    _say(t, log)
+    result["hostile_diagnostics"] = {k: r.values for k, r in t.nodes.items()}
+    result["hostile_sent"] = t.sent
+    result["recorder"] = t.recorder
+    result["hostile_kinds"] = _kinds(plan)
+    return judge(t, clean, world, from_ns=phase_end + int(RECOVERY_S * SEC))
+
+
+def _kinds(plan) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for _, _, _, kind in plan.events:
+        out[kind] = out.get(kind, 0) + 1
+    return out
