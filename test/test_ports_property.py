@@ -14,7 +14,9 @@ random, strings at random, empty and 10 000-AP scans, JSON with absurd numbers. 
 
 Hostile messages are stamped 1 ns after the valid message of their topic before them (1 ns before
 its first), so stamps say nothing about them (the time policy is tested elsewhere); one case gives
-them any stamp and asserts only the first two promises.
+them any stamp and asserts only the first two promises. An example goes on from a copy of the clean
+run's stage at one of a few points of the stream (``SNAP_FRACTIONS``), so it costs only the rest of
+the stream. Beside the random examples, a sweep sets each field of each port's message absurd in turn.
 """
 from __future__ import annotations
 
@@ -42,10 +44,13 @@ world = test_contract_ports.world
 #: the IMU streams are cut to this long from their start (the stepometer hops a few times in it)
 IMU_S = 3.0
 USER = "walker0"
+#: fewer particles and smoothed trajectories: the same code paths at a fifth of the cost
+LIGHTER = {"pf": {"n_particles": 200, "smooth_samples": 10}}
 INPUT_CASES = [(n, o) for n, o in CASES if not (n == "wifi_scan" and o.get("source", "topic") != "topic")]
 
+#: absurd values, and extreme ones just inside the contract's bounds (they reach the estimators)
 HOSTILE_FLOATS = [math.nan, math.inf, -math.inf, 1e308, -1e308, -1.0, 0.0, 1e6, -1e6, 1e-300, -1e-300, 5e4,
-                  1e12, 3.0, -0.5]
+                  1e12, 3.0, -0.5, 9.9e4, -9.9e4, 1e10, 1e-6, 1e-9, 199.0, -99.0, 4.9e-3, 9.99e6]
 hostile_float = st.one_of(st.sampled_from(HOSTILE_FLOATS), st.sampled_from(HOSTILE_FLOATS),
                           st.floats(allow_nan=True, allow_infinity=True))
 
@@ -118,45 +123,51 @@ def _leaves(msg) -> Iterator[Any]:
             yield from (x.item() if hasattr(x, "item") else x for x in v)
 
 
-class Run:
-    """One stream through a fresh stage: outputs (their values, in order), the rejections each message
-    caused (a Counter per message, by reason) and the stage's counters at the end."""
+def _values(topic: str, msg) -> tuple:
+    """What an output says, checked finite."""
+    values = tuple(_leaves(msg))
+    bad = [v for v in values if isinstance(v, float) and not math.isfinite(v)]
+    assert not bad, f"{topic}: non-finite output values {bad[:5]}"
+    return values
 
-    def __init__(self, world, case, stream: list[tuple[int, str, Any]]) -> None:
-        name, overrides = case
-        stage = build_stage(world, name, overrides)
+
+class Run:
+    """A stream through a stage, from ``stage`` as it is (a fresh one, or a copy of a clean run's at a
+    snapshot): the outputs (their values, in order), the rejections each message caused (a Counter
+    by reason), those of the end of input, and copies of the stage before each message of ``snap_at``."""
+
+    def __init__(self, stage, stream: list[tuple[int, str, Any]], snap_at: tuple[int, ...] = ()) -> None:
         user = USER if stage.MULTI_USER else None
         self.outputs: list[tuple[str, tuple]] = []
         self.deltas: list[Counter] = []
-        for stamp, topic, msg in stream:
+        self.snapshots: dict[int, tuple[Any, int]] = {}     # message index -> (stage copy, outputs so far)
+        for i, (stamp, topic, msg) in enumerate(stream):
+            if i in snap_at:
+                self.snapshots[i] = (copy.deepcopy(stage), len(self.outputs))
             before = Counter(stage.diag.rejected)
             outs = stage.process(topic, msg, stamp, user)
             self.deltas.append(Counter(stage.diag.rejected) - before)
-            self._keep(outs)
+            self.outputs += [(t, _values(t, m)) for t, m in outs]
         before = Counter(stage.diag.rejected)
-        if stage.MULTI_USER:
-            self._keep(stage.run_finish_user(USER))
-        self._keep(stage.run_finish())
+        outs = stage.run_finish_user(USER) if stage.MULTI_USER else []
+        outs += stage.run_finish()
+        self.outputs += [(t, _values(t, m)) for t, m in outs]
         self.finish_delta = Counter(stage.diag.rejected) - before
         self.rejected = Counter(stage.diag.rejected)
         self.last_error = stage.diag.last_error
-        self.stage = stage
-
-    def _keep(self, outs) -> None:
-        for topic, msg in outs:
-            values = tuple(_leaves(msg))
-            bad = [v for v in values if isinstance(v, float) and not math.isfinite(v)]
-            assert not bad, f"{topic}: non-finite output values {bad[:5]}"
-            self.outputs.append((topic, values))
 
 
+#: where the clean run is copied for the examples to go on from: the start, and three points on
+SNAP_FRACTIONS = (0.0, 0.4, 0.7, 0.9)
 _CLEAN: dict[str, Run] = {}
 
 
-def _clean(world, case, stream) -> Run:
+def _clean(world, case, valid) -> Run:
     key = repr(case)
     if key not in _CLEAN:
-        _CLEAN[key] = Run(world, case, stream)
+        snaps = tuple(sorted({int(f * len(valid)) for f in SNAP_FRACTIONS}))
+        name, overrides = case
+        _CLEAN[key] = Run(build_stage(world, name, {**overrides, **LIGHTER.get(name, {})}), valid, snaps)
         assert _CLEAN[key].rejected["internal_error"] == 0, _CLEAN[key].last_error
     return _CLEAN[key]
 
@@ -209,7 +220,8 @@ def _groups(msg) -> list[list[tuple]]:
 
 @st.composite
 def numeric_mutation(draw, base):
-    """A copy of ``base`` with 1-2 numeric fields hostile, or a covariance array at random."""
+    """A copy of ``base`` with one field (a vector, quaternion or covariance) hostile, wholly or in one or
+    two of its numbers, or a covariance array at random."""
     msg = copy.deepcopy(base)
     if draw(st.integers(0, 3)) == 0:
         arrays = _array_fields(msg)
@@ -220,33 +232,38 @@ def numeric_mutation(draw, base):
             obj = getattr(obj, p)
         setattr(obj, path[-1], np.array(values, dtype=np.float64))
         return msg
-    groups = _groups(msg)
-    for _ in range(draw(st.integers(1, 2))):
-        _set(msg, draw(st.sampled_from(draw(st.sampled_from(groups)))), draw(hostile_float))
+    group = draw(st.sampled_from(_groups(msg)))
+    if draw(st.booleans()):                 # the whole vector / quaternion / covariance
+        value = draw(hostile_float)
+        for path in group:
+            _set(msg, path, value)
+    else:
+        for path in draw(st.lists(st.sampled_from(group), min_size=1, max_size=2)):
+            _set(msg, path, draw(hostile_float))
     return msg
 
 
 _HUGE: dict[str, Any] = {}
 
 
-def _huge_scan(base) -> Any:
-    """A valid 10 000-AP scan at ``base``'s stamp (made once)."""
+def _huge_scan() -> Any:
+    """A valid 10 000-AP scan (made once; :func:`_restamp` stamps it where it goes)."""
     if "scan" not in _HUGE:
         from indoor_loc.wifi.types import WifiScan
         rng = np.random.default_rng(5)
         n = 10_000
         bssid = tuple(f"00:{i >> 16 & 255:02x}:{i >> 8 & 255:02x}:{i & 255:02x}:00:01" for i in range(n))
-        _HUGE["scan"] = WifiScan(stamp_ns=_stamp(base), bssid=bssid, rssi_dbm=rng.uniform(-100, -30, n),
-                                 freq_mhz=np.full(n, 2412.0), ssid=("big",) * n)
-    return scan_to_msg(_HUGE["scan"])
+        _HUGE["scan"] = scan_to_msg(WifiScan(stamp_ns=0, bssid=bssid, rssi_dbm=rng.uniform(-100, -30, n),
+                                             freq_mhz=np.full(n, 2412.0), ssid=("big",) * n))
+    return _HUGE["scan"]
 
 
 @st.composite
 def scan_mutation(draw, base):
     """A hostile ``wifi_scan.v1`` DiagnosticArray from a valid one."""
-    kind = draw(st.sampled_from(["value", "value", "name", "summary", "empty", "huge"]))
+    kind = draw(st.sampled_from(["value"] * 4 + ["name", "summary", "empty", "huge"]))
     if kind == "huge":
-        return _huge_scan(base)
+        return _huge_scan()
     msg = copy.deepcopy(base)
     if kind == "empty":
         msg.status = msg.status[:draw(st.integers(0, 1))]
@@ -294,21 +311,23 @@ def _restamp(msg, stamp_ns: int):
 
 
 @st.composite
-def mixed_streams(draw, valid: list[tuple[int, str, Any]], ports: list[str], any_stamp: bool):
-    """The valid stream with 1-3 hostile messages inserted: (stream, index of each valid message in it,
-    indices of the hostile ones)."""
-    picks = sorted(draw(st.lists(st.integers(0, len(valid)), min_size=1, max_size=3)))
+def mixed_streams(draw, valid: list[tuple[int, str, Any]], ports: list[str], snaps: list[int], any_stamp: bool):
+    """From a snapshot at valid message ``start`` on, the valid stream with 1-2 hostile messages among
+    its first few: (start, stream, index of each valid message in it, indices of the hostile ones)."""
+    start = draw(st.sampled_from(snaps))
+    tail = valid[start:]
+    picks = sorted(draw(st.lists(st.integers(0, min(8, len(tail))), min_size=1, max_size=2)))
     stream: list[tuple[int, str, Any]] = []
     valid_at, hostile_at = [], []
     k = 0
     for pos in picks:
         while k < pos:
             valid_at.append(len(stream))
-            stream.append(valid[k])
+            stream.append(tail[k])
             k += 1
         topic = draw(st.sampled_from(ports))
-        before = [(s, m) for s, t, m in valid[:k] if t == topic]
-        after = [(s, m) for s, t, m in valid[k:] if t == topic]
+        before = [(s, m) for s, t, m in valid[:start + k] if t == topic]
+        after = [(s, m) for s, t, m in valid[start + k:] if t == topic]
         msg = draw(hostile_for(topic, (before or after)[-1 if before else 0][1] if before or after else valid[0][2]))
         # just after the topic's previous valid message (its next one stays later), or just before its first
         stamp = before[-1][0] + 1 if before else after[0][0] - 1 if after else valid[0][0]
@@ -316,18 +335,27 @@ def mixed_streams(draw, valid: list[tuple[int, str, Any]], ports: list[str], any
             stamp = draw(st.integers(0, MAX_STAMP_NS))
         hostile_at.append(len(stream))
         stream.append((stamp, topic, _restamp(msg, stamp)))
-    while k < len(valid):
+    while k < len(tail):
         valid_at.append(len(stream))
-        stream.append(valid[k])
+        stream.append(tail[k])
         k += 1
-    return stream, valid_at, hostile_at
+    return start, stream, valid_at, hostile_at
 
 
 # -- the properties --------------------------------------------------------------------------------
 IDS = [n + "".join(f"-{v}" for v in o.values() if v != "radiomap") for n, o in INPUT_CASES]
+#: examples per stage, by what one costs (an IMU stream is 750 messages, a particle filter run 0.2 s)
+EXAMPLES = {"imu": 10, "pf": 8, "backend": 20, "wifi": 15, "pdr_kf": 30, "wifi_scan": 10}
 PROPERTY = settings(max_examples=6, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
                                            HealthCheck.data_too_large])
+
+
+def _go_on(clean: Run, start: int, stream) -> tuple[Run, list, list]:
+    """``stream`` from a copy of the clean run's stage at ``start``; with the clean run's deltas and
+    outputs from there on."""
+    stage, n_out = clean.snapshots[start]
+    return Run(copy.deepcopy(stage), stream), clean.deltas[start:], clean.outputs[n_out:]
 
 
 @pytest.mark.parametrize("case", INPUT_CASES, ids=IDS)
@@ -337,16 +365,16 @@ def test_any_message_on_any_port_keeps_the_stage_promises(world, streams, case):
     valid = _valid_stream(probe, streams)
     clean = _clean(world, case, valid)
 
-    @PROPERTY
-    @given(mixed_streams(valid, ports, any_stamp=False))
+    @settings(PROPERTY, max_examples=EXAMPLES[case[0]])
+    @given(mixed_streams(valid, ports, sorted(clean.snapshots), any_stamp=False))
     def check(mixed):
-        stream, valid_at, hostile_at = mixed
-        run = Run(world, case, stream)
+        start, stream, valid_at, hostile_at = mixed
+        run, deltas, outputs = _go_on(clean, start, stream)
         assert run.rejected["internal_error"] == 0, run.last_error
-        assert [run.deltas[i] for i in valid_at] == clean.deltas, "a valid message was handled differently"
+        assert [run.deltas[i] for i in valid_at] == deltas, "a valid message was handled differently"
         assert run.finish_delta == clean.finish_delta
         if all(sum(run.deltas[i].values()) for i in hostile_at):          # every hostile message refused
-            assert run.outputs == clean.outputs, "a refused message changed what the stage published"
+            assert run.outputs == outputs, "a refused message changed what the stage published"
 
     check()
 
@@ -356,11 +384,73 @@ def test_any_message_with_any_stamp_raises_nothing_and_outputs_stay_finite(world
     probe = build_stage(world, *case)
     ports = [p.topic for p in probe.inputs()]
     valid = _valid_stream(probe, streams)
+    clean = _clean(world, case, valid)
 
-    @settings(PROPERTY, max_examples=3)
-    @given(mixed_streams(valid, ports, any_stamp=True))
+    @settings(PROPERTY, max_examples=EXAMPLES[case[0]] // 3)
+    @given(mixed_streams(valid, ports, sorted(clean.snapshots), any_stamp=True))
     def check(mixed):
-        run = Run(world, case, mixed[0])          # outputs checked finite as they come
+        run = _go_on(clean, mixed[0], mixed[1])[0]          # outputs checked finite as they come
         assert run.rejected["internal_error"] == 0, run.last_error
 
     check()
+
+
+#: the absurd values the sweep sets every field to
+ABSURD = [math.nan, 1e308, -1e308, -1.0]
+#: which snapshot the sweep goes on from: the 0.7 one, the last for the IMU (its streams are long)
+SWEEP_FROM = {"imu": -1}
+
+
+def _sweep(valid, ports, start: int) -> Iterator[tuple[str, Any]]:
+    """Every field of every port's message set absurd, one at a time: ``(what, (topic, msg))``, the
+    message stamped just after the valid one of its topic before ``start``."""
+    from diagnostic_msgs.msg import KeyValue
+    from std_msgs.msg import String
+    for topic in ports:
+        before = [(s, m) for s, t, m in valid[:start] if t == topic]
+        after = [(s, m) for s, t, m in valid[start:] if t == topic]
+        if not before and not after:
+            continue
+        stamp, base = (before[-1][0] + 1, before[-1][1]) if before else (after[0][0] - 1, after[0][1])
+        for v in ABSURD:
+            if topic == "wifi/scan_json":
+                doc = json.loads(base.data)
+                for key in ("rssi", "frequency_mhz", "last_seen_ms"):
+                    bad = copy.deepcopy(doc)
+                    bad["data"][0][key] = v
+                    yield f"{topic} {key}={v}", (stamp, topic, String(data=json.dumps(bad)))
+            elif topic in ("wifi/scan", "wifi/scan_raw"):
+                for key in ("rssi_dbm", "frequency_mhz", "age_ms"):
+                    msg = copy.deepcopy(base)
+                    ap = msg.status[1]
+                    ap.values = [kv for kv in ap.values if kv.key != key] + [KeyValue(key=key, value=repr(v))]
+                    yield f"{topic} {key}={v}", (stamp, topic, _restamp(msg, stamp))
+            else:
+                for group in _groups(base):
+                    msg = copy.deepcopy(base)
+                    for path in group:
+                        _set(msg, path, v)
+                    yield f"{topic} {'.'.join(map(str, group[0][:-1]))}={v}", (stamp, topic, _restamp(msg, stamp))
+
+
+@pytest.mark.parametrize("case", INPUT_CASES, ids=IDS)
+def test_every_field_of_every_port_set_absurd_keeps_the_stage_promises(world, streams, case):
+    """The systematic companion of the property above: each field (a vector, a quaternion, a covariance,
+    a scan value) of each port's message set to NaN, +-1e308 or -1, late in the stream (the estimators
+    started)."""
+    probe = build_stage(world, *case)
+    ports = [p.topic for p in probe.inputs()]
+    valid = _valid_stream(probe, streams)
+    clean = _clean(world, case, valid)
+    start = sorted(clean.snapshots)[SWEEP_FROM.get(case[0], -2)]
+    failures = []
+    for what, hostile in _sweep(valid, ports, start):
+        run, deltas, outputs = _go_on(clean, start, [hostile] + valid[start:])
+        if run.rejected["internal_error"]:
+            failures.append(f"{what}: internal_error {run.last_error.splitlines()[0]}")
+        elif run.deltas[1:] != deltas or run.finish_delta != clean.finish_delta:
+            failures.append(f"{what}: later valid messages handled differently {run.rejected}")
+        elif sum(run.deltas[0].values()) and run.outputs != outputs:
+            failures.append(f"{what}: refused, but the outputs changed")
+    assert not failures, failures
+
