@@ -115,9 +115,9 @@ class Bound:
 #: Yaw (or yaw-rate) variance meaning "unknown" in ``pdr/odom``, ``wifi/fix`` and the estimates, rad²
 #: (robot_localization's "ignore this axis"); the largest variance an angle may carry.
 VAR_UNKNOWN = 1e6
-#: Relative tolerance of the covariance checks: ``|C - C^T| <= COV_RTOL * max(1, max|C|)`` (symmetric
-#: within rounding) and every eigenvalue ``>= -COV_RTOL * max(1, max|C|)`` (positive semi-definite
-#: within rounding).
+#: Relative tolerance of the covariance checks: ``|C_ij - C_ji| <= COV_RTOL * max(|C_ii|, |C_jj|,
+#: |C_ij|, |C_ji|)`` (symmetric within rounding) and every principal minor at least ``-COV_RTOL`` times
+#: the product of its variances (positive semi-definite within rounding; msg_adapters/plausible.py).
 COV_RTOL = 1e-9
 #: A map-frame position (``wifi/fix``, ``initialpose``) farther than this outside the stage's map
 #: (bounding box of the building graph, the radio map's scan positions) is ``off_map``, m.
