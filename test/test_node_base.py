@@ -227,7 +227,8 @@ def test_live_node_drops_bad_messages_and_reports_diagnostics(ros_domain, tmp_pa
                 peer.output()
 
             good = [(1_000_000_000 + i, np.array([0.5 * i, -1.0 - i, 9.8])) for i in range(3)]
-            sequence = [imu_to_msg(good[0][0], "f", good[0][1]), _bad("nan_acc", 5), _bad("inf_gyro", 6),
+            sequence = [imu_to_msg(good[0][0], "f", good[0][1]), _bad("nan_acc", good[0][0]),
+                        _bad("inf_gyro", good[0][0]),
                         imu_to_msg(good[1][0], "f", good[1][1]), _bad("negative_stamp", 0),
                         imu_to_msg(good[2][0], "f", good[2][1])]
             for msg in sequence:

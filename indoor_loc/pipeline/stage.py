@@ -292,8 +292,10 @@ class Stage:
             return None
         stamp = header.stamp
         sec, nsec = int(stamp.sec), int(stamp.nanosec)
-        if sec < 0 or not 0 <= nsec < 1_000_000_000:
-            raise InvalidInputError("bad_stamp", f"{topic}: header.stamp {sec}.{nsec:09d} s is not a valid time")
+        if sec < 0:
+            raise InvalidInputError("negative_stamp", f"{topic}: header.stamp {sec}.{nsec:09d} s is before the epoch")
+        if not 0 <= nsec < 1_000_000_000:
+            raise InvalidInputError("bad_stamp", f"{topic}: header.stamp nanosec {nsec} outside [0, 1e9)")
         return sec * 1_000_000_000 + nsec
 
     def stamp_order(self, topic: str) -> Order:
