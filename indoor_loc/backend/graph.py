@@ -205,6 +205,73 @@ class SolveReport:
     cost0: float
     cost: float
     wall_s: float
+    #: False when the time budget ran out first (the estimates are the best the solver had reached)
+    completed: bool = True
+
+
+class _OutOfTime(Exception):
+    """The solver's time budget ran out (raised from inside its evaluations, caught by the caller)."""
+
+
+@dataclass
+class _Best:
+    """The lowest-cost point a solver evaluated so far."""
+    z: np.ndarray
+    cost: float
+    nfev: int = 0
+
+
+def _with_deadline(fun, jac, z0: np.ndarray, r0: np.ndarray, deadline: float):
+    """``fun`` and ``jac`` raising :class:`_OutOfTime` once ``time.monotonic()`` is past ``deadline``,
+    ``fun`` keeping the lowest-cost point it evaluated (a trust-region solver's accepted iterate is
+    its lowest-cost evaluation so far, so that is where the solver was when it was stopped)."""
+    best = _Best(z0.copy(), 0.5 * float(r0 @ r0))
+
+    def timed_fun(z):
+        if time.monotonic() > deadline:
+            raise _OutOfTime
+        r = fun(z)
+        best.nfev += 1
+        cost = 0.5 * float(r @ r)
+        if cost < best.cost:
+            best.z, best.cost = z.copy(), cost
+        return r
+
+    def timed_jac(z):
+        if time.monotonic() > deadline:
+            raise _OutOfTime
+        return jac(z)
+
+    return timed_fun, timed_jac, best
+
+
+@dataclass(frozen=True)
+class _Factored:
+    """A solve's Jacobian and the LU factors of its information matrix JᵀJ (+ 1e-9 I, so a variable
+    no factor constrains does not make it singular); ``lu`` None if that failed."""
+    jac: Any
+    lu: Any
+
+    @classmethod
+    def of(cls, J: Any) -> "_Factored":
+        J = sp.csr_matrix(J)
+        H = (J.T @ J).tocsc()
+        try:
+            # H is symmetric: a minimum-degree ordering of its own pattern, diagonal pivots (about half
+            # the fill of the default column ordering of a general matrix)
+            lu = splu(H + sp.identity(H.shape[0], format="csc") * 1e-9, permc_spec="MMD_AT_PLUS_A",
+                      options={"SymmetricMode": True})
+        except RuntimeError:
+            lu = None
+        return cls(J, lu)
+
+    def cov(self, c: int) -> np.ndarray | None:
+        """(3, 3) block of (JᵀJ)⁻¹ at columns ``c..c+3``."""
+        if self.lu is None:
+            return None
+        E = np.zeros((self.lu.shape[0], 3))
+        E[c:c + 3] = np.eye(3)
+        return self.lu.solve(E)[c:c + 3]
 
 
 class _Growing:
@@ -519,10 +586,24 @@ class MultiUserGraph:
         return pose_map
 
     # -- optimisation ---------------------------------------------------------------------------
-    def optimize(self, *, max_iterations: int | None = None) -> SolveReport | None:
-        """Optimise every active (not frozen) pose and the step lengths of their users."""
+    def optimize(self, *, max_iterations: int | None = None, deadline: float | None = None) -> SolveReport | None:
+        """Optimise every active (not frozen) pose and the step lengths of their users.
+
+        ``deadline`` (``time.monotonic()`` seconds; None = none): the solver stops at the first
+        residual or Jacobian evaluation after it and the estimates are those of the lowest cost it
+        evaluated (never worse than the start); the report says ``completed=False``. The solver is
+        checked between evaluations, so it may overrun the deadline by one of its steps."""
         var = np.flatnonzero(~self.poses.view("frozen"))
-        return self._solve(var, max_iterations or self.params.max_iterations)
+        return self._solve(var, max_iterations or self.params.max_iterations, deadline)
+
+    def solved_users(self) -> list[str]:
+        """Names of the users (current tracks) with a pose among the last solve's variables."""
+        last = self._last_J
+        if last is None:
+            return []
+        var = last[2]
+        idx = set(np.unique(self.poses.user[var[var < self.poses.n]]).tolist())
+        return [u for u, tr in self.users.items() if tr.index in idx]
 
     def optimize_window(self, name: str) -> SolveReport | None:
         """Optimise the user's last ``window_poses`` poses (and its step length); the rest constant."""
@@ -531,32 +612,39 @@ class MultiUserGraph:
         var = var[~self.poses.frozen[var]]
         return self._solve(var, self.params.window_iterations)
 
-    def _solve(self, var: np.ndarray, max_iter: int) -> SolveReport | None:
+    def _solve(self, var: np.ndarray, max_iter: int, deadline: float | None = None) -> SolveReport | None:
         t0 = time.perf_counter()
         prob = self.problem(var)
         if prob is None:
             return None
         fun, jac, z0, unpack, n_factors = prob
         r0 = fun(z0)
-        if len(z0) <= 120 and len(r0) >= len(z0):
-            # small windows: MINPACK's Levenberg-Marquardt on the dense Jacobian (a few ms)
-            sol = least_squares(fun, z0, jac=lambda z: jac(z).toarray(), method="lm", max_nfev=max_iter)
-        else:
-            # the whole graph: trust-region reflective with LSMR on the sparse Jacobian; columns scaled
-            # by their Jacobian norms (the weak gauge priors make the raw problem ill-conditioned, and
-            # LSMR then needs hundreds of products per step) and inexact steps (LSMR tolerance 1e-4,
-            # inexact Newton): the same final cost to 0.1 % at a fifth of the time
-            sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale="jac", tr_solver="lsmr",
-                                tr_options={"atol": 1e-4, "btol": 1e-4})
-        Xc, L = unpack(sol.x)
+        if deadline is not None:
+            fun, jac, best = _with_deadline(fun, jac, z0, r0, deadline)
+        completed = True
+        try:
+            if len(z0) <= 120 and len(r0) >= len(z0):
+                # small windows: MINPACK's Levenberg-Marquardt on the dense Jacobian (a few ms)
+                sol = least_squares(fun, z0, jac=lambda z: jac(z).toarray(), method="lm", max_nfev=max_iter)
+            else:
+                # the whole graph: trust-region reflective with LSMR on the sparse Jacobian; columns scaled
+                # by their Jacobian norms (the weak gauge priors make the raw problem ill-conditioned, and
+                # LSMR then needs hundreds of products per step) and inexact steps (LSMR tolerance 1e-4,
+                # inexact Newton): the same final cost to 0.1 % at a fifth of the time
+                sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale="jac",
+                                    tr_solver="lsmr", tr_options={"atol": 1e-4, "btol": 1e-4})
+            z_end, cost, nfev = sol.x, float(sol.cost), int(sol.nfev)
+        except _OutOfTime:
+            completed = False
+            z_end, cost, nfev = best.z, best.cost, best.nfev
+        Xc, L = unpack(z_end)
         Xc[var, 2] = F.wrap(Xc[var, 2])
         self.poses.x[:self.poses.n] = Xc
         self.step_len = L
         col = np.full(self.poses.n, -1, np.int64)
         col[var] = 3 * np.arange(len(var))
-        self._last_J = (jac, sol.x.copy(), var, col)     # J at the optimum: evaluated by marginal_cov
-        rep = SolveReport(len(var), n_factors, int(sol.nfev), 0.5 * float(r0 @ r0), float(sol.cost),
-                          time.perf_counter() - t0)
+        self._last_J = (prob[1], z_end.copy(), var, col)     # J at the optimum: evaluated by marginal_cov
+        rep = SolveReport(len(var), n_factors, nfev, 0.5 * float(r0 @ r0), cost, time.perf_counter() - t0, completed)
         self.last_solve = rep
         return rep
 
@@ -718,7 +806,12 @@ class MultiUserGraph:
 
     def marginal_cov(self, pose: int) -> np.ndarray | None:
         """(3, 3) covariance of a pose from the last solve's information matrix JᵀJ (None if that
-        pose was not a variable then)."""
+        pose was not a variable then).
+
+        The information matrix is factorised once per solve, at the first call (the end of input
+        asks every user's newest pose: one factorisation of the whole graph per user made the
+        finish quadratic in the number of users); each call is then one solve with three right-hand
+        sides. :meth:`marginal_cov_plain` is the same without the cache (the oracle of the tests)."""
         last = self._last_J
         if last is None:
             return None
@@ -726,18 +819,25 @@ class MultiUserGraph:
         c = int(col[pose]) if pose < len(col) else -1
         if c < 0:
             return None
-        if callable(J):                  # the first call since the solve evaluates J, once
-            J = J(z)
+        if not isinstance(J, _Factored):     # the first call since the solve factorises JᵀJ, once
+            J = _Factored.of(J(z) if callable(J) else J)
             self._last_J = (J, z, var, col)
-        J = sp.csr_matrix(J)
-        H = (J.T @ J).tocsc()
-        try:
-            lu = splu(H + sp.identity(H.shape[0], format="csc") * 1e-9)
-        except RuntimeError:
+        return J.cov(c)
+
+    def marginal_cov_plain(self, pose: int) -> np.ndarray | None:
+        """:meth:`marginal_cov` without the cached factorisation: JᵀJ built and factorised anew."""
+        last = self._last_J
+        if last is None:
             return None
-        E = np.zeros((H.shape[0], 3))
-        E[c:c + 3] = np.eye(3)
-        return lu.solve(E)[c:c + 3]
+        J, z, var, col = last
+        c = int(col[pose]) if pose < len(col) else -1
+        if c < 0:
+            return None
+        if isinstance(J, _Factored):
+            J = J.jac
+        elif callable(J):
+            J = J(z)
+        return _Factored.of(J).cov(c)
 
     # -- outputs ---------------------------------------------------------------------------------
     def trajectory(self, name: str) -> tuple[np.ndarray, np.ndarray]:

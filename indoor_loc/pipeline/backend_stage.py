@@ -54,6 +54,7 @@ import bisect
 import dataclasses
 import heapq
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -98,6 +99,10 @@ class BackendParams(GraphParams):
                                     "then they go on without it, s")
     path_period_s: float = pfield(0.0, "republish a user's path at most this often (stamp time, after a window "
                                        "optimisation), s; 0 = only when the user finishes and at the end")
+    finish_budget_s: float = pfield(4.0, "end of input: the whole-graph optimisation and the final poses' "
+                                         "covariances take at most about this long (wall clock), s; every path "
+                                         "is published from the best state reached and the users whose final "
+                                         "optimisation did not complete are named; 0 = no limit")
     save_map: str = pfield("", "directory to save the evolving WiFi map to at the end (radio map format); '' = no")
     frame_id: str = pfield("map", "frame of the estimates")
     time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py); "
@@ -116,6 +121,7 @@ class BackendParams(GraphParams):
                 "> reorder_window_s (a message late within the window is not a jump)", self.time.jump_s)
         require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
         require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
+        require(self.finish_budget_s >= 0, n, "finish_budget_s", ">= 0", self.finish_budget_s)
         require(all(isinstance(u, str) and u.strip("/") for u in self.users), n, "users", "namespace names",
                 self.users)
         GraphParams.validate(self)
@@ -187,6 +193,12 @@ class _FloorRuns:
             del self.first[:k], self.last[:k], self.z[:k]
 
 
+def _names(users: list[str], most: int = 10) -> str:
+    """``a, b, c`` (the first ``most``, then how many more)."""
+    more = f" and {len(users) - most} more" if len(users) > most else ""
+    return ", ".join(users[:most]) + more
+
+
 class BackendStage(Stage):
     """Multi-user factor-graph back-end: <user>/pdr/odom + <user>/wifi/scan -> backend/<user>/{pose,path}."""
     NODE_NAME = NODE_NAME
@@ -213,6 +225,8 @@ class BackendStage(Stage):
                                      np.vstack([self._drawn_survey, survey.positions]))
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._seq = 0
+        #: what the end of input's time budget cut short (``finish.*`` in /diagnostics; empty before it)
+        self.finish_report: dict[str, str] = {}
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/scan", self._on_scan)
         if params.wifi_source == "fix":
@@ -428,23 +442,60 @@ class BackendStage(Stage):
         return outs
 
     def finish(self) -> list[Output]:
-        """End of input: take everything, optimise the whole graph, publish every path and the map."""
+        """End of input: take everything, optimise the whole graph, publish every path and the map.
+
+        Bounded by ``finish_budget_s`` of wall clock (a stopping node has a few seconds): the
+        optimisation stops at the budget with the best estimates it reached (the live window
+        optimisations already made good tracks), every user's path is published from them, and then
+        each user's newest pose with its covariance while the budget lasts. What the budget cut short
+        is said once (a notice) and in ``/diagnostics`` (``finish.*``)."""
+        budget = self.params.finish_budget_s
+        deadline = time.monotonic() + budget if budget > 0 else None
         outs: list[Output] = []
         for user in list(self.inputs_by_user):
             outs += self._release(user, everything=True)
         if not self.graph.poses.n:
             return outs
-        self.graph.optimize()
+        rep = self.graph.optimize(deadline=deadline)
         users = self._started_users()
-        outs += [self._pose_output(u) for u in users]
         outs += [self._path_output(u) for u in users]
+        # each user's newest pose with its marginal covariance (one factorisation, then a solve per
+        # user): while the budget lasts; the others keep the pose their window optimisation published
+        posed = 0
+        for u in users:
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            outs.append(self._pose_output(u))
+            posed += 1
         # every track's newest pose: a user restarted by a jump back may not have a pose on its new track yet
         end = int(self.graph.poses.view("stamp").max())
         outs.append(self._map_output(end))
         if self.params.save_map:
             save_radiomap(self.graph.wifi_radio_map(), Path(self.params.save_map).expanduser(),
                           created_by="indoor_loc backend_node")
+        self._say_finish(rep, users, posed, budget)
         return outs
+
+    def _say_finish(self, rep, users: list[str], posed: int, budget_s: float) -> None:
+        """The notice and ``finish.*`` diagnostics of :meth:`finish`: whose final optimisation the
+        budget cut short, whose final pose was not published."""
+        incomplete = self.graph.solved_users() if rep is not None and not rep.completed else []
+        unposed = users[posed:]
+        self.finish_report = {"finish.users": str(len(users)),
+                              "finish.optimisation": ("none" if rep is None else "completed" if rep.completed
+                                                      else f"stopped at the {budget_s:g} s budget"),
+                              "finish.incomplete_users": str(len(incomplete)),
+                              "finish.incomplete": ",".join(incomplete),
+                              "finish.final_poses_not_published": str(len(unposed))}
+        if rep is not None and not rep.completed:
+            self.notice(f"end of input: the whole-graph optimisation stopped at the {budget_s:g} s budget "
+                        f"(finish_budget_s) after {rep.iterations} evaluations, cost {rep.cost0:.4g} -> "
+                        f"{rep.cost:.4g}; the paths of all {len(users)} users are published from that state, the "
+                        f"final optimisation of {len(incomplete)} did not complete: {_names(incomplete)}")
+        if unposed:
+            self.notice(f"end of input: the {budget_s:g} s budget ran out before the final pose (with its "
+                        f"covariance) of {len(unposed)} of {len(users)} users; their last published pose stands: "
+                        f"{_names(unposed)}")
 
     def extra_diagnostics(self) -> dict[str, str]:
         out = {k: str(v) for k, v in self.graph.counts().items()}
@@ -473,6 +524,7 @@ class BackendStage(Stage):
             out["fix_wait.lag_max_s"] = f"{max((b.max_fix_lag_ns for b in bs), default=0) * 1e-9:.2f}"
             out["fix_wait.scans_given_up"] = str(sum(b.scans_given_up for b in bs))
             out["fix_wait.scans_waiting"] = str(sum(len(b.pending_scans) for b in bs))
+        out.update(self.finish_report)
         if self.graph.last_solve is not None:
             s = self.graph.last_solve
             out["last_solve.poses"] = str(s.n_poses)
