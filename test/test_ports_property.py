@@ -31,12 +31,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 import test_contract_ports
+from indoor_loc.bench import hostile as hostile_msgs
 from test_contract_ports import CASES, build_stage
 from indoor_loc.bag import read_bag
 from msg_adapters.pose import pose_to_msg
-from msg_adapters.time import MAX_STAMP_NS, stamp_from_ns
+from msg_adapters.time import MAX_STAMP_NS
 from msg_adapters.wifi_json import scan_to_json_msg
-from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
+from msg_adapters.wifi_scan import scan_from_msg
 
 SEC = 1_000_000_000
 #: the simulated world (a module fixture) every stage is built from, as in test_contract_ports
@@ -48,11 +49,8 @@ USER = "walker0"
 LIGHTER = {"pf": {"n_particles": 200, "smooth_samples": 10}}
 INPUT_CASES = [(n, o) for n, o in CASES if not (n == "wifi_scan" and o.get("source", "topic") != "topic")]
 
-#: absurd values, and extreme ones just inside the contract's bounds (they reach the estimators)
-HOSTILE_FLOATS = [math.nan, math.inf, -math.inf, 1e308, -1e308, -1.0, 0.0, 1e6, -1e6, 1e-300, -1e-300, 5e4,
-                  1e12, 3.0, -0.5, 9.9e4, -9.9e4, 1e10, 1e-6, 1e-9, 199.0, -99.0, 4.9e-3, 9.99e6]
-hostile_float = st.one_of(st.sampled_from(HOSTILE_FLOATS), st.sampled_from(HOSTILE_FLOATS),
-                          st.floats(allow_nan=True, allow_infinity=True))
+#: hostile values and messages per port: shared with the fault benchmark (indoor_loc/bench/hostile.py)
+HOSTILE_FLOATS, hostile_float = hostile_msgs.HOSTILE_FLOATS, hostile_msgs.hostile_float
 
 
 # -- the valid streams ------------------------------------------------------------------------------
@@ -173,141 +171,11 @@ def _clean(world, case, valid) -> Run:
 
 
 # -- hostile messages -------------------------------------------------------------------------------
-def _numeric_leaves(msg, prefix=()) -> list[tuple]:
-    """Paths to every float field and float-array element of a message (not the stamp's integers)."""
-    out = []
-    for name, typ in msg.get_fields_and_field_types().items():
-        v = getattr(msg, name)
-        if typ in ("double", "float"):
-            out.append(prefix + (name,))
-        elif typ.startswith("double[") or typ.startswith("float["):
-            out += [prefix + (name, i) for i in range(len(v))]
-        elif hasattr(v, "get_fields_and_field_types"):
-            out += _numeric_leaves(v, prefix + (name,))
-    return out
-
-
-def _set(msg, path, value) -> None:
-    *head, last = path
-    obj = msg
-    for p in head:
-        obj = getattr(obj, p)
-    if isinstance(last, int):
-        obj[last] = value
-    else:
-        setattr(obj, last, value)
-
-
-def _array_fields(msg, prefix=()) -> list[tuple[tuple, int]]:
-    out = []
-    for name, typ in msg.get_fields_and_field_types().items():
-        v = getattr(msg, name)
-        if typ.startswith("double["):
-            out.append((prefix + (name,), len(v)))
-        elif hasattr(v, "get_fields_and_field_types"):
-            out += _array_fields(v, prefix + (name,))
-    return out
-
-
-def _groups(msg) -> list[list[tuple]]:
-    """The numeric leaves grouped by the field holding them (a vector, a quaternion, a covariance), so
-    each field is as likely to be picked as any other however many numbers it holds."""
-    groups: dict[tuple, list[tuple]] = {}
-    for path in _numeric_leaves(msg):
-        groups.setdefault(path[:-1], []).append(path)
-    return list(groups.values())
-
-
-@st.composite
-def numeric_mutation(draw, base):
-    """A copy of ``base`` with one field (a vector, quaternion or covariance) hostile, wholly or in one or
-    two of its numbers, or a covariance array at random."""
-    msg = copy.deepcopy(base)
-    if draw(st.integers(0, 3)) == 0:
-        arrays = _array_fields(msg)
-        path, n = draw(st.sampled_from(arrays))
-        values = draw(st.lists(st.one_of(hostile_float, st.floats(-10, 10)), min_size=n, max_size=n))
-        obj = msg
-        for p in path[:-1]:
-            obj = getattr(obj, p)
-        setattr(obj, path[-1], np.array(values, dtype=np.float64))
-        return msg
-    group = draw(st.sampled_from(_groups(msg)))
-    if draw(st.booleans()):                 # the whole vector / quaternion / covariance
-        value = draw(hostile_float)
-        for path in group:
-            _set(msg, path, value)
-    else:
-        for path in draw(st.lists(st.sampled_from(group), min_size=1, max_size=2)):
-            _set(msg, path, draw(hostile_float))
-    return msg
-
-
-_HUGE: dict[str, Any] = {}
-
-
-def _huge_scan() -> Any:
-    """A valid 10 000-AP scan (made once; :func:`_restamp` stamps it where it goes)."""
-    if "scan" not in _HUGE:
-        from indoor_loc.wifi.types import WifiScan
-        rng = np.random.default_rng(5)
-        n = 10_000
-        bssid = tuple(f"00:{i >> 16 & 255:02x}:{i >> 8 & 255:02x}:{i & 255:02x}:00:01" for i in range(n))
-        _HUGE["scan"] = scan_to_msg(WifiScan(stamp_ns=0, bssid=bssid, rssi_dbm=rng.uniform(-100, -30, n),
-                                             freq_mhz=np.full(n, 2412.0), ssid=("big",) * n))
-    return _HUGE["scan"]
-
-
-@st.composite
-def scan_mutation(draw, base):
-    """A hostile ``wifi_scan.v1`` DiagnosticArray from a valid one."""
-    kind = draw(st.sampled_from(["value"] * 4 + ["name", "summary", "empty", "huge"]))
-    if kind == "huge":
-        return _huge_scan()
-    msg = copy.deepcopy(base)
-    if kind == "empty":
-        msg.status = msg.status[:draw(st.integers(0, 1))]
-        return msg
-    if kind == "summary":
-        kv = draw(st.sampled_from(msg.status[0].values))
-        kv.value = draw(st.text(max_size=12))
-        return msg
-    ap = draw(st.sampled_from(msg.status[1:]))
-    if kind == "name":
-        ap.name = draw(st.text(max_size=20))
-        return msg
-    from diagnostic_msgs.msg import KeyValue
-    key = draw(st.sampled_from(["rssi_dbm", "frequency_mhz", "age_ms"]))
-    value = draw(st.one_of(hostile_float.map(repr), st.text(max_size=8)))
-    ap.values = [kv for kv in ap.values if kv.key != key] + [KeyValue(key=key, value=value)]
-    return msg
-
-
-@st.composite
-def json_mutation(draw, base):
-    """Hostile JSON text from a valid scan document: random text, or absurd numbers in it."""
-    from std_msgs.msg import String
-    if draw(st.booleans()):
-        return String(data=draw(st.text(max_size=40)))
-    doc = json.loads(base.data)
-    entry = draw(st.sampled_from(doc["data"]))
-    key = draw(st.sampled_from(["rssi", "frequency_mhz", "frequency_GHz", "last_seen_ms", "mac"]))
-    entry[key] = draw(st.one_of(hostile_float, st.text(max_size=8)))
-    return String(data=json.dumps(doc))
-
-
-def hostile_for(topic: str, base):
-    if topic in ("wifi/scan", "wifi/scan_raw"):
-        return scan_mutation(base)
-    if topic == "wifi/scan_json":
-        return json_mutation(base)
-    return numeric_mutation(base)
-
-
-def _restamp(msg, stamp_ns: int):
-    if hasattr(msg, "header"):
-        msg.header.stamp = stamp_from_ns(stamp_ns)
-    return msg
+_numeric_leaves, _set, _groups = hostile_msgs.numeric_leaves, hostile_msgs.set_path, hostile_msgs.leaf_groups
+_array_fields, _huge_scan = hostile_msgs.array_fields, hostile_msgs.huge_scan
+numeric_mutation, scan_mutation, json_mutation = (hostile_msgs.numeric_mutation, hostile_msgs.scan_mutation,
+                                                  hostile_msgs.json_mutation)
+hostile_for, _restamp = hostile_msgs.hostile_for, hostile_msgs.restamp
 
 
 @st.composite

@@ -28,17 +28,18 @@ import argparse
 import dataclasses
 import json
 import os
+import signal
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from indoor_loc.bench.chaos_faults import (RECOVERY_S, SEC, Row, Trial, World, hostile_plan, judge, load_world,
-                                           run_trial)
+from indoor_loc.bench.chaos_faults import (RECOVERY_S, SEC, Row, Trial, World, empty_plan, hostile_plan, judge,
+                                           load_world, run_trial)
 
 #: Hostile phase: the first two thirds of the stream.
 HOSTILE_SHARE = 2 / 3
-FAULTS = ("hostile", "kill", "loop")
+FAULTS = ("hostile", "empty", "kill", "loop")
 
 
 def bench_env() -> dict[str, str]:
@@ -75,7 +76,12 @@ def format_rows(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
+    signal.signal(signal.SIGTERM, _interrupt)        # stop the node processes on the way out, as on Ctrl-C
     if getattr(args, "soak", 0.0):
         from indoor_loc.bench.chaos_soak import run_soak
         return run_soak(args)
@@ -105,6 +111,11 @@ def run(args: argparse.Namespace) -> int:
         _say(clean, log)
         if "hostile" in faults:
             rows += _hostile(world, clean, env, rate, cases, work, result, log)
+        if "empty" in faults:
+            phase_end = world.t0_ns + int(world.span_s * HOSTILE_SHARE * SEC)
+            t = run_trial(world, "empty samples", env, rate, work, plan=empty_plan(world, phase_end), log=log)
+            _say(t, log)
+            rows += judge(t, clean, world, from_ns=phase_end + int(RECOVERY_S * SEC))
         if "kill" in faults:
             for key in (kills or list(clean.nodes)):
                 if key not in clean.nodes:

@@ -50,6 +50,7 @@ class NodeRecord:
     max_diag_gap_s: float = 0.0
     diag_gaps: list[tuple[float, float]] = field(default_factory=list)   # (wall at end of gap, gap s) > HANG_S
     values: dict[str, str] = field(default_factory=dict)   # the last /diagnostics values
+    settled: dict[str, str] = field(default_factory=dict)  # ... once the playback was worked off, before the stop
     probe_sent: float | None = None
     probe_max_s: float = 0.0
     probes_unanswered: int = 0
@@ -78,8 +79,11 @@ class Harness:
         self._clock_rate = 1.0
         self._playing = False
         self._last_tick = 0.0
+        from rclpy.signals import SignalHandlerOptions
         self.ctx = Context()
-        rclpy.init(context=self.ctx)
+        # no rclpy signal handlers: Ctrl-C (and SIGTERM, see chaos.run) is a KeyboardInterrupt that
+        # stops the node processes on its way out
+        rclpy.init(context=self.ctx, signal_handler_options=SignalHandlerOptions.NO)
         self.node = Node("bench_chaos", context=self.ctx)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
@@ -337,17 +341,22 @@ class Harness:
                         rcs[rec.key] = rc
         return rcs
 
-    def settle(self, timeout: float = 90.0) -> float:
-        """Wait until no node's input counts grow for 3 diagnostics periods; the seconds it took."""
+    def settle(self, timeout: float = 180.0) -> float:
+        """Wait until the nodes have worked off what was sent: no node's input counts grew for 3
+        diagnostics periods and every live node sent /diagnostics in the last 2 s (a node busy with one
+        message for a while sends none, and its counts stand still). Returns the seconds it took."""
         t0 = time.monotonic()
         prev, still = None, 0
         while still < 3 and time.monotonic() - t0 < timeout:
             time.sleep(1.0)
             self.check_deaths()
+            now = time.monotonic()
             with self.lock:
                 cur = {k: sum(int(v) for kk, v in r.values.items() if kk.startswith("in.") and kk.endswith(".count"))
                        for k, r in self.nodes.items()}
-            still = still + 1 if cur == prev else 0
+                busy = any(r.proc is not None and r.proc.proc.poll() is None and
+                           (r.last_diag_wall is None or now - r.last_diag_wall > 2.0) for r in self.nodes.values())
+            still = still + 1 if cur == prev and not busy else 0
             prev = cur
         return time.monotonic() - t0
 

@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=0.0, help="chaos: replay rate (default 2; --soak 20)")
     parser.add_argument("--cases", type=int, default=0, help="chaos: hostile messages drawn per input port and "
                                                              "walker (default 2000; 10000 for the issue's figure)")
-    parser.add_argument("--faults", default="", help="chaos: comma-separated trials among hostile,kill,loop "
+    parser.add_argument("--faults", default="", help="chaos: comma-separated trials among hostile,empty,kill,loop "
                                                      "(default all; the clean reference always runs)")
     parser.add_argument("--kill-nodes", default="", help="chaos: nodes to kill, e.g. imu_node,tll_pf (default all)")
     parser.add_argument("--soak", type=float, default=0.0, help="chaos: soak instead: HOURS of simulated time at "

@@ -1,0 +1,168 @@
+"""``indoor-loc bench chaos --soak HOURS``: memory and per-message cost of every node over hours of
+simulated time.
+
+The simulated walkers' world (``--walkers``, default 2, ``--duration`` s, default 300; IMU at 50 Hz,
+magnetometer at 25 Hz, a scan every 4 s) is played over and over at ``--rate`` (default 20) to the
+same node processes as :mod:`indoor_loc.bench.chaos`, each pass's stamps shifted by the passes before
+it, so time runs on for HOURS of simulated time without a jump. Every ``SAMPLE_S`` of wall clock,
+per node: resident memory (``VmRSS`` of /proc/<pid>/status), CPU time (/proc/<pid>/stat), messages
+taken (the sum of its ``in.<topic>.count``), ``process_ms.p50``; the per-message cost is the CPU time
+over the messages taken between two samples. Slopes are least-squares fits against simulated hours
+after the first pass (warm-up: the filters, maps and caches fill once).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from indoor_loc.bench.chaos_faults import SEC, load_world, with_stamp
+from indoor_loc.bench.chaos_run import HANG_S, Harness, cpu_s, rss_kb
+
+#: Seconds of wall clock between two samples of every node.
+SAMPLE_S = 20.0
+
+
+def run_soak(args: argparse.Namespace) -> int:
+    from indoor_loc.bench.chaos import bench_env, simulate
+    hours = float(args.soak)
+    walkers = int(getattr(args, "walkers", 0) or 2)
+    duration = float(getattr(args, "duration", 0) or 300.0)
+    rate = float(getattr(args, "rate", 0) or 20.0)
+    env = bench_env()
+    result: dict[str, Any] = {"soak_hours": hours, "walkers": walkers, "world_s": duration, "rate": rate,
+                              "ros_domain_id": env["ROS_DOMAIN_ID"], "samples": []}
+    with tempfile.TemporaryDirectory(prefix="bench_chaos_soak_") as tmp:
+        sim = simulate(Path(tmp), walkers, duration, seed=int(getattr(args, "seed", 7) or 7), imu_hz=50.0)
+        world = load_world(sim)
+        period_ns = world.t1_ns - world.t0_ns + SEC
+        passes = max(1, int(np.ceil(hours * 3600 * SEC / period_ns)))
+        print(f"\n## Soak: {walkers} walkers, {hours:g} h of simulated time ({passes} passes of a {duration:g} s "
+              f"world, stamps running on) at {rate:g}x over DDS (ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}, "
+              f"{os.cpu_count()} CPUs)\n", flush=True)
+        h = Harness(world.walkers, world.sim["params"], env, use_sim_time=False)
+        samples: list[dict[str, Any]] = []
+        try:
+            h.start_nodes()
+            if not h.wait_ready():
+                print("nodes not ready within 120 s", flush=True)
+                return 0
+            t0 = time.monotonic()
+            next_sample = t0
+            sent = 0
+            for k in range(passes):
+                shift = k * period_ns
+                for ns, topic, data in world.stream:
+                    at = t0 + (ns + shift - world.t0_ns) / SEC / rate
+                    now = time.monotonic()
+                    if now >= next_sample:
+                        samples.append(_sample(h, (ns + shift - world.t0_ns) / SEC / 3600, now - t0, sent))
+                        next_sample += SAMPLE_S
+                    if at > now:
+                        time.sleep(at - now)
+                    h.pubs[topic].publish(with_stamp(data, ns + shift) if shift else data)
+                    sent += 1
+            h.settle()
+            samples.append(_sample(h, hours, time.monotonic() - t0, sent))
+            h.check_deaths()
+            result["stop_rcs"] = h.stop_nodes()
+        finally:
+            for r in h.nodes.values():
+                if r.proc is not None and r.proc.proc.poll() is None:
+                    r.proc.stop(timeout=10)
+            h.close()
+    result["samples"] = samples
+    result["nodes"] = summarise(samples, h, warmup_h=period_ns / SEC / 3600)
+    print(format_soak(samples, result["nodes"]), flush=True)
+    for key, s in result["nodes"].items():
+        for b in s["broken"]:
+            print(f"PROMISE BROKEN: soak: {key}: {b}", flush=True)
+    if getattr(args, "json", None):
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def _sample(h: Harness, sim_h: float, wall_s: float, sent: int) -> dict[str, Any]:
+    out: dict[str, Any] = {"sim_h": sim_h, "wall_s": wall_s, "sent": sent, "nodes": {}}
+    with h.lock:
+        recs = list(h.nodes.values())
+    for r in recs:
+        if r.proc is None:
+            continue
+        pid = r.proc.proc.pid
+        v = dict(r.values)
+        out["nodes"][r.key] = {"rss_kb": rss_kb(pid), "cpu_s": cpu_s(pid),
+                               "taken": sum(int(x) for k, x in v.items() if k.startswith("in.") and k.endswith(".count")),
+                               "p50_ms": float(v["process_ms.p50"]) if "process_ms.p50" in v else None,
+                               "lost": int(v.get("lost.total", 0) or 0)}
+    return out
+
+
+def _slope(x: list[float], y: list[float]) -> float | None:
+    if len(x) < 3:
+        return None
+    return float(np.polyfit(np.asarray(x), np.asarray(y), 1)[0])
+
+
+def summarise(samples: list[dict[str, Any]], h: Harness, *, warmup_h: float) -> dict[str, Any]:
+    """Per node: RSS and per-message cost at the start (after warm-up) and the end, and their slopes per
+    simulated hour; deaths and hangs."""
+    out: dict[str, Any] = {}
+    for key, rec in h.nodes.items():
+        rows = [(s["sim_h"], s["nodes"][key]) for s in samples if key in s["nodes"]]
+        rows = [(t, n) for t, n in rows if n["rss_kb"] is not None and n["cpu_s"] is not None]
+        late = [(t, n) for t, n in rows if t >= warmup_h] or rows
+        rss_t = [t for t, _ in late]
+        rss = [n["rss_kb"] / 1024 for _, n in late]
+        cost_t, cost = [], []
+        for (_, a), (tb, b) in zip(late, late[1:]):
+            if b["taken"] > a["taken"]:
+                cost_t.append(tb)
+                cost.append(1e6 * (b["cpu_s"] - a["cpu_s"]) / (b["taken"] - a["taken"]))
+        s = {"rss_mb_start": rss[0] if rss else None, "rss_mb_end": rss[-1] if rss else None,
+             "rss_mb_per_h": _slope(rss_t, rss), "cost_us_start": cost[0] if cost else None,
+             "cost_us_end": cost[-1] if cost else None, "cost_us_per_h": _slope(cost_t, cost),
+             "deaths": len(rec.deaths), "hangs": len(rec.diag_gaps) + rec.probes_unanswered,
+             "lost": rows[-1][1]["lost"] if rows else 0, "broken": []}
+        if s["deaths"]:
+            s["broken"].append(f"{s['deaths']} death(s): " + "; ".join(rec.deaths)[:300])
+        if s["hangs"]:
+            s["broken"].append(f"{s['hangs']} hang(s) (/diagnostics silent or a parameter request unanswered > {HANG_S:g} s)")
+        if s["rss_mb_start"] and s["rss_mb_per_h"] is not None and s["rss_mb_per_h"] * 8 > 0.10 * s["rss_mb_start"]:
+            s["broken"].append(f"memory grows {s['rss_mb_per_h']:+.2f} MB per simulated hour "
+                               f"(from {s['rss_mb_start']:.0f} MB)")
+        if s["cost_us_start"] and s["cost_us_per_h"] is not None and s["cost_us_per_h"] * 8 > 0.25 * s["cost_us_start"]:
+            s["broken"].append(f"per-message cost grows {s['cost_us_per_h']:+.1f} us per simulated hour "
+                               f"(from {s['cost_us_start']:.0f} us)")
+        out[key] = s
+    return out
+
+
+def format_soak(samples: list[dict[str, Any]], nodes: dict[str, Any]) -> str:
+    keys = list(nodes)
+    picks = samples if len(samples) <= 9 else [samples[int(round(i * (len(samples) - 1) / 8))] for i in range(9)]
+    lines = ["| simulated h | wall s | " + " | ".join(f"{k} RSS MB / CPU s / msgs" for k in keys) + " |",
+             "|---|---|" + "---|" * len(keys)]
+    for s in picks:
+        cells = []
+        for k in keys:
+            n = s["nodes"].get(k)
+            cells.append("–" if n is None or n["rss_kb"] is None else
+                         f"{n['rss_kb'] / 1024:.0f} / {n['cpu_s']:.0f} / {n['taken']:,}")
+        lines.append(f"| {s['sim_h']:.2f} | {s['wall_s']:.0f} | " + " | ".join(cells) + " |")
+    lines += ["", "| node | RSS MB after warm-up → end | RSS slope MB/h | per-message cost µs → end | "
+                  "cost slope µs/h | deaths | hangs | lost (counted) |", "|---|---|---|---|---|---|---|---|"]
+
+    def f(v: Any, spec: str) -> str:
+        return "–" if v is None else format(v, spec)
+    for k, s in nodes.items():
+        lines.append(f"| {k} | {f(s['rss_mb_start'], '.0f')} → {f(s['rss_mb_end'], '.0f')} | "
+                     f"{f(s['rss_mb_per_h'], '+.2f')} | {f(s['cost_us_start'], '.0f')} → {f(s['cost_us_end'], '.0f')} | "
+                     f"{f(s['cost_us_per_h'], '+.1f')} | {s['deaths']} | {s['hangs']} | {s['lost']} |")
+    return "\n".join(lines)
