@@ -21,6 +21,7 @@ the stream. Beside the random examples, a sweep sets each field of each port's m
 from __future__ import annotations
 
 import copy
+import copyreg
 import json
 import math
 from collections import Counter
@@ -29,6 +30,7 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
+from scipy.sparse.linalg import SuperLU
 
 import test_contract_ports
 from indoor_loc.bench import hostile as hostile_msgs
@@ -155,6 +157,17 @@ class Run:
         self.last_error = stage.diag.last_error
 
 
+_SHARED: dict[int, Any] = {}
+
+
+def _shared(obj: Any) -> tuple:
+    """copyreg reducer: a copy of ``obj`` is ``obj`` itself (a read-only factorisation, scipy's SuperLU,
+    which cannot be copied, held by the back-end between a solve and its covariances)."""
+    _SHARED[id(obj)] = obj
+    return _SHARED.__getitem__, (id(obj),)
+
+
+copyreg.pickle(SuperLU, _shared)
 #: where the clean run is copied for the examples to go on from: the start, and three points on
 SNAP_FRACTIONS = (0.0, 0.4, 0.7, 0.9)
 _CLEAN: dict[str, Run] = {}
@@ -201,6 +214,9 @@ def mixed_streams(draw, valid: list[tuple[int, str, Any]], ports: list[str], sna
         stamp = before[-1][0] + 1 if before else after[0][0] - 1 if after else valid[0][0]
         if any_stamp:
             stamp = draw(st.integers(0, MAX_STAMP_NS))
+        if msg is _huge_scan():                 # shared: a header of its own to stamp
+            from diagnostic_msgs.msg import DiagnosticArray
+            msg = DiagnosticArray(status=msg.status)
         hostile_at.append(len(stream))
         stream.append((stamp, topic, _restamp(msg, stamp)))
     while k < len(tail):
