@@ -34,7 +34,8 @@ class PoseSample(NamedTuple):
 def pose_to_msg(stamp_ns: int, xy, yaw: float = 0.0, cov_xy=None, *, frame_id: str = "map",
                 yaw_var: float = YAW_VAR_UNKNOWN, z: float = 0.0, z_var: float = 0.0) -> PoseWithCovarianceStamped:
     """A planar PoseWithCovarianceStamped: xy (2,) m, yaw rad, cov_xy (2, 2) m^2 (zeros when None),
-    yaw variance ``yaw_var`` rad^2 (1e6 = unknown); ``z`` m (a floor's height) with variance
+    yaw variance ``yaw_var`` rad^2 (1e6 = unknown; a larger one is written as 1e6, the largest the
+    contract's ``angle_variance`` bound lets a reader take); ``z`` m (a floor's height) with variance
     ``z_var`` m^2."""
     p = as_vector("xy", xy, 2)
     c = np.zeros((2, 2)) if cov_xy is None else as_matrix("cov_xy", cov_xy, 2)
@@ -51,7 +52,7 @@ def pose_to_msg(stamp_ns: int, xy, yaw: float = 0.0, cov_xy=None, *, frame_id: s
     full = np.zeros((6, 6))
     full[:2, :2] = c
     full[2, 2] = float(z_var)
-    full[5, 5] = float(yaw_var)
+    full[5, 5] = min(float(yaw_var), YAW_VAR_UNKNOWN)     # beyond 'unknown' is unknown (the contract's bound)
     msg.pose.covariance = full.ravel().tolist()
     return msg
 

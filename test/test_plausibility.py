@@ -139,6 +139,10 @@ def test_poses_and_fixes_out_of_bounds_are_refused():
     pose_from_msg(pose_to_msg(T0, [1.0, 2.0], 0.5, None))                              # no covariance: zeros
     bad_yaw = pose_to_msg(T0, [1.0, 2.0], 0.5, np.eye(2), yaw_var=-1.0)
     assert _reason(pose_from_msg, bad_yaw) == "bad_covariance"
+    # an estimate whose yaw nothing constrains (a marginal of 1e9 rad²) is written as unknown, so a
+    # reader of the output (indoor-loc eval, the next node) takes it
+    vague = pose_to_msg(T0, [1.0, 2.0], 0.5, np.eye(2), yaw_var=1e9)
+    assert vague.pose.covariance[35] == UNKNOWN_YAW_VAR and pose_from_msg(vague).yaw == pytest.approx(0.5)
 
 
 def test_scan_frequency_and_age_out_of_bounds_are_refused_and_unknown_frequency_passes():
