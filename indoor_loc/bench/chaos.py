@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from indoor_loc.bench.chaos_faults import (RECOVERY_S, SEC, Row, Trial, World, empty_plan, hostile_plan, judge,
+from indoor_loc.bench.chaos_faults import (NODE_MODULES, RECOVERY_S, SEC, Row, Trial, World, empty_plan, hostile_plan, judge,
                                            load_world, run_trial)
 
 #: Hostile phase: the first two thirds of the stream.
@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     cases = int(getattr(args, "cases", 0) or (100 if quick else 2000))
     faults = [f for f in (getattr(args, "faults", "") or ",".join(FAULTS)).split(",") if f]
     kills = [k for k in (getattr(args, "kill_nodes", "") or "").split(",") if k]
+    modules = _modules(getattr(args, "nodes", "") or "")
     env = bench_env()
     t_start = time.monotonic()
     result: dict[str, Any] = {"walkers": walkers, "duration_s": duration, "rate": rate, "cases_per_port": cases,
@@ -107,25 +108,26 @@ def run(args: argparse.Namespace) -> int:
         world = load_world(sim)
         log(f"\n## Fault benchmark: {walkers} walker(s) x {world.span_s:.0f} s simulated, replayed at {rate:g}x "
             f"over DDS (ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}, {os.cpu_count()} CPUs)\n")
-        clean = run_trial(world, "clean", env, rate, work, log=log)
+        opts = {"modules": modules, "log": log}
+        clean = run_trial(world, "clean", env, rate, work, **opts)
         _say(clean, log)
         if "hostile" in faults:
-            rows += _hostile(world, clean, env, rate, cases, work, result, log)
+            rows += _hostile(world, clean, env, rate, cases, work, result, opts)
         if "empty" in faults:
             phase_end = world.t0_ns + int(world.span_s * HOSTILE_SHARE * SEC)
-            t = run_trial(world, "empty samples", env, rate, work, plan=empty_plan(world, phase_end), log=log)
+            t = run_trial(world, "empty samples", env, rate, work, plan=empty_plan(world, phase_end), **opts)
             _say(t, log)
             rows += judge(t, clean, world, from_ns=phase_end + int(RECOVERY_S * SEC))
         if "kill" in faults:
             for key in (kills or list(clean.nodes)):
                 if key not in clean.nodes:
                     key = next((k for k in clean.nodes if k.endswith("/" + key)), key)
-                t = run_trial(world, f"kill {key}", env, rate, work, kill=key, log=log)
+                t = run_trial(world, f"kill {key}", env, rate, work, kill=key, **opts)
                 _say(t, log)
                 ready = t.marks.get("restarted_ready") or t.marks.get("kill", t.wall0)
                 rows += judge(t, clean, world, from_ns=t.stream_ns_at(ready, world.t0_ns) + int(RECOVERY_S * SEC))
         if "loop" in faults:
-            t = run_trial(world, "clock loop", env, rate, work, loop=True, log=log)
+            t = run_trial(world, "clock loop", env, rate, work, loop=True, **opts)
             _say(t, log)
             p2 = t.marks.get("pass2", float("inf"))
             rows += judge(t, t, world, from_ns=world.t0_ns + int(RECOVERY_S * SEC), wall=(p2, float("inf")),
@@ -134,9 +136,10 @@ def run(args: argparse.Namespace) -> int:
     rec = result["recorder"]
     if rec:
         log(f"\nrecorder SIGKILLed at 60 % of the hostile trial, then `indoor-loc bag recover`: "
-            f"{rec.get('recovered', 0):,} messages on {rec.get('topics', 0)} topics recovered "
-            f"({rec.get('sent_before_kill', 0):,} sent by the bench before the kill; bad chunks "
-            f"{rec.get('bad_chunks', '–')}, last chunk cut: {rec.get('truncated', '–')})"
+            f"{rec.get('recovered', 0):,} messages on {rec.get('topics', 0)} topics recovered, "
+            f"{rec.get('recovered_bench', 0):,} of them on the bench's topics, which had been sent "
+            f"{rec.get('sent_before_kill', 0):,} messages before the kill (bad chunks {rec.get('bad_chunks', '–')}, "
+            f"last chunk cut: {rec.get('truncated', '–')})"
             + (f"; ERROR: {rec['error']}" if "error" in rec else ""))
     broken = [(r, b) for r in rows for b in r.broken()]
     for r, b in broken:
@@ -156,8 +159,21 @@ def _say(t: Trial, log) -> None:
     log(f"trial {t.name}: played in {t.play_s:.1f} s" + (f"; {t.note}" if t.note else ""))
 
 
+def _modules(names: str) -> tuple[str, ...]:
+    """``--nodes`` (node names or modules, comma-separated) as node modules; all by default."""
+    from indoor_loc.errors import ConfigError
+    if not names:
+        return tuple(NODE_MODULES)
+    by_name = {v: k for k, v in NODE_MODULES.items()} | {k: k for k in NODE_MODULES}
+    bad = [n for n in names.split(",") if n and n not in by_name]
+    if bad:
+        raise ConfigError(f"--nodes: expected some of {', '.join(NODE_MODULES.values())}, got {', '.join(bad)}")
+    return tuple(by_name[n] for n in names.split(",") if n)
+
+
 def _hostile(world: World, clean: Trial, env: dict[str, str], rate: float, cases: int, work: Path,
-             result: dict[str, Any], log) -> list[Row]:
+             result: dict[str, Any], opts: dict[str, Any]) -> list[Row]:
+    log = opts["log"]
     phase_end = world.t0_ns + int(world.span_s * HOSTILE_SHARE * SEC)
     bases = dict(world.decoded)
     bases.update(clean.bases)
@@ -168,7 +184,7 @@ def _hostile(world: World, clean: Trial, env: dict[str, str], rate: float, cases
     h_rate = min(rate, phase_s * 800.0 / max(1, n))
     if h_rate < rate:
         log(f"  {n:,} hostile messages: replayed at {h_rate:.2f}x to keep them under 800/s")
-    t = run_trial(world, "hostile", env, h_rate, work, plan=plan, recorder_kill_at=0.6, log=log)
+    t = run_trial(world, "hostile", env, h_rate, work, plan=plan, recorder_kill_at=0.6, **opts)
     _say(t, log)
     result["hostile_diagnostics"] = {k: r.values for k, r in t.nodes.items()}
     result["hostile_sent"] = t.sent

@@ -204,7 +204,8 @@ def schedule(stream: list[tuple[int, str, bytes]], t0_ns: int, rate: float,
 
 def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: Path, *,
               plan: Plan | None = None, kill: str = "", kill_at: float = 0.25, recorder_kill_at: float = 0.0,
-              loop: bool = False, log: Callable[[str], None] = print) -> Trial:
+              loop: bool = False, modules: tuple[str, ...] = tuple(NODE_MODULES),
+              log: Callable[[str], None] = print) -> Trial:
     """One trial (see the module docstring of :mod:`indoor_loc.bench.chaos`)."""
     import os
     import signal
@@ -213,7 +214,7 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
     from indoor_loc.bench.live import Proc
     trial = Trial(name, rate, killed=kill)
     extra = [GHOST] if plan is not None and any(t.startswith(f"/{GHOST}/") for _, t, _, _ in plan.events) else []
-    h = Harness(world.walkers, world.sim["params"], env, use_sim_time=loop, extra_ns=extra, log=log)
+    h = Harness(world.walkers, world.sim["params"], env, use_sim_time=loop, extra_ns=extra, modules=modules, log=log)
     rec: Proc | None = None
     rec_out = work / f"{name}.mcap"
     try:
@@ -242,6 +243,7 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
             def kill_recorder() -> None:
                 trial.marks["recorder_kill"] = time.monotonic()
                 trial.recorder["sent_before_kill"] = sum(h.sent.values())
+                trial.recorder["at_s"] = time.monotonic() - trial.wall0
                 os.kill(rec.proc.pid, signal.SIGKILL)
             actions.append((recorder_kill_at * span_wall, kill_recorder))
         clock = clock_ticks(world, rate) if loop else None
@@ -286,6 +288,8 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
     if rec is not None:
         trial.recorder.update(recover_recording(rec_out, work / f"{name}_recovered.mcap"))
         trial.recorder["sent_total"] = sum(trial.sent.values())
+        per = trial.recorder.get("per_topic", {})
+        trial.recorder["recovered_bench"] = sum(per.get(t, 0) for t in trial.sent)
     return trial
 
 
@@ -312,7 +316,7 @@ def recover_recording(src: Path, dst: Path) -> dict[str, Any]:
     except IndoorLocError as err:
         return {"error": str(err)}
     return {"recovered": r.messages, "topics": len(info), "bad_chunks": r.bad_chunks, "truncated": r.truncated,
-            "lost_bytes": r.lost_bytes}
+            "lost_bytes": r.lost_bytes, "per_topic": {t: i.count for t, i in info.items()}}
 
 
 # -- judging a trial --------------------------------------------------------------------------------------

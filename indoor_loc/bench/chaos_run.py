@@ -67,7 +67,8 @@ class Harness:
     """The bench's rclpy node (own context, executor in a thread), the node processes and the playback."""
 
     def __init__(self, walkers: list[str], params: Path, env: dict[str, str], *, use_sim_time: bool,
-                 extra_ns: list[str] | None = None, log: Callable[[str], None] = print) -> None:
+                 extra_ns: list[str] | None = None, modules: tuple[str, ...] = STOP_ORDER,
+                 log: Callable[[str], None] = print) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -75,6 +76,7 @@ class Harness:
 
         self.walkers, self.params, self.env, self.use_sim_time, self.log = walkers, params, env, use_sim_time, log
         self.extra_ns = list(extra_ns or [])
+        self.modules = tuple(m for m in STOP_ORDER if m in modules)   # the nodes to run, in stop order
         self._clock_ns: int | None = None         # sim time: the clock published while not playing
         self._clock_rate = 1.0
         self._playing = False
@@ -246,10 +248,6 @@ class Harness:
         self.ctx.try_shutdown()
 
     # -- node processes ------------------------------------------------------------------------------------
-    def node_keys(self) -> list[str]:
-        keys = [f"/{w}/{NODE_MODULES[m]}" for m in PER_WALKER for w in self.walkers]
-        return keys + [f"/{NODE_MODULES[m]}" for m in SHARED]
-
     def _command(self, module: str, ns: str) -> list[str]:
         cmd = [sys.executable, "-m", f"indoor_loc.nodes.{module}", "--ros-args"]
         if ns:
@@ -260,7 +258,7 @@ class Harness:
         return cmd
 
     def start_nodes(self) -> None:
-        for module in STOP_ORDER:
+        for module in self.modules:
             nss = [f"/{w}" for w in self.walkers] if module in PER_WALKER else [""]
             for ns in nss:
                 key = f"{ns}/{NODE_MODULES[module]}"
@@ -281,6 +279,7 @@ class Harness:
         rec = self.nodes[key]
         assert rec.proc is not None
         rec.killed_by_bench += 1
+        rec.proc._noted = True                     # type: ignore[attr-defined]  # its exit is no death
         os.kill(rec.proc.proc.pid, signal.SIGKILL)
         rec.proc.proc.wait(timeout=10)
 
