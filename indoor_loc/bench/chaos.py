@@ -110,25 +110,25 @@ def run(args: argparse.Namespace) -> int:
             f"over DDS (ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}, {os.cpu_count()} CPUs)\n")
         opts = {"modules": modules, "log": log}
         clean = run_trial(world, "clean", env, rate, work, **opts)
-        _say(clean, log)
+        _say(clean, log, result)
         if "hostile" in faults:
             rows += _hostile(world, clean, env, rate, cases, work, result, opts)
         if "empty" in faults:
             phase_end = world.t0_ns + int(world.span_s * HOSTILE_SHARE * SEC)
             t = run_trial(world, "empty samples", env, rate, work, plan=empty_plan(world, phase_end), **opts)
-            _say(t, log)
+            _say(t, log, result)
             rows += judge(t, clean, world, from_ns=phase_end + int(RECOVERY_S * SEC))
         if "kill" in faults:
             for key in (kills or list(clean.nodes)):
                 if key not in clean.nodes:
                     key = next((k for k in clean.nodes if k.endswith("/" + key)), key)
                 t = run_trial(world, f"kill {key}", env, rate, work, kill=key, **opts)
-                _say(t, log)
+                _say(t, log, result)
                 ready = t.marks.get("restarted_ready") or t.marks.get("kill", t.wall0)
                 rows += judge(t, clean, world, from_ns=t.stream_ns_at(ready, world.t0_ns) + int(RECOVERY_S * SEC))
         if "loop" in faults:
             t = run_trial(world, "clock loop", env, rate, work, loop=True, **opts)
-            _say(t, log)
+            _say(t, log, result)
             p2 = t.marks.get("pass2", float("inf"))
             rows += judge(t, t, world, from_ns=world.t0_ns + int(RECOVERY_S * SEC), wall=(p2, float("inf")),
                           ref_wall=(0.0, p2))
@@ -155,8 +155,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _say(t: Trial, log) -> None:
+def _say(t: Trial, log, result: dict[str, Any] | None = None) -> None:
     log(f"trial {t.name}: played in {t.play_s:.1f} s" + (f"; {t.note}" if t.note else ""))
+    if result is not None:          # what the verdicts were made from, for --json
+        result.setdefault("trials", {})[t.name] = {
+            "rate": t.rate, "play_s": t.play_s, "sent": t.sent, "hostile_sent": t.hostile_sent,
+            "stop_exit": t.stop_rcs, "note": t.note,
+            "nodes": {k: {"settled": r.settled, "deaths": r.deaths, "diag_gaps_s": [g for _, g in r.diag_gaps],
+                          "max_diag_gap_s": r.max_diag_gap_s, "probes": r.probes,
+                          "probes_unanswered": r.probes_unanswered, "probe_max_s": r.probe_max_s}
+                      for k, r in t.nodes.items()}}
 
 
 def _modules(names: str) -> tuple[str, ...]:
@@ -185,9 +193,7 @@ def _hostile(world: World, clean: Trial, env: dict[str, str], rate: float, cases
     if h_rate < rate:
         log(f"  {n:,} hostile messages: replayed at {h_rate:.2f}x to keep them under 800/s")
     t = run_trial(world, "hostile", env, h_rate, work, plan=plan, recorder_kill_at=0.6, **opts)
-    _say(t, log)
-    result["hostile_diagnostics"] = {k: r.values for k, r in t.nodes.items()}
-    result["hostile_sent"] = t.sent
+    _say(t, log, result)
     result["recorder"] = t.recorder
     result["hostile_kinds"] = _kinds(plan)
     return judge(t, clean, world, from_ns=phase_end + int(RECOVERY_S * SEC))

@@ -213,8 +213,8 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
 
     from indoor_loc.bench.live import Proc
     trial = Trial(name, rate, killed=kill)
-    extra = [GHOST] if plan is not None and any(t.startswith(f"/{GHOST}/") for _, t, _, _ in plan.events) else []
-    h = Harness(world.walkers, world.sim["params"], env, use_sim_time=loop, extra_ns=extra, modules=modules, log=log)
+    topics = {t for _, t, _ in world.stream} | ({t for _, t, _, _ in plan.events} if plan is not None else set())
+    h = Harness(world.walkers, world.sim["params"], env, use_sim_time=loop, topics=topics, modules=modules, log=log)
     rec: Proc | None = None
     rec_out = work / f"{name}.mcap"
     try:
@@ -416,6 +416,10 @@ def judge(trial: Trial, ref: Trial, world: World, *, from_ns: int, wall: tuple[f
         deaths = len(rec.deaths)
         hangs = len(rec.diag_gaps) + rec.probes_unanswered
         note = []
+        if rec.diag_gaps:
+            note.append(f"/diagnostics silent {max(g for _, g in rec.diag_gaps):.0f} s")
+        if rec.probes_unanswered:
+            note.append(f"{rec.probes_unanswered} parameter request(s) unanswered for {HANG_S:g} s")
         if rec.key in trial.stop_rcs and trial.stop_rcs[rec.key] != 0:
             note.append(f"stop exit {trial.stop_rcs[rec.key]}")
         # silent losses: what was sent to its inputs against what it booked (processed or rejected by

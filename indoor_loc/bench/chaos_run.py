@@ -67,7 +67,7 @@ class Harness:
     """The bench's rclpy node (own context, executor in a thread), the node processes and the playback."""
 
     def __init__(self, walkers: list[str], params: Path, env: dict[str, str], *, use_sim_time: bool,
-                 extra_ns: list[str] | None = None, modules: tuple[str, ...] = STOP_ORDER,
+                 topics: set[str] | None = None, modules: tuple[str, ...] = STOP_ORDER,
                  log: Callable[[str], None] = print) -> None:
         import rclpy
         from rclpy.context import Context
@@ -75,7 +75,11 @@ class Harness:
         from rclpy.node import Node
 
         self.walkers, self.params, self.env, self.use_sim_time, self.log = walkers, params, env, use_sim_time, log
-        self.extra_ns = list(extra_ns or [])
+        # the topics the bench publishes on (full names; default: the walkers' sensor inputs): no idle
+        # publisher beside a node's output, where a second publisher would blind the consumers'
+        # sequence-gap loss count (it stands down when a topic has several publishers)
+        self.topics = set(topics) if topics is not None else {f"/{w}/{rel}" for w in walkers
+                                                               for rel in ("imu/data_raw", "imu/mag", "wifi/scan")}
         self.modules = tuple(m for m in STOP_ORDER if m in modules)   # the nodes to run, in stop order
         self._clock_ns: int | None = None         # sim time: the clock published while not playing
         self._clock_rate = 1.0
@@ -116,10 +120,9 @@ class Harness:
 
         pub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
-        for w in self.walkers + self.extra_ns:
-            for rel in PORTS:
-                self.pubs[f"/{w}/{rel}"] = self.node.create_publisher(msg_class(TOPICS[rel].type), f"/{w}/{rel}",
-                                                                      pub_qos)
+        for full in sorted(self.topics):
+            rel = full.split("/", 2)[-1]
+            self.pubs[full] = self.node.create_publisher(msg_class(TOPICS[rel].type), full, pub_qos)
         if self.use_sim_time:
             self.clock_pub = self.node.create_publisher(Clock, "/clock", qos_profile(Qos.RELIABLE))
 
