@@ -209,10 +209,6 @@ class SolveReport:
     completed: bool = True
 
 
-class _OutOfTime(Exception):
-    """The solver's time budget ran out (raised from inside its evaluations, caught by the caller)."""
-
-
 @dataclass
 class _Best:
     """The lowest-cost point a solver evaluated so far."""
@@ -222,14 +218,15 @@ class _Best:
 
 
 def _with_deadline(fun, jac, z0: np.ndarray, r0: np.ndarray, deadline: float):
-    """``fun`` and ``jac`` raising :class:`_OutOfTime` once ``time.monotonic()`` is past ``deadline``,
+    """``fun`` and ``jac`` raising TimeoutError (caught by the caller, :meth:`MultiUserGraph._solve`) once
+    ``time.monotonic()`` is past ``deadline``,
     ``fun`` keeping the lowest-cost point it evaluated (a trust-region solver's accepted iterate is
     its lowest-cost evaluation so far, so that is where the solver was when it was stopped)."""
     best = _Best(z0.copy(), 0.5 * float(r0 @ r0))
 
     def timed_fun(z):
         if time.monotonic() > deadline:
-            raise _OutOfTime
+            raise TimeoutError("the solver's time budget ran out")
         r = fun(z)
         best.nfev += 1
         cost = 0.5 * float(r @ r)
@@ -239,7 +236,7 @@ def _with_deadline(fun, jac, z0: np.ndarray, r0: np.ndarray, deadline: float):
 
     def timed_jac(z):
         if time.monotonic() > deadline:
-            raise _OutOfTime
+            raise TimeoutError("the solver's time budget ran out")
         return jac(z)
 
     return timed_fun, timed_jac, best
@@ -634,7 +631,7 @@ class MultiUserGraph:
                 sol = least_squares(fun, z0, jac=jac, method="trf", max_nfev=max_iter, x_scale="jac",
                                     tr_solver="lsmr", tr_options={"atol": 1e-4, "btol": 1e-4})
             z_end, cost, nfev = sol.x, float(sol.cost), int(sol.nfev)
-        except _OutOfTime:
+        except TimeoutError:
             completed = False
             z_end, cost, nfev = best.z, best.cost, best.nfev
         Xc, L = unpack(z_end)

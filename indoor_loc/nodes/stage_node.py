@@ -30,9 +30,14 @@
   followed) calls :meth:`Stage.run_clock_jump`; its outputs are published and its notices logged.
 - ``/diagnostics`` gets one DiagnosticStatus about once a second (on the node's clock, so in bag
   time under ``use_sim_time``).
-- SIGINT and SIGTERM end the node cleanly: the messages DDS had delivered to the node before the
-  signal are processed first (bounded by ``DRAIN_TIMEOUT_S``; a second signal stops at once), then the
-  stage's ``finish()`` outputs are published before the context shuts down.
+- SIGINT and SIGTERM end the node cleanly within a bound, one deadline for the whole stop
+  (:mod:`indoor_loc.nodes.process`): the messages DDS had delivered to the node before the signal
+  are processed first, then the stage's ``finish()`` outputs and a last ``/diagnostics`` status are
+  published and their acknowledgements awaited, all publishers together, until the stop's deadline;
+  what was cut short is logged. A second signal stops at once.
+- Service requests (the parameter services, a node's own) are answered between two callbacks
+  whatever is queued (:class:`~indoor_loc.nodes.process.ServicePoll`), so a burst of messages does not
+  hold them up; all in the one executor thread (the stage is never entered concurrently).
 - Multi-user stages (``Stage.MULTI_USER``): the node subscribes to the stage's inputs in every
   user namespace — those of the stage's ``users`` parameter, or, when it is empty, every namespace
   in which a publisher of one of the inputs appears (the ROS graph is polled every
@@ -68,7 +73,8 @@ from msg_adapters.diagnostics import stage_diagnostics, with_inputs
 
 #: How often a node publishes its /diagnostics status (s, on its clock).
 DIAGNOSTICS_PERIOD_S = 1.0
-#: How long a stopping node waits for subscribers to acknowledge its last outputs (s).
+#: How long a stopping node waits for subscribers to acknowledge its last outputs (s), all
+#: publishers together, when no stop deadline was set (``StageNode.stop_deadline``).
 FINISH_ACK_TIMEOUT_S = 8.0
 #: How often a multi-user node polls the ROS graph for users joining and leaving (s).
 DISCOVERY_PERIOD_S = 1.0
@@ -112,6 +118,8 @@ class StageNode(InputsMixin, Node):
         self._raw: dict[str, Input] = {}            # inputs the stage takes in runs (fast path), by topic
         self.taken = 0                              # input messages handled (all topics)
         self.last_rx_ns = 0                         # reception time (system clock) of the last one
+        #: monotonic time by which :meth:`shutdown` is over (set by the process on a stop; None: no bound)
+        self.stop_deadline: float | None = None
         self.sensor_reliability = self._declare_sensor_reliability()
         values = self._declare_params(stage_cls.PARAMS)
         params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
@@ -393,16 +401,40 @@ class StageNode(InputsMixin, Node):
                    for inp, r in zip(self._inputs.values(), reports)]
         return with_inputs(arr, reports, now_ns)
 
+    # -- the stop --------------------------------------------------------------------------------
+    def finish_budget_s(self) -> float:
+        """How long the stage's ``finish()`` may take (its ``finish_budget_s``; 0: not bounded by it)."""
+        return float(getattr(self.stage.params, "finish_budget_s", 0.0) or 0.0)
+
     def shutdown(self) -> None:
-        """Publish the stage's end-of-input outputs (call while the context is still valid)."""
+        """Publish the stage's end-of-input outputs and a last /diagnostics status, then wait (until
+        :attr:`stop_deadline`, or :data:`FINISH_ACK_TIMEOUT_S`) for reliable subscribers to
+        acknowledge them (call while the context is still valid)."""
+        deadline = self.stop_deadline if self.stop_deadline is not None else time.monotonic() + FINISH_ACK_TIMEOUT_S
         self._publish(self.stage.run_finish())
         self._log_rejections()
-        # the end-of-input outputs (a final smoothed path) must reach reliable subscribers before
-        # the process ends: wait (bounded) until every reliable publisher's messages are acked
-        # (a loaded machine can take seconds); what is still unacknowledged then is said, not lost silently
-        for topic, pub in self._pubs.items():
-            if pub.qos_profile.reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count() > 0:
-                if not pub.wait_for_all_acked(Duration(seconds=FINISH_ACK_TIMEOUT_S)):
-                    self.get_logger().warning(
-                        f"stopping: {topic}: not every subscriber acknowledged the last messages within "
-                        f"{FINISH_ACK_TIMEOUT_S:g} s; they may have missed the end of the output")
+        try:
+            self._diag_pub.publish(self.diagnostics_msg(self.get_clock().now().nanoseconds))
+        except Exception as err:  # noqa: BLE001 - the last status is a courtesy; the outputs matter
+            self.get_logger().warning(f"stopping: last /diagnostics status not published: {err}")
+        self.await_acks(deadline)
+
+    def await_acks(self, deadline: float) -> list[str]:
+        """Wait until every reliable publisher's messages are acknowledged by its subscribers (a loaded
+        machine can take seconds), all publishers together: one ``deadline`` (monotonic s) for them all
+        (a publisher acknowledged is not waited for again; one still waiting when the time is up is
+        checked without waiting). Logs and returns the topics whose subscribers did not acknowledge
+        in time: they may have missed the end of the output."""
+        pubs = [p for p in list(self._pubs.values()) + [self._diag_pub]
+                if p.qos_profile.reliability == ReliabilityPolicy.RELIABLE and p.get_subscription_count() > 0]
+        missed = []
+        for pub in pubs:
+            left = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                missed.append(pub.topic_name)
+        if missed:
+            shown = ", ".join(missed[:10]) + (f" and {len(missed) - 10} more" if len(missed) > 10 else "")
+            self.get_logger().warning(
+                f"stopping: the subscribers of {len(missed)} of {len(pubs)} reliable outputs did not acknowledge "
+                f"the last messages by the stop deadline; they may have missed the end of the output: {shown}")
+        return missed

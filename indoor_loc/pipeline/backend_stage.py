@@ -9,9 +9,10 @@ gets a path at the right heights).
 Outputs: ``backend/<user>/pose`` (PoseWithCovarianceStamped, the newest pose with its
 marginal covariance, at every new pose), ``backend/<user>/path`` (the user's whole optimised
 trajectory: every ``path_period_s`` of stamp time, when the user finishes and at the end of input,
-after a whole-graph optimisation), ``backend/wifi_map`` (the survey and users' scans at their
-current positions, latched, with every path) and per-user step length, pose counts and the share of
-scans matched to other users in ``/diagnostics``.
+after a whole-graph optimisation bounded by ``finish_budget_s``: :meth:`BackendStage.finish`),
+``backend/wifi_map`` (the survey and users' scans at their current positions, latched, with every
+path) and per-user step length, pose counts and the share of scans matched to other users in
+``/diagnostics``.
 
 Ordering. Each user's messages go through a reorder buffer: an event is taken into the graph once
 the newest ``pdr/odom`` of that user is ``reorder_window_s`` past its stamp (a scan therefore waits
