@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from indoor_loc.bench.chaos_faults import (NODE_MODULES, RECOVERY_S, SEC, Row, Trial, World, empty_plan, hostile_plan, judge,
+from indoor_loc.bench.chaos_faults import (NODE_MODULES, PORTS, RECOVERY_S, SEC, Row, Trial, World, empty_plan, hostile_plan, judge,
                                            load_world, run_trial)
 
 #: Hostile phase: the first two thirds of the stream.
@@ -108,11 +108,12 @@ def run(args: argparse.Namespace) -> int:
         world = load_world(sim)
         log(f"\n## Fault benchmark: {walkers} walker(s) x {world.span_s:.0f} s simulated, replayed at {rate:g}x "
             f"over DDS (ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}, {os.cpu_count()} CPUs)\n")
-        opts = {"modules": modules, "log": log}
+        opts: dict[str, Any] = {"modules": modules, "log": log}
         clean = run_trial(world, "clean", env, rate, work, **opts)
         _say(clean, log, result)
         if "hostile" in faults:
-            rows += _hostile(world, clean, env, rate, cases, work, result, opts)
+            rows += _hostile(world, clean, env, rate, cases, work, result,
+                             dict(opts, ports=getattr(args, "ports", "") or ""))
         if "empty" in faults:
             phase_end = world.t0_ns + int(world.span_s * HOSTILE_SHARE * SEC)
             t = run_trial(world, "empty samples", env, rate, work, plan=empty_plan(world, phase_end), **opts)
@@ -136,10 +137,10 @@ def run(args: argparse.Namespace) -> int:
     rec = result["recorder"]
     if rec:
         log(f"\nrecorder SIGKILLed at 60 % of the hostile trial, then `indoor-loc bag recover`: "
-            f"{rec.get('recovered', 0):,} messages on {rec.get('topics', 0)} topics recovered, "
-            f"{rec.get('recovered_bench', 0):,} of them on the bench's topics, which had been sent "
-            f"{rec.get('sent_before_kill', 0):,} messages before the kill (bad chunks {rec.get('bad_chunks', '–')}, "
-            f"last chunk cut: {rec.get('truncated', '–')})"
+            f"{rec.get('recovered', 0):,} messages on {rec.get('topics', 0)} topics recovered; of the "
+            f"{rec.get('sent_before_kill', 0):,} the bench had sent before the kill on the topics only it publishes, "
+            f"{rec.get('recovered_of_them', 0):,} are in it ({rec.get('recovered_beyond', 0)} more: sent while the kill "
+            f"took; bad chunks {rec.get('bad_chunks', '–')}, last chunk cut: {rec.get('truncated', '–')})"
             + (f"; ERROR: {rec['error']}" if "error" in rec else ""))
     broken = [(r, b) for r in rows for b in r.broken()]
     for r, b in broken:
@@ -186,12 +187,17 @@ def _hostile(world: World, clean: Trial, env: dict[str, str], rate: float, cases
     bases = dict(world.decoded)
     bases.update(clean.bases)
     log(f"drawing {cases} hostile messages per port and walker (hypothesis) ...")
-    plan = hostile_plan(world, bases, cases, phase_end, log=log)
+    ports = tuple(p for p in (opts.get("ports") or "").split(",") if p) or PORTS
+    if set(ports) - set(PORTS):
+        from indoor_loc.errors import ConfigError
+        raise ConfigError(f"--ports: expected some of {', '.join(PORTS)}, got {', '.join(sorted(set(ports) - set(PORTS)))}")
+    plan = hostile_plan(world, bases, cases, phase_end, ports=ports, log=log)
     n = len(plan.events)
     phase_s = world.span_s * HOSTILE_SHARE
     h_rate = min(rate, phase_s * 800.0 / max(1, n))
     if h_rate < rate:
         log(f"  {n:,} hostile messages: replayed at {h_rate:.2f}x to keep them under 800/s")
+    opts = {k: v for k, v in opts.items() if k != "ports"}
     t = run_trial(world, "hostile", env, h_rate, work, plan=plan, recorder_kill_at=0.6, **opts)
     _say(t, log, result)
     result["recorder"] = t.recorder

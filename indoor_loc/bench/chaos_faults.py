@@ -109,7 +109,7 @@ def draw_cases(topic: str, bases: list[Any], n: int, seed: int) -> list[tuple[in
 
 
 def hostile_plan(world: World, bases: dict[str, list[tuple[int, Any]]], n_per_port: int, phase_end_ns: int,
-                 *, seed: int = 0, log: Callable[[str], None] = print) -> Plan:
+                 *, seed: int = 0, ports: tuple[str, ...] = PORTS, log: Callable[[str], None] = print) -> Plan:
     """Per walker and input port, ``n_per_port`` drawn cases spread evenly over
     ``[t0, phase_end_ns]`` (each made from the port's valid message before it, stamped as that one
     unless the case is about stamps), plus the explicit cases."""
@@ -120,6 +120,8 @@ def hostile_plan(world: World, bases: dict[str, list[tuple[int, Any]]], n_per_po
     span = phase_end_ns - world.t0_ns
     for wi, w in enumerate(world.walkers):
         for pi, rel in enumerate(PORTS):
+            if rel not in ports:
+                continue
             full = f"/{w}/{rel}"
             src = rel if rel != "initialpose" else "wifi/fix"        # initialpose made from the fixes
             have = sorted((b for b in bases.get(f"/{w}/{src}", []) if b[0] < phase_end_ns), key=lambda b: b[0])
@@ -146,7 +148,7 @@ def hostile_plan(world: World, bases: dict[str, list[tuple[int, Any]]], n_per_po
                 f"explicit hostile cases ({time.monotonic() - t_start:.1f} s)")
     # a user nobody configured: valid-looking messages in a namespace of their own
     w = world.walkers[0]
-    for rel in ("pdr/odom", "wifi/fix", "wifi/scan"):
+    for rel in [p for p in ("pdr/odom", "wifi/fix", "wifi/scan") if p in ports]:
         have = sorted(bases.get(f"/{w}/{rel}", []), key=lambda b: b[0])
         for k in range(GHOST_PER_PORT if have else 0):
             stamp, b = have[k * len(have) // GHOST_PER_PORT]
@@ -242,7 +244,7 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
         if rec is not None:
             def kill_recorder() -> None:
                 trial.marks["recorder_kill"] = time.monotonic()
-                trial.recorder["sent_before_kill"] = sum(h.sent.values())
+                trial.recorder["sent_before_kill_per_topic"] = dict(h.sent)
                 trial.recorder["at_s"] = time.monotonic() - trial.wall0
                 os.kill(rec.proc.pid, signal.SIGKILL)
             actions.append((recorder_kill_at * span_wall, kill_recorder))
@@ -288,8 +290,14 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
     if rec is not None:
         trial.recorder.update(recover_recording(rec_out, work / f"{name}_recovered.mcap"))
         trial.recorder["sent_total"] = sum(trial.sent.values())
+        # on the topics only the bench publishes (not imu/data, pdr/odom, wifi/fix: the nodes publish
+        # there too): what it had sent before the kill, and how much of that the recovered bag holds
         per = trial.recorder.get("per_topic", {})
-        trial.recorder["recovered_bench"] = sum(per.get(t, 0) for t in trial.sent)
+        before = trial.recorder.get("sent_before_kill_per_topic", {})
+        own = [t for t in before if t.rsplit("/", 2)[-2:] not in (["imu", "data"], ["pdr", "odom"], ["wifi", "fix"])]
+        trial.recorder["sent_before_kill"] = sum(before[t] for t in own)
+        trial.recorder["recovered_of_them"] = sum(min(per.get(t, 0), before[t]) for t in own)
+        trial.recorder["recovered_beyond"] = sum(max(0, per.get(t, 0) - before[t]) for t in own)
     return trial
 
 
@@ -468,4 +476,4 @@ def _fed_by(trial: Trial, rec: Any, killed: str) -> bool:
     return bool(outs & ins) and (rec.ns == "" or rec.ns == k.ns)
 
 
-__all__ = ["NODE_MODULES", "Plan", "Row", "Trial", "World", "hostile_plan", "judge", "load_world", "run_trial"]
+__all__ = ["NODE_MODULES", "PORTS", "Plan", "Row", "Trial", "World", "hostile_plan", "judge", "load_world", "run_trial"]

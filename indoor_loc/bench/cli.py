@@ -63,6 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                      "(default all; the clean reference always runs)")
     parser.add_argument("--nodes", default="", help="chaos: nodes to run, e.g. imu_node,wifi_fix_node (default all: "
                                                     "imu_node, wifi_fix_node, pdr_kf_node, tll_pf, backend_node)")
+    parser.add_argument("--ports", default="", help="chaos: hostile messages only on these input ports, e.g. "
+                                                    "initialpose,wifi/fix (default all seven)")
     parser.add_argument("--kill-nodes", default="", help="chaos: nodes to kill, e.g. imu_node,tll_pf (default all)")
     parser.add_argument("--soak", type=float, default=0.0, help="chaos: soak instead: HOURS of simulated time at "
                                                                 "--rate, RSS and per-message cost over time")
