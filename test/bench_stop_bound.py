@@ -84,6 +84,8 @@ def main() -> None:
             for line in node_proc.lines:
                 if "stopping" in line or "end of input" in line or "still not ended" in line:
                     print("  node:", line[:400])
+            if rc != 0:
+                print("\n".join(node_proc.lines[-30:]))
     finally:
         load.stop()
         node_proc.stop()

@@ -330,6 +330,9 @@ class MultiUserGraph:
         self.n_frozen = 0
         self.n_dropped = 0
         self._last_J: tuple | None = None        # (jac, z, var, col) of the last solve
+        #: window optimisations at localised scans stop at this ``time.monotonic()`` (None: never): the
+        #: end of input takes in everything buffered on a time budget, a whole-graph optimisation next
+        self.windows_until: float | None = None
         self.last_solve: SolveReport | None = None
         self._sqrt_pdr = np.sqrt(np.asarray(params.pdr_info, float))
         self._sqrt_wifi = math.sqrt(params.wifi_info)
@@ -456,7 +459,8 @@ class MultiUserGraph:
         pose_map = self._bound(tr)
         if pose_map is not None:
             i = int(pose_map[i])
-        if self.params.window_poses and localised:
+        if self.params.window_poses and localised and (self.windows_until is None
+                                                        or time.monotonic() < self.windows_until):
             self.optimize_window(name)
         return i
 

@@ -12,7 +12,9 @@ A stage node's stop, from the first SIGINT/SIGTERM (one deadline for the whole s
 3. the subscribers' acknowledgements of every reliable output are awaited together until
    :data:`STOP_WORK_S` after the signal;
 4. the node and the middleware are shut down; a guard ends the process :data:`STOP_BOUND_S` after
-   the signal whatever it is still doing (:func:`arm_exit_guard`), and at once on a second signal.
+   the signal whatever it is still doing (:func:`arm_exit_guard`; destroying the thousands of DDS
+   entities of a back-end with hundreds of users alone can take seconds), and at once on a second
+   signal.
 
 What a deadline cut short is logged (messages perhaps left undrained, subscribers that did not
 acknowledge; the back-end names the users whose final optimisation did not complete).
@@ -54,8 +56,9 @@ STOP_BOUND_S = 9.5
 #: ... its clean stop (drain, end-of-input outputs, their acknowledgements) is over this long after
 #: the signal (s), which leaves the rest of the bound for the middleware's own shutdown.
 STOP_WORK_S = 7.5
-#: ... of which the acknowledgements of the last outputs get at least this long (s).
-ACK_RESERVE_S = 1.0
+#: ... of which publishing the end-of-input outputs (a thousand messages for the back-end with 500
+#: users: about a second on a loaded machine) and their acknowledgements get at least this long (s).
+ACK_RESERVE_S = 2.0
 
 
 #: Set by the first SIGINT/SIGTERM (a stop was asked for), and by the second (stop at once).
@@ -70,6 +73,9 @@ _STOP_NOW_SIG = [0]
 _GUARD: list[tuple[str, float] | None] = [None]
 #: Set when the guarded process got to its end by itself (the guard's thread then returns).
 _GUARD_DONE = threading.Event()
+#: Set once a stopping node's end-of-input outputs are published and acknowledged (or said not to be):
+#: an exit at the bound after it loses nothing (status 0).
+_OUTPUTS_DONE = threading.Event()
 
 
 def _request_stop(signum: int, frame: Any) -> None:
@@ -87,14 +93,22 @@ def _request_stop(signum: int, frame: Any) -> None:
 
 def arm_exit_guard(name: str, bound_s: float = STOP_BOUND_S) -> None:
     """From the first SIGINT/SIGTERM on, this process ends within ``bound_s`` whatever it is doing,
-    and at once on a second signal: a daemon thread says why on stderr and ends it (``os._exit``:
-    status 1 half a second before the bound, 128 + the signal on a second one); should that thread
+    and at once on a second signal: a daemon thread says why on stderr and ends it (``os._exit``,
+    half a second before the bound: status 0 if only the middleware's shutdown was left — the
+    end-of-input outputs published and acknowledged, :func:`outputs_done` — else 1 with every
+    thread's stack; 128 + the signal on a second signal); should that thread
     not get the GIL, faulthandler's watchdog ends it at the bound (status 1, every thread's stack on
     stderr). The clean stop's own deadlines end
     well before; the guard is for what has none (the middleware's shutdown, a stage stuck in a
     computation). :func:`disarm_exit_guard` when the process ends by itself."""
     _GUARD[0] = (name, bound_s)
     _GUARD_DONE.clear()
+    _OUTPUTS_DONE.clear()
+
+
+def outputs_done() -> None:
+    """A stopping node's end-of-input outputs are published and their acknowledgements awaited."""
+    _OUTPUTS_DONE.set()
 
 
 def disarm_exit_guard() -> None:
@@ -125,8 +139,14 @@ def _start_exit_guard() -> None:
                       f"or not acknowledged are lost)", file=sys.stderr, flush=True)
                 os._exit(128 + (_STOP_NOW_SIG[0] or signal.SIGTERM))
             if left <= 0 and not _GUARD_DONE.is_set():
+                if _OUTPUTS_DONE.is_set():     # only the middleware's shutdown is left: nothing is lost
+                    print(f"[{name}] end-of-input outputs published; the middleware's shutdown not over "
+                          f"{soft_s:g} s after the stop signal (its bound is {bound_s:g} s): exiting",
+                          file=sys.stderr, flush=True)
+                    os._exit(0)
                 print(f"[{name}] still not ended {soft_s:g} s after the stop signal (its bound is {bound_s:g} s): "
-                      f"exiting", file=sys.stderr, flush=True)
+                      f"exiting; it was here:", file=sys.stderr, flush=True)
+                faulthandler.dump_traceback(all_threads=True)
                 os._exit(1)
 
     threading.Thread(target=watch, name="exit-guard", daemon=True).start()
@@ -342,6 +362,10 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
                 except Exception as err:  # noqa: BLE001 - a stage bug in finish() must not skip clean-up
                     print(f"[{name}] finish() failed: {type(err).__name__}: {err}", file=sys.stderr)
                     status = status or 1
+                outputs_done()
+                if stop_requested():
+                    node.get_logger().info(f"stopping: end-of-input outputs published, shutting down "
+                                           f"({stop_elapsed_s():.1f} s after the signal)")
             node.destroy_node()
         rclpy.try_shutdown()
         disarm_exit_guard()

@@ -100,7 +100,7 @@ class BackendParams(GraphParams):
                                     "then they go on without it, s")
     path_period_s: float = pfield(0.0, "republish a user's path at most this often (stamp time, after a window "
                                        "optimisation), s; 0 = only when the user finishes and at the end")
-    finish_budget_s: float = pfield(4.0, "end of input: the whole-graph optimisation and the final poses' "
+    finish_budget_s: float = pfield(3.0, "end of input: the whole-graph optimisation and the final poses' "
                                          "covariances take at most about this long (wall clock), s; every path "
                                          "is published from the best state reached and the users whose final "
                                          "optimisation did not complete are named; 0 = no limit")
@@ -446,18 +446,27 @@ class BackendStage(Stage):
         """End of input: take everything, optimise the whole graph, publish every path and the map.
 
         Bounded by ``finish_budget_s`` of wall clock (a stopping node has a few seconds): the
-        optimisation stops at the budget with the best estimates it reached (the live window
+        optimisation stops at half the budget with the best estimates it reached (the live window
         optimisations already made good tracks), every user's path is published from them, and then
         each user's newest pose with its covariance while the budget lasts. What the budget cut short
         is said once (a notice) and in ``/diagnostics`` (``finish.*``)."""
         budget = self.params.finish_budget_s
         deadline = time.monotonic() + budget if budget > 0 else None
         outs: list[Output] = []
-        for user in list(self.inputs_by_user):
-            outs += self._release(user, everything=True)
+        # what was still buffered goes in with its window optimisations for a quarter of the budget at
+        # most (hundreds of users stopped in the middle of a burst: seconds of them); the rest is left to
+        # the whole-graph optimisation
+        self.graph.windows_until = None if deadline is None else deadline - 0.75 * budget
+        try:
+            for user in list(self.inputs_by_user):
+                outs += self._release(user, everything=True)
+        finally:
+            self.graph.windows_until = None
         if not self.graph.poses.n:
             return outs
-        rep = self.graph.optimize(deadline=deadline)
+        # the optimisation gets half the budget: the paths and final poses of many users take time too
+        # (path messages: about 2 ms a user on a loaded machine)
+        rep = self.graph.optimize(deadline=None if deadline is None else deadline - budget / 2)
         users = self._started_users()
         outs += [self._path_output(u) for u in users]
         # each user's newest pose with its marginal covariance (one factorisation, then a solve per
