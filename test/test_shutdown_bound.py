@@ -201,3 +201,14 @@ def test_a_stop_stuck_in_a_call_holding_the_gil_ends_at_the_bound():
     assert res.returncode == 1, res.stderr
     assert time.monotonic() - t0 < 10.0
     assert "Timeout" in res.stderr and "<string>" in res.stderr, res.stderr
+
+
+def test_at_the_bound_after_the_outputs_nothing_is_lost_and_the_status_says_so():
+    """Stuck in the middleware's shutdown once the end-of-input outputs are out (destroying thousands
+    of DDS entities): the guard ends the process with status 0 and says what was left."""
+    import subprocess
+    code = _STUCK.replace("print('stopping'", "__import__('indoor_loc.nodes.process').nodes.process.outputs_done()\n"
+                                               "print('stopping'")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=20)
+    assert res.returncode == 0, res.stderr
+    assert "[stuck_node] end-of-input outputs published; the middleware's shutdown not over" in res.stderr
