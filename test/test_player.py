@@ -37,6 +37,18 @@ def _make_bag(path: Path, ns: str, n: int) -> None:
             w.write(f"{ns}/imu/data_raw", m, T0 + i * DT)
 
 
+def _ready(proc, max_lines: int = 50) -> bool:
+    """Whether the peer says "ready" (lines before it are the middleware's: Fast DDS logs a shared-memory
+    port it cannot lock, left behind by a process killed earlier, and goes on over UDP)."""
+    for _ in range(max_lines):
+        line = proc.stdout.readline()
+        if not line:
+            return False
+        if line.strip() == "ready":
+            return True
+    return False
+
+
 def _play_and_listen(bag: Path, listen_ns: str, expected: int, *player_args: str) -> tuple[list[str], str]:
     env = os.environ.copy()
     # the subscriber's deadline runs from before the player starts, which on a loaded machine can take
@@ -44,7 +56,7 @@ def _play_and_listen(bag: Path, listen_ns: str, expected: int, *player_args: str
     sub = subprocess.Popen([sys.executable, str(PEERS / "subscriber.py"), listen_ns, str(expected), "90"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
-        assert sub.stdout.readline().strip() == "ready"
+        assert _ready(sub)
         player = subprocess.run([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag),
                                  "--wait-for-subscribers", "30", *player_args],
                                 capture_output=True, text=True, env=env, timeout=90)
@@ -141,7 +153,7 @@ def test_player_loops_until_sigint(ros_domain: int, tmp_path: Path) -> None:
     # clone compiling its modules, the parallel suite) the player can take tens of seconds to start
     sub = subprocess.Popen([sys.executable, str(PEERS / "subscriber.py"), f"/{U}_7", str(2 * n), "90"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    assert sub.stdout.readline().strip() == "ready"
+    assert _ready(sub)
     player = subprocess.Popen([sys.executable, "-m", "indoor_loc.nodes.player_node", str(bag), "--loop",
                                "--rate", "5", "--wait-for-subscribers", "20"],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
