@@ -167,6 +167,9 @@ BOUNDS: dict[str, Bound] = {b.name: b for b in [
           "unit mistake"),
     Bound("age", 0.0, 3.6e6, "ms", "wifi/scan, wifi/scan_raw: age_ms",
           "a cached reading older than an hour is not of this scan"),
+    Bound("scan_aps", 1.0, 5000.0, "APs", "wifi/scan, wifi/scan_raw: access points in one scan",
+          "a receiver hears at most a few hundred BSSIDs even in a dense mall; 100 000 would cost the "
+          "node seconds per scan", "too_many_aps"),
 ]}
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from std_msgs.msg import String
 
+from indoor_loc.contract import BOUNDS
 from indoor_loc.errors import InvalidMessageError, ParseError
 from indoor_loc.wifi.parsers import ParseResult, format_json, parse_json
 from indoor_loc.wifi.types import WifiScan
@@ -24,10 +25,14 @@ def parse_json_msg(msg: String, *, stamp_ns: int = 0, frame_id: str = "", source
     if not isinstance(data, str):
         raise InvalidMessageError("json", f"expected std_msgs/String, got {type(msg).__name__}")
     try:
-        return parse_json(data, stamp_ns=stamp_ns, frame_id=frame_id, source=source,
-                          signal_mapping=signal_mapping)
+        result = parse_json(data, stamp_ns=stamp_ns, frame_id=frame_id, source=source,
+                            signal_mapping=signal_mapping)
     except ParseError as err:
         raise InvalidMessageError("json", str(err)) from err
+    if len(result.scan) > BOUNDS["scan_aps"].hi:
+        raise InvalidMessageError("too_many_aps", f"{len(result.scan)} access points in one scan, more than "
+                                                  f"{BOUNDS['scan_aps'].hi:g} (contract bound scan_aps)")
+    return result
 
 
 def scan_from_json_msg(msg: String, *, stamp_ns: int = 0, frame_id: str = "", source: str = "json") -> WifiScan:

@@ -80,7 +80,8 @@ def scan_from_msg(msg: DiagnosticArray) -> WifiScan:
 
     Reasons: ``schema_version``, ``empty_scan``, ``bad_bssid``, ``duplicate_bssid``, ``nan``,
     ``rssi_range``, ``out_of_range`` (a frequency or age beyond :data:`indoor_loc.contract.BOUNDS`;
-    frequency 0 = unknown passes), ``missing_field``, ``bad_value``, ``ap_count``, ``negative_stamp``.
+    frequency 0 = unknown passes), ``too_many_aps``, ``missing_field``, ``bad_value``, ``ap_count``,
+    ``negative_stamp``.
     ``age_ms`` is None when no AP carries one, NaN for the APs without one otherwise.
     """
     stamp = stamp_to_ns(msg.header.stamp)
@@ -93,6 +94,9 @@ def scan_from_msg(msg: DiagnosticArray) -> WifiScan:
     aps = msg.status[1:]
     if not aps:
         raise InvalidMessageError("empty_scan", "scan has no access points")
+    if len(aps) > BOUNDS["scan_aps"].hi:
+        raise InvalidMessageError("too_many_aps", f"{len(aps)} access points in one scan, more than "
+                                                  f"{BOUNDS['scan_aps'].hi:g} (contract bound scan_aps)")
     if "ap_count" in summary:
         try:
             declared = int(summary["ap_count"])

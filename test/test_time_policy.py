@@ -241,3 +241,37 @@ def test_a_first_scan_before_the_first_odometry_is_no_jump_and_no_pose_goes_back
         assert sum(stage.diag.rejected.values()) == 0, (name, stage.diag.rejected)
         poses = [pose_from_msg(m).stamp_ns for t, m in outs if t in ("pf/pose", f"backend/{USER}/pose")]
         assert poses and poses == sorted(poses), name
+
+
+def test_a_constant_wrong_stamp_repeated_is_no_jump():
+    """Hostile messages sharing one wrong stamp (three copies stamped 30 s back, or 0) are held and
+    dropped as stragglers: a replayed pass moves on, a repeated stamp does not confirm a jump."""
+    for now in (0, 100 * SEC):
+        p = _policy(jump_confirm=3)
+        _feed(p, "a", [99 * SEC, 100 * SEC], now=now)
+        assert _feed(p, "a", [70 * SEC] * 3 + [0] * 3, now=now) == ["HOLD"] * 6
+        assert _feed(p, "a", [100 * SEC + 1], now=now) == ["PASS"]
+        assert p.users[""].jumps == 0 and p.rejected_held == 6
+
+
+def test_a_scan_of_more_access_points_than_a_receiver_hears_is_refused_cheaply():
+    import time
+
+    import numpy as np
+
+    from indoor_loc.bench.hostile import huge_scan
+    from indoor_loc.wifi.types import WifiScan
+    from msg_adapters.wifi_json import parse_json_msg, scan_to_json_msg
+    from msg_adapters.wifi_scan import scan_from_msg
+    msg = huge_scan(100_000)
+    t0 = time.perf_counter()
+    with pytest.raises(InvalidInputError) as err:
+        scan_from_msg(msg)
+    assert err.value.reason == "too_many_aps" and time.perf_counter() - t0 < 0.5
+    assert len(scan_from_msg(huge_scan(3000))) == 3000
+    n = 6000
+    big = WifiScan(stamp_ns=SEC, bssid=tuple(f"02:00:00:{i >> 16 & 255:02x}:{i >> 8 & 255:02x}:{i & 255:02x}"
+                                             for i in range(n)),
+                   rssi_dbm=np.full(n, -70.0), freq_mhz=np.full(n, 2412.0), ssid=("x",) * n)
+    with pytest.raises(InvalidInputError, match="too_many_aps"):
+        parse_json_msg(scan_to_json_msg(big))

@@ -17,7 +17,7 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   (a wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a
   simulation restarted, a device clock reset). It is held, with every later message of the user
   that far back, until the source decides: ``jump_confirm`` messages of the source in a row, each
-  in step with the one before (a later stamp, advanced as much as the node's clock within
+  in step with the one before (a strictly later stamp, advanced as much as the node's clock within
   ``jump_s``: a replayed pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock agrees (the
   source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in the
   clock's future). A confirmed jump resets the user's state in the stage
@@ -183,7 +183,7 @@ class TimePolicy:
         """A far-back message continues the held run: its stamp after the run's latest, and — with the
         node's clock — advanced as much as the clock did, within ``jump_s`` (a pass being replayed moves
         with the clock; wrong stamps do not)."""
-        if stamp_ns < u.cand_last:
+        if stamp_ns <= u.cand_last:     # a replayed pass moves on; a constant wrong stamp does not
             return False
         if now_ns and u.cand_now:
             return abs((stamp_ns - u.cand_last) - (now_ns - u.cand_now)) <= self.jump_ns
