@@ -4,6 +4,7 @@ clock jumps a stage must survive (a replay loop, a restarted simulation)."""
 from __future__ import annotations
 
 import copy
+from collections import Counter
 
 import pytest
 
@@ -275,3 +276,21 @@ def test_a_scan_of_more_access_points_than_a_receiver_hears_is_refused_cheaply()
                    rssi_dbm=np.full(n, -70.0), freq_mhz=np.full(n, 2412.0), ssid=("x",) * n)
     with pytest.raises(InvalidInputError, match="too_many_aps"):
         parse_json_msg(scan_to_json_msg(big))
+
+
+@pytest.mark.parametrize("case", STAMPED, ids=[f"{n}{'-' + '-'.join(map(str, o.values())) if o else ''}"
+                                               for n, o in STAMPED])
+def test_a_clock_jump_counts_each_output_once(world, streams, case):  # noqa: F811
+    """What a stage returns at a clock jump (the old pass's end, held messages handed on) is counted
+    once in ``out.<topic>.count`` — the fault benchmark saw imu_node count 6 pdr/odom at a loop that no
+    consumer received: they had been counted twice."""
+    stage = build_stage(world, *case)
+    clean = _valid_stream(stage, streams)
+    user = USER if stage.MULTI_USER else None
+    outs = []
+    for stamp, topic, msg in clean:
+        outs += stage.process(topic, msg, stamp, user)
+    outs += stage.run_clock_jump(clean[-1][0] - clean[0][0] + SEC, clean[0][0])
+    assert stage.diag.time_jumps == 1
+    published = {t: n for t, n in stage.diag.published.items() if n}
+    assert published == dict(Counter(t for t, _ in outs))

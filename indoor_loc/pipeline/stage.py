@@ -415,7 +415,8 @@ class Stage:
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """:meth:`clock_jump` for drivers, guarded like :meth:`run_tick`."""
         self.diag.now_ns = now_ns
-        return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns))
+        # (its outputs are counted where they are made: the resets and the held messages handed on)
+        return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns), count=False)
 
     def run_finish_user(self, user: str) -> list[Output]:
         """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`; the user's messages held for
@@ -430,14 +431,15 @@ class Stage:
             self.drop_held(user)
         return self._guarded("finish", self.finish)
 
-    def _guarded(self, what: str, fn: Callable[[], list[Output]]) -> list[Output]:
+    def _guarded(self, what: str, fn: Callable[[], list[Output]], count: bool = True) -> list[Output]:
         try:
             outs = fn()
         except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
             self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
-        for out_topic, _ in outs:
-            self.diag.published[out_topic] += 1
+        if count:
+            for out_topic, _ in outs:
+                self.diag.published[out_topic] += 1
         return outs
 
     def _reject(self, reason: str, detail: str) -> None:
