@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=0.0, help="live, chaos: simulated seconds per user "
                                                                     "(default 60; chaos --soak: of the looped world, 300)")
     parser.add_argument("--walkers", type=int, default=0, help="chaos: simulated walkers (default 1; --soak 2)")
-    parser.add_argument("--rate", type=float, default=0.0, help="chaos: replay rate (default 2; --soak 20)")
+    parser.add_argument("--rate", type=float, default=0.0, help="chaos: replay rate (default 2; --soak 5)")
     parser.add_argument("--cases", type=int, default=0, help="chaos: hostile messages drawn per input port and "
                                                              "walker (default 2000; 10000 for the issue's figure)")
     parser.add_argument("--faults", default="", help="chaos: comma-separated trials among hostile,empty,kill,loop "
