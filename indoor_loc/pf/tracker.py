@@ -127,6 +127,20 @@ class GraphTracker:
             self.segments.append(self.history)
         self.history = []
 
+    def forget_before(self, stamp_ns: int, keep_estimates: int) -> None:
+        """Bound memory in long runs: the smoother's particle history before ``stamp_ns`` is dropped
+        (the backward simulation then starts its segments there), and :attr:`estimates` keeps its
+        newest ``keep_estimates``."""
+        def trim(seg: list[_Step]) -> list[_Step]:
+            k = 0
+            while k < len(seg) and seg[k].stamp_ns < stamp_ns:
+                k += 1
+            return seg[k:]
+        self.segments = [t for t in (trim(seg) for seg in self.segments) if t]
+        self.history = trim(self.history)
+        if len(self.estimates) > keep_estimates:
+            del self.estimates[:len(self.estimates) - keep_estimates]
+
     def reset(self) -> None:
         """Forget everything (time jump backwards, global localisation request)."""
         self.pf.p = None

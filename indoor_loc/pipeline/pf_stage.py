@@ -81,6 +81,10 @@ class PfStageParams:
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
     smooth: bool = P.field(True, "at the end of input publish the backward-simulation smoothed pf/path")
     smooth_samples: int = P.field(50, "backward-simulated trajectories averaged by the smoother")
+    smooth_window_s: float = P.field(600.0, "the smoother keeps the particles of this much stamp time (about 40 kB "
+                                            "per 1000 particles and pose: 10 min of walking ≈ 90 MB), so memory "
+                                            "stays bounded in long runs; the path before it stays filtered, s")
+    path_max_poses: int = P.field(20000, "pf/path holds the newest this many poses (≈ 1.8 h of walking)")
     smooth_redrawn: str = P.field("chain", "smoother: predecessor of a particle redrawn around a WiFi fix (sensor "
                                            "resetting): chain = its nearest particles by the motion model (fixes "
                                            "trusted to correct a lagging filter, as on PUTMC); mixture = the filter's "
@@ -103,6 +107,8 @@ class PfStageParams:
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
+        P.require(self.smooth_window_s > 0, n, "smooth_window_s", "> 0", self.smooth_window_s)
+        P.require(self.path_max_poses >= 1, n, "path_max_poses", ">= 1", self.path_max_poses)
         P.require(self.smooth_redrawn in ("chain", "mixture"), n, "smooth_redrawn", "chain or mixture",
                   self.smooth_redrawn)
         P.require(self.wifi_update in ("fix", "scan"), n, "wifi_update", "fix or scan", self.wifi_update)
@@ -311,7 +317,17 @@ class PfStage(Stage):
         if period > 0 and (self._last_path_ns is None or est.stamp_ns - self._last_path_ns >= period * 1e9):
             self._last_path_ns = est.stamp_ns
             outs += self._path(self.tracker.estimates)
+        self._bound_memory(est.stamp_ns)
         return outs
+
+    def _bound_memory(self, stamp_ns: int) -> None:
+        """Keep the smoother's particles of the last ``smooth_window_s`` and the newest ``path_max_poses``
+        estimates; trimmed in steps of a quarter window, so the work per pose stays small."""
+        window = int(self.params.smooth_window_s * 1e9)
+        oldest = next((seg[0].stamp_ns for seg in self.tracker.segments + [self.tracker.history] if seg), None)
+        if (oldest is not None and stamp_ns - oldest > window + window // 4) or \
+                len(self.tracker.estimates) > self.params.path_max_poses * 5 // 4:
+            self.tracker.forget_before(stamp_ns - window, self.params.path_max_poses)
 
     def _path(self, ests: list[Estimate]) -> list[Output]:
         if not ests:
@@ -326,9 +342,11 @@ class PfStage(Stage):
     def finish(self) -> list[Output]:
         outs = self._apply_pending(lambda s: True)
         if self.params.smooth and self.tracker.initialised:
-            return outs + self._path(self.tracker.smooth(self.params.smooth_samples,
-                                                                    redrawn=self.params.smooth_redrawn))
-        return outs + self._path(self.tracker.estimates)
+            smoothed = self.tracker.smooth(self.params.smooth_samples, redrawn=self.params.smooth_redrawn)
+            first = min((e.stamp_ns for e in smoothed), default=None)
+            older = [e for e in self.tracker.estimates if first is not None and e.stamp_ns < first]
+            return outs + self._path((older + smoothed)[-self.params.path_max_poses:])   # filtered before the window
+        return outs + self._path(self.tracker.estimates[-self.params.path_max_poses:])
 
     def extra_diagnostics(self) -> dict[str, str]:
         if self.graph is None:
