@@ -270,6 +270,3 @@ class TimePolicy:
         """The node's clock went back to ``now_ns``: the users whose watermarks are more than ``jump_s``
         ahead of it (the caller resets each, then calls :meth:`restart`)."""
         return [name for name, u in self.users.items() if (u.front() or 0) > now_ns + self.jump_ns]
-
-    def jumps(self) -> int:
-        return sum(u.jumps for u in self.users.values())
