@@ -415,8 +415,14 @@ class Stage:
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """:meth:`clock_jump` for drivers, guarded like :meth:`run_tick`."""
         self.diag.now_ns = now_ns
-        # (its outputs are counted where they are made: the resets and the held messages handed on)
-        return self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns), count=False)
+        # each output counted once: the shared clock_jump counts where it makes them (the resets, the held
+        # messages handed on), a stage's own override does not
+        before = Counter(self.diag.published)
+        outs = self._guarded("clock_jump", lambda: self.clock_jump(back_ns, now_ns), count=False)
+        made = Counter(t for t, _ in outs)
+        made.subtract(Counter(self.diag.published) - before)
+        self.diag.published.update(+made)
+        return outs
 
     def run_finish_user(self, user: str) -> list[Output]:
         """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`; the user's messages held for
