@@ -38,6 +38,7 @@ import numpy as np
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidInputError
 from indoor_loc.pipeline.time_policy import Held, Order, TimeParams, TimePolicy, Verdict
+from msg_adapters.time import header_ns
 
 Output = tuple[str, Any]  # (relative topic, message)
 
@@ -287,16 +288,7 @@ class Stage:
     def stamp_of(self, topic: str, msg: Any) -> int | None:
         """The stamp (ns) a message is judged by: its ``header.stamp``; None (not judged) without a
         header. A stage whose input carries its stamp elsewhere (JSON text) says so here."""
-        header = getattr(msg, "header", None)
-        if header is None:
-            return None
-        stamp = header.stamp
-        sec, nsec = int(stamp.sec), int(stamp.nanosec)
-        if sec < 0:
-            raise InvalidInputError("negative_stamp", f"{topic}: header.stamp {sec}.{nsec:09d} s is before the epoch")
-        if not 0 <= nsec < 1_000_000_000:
-            raise InvalidInputError("bad_stamp", f"{topic}: header.stamp nanosec {nsec} outside [0, 1e9)")
-        return sec * 1_000_000_000 + nsec
+        return header_ns(msg)       # the adapters' own reading: negative_stamp, bad_stamp
 
     def stamp_order(self, topic: str) -> Order:
         return self.STAMP_ORDER.get(topic, Order.NONDECREASING)
