@@ -326,8 +326,19 @@ class Stage:
         if verdict == Verdict.JUMP:
             assert stamp is not None
             return self._jump(user, Held(topic, item, recv_ns, stamp, batch))
+        if verdict == Verdict.LEAP:
+            assert stamp is not None
+            dropped = self.time.hold_leap(user, Held(topic, item, recv_ns, stamp, batch))
+            if dropped is not None:
+                self._reject_leap([dropped])
+            return []
+        if verdict == Verdict.RESUME:
+            assert stamp is not None
+            return self._resume(user, Held(topic, item, recv_ns, stamp, batch))
         if stamp is not None and self.time.in_step(user, topic):
             self._reject_held(user, self.time.drop_held(user))
+        if stamp is not None:
+            self._reject_leap(self.time.refuted_leap(user, topic))
         try:
             outs = handler(item, recv_ns)
         except InvalidInputError as err:
@@ -348,6 +359,20 @@ class Stage:
                                         f"time.jump_s before the topic's newest and the topic went on in step: a "
                                         f"straggler or a wrong stamp, not a jump back")
 
+    def _reject_leap(self, held: list[Held]) -> None:
+        for h in held:
+            self._reject("stamp_leap", f"{h.topic}: stamp {h.stamp_ns} ns leapt more than time.leap_s ahead of the "
+                                       f"topic's newest and the topic went on from its newest: a wrong stamp")
+
+    def _resume(self, user: str, last: Held) -> list[Output]:
+        """A leap ahead confirmed by ``last``: the held messages and ``last`` handled in order (the
+        source resumed after a pause; nothing is reset)."""
+        held = self.time.resume(user, last.topic) + [last]
+        mark = self.time.user(user).marks.get(last.topic)
+        if mark is not None:           # the source goes on from the first held message
+            self.time.user(user).marks[last.topic] = held[0].stamp_ns - 1
+        return self._replay_held(user, held, None, None)
+
     def _jump(self, user: str, first: Held) -> list[Output]:
         """A jump back confirmed by ``first``: the user's state reset, the held messages and ``first``
         handled as the new pass's first (their order kept)."""
@@ -359,6 +384,7 @@ class Stage:
         """Reset the user's state in the stage and in the time policy; returns the outputs of the
         reset and the messages held for the new pass."""
         outs = self._guarded("reset_user", lambda: self.reset_user(user))
+        self._reject_leap(self.time.refuted_leap(user))      # stamped ahead of the old pass: not the new one's
         held = self.time.restart(user)
         self.diag.time_jumps += 1
         return outs, held
@@ -403,6 +429,7 @@ class Stage:
         """End of a user's input with a jump back still unconfirmed: its held messages were stragglers."""
         if user in self.time.users and self.time.users[user].held:
             self._reject_held(user, self.time.drop_held(user))
+        self._reject_leap(self.time.refuted_leap(user))
 
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """:meth:`clock_jump` for drivers, guarded like :meth:`run_tick`."""

@@ -26,6 +26,15 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   shows the held ones were stragglers: each is rejected (``stale_stamp``), counted. Ordering
   *across* a user's topics is never a jump (a user's first scan before its first odometry, fixes
   that lag the odometry by the WiFi node's latency): each topic is a source of its own.
+- **leaps ahead**: a stamp more than ``leap_s`` after its source's watermark while the node's clock
+  cannot vouch for it (it is not within ``max_future_s`` of the clock: a bag replayed without
+  ``use_sim_time``, a device clock that is not the node's) is either a wrongly stamped message or
+  the source resuming after a pause. It is held (this source only) until ``jump_confirm`` messages
+  of the source in a row, each after the previous by less than ``leap_s``, confirm the resume (they
+  are handled in order, nothing reset) — or a message of the source in step with its watermark shows
+  the held ones were wrongly stamped: each is rejected (``stamp_leap``), counted. Without this, one
+  message stamped an hour ahead would move the watermark there and every valid message after it
+  would be refused.
 - **the node's clock going back** (rclpy's clock-jump callback, :meth:`Stage.run_clock_jump`) by
   more than ``jump_s`` resets every user whose watermarks are ahead of the new clock, at once.
 - **after a jump**, a topic's first message stamped more than ``jump_s`` ahead of the user's new
@@ -70,18 +79,25 @@ class TimeParams:
                                "the node's clock going back this far resets at once, s")
     jump_confirm: int = field(3, "messages of one topic in a row, each in step with the previous, that confirm a "
                                  "jump back (a replay loop, a restarted simulation, a device clock reset)")
+    leap_s: float = field(60.0, "a stamp this much after its topic's newest accepted one, not within max_future_s "
+                                "of the node's clock, is a leap: held until jump_confirm messages in a row continue "
+                                "from it (the source resumed after a pause) or the topic goes on from its newest "
+                                "(the leap was a wrong stamp: stamp_leap, counted), s")
 
     def validate(self) -> None:
         n = type(self).__name__
         require(self.max_future_s > 0, n, "max_future_s", "> 0", self.max_future_s)
         require(self.jump_s > 0, n, "jump_s", "> 0", self.jump_s)
         require(self.jump_confirm >= 1, n, "jump_confirm", ">= 1", self.jump_confirm)
+        require(self.leap_s > self.jump_s, n, "leap_s", "> jump_s", self.leap_s)
 
 
 class Verdict(IntEnum):
     PASS = 0        # hand the message to its handler; call :meth:`TimePolicy.accepted` if it took it
     HOLD = 1        # held (a possible jump back): :meth:`TimePolicy.hold` it
     JUMP = 2        # a jump back confirmed by this message: reset the user, then :meth:`TimePolicy.restart`
+    LEAP = 3        # a leap ahead: :meth:`TimePolicy.hold_leap` it
+    RESUME = 4      # a leap confirmed by this message: :meth:`TimePolicy.resume` gives the held ones to handle
 
 
 @dataclass
@@ -95,6 +111,13 @@ class Held:
 
 
 @dataclass
+class _Leap:
+    """A source's messages held for a leap ahead (see the module doc)."""
+    held: list[Held] = dc_field(default_factory=list)
+    last: int = 0                       # the latest held stamp
+
+
+@dataclass
 class _UserTime:
     marks: dict[str, int] = dc_field(default_factory=dict)    # topic -> newest accepted stamp (watermark)
     held: list[Held] = dc_field(default_factory=list)
@@ -104,6 +127,7 @@ class _UserTime:
     cand_count: int = 0                 # far-back messages of that source in a row
     fence_ns: int | None = None         # after a jump: the old pass's newest stamp (see before_jump)
     jumps: int = 0
+    leaps: dict[str, _Leap] = dc_field(default_factory=dict)   # topic -> its messages held for a leap ahead
 
     def front(self) -> int | None:
         return max(self.marks.values()) if self.marks else None
@@ -117,6 +141,7 @@ class TimePolicy:
         self.params = params
         self.future_ns = int(params.max_future_s * NS)
         self.jump_ns = int(params.jump_s * NS)
+        self.leap_ns = int(params.leap_s * NS)
         self.users: dict[str, _UserTime] = {}
         self.rejected_held = 0
 
@@ -131,9 +156,10 @@ class TimePolicy:
         changed). A ``PASS`` of the held run's source back in step drops the held messages first
         (:meth:`drop_held` gives them to the caller to count)."""
         u = self.users.get(user)
-        if u is not None and not u.held and u.fence_ns is None:     # the common case, first (every IMU sample)
+        if u is not None and not u.held and u.fence_ns is None and not u.leaps:   # the common case, first
             mark = u.marks.get(topic)
-            if mark is not None and stamp_ns > mark and (not now_ns or stamp_ns <= now_ns + self.future_ns):
+            if mark is not None and mark < stamp_ns <= mark + self.leap_ns and (
+                    not now_ns or stamp_ns <= now_ns + self.future_ns):
                 return Verdict.PASS
         if order == Order.EXEMPT:
             return Verdict.PASS
@@ -146,6 +172,9 @@ class TimePolicy:
         if u.fence_ns is not None:
             self._check_fence(u, topic, stamp_ns, now_ns)
         mark = u.marks.get(topic)
+        leap = self._leap(u, topic, stamp_ns, mark, now_ns)
+        if leap is not None:
+            return leap
         if mark is None:            # a topic's first message: held only if it is as far back as a held run
             return Verdict.HOLD if u.held and stamp_ns < (u.front() or 0) - self.jump_ns else Verdict.PASS
         if stamp_ns < mark - self.jump_ns:                       # far back: a straggler or a new pass
@@ -178,6 +207,46 @@ class TimePolicy:
                 raise InvalidInputError("stamp_backwards", f"{topic} stamp {stamp_ns} ns is before the previous "
                                                            f"one's {mark} ns")
         return Verdict.PASS
+
+    def _leap(self, u: _UserTime, topic: str, stamp_ns: int, mark: int | None, now_ns: int | None) -> Verdict | None:
+        """LEAP / RESUME for a message leaping ahead of its source's watermark or continuing a held
+        leap; None when the leap rule has nothing to say (the message is judged as usual)."""
+        held = u.leaps.get(topic)
+        if held is not None and stamp_ns > held.last and stamp_ns - held.last <= self.leap_ns:
+            held.last = stamp_ns                     # continues the held run
+            return Verdict.RESUME if len(held.held) + 1 >= self.params.jump_confirm else Verdict.LEAP
+        if mark is None or stamp_ns <= mark + self.leap_ns:
+            return None
+        if now_ns and abs(stamp_ns - now_ns) <= self.future_ns:
+            return None                              # the node's clock vouches for it: a source back after a pause
+        if held is not None:                         # ahead again but not continuing: the run starts anew
+            held.last = stamp_ns
+            return Verdict.LEAP if self.params.jump_confirm > 1 else Verdict.RESUME
+        u.leaps[topic] = _Leap(last=stamp_ns)
+        return Verdict.LEAP if self.params.jump_confirm > 1 else Verdict.RESUME
+
+    def hold_leap(self, user: str, held: Held) -> Held | None:
+        """Hold a message of a leap ahead; returns the oldest held one if the bound made room (reject it)."""
+        lp = self.user(user).leaps.setdefault(held.topic, _Leap(last=held.stamp_ns))
+        lp.held.append(held)
+        return lp.held.pop(0) if len(lp.held) > HELD_MAX else None
+
+    def resume(self, user: str, topic: str) -> list[Held]:
+        """A leap confirmed: the held messages, oldest first, to be handled in order (the source's
+        watermark moves with them as they are accepted)."""
+        u = self.user(user)
+        lp = u.leaps.pop(topic, None)
+        return [] if lp is None else lp.held
+
+    def refuted_leap(self, user: str, topic: str | None = None) -> list[Held]:
+        """A message of ``topic`` in step with its watermark passed (``None``: the user's state is reset,
+        or its input ended): the messages held for a leap were wrongly stamped (the caller rejects each,
+        ``stamp_leap``)."""
+        u = self.users.get(user)
+        if u is None:
+            return []
+        topics = list(u.leaps) if topic is None else [topic] if topic in u.leaps else []
+        return [h for t in topics for h in u.leaps.pop(t).held]
 
     def _in_step(self, u: _UserTime, stamp_ns: int, now_ns: int) -> bool:
         """A far-back message continues the held run: its stamp after the run's latest, and — with the
@@ -235,7 +304,7 @@ class TimePolicy:
         off, one more jump counted. Returns the held messages, to be handled as the new pass's first."""
         u = self.user(user)
         held, front = u.held, u.front()
-        u.marks, u.held, u.cand_topic, u.cand_count = {}, [], None, 0
+        u.marks, u.held, u.cand_topic, u.cand_count, u.leaps = {}, [], None, 0, {}
         if front is not None:
             u.fence_ns = front if u.fence_ns is None else max(u.fence_ns, front)
         u.jumps += 1
@@ -255,11 +324,13 @@ class TimePolicy:
         if order == Order.EXEMPT:
             return True
         u = self.users.get(user)
-        if u is not None and (u.held or u.fence_ns is not None):
+        if u is not None and (u.held or u.fence_ns is not None or u.leaps):
             return False
         prev = None if u is None else u.marks.get(topic)
         for t, now in zip(stamps, now_ns):
             if now and t > now + self.future_ns:
+                return False
+            if prev is not None and t > prev + self.leap_ns:
                 return False
             if prev is not None and (t < prev or (t == prev and order == Order.STRICT)):
                 return False
