@@ -168,6 +168,39 @@ def test_a_subscription_that_matched_late_says_so():
     assert on_time == []
 
 
+def test_losses_between_two_publishers_numbers_are_counted():
+    """Two publishers on one topic (a node's odometry and a flood from another): rclpy does not say
+    which message is whose, yet the gaps in each one's numbers are counted, and a publisher joining
+    or restarting is not a loss."""
+    from indoor_loc.nodes.liveness import SequenceGaps
+
+    def info(n):
+        return {"publication_sequence_number": n}
+    gaps = SequenceGaps()
+    gaps.publishers = 2
+    odom = [1, 2, 3, 4, 7, 8, 9, 10]                     # lost 5, 6
+    flood = list(range(1, 301))
+    del flood[100:140]                                   # lost 40 in a burst
+    rng = np.random.default_rng(3)
+    merged, i, j = [], 0, 0
+    while i < len(odom) or j < len(flood):
+        if j >= len(flood) or (i < len(odom) and rng.random() < 0.05):
+            merged.append(odom[i])
+            i += 1
+        else:
+            merged.append(flood[j])
+            j += 1
+    assert sum(gaps.gap(info(n)) for n in merged) == 2 + 40
+    # a second publisher appearing mid-stream (counted alone so far): its numbers are not a loss
+    joined = SequenceGaps()
+    assert joined.gap(info(1)) == 0 and joined.gap(info(2)) == 0
+    assert joined.gap(info(50), lambda: 2) == 0                # the graph says: two publishers now
+    assert joined.gap(info(3)) == 0 and joined.gap(info(51)) == 0
+    assert joined.gap(info(6)) == 2                             # 4 and 5 of the first one lost
+    # one of them restarting (numbers below every run): not a loss either
+    assert joined.gap(info(1)) == 0 and joined.gap(info(2)) == 0
+
+
 def test_startup_error_is_an_error_in_diagnostics(ros_domain, tmp_path):
     """A node that cannot start (here: its radio map does not exist) exits 2 and says so in
     /diagnostics as ERROR under its own name, not only on stderr."""
