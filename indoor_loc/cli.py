@@ -28,7 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks: heading, imu, steps, wifi, pf, backend, throughput, live"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
-    "view": ("indoor_loc.commands.view", "live view of a running system over Foxglove WebSocket (foxglove-sdk)"),
+    "view": ("indoor_loc.commands.view", "live view of a running system over the Foxglove WebSocket protocol (Foxglove, Lichtblick)"),
     "sim": ("indoor_loc.commands.sim", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
 }
 
