@@ -22,7 +22,7 @@ SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
 N_TOPICS = 30
 
 
-def _start(tmp_path) -> tuple[Peer, Peer, str]:
+def start_view_and_pf(tmp_path) -> tuple[Peer, Peer, str]:
     from indoor_loc.sim.building import sample_building_path
     g = build_graph([0, 1, 2], np.array([[0, 0], [20, 0], [20, 10]], float), [(0, 1), (1, 2)])
     gf = save_graph(g, tmp_path / "g.graph.yaml")
@@ -41,7 +41,7 @@ def _start(tmp_path) -> tuple[Peer, Peer, str]:
 def test_every_channel_subscribed_at_once_delivers_decodable_messages(ros_domain, tmp_path, subprotocol):
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    pf, view, url = _start(tmp_path)
+    pf, view, url = start_view_and_pf(tmp_path)
     try:
         with ros_node("view_test_pub") as (node, _ex):
             latched_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -94,7 +94,7 @@ def test_every_channel_subscribed_at_once_delivers_decodable_messages(ros_domain
 def test_client_publishes_initialpose_calls_global_localization_and_reads_parameters(ros_domain, tmp_path):
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from std_srvs.srv import Empty
-    pf, view, url = _start(tmp_path)
+    pf, view, url = start_view_and_pf(tmp_path)
     try:
         client = FoxgloveClient(url, "foxglove.websocket.v1")
         try:
