@@ -121,6 +121,10 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
             nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "params_files": [params],
                           "params": dict(replay)})
             scan_consumers.append(f"/{mod}")
+    plans = Path(sim["dir"]) / "floor_plans"
+    if plans.is_dir():       # the building as nav_msgs/OccupancyGrid on /map (latched), for RViz and Foxglove
+        nodes.append({"name": "map", "module": "indoor_loc.nodes.map_node", "args": ["--plans", str(plans)],
+                      "use_sim_time": False})
     if foxglove is not None:
         nodes.append({"name": "view", "module": "indoor_loc.nodes.view_node",
                       "args": ["--port", str(foxglove), "--building", str(sim["dir"] / "building.geojson")],
@@ -217,8 +221,10 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     if missing:
         print(f"   not in this build, so not started: {', '.join(missing)}")
     if args.foxglove is not None:
-        print(f"   live view: open Foxglove -> Open connection -> ws://localhost:{args.foxglove} "
-              f"(layout: {layout_path()})")
+        from indoor_loc.foxglove_layout import write_layout
+        layout = write_layout(out / "foxglove_layout.json", walkers)
+        print(f"   live view: open Foxglove or Lichtblick -> Open connection -> Foxglove WebSocket -> "
+              f"ws://localhost:{args.foxglove} (layout for these walkers: {layout})")
     console = _Console(out / "nodes.log", args.verbose)
     bup = Bringup(config, out=console, hint_ctrl_c=False)      # the demo stops the nodes itself
     stop_event = threading.Event()

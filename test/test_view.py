@@ -97,7 +97,7 @@ def test_shipped_layout_names_contract_topics():
     layout = json.loads(layout_path().read_text())
     panel = layout["configById"]["3D!indoorloc"]
     assert panel["followTf"] == "map"
-    known = set(TOPICS) | {"map/graph", "view/building"}
+    known = set(TOPICS) | {"map/graph", "view/building", "map"}
     for topic in panel["topics"]:
         ns, rel = split_ns(topic, known)
         backend = re.fullmatch(BACKEND_PATH.replace("{user}", r"[a-z]+").replace("/", r"\/"), topic.lstrip("/"))

@@ -3,7 +3,7 @@
 Both subprotocol names are accepted (``foxglove.websocket.v1``: Lichtblick, ``@foxglove/ws-protocol``,
 Foxglove before the SDK; ``foxglove.sdk.v1``: current Foxglove), see :mod:`indoor_loc.fgws.server`.
 
-``indoor-loc view [--port 8765] [--building building.geojson]`` (or ``ros2 run indoor_loc view``)
+``indoor-loc view [--port 8765] [--building building.geojson]`` (or ``ros2 run indoor_loc indoor_loc_view``)
 then, in Foxglove: *Open connection* -> *Foxglove WebSocket* -> ``ws://localhost:8765``, and
 *Import layout* ``indoor_loc/data/foxglove_layout.json`` (the building, every user's estimates,
 particles and ground truth in a 3D panel; errors and diagnostics beside it).
@@ -60,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latch-period", type=float, default=2.0,
                         help="re-send the last message of latched topics this often, s (default 2.0)")
     parser.add_argument("--exclude", default=DEFAULT_EXCLUDE, help=f"regex of topics not served (default {DEFAULT_EXCLUDE!r})")
+    parser.add_argument("--write-layout", type=Path, metavar="FILE",
+                        help="write a Foxglove/Lichtblick layout for --users to FILE and exit")
+    parser.add_argument("--users", default="alice,bob,carol", help="users of --write-layout, comma-separated")
 
 
 class ViewNode(Node):
@@ -178,6 +181,13 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
         raise ConfigError(f"view.exclude: not a regular expression: {err}") from err
     if options.building is not None and not options.building.is_file():
         raise ConfigError(f"view.building: {options.building} does not exist")
+    if options.write_layout is not None:
+        from indoor_loc.foxglove_layout import write_layout
+        users = [u for u in options.users.split(",") if u]
+        if not users or not all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", u) for u in users):
+            raise ConfigError(f"view.users: expected comma-separated ROS names, got {options.users!r}")
+        print(f"[view] layout for {', '.join(users)}: {write_layout(options.write_layout, users)}")
+        return 0
     rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
     server = FoxgloveServer("indoor_loc", host=options.host, port=options.port, capabilities=CAPABILITIES)
     try:
@@ -208,8 +218,8 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
 
 
 def main(args: list[str] | None = None) -> int:
-    """``view`` executable: same options as ``indoor-loc view``, plus ``--ros-args ...``."""
-    return run_option_node("view", __doc__.splitlines()[0], add_arguments, run, args)
+    """``indoor_loc_view`` executable: same options as ``indoor-loc view``, plus ``--ros-args ...``."""
+    return run_option_node("indoor_loc_view", __doc__.splitlines()[0], add_arguments, run, args)
 
 
 if __name__ == "__main__":
