@@ -67,5 +67,5 @@ def format_inputs(rows: list[InputCount]) -> str:
         if not r.complete:
             got = "no status recorded" if r.received is None else f"{r.received} received"
             lines.append(f"   /{r.walker}/{r.topic}: played {r.played}, /{r.walker}/{r.node} {got} "
-                         f"(lost in DDS {r.lost}, published before its subscription matched {r.missed_at_start})")
+                         f"(lost {r.lost}, of which published before its subscription matched {r.missed_at_start})")
     return "\n".join(lines)

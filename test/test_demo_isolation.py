@@ -51,5 +51,5 @@ def test_input_counts_are_printed_complete_or_with_what_was_lost():
                   InputCount("bob", "wifi/scan", "wifi_fix_node", 15, None, 0, 0)]
     text = format_inputs(short)
     assert "NOT complete" in text and "/bob/imu/data_raw: played 1200, /bob/imu_node 929 received" in text
-    assert "before its subscription matched 271" in text and "no status recorded" in text
+    assert "lost 271, of which published before its subscription matched 271" in text and "no status recorded" in text
     assert "/alice/" not in text
