@@ -7,7 +7,7 @@ import pytest
 from indoor_loc.dds_isolation import bound_udp_ports, domain_in_use, isolated_env
 from indoor_loc.demo_inputs import InputCount, format_inputs
 from indoor_loc.errors import ConfigError
-from indoor_loc.nodes.consumers import Consumers, missing_consumers
+from indoor_loc.nodes.consumers import Consumers, met_by_observers, missing_consumers
 
 
 def test_isolated_env_picks_localhost_and_the_first_domain_no_local_socket_uses():
@@ -53,3 +53,10 @@ def test_input_counts_are_printed_complete_or_with_what_was_lost():
     assert "NOT complete" in text and "/bob/imu/data_raw: played 1200, /bob/imu_node 929 received" in text
     assert "lost 271, of which published before its subscription matched 271" in text and "no status recorded" in text
     assert "/alice/" not in text
+
+
+def test_a_count_met_only_by_the_view_or_the_recorder_is_noticed():
+    assert met_by_observers(1, [("view", "/")])
+    assert met_by_observers(2, [("view", "/"), ("recorder", "/"), ("imu_node", "/alice")])
+    assert not met_by_observers(1, [("view", "/"), ("imu_node", "/alice")])
+    assert not met_by_observers(1, []) and not met_by_observers(0, [("view", "/")])

@@ -53,3 +53,14 @@ def missing_consumers(wanted: tuple[str, ...], subscribers: list[tuple[str, str]
     full = {f"{ns.rstrip('/')}/{name}" for name, ns in subscribers}
     bare = {name for name, _ in subscribers}
     return [w for w in wanted if (w not in full if w.startswith("/") else w not in bare)]
+
+
+#: nodes that subscribe to every topic and consume none (the live view, the recorder)
+OBSERVERS = frozenset({"view", "recorder"})
+
+
+def met_by_observers(want: int, subscribers: list[tuple[str, str]]) -> bool:
+    """Whether a subscriber count of ``want`` is reached only thanks to observers: the wait would
+    end before any consuming node has subscribed."""
+    consuming = [n for n, _ in subscribers if n not in OBSERVERS]
+    return 0 < want <= len(subscribers) and len(consuming) < want

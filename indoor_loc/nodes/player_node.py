@@ -50,7 +50,7 @@ from indoor_loc.bag.reader import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError
-from indoor_loc.nodes.consumers import Consumers, missing_consumers
+from indoor_loc.nodes.consumers import Consumers, met_by_observers, missing_consumers
 from indoor_loc.nodes.help import run_option_node
 from indoor_loc.nodes.process import check_stop, ignore_signals, raise_on_signals, restore_signals
 from indoor_loc.nodes.qos import qos_profile
@@ -253,6 +253,13 @@ class PlayerNode(Node):
                 "playing with fewer subscribers than asked on " + ", ".join(
                     f"{t} ({n} of {w})" for t, (n, w) in self.short.items())
                 + ": a subscriber that matches later misses the first messages")
+        observed = [self._pubs[t].topic_name for t in self._pubs if not named[t] and met_by_observers(
+            want[t], [(i.node_name, i.node_namespace)
+                      for i in self.get_subscriptions_info_by_topic(self._pubs[t].topic_name)])]
+        if observed:
+            self.get_logger().warning(
+                "the subscriber count of " + ", ".join(observed) + " was met by the view or the recorder, which "
+                "consume nothing: name the consuming nodes with --consumers TOPIC=NODE so they miss nothing")
         if self.no_consumer:
             self.get_logger().warning(
                 f"playing after {timeout_s:g} s without the consumers of " + ", ".join(
