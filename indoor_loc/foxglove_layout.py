@@ -59,7 +59,8 @@ def layout_for(users: list[str]) -> dict[str, Any]:
         "layers": {"grid": {"visible": True, "layerId": "foxglove.Grid", "frameId": "map", "size": 60, "divisions": 60,
                             "lineWidth": 0.5, "color": "#24825a55", "position": [20, 10, -0.01], "rotation": [0, 0, 0],
                             "order": 1}},
-        "publish": {"type": "pose_estimate", "poseEstimateTopic": f"/{first}/initialpose",
+        "publish": {"type": "pose_estimate", "poseTopic": "/move_base_simple/goal", "pointTopic": "/clicked_point",
+                    "poseEstimateTopic": f"/{first}/initialpose",
                     "poseEstimateXDeviation": 0.5, "poseEstimateYDeviation": 0.5,
                     "poseEstimateThetaDeviation": 0.26179939},
         "imageMode": {}}
