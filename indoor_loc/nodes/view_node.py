@@ -195,6 +195,9 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     except OSError as err:
         rclpy.try_shutdown()
         raise ConfigError(f"view: cannot serve on {options.host}:{options.port}: {err}") from err
+    except ImportError as err:           # websockets.asyncio is websockets >= 13 (Ubuntu 24.04's apt has 10.4)
+        rclpy.try_shutdown()
+        raise ConfigError(f"view: needs the websockets package >= 13 (pip install 'websockets>=13'): {err}") from err
     print(f"[view] Foxglove WebSocket server on ws://{options.host}:{server.port} "
           f"(subprotocols {' and '.join(SUBPROTOCOLS)}; Foxglove or Lichtblick: Open connection -> "
           f"Foxglove WebSocket)", flush=True)
