@@ -6,7 +6,8 @@ from setuptools import find_packages, setup
 PACKAGE = "indoor_loc"
 
 # `ros2 run indoor_loc <exe>` executables (installed to lib/indoor_loc by setup.cfg under colcon,
-# and to the venv's bin/ under pip).
+# and to the venv's bin/ under pip, where a generic name would shadow another program's: vim's `view`,
+# so the view and the map publisher are prefixed `indoor_loc_`; one name per node).
 NODES = {
     "imu_node": "indoor_loc.nodes.imu_node:main",
     "wifi_scan_node": "indoor_loc.nodes.wifi_scan_node:main",
@@ -15,7 +16,8 @@ NODES = {
     "player": "indoor_loc.nodes.player_node:main",
     "pdr_kf_node": "indoor_loc.nodes.pdr_kf_node:main",
     "backend_node": "indoor_loc.nodes.backend_node:main",
-    "view": "indoor_loc.nodes.view_node:main",
+    "indoor_loc_view": "indoor_loc.nodes.view_node:main",
+    "indoor_loc_map": "indoor_loc.nodes.map_node:main",
     "tll_pf": "indoor_loc.nodes.tll_pf_node:main",
 }
 

@@ -28,9 +28,18 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
     "bench": ("indoor_loc.bench.cli", "benchmarks: heading, imu, steps, wifi, pf, backend, throughput, live"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
-    "view": ("indoor_loc.commands.view", "live view of a running system over Foxglove WebSocket (foxglove-sdk)"),
+    "view": ("indoor_loc.commands.view", "live view of a running system over the Foxglove WebSocket protocol (Foxglove, Lichtblick)"),
     "sim": ("indoor_loc.commands.sim", "simulate walkers in a building: bags, radio map, graph, params.yaml"),
 }
+
+
+def package_version() -> str:
+    """The installed distribution's version (``package.xml`` and ``setup.py`` say the same)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("indoor_loc")
+    except PackageNotFoundError:            # run from a source tree without an install
+        return "unknown (not installed)"
 
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
@@ -38,7 +47,9 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
         prog="indoor-loc", description="indoor-loc: the package's command line (offline replay, bring-up, bags, "
         "import, eval, bench). `indoor-loc COMMAND --help` shows a command's options.",
         epilog="The nodes are executables of their own (imu_node, wifi_scan_node, wifi_fix_node, pdr_kf_node, "
-               "tll_pf, backend_node, recorder, player, view); `NODE --help` prints their parameters and topics.")
+               "tll_pf, backend_node, recorder, player, indoor_loc_view, indoor_loc_map); `NODE --help` "
+               "prints their parameters and topics.")
+    parser.add_argument("--version", action="version", version=f"indoor-loc {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)

@@ -96,10 +96,14 @@ def _module_exists(name: str) -> bool:
     return importlib.util.find_spec(f"indoor_loc.nodes.{name}") is not None
 
 
-def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, foxglove: int | None) -> dict:
-    """The bring-up mapping (same schema as ``indoor-loc up``) of the live demo."""
+def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, foxglove: int | None,
+                   dds_env: dict[str, str] | None = None) -> dict:
+    """The bring-up mapping (same schema as ``indoor-loc up``) of the live demo. ``dds_env``: the
+    ``ROS_DOMAIN_ID`` / ``ROS_AUTOMATIC_DISCOVERY_RANGE`` chosen by :mod:`indoor_loc.dds_isolation`."""
     env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST"),
-           "RCUTILS_COLORIZED_OUTPUT": "0"}
+           **(dds_env or {}), "RCUTILS_COLORIZED_OUTPUT": "0"}
+    # a replay: reliable sensor inputs, so the player's stream is never dropped in DDS (docs/nodes.md)
+    replay = {"sensor_reliability": "reliable"}
     params = str(sim["params"])
     nodes: list[dict] = [{"name": "recorder", "module": "indoor_loc.nodes.recorder_node",
                           "args": ["-a", "-o", str(out / "live.mcap"), "--overwrite", "--poll", "0.5",
@@ -110,20 +114,30 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
     for w in walkers:
         for label, mod in PER_WALKER_NODES + [n for n in OPTIONAL_PER_WALKER if _module_exists(n[1])]:
             nodes.append({"name": f"{label}_{w}", "module": f"indoor_loc.nodes.{mod}", "namespace": f"/{w}",
-                          "params_files": [params]})
+                          "params_files": [params], "params": dict(replay)})
+    scan_consumers = ["wifi_fix_node"]
     for label, mod in OPTIONAL_SHARED:
         if _module_exists(mod):
-            nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "params_files": [params]})
+            nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "params_files": [params],
+                          "params": dict(replay)})
+            scan_consumers.append(f"/{mod}")
+    plans = Path(sim["dir"]) / "floor_plans"
+    if plans.is_dir():       # the building as nav_msgs/OccupancyGrid on /map (latched), for RViz and Foxglove
+        nodes.append({"name": "map", "module": "indoor_loc.nodes.map_node", "args": ["--plans", str(plans)],
+                      "use_sim_time": False})
     if foxglove is not None:
         nodes.append({"name": "view", "module": "indoor_loc.nodes.view_node",
                       "args": ["--port", str(foxglove), "--building", str(sim["dir"] / "building.geojson")],
                       "use_sim_time": True})
-    # the player starts with the nodes and waits until each of its topics has a subscriber (it plays
-    # as soon as they have): the demo's ten-odd processes starting on a loaded 2-core machine took
-    # 20 s where one CPU in three was free, so the bound is 60 s
+    # the player starts with the nodes and waits until the nodes that consume its topics have matched
+    # (by name: the view and the recorder subscribe to everything, a count would be met without
+    # imu_node): the demo's sixteen processes starting on a 2-core machine took 20 s where one CPU in
+    # three was free and over 60 s at a load average of 20, so the bound is 180 s (a loss is then
+    # counted and printed with the scores)
     nodes.append({"name": "player", "module": "indoor_loc.nodes.player_node",
-                  "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "60",
-                           "--delay", "1.0"],
+                  "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "180",
+                           "--consumers", "imu/data_raw=imu_node", "imu/mag=imu_node",
+                           "wifi/scan=" + ",".join(scan_consumers), "--delay", "1.0"],
                   "use_sim_time": False})
     return {"env": env, "use_sim_time": True, "stop_timeout_s": 10.0, "nodes": nodes}
 
@@ -191,7 +205,9 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     for stale in (live, live.with_suffix(".mcap.partial")):
         if stale.exists():
             stale.unlink()
-    cfg_map = bringup_config(walkers, sim, out, rate=args.rate, foxglove=args.foxglove)
+    from indoor_loc.dds_isolation import isolated_env
+    dds_env, dds_said = isolated_env(os.environ)
+    cfg_map = bringup_config(walkers, sim, out, rate=args.rate, foxglove=args.foxglove, dds_env=dds_env)
     (out / "bringup.yaml").write_text(
         f"# The demo's bring-up; `indoor-loc up {out / 'bringup.yaml'}` runs the same processes. The player\n"
         "# is not `required`: when the bag ends the nodes keep running until Ctrl-C (`indoor-loc demo` itself\n"
@@ -202,13 +218,14 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     config = parse_config(cfg_map, out)
     names = [n["name"] for n in cfg_map["nodes"]]
     missing = [m for _, m in OPTIONAL_PER_WALKER + OPTIONAL_SHARED if not _module_exists(m)]
-    print(f"== 2/4 live over DDS (ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}): {len(names)} processes "
-          f"({', '.join(names)})")
+    print(f"== 2/4 live over DDS: {len(names)} processes ({', '.join(names)})\n   {dds_said}")
     if missing:
         print(f"   not in this build, so not started: {', '.join(missing)}")
     if args.foxglove is not None:
-        print(f"   live view: open Foxglove -> Open connection -> ws://localhost:{args.foxglove} "
-              f"(layout: {layout_path()})")
+        from indoor_loc.foxglove_layout import write_layout
+        layout = write_layout(out / "foxglove_layout.json", walkers)
+        print(f"   live view: open Foxglove or Lichtblick -> Open connection -> Foxglove WebSocket -> "
+              f"ws://localhost:{args.foxglove} (layout for these walkers: {layout})")
     console = _Console(out / "nodes.log", args.verbose)
     bup = Bringup(config, out=console, hint_ctrl_c=False)      # the demo stops the nodes itself
     stop_event = threading.Event()
@@ -229,6 +246,8 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     print(f"== 3/4 score each estimator per walker against the ground truth ({live})")
     rows, trajs = score_run(live, sim["dir"], walkers)
     print(format_scores(rows))
+    from indoor_loc.demo_inputs import count_inputs, format_inputs
+    print(format_inputs(count_inputs(live, sim["bag"], walkers)))
     print("== 4/4 plot")
     png = plot_run(out / "demo.png", sim["dir"], trajs, rows)
     print(f"   {png}")
@@ -260,13 +279,12 @@ class ScoreRow:
 
 
 def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
-    """Per walker and estimator: the error of the estimate interpolated at the 5 Hz truth samples
-    (time-aligned, m) over the span the estimate covers, and the distance to the walked route."""
-    import numpy as np
-
+    """Per walker and estimator, ``indoor-loc eval``'s scores (one implementation:
+    :func:`indoor_loc.commands.eval.evaluate`): the error of the estimate interpolated at the 5 Hz
+    truth samples, held before its first and after its last pose (m), the share of those samples
+    inside the estimate's span, and the distance to the walked route."""
     from indoor_loc.bag import bag_topics
-    from indoor_loc.commands.eval import trajectories_from_bags, truth_from_import
-    from indoor_loc.eval.metrics import point_segment_distance, scan_time_errors
+    from indoor_loc.commands.eval import evaluate, trajectories_from_bags, truth_from_import
 
     truths = truth_from_import(sim_dir)
     topics = bag_topics([bag])
@@ -288,13 +306,11 @@ def score_run(bag: Path, sim_dir: Path, walkers: list[str]):
             if tr is None or truth is None or len(tr) == 0:
                 continue
             trajs[(w, rel)] = tr
-            d, inside = scan_time_errors(tr.stamps_ns, tr.xy, truth.scan_ns, truth.scan_xy)
-            d = d[inside]
-            route = point_segment_distance(tr.xy, truth.segments) if len(truth.segments) else np.full(len(tr), np.nan)
-            if len(d) == 0:
+            s = evaluate({w: tr}, {w: truth})[0][0]
+            if s.scan_m.n == 0:
                 continue
-            rows.append(ScoreRow(w, label, rel, len(tr), float(np.mean(d)), float(np.percentile(d, 95)),
-                                 float(np.max(d)), float(np.mean(route)), float(np.mean(inside))))
+            rows.append(ScoreRow(w, label, rel, len(tr), s.scan_m.mean, s.scan_m.p95, s.scan_m.max, s.route_m.mean,
+                                 1.0 - s.n_scans_outside / s.scan_m.n))
     return rows, trajs
 
 
@@ -308,8 +324,9 @@ def format_scores(rows: list[ScoreRow]) -> str:
                      f"{r.route_m:8.2f} {100 * r.coverage:5.0f}%")
     if not rows:
         lines.append("(no estimates were recorded: see nodes.log)")
-    lines.append("error at truth samples: the estimate interpolated at the 5 Hz ground-truth stamps it spans; "
-                 "covers: share of those stamps")
+    lines.append("error at truth samples: the estimate interpolated at the 5 Hz ground-truth stamps, held before its "
+                 "first and after its last pose; covers: share of those stamps inside the estimate's span; to route: "
+                 "poses within 10 m of the route (the same scores as `indoor-loc eval --truth OUT/sim`)")
     return "\n".join(lines)
 
 

@@ -48,7 +48,7 @@ _NODE_KEYS = {"name", "executable", "module", "script", "namespace", "args", "pa
 #: sinks (their end-of-input outputs, e.g. pdr_kf's final smoothed path, still reach the nodes after
 #: them), the recorder and the live view last so they hold all of it. Other nodes: 1.
 STOP_ORDER = {"player": 0, "wifi_scan_node": 1, "imu_node": 1, "wifi_fix_node": 2, "pdr_kf_node": 3,
-              "tll_pf": 3, "backend_node": 4, "recorder": 9, "view": 9}
+              "tll_pf": 3, "backend_node": 4, "recorder": 9, "view": 9, "indoor_loc_view": 9, "indoor_loc_map": 9}
 #: Exit statuses of a child that was asked to stop and did so (0, or killed by the signal sent).
 _CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
 #: A child stopped within this many seconds of its start may not have installed its signal

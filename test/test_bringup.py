@@ -271,7 +271,7 @@ def test_package_nodes_stop_in_dependency_order_also_as_modules(tmp_path):
     nodes = [("player", "executable", "player"), ("imu", "module", "indoor_loc.nodes.imu_node"),
              ("wifi", "module", "indoor_loc.nodes.wifi_fix_node"), ("kf", "executable", "pdr_kf_node"),
              ("pf", "module", "indoor_loc.nodes.tll_pf_node"), ("backend", "module", "indoor_loc.nodes.backend_node"),
-             ("rec", "module", "indoor_loc.nodes.recorder_node"), ("view", "executable", "view"),
+             ("rec", "module", "indoor_loc.nodes.recorder_node"), ("view", "executable", "indoor_loc_view"),
              ("other", "script", EXIT)]
     cfg = parse_config({"nodes": [{"name": n, kind: v} for n, kind, v in nodes]}, tmp_path)
     assert {n.name: n.stop_order for n in cfg.nodes} == {

@@ -99,20 +99,38 @@ def _msg_text(type_name: str) -> str:
 def message_definition(type_name: str) -> str:
     """Full ``ros2msg`` text of ``type_name`` ("sensor_msgs/msg/Imu") with its nested types, as
     rosbag2_storage_mcap concatenates it. Raises BagError when a ``.msg`` file is missing."""
+    return _with_dependencies(type_name, _msg_text(type_name), _split_type(type_name)[0])
+
+
+def _with_dependencies(label: str, text: str, package: str) -> str:
     seen: set[str] = set()
 
-    def append(name: str, depth: int) -> str:
+    def append(text: str, package: str, depth: int) -> str:
         if depth <= 0:
-            raise BagError(f"message definition of {type_name} nests too deep")
-        text = _msg_text(name)
+            raise BagError(f"message definition of {label} nests too deep")
         out = text
-        for dep in msg_dependencies(text, _split_type(name)[0]):
+        for dep in msg_dependencies(text, package):
             if dep not in seen:
                 seen.add(dep)
-                out += f"\n{DELIMITER}\nMSG: {dep}\n" + append(dep, depth - 1)
+                out += f"\n{DELIMITER}\nMSG: {dep}\n" + append(_msg_text(dep), _split_type(dep)[0], depth - 1)
         return out
 
-    return append(type_name, 50)
+    return append(text, package, 50)
+
+
+@lru_cache(maxsize=None)
+def service_definitions(type_name: str) -> tuple[str, str]:
+    """``ros2msg`` texts of the request and the response of a service type ("std_srvs/srv/Empty"),
+    each with its nested types like :func:`message_definition`. Raises BagError when the ``.srv``
+    file is missing."""
+    p = _interface_file(type_name, ".srv")
+    package = _split_type(type_name)[0]
+    if p is None:
+        raise BagError(f"no .srv definition for {type_name} (looked in {[str(d) for d in _share_dirs(package)]})")
+    parts = re.split(r"^---\s*$", p.read_text(encoding="utf-8"), maxsplit=1, flags=re.MULTILINE)
+    request, response = (parts + [""])[:2]
+    return (_with_dependencies(type_name, request.strip("\n"), package),
+            _with_dependencies(type_name, response.strip("\n"), package))
 
 
 @lru_cache(maxsize=None)

@@ -185,14 +185,17 @@ class BagWriter:
 
     def write(self, topic: str, msg: Any, stamp_ns: int) -> bytes:
         """Serialise an rclpy message and append it with log time ``stamp_ns`` (int ns); returns
-        the CDR bytes written."""
+        the CDR bytes written (padding zeroed: the same message gives the same bytes, see
+        :mod:`indoor_loc.bag.cdr_padding`)."""
         from rclpy.serialization import serialize_message
+
+        from indoor_loc.bag.cdr_padding import zero_padding
         type_name = type_name_of(msg)
         if topic not in self._topics:
             self.add_topic(topic, type_name)
         elif self._topics[topic].type != type_name:
             raise BagError(f"topic {topic}: bag holds {self._topics[topic].type}, got a {type_name}")
-        data = serialize_message(msg)
+        data = zero_padding(serialize_message(msg), type(msg))
         self.write_raw(topic, data, stamp_ns)
         return data
 

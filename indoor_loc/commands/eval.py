@@ -222,10 +222,12 @@ def format_table(scores: list[WalkScore]) -> str:
     scan-time error in metres."""
     w = max([8, *(len(s.name) for s in scores)])        # long user names (ms-indoor trace ids) stay aligned
     head = (f"{'walk':{w}s} {'poses':>5s} {'cut':>3s} | {'pRMSE':>6s} {'pmean':>6s} | {'rRMSE':>6s} {'rmean':>6s} "
-            f"{'rmed':>5s} {'rp95':>5s} {'rmax':>5s} | {'scans':>5s} {'smean':>6s} {'smed':>5s} {'sp95':>5s} "
+            f"{'rmed':>5s} {'rp95':>5s} {'rmax':>5s} | {'at':>5s} {'smean':>6s} {'smed':>5s} {'sp95':>5s} "
             f"{'smax':>5s} {'sRMSE':>6s}")
     sub = ("paper: e=d² (m²) over poses with e<100 ('cut' = poses dropped) | route distance (m), same poses | "
-           "scan-time error (m): trajectory interpolated at every true scan (held before/after its ends)")
+           "error at the truth's instants (m), 'at' of them: the trajectory interpolated at every true position "
+           "(PUTMC: its WiFi scans; an import or a simulation: its ground_truth samples, or with --at-scans its "
+           "wifi/scan stamps), held before/after its ends")
     lines = [sub, head, "-" * len(head)]
     for s in scores:
         r, c, p = s.route_m, s.scan_m, s.paper

@@ -70,7 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = sub.add_parser("draw", help="overlay a graph on its plan (and an imported dataset's true routes)")
     d.add_argument("graph", type=Path)
     d.add_argument("-o", "--out", type=Path, required=True, help="PNG to write")
-    d.add_argument("--plan", type=Path, help="floor plan image drawn underneath")
+    d.add_argument("--plan", type=Path, help="floor plan drawn underneath: an image (with --px-per-m, --origin) or "
+                                              "a nav2 map_server YAML (its own scale and origin: OUT/sim/floor_plans/"
+                                              "floor0.yaml)")
     d.add_argument("--px-per-m", type=float, help="plan scale, pixels per metre (with --plan)")
     d.add_argument("--origin", type=float, nargs=2, default=(0.0, 0.0), metavar=("X", "Y"))
     d.add_argument("--truth", type=Path, help="import directory (bags with ground_truth): draw and score its routes")
@@ -200,12 +202,17 @@ def draw(args: argparse.Namespace) -> int:
     extent = None
     grey = None
     if args.plan is not None:
-        if not args.px_per_m:
-            raise ConfigError("--plan needs --px-per-m")
-        from indoor_loc.graph.from_image import read_plan
-        grey = read_plan(args.plan)
+        from indoor_loc.graph.nav2_map import is_nav2_yaml, read_nav2_map
+        if is_nav2_yaml(args.plan):
+            nav2 = read_nav2_map(args.plan)
+            grey, px_per_m, origin = nav2.grey, nav2.px_per_m, nav2.origin[:2]
+        else:
+            if not args.px_per_m:
+                raise ConfigError("--plan needs --px-per-m (or give the plan's nav2 map_server YAML)")
+            from indoor_loc.graph.from_image import read_plan
+            grey, px_per_m, origin = read_plan(args.plan), args.px_per_m, tuple(args.origin)
         h, w = grey.shape
-        extent = (args.origin[0], args.origin[0] + w / args.px_per_m, args.origin[1], args.origin[1] + h / args.px_per_m)
+        extent = (origin[0], origin[0] + w / px_per_m, origin[1], origin[1] + h / px_per_m)
         lo = np.minimum(lo, [extent[0], extent[2]])
         hi = np.maximum(hi, [extent[1], extent[3]])
     aspect = (hi[1] - lo[1]) / max(hi[0] - lo[0], 1e-9)

@@ -1,6 +1,6 @@
 """``indoor-loc view [--port 8765] [--building FILE]``: serve a running system over Foxglove WebSocket.
 
-The same node as ``ros2 run indoor_loc view`` (see :mod:`indoor_loc.nodes.view_node`).
+The same node as ``ros2 run indoor_loc indoor_loc_view`` (see :mod:`indoor_loc.nodes.view_node`).
 """
 from __future__ import annotations
 

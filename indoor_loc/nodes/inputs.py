@@ -85,7 +85,7 @@ class InputsMixin(StuckGuard):
         fast = self._batchable(port)
         # named as the stage counts it: ``imu/data_raw``, ``alice/pdr/odom`` (multi-user)
         watch = InputWatch(resolved.lstrip("/"), required=port.required, stream=port.stream,
-                           on_late_start=self._late_start(resolved))
+                           on_late_start=self._late_start(resolved, port.topic if user is None else resolved.lstrip("/")))
         watch.publishers = lambda: self._publisher_gids(resolved)
         inp = Input(port, resolved, user, fast, watch)
         inp.callback = self._raw_callback(inp) if fast else self._message_callback(inp)
@@ -107,12 +107,16 @@ class InputsMixin(StuckGuard):
         (:meth:`Stage.batch_handles`) and a message type :func:`indoor_loc.bag.bulk.bulk_items` decodes."""
         return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
 
-    def _late_start(self, topic: str) -> Callable[[int], None]:
+    def _late_start(self, topic: str, key: str) -> Callable[[int], None]:
         """Said once when an input's first message is not its publisher's first: normal when a node
         joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
-        WARN; start the player once every subscriber has matched, see ``--min-subscribers``)."""
+        WARN, and counted as lost; start the player once every consumer has matched, see
+        ``--consumers``). Either way ``missed_at_start.<topic>`` in ``/diagnostics`` has the count."""
         def said(n: int) -> None:
             replay = self.sensor_reliability == "reliable"
+            self.stage.diag.missed_at_start[key] += n
+            if replay:
+                self.stage.diag.count_lost(key, n, self.get_clock().now().nanoseconds)
             (self.get_logger().warning if replay else self.get_logger().info)(
                 f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
                 f"published before this subscription matched" + ("; a replay started too early" if replay else ""))

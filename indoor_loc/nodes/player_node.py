@@ -23,6 +23,10 @@
   is merely non-zero and stable can be the recorder alone while a node's subscription is still
   being matched, and the node would miss the first messages. The counts are logged when playing
   starts; topics below their count when the wait runs out are a WARN (log and ``/diagnostics``).
+- ``--consumers TOPIC=NODE[,NODE...]`` (implies ``--wait-for-subscribers``) waits for the nodes that
+  consume a topic by name (``imu/data_raw=imu_node``), whatever else subscribes (a live view, a
+  recorder): see :mod:`indoor_loc.nodes.consumers`. Consumers still missing when the wait runs out
+  are a WARN (log and ``/diagnostics``).
 """
 from __future__ import annotations
 
@@ -46,6 +50,7 @@ from indoor_loc.bag.reader import bag_files
 from indoor_loc.bag.schemas import parse_qos_yaml
 from indoor_loc.contract import TOPICS, Qos, msg_class, split_ns
 from indoor_loc.errors import BagError, ConfigError
+from indoor_loc.nodes.consumers import Consumers, met_by_observers, missing_consumers
 from indoor_loc.nodes.help import run_option_node
 from indoor_loc.nodes.process import check_stop, ignore_signals, raise_on_signals, restore_signals
 from indoor_loc.nodes.qos import qos_profile
@@ -83,6 +88,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-subscribers", nargs="+", default=[], metavar="N|TOPIC=N",
                         help="subscribers to wait for: N for every topic (default 1), TOPIC=N for one topic (a "
                              "full name, or relative to any namespace: imu/data_raw=2); implies "
+                             "--wait-for-subscribers")
+    parser.add_argument("--consumers", nargs="+", default=[], metavar="TOPIC=NODE[,NODE]",
+                        help="nodes that consume a topic, waited for by name whatever else subscribes (a view, a "
+                             "recorder): imu/data_raw=imu_node wifi/scan=wifi_fix_node,/backend_node; implies "
                              "--wait-for-subscribers")
 
 
@@ -194,16 +203,34 @@ class PlayerNode(Node):
         self._next_diag = 0.0
         self.play_s = 0.0                # wall time of the playback (after any waiting)
         self.short: dict[str, tuple[int, int]] = {}   # topic -> (subscribers, asked for) when playing started
+        self.no_consumer: dict[str, list[str]] = {}   # topic -> named consumers missing when playing started
 
-    def wait_for_subscribers(self, timeout_s: float, minimum: MinSubscribers | None = None) -> bool:
+    def wait_for_subscribers(self, timeout_s: float, minimum: MinSubscribers | None = None,
+                             consumers: Consumers | None = None) -> bool:
         """Block until every played topic has its subscribers (``minimum(topic)``, by default one)
-        and the counts have not changed for ``SUBSCRIBERS_SETTLE_S`` (a recorder with ``-a``
-        subscribes to the topics one after another, after the nodes did), or until the timeout.
-        Logs the count of every topic when it returns; topics still short are a WARN."""
+        and its named ``consumers`` (each has a subscription in the graph and every subscription in
+        the graph is matched), and the counts have not changed for ``SUBSCRIBERS_SETTLE_S`` (a
+        recorder with ``-a`` subscribes to the topics one after another, after the nodes did), or
+        until the timeout. Logs the count of every topic when it returns; topics still short are a WARN."""
         need = minimum or MinSubscribers()
-        for name in need.unused(self.out_topics()):
-            self.get_logger().warning(f"--min-subscribers {name}: no played topic has that name")
+        consumers = consumers or Consumers()
+        for name in need.unused(self.out_topics()) + consumers.unused(self.out_topics()):
+            self.get_logger().warning(f"--min-subscribers/--consumers {name}: no played topic has that name")
         want = {t: need(self._pubs[t].topic_name) for t in self._pubs}
+        named = {t: consumers(self._pubs[t].topic_name) for t in self._pubs}
+
+        def absent() -> dict[str, list[str]]:
+            out = {}
+            for t, nodes in named.items():
+                if not nodes:
+                    continue
+                infos = self.get_subscriptions_info_by_topic(self._pubs[t].topic_name)
+                missing = missing_consumers(nodes, [(i.node_name, i.node_namespace) for i in infos])
+                if not missing and self._pubs[t].get_subscription_count() < len(infos):
+                    missing = ["(a subscription not matched yet)"]
+                if missing:
+                    out[self._pubs[t].topic_name] = missing
+            return out
         end = time.monotonic() + timeout_s
         last: list[int] | None = None
         since = time.monotonic()
@@ -213,19 +240,32 @@ class PlayerNode(Node):
             if counts != last:
                 last, since = counts, time.monotonic()
             elif (all(c >= want[t] for t, c in zip(self._pubs, counts))
-                  and time.monotonic() - since >= SUBSCRIBERS_SETTLE_S):
+                  and time.monotonic() - since >= SUBSCRIBERS_SETTLE_S and not absent()):
                 break
             time.sleep(0.02)
         counts = {t: p.get_subscription_count() for t, p in self._pubs.items()}
         self.get_logger().info("subscribers when playing starts: " + ", ".join(
             f"{self._pubs[t].topic_name} {n}" + (f" (of {want[t]})" if n < want[t] else "") for t, n in counts.items()))
         self.short = {self._pubs[t].topic_name: (n, want[t]) for t, n in counts.items() if n < want[t]}
+        self.no_consumer = absent()
         if self.short:
             self.get_logger().warning(
                 "playing with fewer subscribers than asked on " + ", ".join(
                     f"{t} ({n} of {w})" for t, (n, w) in self.short.items())
                 + ": a subscriber that matches later misses the first messages")
-        return not self.short
+        observed = [self._pubs[t].topic_name for t in self._pubs if not named[t] and met_by_observers(
+            want[t], [(i.node_name, i.node_namespace)
+                      for i in self.get_subscriptions_info_by_topic(self._pubs[t].topic_name)])]
+        if observed:
+            self.get_logger().warning(
+                "the subscriber count of " + ", ".join(observed) + " was met by the view or the recorder, which "
+                "consume nothing: name the consuming nodes with --consumers TOPIC=NODE so they miss nothing")
+        if self.no_consumer:
+            self.get_logger().warning(
+                f"playing after {timeout_s:g} s without the consumers of " + ", ".join(
+                    f"{t} ({', '.join(m)})" for t, m in self.no_consumer.items())
+                + ": they miss the first messages")
+        return not self.short and not self.no_consumer
 
     def out_topics(self) -> list[str]:
         """The played topics under the names they are published as (after ``--remap``)."""
@@ -238,9 +278,12 @@ class PlayerNode(Node):
                   "loops": str(self.loops), "last_bag_stamp_ns": str(self.last_bag_ns or ""),
                   "without_subscribers": ", ".join(alone),
                   "started_short_of_subscribers": ", ".join(f"{t} ({n} of {w})" for t, (n, w) in self.short.items()),
+                  "started_without_consumers": "; ".join(f"{t} ({', '.join(m)})" for t, m in self.no_consumer.items()),
                   "bags": ", ".join(str(b) for b in self.bags)}
         level, message = ((1, f"{len(alone)} topic(s) played without a subscriber") if alone else
                           (1, f"{len(self.short)} topic(s) started with fewer subscribers than asked") if self.short
+                          else (1, f"{len(self.no_consumer)} topic(s) started without their consumers")
+                          if self.no_consumer
                           else (0, "ok"))
         return status_array(self.get_fully_qualified_name(), level, message, values, now_ns)
 
@@ -318,6 +361,7 @@ def check_options(options: argparse.Namespace) -> None:
             raise BagError(f"bag {bag} does not exist" + ("" if bag.is_absolute() else f" (in {Path.cwd()})"))
     parse_remaps(options.remap)
     MinSubscribers(options.min_subscribers)
+    Consumers(options.consumers)
 
 
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
@@ -333,8 +377,9 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
     try:
         node = PlayerNode(list(options.bags), rate=options.rate, loop=options.loop, clock_hz=options.clock,
                           topics=options.topics, remap=remap, start_offset_s=options.start_offset)
-        if options.wait_for_subscribers > 0 or options.min_subscribers:
-            node.wait_for_subscribers(options.wait_for_subscribers or 30.0, MinSubscribers(options.min_subscribers))
+        if options.wait_for_subscribers > 0 or options.min_subscribers or options.consumers:
+            node.wait_for_subscribers(options.wait_for_subscribers or 30.0, MinSubscribers(options.min_subscribers),
+                                      Consumers(options.consumers))
         if options.delay > 0:
             end = time.monotonic() + options.delay
             while (left := end - time.monotonic()) > 0:

@@ -54,7 +54,7 @@ from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.clock import JumpHandle, JumpThreshold, TimeJump
+from rclpy.clock import Clock, ClockType, JumpHandle, JumpThreshold, TimeJump
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -139,7 +139,9 @@ class StageNode(InputsMixin, Node):
         if self.stage.MULTI_USER:
             for user in self._fixed_users:
                 self._follow(user_of_namespace(user))
-            self.create_timer(DISCOVERY_PERIOD_S, self._discover_users)
+            # steady clock: on sim time a node-clock timer waits for /clock, and a player waiting for
+            # this node's subscriptions (``--consumers``) would wait for it in vain
+            self.create_timer(DISCOVERY_PERIOD_S, self._discover_users, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
         self._last_rejected = 0
         self._watch_inputs(self.get_clock().now().nanoseconds)

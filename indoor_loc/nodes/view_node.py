@@ -1,6 +1,9 @@
 """Live view: every ROS topic of a running system, served over the Foxglove WebSocket protocol.
 
-``indoor-loc view [--port 8765] [--building building.geojson]`` (or ``ros2 run indoor_loc view``)
+Both subprotocol names are accepted (``foxglove.websocket.v1``: Lichtblick, ``@foxglove/ws-protocol``,
+Foxglove before the SDK; ``foxglove.sdk.v1``: current Foxglove), see :mod:`indoor_loc.fgws.server`.
+
+``indoor-loc view [--port 8765] [--building building.geojson]`` (or ``ros2 run indoor_loc indoor_loc_view``)
 then, in Foxglove: *Open connection* -> *Foxglove WebSocket* -> ``ws://localhost:8765``, and
 *Import layout* ``indoor_loc/data/foxglove_layout.json`` (the building, every user's estimates,
 particles and ground truth in a 3D panel; errors and diagnostics beside it).
@@ -16,6 +19,9 @@ particles and ground truth in a 3D panel; errors and diagnostics beside it).
 - ``--building`` adds the building's walls, graph and rooms (``/view/building`` MarkerArray) from a
   GeoJSON file (``indoor-loc sim`` writes one; the sample building ships with the package).
 - ``/clock`` (from a player) is broadcast as the server time, so Foxglove shows bag time.
+- Two-way (:mod:`indoor_loc.nodes.view_bridge`): clients may publish (Foxglove's *2D pose estimate*
+  on ``/<user>/initialpose``), call every service of the graph (``/<user>/tll_pf/global_localization``)
+  and read / set / follow every node's parameters.
 """
 from __future__ import annotations
 
@@ -34,8 +40,10 @@ from rclpy.qos import DurabilityPolicy
 
 from indoor_loc.bag.schemas import message_definition
 from indoor_loc.contract import msg_class
-from indoor_loc.errors import ConfigError
+from indoor_loc.errors import BagError, ConfigError
+from indoor_loc.fgws.server import SUBPROTOCOLS, FoxgloveServer
 from indoor_loc.nodes.help import run_option_node
+from indoor_loc.nodes.view_bridge import ViewBridge
 from indoor_loc.nodes.recorder_node import is_hidden, subscription_qos
 
 NODE_NAME = "view"
@@ -52,24 +60,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latch-period", type=float, default=2.0,
                         help="re-send the last message of latched topics this often, s (default 2.0)")
     parser.add_argument("--exclude", default=DEFAULT_EXCLUDE, help=f"regex of topics not served (default {DEFAULT_EXCLUDE!r})")
+    parser.add_argument("--write-layout", type=Path, metavar="FILE",
+                        help="write a Foxglove/Lichtblick layout for --users to FILE and exit")
+    parser.add_argument("--users", default="alice,bob,carol", help="users of --write-layout, comma-separated")
 
 
 class ViewNode(Node):
     """Subscribes (raw) to every topic and logs each message on a Foxglove channel of the same name."""
 
-    def __init__(self, server: Any, *, poll_s: float = 1.0, latch_period_s: float = 2.0, exclude: str = "",
+    def __init__(self, server: FoxgloveServer, *, poll_s: float = 1.0, latch_period_s: float = 2.0, exclude: str = "",
                  building: Path | None = None, **node_kwargs: Any) -> None:
-        import foxglove
         super().__init__(NODE_NAME, **node_kwargs)
-        self._fg = foxglove
         self.server = server
         self._exclude = re.compile(exclude) if exclude else None
         self._subs: dict[str, Any] = {}
-        self._channels: dict[str, Any] = {}
+        self._channels: dict[str, int] = {}
         self._latched: dict[str, bytes] = {}
         self._lock = threading.Lock()
         self._reported: set[tuple[str, str]] = set()
         self.forwarded = 0
+        self.bridge = ViewBridge(self, server, msg_class, msg_class)
+        server.listener = self.bridge
+        from rcl_interfaces.msg import ParameterEvent
+        self.create_subscription(ParameterEvent, "/parameter_events", self.bridge.on_parameter_event, 100)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if building is not None:
             self._add_building(building)
@@ -82,9 +95,9 @@ class ViewNode(Node):
             self._reported.add((topic, text))
             (self.get_logger().warning if warn else self.get_logger().info)(f"{topic}: {text}")
 
-    def _channel(self, topic: str, type_name: str) -> Any:
-        schema = self._fg.Schema(name=type_name, encoding="ros2msg", data=message_definition(type_name).encode())
-        ch = self._fg.Channel(topic, schema=schema, message_encoding="cdr")
+    def _channel(self, topic: str, type_name: str) -> int:
+        ch = self.server.add_channel(topic, encoding="cdr", schema_name=type_name,
+                                     schema=message_definition(type_name), schema_encoding="ros2msg")
         self._channels[topic] = ch
         return ch
 
@@ -98,11 +111,15 @@ class ViewNode(Node):
         self._latched[BUILDING_TOPIC] = serialize_message(arr)
         self._resend_latched()
 
+    def _excluded(self, name: str) -> bool:
+        return is_hidden(name) or (self._exclude is not None and self._exclude.search(name) is not None)
+
     def _poll(self) -> None:
+        self.bridge.poll_services(exclude=self._excluded)
         for topic, names in sorted(self.get_topic_names_and_types()):
             if topic in self._subs or topic in self._channels:
                 continue
-            if is_hidden(topic) or (self._exclude is not None and self._exclude.search(topic)):
+            if self._excluded(topic):
                 continue
             if len(names) != 1:
                 self._report(topic, f"published with several types {names}; not served", warn=True)
@@ -111,6 +128,11 @@ class ViewNode(Node):
                 cls = msg_class(names[0])
             except (ImportError, AttributeError, ValueError):
                 self._report(topic, f"type {names[0]} is not installed here; not served", warn=True)
+                continue
+            try:
+                message_definition(names[0])
+            except BagError as err:
+                self._report(topic, f"{err}; not served", warn=True)
                 continue
             profiles = [i.qos_profile for i in self.get_publishers_info_by_topic(topic)]
             if not profiles:
@@ -122,12 +144,12 @@ class ViewNode(Node):
                                                          raw=True)
             self._report(topic, f"serving [{names[0]}]{' (latched)' if latched else ''}")
 
-    def _callback(self, topic: str, channel: Any, latched: bool) -> Callable[[bytes], None]:
+    def _callback(self, topic: str, channel: int, latched: bool) -> Callable[[bytes], None]:
         clock_topic = topic == "/clock"
 
         def cb(data: bytes) -> None:
             now = self.get_clock().now().nanoseconds
-            channel.log(data, log_time=now)
+            self.server.log(channel, data, now)
             self.forwarded += 1
             if latched:
                 with self._lock:
@@ -141,12 +163,13 @@ class ViewNode(Node):
             items = list(self._latched.items())
         now = self.get_clock().now().nanoseconds
         for topic, data in items:
-            self._channels[topic].log(data, log_time=now)
+            self.server.log(self._channels[topic], data, now)
+
+
+CAPABILITIES = ("time", "clientPublish", "services", "parameters", "parametersSubscribe")
 
 
 def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
-    import foxglove
-
     if not 0 <= options.port <= 65535:
         raise ConfigError(f"view.port: expected 0..65535, got {options.port}")
     for name in ("poll", "latch_period"):
@@ -158,11 +181,26 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
         raise ConfigError(f"view.exclude: not a regular expression: {err}") from err
     if options.building is not None and not options.building.is_file():
         raise ConfigError(f"view.building: {options.building} does not exist")
+    if options.write_layout is not None:
+        from indoor_loc.foxglove_layout import write_layout
+        users = [u for u in options.users.split(",") if u]
+        if not users or not all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", u) for u in users):
+            raise ConfigError(f"view.users: expected comma-separated ROS names, got {options.users!r}")
+        print(f"[view] layout for {', '.join(users)}: {write_layout(options.write_layout, users)}")
+        return 0
     rclpy.init(args=ros_args if ros_args is not None else sys.argv[:1])
-    server = foxglove.start_server(name="indoor_loc", host=options.host, port=options.port,
-                                   capabilities=[foxglove.Capability.Time])
+    server = FoxgloveServer("indoor_loc", host=options.host, port=options.port, capabilities=CAPABILITIES)
+    try:
+        server.start()
+    except OSError as err:
+        rclpy.try_shutdown()
+        raise ConfigError(f"view: cannot serve on {options.host}:{options.port}: {err}") from err
+    except ImportError as err:           # websockets.asyncio is websockets >= 13 (Ubuntu 24.04's apt has 10.4)
+        rclpy.try_shutdown()
+        raise ConfigError(f"view: needs the websockets package >= 13 (pip install 'websockets>=13'): {err}") from err
     print(f"[view] Foxglove WebSocket server on ws://{options.host}:{server.port} "
-          f"(Foxglove: Open connection -> Foxglove WebSocket)", flush=True)
+          f"(subprotocols {' and '.join(SUBPROTOCOLS)}; Foxglove or Lichtblick: Open connection -> "
+          f"Foxglove WebSocket)", flush=True)
     node = None
     try:
         node = ViewNode(server, poll_s=options.poll, latch_period_s=options.latch_period, exclude=options.exclude,
@@ -176,13 +214,15 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
             node.destroy_node()
         server.stop()
         rclpy.try_shutdown()
-    print(f"[view] forwarded {forwarded} messages", file=sys.stderr)
+    lost = {k: v for k, v in server.counts.items() if v}
+    print(f"[view] forwarded {forwarded} messages"
+          + (f"; client requests refused or lost: {lost}" if lost else ""), file=sys.stderr)
     return 0
 
 
 def main(args: list[str] | None = None) -> int:
-    """``view`` executable: same options as ``indoor-loc view``, plus ``--ros-args ...``."""
-    return run_option_node("view", __doc__.splitlines()[0], add_arguments, run, args)
+    """``indoor_loc_view`` executable: same options as ``indoor-loc view``, plus ``--ros-args ...``."""
+    return run_option_node("indoor_loc_view", __doc__.splitlines()[0], add_arguments, run, args)
 
 
 if __name__ == "__main__":

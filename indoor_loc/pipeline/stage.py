@@ -81,6 +81,8 @@ class StageDiagnostics:
     last_error: str = ""
     last_error_reason: str = ""
     lost: Counter = field(default_factory=Counter)        # input topic -> messages lost before us
+    #: input topic -> messages its publisher sent before this subscription matched (a replay: also in ``lost``)
+    missed_at_start: Counter = field(default_factory=Counter)
     last_reject_ns: int | None = None   # node clock at the latest rejection (recent-window health)
     last_loss_ns: int | None = None     # node clock when a loss was last seen
     last_internal_ns: int | None = None  # node clock of the latest internal error
@@ -110,6 +112,8 @@ class StageDiagnostics:
         for topic, n in sorted(self.lost.items()):
             out[f"lost.{topic}"] = str(n)
         out["lost.total"] = str(sum(self.lost.values()))
+        for topic, n in sorted(self.missed_at_start.items()):
+            out[f"missed_at_start.{topic}"] = str(n)
         out["time_jumps"] = str(self.time_jumps)
         if self.process_s:
             t = np.fromiter(self.process_s, float, len(self.process_s)) * 1e3

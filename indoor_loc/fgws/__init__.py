@@ -1,0 +1,1 @@
+"""The Foxglove WebSocket protocol (v1) served without the Foxglove SDK: both subprotocol names, two-way."""
