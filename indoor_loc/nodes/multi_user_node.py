@@ -76,7 +76,7 @@ class MultiUserStageNode(StageNode):
         self.stage: MultiUserStage
         self.stage.raw_outputs = True
         self.create_timer(POLL_PERIOD_S, self._poll)
-        self._me = (self.get_name(), self.get_namespace())
+        self._me = {(self.get_name(), self.get_namespace()), (self.get_name() + "_io", self.get_namespace())}
         self._suffix = "/" + self.stage.NODE_NAME
         self._own_outputs = {p.topic for p in self.stage.template.outputs()}
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos_profile(Qos.RELIABLE))
@@ -90,7 +90,7 @@ class MultiUserStageNode(StageNode):
         """Whether a node other than this one publishes ``topic`` (one of the stage's inputs, ``rel``)."""
         if rel not in self._own_outputs:
             return self.count_publishers(topic) > 0
-        return any((i.node_name, i.node_namespace) != self._me for i in self.get_publishers_info_by_topic(topic))
+        return any((i.node_name, i.node_namespace) not in self._me for i in self.get_publishers_info_by_topic(topic))
 
     def _users_publishing(self) -> set[str]:
         """The users in whose namespace another node publishes one of the stage's inputs."""
@@ -133,6 +133,7 @@ class MultiUserStageNode(StageNode):
             if user in self._finished_users or now - self._user_seen[user] < timeout:
                 continue
             self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
+            self._poll(only=user)               # what it sent before leaving, still queued, comes first
             self._finished_users.add(user)
             self._publish(self.stage.run_finish_user(user))
             self._log_rejections()
@@ -170,12 +171,13 @@ class MultiUserStageNode(StageNode):
             self._io = None
         super().destroy_node()
 
-    def _poll(self) -> None:
-        """Take every user's queued input messages and hand them to the users' stages (class doc)."""
+    def _poll(self, only: str | None = None) -> None:
+        """Take every user's (``only`` that user's) queued input messages and hand them to the users'
+        stages (class doc)."""
         pending: dict[str, dict[str, list[tuple[int, int, bytes]]]] = {}
         for inp in list(self._inputs.values()):
             user = inp.user
-            if not user:
+            if not user or (only is not None and user != only):
                 continue
             sub = inp.sub
             for _ in range(TAKE_PER_INPUT):
@@ -262,6 +264,12 @@ class MultiUserStageNode(StageNode):
         """The node's status (totals, users, unserved users of other shards) and one status per user."""
         arr = stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)
         st = arr.status[0]
+        followed = sorted(u for u in self.user_subs if u not in self._finished_users)
+        for kv in st.values:            # the users followed (subscribed), also before their first message
+            if kv.key == "users":
+                kv.value = ",".join(followed)
+            elif kv.key == "users.count":
+                kv.value = str(len(followed))
         unserved = self.unserved()
         if unserved:
             names = sorted(unserved)

@@ -225,7 +225,7 @@ class MultiUserStage(Stage):
     def extra_diagnostics(self) -> dict[str, str]:
         p = self.params
         shown = sorted(self.users)
-        out = {"users.count": str(len(shown)), "users": ",".join(shown[:50]) + (" ..." if len(shown) > 50 else ""),
+        out = {"users.count": str(len(shown)), "users": ",".join(shown),
                "users.left": str(self.users_left), "shard": f"{p.shard_index}/{p.shard_count}",
                "user_pattern": p.user_pattern}
         standing = self.template.extra_diagnostics()
