@@ -1,4 +1,4 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos}``: benchmarks print tables,
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos,scale}``: benchmarks print tables,
 side by side with peers in one run."""
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ BENCHES = {
     "throughput": "indoor_loc.bench.throughput",
     "live": "indoor_loc.bench.live",
     "chaos": "indoor_loc.bench.chaos",
+    "scale": "indoor_loc.bench.scale",
 }
 
 
@@ -51,7 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
     parser.add_argument("--learn", action="store_true", help="pf: also score transitions learned from the odd walks on the even walks")
-    parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4)")
+    parser.add_argument("--users", default="", help="live: numbers of users to try (default 1,2,4); scale: the "
+                                                    "steps (default 10,25,50,100,150,200)")
     parser.add_argument("--rates", default="", help="live: replay rates to try, rising (default 2,5,10,20)")
     parser.add_argument("--duration", type=float, default=0.0, help="live, chaos: simulated seconds per user "
                                                                     "(default 60; chaos --soak: of the looped world, 300)")
@@ -68,6 +70,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--kill-nodes", default="", help="chaos: nodes to kill, e.g. imu_node,tll_pf (default all)")
     parser.add_argument("--soak", type=float, default=0.0, help="chaos: soak instead: HOURS of simulated time at "
                                                                 "--rate, RSS and per-message cost over time")
+    parser.add_argument("--imu-hz", type=float, default=0.0, help="scale: IMU rate of the simulated users (default 50)")
+    parser.add_argument("--shards", default="", help="scale: processes per stage to try, e.g. 1,2 (default 1,2)")
+    parser.add_argument("--warmup", type=float, default=0.0, help="scale: s after adding users before measuring (default 15)")
+    parser.add_argument("--window", type=float, default=0.0, help="scale: s measured per step (default 25)")
     parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
                         help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 

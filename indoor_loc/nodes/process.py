@@ -327,6 +327,10 @@ def run_stage_node(stage_cls: type[Stage], args: list[str] | None = None, *,
     """
     argv = list(sys.argv if args is None else args)
     user_args = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "--multi-user" in user_args:     # one process for many users (indoor_loc.nodes.multi_user_node)
+        from indoor_loc.nodes.multi_user_node import multi_user_factory
+        stage_cls, node_factory = multi_user_factory(stage_cls)
+        argv.remove("--multi-user")
     if any(a in ("-h", "--help") for a in user_args):
         print(node_usage(stage_cls, port_params))
         return 0

@@ -53,6 +53,7 @@ from indoor_loc.imu.quaternion import yaw_xyzw
 from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
 from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams
 from msg_adapters.imu import ImuSample, imu_from_msg, imu_to_msg, mag_from_msg
+from msg_adapters.imu_cdr import imu_cdr
 from msg_adapters.odom import odom_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
@@ -153,6 +154,10 @@ class ImuStage(Stage):
         stamp = super().stamp_of(topic, msg)
         return None if topic == "imu/data" and stamp in self._published_set else stamp
 
+    def echoes(self, topic: str, stamp_ns: int) -> bool:
+        """Our own ``imu/data`` coming back (recognised by its stamp, as :meth:`stamp_of` does)."""
+        return topic == "imu/data" and stamp_ns in self._published_set
+
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in time: the hops of the old pass still in the stepometer are published, then
         every estimator starts afresh (the odometry from the origin again)."""
@@ -245,7 +250,8 @@ class ImuStage(Stage):
             yaw = yaw_xyzw(q_xyzw)
             self.headings.add(stamp, yaw + self.params.heading_offset_rad, float(cov[2, 2]))
             self.stepometer.add_heading(stamp, yaw)
-            outs.append(("imu/data", imu_to_msg(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
+            encode = imu_cdr if self.raw_outputs else imu_to_msg        # the same message (msg_adapters/imu_cdr.py)
+            outs.append(("imu/data", encode(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
             if len(self._published_stamps) == self._published_stamps.maxlen:
                 self._published_set.discard(self._published_stamps[0])
             self._published_stamps.append(stamp)

@@ -137,7 +137,9 @@ class PfStage(Stage):
     STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING, "wifi/scan": Order.NONDECREASING,
                    "initialpose": Order.EXEMPT}
 
-    def __init__(self, params: PfStageParams, *, namespace: str = "") -> None:
+    def __init__(self, params: PfStageParams, *, namespace: str = "", shared: PfStage | None = None) -> None:
+        """``shared``: another instance whose graph, transition table and radio-map field (read-only)
+        this one uses instead of loading them again (:meth:`for_user`)."""
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
         self.on("pdr/odom", self._on_odom)
@@ -147,11 +149,28 @@ class PfStage(Stage):
         self.on("initialpose", self._on_initialpose)
         self._odom_guard = OdomJumpGuard()
         self.map_box: MapBox | None = None
-        if not params.graph_file:
+        if shared is not None:
+            self.graph, self.map_box, self.field = shared.graph, shared.map_box, shared.field
+            if self.graph is None:
+                return
+            self.transitions, self.cache_hit = shared.transitions, shared.cache_hit
+        elif not params.graph_file:
             # the node starts (so parameters can be inspected) but rejects every message, counted
             # under "no_graph" in /diagnostics
             self.graph = None
             return
+        else:
+            self._load(params)
+        self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
+                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)
+        self._seq = 0
+        self._last_odom_ns: int | None = None
+        self._graph_sent = False
+        self._n_pose = 0
+        self._last_path_ns: int | None = None
+
+    def _load(self, params: PfStageParams) -> None:
+        """The graph, its transition table and (``wifi_update: scan``) the radio-map field."""
         path = Path(params.graph_file)
         try:
             self.graph = load_graph(path)
@@ -175,13 +194,10 @@ class PfStage(Stage):
                                                   params.scan)
             except MapError as err:
                 raise ConfigError(f"tll_pf: radiomap: {err}") from err
-        self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
-                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)
-        self._seq = 0
-        self._last_odom_ns: int | None = None
-        self._graph_sent = False
-        self._n_pose = 0
-        self._last_path_ns: int | None = None
+
+    def for_user(self, namespace: str) -> PfStage:
+        """A fresh filter for another user, sharing this one's graph, table and field."""
+        return type(self)(self.params, namespace=namespace, shared=self)
 
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in time: the old pass's path is published (as at the end of input), then the

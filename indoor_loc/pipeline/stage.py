@@ -153,6 +153,9 @@ class Stage:
     #: How each input topic's stamps must follow each other (:class:`~indoor_loc.pipeline.time_policy.Order`);
     #: a topic not named here: ``NONDECREASING``.
     STAMP_ORDER: ClassVar[dict[str, Order]] = {}
+    #: Set by a live driver that publishes ``bytes`` as they are (the multi-user node): a stage may
+    #: then return an output already serialised (CDR) where building the message costs much more.
+    raw_outputs: bool = False
 
     def __init__(self, params: Any, *, namespace: str = "") -> None:
         self.params = params
@@ -296,6 +299,18 @@ class Stage:
 
     def stamp_order(self, topic: str) -> Order:
         return self.STAMP_ORDER.get(topic, Order.NONDECREASING)
+
+    def echoes(self, topic: str, stamp_ns: int) -> bool:
+        """Whether a message on input ``topic`` stamped ``stamp_ns`` is this stage's own output coming
+        back (a node subscribing to a topic it publishes): its handler would drop it, so a driver may
+        drop it before decoding it. Default: never."""
+        return False
+
+    def for_user(self, namespace: str) -> "Stage":
+        """A fresh instance of this per-user stage for the user of ``namespace`` (multi-user nodes,
+        :mod:`indoor_loc.pipeline.multi_user`): the same parameters, state as before the first message.
+        Stages holding large read-only data (a graph, a fitted radio map) override it to share them."""
+        return type(self)(self.params, namespace=namespace)
 
     def reset_user(self, user: str) -> list[Output]:
         """A confirmed jump back in ``user``'s stamps (``""``: this per-user stage's one user): start

@@ -59,6 +59,8 @@ data only the fit used; the fixes are the same either way.
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 import sys
 from collections import Counter, deque
@@ -76,7 +78,7 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import TimeParams
 from indoor_loc.wifi.coverage import CoverageParams
 from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner, plan_files
-from indoor_loc.wifi.map_check import MapCheck, MapCheckParams
+from indoor_loc.wifi.map_check import MapCheck, MapCheckParams, MapCheckState
 from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
 from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
@@ -200,6 +202,18 @@ class WifiFixStage(Stage):
         if self.radio_map is not None and params.map_check.enabled:
             self._new_map_check(self.radio_map)
         self.on("wifi/scan", self._on_scan)
+
+    def for_user(self, namespace: str) -> WifiFixStage:
+        """A stage for another user sharing this one's radio map, floor plans, fitted positioner and the
+        map check's reference (read-only); the user's own: its counters and the map check's window."""
+        other = type(self)(dataclasses.replace(self.params, radiomap="", floor_plans=""), namespace=namespace)
+        other.params = self.params
+        other.radio_map, other.positioner, other.walkable = self.radio_map, self.positioner, self.walkable
+        other.floor_plans, other.fit_error, other._configured_map = self.floor_plans, self.fit_error, self._configured_map
+        if self.map_check is not None:
+            other.map_check = copy.copy(self.map_check)
+            other.map_check.state = MapCheckState.empty(self.params.map_check.window)
+        return other
 
     def inputs(self) -> list[Port]:
         return [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, required=True)]

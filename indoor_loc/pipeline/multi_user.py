@@ -1,0 +1,250 @@
+"""Any per-user stage as a multi-user stage: one process serves many users (``--multi-user``).
+
+:func:`multi_user` turns a per-user :class:`~indoor_loc.pipeline.stage.Stage` class (``ImuStage``,
+``WifiFixStage``, ``PdrKfStage``, ``PfStage``, ``WifiScanStage``) into a ``MULTI_USER`` stage that keeps
+one instance of it per user, made on the user's first message by :meth:`Stage.for_user` from a
+*template* instance built at start-up. The template holds what every user shares, read-only: the
+building graph and its transition table (``tll_pf``), the radio map and its fitted positioner
+(``wifi_fix_node``, fitted once, at start-up), the parameters. A user's instance holds only that
+user's state — the estimators, its time policy (watermarks, held messages), counters — so a user
+costs state, not an interpreter (what each stage keeps per user: docs/scaling.md).
+
+Each message goes to its user's instance through the instance's own :meth:`Stage.process` (or
+:meth:`Stage.process_batch` for runs decoded in bulk): time policy, validation, rejections and
+outputs are exactly those of a per-user node on the same messages. Outputs are published under
+the user's namespace, the per-user node's topics (``/alice/pf/pose``), so consumers do not change.
+Rejections and notices are counted and said by the user's instance and, with the user's name, by
+the node (its log, its aggregate ``/diagnostics`` status); each user also has a status of its own
+(:meth:`MultiUserStage.user_status_stages`).
+
+Which users: the ``users`` list, or every namespace publishing one of the stage's inputs (the
+node discovers them), kept if the name matches ``user_pattern`` (a glob) and belongs to this
+shard: :func:`shard_of` (a stable hash of the name) modulo ``shard_count`` equals ``shard_index``.
+A user whose input publishers have been gone ``user_timeout_s`` has left: its instance finishes
+(its end-of-input outputs are published) and is dropped; a user coming back starts afresh.
+"""
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+import time
+import zlib
+from typing import Any, Callable
+
+from indoor_loc.params import field, require
+from indoor_loc.pipeline.stage import Output, Port, Stage, StageDiagnostics, namespace_of_user
+
+#: The parameters a multi-user node adds to its stage's (name, type, default, doc).
+MULTI_USER_FIELDS: tuple[tuple[str, type, Any, str], ...] = (
+    ("users", list, [], "multi-user: user namespaces to serve; [] = discover them from the ROS graph"),
+    ("user_pattern", str, "*", "multi-user: serve only users whose name matches this glob (e.g. 'floor2_*')"),
+    ("shard_index", int, 0, "multi-user: this process serves the users whose shard_of(name) % shard_count is this"),
+    ("shard_count", int, 1, "multi-user: number of processes (shards) the users are spread over"),
+    ("user_timeout_s", float, 10.0, "multi-user: a user whose inputs have had no publisher for this long has "
+                                    "left (its end-of-input outputs are published, its state dropped), s; also how "
+                                    "long another shard's user may go unserved before it is reported"),
+)
+
+
+def shard_of(user: str, shard_count: int) -> int:
+    """The shard (0 .. shard_count-1) serving ``user``: CRC-32 of the name (stable across processes,
+    machines and Python versions, unlike ``hash``) modulo ``shard_count``."""
+    return zlib.crc32(user.strip("/").encode()) % max(1, int(shard_count))
+
+
+def serves(params: Any, user: str) -> bool:
+    """Whether a multi-user node with ``params`` serves ``user`` (pattern and shard)."""
+    name = user.strip("/")
+    return bool(name) and fnmatch.fnmatchcase(name, params.user_pattern) and \
+        shard_of(name, params.shard_count) == params.shard_index
+
+
+def _validate(self: Any) -> None:
+    n = type(self).__name__
+    require(self.shard_count >= 1, n, "shard_count", ">= 1", self.shard_count)
+    require(0 <= self.shard_index < self.shard_count, n, "shard_index", f"in [0, {self.shard_count})",
+            self.shard_index)
+    require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
+    require(bool(self.user_pattern), n, "user_pattern", "a glob (e.g. '*')", self.user_pattern)
+    base = getattr(super(type(self), self), "validate", None)
+    if base is not None:
+        base()
+
+
+def multi_user_params(params_cls: type) -> type:
+    """``params_cls`` with the multi-user fields added (:data:`MULTI_USER_FIELDS`; those it has already,
+    such as the back-end's ``users``, are kept as they are)."""
+    have = {f.name for f in dataclasses.fields(params_cls)}
+    extra = [(name, tp, field(default, doc)) for name, tp, default, doc in MULTI_USER_FIELDS if name not in have]
+    cls = dataclasses.make_dataclass(f"MultiUser{params_cls.__name__}", extra, bases=(params_cls,), frozen=True,
+                                     namespace={"validate": _validate, "__module__": __name__})
+    cls.__doc__ = f"{params_cls.__doc__ or params_cls.__name__}\n\nMulti-user: {', '.join(n for n, *_ in extra)}."
+    return cls
+
+
+class MultiUserStage(Stage):
+    """One instance of :attr:`INNER` per user (see the module doc). Made by :func:`multi_user`."""
+    MULTI_USER = True
+    INNER: type[Stage] = Stage
+
+    def __init__(self, params: Any, *, namespace: str = "") -> None:
+        super().__init__(params, namespace=namespace)
+        #: the shared instance: maps, models and the ports; never given a message
+        self.template: Stage = self.INNER(params, namespace=namespace)
+        self.notices.extend(self.template.take_notices())
+        self.users: dict[str, Stage] = {}
+        self.users_left = 0
+        for port in self.template.inputs():
+            self.on(port.topic, self._unused)
+        #: the user whose message is being handled (for the wall time each user takes)
+        self.busy_s: dict[str, float] = {}
+
+    @staticmethod
+    def _unused(msg: Any, recv_ns: int, user: str) -> list[Output]:
+        raise AssertionError("MultiUserStage.process dispatches to the user's own stage")
+
+    # -- ports --------------------------------------------------------------------------------------------
+    def inputs(self) -> list[Port]:
+        return self.template.inputs()
+
+    def outputs(self) -> list[Port]:
+        return []
+
+    def user_outputs(self) -> list[Port]:
+        """The per-user node's outputs, under each user's namespace (absolute: ``/{user}/pf/pose``)."""
+        return [dataclasses.replace(p, topic="/{user}/" + p.topic) for p in self.template.outputs()]
+
+    def serves(self, user: str) -> bool:
+        return serves(self.params, user)
+
+    # -- users --------------------------------------------------------------------------------------------
+    def user_stage(self, user: str) -> Stage:
+        """The user's own stage instance (made on first use, sharing the template's read-only parts)."""
+        st = self.users.get(user)
+        if st is None:
+            st = self.users[user] = self.template.for_user(namespace_of_user(user))
+            st.raw_outputs = self.raw_outputs
+            st._reject = self._forwarding_reject(st, user)          # type: ignore[method-assign]
+            st.notice = lambda text, user=user: self.notice(f"{user}: {text}")   # type: ignore[method-assign]
+            self.busy_s.setdefault(user, 0.0)
+        return st
+
+    def user_echoes(self, user: str, topic: str, stamp_ns: int) -> bool:
+        """:meth:`Stage.echoes` of the user's stage (False before its first message)."""
+        st = self.users.get(user)
+        return st is not None and st.echoes(topic, stamp_ns)
+
+    def _forwarding_reject(self, st: Stage, user: str) -> Callable[[str, str], None]:
+        own = Stage._reject.__get__(st)
+
+        def reject(reason: str, detail: str) -> None:
+            own(reason, detail)
+            self.diag.now_ns = st.diag.now_ns
+            self._reject(reason, f"{user}: {detail}")
+        return reject
+
+    @staticmethod
+    def _mapped(user: str, outs: list[Output]) -> list[Output]:
+        return [(f"/{user}/{t.lstrip('/')}", m) for t, m in outs]
+
+    # -- messages -----------------------------------------------------------------------------------------
+    def process(self, topic: str, msg: Any, recv_ns: int, user: str | None = None) -> list[Output]:
+        if not user:
+            self._reject("no_user", f"{topic}: a multi-user stage needs the message's user")
+            return []
+        if not self.handles(topic):
+            self._reject("unknown_topic", f"no handler for {topic!r}")
+            return []
+        stats = self.diag.received[topic]
+        stats.count += 1
+        stats.first_ns = recv_ns if stats.first_ns is None else stats.first_ns
+        stats.last_ns = recv_ns
+        self.diag.now_ns = recv_ns
+        t0 = time.perf_counter()
+        outs = self._mapped(user, self.user_stage(user).process(topic, msg, recv_ns))
+        took = time.perf_counter() - t0
+        self.diag.process_s.append(took)
+        self.busy_s[user] += took
+        for out_topic, _ in outs:
+            self.diag.published[out_topic.split("/", 2)[2]] += 1
+        return outs
+
+    def batch_handles(self, topic: str) -> bool:
+        return self.template.batch_handles(topic)
+
+    def process_user_batch(self, user: str, topic: str, items: list,
+                           recv_ns: list[int]) -> list[tuple[int, str, Any]]:
+        """:meth:`Stage.process_batch` of the user's own stage (a run of one user's messages)."""
+        stats = self.diag.received[topic]
+        stats.count += len(items)
+        stats.first_ns = recv_ns[0] if stats.first_ns is None else stats.first_ns
+        stats.last_ns = recv_ns[-1]
+        t0 = time.perf_counter()
+        out = [(r, f"/{user}/{t}", m) for r, t, m in self.user_stage(user).process_batch(topic, items, recv_ns)]
+        took = time.perf_counter() - t0
+        self.diag.process_s.append(took / max(1, len(items)))
+        self.busy_s[user] += took
+        for _, out_topic, _ in out:
+            self.diag.published[out_topic.split("/", 2)[2]] += 1
+        return out
+
+    # -- time, ticks, ends (each user's own stage) -------------------------------------------------------------
+    def clock_jump_threshold_ns(self) -> int:
+        return self.template.clock_jump_threshold_ns()
+
+    def clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
+        outs: list[Output] = []
+        for user, st in list(self.users.items()):
+            outs += self._mapped(user, st.run_clock_jump(back_ns, now_ns))
+        return outs
+
+    def tick(self, now_ns: int) -> list[Output]:
+        outs: list[Output] = []
+        for user, st in list(self.users.items()):
+            outs += self._mapped(user, st.run_tick(now_ns))
+        return outs
+
+    def finish_user(self, user: str) -> list[Output]:
+        """The user left: its stage's end-of-input outputs, then its state is dropped."""
+        st = self.users.pop(user, None)
+        if st is None:
+            return []
+        self.users_left += 1
+        return self._mapped(user, st.run_finish())
+
+    def finish(self) -> list[Output]:
+        outs: list[Output] = []
+        for user, st in list(self.users.items()):
+            outs += self._mapped(user, st.run_finish())
+        return outs
+
+    def reset_user(self, user: str) -> list[Output]:
+        st = self.users.get(user)
+        return [] if st is None else self._mapped(user, st.reset_user(""))
+
+    def extra_diagnostics(self) -> dict[str, str]:
+        p = self.params
+        shown = sorted(self.users)
+        out = {"users.count": str(len(shown)), "users": ",".join(shown),
+               "users.left": str(self.users_left), "shard": f"{p.shard_index}/{p.shard_count}",
+               "user_pattern": p.user_pattern}
+        standing = self.template.extra_diagnostics()
+        for key in ("error", "warning"):
+            if standing.get(key):
+                out[key] = standing[key]
+        return out
+
+    def user_diagnostics(self, user: str) -> StageDiagnostics | None:
+        st = self.users.get(user)
+        return None if st is None else st.diag
+
+
+def multi_user(stage_cls: type[Stage]) -> type[MultiUserStage]:
+    """The multi-user stage of a per-user stage class (the same node name, its parameters plus
+    :data:`MULTI_USER_FIELDS`)."""
+    if stage_cls.MULTI_USER:
+        raise TypeError(f"{stage_cls.__name__} is multi-user already")
+    return type(f"MultiUser{stage_cls.__name__}", (MultiUserStage,),
+                {"INNER": stage_cls, "NODE_NAME": stage_cls.NODE_NAME, "PARAMS": multi_user_params(stage_cls.PARAMS),
+                 "STAMP_ORDER": stage_cls.STAMP_ORDER, "__module__": __name__,
+                 "__doc__": f"{stage_cls.__name__} for many users in one process (see indoor_loc.pipeline.multi_user)."})

@@ -1,0 +1,259 @@
+"""Multi-user nodes live over DDS (``<node> --multi-user``): one process per stage serving three
+simulated walkers gives each walker, message for message, what that walker's own per-user stage gives
+on the same input (the stages of ``indoor-loc run``, run here one per user as the oracle); users leave
+(their end-of-input outputs come) and appear mid-run; two shards split the users by the hash of their
+name without overlap or gaps, and a shard killed mid-run is reported by the survivor."""
+from __future__ import annotations
+
+import dataclasses
+import signal
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from helpers_dds import Peer, child_env, ros_node, spin_until
+
+pytestmark = pytest.mark.timeout(300)
+
+USERS = ("alice", "bob", "carol")
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> dict[str, Path]:
+    from indoor_loc.commands.sim import generate
+    from indoor_loc.sim.scenario import SimConfig
+    from indoor_loc.sim.walker import ImuParams
+    cfg = SimConfig(walkers=3, duration_s=24.0, seed=7, imu=dataclasses.replace(ImuParams(), rate_hz=50.0,
+                                                                                  mag_rate_hz=25.0))
+    return generate(tmp_path_factory.mktemp("mu") / "sim", cfg, quiet=True)
+
+
+def _stage(cls, params_file: Path, user: str):
+    from indoor_loc.params import load_params_file, params_for_node, params_from_dict
+    vals = params_for_node(load_params_file(params_file), cls.NODE_NAME, f"/{user}")
+    return cls(params_from_dict(cls.PARAMS, vals), namespace=f"/{user}")
+
+
+def _oracle(stage_cls, params_file: Path, msgs: list) -> dict[str, list]:
+    """Per user: its own per-user stage on its messages (``(topic, msg)`` in order), then its finish."""
+    stages = {u: _stage(stage_cls, params_file, u) for u in USERS}
+    out: dict[str, list] = {}
+    for topic, msg, recv in msgs:
+        _, user, rel = topic.split("/", 2)
+        for t, m in stages[user].process(rel, msg, recv):
+            out.setdefault(f"/{user}/{t}", []).append(m)
+    for user, st in stages.items():
+        for t, m in st.run_finish():
+            out.setdefault(f"/{user}/{t}", []).append(m)
+    return out
+
+
+def _node(kind: str, params: Path, *extra: str) -> Peer:
+    return Peer([sys.executable, "-m", f"indoor_loc.nodes.{kind}", "--multi-user", "--ros-args", "--params-file",
+                 str(params), "-p", "sensor_reliability:=reliable", "-p", "user_timeout_s:=2.0", *extra],
+                env=child_env())
+
+
+def _play(node, ex, msgs: list, wait_for: list[Peer], rate: float = 4.0) -> None:
+    """Publish ``msgs`` (full topic, message or CDR bytes, log ns) at ``rate`` x their log time, once the
+    nodes have subscribed (they discover the users from these publishers); then remove the publishers."""
+    from indoor_loc.contract import Qos, msg_class
+    from indoor_loc.nodes.base import qos_profile
+    pubs = {}
+    for topic, msg, _ in msgs:
+        if topic not in pubs:
+            cls = type(msg) if not isinstance(msg, bytes) else msg_class(_TYPES[topic.split("/", 2)[2]])
+            pubs[topic] = node.create_publisher(cls, topic, qos_profile(Qos.RELIABLE))
+    assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60), \
+        "\n".join(p.output()[-2000:] for p in wait_for)
+    spin_until(ex, lambda: False, 1.5)      # a match completes on the subscriber's side a moment later
+    t0, first = time.monotonic(), msgs[0][2]
+    for topic, msg, log_ns in msgs:
+        due = t0 + (log_ns - first) * 1e-9 / rate
+        while time.monotonic() < due:
+            ex.spin_once(timeout_sec=max(0.0, min(0.01, due - time.monotonic())))
+        pubs[topic].publish(msg)
+    spin_until(ex, lambda: all(p.wait_for_all_acked(rclpy_duration(0.0)) for p in pubs.values()), 30)
+    for p in pubs.values():
+        node.destroy_publisher(p)
+
+
+def rclpy_duration(s: float):
+    from rclpy.duration import Duration
+    return Duration(nanoseconds=int(s * 1e9))
+
+
+_TYPES = {"imu/data_raw": "sensor_msgs/msg/Imu", "imu/mag": "sensor_msgs/msg/MagneticField",
+          "wifi/scan": "diagnostic_msgs/msg/DiagnosticArray"}
+
+
+def _collect(node, topics: dict[str, type]) -> dict[str, list]:
+    """Every message on ``topics`` (reliable, volatile: matches the nodes' latched outputs too)."""
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.base import qos_profile
+    got: dict[str, list] = {t: [] for t in topics}
+    for t, cls in topics.items():
+        node.create_subscription(cls, t, got[t].append, qos_profile(Qos.RELIABLE))
+    return got
+
+
+def _ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def _bag(sim, rels: tuple[str, ...]) -> list:
+    from indoor_loc.bag import read_bag
+    return [(m.topic, m.msg, m.stamp_ns) for m in read_bag([sim["bag"]])
+            if m.topic.count("/") >= 2 and m.topic.split("/", 2)[1] in USERS and m.topic.split("/", 2)[2] in rels]
+
+
+def test_front_end_nodes_serve_three_users_as_their_own_nodes(ros_domain, sim):
+    """imu_node and wifi_fix_node, one process each for three users: per user, pdr/odom and wifi/fix
+    message for message as the user's own stage gives them; each user leaves (its publishers gone for
+    user_timeout_s) and gets its end-of-input hops."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+    from indoor_loc.pipeline.imu_stage import ImuStage
+    from indoor_loc.pipeline.wifi_fix_stage import WifiFixStage
+
+    msgs = _bag(sim, ("imu/data_raw", "imu/mag", "wifi/scan"))
+    want = _oracle(ImuStage, sim["params"], [m for m in msgs if "/imu/" in m[0]])
+    want.update(_oracle(WifiFixStage, sim["params"], [m for m in msgs if m[0].endswith("wifi/scan")]))
+    nodes = [_node("imu_node", sim["params"]), _node("wifi_fix_node", sim["params"])]
+    try:
+        with ros_node("probe") as (node, ex):
+            topics = {f"/{u}/pdr/odom": Odometry for u in USERS} | \
+                     {f"/{u}/wifi/fix": PoseWithCovarianceStamped for u in USERS}
+            got = _collect(node, topics)
+            _play(node, ex, msgs, nodes)
+            done = spin_until(ex, lambda: all(len(got[t]) >= len(want.get(t, [])) for t in topics)
+                              and all(n.wait_seen(f"user '{u}' left", 0) for n in nodes for u in USERS), 60)
+            if not done:
+                pytest.fail(str(({t: (len(got[t]), len(want.get(t, []))) for t in topics},
+                                 [(_ns(got[t][0]), _ns(want[t][0]), _ns(got[t][-1]), _ns(want[t][-1]))
+                                  for t in topics if got[t]], [n.output()[-3000:] for n in nodes])))
+            for t in topics:
+                assert len(want[t]) > 3, t
+                assert got[t] == want[t], t
+    finally:
+        for n in nodes:
+            n.stop()
+
+
+def test_fusion_nodes_serve_three_users_as_their_own_nodes(ros_domain, sim):
+    """pdr_kf_node and tll_pf, one process each for three users, fed each user's pdr/odom and wifi/fix
+    (from the users' own front-end stages): per user, pdr_kf/pose and pf/pose message for message as
+    the user's own stages give them."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.serialization import serialize_message
+    from indoor_loc.pipeline.imu_stage import ImuStage
+    from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage
+    from indoor_loc.pipeline.pf_stage import PfStage
+    from indoor_loc.pipeline.wifi_fix_stage import WifiFixStage
+
+    front = _bag(sim, ("imu/data_raw", "imu/mag", "wifi/scan"))
+    made = _oracle(ImuStage, sim["params"], [m for m in front if "/imu/" in m[0]])
+    made.update(_oracle(WifiFixStage, sim["params"], [m for m in front if m[0].endswith("wifi/scan")]))
+    msgs = []
+    for t, lst in made.items():
+        if t.endswith(("/pdr/odom", "/wifi/fix")):
+            msgs += [(t, m, m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec) for m in lst]
+    msgs.sort(key=lambda m: m[2])
+    # from each user's first pdr/odom on: a fix before it would wait for PDR until the node's timer
+    # (on the node's clock, not the stamps) lets it go on the speed model, which an offline oracle lacks
+    first = {u: min(s for t, _, s in msgs if t == f"/{u}/pdr/odom") for u in USERS}
+    msgs = [m for m in msgs if m[2] >= first[m[0].split("/")[1]]]
+    want = _oracle(PdrKfStage, sim["params"], msgs)
+    want.update(_oracle(PfStage, sim["params"], msgs))
+    nodes = [_node("pdr_kf_node", sim["params"]), _node("tll_pf_node", sim["params"])]
+    try:
+        with ros_node("probe") as (node, ex):
+            topics = {f"/{u}/{k}": PoseWithCovarianceStamped for u in USERS for k in ("pdr_kf/pose", "pf/pose")}
+            got = _collect(node, topics)
+            _play(node, ex, [(t, serialize_message(m), s) for t, m, s in msgs], nodes, rate=2.0)
+            assert spin_until(ex, lambda: all(len(got[t]) >= len(want.get(t, [])) for t in topics), 60), \
+                ({t: (len(got[t]), len(want.get(t, []))) for t in topics}, [n.output()[-3000:] for n in nodes])
+            for t in topics:
+                assert len(want[t]) > 3, t
+                assert got[t] == want[t], t
+    finally:
+        for n in nodes:
+            n.stop()
+
+
+_TYPES.update({"pdr/odom": "nav_msgs/msg/Odometry", "wifi/fix": "geometry_msgs/msg/PoseWithCovarianceStamped"})
+
+
+def _diagnostics(node):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.base import qos_profile
+    from msg_adapters.diagnostics import diagnostics_from_msg
+    last: dict = {}
+    node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: last.update(diagnostics_from_msg(m)),
+                             qos_profile(Qos.RELIABLE))
+    return last
+
+
+def test_two_shards_split_users_and_a_killed_shard_is_reported(ros_domain, sim):
+    """Two imu_node shards: each user is served by exactly the shard its name hashes to (all users
+    served, none twice), a user appearing mid-run is served too; once shard 1 is killed (SIGKILL), shard 0
+    reports shard 1's users as unserved."""
+    import numpy as np
+    from sensor_msgs.msg import Imu
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.base import qos_profile
+    from indoor_loc.pipeline.multi_user import shard_of
+    from msg_adapters.imu import imu_to_msg
+
+    users = [f"walker{i}" for i in range(6)]
+    late = "walker6"
+    assert {shard_of(u, 2) for u in users} == {0, 1}
+    shards = [_node("imu_node", sim["params"], "-r", f"__ns:=/shard{i}", "-p", "shard_count:=2",
+                    "-p", f"shard_index:={i}") for i in range(2)]
+    try:
+        with ros_node("probe") as (node, ex):
+            diags = _diagnostics(node)
+            pubs = {u: node.create_publisher(Imu, f"/{u}/imu/data_raw", qos_profile(Qos.RELIABLE)) for u in users}
+            t = [time.time_ns()]
+
+            def publish(seconds: float) -> None:
+                end = time.monotonic() + seconds
+                while time.monotonic() < end:
+                    t[0] += 20_000_000
+                    for p in pubs.values():
+                        p.publish(imu_to_msg(t[0], "imu_link", np.array([0.0, 0.0, 9.81]), np.zeros(3)))
+                    ex.spin_once(timeout_sec=0.02)
+
+            def served_by() -> dict[str, str]:
+                return {u: diags[f"/{u}/imu_node"].values.get("served_by", "")
+                        for u in pubs if f"/{u}/imu_node" in diags}
+
+            def all_served() -> bool:
+                publish(0.2)
+                return len(served_by()) == len(pubs)
+            assert spin_until(ex, all_served, 60), (served_by(), [s.output()[-2000:] for s in shards])
+            assert served_by() == {u: f"/shard{shard_of(u, 2)}/imu_node" for u in users}
+            for i in range(2):
+                mine = diags[f"/shard{i}/imu_node"].values["users"].split(",")
+                assert sorted(mine) == sorted(u for u in users if shard_of(u, 2) == i)
+                assert diags[f"/shard{i}/imu_node"].values["unserved.count"] == "0"
+            pubs[late] = node.create_publisher(Imu, f"/{late}/imu/data_raw", qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, all_served, 30), served_by()
+            assert served_by()[late] == f"/shard{shard_of(late, 2)}/imu_node"
+
+            shards[1].signal(signal.SIGKILL)
+            lost = sorted(u for u in pubs if shard_of(u, 2) == 1)
+
+            def reported() -> bool:
+                publish(0.2)
+                st = diags.get("/shard0/imu_node")
+                return st is not None and st.values.get("unserved.users", "") == ",".join(lost)
+            assert spin_until(ex, reported, 30), diags.get("/shard0/imu_node")
+            st = diags["/shard0/imu_node"]
+            assert st.level >= 1 and "unserved" in st.message and st.values["unserved.shards"] == "1"
+    finally:
+        for s in shards:
+            s.stop()
