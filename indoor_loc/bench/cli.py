@@ -1,4 +1,4 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos}``: benchmarks print tables,
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos,robot}``: benchmarks print tables,
 side by side with peers in one run."""
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ BENCHES = {
     "throughput": "indoor_loc.bench.throughput",
     "live": "indoor_loc.bench.live",
     "chaos": "indoor_loc.bench.chaos",
+    "robot": "indoor_loc.bench.robot",
 }
 
 
@@ -68,6 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--kill-nodes", default="", help="chaos: nodes to kill, e.g. imu_node,tll_pf (default all)")
     parser.add_argument("--soak", type=float, default=0.0, help="chaos: soak instead: HOURS of simulated time at "
                                                                 "--rate, RSS and per-message cost over time")
+    parser.add_argument("--robots", type=int, default=2, help="robot: simulated robots (default 2; --duration: "
+                                                              "their run, default 1800 s; --quick: 1 robot x 600 s)")
+    parser.add_argument("--kidnap-duration", type=float, default=-1.0, help="robot: the kidnapped robots' run, "
+                                                                            "carried at its half, s (default 600; 0 = skip)")
     parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
                         help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 

@@ -88,7 +88,8 @@ def route_segments(building: Building, w: SimWalker) -> np.ndarray:
     return np.array([[xy[a], xy[b]] for a, b in pairs], float).reshape(-1, 2, 2)
 
 
-def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=None) -> dict[str, int]:
+def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=None,
+              robot_imu: bool = True) -> dict[str, int]:
     from msg_adapters.imu import imu_to_msg, mag_to_msg
     from msg_adapters.markers import graph_markers
     from msg_adapters.path import path_to_msg
@@ -117,7 +118,7 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
                 streams.append((w.imu.mag_t_ns + t0_ns, 1, w, join_ns(ns, "imu/mag"), frame))
             streams.append((np.array([s.stamp_ns for s in w.scans], np.int64) + t0_ns, 2, w,
                             join_ns(ns, "wifi/scan"), frame))
-        streams += robot_streams(run.robots, t0_ns)
+        streams += [st for st in robot_streams(run.robots, t0_ns) if robot_imu or st[1] != 4]
         # merge every stream in stamp order (ties: IMU, magnetometer, scans; then walker order)
         keys = np.concatenate([s[0] for s in streams])
         which = np.concatenate([np.full(len(s[0]), k) for k, s in enumerate(streams)])
