@@ -145,3 +145,70 @@ def test_reader_takes_unknown_covariance_and_refuses_without_changing_anything()
     _, inc = r.read(_msg(2 * S, 0.6, 0.0, 0.0))         # as if none of the refused ones had come
     assert inc is not None and inc.t_start_ns == 0 and inc.distance_m == pytest.approx(0.6)
     assert r.diagnostics()["odom.messages"] == "2"
+
+
+# -- any message on the odom port of an estimator ---------------------------------------------------
+HOSTILE = [float("nan"), float("inf"), -float("inf"), 1e308, -1e308, -1.0, 1e12, 5e-324, 0.0]
+FIELDS = ["pose.pose.position.x", "pose.pose.position.y", "pose.pose.orientation.z", "pose.pose.orientation.w",
+          "twist.twist.linear.x", "twist.twist.angular.z"]
+
+
+def _clean_stream():
+    from indoor_loc.measurements import Fix
+    from msg_adapters.pose import fix_to_msg
+    poses = _drive(np.full(160, 0.8), np.where(np.arange(160) % 80 < 20, 0.8, 0.0), yaw0=0.3)
+    ev = []
+    for k, p in enumerate(poses):
+        t = 10 * S + k * (S // 20)
+        ev.append((t, "odom", _msg(t, p[0], p[1], p[2])))
+        if k % 40 == 20:
+            ev.append((t, "wifi/fix", fix_to_msg(Fix(t, np.array([p[1], -p[0]]), np.eye(2)))))
+    return ev
+
+
+def _run(events):
+    from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage, PdrKfStageParams
+    st = PdrKfStage(params_from_dict(PdrKfStageParams, {"motion_source": "odom", "smooth_period_s": 0.0}))
+    outs = []
+    for t, topic, m in events:
+        outs += st.process(topic, m, t)
+    return st, outs + st.run_finish()
+
+
+_REF: list = []
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 170), st.sampled_from(FIELDS), st.sampled_from(HOSTILE),
+                          st.lists(st.sampled_from(HOSTILE), max_size=3)), min_size=1, max_size=6))
+def test_hostile_odometry_is_counted_and_leaves_no_state(cases):
+    """Any robot odometry message on the KF's odom port: no internal error, finite outputs, and when
+    every hostile message was refused the outputs are the clean stream's."""
+    import copy
+    clean = _clean_stream()
+    if not _REF:
+        _REF.append(_run(clean)[1])
+    ref = _REF[0]
+    events = list(clean)
+    odom_at = [i for i, e in enumerate(clean) if e[1] == "odom"]
+    for where, field, value, covs in sorted(cases, key=lambda c: -c[0]):
+        i = odom_at[min(where, len(odom_at) - 1)]
+        t, _, m = clean[i]
+        h = copy.deepcopy(m)
+        obj = h
+        *path, last = field.split(".")
+        for part in path:
+            obj = getattr(obj, part)
+        setattr(obj, last, value)
+        for k, v in enumerate(covs):
+            h.pose.covariance[(7 * k) % 36] = v
+        events.insert(i + 1, (t + 1, "odom", h))
+    stage, outs = _run(events)
+    assert stage.diag.rejected["internal_error"] == 0, stage.diag.last_error
+    for _, m in outs:
+        if hasattr(m, "pose") and hasattr(m.pose, "pose"):
+            assert math.isfinite(m.pose.pose.position.x) and math.isfinite(m.pose.pose.position.y)
+    if sum(stage.diag.rejected.values()) == len(cases):
+        got = [(t, m.pose.pose.position.x) for t, m in outs if t == "pdr_kf/pose"]
+        want = [(t, m.pose.pose.position.x) for t, m in ref if t == "pdr_kf/pose"]
+        assert got == want
