@@ -83,6 +83,17 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("/clock", "rosgraph_msgs/msg/Clock", Qos.RELIABLE, "", "Bag time from the player (use_sim_time)"),
 ]}
 
+#: A robot's own odometry, the estimators' motion input with ``motion_source: odom`` (issue 24).
+ODOM = "odom"
+MOTION_SOURCES = ("pdr", "odom")
+TOPICS[ODOM] = Topic(
+    ODOM, "nav_msgs/msg/Odometry", Qos.SENSOR, "<robot>/odom -> <robot>/base_link (any names, fixed per stream)",
+    "A robot's odometry (wheel encoders, VIO), any rate: only the increments between consecutive poses are used "
+    "(decimated per distance / angle / time), with the pose covariance's growth as their covariance, or the "
+    "documented model when it is zeros, -1 (not given) or constant (docs/robot_odometry.md). Read by tll_pf, "
+    "pdr_kf_node and backend_node with motion_source: odom, in place of pdr/odom; remappable. Bounds as pdr/odom "
+    "(odom_position, odom_speed, odom_yaw_rate, odom_jump)")
+
 #: Topics of multi-user stages, parameterised by the user name (``{user}``), outside any namespace.
 USER_TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("backend/{user}/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",

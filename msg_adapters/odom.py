@@ -85,28 +85,34 @@ def odom_to_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x: float, y: 
 PLANAR_VAR_BOUNDS = ("position_variance", "position_variance", "angle_variance")
 
 
-def odom_from_msg(msg: Odometry) -> OdomPose:
+def odom_from_msg(msg: Odometry, *, unknown_cov: bool = False) -> OdomPose:
     """Validate and unpack a planar Odometry message (``"nan"``, ``"bad_quaternion"``, stamps;
     ``"out_of_range"``: a position, walking speed or yaw rate beyond :data:`indoor_loc.contract.BOUNDS`;
     ``"bad_covariance"``: a planar (x, y, yaw) covariance not symmetric PSD or with a variance out
-    of bounds, or a negative or huge ``twist.covariance[0]`` / ``[35]``)."""
+    of bounds, or a negative or huge ``twist.covariance[0]`` / ``[35]``). ``unknown_cov``: a robot
+    driver's convention that ``covariance[0] = -1`` means "not given" (REP 103 / sensor_msgs) is
+    accepted for the pose and the twist covariance, and such a covariance comes back as zeros."""
     stamp = stamp_to_ns(msg.header.stamp)
     p = msg.pose.pose.position
     require_finite("pose.position", [p.x, p.y, p.z])
     check_xyz("pose.position", p.x, p.y, p.z, "odom_position")
     yaw = quat_to_yaw(msg.pose.pose.orientation, "pose.orientation")
-    cov = planar_cov_from_6x6(msg.pose.covariance)
-    check_cov("pose.covariance (x, y, yaw)", cov, PLANAR_VAR_BOUNDS)
+    if unknown_cov and msg.pose.covariance[0] == -1.0:
+        cov = np.zeros((3, 3))
+    else:
+        cov = planar_cov_from_6x6(msg.pose.covariance)
+        check_cov("pose.covariance (x, y, yaw)", cov, PLANAR_VAR_BOUNDS)
     t = msg.twist.twist
     require_finite("twist", [t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z])
     check("twist.linear.x", t.linear.x, "odom_speed")
     check("twist.angular.z", t.angular.z, "odom_yaw_rate")
     require_finite("twist.covariance", msg.twist.covariance)
-    check("twist.covariance[0]", msg.twist.covariance[0], "rate_variance")
-    check("twist.covariance[35]", msg.twist.covariance[35], "rate_variance")
+    if not (unknown_cov and msg.twist.covariance[0] == -1.0):
+        check("twist.covariance[0]", msg.twist.covariance[0], "rate_variance")
+        check("twist.covariance[35]", msg.twist.covariance[35], "rate_variance")
+    tc0, tc35 = float(msg.twist.covariance[0]), float(msg.twist.covariance[35])
     return OdomPose(stamp, float(p.x), float(p.y), yaw, cov, float(t.linear.x), float(t.angular.z),
-                    msg.header.frame_id, msg.child_frame_id, float(msg.twist.covariance[0]),
-                    float(msg.twist.covariance[35]))
+                    msg.header.frame_id, msg.child_frame_id, max(tc0, 0.0), max(tc35, 0.0))
 
 
 class OdomJumpGuard:

@@ -98,6 +98,10 @@ FIX_GRAPH_PARAMS: dict = {"wifi_source": "fix", "joint": False, "wifi_info": 1.0
                           "robust_threshold_m": 1.345}
 
 
+#: Added to a robot odometry edge's variances (m², rad²) before inverting them: no edge is certain.
+ODOM_VAR_FLOOR = 1e-4
+
+
 @dataclass(frozen=True)
 class GraphParams:
     """Parameters of the multi-user graph (defaults: the paper's joint + step-length configuration)."""
@@ -191,6 +195,7 @@ class UserTrack:
     carry_steps: float = 0.0                          # steps already given to a scan pose
     acc_steps: float = 0.0                            # since the last pose
     acc_dtheta: float = 0.0
+    acc_var: list | None = None                       # robot odometry: (x-y, θ) variances since the last pose
     finished: bool = False
     scans_localised: int = 0                          # scans WKNN localised (wifi_source fix: fixes taken)
     scans_unlocalised: int = 0                        # scans not localised (wifi_source fix: before any fix)
@@ -323,7 +328,8 @@ class MultiUserGraph:
         self.user_names: list[str] = []                # the user of each track
         self.step_len = np.zeros(0)
         self.poses = _Growing(x=((3,), float), user=((), np.int64), stamp=((), np.int64), frozen=((), bool))
-        self.pdr = _Growing(prev=((), np.int64), cur=((), np.int64), steps=((), float), dtheta=((), float))
+        self.pdr = _Growing(prev=((), np.int64), cur=((), np.int64), steps=((), float), dtheta=((), float),
+                            sqrt_info=((3,), float))
         self.wifi = _Growing(pose=((), np.int64), refs=((self.k,), np.int64), w=((self.k,), float),
                              sqrt_info=((2, 2), float))
         self.gauge = _Growing(pose=((), np.int64), x=((3,), float))
@@ -353,9 +359,12 @@ class MultiUserGraph:
         if tr.last_event_ns is not None and stamp_ns < tr.last_event_ns:
             raise ValueError(f"{tr.name}: {what} stamp {stamp_ns} older than the last event {tr.last_event_ns}")
 
-    def add_hop(self, name: str, t_start_ns: int, t_end_ns: int, steps: float, yaw: float) -> int | None:
+    def add_hop(self, name: str, t_start_ns: int, t_end_ns: int, steps: float, yaw: float, *,
+                var: tuple[float, float] | None = None) -> int | None:
         """One stepometer hop of user ``name``: ``steps`` over [t_start, t_end], odometry yaw (rad) at
-        its end. Returns the index of a pose it added, else None."""
+        its end. Returns the index of a pose it added, else None. ``var``: a robot odometry increment's
+        own (position m², heading rad²) variances; the edge to the next pose then takes the inverse of
+        their sums as its information instead of ``pdr_info``."""
         tr = self.users.get(name) or self.user(name)
         t_end_ns = int(t_end_ns)
         self._check_order(tr, t_end_ns, "hop")
@@ -374,6 +383,8 @@ class MultiUserGraph:
         tr.carry_steps = max(carry - steps, 0.0)
         tr.acc_steps += max(steps - carry, 0.0)
         tr.acc_dtheta += dtheta
+        if var is not None:
+            tr.acc_var = [a + float(v) for a, v in zip(tr.acc_var or [0.0, 0.0], var)]
         if (t_end_ns - tr.last_grid_ns) * 1e-9 >= self.params.pose_period_s - 1e-3:
             tr.last_grid_ns = t_end_ns
             self._new_pose(tr, t_end_ns, None)
@@ -486,7 +497,12 @@ class MultiUserGraph:
         if xy is not None:
             x[:2] = xy
         i = self._add_pose(tr, stamp_ns, x)
-        self.pdr.append(prev=last, cur=i, steps=tr.acc_steps, dtheta=tr.acc_dtheta)
+        sqrt_info = self._sqrt_pdr
+        if tr.acc_var is not None:           # a robot's odometry: the edge's own information
+            vxy, vth = tr.acc_var
+            sqrt_info = 1.0 / np.sqrt(np.array([vxy, vxy, vth]) + ODOM_VAR_FLOOR)
+            tr.acc_var = [0.0, 0.0]
+        self.pdr.append(prev=last, cur=i, steps=tr.acc_steps, dtheta=tr.acc_dtheta, sqrt_info=sqrt_info)
         tr.acc_steps = tr.acc_dtheta = 0.0
         return i
 
@@ -672,6 +688,7 @@ class MultiUserGraph:
         sel_p = np.flatnonzero(isvar[pprev] | isvar[pcur])
         pprev, pcur = pprev[sel_p], pcur[sel_p]
         psteps, pdth = self.pdr.view("steps")[sel_p], self.pdr.view("dtheta")[sel_p]
+        psqrt = self.pdr.view("sqrt_info")[sel_p]
         puser = self.poses.user[pcur]
         wpose, wrefs, ww = self.wifi.view("pose"), self.wifi.view("refs"), self.wifi.view("w")
         wL = self.wifi.view("sqrt_info")
@@ -736,7 +753,7 @@ class MultiUserGraph:
         base_l = self.step_len.copy()
         # the closures below hold no reference to the graph (the last solve's jac outlives the
         # solve in _last_J; a graph -> jac -> graph cycle would only be freed by the cyclic GC)
-        sqrt_pdr, sqrt_step, n_nbr = self._sqrt_pdr, self._sqrt_step, self.k
+        sqrt_pdr, sqrt_step, n_nbr = psqrt, self._sqrt_step, self.k
 
         def unpack(z):
             Xc = base_x.copy()
@@ -785,7 +802,7 @@ class MultiUserGraph:
             res[r_u:] = (L[var_users] - p.step_prior_m) * sqrt_step
             if not want_jac:
                 return res
-            s = sqrt_pdr[None, :, None]
+            s = sqrt_pdr[:, :, None]
             vals = [(jp * s).ravel(), (jc * s).ravel(), (jl[:, :, None] * s).ravel(), jwp.ravel()]
             for j in range(n_nbr):
                 vals.append(jwn[:, j].ravel())

@@ -1,4 +1,4 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos,scale}``: benchmarks print tables,
+"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos,scale,robot}``: benchmarks print tables,
 side by side with peers in one run."""
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ BENCHES = {
     "live": "indoor_loc.bench.live",
     "chaos": "indoor_loc.bench.chaos",
     "scale": "indoor_loc.bench.scale",
+    "robot": "indoor_loc.bench.robot",
 }
 
 
@@ -74,6 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shards", default="", help="scale: processes per stage to try, e.g. 1,2 (default 1,2)")
     parser.add_argument("--warmup", type=float, default=0.0, help="scale: s after adding users before measuring (default 15)")
     parser.add_argument("--window", type=float, default=0.0, help="scale: s measured per step (default 25)")
+    parser.add_argument("--robots", type=int, default=2, help="robot: simulated robots (default 2; --duration: "
+                                                              "their run, default 1800 s; --quick: 1 robot x 600 s)")
+    parser.add_argument("--kidnap-duration", type=float, default=-1.0, help="robot: the kidnapped robots' run, "
+                                                                            "carried at its half, s (default 600; 0 = skip)")
     parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
                         help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 

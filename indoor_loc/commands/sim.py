@@ -20,6 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--building", type=Path, default=None,
                         help="building GeoJSON (default: the shipped sample building)")
     parser.add_argument("--walkers", type=int, default=3, help="number of walkers (1..8, default 3)")
+    parser.add_argument("--robots", type=int, default=0,
+                        help="differential-drive robots with wheel odometry (0..8, default 0; /robot1, ...)")
     parser.add_argument("--duration", type=float, default=90.0, help="run length, s (default 90)")
     parser.add_argument("--seed", type=int, default=7, help="random seed (default 7)")
     parser.add_argument("--imu-hz", type=float, default=100.0, help="IMU rate, Hz (default 100)")
@@ -40,6 +42,7 @@ def config_from_args(args: argparse.Namespace):
     from indoor_loc.sim.walker import ImuParams
     try:
         cfg = SimConfig(walkers=args.walkers, duration_s=args.duration, seed=args.seed,
+                        robots=getattr(args, "robots", 0),
                         imu=dataclasses.replace(ImuParams(), rate_hz=args.imu_hz, mag_rate_hz=args.mag_hz),
                         scanner=dataclasses.replace(ScannerParams(), period_s=args.scan_period))
         cfg.validate()
@@ -64,6 +67,9 @@ def generate(out_dir: Path, cfg, building_path: Path | None = None, *, quiet: bo
         for w in run.walkers:
             print(f"  /{w.name}: step {w.params.step_length_m:.2f} m, cadence {w.params.cadence_hz:.2f} Hz, "
                   f"{w.motion.steps[-1]:.0f} steps, {len(w.scans)} scans")
+        for r in run.robots:
+            print(f"  /{r.name}: robot at {r.params.speed_mps:.2f} m/s, odometry at {r.params.odom_rate_hz:g} Hz, "
+                  f"{len(r.scans)} scans")
         for role, p in paths.items():
             print(f"  {role:9s} {p}")
     return paths

@@ -205,6 +205,18 @@ class LinearPdrKf(PositionFilter):
         if stamp_ns is not None:
             st.stamp_ns = int(stamp_ns)
 
+    def predict_matrix(self, F: np.ndarray, Q: np.ndarray, *, stamp_ns: int | None = None) -> None:
+        """Propagate with a given transition ``F`` (4, 4) and process noise ``Q`` (4, 4) (a robot's
+        odometry increment, :func:`indoor_loc.fusion.odom_kf.odom_transition`)."""
+        self.last_F = F
+        st = self.state
+        st.x = F @ st.x
+        Pn = F @ st.P @ F.T + Q
+        st.P = 0.5 * (Pn + Pn.T)
+        if stamp_ns is not None:
+            st.stamp_ns = int(stamp_ns)
+
+
 def initial_state(p: LinearPdrParams, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None,
                   stamp_ns: int = 0) -> KfState:
     """Initial state: position ``xy0`` (default 0 with ``init_pos_var_m2``), step vector 0 with
@@ -251,11 +263,14 @@ def fixes_to_arrays(fixes: Sequence[Fix | None]) -> tuple[np.ndarray, np.ndarray
 
 def filter_batch(params: LinearPdrParams, steps: np.ndarray, dtheta: np.ndarray, z: np.ndarray,
                  R: np.ndarray, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None,
-                 x0: np.ndarray | None = None, P0: np.ndarray | None = None) -> KfTrack:
+                 x0: np.ndarray | None = None, P0: np.ndarray | None = None,
+                 F: np.ndarray | None = None, Q: np.ndarray | None = None) -> KfTrack:
     """Linear KF over T epochs: steps (T,), dtheta (T,) rad, z (T, 2) m (NaN = no fix), R (T, 2, 2) m^2.
 
     The prior is the initial state from ``xy0``/``pos_cov0``, or the full state ``x0`` (4,) and
-    ``P0`` (4, 4) when given (a window of a longer run starting from its filtered state)."""
+    ``P0`` (4, 4) when given (a window of a longer run starting from its filtered state). ``F`` and
+    ``Q`` (T, 4, 4), when given, are each epoch's transition and process noise instead of the footstep
+    model's (a robot's odometry increments)."""
     params.validate()
     steps = np.asarray(steps, float)
     dtheta = np.asarray(dtheta, float)
@@ -273,11 +288,11 @@ def filter_batch(params: LinearPdrParams, steps: np.ndarray, dtheta: np.ndarray,
                   np.zeros((T, 4, 4)), np.zeros(T, bool), np.full(T, np.nan))
     thr = params.gate_threshold
     for t in range(T):
-        F = transition_matrix(steps[t], dtheta[t])
-        x = F @ x
-        Pm = F @ Pm @ F.T + process_noise(params, steps[t])
+        Ft = transition_matrix(steps[t], dtheta[t]) if F is None else F[t]
+        x = Ft @ x
+        Pm = Ft @ Pm @ Ft.T + (process_noise(params, steps[t]) if Q is None else Q[t])
         Pm = 0.5 * (Pm + Pm.T)
-        out.F[t], out.x_pred[t], out.P_pred[t] = F, x, Pm
+        out.F[t], out.x_pred[t], out.P_pred[t] = Ft, x, Pm
         if np.all(np.isfinite(z[t])):
             x, Pm, out.nis[t], out.accepted[t] = joseph_update(x, Pm, z[t], R[t], H_POS, thr)
         out.x_filt[t], out.P_filt[t] = x, Pm

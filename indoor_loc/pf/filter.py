@@ -420,19 +420,25 @@ class GraphParticleFilter:
             active = arrive
         return corr
 
-    def predict_pdr(self, distance_m: float, heading_rad: float, rng: np.random.Generator) -> None:
+    def predict_pdr(self, distance_m: float, heading_rad: float, rng: np.random.Generator, *,
+                    distance_sd_m: float | None = None, yaw_walk_rad: float | None = None) -> None:
         """One PDR interval: walked ``distance_m`` ending with walking heading ``heading_rad``
-        (odom frame; each particle adds its own offset). Zero distance: nothing moves."""
+        (odom frame; each particle adds its own offset). Zero distance: nothing moves. A robot's
+        odometry increment gives its own noise: ``distance_sd_m`` (m, instead of ``distance_sigma``)
+        and ``yaw_walk_rad`` (the heading offset's random walk, rad, instead of ``yaw_offset_walk_rad``)."""
         p, pp = self.p, self.params
         assert p is not None
         n = len(p)
         z3 = rng.standard_normal((3, n))
-        p.yaw_offset += pp.yaw_offset_walk_rad * z3[0]
+        p.yaw_offset += (pp.yaw_offset_walk_rad if yaw_walk_rad is None else yaw_walk_rad) * z3[0]
         if distance_m <= 0:
             return
         p.scale += pp.step_scale_walk * np.sqrt(distance_m) * z3[1]
         np.clip(p.scale, 0.5, 1.6, out=p.scale)
-        dist = distance_m * p.scale * (1.0 + pp.distance_sigma / np.sqrt(max(distance_m, 1e-3)) * z3[2])
+        if distance_sd_m is None:
+            dist = distance_m * p.scale * (1.0 + pp.distance_sigma / np.sqrt(max(distance_m, 1e-3)) * z3[2])
+        else:
+            dist = distance_m * p.scale + distance_sd_m * z3[2]
         heading = heading_rad + p.yaw_offset
         # U-turn on the link, guided by the heading (travelling back: cos(Δ + π) = −cos Δ)
         c = np.cos(self._travel_heading(p.link, p.direction) - heading)

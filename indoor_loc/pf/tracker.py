@@ -189,6 +189,23 @@ class GraphTracker:
         est = self._record(stamp_ns, dist, heading, dt)
         return self._check(stamp_ns) or est
 
+    def increment(self, stamp_ns: int, distance_m: float, travel_rad: float, *, var_along: float,
+                  var_yaw: float) -> Estimate | None:
+        """A robot odometry increment ending at ``stamp_ns`` (:mod:`indoor_loc.odometry.increments`):
+        ``distance_m`` along the heading of travel ``travel_rad`` (increment frame; each particle adds
+        its own offset), with the increment's own along-track variance (m²) and heading variance (rad²,
+        the offsets' random walk)."""
+        if not self.pf.initialised:
+            return None
+        self.pf.predict_pdr(distance_m, travel_rad if distance_m > 1e-9 else 0.0, self.rng,
+                            distance_sd_m=float(np.sqrt(max(var_along, 0.0))),
+                            yaw_walk_rad=float(np.sqrt(max(var_yaw, 0.0))))
+        self._kf_predict(distance_m, travel_rad, stamp_ns)
+        dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
+        self._last_stamp = stamp_ns
+        est = self._record(stamp_ns, distance_m, travel_rad if distance_m > 1e-9 else np.nan, dt)
+        return self._check(stamp_ns) or est
+
     def elapse(self, stamp_ns: int) -> None:
         """Without PDR: move the particles by the speed model up to ``stamp_ns``."""
         if self.pf.initialised and self._last_stamp is not None and stamp_ns > self._last_stamp:

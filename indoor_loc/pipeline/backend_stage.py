@@ -76,6 +76,9 @@ from indoor_loc.pipeline.bounds import MapBox
 from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
+from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
+from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
+from msg_adapters.robot_odom import RobotOdomReader
 
 NODE_NAME = "backend_node"
 
@@ -109,10 +112,14 @@ class BackendParams(GraphParams):
     time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py); "
                                          "a jump back starts the user afresh, its track so far kept as a finished "
                                          "user's")
+    motion_source: str = pfield("pdr", MOTION_DOC + "; every user of the node alike")
+    odom: OdomIncrementParams = group(OdomIncrementParams, ODOM_GROUP_DOC)
 
     def validate(self) -> None:
         n = type(self).__name__
         self.time.validate()
+        validate_source(n, self.motion_source)
+        self.odom.validate()
         require(self.offline_order in ORDERS, n, "offline_order", f"one of {ORDERS}", self.offline_order)
         require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
         require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
@@ -149,6 +156,7 @@ class _UserInput:
     scans_given_up: int = 0                            # scans whose fix can no longer be used (graph past them)
     floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
     odom_guard: OdomJumpGuard = field(default_factory=OdomJumpGuard)   # odom_jump against the last accepted
+    robot: RobotOdomReader | None = None               # motion_source odom: the user's increments
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -206,7 +214,7 @@ class BackendStage(Stage):
     PARAMS = BackendParams
     MULTI_USER = True
     #: the reorder buffer puts each user's events in stamp order (too_late beyond it)
-    STAMP_ORDER = {"pdr/odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY}
+    STAMP_ORDER = {"pdr/odom": Order.ANY, "odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY}
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
         super().__init__(params, namespace=namespace)
@@ -229,12 +237,13 @@ class BackendStage(Stage):
         #: what the end of input's time budget cut short (``finish.*`` in /diagnostics; empty before it)
         self.finish_report: dict[str, str] = {}
         self.on("pdr/odom", self._on_odom)
+        self.on("odom", self._on_robot_odom)
         self.on("wifi/scan", self._on_scan)
         if params.wifi_source == "fix":
             self.on("wifi/fix", self._on_fix)
 
     def inputs(self) -> list[Port]:
-        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, required=True),
+        return [motion_port(self.params.motion_source),
                 Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)] + (
                 [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
                 if self.params.wifi_source == "fix" else [])
@@ -286,7 +295,37 @@ class BackendStage(Stage):
         self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
         return outs
 
+    def _on_robot_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
+        """A robot's odometry (``motion_source: odom``): its increments, once they close, enter the
+        reorder buffer as the user's hops; each message moves the user's clock."""
+        require_source(self.params.motion_source, "odom")
+        b = self._buffer(user)
+        if b.robot is None:
+            b.robot = RobotOdomReader(self.params.odom)
+        od = b.robot.check(msg)
+        if b.taken_ns is not None and od.stamp_ns < b.taken_ns:
+            b.dropped_late += 1
+            raise InvalidMessageError("too_late", f"{user}: stamp {od.stamp_ns} older than the graph's newest "
+                                                  f"{b.taken_ns}: later than reorder_window_s")
+        inc = b.robot.take(od)
+        if inc is not None:
+            self._push(user, inc.t_end_ns, 0, inc)
+        b.newest_odom_ns = od.stamp_ns if b.newest_odom_ns is None else max(b.newest_odom_ns, od.stamp_ns)
+        return self._release(user)
+
+    def _flush_robot(self, user: str) -> None:
+        """A scan or fix of a robot: its odometry up to now closes first (so the scan's pose has it)."""
+        b = self.inputs_by_user.get(user)
+        if b is not None and b.robot is not None:
+            inc = b.robot.flush()
+            if inc is not None:
+                if b.taken_ns is not None and inc.t_end_ns < b.taken_ns:   # the graph went on (no odometry
+                    inc = dataclasses.replace(inc, t_start_ns=min(inc.t_start_ns, b.taken_ns),  # for a while):
+                                              t_end_ns=b.taken_ns)     # its motion comes now, not lost
+                self._push(user, inc.t_end_ns, 0, inc)
+
     def _on_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
+        require_source(self.params.motion_source, "pdr/odom")
         od = odom_from_msg(msg)
         if user in self.inputs_by_user:
             self.inputs_by_user[user].odom_guard.check(od)      # odom_jump, before anything moves
@@ -298,6 +337,7 @@ class BackendStage(Stage):
 
     def _on_scan(self, msg, recv_ns: int, user: str) -> list[Output]:
         scan = scan_from_msg(msg)
+        self._flush_robot(user)
         if self._no_survey:
             raise InvalidMessageError("no_survey", "no radio map (radiomap ''): a user starts at a scan WKNN "
                                                    "localises against the survey, so none can; set radiomap")
@@ -314,6 +354,7 @@ class BackendStage(Stage):
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)
         if self.map_box is not None:
             self.map_box.check("wifi/fix", fix.xy)
+        self._flush_robot(user)
         b = self._take_wifi(user, fix.stamp_ns, 1, fix)
         if b.newest_odom_ns is not None:
             lag = b.newest_odom_ns - fix.stamp_ns
@@ -388,6 +429,10 @@ class BackendStage(Stage):
             del b.pending_scans[:k]
 
     def _take_odom(self, user: str, b: _UserInput, od) -> bool:
+        if isinstance(od, OdomIncrement):      # a robot's: metres as steps of the prior's length
+            steps = od.distance_m / self.graph.params.step_prior_m
+            return self.graph.add_hop(user, od.t_start_ns, od.t_end_ns, steps, od.travel_rad,
+                                      var=(od.var_along + od.cov[1, 1], od.var_yaw)) is not None
         prev = b.prev_odom
         b.prev_odom = od
         d = math.hypot(od.x - (prev.x if prev else 0.0), od.y - (prev.y if prev else 0.0))

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
-from indoor_loc.contract import join_ns, split_ns
+from indoor_loc.contract import ODOM, join_ns, split_ns
 from indoor_loc.errors import ConfigError
 from indoor_loc.output_paths import check_output
 from indoor_loc.params import load_params_file, misplaced_keys, node_key, params_for_node, params_from_dict
@@ -255,6 +255,7 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
         inputs_of[name] = [p.topic for p in st.inputs()]
         relative_names |= {p.topic for p in st.inputs()} | {p.topic for p in st.outputs()}
     relative_names |= set(copy)
+    relative_names.add(ODOM)          # a robot's odometry: read whenever a stage's motion_source says so
     for full in topics:
         ns, rel = split_ns(full, relative_names)
         topics_by_ns[ns].add(rel)

@@ -33,6 +33,11 @@ from msg_adapters.path import path_to_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
+from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
+from indoor_loc.fusion.odom_kf import odom_transition
+from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
+from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
+from msg_adapters.robot_odom import RobotOdomReader
 
 
 @dataclass(frozen=True)
@@ -56,10 +61,17 @@ class PdrKfStageParams:
                                          "ones leave the message (bounded size and memory)")
     frame_id: str = field("map", "frame of the estimates")
     time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
+    motion_source: str = field("pdr", MOTION_DOC)
+    odom: OdomIncrementParams = group(OdomIncrementParams, ODOM_GROUP_DOC)
+    odom_scale_var_per_m: float = field(1e-5, "motion_source odom: random walk of the odometry's scale error on the "
+                                              "travel vector, per metre travelled (1/m)")
 
     def validate(self) -> None:
         n = type(self).__name__
         self.time.validate()
+        validate_source(n, self.motion_source)
+        self.odom.validate()
+        require(self.odom_scale_var_per_m >= 0, n, "odom_scale_var_per_m", ">= 0", self.odom_scale_var_per_m)
         require(self.step_length_m > 0, n, "step_length_m", "> 0", self.step_length_m)
         require(self.smooth_period_s >= 0, n, "smooth_period_s", ">= 0", self.smooth_period_s)
         require(self.smooth_lag_s > 0, n, "smooth_lag_s", "> 0", self.smooth_lag_s)
@@ -95,7 +107,7 @@ class PdrKfStage(Stage):
     """Linear PDR Kalman filter + RTS smoother (Raitoharju et al. 2015): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
-    STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING}
+    STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING}
 
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
@@ -106,12 +118,14 @@ class PdrKfStage(Stage):
         self._fresh_state()
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
+        self.on("odom", self._on_robot_odom)
 
     def _fresh_state(self) -> None:
         """The filter, smoother and queues as before the first message (start-up, a jump back in time)."""
         params = self.params
         self.kf: LinearPdrKf | None = None
         self._odom = PdrOdomReader(params.step_length_m)
+        self._robot = RobotOdomReader(params.odom)
         # Fixed-lag smoothing of the current segment: the epochs still inside the window, each
         # [stamp, steps, dtheta, fix or None, online state x (4,)], and the filtered state (x, P)
         # just before the window's first epoch. Epochs leaving the window are final: their
@@ -134,7 +148,7 @@ class PdrKfStage(Stage):
         return outs
 
     def inputs(self) -> list[Port]:
-        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, required=True),
+        return [motion_port(self.params.motion_source),
                 Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
 
     def outputs(self) -> list[Port]:
@@ -142,7 +156,27 @@ class PdrKfStage(Stage):
                 Port("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
+    def _on_robot_odom(self, msg, recv_ns: int) -> list[Output]:
+        """A robot's odometry (``motion_source: odom``): fixes before its stamp go first (the open
+        increment closed before them), then its increment, when one closes, is a prediction."""
+        require_source(self.params.motion_source, "odom")
+        od = self._robot.check(msg)
+        outs = self._apply_pending(lambda s: s < od.stamp_ns)
+        inc = self._robot.take(od)
+        self._last_odom_ns = od.stamp_ns
+        return outs + self._apply_increment(inc)
+
+    def _apply_increment(self, inc: OdomIncrement | None) -> list[Output]:
+        if inc is None or self.kf is None:
+            return []
+        F, Q = odom_transition(inc.distance_m, inc.dtravel_rad, inc.var_along, inc.var_yaw,
+                               scale_var_per_m=self.params.odom_scale_var_per_m)
+        self.kf.predict_matrix(F, Q, stamp_ns=inc.t_end_ns)
+        self._add_epoch(inc.t_end_ns, inc.distance_m, inc.dtravel_rad, (F, Q))
+        return [("pdr_kf/pose", self._pose_msg(inc.t_end_ns))] + self._maybe_smooth(inc.t_end_ns)
+
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
+        require_source(self.params.motion_source, "pdr/odom")
         od, interval = self._odom.read(msg)
         self._held.append((od.stamp_ns, od, interval))
         hold_ns = int(self.params.odom_hold_s * 1e9)
@@ -166,9 +200,9 @@ class PdrKfStage(Stage):
         outs.append(("pdr_kf/pose", self._pose_msg(od.stamp_ns)))
         return outs + self._maybe_smooth(od.stamp_ns)
 
-    def _add_epoch(self, stamp_ns: int, steps: float, dtheta: float) -> None:
+    def _add_epoch(self, stamp_ns: int, steps: float, dtheta: float, fq: tuple | None = None) -> None:
         assert self.kf is not None
-        self._epochs.append([stamp_ns, steps, dtheta, None, self.kf.state.x.copy()])
+        self._epochs.append([stamp_ns, steps, dtheta, None, self.kf.state.x.copy(), fq])
         self.n_epochs += 1
         lag_ns = int(self.params.smooth_lag_s * 1e9)
         if stamp_ns - self._epochs[0][0] > 2 * lag_ns:     # amortised: every lag, O(2 lag) work
@@ -189,6 +223,8 @@ class PdrKfStage(Stage):
 
     def _apply_pending(self, due) -> list[Output]:
         outs: list[Output] = []
+        if self.params.motion_source == "odom" and self._pending and due(self._pending[0][0]):
+            outs += self._apply_increment(self._robot.flush())     # the robot's motion up to now first
         while self._pending and due(self._pending[0][0]):
             stamp, _, fix = self._pending.pop(0)
             outs += self._release(lambda s, f=stamp: s < f)      # held hops before the fix come first
@@ -221,7 +257,7 @@ class PdrKfStage(Stage):
         self.kf = LinearPdrKf(self.params.kf_params(), xy0=fix.xy, pos_cov0=fix.cov, stamp_ns=fix.stamp_ns)
         st = self.kf.state
         self._prior = (st.x.copy(), st.P.copy())
-        self._epochs = [[fix.stamp_ns, 0.0, 0.0, None, st.x.copy()]]
+        self._epochs = [[fix.stamp_ns, 0.0, 0.0, None, st.x.copy(), None]]
         self.n_epochs += 1
         self._rejected_in_row = 0
 
@@ -250,8 +286,12 @@ class PdrKfStage(Stage):
             assert self._prior is not None
             z, R = fixes_to_arrays([e[3] for e in ep])
             params = replace(self.params.kf_params(), gate=False)
+            F = Q = None
+            if any(e[5] is not None for e in ep):      # odometry increments: each epoch's own model
+                F = np.array([transition_matrix(e[1], e[2]) if e[5] is None else e[5][0] for e in ep])
+                Q = np.array([process_noise(params, e[1]) if e[5] is None else e[5][1] for e in ep])
             track = filter_batch(params, np.array([e[1] for e in ep], float), np.array([e[2] for e in ep], float),
-                                 z, R, x0=self._prior[0], P0=self._prior[1])
+                                 z, R, x0=self._prior[0], P0=self._prior[1], F=F, Q=Q)
             xs, _ = rts_smooth(track)
             if not np.all(np.isfinite(xs)):
                 raise np.linalg.LinAlgError("non-finite smoothed states")
@@ -316,5 +356,6 @@ class PdrKfStage(Stage):
                 "path_poses": str(len(self._final) + len(self._epochs)),
                 "fixes_used_in_segment": str(st.n_updates), "fixes_gated_out_in_segment": str(st.n_rejected),
                 "restarts": str(self.restarts), "late_fixes": str(self.late_fixes),
-                "held_odom": str(len(self._held)),
+                "held_odom": str(len(self._held)), "motion_source": self.params.motion_source,
+                **(self._robot.diagnostics() if self.params.motion_source == "odom" else {}),
                 "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}"}

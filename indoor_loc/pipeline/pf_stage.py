@@ -45,6 +45,9 @@ from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
+from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
+from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
+from msg_adapters.robot_odom import RobotOdomReader
 
 POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
@@ -99,9 +102,13 @@ class PfStageParams:
     monitor: MonitorParams = P.group(MonitorParams, "divergence monitoring by the linear PDR Kalman filter "
                                                     "(monitor.enabled, monitor.gate_prob, ...)")
     time: TimeParams = P.group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
+    motion_source: str = P.field("pdr", MOTION_DOC)
+    odom: OdomIncrementParams = P.group(OdomIncrementParams, ODOM_GROUP_DOC)
 
     def validate(self) -> None:
         n = type(self).__name__
+        validate_source(n, self.motion_source)
+        self.odom.validate()
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
         self.time.validate()
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
@@ -134,8 +141,8 @@ class PfStage(Stage):
     """TLL particle filter: pdr/odom + wifi/fix (+ initialpose) -> pf/pose, pf/particles, pf/path, map/graph."""
     NODE_NAME = "tll_pf"
     PARAMS = PfStageParams
-    STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING, "wifi/scan": Order.NONDECREASING,
-                   "initialpose": Order.EXEMPT}
+    STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING,
+                   "wifi/scan": Order.NONDECREASING, "initialpose": Order.EXEMPT}
 
     def __init__(self, params: PfStageParams, *, namespace: str = "", shared: PfStage | None = None) -> None:
         """``shared``: another instance whose graph, transition table and radio-map field (read-only)
@@ -147,6 +154,8 @@ class PfStage(Stage):
         self.on("wifi/scan", self._on_scan)
         self.field: EdgeFingerprintField | None = None
         self.on("initialpose", self._on_initialpose)
+        self.on("odom", self._on_robot_odom)
+        self._robot = RobotOdomReader(params.odom)
         self._odom_guard = OdomJumpGuard()
         self.map_box: MapBox | None = None
         if shared is not None:
@@ -211,12 +220,13 @@ class PfStage(Stage):
         self._last_path_ns = None
         self._n_pose = 0
         self._odom_guard = OdomJumpGuard()
+        self._robot = RobotOdomReader(params.odom)
         return outs
 
     def inputs(self) -> list[Port]:
         wifi = (Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)
                 if self.params.wifi_update == "scan" else Port("wifi/fix", POSE_T, Qos.RELIABLE))
-        return [Port("pdr/odom", "nav_msgs/msg/Odometry", Qos.RELIABLE, required=True),
+        return [motion_port(self.params.motion_source),
                 wifi,
                 Port("initialpose", POSE_T, Qos.RELIABLE, stream=False)]
 
@@ -239,7 +249,26 @@ class PfStage(Stage):
                                                     self.params.frame_id, stamp_ns, ns="map/graph")))
         return outs
 
+    def _on_robot_odom(self, msg, recv_ns: int) -> list[Output]:
+        """A robot's odometry (``motion_source: odom``): fixes before its stamp go first (the open
+        increment closed before them), then its increment, when one closes, moves the particles."""
+        require_source(self.params.motion_source, "odom")
+        od = self._robot.check(msg)
+        outs = self._start(od.stamp_ns)
+        outs += self._apply_pending(lambda s: s < od.stamp_ns)
+        inc = self._robot.take(od)
+        self._last_odom_ns = od.stamp_ns
+        return outs + self._apply_increment(inc)
+
+    def _apply_increment(self, inc: OdomIncrement | None) -> list[Output]:
+        if inc is None:
+            return []
+        est = self.tracker.increment(inc.t_end_ns, inc.distance_m, inc.travel_rad, var_along=inc.var_along,
+                                     var_yaw=inc.var_yaw)
+        return self._publish(est) if est is not None else []
+
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
+        require_source(self.params.motion_source, "pdr/odom")
         od = odom_from_msg(msg)
         self._odom_guard.check(od)                     # odom_jump: refused before anything moves
         outs = self._start(od.stamp_ns)
@@ -306,6 +335,8 @@ class PfStage(Stage):
 
     def _apply_pending(self, due, *, speed: bool = False) -> list[Output]:
         outs: list[Output] = []
+        if self.params.motion_source == "odom" and self._pending and due(self._pending[0][0]):
+            outs += self._apply_increment(self._robot.flush())     # the robot's motion up to now first
         while self._pending and due(self._pending[0][0]):
             stamp, _, payload = self._pending.pop(0)
             if isinstance(payload, tuple):
@@ -372,7 +403,9 @@ class PfStage(Stage):
              "wifi_update": self.params.wifi_update,
              "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
                            else "hit" if self.cache_hit else "computed"),
-             "pending_fixes": str(len(self._pending))}
+             "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source}
+        if self.params.motion_source == "odom":
+            d.update(self._robot.diagnostics())
         if pf.p is None:
             d["initialised"] = "false (waiting for the first wifi/fix or initialpose)"
         else:

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,9 +17,17 @@ from indoor_loc.sim.walker import ImuData, ImuParams, Motion, Plan, WalkerParams
     synthesize_imu
 from indoor_loc.wifi.types import WifiScan
 
+if TYPE_CHECKING:
+    from indoor_loc.sim.robot import RobotParams
+
 #: Bag time of the run start (2026-01-01T00:00:00Z), int ns: fixed so runs are reproducible.
 T0_NS = 1_767_225_600_000_000_000
 NAMES = ("alice", "bob", "carol", "dave", "erin", "frank", "grace", "heidi")
+
+
+def _robot_params():
+    from indoor_loc.sim.robot import RobotParams
+    return RobotParams()
 
 
 @dataclass(frozen=True)
@@ -34,8 +43,14 @@ class SimConfig:
     survey_spacing_m: float = 2.0     # survey points every this many metres along the links, m
     survey_scans: int = 2             # scans per survey point
     start_floor: int | None = 0       # walkers start on this floor (None: anywhere)
+    robots: int = 0                   # differential-drive robots (names robot1, ...; indoor_loc/sim/robot.py)
+    robot: "RobotParams" = field(default_factory=lambda: _robot_params())
 
     def validate(self) -> None:
+        if not 0 <= self.robots <= 8:
+            raise ConfigError(f"SimConfig.robots: expected 0..8, got {self.robots}")
+        if self.robots:
+            self.robot.validate()
         if not 1 <= self.walkers <= len(NAMES):
             raise ConfigError(f"SimConfig.walkers: expected 1..{len(NAMES)}, got {self.walkers}")
         if not self.duration_s >= 10.0:
@@ -70,6 +85,7 @@ class SimRun:
     survey_xy: np.ndarray           # (M, 2)
     survey_floor: np.ndarray        # (M,)
     survey_scans: list[WifiScan]
+    robots: list = field(default_factory=list)     # SimRobot (indoor_loc/sim/robot.py)
 
 
 def survey_points(building: Building, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -151,26 +167,43 @@ def simulate(building: Building, config: SimConfig | None = None) -> SimRun:
         plan = make_plan(building, wp, cfg.duration_s, rng, floors=floors)
         motion = sample_motion(plan, wp, cfg.imu.rate_hz, cfg.duration_s, building.floor_z)
         imu = synthesize_imu(motion, building, cfg.imu, rng)
-        t_s = motion.t_ns * 1e-9
-
-        def xyz_at(t, m=motion, ts=t_s):
-            return np.array([np.interp(t, ts, m.xyz[:, k]) for k in range(3)])
-
-        def floor_at(t, m=motion, ts=t_s):
-            return int(m.floor[min(int(np.searchsorted(ts, t)), len(ts) - 1)])
-
-        offset = float(rng.normal(0.0, sc.device_offset_std_db))
-        scans, scan_xy = [], []
-        t_next = float(rng.uniform(sc.sweep_s, sc.sweep_s + sc.period_s))
-        while t_next <= cfg.duration_s:
-            stamp_ns = int(round(t_next * 1e9))
-            t_read = t_next - sc.sweep_s * (1.0 - frac)
-            s = _scan(fld, stamp_ns, xyz_at, floor_at, t_read, rng, sc, offset,
-                      "sim", f"{wp.name}/wifi_link")
-            if s is not None:
-                scans.append(s)
-                scan_xy.append(xyz_at(t_next)[:2])
-            t_next += sc.period_s + float(rng.uniform(-sc.period_jitter_s, sc.period_jitter_s))
-        walkers.append(SimWalker(wp, plan, motion, imu, scans, np.array(scan_xy).reshape(-1, 2)))
+        scans, scan_xy = scans_along(fld, motion, rng, sc, cfg.duration_s, frac, wp.name)
+        walkers.append(SimWalker(wp, plan, motion, imu, scans, scan_xy))
+    robots = []
+    if cfg.robots:          # their own random streams: adding robots changes nothing of the walkers
+        from indoor_loc.sim.robot import ROBOT_NAMES, simulate_robot, with_name
+        rrngs = np.random.default_rng([cfg.seed, 24]).spawn(cfg.robots)
+        for r in range(cfg.robots):
+            rp = with_name(cfg.robot, ROBOT_NAMES[r])
+            robots.append(simulate_robot(
+                building, rp, cfg.duration_s, rrngs[r],
+                lambda m, g, name=rp.name: scans_along(fld, m, g, sc, cfg.duration_s, frac, name),
+                floor=cfg.start_floor or 0))
     return SimRun(cfg, building, fld, walkers, np.array(survey_xy).reshape(-1, 2), np.array(survey_floor),
-                  survey_scans)
+                  survey_scans, robots)
+
+
+def scans_along(fld: RssField, motion: Motion, rng: np.random.Generator, sc: ScannerParams, duration_s: float,
+                frac: np.ndarray, name: str) -> tuple[list[WifiScan], np.ndarray]:
+    """The scans of a device following ``motion`` (its own RSS offset, a scan every ``sc.period_s``
+    with jitter, channel sweep fractions ``frac``) and the true positions (S, 2) at their stamps."""
+    t_s = motion.t_ns * 1e-9
+
+    def xyz_at(t, m=motion, ts=t_s):
+        return np.array([np.interp(t, ts, m.xyz[:, k]) for k in range(3)])
+
+    def floor_at(t, m=motion, ts=t_s):
+        return int(m.floor[min(int(np.searchsorted(ts, t)), len(ts) - 1)])
+
+    offset = float(rng.normal(0.0, sc.device_offset_std_db))
+    scans, scan_xy = [], []
+    t_next = float(rng.uniform(sc.sweep_s, sc.sweep_s + sc.period_s))
+    while t_next <= duration_s:
+        stamp_ns = int(round(t_next * 1e9))
+        t_read = t_next - sc.sweep_s * (1.0 - frac)
+        s = _scan(fld, stamp_ns, xyz_at, floor_at, t_read, rng, sc, offset, "sim", f"{name}/wifi_link")
+        if s is not None:
+            scans.append(s)
+            scan_xy.append(xyz_at(t_next)[:2])
+        t_next += sc.period_s + float(rng.uniform(-sc.period_jitter_s, sc.period_jitter_s))
+    return scans, np.array(scan_xy).reshape(-1, 2)

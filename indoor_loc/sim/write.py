@@ -35,6 +35,7 @@ from indoor_loc.graph import save_graph
 from indoor_loc.sim.building import Building, building_graph, save_building, save_floor_plans
 from indoor_loc.sim.scenario import T0_NS, SimRun, SimWalker
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
+from indoor_loc.sim.robot_write import robot_message, robot_node_params, robot_scenario, robot_streams
 
 LATCHED = [qos_dict(reliability="reliable", durability="transient_local", depth=1)]
 GRAPH_TOPIC = "/map/graph"
@@ -87,7 +88,8 @@ def route_segments(building: Building, w: SimWalker) -> np.ndarray:
     return np.array([[xy[a], xy[b]] for a, b in pairs], float).reshape(-1, 2, 2)
 
 
-def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=None) -> dict[str, int]:
+def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=None,
+              robot_imu: bool = True) -> dict[str, int]:
     from msg_adapters.imu import imu_to_msg, mag_to_msg
     from msg_adapters.markers import graph_markers
     from msg_adapters.path import path_to_msg
@@ -99,7 +101,7 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
         bag.add_topic(GRAPH_TOPIC, "visualization_msgs/msg/MarkerArray", qos_profiles=LATCHED)
         bag.write(GRAPH_TOPIC, building_markers(b, t0_ns), t0_ns)
         streams = []
-        for w in run.walkers:
+        for w in list(run.walkers) + list(run.robots):
             ns = f"/{w.name}"
             t_gt, t_route = join_ns(ns, "ground_truth"), join_ns(ns, "ground_truth/route")
             bag.add_topic(t_gt, "nav_msgs/msg/Path", qos_profiles=LATCHED)
@@ -111,11 +113,12 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
             bag.write(t_route, graph_markers(nodes, np.arange(len(nodes)).reshape(-1, 2), "map", t0_ns,
                                              ns="ground_truth/route"), t0_ns)
             frame = f"{w.name}/imu_link"
-            imu = w.imu
-            streams.append((imu.t_ns + t0_ns, 0, w, join_ns(ns, "imu/data_raw"), frame))
-            streams.append((imu.mag_t_ns + t0_ns, 1, w, join_ns(ns, "imu/mag"), frame))
+            if not any(w is r for r in run.robots):     # a robot's odom and imu: robot_streams
+                streams.append((w.imu.t_ns + t0_ns, 0, w, join_ns(ns, "imu/data_raw"), frame))
+                streams.append((w.imu.mag_t_ns + t0_ns, 1, w, join_ns(ns, "imu/mag"), frame))
             streams.append((np.array([s.stamp_ns for s in w.scans], np.int64) + t0_ns, 2, w,
                             join_ns(ns, "wifi/scan"), frame))
+        streams += [st for st in robot_streams(run.robots, t0_ns) if robot_imu or st[1] != 4]
         # merge every stream in stamp order (ties: IMU, magnetometer, scans; then walker order)
         keys = np.concatenate([s[0] for s in streams])
         which = np.concatenate([np.full(len(s[0]), k) for k, s in enumerate(streams)])
@@ -130,6 +133,8 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
                 msg = imu_to_msg(t, frame, w.imu.acc[i], w.imu.gyro[i])
             elif kind == 1:
                 msg = mag_to_msg(t, frame, w.imu.mag_t[i])
+            elif kind >= 3:
+                msg = robot_message(kind, w, i, t)
             else:
                 s = w.scans[i]
                 msg = scan_to_msg(WifiScan(t, s.bssid, s.rssi_dbm, s.freq_mhz, s.ssid, s.age_ms,
@@ -170,7 +175,7 @@ def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
                                                  "path_period_s": 10.0}},
-    }
+    } | robot_node_params(run.robots)
 
 
 def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, Path]:
@@ -186,7 +191,7 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     (out / "truth").mkdir(exist_ok=True)
     for stale in (out / "truth").glob("*.csv"):      # a previous run's walkers
         stale.unlink()
-    for w in run.walkers:
+    for w in list(run.walkers) + list(run.robots):
         write_truth_csv(w, out / "truth" / f"{w.name}.csv")
     params = node_params(run, rm_dir, graph)
     (out / "params.yaml").write_text(
@@ -207,6 +212,8 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
                       for ap in run.building.aps if ap.off_at_s is not None or ap.move_at_s is not None],
         "survey": {"scans": rm.n_scans, "aps": rm.n_aps, "spacing_m": cfg.survey_spacing_m},
     }
+    if run.robots:
+        scenario["robots"] = robot_scenario(run.robots)
     (out / "scenario.yaml").write_text(yaml.safe_dump(scenario, sort_keys=False))
     bag = out / "sim.mcap"
     write_bag(run, bag, progress=progress)
