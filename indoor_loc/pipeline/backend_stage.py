@@ -65,7 +65,7 @@ import numpy as np
 from indoor_loc.params import field as pfield, group, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
-from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
+from indoor_loc.contract import BACKEND_MAP_ODOM, BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.markers import points_markers
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
@@ -73,6 +73,7 @@ from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
+from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
@@ -207,6 +208,7 @@ class BackendStage(Stage):
     MULTI_USER = True
     #: the reorder buffer puts each user's events in stamp order (too_late beyond it)
     STAMP_ORDER = {"pdr/odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY}
+    MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate=BACKEND_POSE, out=BACKEND_MAP_ODOM)
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
         super().__init__(params, namespace=namespace)
@@ -244,7 +246,8 @@ class BackendStage(Stage):
 
     def user_outputs(self) -> list[Port]:
         return [Port(BACKEND_POSE, "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
-                Port(BACKEND_PATH, "nav_msgs/msg/Path", Qos.LATCHED)]
+                Port(BACKEND_PATH, "nav_msgs/msg/Path", Qos.LATCHED),
+                Port(BACKEND_MAP_ODOM, "geometry_msgs/msg/TransformStamped", Qos.LATCHED)]
 
     def offline_order(self) -> str:
         return self.params.offline_order

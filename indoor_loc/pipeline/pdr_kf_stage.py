@@ -31,6 +31,7 @@ from indoor_loc.fusion.linear_pdr import (KfTrack, LinearPdrKf, LinearPdrParams,
 from msg_adapters.odom import PdrOdomReader
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
+from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 
@@ -96,6 +97,7 @@ class PdrKfStage(Stage):
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
     STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING}
+    MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate="pdr_kf/pose", out="pdr_kf/map_odom")
 
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
@@ -139,7 +141,8 @@ class PdrKfStage(Stage):
 
     def outputs(self) -> list[Port]:
         return [Port("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
-                Port("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED)]
+                Port("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED),
+                Port("pdr_kf/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:

@@ -43,6 +43,7 @@ from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
 from indoor_loc.wifi.radiomap import load_radiomap
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
+from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 
@@ -136,6 +137,7 @@ class PfStage(Stage):
     PARAMS = PfStageParams
     STAMP_ORDER = {"pdr/odom": Order.STRICT, "wifi/fix": Order.NONDECREASING, "wifi/scan": Order.NONDECREASING,
                    "initialpose": Order.EXEMPT}
+    MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate="pf/pose", out="pf/map_odom")
 
     def __init__(self, params: PfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
@@ -208,7 +210,8 @@ class PfStage(Stage):
         return [Port("pf/pose", POSE_T, Qos.LATCHED),
                 Port("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT),
                 Port("pf/path", "nav_msgs/msg/Path", Qos.LATCHED),
-                Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
+                Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED),
+                Port("pf/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
     def _start(self, stamp_ns: int) -> list[Output]:

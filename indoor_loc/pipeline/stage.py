@@ -37,6 +37,7 @@ import numpy as np
 
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidInputError
+from indoor_loc.pipeline.map_odom import MapOdom, MapOdomSpec
 from indoor_loc.pipeline.time_policy import Held, Order, TimeParams, TimePolicy, Verdict
 from msg_adapters.time import header_ns
 
@@ -149,6 +150,9 @@ class Stage:
     #: How each input topic's stamps must follow each other (:class:`~indoor_loc.pipeline.time_policy.Order`);
     #: a topic not named here: ``NONDECREASING``.
     STAMP_ORDER: ClassVar[dict[str, Order]] = {}
+    #: An estimator's ``map -> <user>/odom`` correction (pipeline/map_odom.py): motion topics, pose output,
+    #: correction topic; None: the stage publishes none.
+    MAP_ODOM: ClassVar[MapOdomSpec | None] = None
 
     def __init__(self, params: Any, *, namespace: str = "") -> None:
         self.params = params
@@ -160,6 +164,7 @@ class Stage:
         self.notices: list[str] = []
         #: the stamps every input message is judged by (the params' ``time`` group; pipeline/time_policy.py)
         self.time = TimePolicy(getattr(params, "time", None) or TimeParams())
+        self.map_odom = MapOdom(self.MAP_ODOM) if self.MAP_ODOM is not None else None
 
     # -- declared by subclasses ---------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -338,9 +343,23 @@ class Stage:
             return []
         if stamp is not None:
             self.time.accepted(user, topic, stamp)
+        if self.map_odom is not None:
+            outs = self._with_map_odom(user, outs, item if not batch and topic in self.map_odom.spec.motion else None)
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1
         return outs
+
+    def _with_map_odom(self, user: str, outs: list[Output], motion: Any = None) -> list[Output]:
+        """``outs`` and the ``map -> odom`` correction of their newest pose (pipeline/map_odom.py);
+        ``motion``: the accepted odometry message the correction is to use."""
+        assert self.map_odom is not None
+        try:
+            if motion is not None:
+                self.map_odom.motion(user, motion)
+            return outs + self.map_odom.corrections(user, outs)
+        except Exception as err:  # noqa: BLE001 - the estimate goes out even if its correction cannot
+            self._reject("internal_error", f"map_odom: {type(err).__name__}: {err}")
+            return outs
 
     def _reject_held(self, user: str, held: list[Held]) -> None:
         for h in held:
@@ -359,6 +378,8 @@ class Stage:
         """Reset the user's state in the stage and in the time policy; returns the outputs of the
         reset and the messages held for the new pass."""
         outs = self._guarded("reset_user", lambda: self.reset_user(user))
+        if self.map_odom is not None:
+            self.map_odom.reset(user)
         held = self.time.restart(user)
         self.diag.time_jumps += 1
         return outs, held
@@ -435,6 +456,8 @@ class Stage:
         except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
             self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
+        if self.map_odom is not None and not self.MULTI_USER:
+            outs = self._with_map_odom("", outs)
         if count:
             for out_topic, _ in outs:
                 self.diag.published[out_topic] += 1

@@ -41,6 +41,8 @@ import sysconfig
 import tempfile
 from pathlib import Path
 
+from indoor_loc.errors import ToolchainError
+
 PKG = "tf2_msgs"
 DEPS = ("geometry_msgs", "std_msgs", "builtin_interfaces")
 MSG_DIR = Path(__file__).resolve().parents[1] / "data" / PKG / "msg"
@@ -51,10 +53,6 @@ RUNTIME_INCLUDES = (
     "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_fastrtps_cpp", "rosidl_typesupport_introspection_c",
     "rosidl_dynamic_typesupport", "rmw", "rosidl_runtime_cpp", "rcpputils",
 )  # fastcdr installs its headers flat (<prefix>/include/fastcdr/Cdr.h): <prefix>/include is a root too
-
-
-class BuildError(RuntimeError):
-    """The toolchain or an input is missing: the message explains what to install."""
 
 
 def _site_packages(prefix: Path) -> Path:
@@ -92,7 +90,7 @@ def _which(*names: str) -> str:
         found = shutil.which(n)
         if found:
             return found
-    raise BuildError(f"no {' or '.join(names)} on PATH: install a C/C++ compiler (Debian/Ubuntu: "
+    raise ToolchainError(f"no {' or '.join(names)} on PATH: install a C/C++ compiler (Debian/Ubuntu: "
                      f"sudo apt install build-essential)")
 
 
@@ -109,12 +107,12 @@ def _generate(prefix: Path, work: Path) -> dict[str, list[Path]]:
         from rosidl_typesupport_fastrtps_c.cli import GenerateFastRTPSCTypesupport
         from rosidl_typesupport_introspection_c.cli import GenerateIntrospectionCTypesupport
     except ImportError as e:
-        raise BuildError(f"the ROS 2 message generators are not installed in this environment ({e}); "
+        raise ToolchainError(f"the ROS 2 message generators are not installed in this environment ({e}); "
                          f"install the requirements (ros-jazzy-rclpy pulls them in)") from e
     share = prefix / "share"
     for dep in DEPS:
         if not (share / dep / "msg").is_dir():
-            raise BuildError(f"{share / dep / 'msg'} missing: the {dep} wheel is not installed")
+            raise ToolchainError(f"{share / dep / 'msg'} missing: the {dep} wheel is not installed")
     pkg_dir = work / "src" / PKG
     (pkg_dir / "msg").mkdir(parents=True)
     msgs = sorted(MSG_DIR.glob("*.msg"))
@@ -147,7 +145,7 @@ def _compile(cc: str, sources: list[Path], target: Path, includes: list[Path], l
     args += [str(s) for s in sources] + [f"-l{lib}" for lib in libs]
     r = subprocess.run(args, capture_output=True, text=True)
     if r.returncode != 0:
-        raise BuildError(f"compiling {target.name} failed:\n{' '.join(args)}\n{r.stderr[-4000:]}")
+        raise ToolchainError(f"compiling {target.name} failed:\n{' '.join(args)}\n{r.stderr[-4000:]}")
 
 
 def build(prefix: Path, force: bool = False, verbose: bool = False) -> str:
@@ -158,17 +156,17 @@ def build(prefix: Path, force: bool = False, verbose: bool = False) -> str:
     cc, cxx = _which("gcc", "cc"), _which("g++", "c++")
     py_inc = Path(sysconfig.get_paths()["include"])
     if not (py_inc / "Python.h").is_file():
-        raise BuildError(f"{py_inc}/Python.h missing: install the Python development headers "
+        raise ToolchainError(f"{py_inc}/Python.h missing: install the Python development headers "
                          f"(Debian/Ubuntu: sudo apt install python3-dev)")
     try:
         import numpy
     except ImportError as e:
-        raise BuildError("numpy is needed by the generated Python bindings") from e
+        raise ToolchainError("numpy is needed by the generated Python bindings") from e
     lib = prefix / "lib"
     inc_root = prefix / "include"
     for name in RUNTIME_INCLUDES + DEPS + ("fastcdr",):
         if not (inc_root / name).is_dir():
-            raise BuildError(f"{inc_root / name} missing: the ROS runtime headers are not installed")
+            raise ToolchainError(f"{inc_root / name} missing: the ROS runtime headers are not installed")
     with tempfile.TemporaryDirectory(prefix="tf2_msgs_build_") as tmp:
         work = Path(tmp)
         src = _generate(prefix, work)
@@ -206,7 +204,7 @@ def build(prefix: Path, force: bool = False, verbose: bool = False) -> str:
         ]
         for name, sources, libs, is_cxx in steps:
             if not sources:
-                raise BuildError(f"the generators produced no sources for {name}")
+                raise ToolchainError(f"the generators produced no sources for {name}")
             if verbose:
                 print(f"compiling lib{PKG}__{name}.so", flush=True)
             _compile(cxx if is_cxx else cc, sources, build_lib / f"lib{PKG}__{name}.so", includes, libdirs,
@@ -261,7 +259,7 @@ def build(prefix: Path, force: bool = False, verbose: bool = False) -> str:
                             ignore=shutil.ignore_patterns("*.c", "*.cpp", "*.json", "tmp"))
     err = _import_check()
     if err is not None:
-        raise BuildError(f"{PKG} was built into {prefix} but does not import: {err}")
+        raise ToolchainError(f"{PKG} was built into {prefix} but does not import: {err}")
     return f"{PKG} built and installed into {prefix}"
 
 
@@ -279,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if err is None else 1
     try:
         print(build(a.prefix.resolve(), force=a.force, verbose=a.verbose))
-    except BuildError as e:
+    except ToolchainError as e:
         print(f"indoor_loc: could not build {PKG}: {e}\n"
               f"Everything else works; without {PKG} the estimators publish map -> odom on their "
               f"TransformStamped topics (e.g. pf/map_odom) but not on /tf (docs/robots.md).", file=sys.stderr)
