@@ -9,6 +9,7 @@ from std_srvs.srv import Empty
 
 from indoor_loc.nodes.process import run_stage_node
 from indoor_loc.nodes.stage_node import StageNode
+from indoor_loc.nodes.tf_out import TfBroadcastMixin
 from indoor_loc.pipeline.pf_stage import PfStage
 
 
@@ -16,7 +17,9 @@ from indoor_loc.pipeline.pf_stage import PfStage
 PORT_PARAMS = {"wifi_update": ("scan",)}
 
 
-class TllPfNode(StageNode):
+class TllPfNode(TfBroadcastMixin, StageNode):
+    PUBLISH_TF_DEFAULT = True          # the robot's localiser owns map -> odom, as nav2_amcl (tf_broadcast)
+
     def __init__(self) -> None:
         super().__init__(PfStage)
         self.create_service(Empty, "~/global_localization", self._on_global_localization)

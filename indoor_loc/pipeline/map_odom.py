@@ -6,9 +6,10 @@ A robot's (or walker's) odometry gives ``T_odom_base(t)``, the pose of ``<user>/
     T_map_odom = T_map_base(t) · T_odom_base(t)^-1
 
 taken at the estimate's stamp ``t``, with the odometry pose at that very stamp: the motion input's
-poses are buffered (:class:`OdomTrack`) and interpolated between the two that bracket ``t`` (held at
-the ends). A tf user then gets ``map -> odom -> base_link`` = the estimate at ``t`` and, between
-estimates, the estimate carried forward by the odometry.
+poses are buffered (:class:`OdomTrack`) and interpolated between the two that bracket ``t``; an
+estimate ahead of the newest odometry waits for the next odometry message (a robot's odometry comes
+at tens of Hz, so a few tens of ms; nav2_amcl waits for tf the same way). A tf user then gets
+``map -> odom -> base_link`` = the estimate at ``t`` and, between estimates, the estimate carried forward by the odometry.
 
 The yaw of the correction is ``yaw_est - yaw_odom``; an estimate whose yaw is unknown (variance
 at least :data:`YAW_UNKNOWN_VAR`, e.g. a fix-only Kalman estimate) keeps the previous correction's
@@ -123,6 +124,8 @@ class MapOdomSpec:
 class _UserCorrection:
     track: OdomTrack
     yaw: float = 0.0            # rotation of the latest correction (kept when an estimate's yaw is unknown)
+    #: the newest estimate whose stamp the odometry has not reached yet: (stamp_ns, frame, pose, yaw var)
+    pending: tuple[int, str, tuple[float, float, float], float] | None = None
 
 
 class MapOdom:
@@ -148,17 +151,29 @@ class MapOdom:
         self._user(user).track.add(od.stamp_ns, (od.x, od.y, od.yaw), od.frame_id)
 
     def corrections(self, user: str, outs: list[tuple[str, Any]]) -> list[tuple[str, Any]]:
-        """The correction for the newest pose output among ``outs`` (none without odometry yet)."""
+        """The correction for the newest estimate among ``outs`` and the one waiting: at once when the
+        odometry has reached its stamp, else when it does (an estimate ahead of the odometry, e.g. a fix
+        applied before the next odometry message, waits for it rather than use a stale odometry pose)."""
         topic = self.spec.estimate.format(user=user)
-        poses = [m for t, m in outs if t == topic]
-        u = self.users.get(user)
-        if not poses or u is None or not u.track.stamps:
+        cands = []
+        for t, m in outs:
+            if t == topic:
+                try:
+                    cands.append(pose_yaw_var(m))
+                except InvalidInputError:
+                    continue                          # the stage's own output: nothing to correct from
+        u = self._user(user) if cands else self.users.get(user)
+        if u is None:
             return []
-        msg = max(poses, key=lambda m: (m.header.stamp.sec, m.header.stamp.nanosec))
-        try:
-            stamp_ns, frame, est, yaw_var = pose_yaw_var(msg)
-        except InvalidInputError:
-            return []                                 # the stage's own output: nothing to correct from
+        if u.pending is not None:
+            cands.append(u.pending)
+            u.pending = None
+        if not cands:
+            return []
+        stamp_ns, frame, est, yaw_var = max(cands, key=lambda c: c[0])
+        if not u.track.stamps or stamp_ns > u.track.stamps[-1]:
+            u.pending = (stamp_ns, frame, est, yaw_var)
+            return []
         odom = u.track.at(stamp_ns)
         assert odom is not None
         yaw = u.yaw if yaw_var >= YAW_UNKNOWN_VAR or not math.isfinite(est[2]) else None
