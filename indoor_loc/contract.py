@@ -64,7 +64,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "RTS-smoothed history of the linear PDR Kalman filter (republished periodically and at the end)"),
     Topic("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
-          "A pose to (re)initialise the particle filter around, as RViz's 2D Pose Estimate sends it"),
+          "A pose to (re)initialise an estimator around (tll_pf, pdr_kf_node, backend_node per user), as RViz's 2D "
+          "Pose Estimate sends it, its x/y covariance honoured; also the ~/set_pose service (nav_msgs/srv/SetMap)"),
     Topic("pf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.LATCHED, "map",
           "Particle-filter pose estimate (transient_local like amcl_pose)"),
     Topic("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT, "map", "Particle cloud"),

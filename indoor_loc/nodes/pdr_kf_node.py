@@ -5,19 +5,21 @@ Besides the stage's topics: ``map -> <user>/odom`` on ``/tf`` when ``publish_tf`
 """
 from __future__ import annotations
 
+from indoor_loc.nodes.lifecycle import node_factory
 from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.set_pose import SetPoseMixin
 from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.nodes.tf_out import TfBroadcastMixin
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage
 
 
-class PdrKfNode(TfBroadcastMixin, StageNode):
+class PdrKfNode(SetPoseMixin, TfBroadcastMixin, StageNode):
     def __init__(self) -> None:
         super().__init__(PdrKfStage)
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(PdrKfStage, args, node_factory=PdrKfNode)
+    return run_stage_node(PdrKfStage, args, node_factory=node_factory(PdrKfNode, args))
 
 
 if __name__ == "__main__":

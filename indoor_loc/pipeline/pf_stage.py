@@ -275,7 +275,7 @@ class PfStage(Stage):
             self.map_box.check("initialpose", ps.xy)
         outs = self._start(ps.stamp_ns)
         cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
-        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov))
+        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov, inflate=False))   # as given
 
     def global_localization(self, stamp_ns: int) -> list[Output]:
         """Spread the particles over the whole graph (the ``~/global_localization`` service)."""
