@@ -56,11 +56,13 @@ def evaluate(bag: Path, sim_dir: Path) -> dict[str, dict[str, tuple[float, float
         mine = np.array(sorted(own.get(user, set())), np.int64)
         shift = int(np.median(stamps[-len(mine):] - mine[-len(stamps):])) if len(mine) else 0
 
-        def err(t: int, pose) -> float:
+        def err(t: int, pose, truth=truth) -> float:
             xy = np.array([np.interp(t, truth.scan_ns, truth.scan_xy[:, k]) for k in (0, 1)])
             return float(np.hypot(*(np.array(pose[:2]) - xy)))
 
-        inside = lambda t: truth.scan_ns[0] <= t <= truth.scan_ns[-1]     # noqa: E731
+        def inside(t: int, truth=truth) -> bool:
+            return bool(truth.scan_ns[0] <= t <= truth.scan_ns[-1])
+
         at_corr = [err(s - shift, compose(c, track.at(s - shift))) for s, c in cs if inside(s - shift)]
         lookups, alone = [], []
         first = cs[0]
