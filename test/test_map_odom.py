@@ -79,3 +79,25 @@ def test_stage_chain_is_the_estimate_and_near_the_truth(which, tmp_path):
     # the odometry frame's place in the map is found (it drifts 3 % in scale and slowly in heading)
     first_good = corrections[len(corrections) // 4][3]
     assert abs(math.remainder(first_good[2] - ODOM_IN_MAP[2], 2 * math.pi)) < 0.6
+
+
+def test_backend_corrections_per_user():
+    """backend_node's per-user correction: backend/<user>/map_odom composes back to the backend/<user>/pose
+    of the same update (the back-end re-optimises, so a later pose at an old stamp may differ)."""
+    from indoor_loc.pipeline.backend_stage import BackendParams, BackendStage
+    w = RobotWalk()
+    stage = BackendStage(params_from_dict(BackendParams, {"wifi_source": "fix"}))
+    track = OdomTrack()
+    for s, p in w.odom:
+        track.add(s, p, "alice/odom")
+    pairs = []
+    for s, topic, msg in w.messages():
+        outs = stage.process(topic, msg, s, "alice")
+        poses = {pose_yaw_var(m)[0]: pose_yaw_var(m)[2] for t, m in outs if t == "backend/alice/pose"}
+        pairs += [(transform_from_msg(m), poses) for t, m in outs if t == "backend/alice/map_odom"]
+    assert len(pairs) > 10 and not stage.diag.rejected, stage.diag.rejected
+    for (stamp, parent, child, c), poses in pairs:
+        assert (parent, child) == ("map", "alice/odom")
+        if stamp in poses:                  # (else a pose that waited for the odometry: made in an earlier call)
+            assert np.allclose(compose(c, track.at(stamp))[:2], poses[stamp][:2], atol=1e-9)
+    assert sum(stamp in poses for (stamp, *_), poses in pairs) > 10
