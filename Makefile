@@ -15,17 +15,25 @@ $(STAMP): requirements.txt constraints.txt setup.py setup.cfg
 	$(PY) -m pip install -q --no-deps -e .
 	touch $(STAMP)
 
-venv: $(STAMP)
+# tf2_msgs (the /tf message type) has no wheel: generated and compiled into the venv from its message
+# definition with the ROS message generators the wheels ship (needs gcc/g++ and the Python headers).
+# Without a compiler this step says why and the rest still works (map -> odom then only on pf/map_odom etc.).
+TF2    := $(VENV)/.tf2_msgs
+$(TF2): $(STAMP) indoor_loc/tools/build_tf2_msgs.py indoor_loc/data/tf2_msgs/msg/TFMessage.msg
+	@if $(PY) -m indoor_loc.tools.build_tf2_msgs; then touch $(TF2); \
+	else echo "make: tf2_msgs not built (see above); continuing without /tf output" >&2; fi
+
+venv: $(STAMP) $(TF2)
 
 # the main job on the shipped sample building: simulated walkers, every node live over DDS (no datasets needed)
-demo: $(STAMP)
+demo: $(STAMP) $(TF2)
 	$(VENV)/bin/indoor-loc demo --out $(OUT)/demo
 
 # the same pipeline on the real PUTMC dataset (needs $(DATA)/putmc), replayed offline
-demo-putmc: $(STAMP)
+demo-putmc: $(STAMP) $(TF2)
 	$(VENV)/bin/indoor-loc demo --dataset putmc --data $(DATA) --out $(OUT)/demo_putmc
 
-test: $(STAMP)
+test: $(STAMP) $(TF2)
 	$(PY) -m pytest -q -n 2 --timeout 300 test
 
 # also run by `make test` (test/test_lint.py)

@@ -31,7 +31,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
-    package_data={PACKAGE: ["data/*"]},
+    package_data={PACKAGE: ["data/*", "data/tf2_msgs/msg/*.msg"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="indoor_loc maintainers",

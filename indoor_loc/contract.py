@@ -64,7 +64,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED, "map",
           "RTS-smoothed history of the linear PDR Kalman filter (republished periodically and at the end)"),
     Topic("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
-          "A pose to (re)initialise the particle filter around, as RViz's 2D Pose Estimate sends it"),
+          "A pose to (re)initialise an estimator around (tll_pf, pdr_kf_node, backend_node per user), as RViz's 2D "
+          "Pose Estimate sends it, its x/y covariance honoured; also the ~/set_pose service (nav_msgs/srv/SetMap)"),
     Topic("pf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.LATCHED, "map",
           "Particle-filter pose estimate (transient_local like amcl_pose)"),
     Topic("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT, "map", "Particle cloud"),
@@ -81,6 +82,14 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, "",
           "Per-node health about once a second: input rates, last stamps, rejected messages by reason"),
     Topic("/clock", "rosgraph_msgs/msg/Clock", Qos.RELIABLE, "", "Bag time from the player (use_sim_time)"),
+    Topic("pf/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED, "map -> <user>/odom",
+          "Particle filter's map -> odom correction at its newest estimate's stamp (T_map_base(t) * "
+          "T_odom_base(t)^-1, the odometry interpolated at t); also on /tf when publish_tf (docs/robots.md)"),
+    Topic("pdr_kf/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED, "map -> <user>/odom",
+          "Linear PDR Kalman filter's map -> odom correction, as pf/map_odom"),
+    Topic("/tf", "tf2_msgs/msg/TFMessage", Qos.RELIABLE, "map -> <user>/odom",
+          "The map -> odom corrections of the nodes with publish_tf (tll_pf by default), stamped "
+          "transform_tolerance s ahead as nav2_amcl does; tf2_msgs is built into the venv by make venv"),
 ]}
 
 #: A robot's own odometry, the estimators' motion input with ``motion_source: odom`` (issue 24).
@@ -101,7 +110,10 @@ USER_TOPICS: dict[str, Topic] = {t.name: t for t in [
           "republished as the graph changes and when the user leaves"),
     Topic("backend/{user}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, "map",
           "Multi-user back-end: the user's newest optimised pose with its marginal covariance"),
+    Topic("backend/{user}/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED, "map -> <user>/odom",
+          "Multi-user back-end: the user's map -> odom correction at its newest pose, as pf/map_odom"),
 ]}
+BACKEND_MAP_ODOM = "backend/{user}/map_odom"
 BACKEND_PATH = "backend/{user}/path"
 BACKEND_POSE = "backend/{user}/pose"
 

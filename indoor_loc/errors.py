@@ -61,3 +61,7 @@ class DatasetError(IndoorLocError):
 
 class ParseError(IndoorLocError, ValueError):
     """Text (command output, JSON) that cannot be parsed into a scan."""
+
+
+class ToolchainError(IndoorLocError):
+    """A build step (tf2_msgs, indoor_loc/tools/build_tf2_msgs.py) lacks its compiler, headers or generators."""

@@ -44,10 +44,12 @@ def _run(stage, odoms, fixes):
     poses, paths = [], []
     for i, od in enumerate(odoms):
         for topic, msg in stage.process("pdr/odom", od, 0):
-            (poses if topic == "pdr_kf/pose" else paths).append(msg)
+            if topic != "pdr_kf/map_odom":
+                (poses if topic == "pdr_kf/pose" else paths).append(msg)
         if i in fixes:
-            for _, msg in stage.process("wifi/fix", fixes[i], 0):
-                poses.append(msg)
+            for topic, msg in stage.process("wifi/fix", fixes[i], 0):
+                if topic == "pdr_kf/pose":
+                    poses.append(msg)
     paths += [m for topic, m in stage.finish() if topic == "pdr_kf/path"]
     return poses, paths
 

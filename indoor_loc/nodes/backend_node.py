@@ -7,7 +7,11 @@ restarted; :class:`~indoor_loc.nodes.stage_node.StageNode` follows ``/clock`` fo
 """
 from __future__ import annotations
 
+from indoor_loc.nodes.lifecycle import node_factory
 from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.set_pose import SetPoseMixin
+from indoor_loc.nodes.stage_node import StageNode
+from indoor_loc.nodes.tf_out import TfBroadcastMixin
 from indoor_loc.pipeline.backend_stage import BackendStage
 
 
@@ -15,8 +19,16 @@ from indoor_loc.pipeline.backend_stage import BackendStage
 PORT_PARAMS = {"wifi_source": ("fix",)}
 
 
+class BackendNode(SetPoseMixin, TfBroadcastMixin, StageNode):
+    """Besides the stage's topics: each user's ``map -> <user>/odom`` on ``/tf`` when ``publish_tf``
+    (default false; ``backend/<user>/map_odom`` always), see :mod:`indoor_loc.nodes.tf_out`."""
+
+    def __init__(self) -> None:
+        super().__init__(BackendStage)
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(BackendStage, args, port_params=PORT_PARAMS)
+    return run_stage_node(BackendStage, args, node_factory=node_factory(BackendNode, args), port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":

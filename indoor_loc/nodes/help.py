@@ -79,6 +79,15 @@ def node_usage(stage_cls: type[Stage], port_params: Mapping[str, Sequence[Any]] 
     lines += subs
     lines.append("publishes:  " + _ports_text(stage.outputs() + stage.user_outputs()) + ", /diagnostics")
     lines += pubs
+    if stage_cls.MAP_ODOM is not None:         # the estimators: docs/robots.md
+        lines += ["", "robot stack (docs/robots.md):",
+                  "  publish_tf (node parameter; default true for tll_pf, else false): also send the map -> <user>/odom "
+                  "corrections on /tf [tf2_msgs/msg/TFMessage]",
+                  "  transform_tolerance (node parameter, default 1.0 s): /tf stamps are this much after the estimate's",
+                  f"  service {'~/<user>/' if stage.MULTI_USER else '~/'}set_pose [nav_msgs/srv/SetMap]: restart at "
+                  "initial_pose (map left empty), as an initialpose message",
+                  f"  {stage_cls.NODE_NAME} --managed --ros-args ...: a lifecycle node (configure, activate, "
+                  "deactivate, cleanup); outputs only while active"]
     return "\n".join(lines)
 
 

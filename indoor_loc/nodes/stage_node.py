@@ -121,12 +121,14 @@ class StageNode(InputsMixin, Node):
         #: monotonic time by which :meth:`shutdown` is over (set by the process on a stop; None: no bound)
         self.stop_deadline: float | None = None
         self.sensor_reliability = self._declare_sensor_reliability()
+        self._declare_extra_params()
         values = self._declare_params(stage_cls.PARAMS)
         params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
         self.stage: Stage = stage_cls(params, namespace=self.get_namespace())
         self.add_on_set_parameters_callback(self._on_set_params)
         self._pubs = {p.topic: self._create_publisher(msg_class(p.type), p.topic, publisher_qos(p.qos))
                       for p in self.stage.outputs()}
+        self._open_extra_outputs()
         if not self.stage.MULTI_USER:
             for p in self.stage.inputs():
                 self._open_input(p, p.topic)
@@ -171,6 +173,12 @@ class StageNode(InputsMixin, Node):
         for m in msgs:
             self.get_logger().error(m)
         return msgs
+
+    def _declare_extra_params(self) -> None:
+        """Node parameters of a mixin (``nodes/tf_out.py``), declared before the stage's own."""
+
+    def _open_extra_outputs(self) -> None:
+        """Publishers of a mixin beside the stage's outputs, once the stage is built."""
 
     # -- QoS -------------------------------------------------------------------------------------
     def _declare_sensor_reliability(self) -> str:

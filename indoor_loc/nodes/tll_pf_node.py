@@ -7,8 +7,11 @@ from __future__ import annotations
 
 from std_srvs.srv import Empty
 
+from indoor_loc.nodes.lifecycle import node_factory
 from indoor_loc.nodes.process import run_stage_node
+from indoor_loc.nodes.set_pose import SetPoseMixin
 from indoor_loc.nodes.stage_node import StageNode
+from indoor_loc.nodes.tf_out import TfBroadcastMixin
 from indoor_loc.pipeline.pf_stage import PfStage
 
 
@@ -16,7 +19,9 @@ from indoor_loc.pipeline.pf_stage import PfStage
 PORT_PARAMS = {"wifi_update": ("scan",)}
 
 
-class TllPfNode(StageNode):
+class TllPfNode(SetPoseMixin, TfBroadcastMixin, StageNode):
+    PUBLISH_TF_DEFAULT = True          # the robot's localiser owns map -> odom, as nav2_amcl (tf_broadcast)
+
     def __init__(self) -> None:
         super().__init__(PfStage)
         self.create_service(Empty, "~/global_localization", self._on_global_localization)
@@ -33,7 +38,7 @@ class TllPfNode(StageNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(PfStage, args, node_factory=TllPfNode, port_params=PORT_PARAMS)
+    return run_stage_node(PfStage, args, node_factory=node_factory(TllPfNode, args), port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":

@@ -279,9 +279,11 @@ class GraphParticleFilter:
                          scale=1.0 + pp.step_scale_sigma * rng.standard_normal(n), yaw_offset=off,
                          log_w=np.full(n, -np.log(n)))
 
-    def sample_gaussian(self, mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """``n`` points from N(mean, cov + extra²I) moved to their closest link points: (link, t in [0, 1])."""
-        cov = np.asarray(cov, float) + self.params.init_sigma_extra_m ** 2 * np.eye(2)
+    def sample_gaussian(self, mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator, *,
+                        inflate: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` points from N(mean, cov + extra²I) (``inflate``; else N(mean, cov): a pose given with its
+        own covariance, ``initialpose``) moved to their closest link points: (link, t in [0, 1])."""
+        cov = np.asarray(cov, float) + (self.params.init_sigma_extra_m ** 2 if inflate else 0.0) * np.eye(2)
         pts = rng.multivariate_normal(np.asarray(mean, float), cov, size=n, method="cholesky")
         link, pos = self.ix.project(pts)
         length = self.ix.length[link]
@@ -299,9 +301,10 @@ class GraphParticleFilter:
         n = pp.n_particles * np.sqrt(max(np.linalg.det(c), 0.0)) / pp.count_ref_sigma_m ** 2
         return int(np.clip(np.ceil(n - 1e-9), pp.n_min, pp.n_max))
 
-    def init_gaussian(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> None:
-        """Particles from a Gaussian position prior (e.g. the first WiFi fix), projected on links."""
-        link, t = self.sample_gaussian(mean, cov, self.count_for(cov), rng)
+    def init_gaussian(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator, *, inflate: bool = True) -> None:
+        """Particles from a Gaussian position prior (e.g. the first WiFi fix, inflated by ``init_sigma_extra_m``;
+        an ``initialpose`` as given: ``inflate`` False), projected on links."""
+        link, t = self.sample_gaussian(mean, cov, self.count_for(cov), rng, inflate=inflate)
         self.p = self._new(link, t, rng)
 
     def reinit_gaussian(self, mean: np.ndarray, cov: np.ndarray, keep_fraction: float, rng: np.random.Generator) -> None:

@@ -153,12 +153,13 @@ class GraphTracker:
         self._kf_yaw = None
         self.monitor.disagree_since_ns = None
 
-    def reset_at(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray) -> Estimate:
-        """(Re)initialise around a position (``initialpose``); the monitoring KF restarts at the next fix."""
+    def reset_at(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, *, inflate: bool = True) -> Estimate:
+        """(Re)initialise around a position (the first fix; ``initialpose`` with ``inflate`` False: its
+        covariance as given); the monitoring KF restarts at the next fix."""
         self._close_segment()
         self.kf = None
         self._kf_yaw = None
-        self.pf.init_gaussian(xy, cov, self.rng)
+        self.pf.init_gaussian(xy, cov, self.rng, inflate=inflate)
         self._last_stamp = stamp_ns
         return self._record(stamp_ns, 0.0, np.nan, 0.0)
 

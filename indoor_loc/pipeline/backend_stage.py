@@ -65,14 +65,16 @@ import numpy as np
 from indoor_loc.params import field as pfield, group, require
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
-from indoor_loc.contract import BACKEND_PATH, BACKEND_POSE, Qos
+from indoor_loc.contract import BACKEND_MAP_ODOM, BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.markers import points_markers
+from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_to_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
+from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import ORDERS, Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.wifi.radiomap import load_radiomap, save_radiomap
@@ -214,7 +216,9 @@ class BackendStage(Stage):
     PARAMS = BackendParams
     MULTI_USER = True
     #: the reorder buffer puts each user's events in stamp order (too_late beyond it)
-    STAMP_ORDER = {"pdr/odom": Order.ANY, "odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY}
+    STAMP_ORDER = {"pdr/odom": Order.ANY, "odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY,
+                   "initialpose": Order.EXEMPT}
+    MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate=BACKEND_POSE, out=BACKEND_MAP_ODOM)
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
         super().__init__(params, namespace=namespace)
@@ -241,19 +245,22 @@ class BackendStage(Stage):
         self.on("wifi/scan", self._on_scan)
         if params.wifi_source == "fix":
             self.on("wifi/fix", self._on_fix)
+        self.on("initialpose", self._on_initialpose)
 
     def inputs(self) -> list[Port]:
         return [motion_port(self.params.motion_source),
                 Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)] + (
                 [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
-                if self.params.wifi_source == "fix" else [])
+                if self.params.wifi_source == "fix" else []) + [
+                Port("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, stream=False)]
 
     def outputs(self) -> list[Port]:
         return [Port("backend/wifi_map", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
 
     def user_outputs(self) -> list[Port]:
         return [Port(BACKEND_POSE, "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
-                Port(BACKEND_PATH, "nav_msgs/msg/Path", Qos.LATCHED)]
+                Port(BACKEND_PATH, "nav_msgs/msg/Path", Qos.LATCHED),
+                Port(BACKEND_MAP_ODOM, "geometry_msgs/msg/TransformStamped", Qos.LATCHED)]
 
     def offline_order(self) -> str:
         return self.params.offline_order
@@ -365,6 +372,22 @@ class BackendStage(Stage):
         # this scan's fix, or a later one: every scan up to its stamp is settled (fixes come in stamp order)
         del b.pending_scans[:bisect.bisect_right(b.pending_scans, b.fix_known_ns)]
         return self._release(user)
+
+    def _on_initialpose(self, msg, recv_ns: int, user: str) -> list[Output]:
+        """The user is somewhere else (a kidnap, a wrong start): its track so far ends (as at a jump back
+        in time, its path published) and a new one starts at the pose, a position factor with the pose's
+        covariance (weighted as a fix, ``wifi_info``). Stamp 0 (a command) is taken as the user's newest."""
+        fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
+        if self.map_box is not None:
+            self.map_box.check("initialpose", fix.xy)
+        old = self.inputs_by_user.get(user)
+        newest = max((s for s in (old.newest_odom_ns, old.newest_scan_ns, old.taken_ns) if s is not None),
+                     default=0) if old is not None else 0
+        stamp = fix.stamp_ns or newest
+        outs = self.reset_user(user)
+        b = self._take_wifi(user, stamp, 1, dataclasses.replace(fix, stamp_ns=stamp))
+        b.fix_known_ns = stamp
+        return outs + self._release(user, everything=True)
 
     def _take_wifi(self, user: str, stamp_ns: int, order: int, event) -> _UserInput:
         """A scan's or fix's way in: queued, and the scans' wait mark moved to its stamp."""

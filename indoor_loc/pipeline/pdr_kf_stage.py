@@ -28,9 +28,11 @@ from indoor_loc.measurements import Fix
 from indoor_loc.errors import ConfigError
 from indoor_loc.fusion.linear_pdr import (KfTrack, LinearPdrKf, LinearPdrParams, filter_batch, fixes_to_arrays,
                                           rts_smooth)
+from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import PdrOdomReader
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
+from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
@@ -107,7 +109,9 @@ class PdrKfStage(Stage):
     """Linear PDR Kalman filter + RTS smoother (Raitoharju et al. 2015): pdr/odom + wifi/fix -> pdr_kf/pose, pdr_kf/path."""
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
-    STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING}
+    STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING,
+                   "initialpose": Order.EXEMPT}
+    MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate="pdr_kf/pose", out="pdr_kf/map_odom")
 
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
         super().__init__(params, namespace=namespace)
@@ -115,10 +119,12 @@ class PdrKfStage(Stage):
         self.smoother_runs = 0
         self.restarts = 0
         self.late_fixes = 0                                # fixes that arrived after later hops were applied
+        self.initial_poses = 0                             # restarts at an initialpose / set_pose
         self._fresh_state()
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
         self.on("odom", self._on_robot_odom)
+        self.on("initialpose", self._on_initialpose)
 
     def _fresh_state(self) -> None:
         """The filter, smoother and queues as before the first message (start-up, a jump back in time)."""
@@ -149,11 +155,13 @@ class PdrKfStage(Stage):
 
     def inputs(self) -> list[Port]:
         return [motion_port(self.params.motion_source),
-                Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
+                Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
+                Port("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, stream=False)]
 
     def outputs(self) -> list[Port]:
         return [Port("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
-                Port("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED)]
+                Port("pdr_kf/path", "nav_msgs/msg/Path", Qos.LATCHED),
+                Port("pdr_kf/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
     def _on_robot_odom(self, msg, recv_ns: int) -> list[Output]:
@@ -220,6 +228,17 @@ class PdrKfStage(Stage):
             self.late_fixes += 1          # applied now, out of stamp order (see odom_hold_s)
         horizon = self._pending[-1][0] - int(self.params.max_fix_delay_s * 1e9)
         return self._apply_pending(lambda s: s <= horizon or (last_odom is not None and s < last_odom))
+
+    def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:
+        """Restart the filter at a pose with its covariance (as at a first fix; the segment before is
+        final). Stamp 0 (a command) is taken as the newest hop's; fixes older than it are dropped."""
+        fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
+        stamp = fix.stamp_ns or (self._last_odom_ns or 0)
+        outs = self._release(lambda s: s <= stamp)              # hops before it belong to the old segment
+        self._pending = [p for p in self._pending if p[0] > stamp]
+        self._start(replace(fix, stamp_ns=stamp))
+        self.initial_poses += 1
+        return outs + [("pdr_kf/pose", self._pose_msg(stamp))]
 
     def _apply_pending(self, due) -> list[Output]:
         outs: list[Output] = []

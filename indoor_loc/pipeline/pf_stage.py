@@ -43,6 +43,7 @@ from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
 from indoor_loc.wifi.radiomap import load_radiomap
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
+from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
@@ -143,6 +144,7 @@ class PfStage(Stage):
     PARAMS = PfStageParams
     STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING,
                    "wifi/scan": Order.NONDECREASING, "initialpose": Order.EXEMPT}
+    MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate="pf/pose", out="pf/map_odom")
 
     def __init__(self, params: PfStageParams, *, namespace: str = "", shared: PfStage | None = None) -> None:
         """``shared``: another instance whose graph, transition table and radio-map field (read-only)
@@ -234,7 +236,8 @@ class PfStage(Stage):
         return [Port("pf/pose", POSE_T, Qos.LATCHED),
                 Port("pf/particles", "geometry_msgs/msg/PoseArray", Qos.BEST_EFFORT),
                 Port("pf/path", "nav_msgs/msg/Path", Qos.LATCHED),
-                Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED)]
+                Port("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED),
+                Port("pf/map_odom", "geometry_msgs/msg/TransformStamped", Qos.LATCHED)]
 
     # ------------------------------------------------------------------------------------------
     def _start(self, stamp_ns: int) -> list[Output]:
@@ -317,7 +320,7 @@ class PfStage(Stage):
             self.map_box.check("initialpose", ps.xy)
         outs = self._start(ps.stamp_ns)
         cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
-        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov))
+        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov, inflate=False))   # as given
 
     def global_localization(self, stamp_ns: int) -> list[Output]:
         """Spread the particles over the whole graph (the ``~/global_localization`` service)."""

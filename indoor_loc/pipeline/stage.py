@@ -37,6 +37,7 @@ import numpy as np
 
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidInputError
+from indoor_loc.pipeline.map_odom import MapOdom, MapOdomSpec
 from indoor_loc.pipeline.time_policy import Held, Order, TimeParams, TimePolicy, Verdict
 from msg_adapters.time import header_ns
 
@@ -156,6 +157,9 @@ class Stage:
     #: Set by a live driver that publishes ``bytes`` as they are (the multi-user node): a stage may
     #: then return an output already serialised (CDR) where building the message costs much more.
     raw_outputs: bool = False
+    #: An estimator's ``map -> <user>/odom`` correction (pipeline/map_odom.py): motion topics, pose output,
+    #: correction topic; None: the stage publishes none.
+    MAP_ODOM: ClassVar[MapOdomSpec | None] = None
 
     def __init__(self, params: Any, *, namespace: str = "") -> None:
         self.params = params
@@ -167,6 +171,7 @@ class Stage:
         self.notices: list[str] = []
         #: the stamps every input message is judged by (the params' ``time`` group; pipeline/time_policy.py)
         self.time = TimePolicy(getattr(params, "time", None) or TimeParams())
+        self.map_odom = MapOdom(self.MAP_ODOM) if self.MAP_ODOM is not None else None
 
     # -- declared by subclasses ---------------------------------------------------------------
     def inputs(self) -> list[Port]:
@@ -368,9 +373,23 @@ class Stage:
             return []
         if stamp is not None:
             self.time.accepted(user, topic, stamp)
+        if self.map_odom is not None:
+            outs = self._with_map_odom(user, outs, item if not batch and topic in self.map_odom.spec.motion else None)
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1
         return outs
+
+    def _with_map_odom(self, user: str, outs: list[Output], motion: Any = None) -> list[Output]:
+        """``outs`` and the ``map -> odom`` correction of their newest pose (pipeline/map_odom.py);
+        ``motion``: the accepted odometry message the correction is to use."""
+        assert self.map_odom is not None
+        try:
+            if motion is not None:
+                self.map_odom.motion(user, motion)
+            return outs + self.map_odom.corrections(user, outs)
+        except Exception as err:  # noqa: BLE001 - the estimate goes out even if its correction cannot
+            self._reject("internal_error", f"map_odom: {type(err).__name__}: {err}")
+            return outs
 
     def _reject_held(self, user: str, held: list[Held]) -> None:
         for h in held:
@@ -404,6 +423,8 @@ class Stage:
         reset and the messages held for the new pass."""
         outs = self._guarded("reset_user", lambda: self.reset_user(user))
         self._reject_leap(self.time.refuted_leap(user))      # stamped ahead of the old pass: not the new one's
+        if self.map_odom is not None:
+            self.map_odom.reset(user)
         held = self.time.restart(user)
         self.diag.time_jumps += 1
         return outs, held
@@ -481,6 +502,8 @@ class Stage:
         except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
             self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
+        if self.map_odom is not None and not self.MULTI_USER:
+            outs = self._with_map_odom("", outs)
         if count:
             for out_topic, _ in outs:
                 self.diag.published[out_topic] += 1

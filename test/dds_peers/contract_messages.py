@@ -13,6 +13,7 @@ from msg_adapters.markers import graph_markers, marker_points, points_markers
 from msg_adapters.odom import odom_from_msg, odom_to_msg
 from msg_adapters.path import path_from_msg, path_to_msg
 from msg_adapters.pose import fix_to_msg, pose_array_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
+from msg_adapters.tf import tf_message, transform_from_msg, transform_to_msg
 from msg_adapters.time import stamp_from_ns, stamp_to_ns
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.measurements import Fix
@@ -48,10 +49,11 @@ CANONICAL_BY_TYPE = {
     "nav_msgs/msg/Odometry": "pdr/odom", "geometry_msgs/msg/PoseWithCovarianceStamped": "pf/pose",
     "geometry_msgs/msg/PoseArray": "pf/particles", "nav_msgs/msg/Path": "ground_truth",
     "visualization_msgs/msg/MarkerArray": "backend/wifi_map", "diagnostic_msgs/msg/DiagnosticArray": "/diagnostics",
-    "rosgraph_msgs/msg/Clock": "/clock",
+    "rosgraph_msgs/msg/Clock": "/clock", "geometry_msgs/msg/TransformStamped": "pf/map_odom",
 }
 _OWN = {"imu/data_raw", "imu/mag", "imu/data", "wifi/scan", "pdr/odom", "wifi/fix", "pf/pose", "pf/particles",
-        "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json"}
+        "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json",
+        "pf/map_odom", "/tf"}
 SCAN_JSON = '{"bssid": "aa:bb:cc:dd:ee:01", "rssi": -61, "ssid": "café"}'
 
 
@@ -99,6 +101,10 @@ def build(topic: str):
     if topic == "wifi/scan_json":
         from std_msgs.msg import String
         return String(data=SCAN_JSON)
+    if topic == "pf/map_odom":
+        return transform_to_msg(T0 + 13, "map", "alice/odom", 3.25, -7.5, 0.6)
+    if topic == "/tf":
+        return tf_message([transform_to_msg(T0 + 13, "map", "alice/odom", 3.25, -7.5, 0.6)], 500_000_000)
     raise KeyError(f"no test message for contract topic {topic!r}")
 
 
@@ -162,6 +168,12 @@ def check(topic: str, msg) -> None:
         assert stamp_to_ns(msg.clock) == T0 + 12
     elif topic == "wifi/scan_json":
         assert msg.data == SCAN_JSON
+    elif topic in ("pf/map_odom", "/tf"):
+        t = msg if topic == "pf/map_odom" else msg.transforms[0]
+        stamp, parent, child, (x, y, yaw) = transform_from_msg(t)
+        assert (stamp, parent, child, x, y) == (T0 + 13 + (500_000_000 if topic == "/tf" else 0), "map", "alice/odom",
+                                                3.25, -7.5)
+        assert abs(yaw - 0.6) < 1e-12
     else:
         raise KeyError(topic)
 
