@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from indoor_loc.errors import ConfigError
+from indoor_loc.sim.baro import BaroData, BaroSimParams, simulate_pressure
 from indoor_loc.sim.building import Building
 from indoor_loc.sim.rf import RfParams, RssField, ScannerParams, read_rss
 from indoor_loc.sim.walker import ImuData, ImuParams, Motion, Plan, WalkerParams, make_plan, sample_motion, \
@@ -34,6 +35,8 @@ class SimConfig:
     survey_spacing_m: float = 2.0     # survey points every this many metres along the links, m
     survey_scans: int = 2             # scans per survey point
     start_floor: int | None = 0       # walkers start on this floor (None: anywhere)
+    change_floors: bool = False       # destinations on every floor (True) or on the start floor only
+    baro: BaroSimParams | None = None  # a barometer in every phone (None: none)
 
     def validate(self) -> None:
         if not 1 <= self.walkers <= len(NAMES):
@@ -55,6 +58,7 @@ class SimWalker:
     imu: ImuData
     scans: list[WifiScan]           # stamps relative to the run start
     scan_xy: np.ndarray             # (S, 2) true device position at each scan stamp, m
+    baro: BaroData | None = None    # barometer samples (SimConfig.baro), stamps relative to the run start
 
     @property
     def name(self) -> str:
@@ -148,7 +152,14 @@ def simulate(building: Building, config: SimConfig | None = None) -> SimRun:
                           cadence_hz=float(np.clip(rng.normal(*cfg.cadence_hz), 1.45, 2.15)),
                           device_pitch_deg=float(rng.normal(0.0, 5.0)))
         floors = None if cfg.start_floor is None else (cfg.start_floor,)
-        plan = make_plan(building, wp, cfg.duration_s, rng, floors=floors)
+        if cfg.change_floors:
+            kinds = np.array(building.node_kind)
+            cand = np.flatnonzero(np.isin(kinds, ("room", "junction", "corridor")))
+            if floors is not None:
+                cand = cand[np.isin(building.node_floor[cand], floors)]
+            plan = make_plan(building, wp, cfg.duration_s, rng, start_node=int(rng.choice(cand)))
+        else:
+            plan = make_plan(building, wp, cfg.duration_s, rng, floors=floors)
         motion = sample_motion(plan, wp, cfg.imu.rate_hz, cfg.duration_s, building.floor_z)
         imu = synthesize_imu(motion, building, cfg.imu, rng)
         t_s = motion.t_ns * 1e-9
@@ -171,6 +182,7 @@ def simulate(building: Building, config: SimConfig | None = None) -> SimRun:
                 scans.append(s)
                 scan_xy.append(xyz_at(t_next)[:2])
             t_next += sc.period_s + float(rng.uniform(-sc.period_jitter_s, sc.period_jitter_s))
-        walkers.append(SimWalker(wp, plan, motion, imu, scans, np.array(scan_xy).reshape(-1, 2)))
+        baro = None if cfg.baro is None else simulate_pressure(t_s, motion.xyz[:, 2], cfg.duration_s, cfg.baro, rng)
+        walkers.append(SimWalker(wp, plan, motion, imu, scans, np.array(scan_xy).reshape(-1, 2), baro))
     return SimRun(cfg, building, fld, walkers, np.array(survey_xy).reshape(-1, 2), np.array(survey_floor),
                   survey_scans)
