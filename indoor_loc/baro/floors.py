@@ -11,8 +11,9 @@ States: the floors, by height ``z_f`` (m). Evidence:
   transition ``P(j → k) ∝ exp(−(dh − (z_k − z_j))² / 2σ²)``, mixed with ``event_miss`` of staying
   — the discrete form of the Δz barometer factor between consecutive poses of seed 003's smoother;
 - between them, time: the floor changes by an adjacent storey at ``change_rate_per_s`` (no
-  barometer), or at ``baro_quiet_rate_per_s`` while a barometer is reporting and says nothing (it
-  sees every transit, so a change it did not report is nearly impossible).
+  barometer; a continuous-time chain, ``T = expm(Q Δt)``), or at ``baro_quiet_rate_per_s`` while a
+  barometer is reporting and says nothing (it sees every transit, so a change it did not report is
+  nearly impossible).
 
 The **reported floor** changes only on evidence: when another floor's probability exceeds
 ``switch_prob`` (three consistent fixes from a confident WiFi floor detector, or one barometer
@@ -28,6 +29,7 @@ import bisect
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import expm
 
 from indoor_loc import params as P
 from indoor_loc.baro.detector import FloorChange
@@ -117,10 +119,10 @@ class FloorFilter:
         f = self.n_floors
         dt = 0.0 if self.last_ns is None else max(stamp_ns - self.last_ns, 0) * 1e-9
         rate = self.params.baro_quiet_rate_per_s if self.baro_live(stamp_ns) else self.params.change_rate_per_s
-        q = min(rate * dt, 0.45)
-        T = q * (np.eye(f, k=1) + np.eye(f, k=-1))         # to each adjacent floor
-        T[np.diag_indices(f)] = 1.0 - T.sum(axis=1)
-        return T
+        Q = rate * (np.eye(f, k=1) + np.eye(f, k=-1))      # generator: to each adjacent floor at ``rate``
+        Q[np.diag_indices(f)] = -Q.sum(axis=1)
+        T = expm(Q * dt)                                    # over a long gap, two storeys are possible too
+        return np.clip(T, 0.0, None) / np.clip(T, 0.0, None).sum(axis=1, keepdims=True)
 
     def _step(self, stamp_ns: int, T: np.ndarray, lik: np.ndarray | None) -> None:
         T = self._diffusion(stamp_ns) @ T
