@@ -21,7 +21,9 @@ change). :meth:`FloorFilter.smoothed` runs the forward-backward recursion over t
 paths of ``pdr_kf`` and ``backend_node``).
 
 Floors are learnt from the evidence when not given: a fix at a height no floor has (farther than
-``new_floor_m``) adds a floor. Heights are metres in the map frame.
+``new_floor_m``) adds a floor; so does a barometer floor change leading from the reported floor to a
+height no floor has (at the reported floor's height + ``dh``, replaced by the first fix's height
+near it). Heights are metres in the map frame.
 """
 from __future__ import annotations
 
@@ -72,6 +74,7 @@ class FloorFilter:
         self.params = params or FloorFilterParams()
         self.params.validate()
         self.floor_z = np.sort(np.asarray(floor_z, float).reshape(-1))
+        self.learnt = np.zeros(len(self.floor_z), bool)      # floors placed by the barometer, not a fix or the map
         self.p = np.full(len(self.floor_z), 1.0 / max(len(self.floor_z), 1))
         self.floor: int | None = None
         self.last_ns: int | None = None
@@ -99,6 +102,7 @@ class FloorFilter:
         """A new floor at height ``z`` (m), with a small prior; returns its index."""
         k = int(np.searchsorted(self.floor_z, z))
         self.floor_z = np.insert(self.floor_z, k, float(z))
+        self.learnt = np.insert(self.learnt, k, False)
         prior = 1e-3 if len(self.p) else 1.0
         self.p = np.insert(self.p * (1.0 - prior if len(self.p) else 1.0), k, prior)
         self.p /= self.p.sum()
@@ -155,6 +159,8 @@ class FloorFilter:
         k = self.nearest(z)
         if k is None:
             k = self.add_floor(z)
+        elif self.learnt[k]:                      # a floor the barometer placed: the map's height now
+            self.floor_z[k], self.learnt[k] = float(z), False
         f = self.n_floors
         if f == 1:
             self._step(stamp_ns, np.eye(1), None)
@@ -188,6 +194,10 @@ class FloorFilter:
     def baro_event(self, ev: FloorChange) -> None:
         """A barometer floor change, applied at its detection stamp."""
         self.baro_ns = ev.detect_ns
+        if self.floor is not None and self.nearest(self.floor_z[self.floor] + ev.dh_m) is None \
+                and abs(ev.dh_m) > 2 * self.params.new_floor_m:
+            k = self.add_floor(float(self.floor_z[self.floor] + ev.dh_m))
+            self.learnt[k] = True
         if self.n_floors < 2:
             return
         self._step(ev.detect_ns, self.event_transition(ev.dh_m), None)

@@ -16,6 +16,7 @@ BENCHES = {
     "throughput": "indoor_loc.bench.throughput",
     "live": "indoor_loc.bench.live",
     "chaos": "indoor_loc.bench.chaos",
+    "floors": "indoor_loc.bench.floors",
 }
 
 

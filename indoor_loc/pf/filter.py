@@ -494,13 +494,13 @@ class GraphParticleFilter:
 
     # -- measurement ----------------------------------------------------------------------------
     def update_position(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator, *,
-                        floor: tuple[int, float] | None = None) -> bool:
+                        floor: tuple[int, float] | None = None, inject_floor: int | None = None) -> bool:
         """WiFi position fix ``N(r | mean, cov + extra²I)`` with an outlier mixture (eq. 13).
         When every particle is far from the fix (squared Mahalanobis distance above
         ``reinit_mahalanobis2``) the filter has diverged: a ``reinit_fraction`` of the particles is
         redrawn around the fix. ``floor``: the fix's floor and the probability it is wrong
-        (:meth:`FloorGeometry.fix_floor`): particles are redrawn on that floor and weighed by it.
-        Returns True if re-initialised."""
+        (:meth:`FloorGeometry.fix_floor`): particles are weighed by it and redrawn on it (on
+        ``inject_floor`` when given, e.g. the floor a barometer vouches for). Returns True if re-initialised."""
         p, pp = self.p, self.params
         assert p is not None
         self.redrawn_log_q = None
@@ -537,6 +537,7 @@ class GraphParticleFilter:
                 if self.floors.n_floors > 1:
                     current = self.estimate_floor()[0]
                     on = current if floor is None else floor[0]
+                    on = on if inject_floor is None else inject_floor
                     if on != current:
                         mass *= pp.floor_jump_mass
                 idx = self.inject(*self.sample_gaussian(mean, cov, k, rng, floor=on), rng, mass=mass)

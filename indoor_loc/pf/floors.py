@@ -135,6 +135,12 @@ class PfFloorParams:
                                         "(plan distance, m) that are not on the new floor move to its stop there")
     reset_weight: float = P.field(1e-3, "when less weight than this is on the floors the barometer expects, the "
                                         "others are projected onto those floors")
+    baro_timeout_s: float = P.field(10.0, "the barometer counts as reporting while samples arrive within this (s): "
+                                          "then the particles redrawn around a fix go on the filter's floor, not "
+                                          "the fix's (floor changes are the barometer's)")
+    floor_reinit_fixes: int = P.field(5, "this many consecutive confident fixes (probability of a wrong floor < "
+                                         "0.25) on another floor than the filter's re-initialise it on theirs "
+                                         "(the start was on the wrong floor, or a change was missed)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -142,6 +148,8 @@ class PfFloorParams:
             P.require(0 < getattr(self, name) < 1, n, name, "in (0, 1)", getattr(self, name))
         P.require(self.baro_check_s >= 0, n, "baro_check_s", ">= 0", self.baro_check_s)
         P.require(self.shaft_reach_m >= 0, n, "shaft_reach_m", ">= 0", self.shaft_reach_m)
+        P.require(self.baro_timeout_s > 0, n, "baro_timeout_s", "> 0", self.baro_timeout_s)
+        P.require(self.floor_reinit_fixes >= 1, n, "floor_reinit_fixes", ">= 1", self.floor_reinit_fixes)
 
 
 def baro_floor_change(pf: "GraphParticleFilter", dh_m: float, params: PfFloorParams) -> int:

@@ -123,6 +123,9 @@ class GraphTracker:
         self._baro_check_ns: int | None = None
         self.baro_events: list[FloorChange] = []
         self.baro_moved = 0
+        self._baro_ns: int | None = None
+        self._floor_disagree = 0
+        self.floor_reinits = 0
         self.monitor_params = monitor or MonitorParams()
         self.monitor_params.validate()
         self.monitor = MonitorState()
@@ -236,7 +239,19 @@ class GraphTracker:
         if use_speed_model:
             dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
             self.elapse(stamp_ns)
-        if self.pf.update_position(xy, cov, self.rng, floor=floor):
+        inject_floor = None
+        if floor is not None:
+            current = self.pf.estimate_floor()[0]
+            baro_live = self._baro_ns is not None and stamp_ns - self._baro_ns <= int(self.floor_params.baro_timeout_s * 1e9)
+            inject_floor = current if baro_live else None
+            self._floor_disagree = self._floor_disagree + 1 if floor[0] != current and floor[1] < 0.25 else 0
+            if self._floor_disagree >= self.floor_params.floor_reinit_fixes:
+                self._floor_disagree = 0
+                self.floor_reinits += 1
+                self._close_segment()
+                self.pf.reinit_gaussian(xy, cov, self.monitor_params.keep_fraction, self.rng, floor=floor[0])
+                inject_floor = floor[0]
+        if self.pf.update_position(xy, cov, self.rng, floor=floor, inject_floor=inject_floor):
             self._close_segment()                   # a re-initialisation starts a new smoother segment
         self._kf_fix(stamp_ns, xy, cov, use_speed_model)
         return self._after_update(stamp_ns, dt)
@@ -284,6 +299,7 @@ class GraphTracker:
         while it holds still the particles off those floors are weighed down (at most once a
         ``baro_check_s``). Returns the floor changes it reported."""
         events = self.baro_det.update(stamp_ns, pressure_pa)
+        self._baro_ns = stamp_ns
         self.baro_events += events
         if not self.pf.initialised or self.pf.floors.n_floors < 2:
             return events

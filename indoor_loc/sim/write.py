@@ -168,8 +168,10 @@ def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
     """The params.yaml of a simulated run: every node, ``/**/node_name`` keys (any namespace)."""
     if multi_floor(run):
         # floors: the powed method detects the floor of every fix (the map's scans carry their floor's height)
-        return {**node_params_flat(run, radiomap_dir, graph_file),
-                "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "powed"}}}
+        flat = node_params_flat(run, radiomap_dir, graph_file)
+        backend = {**flat["/**/backend_node"]["ros__parameters"], "wifi_source": "fix"}   # the fixes carry the floors
+        return {**flat, "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "powed"}},
+                "/**/backend_node": {"ros__parameters": backend}}
     return node_params_flat(run, radiomap_dir, graph_file)
 
 
