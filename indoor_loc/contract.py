@@ -90,6 +90,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("/tf", "tf2_msgs/msg/TFMessage", Qos.RELIABLE, "map -> <user>/odom",
           "The map -> odom corrections of the nodes with publish_tf (tll_pf by default), stamped "
           "transform_tolerance s ahead as nav2_amcl does; tf2_msgs is built into the venv by make venv"),
+    Topic("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR, "<user>/imu_link",
+          "Barometer (REP 145): fluid_pressure in Pa, variance Pa^2 (0 = unknown)"),
 ]}
 
 #: A robot's own odometry, the estimators' motion input with ``motion_source: odom`` (issue 24).
@@ -190,6 +192,11 @@ BOUNDS: dict[str, Bound] = {b.name: b for b in [
           "unit mistake"),
     Bound("age", 0.0, 3.6e6, "ms", "wifi/scan, wifi/scan_raw: age_ms",
           "a cached reading older than an hour is not of this scan"),
+    Bound("pressure", 3.0e4, 1.2e5, "Pa", "baro/pressure: fluid_pressure",
+          "300 hPa is above Everest's summit (~330 hPa), 1200 hPa beyond the deepest mine's air (~1080 hPa at "
+          "4 km down); a value in hPa or kPa is a unit mistake"),
+    Bound("pressure_variance", 0.0, 1e8, "Pa^2", "baro/pressure: variance",
+          "a standard deviation of 100 hPa says nothing; a variance cannot be negative", "bad_covariance"),
     Bound("scan_aps", 1.0, 5000.0, "APs", "wifi/scan, wifi/scan_raw: access points in one scan",
           "a receiver hears at most a few hundred BSSIDs even in a dense mall; 100 000 would cost the "
           "node seconds per scan", "too_many_aps"),

@@ -11,9 +11,9 @@ from msg_adapters.time import require_finite, stamp_from_ns, stamp_to_ns
 
 
 def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | None = None,
-                z: float = 0.0) -> Path:
+                z=0.0) -> Path:
     """Path of N poses: stamps_ns (N,) int ns, xy (N, 2) m, yaw (N,) rad or None (identity);
-    ``z`` (m) for every pose (a floor's height on multi-storey maps).
+    ``z`` (m) for every pose, or one per pose (N,) (a floor's height on multi-storey maps).
 
     The Path header stamp is ``stamp_ns``, or the last pose stamp (0 for an empty path).
     """
@@ -33,6 +33,10 @@ def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | 
         if yaws.shape != (n,):
             raise InvalidMessageError("shape", f"yaw: expected shape ({n},), got {yaws.shape}")
         require_finite("yaw", yaws)
+    zs = np.broadcast_to(np.asarray(z, dtype=np.float64), (n,)) if np.ndim(z) == 0 else np.asarray(z, dtype=np.float64)
+    if zs.shape != (n,):
+        raise InvalidMessageError("shape", f"z: expected a float or shape ({n},), got {zs.shape}")
+    require_finite("z", zs)
     msg = Path()
     last = int(stamps[-1]) if n else 0
     msg.header.stamp = stamp_from_ns(last if stamp_ns is None else int(stamp_ns))
@@ -44,7 +48,7 @@ def path_to_msg(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | 
         ps.header.frame_id = frame_id
         ps.pose.position.x = float(pts[i, 0])
         ps.pose.position.y = float(pts[i, 1])
-        ps.pose.position.z = float(z)
+        ps.pose.position.z = float(zs[i])
         if yaws is not None:
             ps.pose.orientation = yaw_to_quat(float(yaws[i]))
         poses.append(ps)

@@ -400,18 +400,22 @@ def test_a_scan_without_a_fix_is_settled_by_the_next_fix_or_given_up_after_fix_w
     assert st.extra_diagnostics()["fix_wait.scans_given_up"] == str(n_lost)     # the end settles the rest
 
 
-def test_each_pose_takes_the_floor_of_its_nearest_fix():
-    """A user going up a storey half-way: every pose of the path (and each live pose) is at the floor
-    height of the fix nearest to it in time, not the newest fix's."""
+def test_each_pose_takes_the_users_floor_changed_on_consistent_fixes():
+    """A user going up a storey half-way: every pose of the path is at the smoothed floor height (the
+    floor of the fixes around it: the change lies between the last fix below and the first above);
+    a live pose takes the floor once consistent fixes made the change, not the newest fix's."""
     walk, stream = _fix_stream(43, z_of=lambda stamp: 0.0 if stamp < 18 * SEC else 5.0)
     st, outs, _ = _run(stream)
     stamps, _, _, z = _final_path(outs)
-    fixes = np.array([(s, 0.0 if s < 18 * SEC else 5.0) for s, t, _ in stream if t == "wifi/fix"])
-    nearest = fixes[np.argmin(np.abs(stamps[:, None] - fixes[None, :, 0]), axis=1), 1]
-    assert set(z) == {0.0, 5.0} and np.array_equal(z, nearest)
+    fix_t = np.array([s for s, t, _ in stream if t == "wifi/fix"])
+    last_below, first_above = fix_t[fix_t < 18 * SEC].max(), fix_t[fix_t >= 18 * SEC].min()
+    assert set(z) == {0.0, 5.0}
+    assert np.all(z[stamps < last_below] == 0.0) and np.all(z[stamps >= first_above] == 5.0)
     live = [(m.header.stamp.sec * SEC + m.header.stamp.nanosec, m.pose.pose.position.z)
             for t, m in outs if t == "backend/bob/pose"]
-    assert all(z == (0.0 if t < 17 * SEC else 5.0) for t, z in live if not 17 * SEC <= t <= 19 * SEC)
+    third_above = fix_t[fix_t >= 18 * SEC][2]
+    assert all(z == 0.0 for t, z in live if t < first_above)
+    assert all(z == 5.0 for t, z in live if t > third_above + 2 * SEC)
     assert {z for _, z in live} == {0.0, 5.0}
 
 
@@ -446,23 +450,22 @@ def test_with_fixes_the_survey_is_only_drawn_and_read_cheaply(tmp_path, monkeypa
             BackendStage(BackendParams(radiomap=str(d), **FIX_KW))
 
 
-def test_floor_runs_nearest_fix_and_forgetting_keeps_what_later_poses_need():
-    """The per-user floor record: z of the nearest fix (a tie goes to the earlier floor), and
-    forgetting the runs before a stamp changes no z at or after it."""
-    from indoor_loc.pipeline.backend_stage import _FloorRuns
-    fr = _FloorRuns()
-    for t, z in ((0, 0.0), (2, 0.0), (4, 5.0), (6, 5.0), (8, 0.0), (20, 10.0)):
-        fr.add(t * SEC, z)
-    assert fr.z == [0.0, 5.0, 0.0, 10.0]                  # runs, not one entry per fix
-    t = np.arange(0, 49) * SEC // 2
-    fixes = np.array([0, 2, 4, 6, 8, 20]) * SEC
-    zs = np.array([0.0, 0.0, 5.0, 5.0, 0.0, 10.0])
-    want = zs[np.argmin(np.abs(t[:, None] - fixes[None]), axis=1)]
-    np.testing.assert_array_equal(fr.z_at(t), want)
-    fr.forget_before(9 * SEC)
-    assert fr.z == [0.0, 10.0]
-    np.testing.assert_array_equal(fr.z_at(t[t >= 9 * SEC]), want[t >= 9 * SEC])
-    assert _FloorRuns().z_at([5]).tolist() == [0.0]
+def test_the_users_floor_changes_on_consistent_fixes_and_forgetting_keeps_what_later_poses_need():
+    """The per-user floor (FloorTrack): one fix on another floor does not move it, consistent ones
+    do; the smoothed z puts the change before the fixes that confirmed it; forgetting the history
+    before a stamp changes no z at or after it."""
+    from indoor_loc.baro.track import FloorTrack
+    fr = FloorTrack()
+    for t, z in ((0, 0.0), (2, 0.0), (4, 5.0), (6, 0.0), (8, 0.0), (20, 10.0), (22, 10.0), (24, 10.0)):
+        fr.fix(t * SEC, z, 0.0)
+    assert fr.filter.floor_z.tolist() == [0.0, 5.0, 10.0]
+    t = np.array([1, 5, 7, 19, 21, 25]) * SEC
+    z = fr.z_at(t)
+    assert z.tolist() == [0.0, 0.0, 0.0, 0.0, 10.0, 10.0]            # the lone fix at 5 m: not a floor change
+    assert fr.z() == (10.0, pytest.approx(fr.z()[1])) and fr.z()[1] < 1.0
+    fr.filter.forget_before(9 * SEC)
+    np.testing.assert_array_equal(fr.z_at(t[t >= 9 * SEC]), z[t >= 9 * SEC])
+    assert FloorTrack().z_at([5]).tolist() == [0.0]
 
 
 def test_fixes_whose_covariance_is_asymmetric_by_rounding_are_taken():

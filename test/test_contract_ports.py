@@ -18,9 +18,10 @@ from indoor_loc.pipeline.registry import STAGES, stage_class
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> Path:
     from indoor_loc.commands.sim import generate
+    from indoor_loc.sim.baro import BaroSimParams
     from indoor_loc.sim.scenario import SimConfig
     out = tmp_path_factory.mktemp("contract_world")
-    generate(out, SimConfig(walkers=1, duration_s=10.0, seed=3), quiet=True)
+    generate(out, SimConfig(walkers=1, duration_s=10.0, seed=3, baro=BaroSimParams()), quiet=True)
     return out
 
 

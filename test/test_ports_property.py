@@ -68,10 +68,12 @@ def valid_streams(world) -> dict[str, list[tuple[int, Any]]]:
     sim = [(m.topic.split("/", 2)[-1], m.msg) for m in read_bag(world / "sim.mcap")]
     out: dict[str, list[tuple[int, Any]]] = {t: [] for t in ("imu/data_raw", "imu/mag", "wifi/scan", "pdr/odom",
                                                               "imu/data", "wifi/fix", "wifi/scan_raw",
-                                                              "wifi/scan_json", "initialpose")}
+                                                              "wifi/scan_json", "initialpose", "baro/pressure")}
     imu, wifi = build_stage(world, "imu", {}), build_stage(world, "wifi", {})
     t0 = None
     for topic, msg in sim:
+        if topic == "baro/pressure":
+            out[topic].append((_stamp(msg), msg))
         if topic not in ("imu/data_raw", "imu/mag", "wifi/scan"):
             continue
         stamp = _stamp(msg)

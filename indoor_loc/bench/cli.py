@@ -18,6 +18,7 @@ BENCHES = {
     "chaos": "indoor_loc.bench.chaos",
     "scale": "indoor_loc.bench.scale",
     "robot": "indoor_loc.bench.robot",
+    "floors": "indoor_loc.bench.floors",
 }
 
 

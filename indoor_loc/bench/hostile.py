@@ -89,8 +89,8 @@ def numeric_mutation(draw, base):
     """A copy of ``base`` with one field (a vector, quaternion or covariance) hostile, wholly or in one or
     two of its numbers, or a covariance array at random."""
     msg = copy.deepcopy(base)
-    if draw(st.integers(0, 3)) == 0:
-        arrays = array_fields(msg)
+    arrays = array_fields(msg)
+    if arrays and draw(st.integers(0, 3)) == 0:           # (a FluidPressure has no array)
         path, n = draw(st.sampled_from(arrays))
         values = draw(st.lists(st.one_of(hostile_float, st.floats(-10, 10)), min_size=n, max_size=n))
         obj = msg

@@ -48,6 +48,7 @@ from scipy.stats import norm
 from indoor_loc import params as P
 from indoor_loc.graph.model import BuildingGraph
 from indoor_loc.graph.tll import Transitions
+from indoor_loc.pf.floors import FloorGeometry
 
 
 class Mode(IntEnum):
@@ -90,6 +91,10 @@ class PfParams:
     inject_mass: float = P.field(0.15, "prior probability mass of the redrawn particles before the fix weighs them "
                                        "(the chance, per fix, that the walker is near the fix rather than where the "
                                        "particles are); the rest keep their relative weights")
+    floor_jump_mass: float = P.field(0.1, "on a multi-floor graph, the redrawn particles' prior mass is inject_mass "
+                                          "times this when the fix's floor is not the filter's (a floor change "
+                                          "by WiFi alone needs consistent fixes); fixes without a floor redraw on "
+                                          "the filter's floor")
     # adaptive particle count
     adaptive: bool = P.field(False, "adapt the particle count: KLD-sampling at resampling, the covariance rule at "
                                     "(re)initialisation; False = always n_particles")
@@ -117,6 +122,7 @@ class PfParams:
         P.require(self.fix_cov_scale > 0, n, "fix_cov_scale", "> 0", self.fix_cov_scale)
         P.require(self.fix_dof >= 0, n, "fix_dof", ">= 0", self.fix_dof)
         P.require(0 < self.inject_mass < 1, n, "inject_mass", "in (0, 1)", self.inject_mass)
+        P.require(0 < self.floor_jump_mass <= 1, n, "floor_jump_mass", "in (0, 1]", self.floor_jump_mass)
         P.require(self.reinit_mahalanobis2 > 0, n, "reinit_mahalanobis2", "> 0", self.reinit_mahalanobis2)
         P.require(1 <= self.n_min <= self.n_max, n, "n_min/n_max", "1 <= n_min <= n_max", (self.n_min, self.n_max))
         P.require(0 < self.kld_epsilon < 1, n, "kld_epsilon", "in (0, 1)", self.kld_epsilon)
@@ -130,7 +136,8 @@ class Particles:
     """Struct of arrays, N particles: ``link (N,) int32``, ``pos (N,)`` metres from the link's
     end 0, ``direction (N,) int8`` (+1 towards end 1, -1 towards end 0), ``speed (N,)`` m/s,
     ``mode (N,) int8`` (:class:`Mode`), ``scale (N,)`` step-length factor, ``yaw_offset (N,)``
-    rad (map heading = PDR heading + offset), ``log_w (N,)`` normalised log weights."""
+    rad (map heading = PDR heading + offset), ``log_w (N,)`` normalised log weights, ``floor_ref
+    (N,) int16`` the floor the barometer expects it on (:mod:`indoor_loc.pf.floors`; -1 = its own)."""
     link: np.ndarray
     pos: np.ndarray
     direction: np.ndarray
@@ -139,6 +146,11 @@ class Particles:
     scale: np.ndarray
     yaw_offset: np.ndarray
     log_w: np.ndarray
+    floor_ref: np.ndarray = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.floor_ref is None:
+            self.floor_ref = np.full(len(self.link), -1, np.int16)
 
     def __len__(self) -> int:
         return len(self.link)
@@ -203,17 +215,20 @@ class LinkIndex:
     """Link geometry for fast particle positions and projections: end-0 points ``a`` (L, 2), unit
     directions ``u`` (L, 2) and lengths; a k-d tree over points every ``spacing_m`` along every
     link answers "closest link" by exact projection on the links of the ``k`` nearest points (the
-    result is the closest link up to half the spacing in distance; a point is never off a link)."""
+    result is the closest link up to half the spacing in distance; a point is never off a link).
+    With ``links`` only these links answer (the level links of one floor)."""
 
-    def __init__(self, g: BuildingGraph, spacing_m: float = 0.5, k: int = 4) -> None:
+    def __init__(self, g: BuildingGraph, spacing_m: float = 0.5, k: int = 4, *, links: np.ndarray | None = None) -> None:
         self.a = g.node_xyz[g.link_nodes[:, 0], :2].astype(float)
         ab = g.node_xyz[g.link_nodes[:, 1], :2] - self.a
         self.length = g.link_len.astype(float)
         self.u = np.divide(ab, self.length[:, None], out=np.zeros_like(ab), where=self.length[:, None] > 0)
-        per = np.maximum(np.ceil(self.length / spacing_m).astype(np.int64), 1) + 1
-        link = np.repeat(np.arange(g.n_links), per)
+        ids = np.arange(g.n_links) if links is None else np.asarray(links, np.int64)   # the links it answers with
+        per_all = np.maximum(np.ceil(self.length / spacing_m).astype(np.int64), 1) + 1
+        per = per_all[ids]
+        link = np.repeat(ids, per)
         start = np.repeat(np.cumsum(per) - per, per)
-        frac = (np.arange(len(link)) - start) / (per[link] - 1)
+        frac = (np.arange(len(link)) - start) / (per_all[link] - 1)
         self._sample_link = link
         self._tree = cKDTree(self.a[link] + (frac * self.length[link])[:, None] * self.u[link])
         self.k = int(min(k, len(link)))
@@ -263,6 +278,10 @@ class GraphParticleFilter:
         self._heading = graph.link_heading()
         self._kappa = 1.0 / self.params.heading_sigma_rad ** 2
         self.ix = LinkIndex(graph)
+        self.floors = FloorGeometry(graph)
+        #: per floor, an index of its level links (sample_gaussian on a fix's floor)
+        self.ix_floor = {f: LinkIndex(graph, links=np.flatnonzero(~graph.link_vertical & (graph.node_floor[graph.link_nodes[:, 0]] == f)))
+                         for f in range(self.floors.n_floors)} if self.floors.n_floors > 1 else {}
         self._kld_z = float(norm.ppf(1.0 - self.params.kld_delta))
 
     # -- initialisation -------------------------------------------------------------------------
@@ -273,19 +292,21 @@ class GraphParticleFilter:
             off = rng.uniform(-np.pi, np.pi, n)
         else:
             off = yaw_offset_mean + pp.yaw_offset_sigma_rad * rng.standard_normal(n)
-        return Particles(link=link.astype(np.int32), pos=t * self.g.link_len[link],
+        pos = t * self.g.link_len[link]
+        return Particles(link=link.astype(np.int32), pos=pos, floor_ref=self.floors.floor_of(link, pos).astype(np.int16),
                          direction=np.where(rng.random(n) < 0.5, 1, -1).astype(np.int8),
                          speed=rng.uniform(pp.v_min, pp.v_max, n), mode=np.full(n, Mode.MOTION, np.int8),
                          scale=1.0 + pp.step_scale_sigma * rng.standard_normal(n), yaw_offset=off,
                          log_w=np.full(n, -np.log(n)))
 
     def sample_gaussian(self, mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator, *,
-                        inflate: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                        inflate: bool = True, floor: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``n`` points from N(mean, cov + extra²I) (``inflate``; else N(mean, cov): a pose given with its
-        own covariance, ``initialpose``) moved to their closest link points: (link, t in [0, 1])."""
+        own covariance, ``initialpose``) moved to their closest link points: (link, t in [0, 1]); with
+        ``floor``, the closest level links of that floor."""
         cov = np.asarray(cov, float) + (self.params.init_sigma_extra_m ** 2 if inflate else 0.0) * np.eye(2)
         pts = rng.multivariate_normal(np.asarray(mean, float), cov, size=n, method="cholesky")
-        link, pos = self.ix.project(pts)
+        link, pos = (self.ix if floor is None or floor not in self.ix_floor else self.ix_floor[floor]).project(pts)
         length = self.ix.length[link]
         return link, np.divide(pos, length, out=np.zeros_like(pos), where=length > 0)
 
@@ -301,13 +322,15 @@ class GraphParticleFilter:
         n = pp.n_particles * np.sqrt(max(np.linalg.det(c), 0.0)) / pp.count_ref_sigma_m ** 2
         return int(np.clip(np.ceil(n - 1e-9), pp.n_min, pp.n_max))
 
-    def init_gaussian(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator, *, inflate: bool = True) -> None:
+    def init_gaussian(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator, *, inflate: bool = True,
+                      floor: int | None = None) -> None:
         """Particles from a Gaussian position prior (e.g. the first WiFi fix, inflated by ``init_sigma_extra_m``;
-        an ``initialpose`` as given: ``inflate`` False), projected on links."""
-        link, t = self.sample_gaussian(mean, cov, self.count_for(cov), rng, inflate=inflate)
+        an ``initialpose`` as given: ``inflate`` False), projected on links (of ``floor`` when given)."""
+        link, t = self.sample_gaussian(mean, cov, self.count_for(cov), rng, inflate=inflate, floor=floor)
         self.p = self._new(link, t, rng)
 
-    def reinit_gaussian(self, mean: np.ndarray, cov: np.ndarray, keep_fraction: float, rng: np.random.Generator) -> None:
+    def reinit_gaussian(self, mean: np.ndarray, cov: np.ndarray, keep_fraction: float, rng: np.random.Generator, *,
+                        floor: int | None = None) -> None:
         """Re-initialise around a reference estimate N(mean, cov) (Raitoharju et al. 2015, Sec. 5.2):
         ``keep_fraction`` of the new set are the old particles resampled by weight (in case the
         reference is the one that is wrong), the rest are drawn from the reference and projected on
@@ -316,7 +339,7 @@ class GraphParticleFilter:
         assert p is not None
         n = self.count_for(cov)
         k_keep = int(round(keep_fraction * n))
-        link, t = self.sample_gaussian(mean, cov, n - k_keep, rng)
+        link, t = self.sample_gaussian(mean, cov, n - k_keep, rng, floor=floor)
         fresh = self._new(link, t, rng)
         if self.params.yaw_offset_sigma_rad < np.pi and len(fresh):
             fresh.yaw_offset = rng.choice(p.yaw_offset, len(fresh))          # keep the learnt heading offsets
@@ -478,11 +501,14 @@ class GraphParticleFilter:
         self._move(np.maximum(s, 0.0), rng, None)
 
     # -- measurement ----------------------------------------------------------------------------
-    def update_position(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> bool:
+    def update_position(self, mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator, *,
+                        floor: tuple[int, float] | None = None, inject_floor: int | None = None) -> bool:
         """WiFi position fix ``N(r | mean, cov + extra²I)`` with an outlier mixture (eq. 13).
         When every particle is far from the fix (squared Mahalanobis distance above
         ``reinit_mahalanobis2``) the filter has diverged: a ``reinit_fraction`` of the particles is
-        redrawn around the fix. Returns True if re-initialised."""
+        redrawn around the fix. ``floor``: the fix's floor and the probability it is wrong
+        (:meth:`FloorGeometry.fix_floor`): particles are weighed by it and redrawn on it (on
+        ``inject_floor`` when given, e.g. the floor a barometer vouches for). Returns True if re-initialised."""
         p, pp = self.p, self.params
         assert p is not None
         self.redrawn_log_q = None
@@ -496,7 +522,8 @@ class GraphParticleFilter:
             self.n_reinit += 1
             k = int(round(pp.reinit_fraction * n))
             idx = rng.choice(n, size=k, replace=False)
-            link, t = self.sample_gaussian(mean, cov, k, rng)
+            on = (floor[0] if floor is not None else self.estimate_floor()[0]) if self.floors.n_floors > 1 else None
+            link, t = self.sample_gaussian(mean, cov, k, rng, floor=on)
             fresh = self._new(link, t, rng)
             for f in fields(p):
                 if f.name != "log_w":
@@ -513,7 +540,15 @@ class GraphParticleFilter:
             # inject_mass, see inject()).
             k = self.inject_count()
             if k:
-                idx = self.inject(*self.sample_gaussian(mean, cov, k, rng), rng)
+                mass = pp.inject_mass
+                on = None
+                if self.floors.n_floors > 1:
+                    current = self.estimate_floor()[0]
+                    on = current if floor is None else floor[0]
+                    on = on if inject_floor is None else inject_floor
+                    if on != current:
+                        mass *= pp.floor_jump_mass
+                idx = self.inject(*self.sample_gaussian(mean, cov, k, rng, floor=on), rng, mass=mass)
                 m2[idx] = mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, S)
                 # the density they were drawn from (sample_gaussian's, in the plane)
                 draw = np.asarray(cov, float) + pp.init_sigma_extra_m ** 2 * np.eye(2)
@@ -521,6 +556,8 @@ class GraphParticleFilter:
                 self.redrawn_log_q[idx] = (-0.5 * mahalanobis2(self.ix.xy(p.link[idx], p.pos[idx]) - mean, draw)
                                            - np.log(2 * np.pi) - 0.5 * np.log(np.linalg.det(draw)))
         log_l = self._fix_log_likelihood(m2, S)
+        if floor is not None:
+            log_l = log_l + self.floors.fix_log_likelihood(self.floors.floor_of(p.link, p.pos), *floor)
         p.log_w = normalise_log(p.log_w + log_l)
         return reinit
 
@@ -562,6 +599,7 @@ class GraphParticleFilter:
         p.direction[idx] = np.where(rng.random(k) < 0.5, 1, -1)
         p.scale[idx] = p.scale[donors]
         p.yaw_offset[idx] = p.yaw_offset[donors]
+        p.floor_ref[idx] = self.floors.floor_of(p.link[idx], p.pos[idx])
         mass = self.params.inject_mass if mass is None else mass
         if k < n:
             kept = np.ones(n, bool)
@@ -620,9 +658,27 @@ class GraphParticleFilter:
         assert p is not None
         w = p.weights
         xy = self.xy()
-        mean_xy, _, _ = constrained_mean(self.g, xy, w)
+        if self.floors.n_floors > 1:               # the constrained mean on the most probable floor
+            fl, _, _ = self.estimate_floor()
+            on = self.floors.floor_of(p.link, p.pos) == fl
+            mean = w[on] @ xy[on] / w[on].sum()
+            link, t, _ = self.g.project(mean[None, :], floor=fl)
+            mean_xy = self.g.point_at(link, t)[0]
+        else:
+            mean_xy, _, _ = constrained_mean(self.g, xy, w)
         d = xy - w @ xy
         cov = (w[:, None] * d).T @ d + 1e-6 * np.eye(2)
         trav = self._travel_heading(p.link, p.direction)
         yaw = float(np.arctan2(w @ np.sin(trav), w @ np.cos(trav)))
         return mean_xy, cov, yaw
+
+    def estimate_floor(self) -> tuple[int, float, float]:
+        """The most probable floor (index into the graph's floors, by summed weight), its height (m)
+        and the variance of the particles' floor heights about it (m²)."""
+        p = self.p
+        assert p is not None
+        fl = self.floors.floor_of(p.link, p.pos)
+        mass = np.bincount(fl, weights=p.weights, minlength=self.floors.n_floors)
+        k = int(np.argmax(mass))
+        z = float(self.floors.fz[k])
+        return k, z, float(mass @ (self.floors.fz - z) ** 2)

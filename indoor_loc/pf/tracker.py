@@ -23,6 +23,13 @@ part of the old particles are kept, in case the KF is the one that is wrong, and
 the covariance rule when adaptive). The monitor needs PDR (the KF's motion model) and trusts the KF
 after ``kf_min_updates`` accepted fixes; the KF restarts at a fix after two consecutive gated-out
 fixes, as the ``pdr_kf`` node does.
+
+Floors (:mod:`indoor_loc.pf.floors`): a fix's floor (``z``, ``z_var``) weighs the particles and
+decides where redrawn particles go; barometer samples (:meth:`GraphTracker.baro`) run the
+floor-change detector (:mod:`indoor_loc.baro.detector`) and gate the particles' vertical
+transitions. Every estimate carries the most probable floor and its height; the smoother's
+transition kernel measures the chord in three dimensions, so a backward trajectory does not jump
+between floors.
 """
 from __future__ import annotations
 
@@ -32,12 +39,14 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc import params as P
+from indoor_loc.baro.detector import BaroParams, FloorChange, FloorChangeDetector
 from indoor_loc.fusion.linear_pdr import LinearPdrKf, LinearPdrParams
 from indoor_loc.measurements import Fix, wrap_angle
 
 from indoor_loc.graph.model import BuildingGraph
 from indoor_loc.graph.tll import Transitions
 from indoor_loc.pf.filter import GraphParticleFilter, PfParams, constrained_mean
+from indoor_loc.pf.floors import PfFloorParams, baro_check, baro_floor_change
 from indoor_loc.pf.wifi_field import EdgeFingerprintField
 from indoor_loc.wifi.types import WifiScan
 
@@ -48,6 +57,9 @@ class Estimate:
     xy: np.ndarray
     cov: np.ndarray
     yaw: float
+    z: float = 0.0            # height of the floor (m)
+    z_var: float = 0.0        # variance of the particles' floor heights (m²)
+    floor: int = 0            # index into the graph's floors
 
 
 @dataclass
@@ -61,6 +73,7 @@ class _Step:
     heading_rad: float        # PDR heading of that interval (nan if none)
     dt_s: float
     redrawn_log_q: np.ndarray | None = None   # (N,) log draw density of particles redrawn at this fix, else -inf
+    z: np.ndarray | None = None               # (N,) particle heights (m); None on a one-floor graph
 
 
 @dataclass(frozen=True)
@@ -101,8 +114,18 @@ class GraphTracker:
     :meth:`smooth` at the end. The filter starts at the first fix (or :meth:`reset_at`)."""
 
     def __init__(self, graph: BuildingGraph, transitions: Transitions, params: PfParams | None = None, *,
-                 rng: np.random.Generator, keep_history: bool = True, monitor: MonitorParams | None = None) -> None:
+                 rng: np.random.Generator, keep_history: bool = True, monitor: MonitorParams | None = None,
+                 floors: PfFloorParams | None = None, baro: BaroParams | None = None) -> None:
         self.pf = GraphParticleFilter(graph, transitions, params)
+        self.floor_params = floors or PfFloorParams()
+        self.floor_params.validate()
+        self.baro_det = FloorChangeDetector(baro)
+        self._baro_check_ns: int | None = None
+        self.baro_events: list[FloorChange] = []
+        self.baro_moved = 0
+        self._baro_ns: int | None = None
+        self._floor_disagree = 0
+        self.floor_reinits = 0
         self.monitor_params = monitor or MonitorParams()
         self.monitor_params.validate()
         self.monitor = MonitorState()
@@ -153,13 +176,14 @@ class GraphTracker:
         self._kf_yaw = None
         self.monitor.disagree_since_ns = None
 
-    def reset_at(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, *, inflate: bool = True) -> Estimate:
+    def reset_at(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, *, inflate: bool = True,
+                 floor: int | None = None) -> Estimate:
         """(Re)initialise around a position (the first fix; ``initialpose`` with ``inflate`` False: its
-        covariance as given); the monitoring KF restarts at the next fix."""
+        covariance as given; on ``floor`` when given); the monitoring KF restarts at the next fix."""
         self._close_segment()
         self.kf = None
         self._kf_yaw = None
-        self.pf.init_gaussian(xy, cov, self.rng, inflate=inflate)
+        self.pf.init_gaussian(xy, cov, self.rng, inflate=inflate, floor=floor)
         self._last_stamp = stamp_ns
         return self._record(stamp_ns, 0.0, np.nan, 0.0)
 
@@ -213,17 +237,39 @@ class GraphTracker:
             self.pf.predict_speed((stamp_ns - self._last_stamp) * 1e-9, self.rng)
             self._last_stamp = stamp_ns
 
-    def fix(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, *, use_speed_model: bool = False) -> Estimate:
-        """A WiFi position fix (map frame, covariance m²)."""
+    def fix_floor(self, z: float | None, z_var: float = 0.0) -> tuple[int, float] | None:
+        """The floor of a fix of height ``z`` (m) and variance ``z_var`` (m²) and the probability it
+        is wrong; None when floors are not used (one floor, ``fix_floor`` off, a height off every floor)."""
+        if z is None or not self.floor_params.fix_floor:
+            return None
+        return self.pf.floors.fix_floor(z, z_var, self.floor_params.fix_floor_wrong_min)
+
+    def fix(self, stamp_ns: int, xy: np.ndarray, cov: np.ndarray, *, use_speed_model: bool = False,
+            z: float | None = None, z_var: float = 0.0) -> Estimate:
+        """A WiFi position fix (map frame, covariance m²; ``z`` its floor's height, m, with variance
+        ``z_var``, m²)."""
+        floor = self.fix_floor(z, z_var)
         if not self.pf.initialised:
-            est = self.reset_at(stamp_ns, xy, cov)
+            est = self.reset_at(stamp_ns, xy, cov, floor=None if floor is None else floor[0])
             self._kf_fix(stamp_ns, xy, cov, use_speed_model)
             return est
         dt = 0.0
         if use_speed_model:
             dt = (stamp_ns - (self._last_stamp or stamp_ns)) * 1e-9
             self.elapse(stamp_ns)
-        if self.pf.update_position(xy, cov, self.rng):
+        inject_floor = None
+        if floor is not None:
+            current = self.pf.estimate_floor()[0]
+            baro_live = self._baro_ns is not None and stamp_ns - self._baro_ns <= int(self.floor_params.baro_timeout_s * 1e9)
+            inject_floor = current if baro_live else None
+            self._floor_disagree = self._floor_disagree + 1 if floor[0] != current and floor[1] < 0.25 else 0
+            if self._floor_disagree >= self.floor_params.floor_reinit_fixes:
+                self._floor_disagree = 0
+                self.floor_reinits += 1
+                self._close_segment()
+                self.pf.reinit_gaussian(xy, cov, self.monitor_params.keep_fraction, self.rng, floor=floor[0])
+                inject_floor = floor[0]
+        if self.pf.update_position(xy, cov, self.rng, floor=floor, inject_floor=inject_floor):
             self._close_segment()                   # a re-initialisation starts a new smoother segment
         self._kf_fix(stamp_ns, xy, cov, use_speed_model)
         return self._after_update(stamp_ns, dt)
@@ -264,6 +310,25 @@ class GraphTracker:
         assert p is not None
         self.pf.update_log_likelihood(field.log_likelihood(p.link, p.pos, scan))
         return self._after_update(stamp_ns, dt)
+
+    def baro(self, stamp_ns: int, pressure_pa: float) -> list[FloorChange]:
+        """A barometer sample (Pa): the floor-change detector runs; on a multi-floor graph its floor
+        changes move the particles' expected floors (and the particles a shaft can take there), and
+        while it holds still the particles off those floors are weighed down (at most once a
+        ``baro_check_s``). Returns the floor changes it reported."""
+        events = self.baro_det.update(stamp_ns, pressure_pa)
+        self._baro_ns = stamp_ns
+        self.baro_events += events
+        if not self.pf.initialised or self.pf.floors.n_floors < 2:
+            return events
+        fp = self.floor_params
+        for ev in events:
+            self.baro_moved += baro_floor_change(self.pf, ev.dh_m, fp)
+        if not self.baro_det.in_transit and self.baro_det.s.level_m is not None and (
+                self._baro_check_ns is None or stamp_ns - self._baro_check_ns >= int(fp.baro_check_s * 1e9)):
+            self._baro_check_ns = stamp_ns
+            baro_check(self.pf, fp)
+        return events
 
     def _after_update(self, stamp_ns: int, dt: float) -> Estimate:
         est = self._record(stamp_ns, 0.0, np.nan, dt, update=True)
@@ -323,7 +388,8 @@ class GraphTracker:
         mon.reinits += 1
         mon.disagree_since_ns = None
         self._close_segment()
-        self.pf.reinit_gaussian(kf.position, kf.position_cov, mp.keep_fraction, self.rng)
+        floor = self.pf.estimate_floor()[0] if self.pf.floors.n_floors > 1 else None   # the KF is planar
+        self.pf.reinit_gaussian(kf.position, kf.position_cov, mp.keep_fraction, self.rng, floor=floor)
         if self.estimates and self.estimates[-1].stamp_ns == stamp_ns:
             self.estimates.pop()                    # one estimate per event: the re-initialised one
         return self._record(stamp_ns, 0.0, np.nan, 0.0)
@@ -336,16 +402,19 @@ class GraphTracker:
         step.log_w = p.log_w.copy()
         step.scale = p.scale.copy()
         step.yaw_offset = p.yaw_offset.copy()
+        step.z = self.pf.floors.z_of(p.link, p.pos) if self.pf.floors.n_floors > 1 else None
 
     def _record(self, stamp_ns: int, dist: float, heading: float, dt: float, update: bool = False) -> Estimate:
         xy_mean, cov, yaw = self.pf.estimate()
-        est = Estimate(stamp_ns, xy_mean, cov, yaw)
+        floor, z, z_var = self.pf.estimate_floor()
+        est = Estimate(stamp_ns, xy_mean, cov, yaw, z, z_var, floor)
         self.estimates.append(est)
         if self.keep_history:
             p = self.pf.p
             assert p is not None
             self.history.append(_Step(stamp_ns, self.pf.xy(), p.log_w.copy(), p.scale.copy(),
-                                      p.yaw_offset.copy(), dist, heading, dt))
+                                      p.yaw_offset.copy(), dist, heading, dt,
+                                      z=self.pf.floors.z_of(p.link, p.pos) if self.pf.floors.n_floors > 1 else None))
         return est
 
     # -- smoothing -------------------------------------------------------------------------------
@@ -377,6 +446,8 @@ class GraphTracker:
             target = nxt.xy[picks[t + 1]]                                  # (S, 2)
             disp = target[:, None, :] - cur.xy[None, :, :]                # (S, N, 2)
             chord = np.hypot(disp[..., 0], disp[..., 1])
+            if nxt.z is not None and cur.z is not None:                   # floors: the chord in 3-D
+                chord = np.hypot(chord, nxt.z[picks[t + 1]][:, None] - cur.z[None, :])
             if nxt.distance_m > 0:
                 mu = nxt.distance_m * cur.scale[None, :]
                 ld = -0.5 * ((chord - mu) / sigma_d_m) ** 2
@@ -409,9 +480,19 @@ class GraphTracker:
             picks[t] = np.minimum((u > cdf).sum(axis=1), len(cur.log_w) - 1)
         out = []
         ones = np.full(n_samples, 1.0 / n_samples)
+        fg = self.pf.floors
         for t in range(T):
             pts = h[t].xy[picks[t]]
-            xy, _, _ = constrained_mean(self.g, pts, ones)
             d = pts - pts.mean(axis=0)
-            out.append(Estimate(h[t].stamp_ns, xy, d.T @ d / n_samples + 1e-6 * np.eye(2), np.nan))
+            zs = h[t].z
+            if zs is None:
+                xy, _, _ = constrained_mean(self.g, pts, ones)
+                out.append(Estimate(h[t].stamp_ns, xy, d.T @ d / n_samples + 1e-6 * np.eye(2), np.nan))
+                continue
+            fl = fg.floor_at_height(zs[picks[t]])
+            k = int(np.argmax(np.bincount(fl, minlength=fg.n_floors)))
+            link, tt, _ = self.g.project(pts[fl == k].mean(axis=0)[None, :], floor=k)
+            zk = float(fg.fz[k])
+            out.append(Estimate(h[t].stamp_ns, self.g.point_at(link, tt)[0], d.T @ d / n_samples + 1e-6 * np.eye(2),
+                                np.nan, zk, float(np.mean((fg.fz[fl] - zk) ** 2)), k))
         return out

@@ -4,8 +4,12 @@ Inputs, from every user namespace (a multi-user stage, see :mod:`indoor_loc.pipe
 ``pdr/odom`` (one message per stepometer hop; per interval ``steps = |p_i − p_(i−1)| /
 odom_step_length_m`` and ``Δψ = wrap(yaw_i − yaw_(i−1))``, the contract of ``imu_node``) and
 ``wifi/scan`` (and ``wifi/fix`` with ``wifi_source: fix``: the front end's fixes as position factors;
-each pose's z is the floor height of the user's fix nearest to it in time, so a user changing floors
-gets a path at the right heights).
+each pose's z is the height of the user's floor at its stamp, so a user changing floors gets a path at
+the right heights) and ``baro/pressure`` (optional). The floor is a discrete state per user beside the
+planar graph (:class:`~indoor_loc.baro.track.FloorTrack`): a chain of floors with the fixes' floors as
+evidence and the barometer's floor changes as Δz factors between consecutive epochs — the discrete
+form of seed 003's Δz barometer factor; no factor couples it with the planar poses, so solving it
+apart (forward-backward smoothing) is the joint solution. It changes only on evidence (docs/floors.md).
 Outputs: ``backend/<user>/pose`` (PoseWithCovarianceStamped, the newest pose with its
 marginal covariance, at every new pose), ``backend/<user>/path`` (the user's whole optimised
 trajectory: every ``path_period_s`` of stamp time, when the user finishes and at the end of input,
@@ -63,6 +67,9 @@ from typing import Any
 import numpy as np
 
 from indoor_loc.params import field as pfield, group, require
+from indoor_loc.baro.detector import BaroParams
+from indoor_loc.baro.floors import FloorFilterParams
+from indoor_loc.baro.track import FloorTrack
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_MAP_ODOM, BACKEND_PATH, BACKEND_POSE, Qos
@@ -72,6 +79,7 @@ from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_to_msg
+from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
 from indoor_loc.pipeline.map_odom import MapOdomSpec
@@ -116,12 +124,17 @@ class BackendParams(GraphParams):
                                          "user's")
     motion_source: str = pfield("pdr", MOTION_DOC + "; every user of the node alike")
     odom: OdomIncrementParams = group(OdomIncrementParams, ODOM_GROUP_DOC)
+    floors: FloorFilterParams = group(FloorFilterParams, "each user's floor from the fixes' floors and the "
+                                                         "barometer (floors.switch_prob, ...)")
+    baro: BaroParams = group(BaroParams, "barometer floor-change detector for baro/pressure (baro.hold_s, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
         self.time.validate()
         validate_source(n, self.motion_source)
         self.odom.validate()
+        self.floors.validate()
+        self.baro.validate()
         require(self.offline_order in ORDERS, n, "offline_order", f"one of {ORDERS}", self.offline_order)
         require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
         require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
@@ -156,7 +169,7 @@ class _UserInput:
     fixes_waited: int = 0                              # fixes more than reorder_window_s behind the odometry
     max_fix_lag_ns: int = 0                            # the largest such lag (stamp time), ns
     scans_given_up: int = 0                            # scans whose fix can no longer be used (graph past them)
-    floors: "_FloorRuns" = field(default_factory=lambda: _FloorRuns())
+    floor: FloorTrack | None = None                    # the user's floor (created by the stage, with its params)
     odom_guard: OdomJumpGuard = field(default_factory=OdomJumpGuard)   # odom_jump against the last accepted
     robot: RobotOdomReader | None = None               # motion_source odom: the user's increments
 
@@ -169,39 +182,6 @@ class _UserInput:
         """A new buffer for the user starting afresh, keeping its counters."""
         return _UserInput(dropped_late=self.dropped_late, fixes_waited=self.fixes_waited,
                           max_fix_lag_ns=self.max_fix_lag_ns, scans_given_up=self.scans_given_up)
-
-
-@dataclass
-class _FloorRuns:
-    """The floor heights of a user's fixes taken, as runs of equal z: ``(first stamp, last stamp, z)``.
-    :meth:`z_at` gives each stamp the z of the fix nearest to it in time (a floor change is placed
-    half-way between the last fix on the old floor and the first on the new one)."""
-    first: list = field(default_factory=list)
-    last: list = field(default_factory=list)
-    z: list = field(default_factory=list)
-
-    def add(self, stamp_ns: int, z: float) -> None:
-        if self.z and self.z[-1] == z:
-            self.last[-1] = max(self.last[-1], stamp_ns)
-        else:
-            self.first.append(stamp_ns)
-            self.last.append(stamp_ns)
-            self.z.append(float(z))
-
-    def z_at(self, stamps_ns) -> np.ndarray:
-        """z (m) at each of ``stamps_ns`` (0 before any fix)."""
-        t = np.asarray(stamps_ns, np.int64)
-        if not self.z:
-            return np.zeros(t.shape)
-        # boundaries half-way between one run's last fix and the next run's first
-        mid = (np.asarray(self.last[:-1], np.float64) + np.asarray(self.first[1:], np.float64)) / 2
-        return np.asarray(self.z)[np.searchsorted(mid, t.astype(np.float64), side="left")]
-
-    def forget_before(self, stamp_ns: int) -> None:
-        """Drop runs no stamp at or after ``stamp_ns`` can take z from (bounds memory with the graph)."""
-        k = bisect.bisect_left(self.last, stamp_ns) - 1      # runs [0, k) end before the one ending before it
-        if k > 0:
-            del self.first[:k], self.last[:k], self.z[:k]
 
 
 def _names(users: list[str], most: int = 10) -> str:
@@ -217,7 +197,7 @@ class BackendStage(Stage):
     MULTI_USER = True
     #: the reorder buffer puts each user's events in stamp order (too_late beyond it)
     STAMP_ORDER = {"pdr/odom": Order.ANY, "odom": Order.ANY, "wifi/scan": Order.ANY, "wifi/fix": Order.ANY,
-                   "initialpose": Order.EXEMPT}
+                   "initialpose": Order.EXEMPT, "baro/pressure": Order.STRICT}
     MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate=BACKEND_POSE, out=BACKEND_MAP_ODOM)
 
     def __init__(self, params, *, namespace: str = "", survey=None) -> None:
@@ -243,13 +223,15 @@ class BackendStage(Stage):
         self.on("pdr/odom", self._on_odom)
         self.on("odom", self._on_robot_odom)
         self.on("wifi/scan", self._on_scan)
+        self.on("baro/pressure", self._on_baro)
         if params.wifi_source == "fix":
             self.on("wifi/fix", self._on_fix)
         self.on("initialpose", self._on_initialpose)
 
     def inputs(self) -> list[Port]:
         return [motion_port(self.params.motion_source),
-                Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)] + (
+                Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE),
+                Port("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR)] + (
                 [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
                 if self.params.wifi_source == "fix" else []) + [
                 Port("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, stream=False)]
@@ -271,6 +253,17 @@ class BackendStage(Stage):
         if b is None:
             b = self.inputs_by_user[user] = _UserInput()
         return b
+
+    def _floor(self, user: str) -> FloorTrack:
+        b = self._buffer(user)
+        if b.floor is None:
+            b.floor = FloorTrack(self.params.baro, self.params.floors)
+        return b.floor
+
+    def _on_baro(self, msg, recv_ns: int, user: str) -> list[Output]:
+        ps = pressure_from_msg(msg)
+        self._floor(user).baro(ps.stamp_ns, ps.pressure_pa)
+        return []
 
     def _push(self, user: str, stamp: int, kind: int, payload: Any) -> None:
         b = self._buffer(user)
@@ -416,7 +409,7 @@ class BackendStage(Stage):
                 new_pose |= self._take_odom(user, b, payload)
             elif kind == 1:
                 self.graph.add_fix(user, payload.stamp_ns, payload.xy, payload.cov)
-                b.floors.add(payload.stamp_ns, payload.z)
+                self._floor(user).fix(payload.stamp_ns, payload.z, payload.z_var)
                 new_pose = True
             else:
                 pose, _match = self.graph.add_scan(user, payload)
@@ -477,17 +470,17 @@ class BackendStage(Stage):
         cov_xy, yaw_var = (cov[:2, :2], float(cov[2, 2])) if cov is not None else (np.eye(2) * 1e2, 1e2)
         stamp = int(self.graph.poses.stamp[i])
         msg = pose_to_msg(stamp, x[:2], float(x[2]), cov_xy, frame_id=self.params.frame_id,
-                          yaw_var=yaw_var, z=float(self._buffer(user).floors.z_at([stamp])[0]))
+                          yaw_var=yaw_var, z=float(self._floor(user).z_at([stamp])[0]))
         return (BACKEND_POSE.format(user=user), msg)
 
     def _path_output(self, user: str) -> Output:
         st, x = self.graph.trajectory(user)
         stamp = int(st[-1]) if len(st) else 0
         msg = path_to_msg(st, x[:, :2], x[:, 2], frame_id=self.params.frame_id, stamp_ns=stamp)
-        floors = self._buffer(user).floors
+        floor = self._floor(user)
         if len(st):
-            floors.forget_before(int(st[0]))            # older poses have left the graph
-        for ps, z in zip(msg.poses, floors.z_at(st).tolist()):   # each pose at the floor of its nearest fix
+            floor.filter.forget_before(int(st[0]))     # older poses have left the graph
+        for ps, z in zip(msg.poses, floor.z_at(st).tolist()):   # each pose at its smoothed floor
             ps.pose.position.z = z
         return (BACKEND_PATH.format(user=user), msg)
 

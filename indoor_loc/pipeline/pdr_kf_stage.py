@@ -11,6 +11,12 @@ WiFi fix (position and covariance from the fix; step vector 0 with no heading ne
 PDR track has left the truth (a wrong turn, a heading jump), so the filter restarts at the latest
 fix and a new smoother segment begins; the smoothed path is the concatenation of the segments.
 Later waves use it to initialise and monitor the particle filter.
+
+Floors (docs/floors.md): the filter is planar; the floor is a separate discrete state
+(:class:`~indoor_loc.baro.track.FloorTrack`: the floor HMM fed by the fixes' floors, ``wifi/fix``
+pose z and covariance[14], and the floor changes the barometer detector finds in ``baro/pressure``,
+optional). It changes only on evidence (one barometer floor change, or consistent fixes); ``pdr_kf/pose``
+carries z = the filtered floor's height (covariance[14] its variance), ``pdr_kf/path`` the smoothed one.
 """
 from __future__ import annotations
 
@@ -30,7 +36,11 @@ from indoor_loc.fusion.linear_pdr import (KfTrack, LinearPdrKf, LinearPdrParams,
                                           rts_smooth)
 from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import PdrOdomReader
+from indoor_loc.baro.detector import BaroParams
+from indoor_loc.baro.floors import FloorFilterParams
+from indoor_loc.baro.track import FloorTrack
 from msg_adapters.path import path_to_msg
+from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
 from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.stage import Output, Port, Stage
@@ -67,6 +77,9 @@ class PdrKfStageParams:
     odom: OdomIncrementParams = group(OdomIncrementParams, ODOM_GROUP_DOC)
     odom_scale_var_per_m: float = field(1e-5, "motion_source odom: random walk of the odometry's scale error on the "
                                               "travel vector, per metre travelled (1/m)")
+    floors: FloorFilterParams = group(FloorFilterParams, "the floor from the fixes' floors and the barometer "
+                                                         "(floors.switch_prob, ...)")
+    baro: BaroParams = group(BaroParams, "barometer floor-change detector for baro/pressure (baro.hold_s, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -83,6 +96,8 @@ class PdrKfStageParams:
         require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
         require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         self.kf_params().validate()
+        self.floors.validate()
+        self.baro.validate()
 
     def kf_params(self) -> LinearPdrParams:
         gate = self.gate_prob < 1.0
@@ -110,7 +125,7 @@ class PdrKfStage(Stage):
     NODE_NAME = "pdr_kf_node"
     PARAMS = PdrKfStageParams
     STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING,
-                   "initialpose": Order.EXEMPT}
+                   "initialpose": Order.EXEMPT, "baro/pressure": Order.STRICT}
     MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate="pdr_kf/pose", out="pdr_kf/map_odom")
 
     def __init__(self, params: PdrKfStageParams, *, namespace: str = "") -> None:
@@ -125,6 +140,7 @@ class PdrKfStage(Stage):
         self.on("wifi/fix", self._on_fix)
         self.on("odom", self._on_robot_odom)
         self.on("initialpose", self._on_initialpose)
+        self.on("baro/pressure", self._on_baro)
 
     def _fresh_state(self) -> None:
         """The filter, smoother and queues as before the first message (start-up, a jump back in time)."""
@@ -145,6 +161,7 @@ class PdrKfStage(Stage):
         self._last_odom_ns: int | None = None             # stamp of the last odom applied
         self._seq = 0
         self._last_smooth_ns: int | None = None
+        self.floor = FloorTrack(params.baro, params.floors)
 
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in time: the old pass ends as at the end of input (its smoothed path published),
@@ -156,7 +173,8 @@ class PdrKfStage(Stage):
     def inputs(self) -> list[Port]:
         return [motion_port(self.params.motion_source),
                 Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
-                Port("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, stream=False)]
+                Port("initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE, stream=False),
+                Port("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR)]
 
     def outputs(self) -> list[Port]:
         return [Port("pdr_kf/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),
@@ -240,6 +258,11 @@ class PdrKfStage(Stage):
         self.initial_poses += 1
         return outs + [("pdr_kf/pose", self._pose_msg(stamp))]
 
+    def _on_baro(self, msg, recv_ns: int) -> list[Output]:
+        ps = pressure_from_msg(msg)
+        self.floor.baro(ps.stamp_ns, ps.pressure_pa)
+        return []
+
     def _apply_pending(self, due) -> list[Output]:
         outs: list[Output] = []
         if self.params.motion_source == "odom" and self._pending and due(self._pending[0][0]):
@@ -251,6 +274,7 @@ class PdrKfStage(Stage):
         return outs
 
     def _apply_fix(self, fix: Fix) -> Output:
+        self.floor.fix(fix.stamp_ns, fix.z, fix.z_var)
         if self.kf is None:
             self._start(fix)
             return ("pdr_kf/pose", self._pose_msg(fix.stamp_ns))
@@ -283,8 +307,9 @@ class PdrKfStage(Stage):
     def _pose_msg(self, stamp_ns: int):
         assert self.kf is not None
         yaw, yaw_var = step_heading(self.kf.state.x, self.kf.state.P)
+        z, z_var = self.floor.z()
         return pose_to_msg(stamp_ns, self.kf.position, yaw, self.kf.position_cov, frame_id=self.params.frame_id,
-                           yaw_var=yaw_var)
+                           yaw_var=yaw_var, z=z, z_var=z_var)
 
     def _maybe_smooth(self, now_ns: int) -> list[Output]:
         period = self.params.smooth_period_s
@@ -361,7 +386,7 @@ class PdrKfStage(Stage):
         if len(stamps) == 0:
             return []
         return [("pdr_kf/path", path_to_msg(stamps, xy, yaw, frame_id=self.params.frame_id,
-                                            stamp_ns=int(stamps[-1])))]
+                                            stamp_ns=int(stamps[-1]), z=self.floor.z_at(stamps)))]
 
     def finish(self) -> list[Output]:
         outs = self._release(lambda s: True)
@@ -369,7 +394,8 @@ class PdrKfStage(Stage):
 
     def extra_diagnostics(self) -> dict[str, str]:
         if self.kf is None:
-            return {"initialised": "false (waiting for the first wifi/fix)", "late_fixes": str(self.late_fixes)}
+            return {"initialised": "false (waiting for the first wifi/fix)", "late_fixes": str(self.late_fixes),
+                    **self.floor.diagnostics()}
         st = self.kf.state
         return {"initialised": "true", "epochs": str(self.n_epochs), "window_epochs": str(len(self._epochs)),
                 "path_poses": str(len(self._final) + len(self._epochs)),
@@ -377,4 +403,5 @@ class PdrKfStage(Stage):
                 "restarts": str(self.restarts), "late_fixes": str(self.late_fixes),
                 "held_odom": str(len(self._held)), "motion_source": self.params.motion_source,
                 **(self._robot.diagnostics() if self.params.motion_source == "odom" else {}),
-                "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}"}
+                "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}",
+                **self.floor.diagnostics()}

@@ -18,6 +18,13 @@ Fixes (and scans) wait until PDR has reached their stamp (the stepometer publish
 bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. Stamps are judged by
 the time policy every stage shares (:mod:`indoor_loc.pipeline.time_policy`); a confirmed jump back (a
 bag played in a loop, a restarted recording) resets the filter (:meth:`PfStage.reset_user`).
+
+Floors (docs/floors.md): on a graph with several floors the particles live on the 3-D graph; a
+fix's floor (``wifi/fix`` pose z, covariance[14]) weighs them (``floors.*``) and ``baro/pressure``
+(optional) gates their vertical transitions (``baro.*``, :mod:`indoor_loc.pf.floors`). ``pf/pose``
+and ``pf/path`` carry z = the height of the estimated floor in ``map`` (covariance[14]: the
+variance of the particles' floor heights); the floor id is the graph's floor at that height
+(``/diagnostics``: ``floor``).
 """
 from __future__ import annotations
 
@@ -37,10 +44,13 @@ from msg_adapters.markers import graph_markers
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
+from indoor_loc.baro.detector import BaroParams
 from indoor_loc.pf.filter import PfParams
+from indoor_loc.pf.floors import PfFloorParams
 from indoor_loc.pf.tracker import Estimate, GraphTracker, MonitorParams
 from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
 from indoor_loc.wifi.radiomap import load_radiomap
+from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.bounds import MapBox
 from indoor_loc.pipeline.map_odom import MapOdomSpec
@@ -102,6 +112,9 @@ class PfStageParams:
                                                      "(scan.sigma_db, scan.kernel_m, ...)")
     monitor: MonitorParams = P.group(MonitorParams, "divergence monitoring by the linear PDR Kalman filter "
                                                     "(monitor.enabled, monitor.gate_prob, ...)")
+    floors: PfFloorParams = P.group(PfFloorParams, "floors on a multi-floor graph: the fixes' floors and the "
+                                                   "barometer gate (floors.fix_floor, floors.baro_floor_wrong, ...)")
+    baro: BaroParams = P.group(BaroParams, "barometer floor-change detector for baro/pressure (baro.hold_s, ...)")
     time: TimeParams = P.group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
     motion_source: str = P.field("pdr", MOTION_DOC)
     odom: OdomIncrementParams = P.group(OdomIncrementParams, ODOM_GROUP_DOC)
@@ -126,6 +139,8 @@ class PfStageParams:
         self.transition_params().validate()
         self.pf_params().validate()
         self.monitor.validate()
+        self.floors.validate()
+        self.baro.validate()
 
     def transition_params(self) -> TransitionParams:
         return TransitionParams(rule=self.rule, l_max_m=self.l_max_m, p_min=self.p_min, p_max=self.p_max)
@@ -143,7 +158,7 @@ class PfStage(Stage):
     NODE_NAME = "tll_pf"
     PARAMS = PfStageParams
     STAMP_ORDER = {"pdr/odom": Order.STRICT, "odom": Order.STRICT, "wifi/fix": Order.NONDECREASING,
-                   "wifi/scan": Order.NONDECREASING, "initialpose": Order.EXEMPT}
+                   "wifi/scan": Order.NONDECREASING, "initialpose": Order.EXEMPT, "baro/pressure": Order.STRICT}
     MAP_ODOM = MapOdomSpec(motion=("pdr/odom", "odom"), estimate="pf/pose", out="pf/map_odom")
 
     def __init__(self, params: PfStageParams, *, namespace: str = "", shared: PfStage | None = None) -> None:
@@ -158,6 +173,7 @@ class PfStage(Stage):
         self.on("initialpose", self._on_initialpose)
         self.on("odom", self._on_robot_odom)
         self._robot = RobotOdomReader(params.odom)
+        self.on("baro/pressure", self._on_baro)
         self._odom_guard = OdomJumpGuard()
         self.map_box: MapBox | None = None
         if shared is not None:
@@ -172,8 +188,7 @@ class PfStage(Stage):
             return
         else:
             self._load(params)
-        self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),
-                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)
+        self.tracker = self._new_tracker()
         self._seq = 0
         self._last_odom_ns: int | None = None
         self._graph_sent = False
@@ -214,9 +229,7 @@ class PfStage(Stage):
         """A jump back in time: the old pass's path is published (as at the end of input), then the
         filter waits for the new pass's first fix or initial pose (as at start-up)."""
         outs = self.finish()
-        params = self.params
-        self.tracker = GraphTracker(self.graph, self.transitions, params.pf_params(),     # its seed again:
-                                    rng=np.random.default_rng(params.seed), monitor=params.monitor)  # the same pass, the same output
+        self.tracker = self._new_tracker()          # its seed again: the same pass, the same output
         self._pending.clear()
         self._last_odom_ns = None
         self._last_path_ns = None
@@ -225,12 +238,19 @@ class PfStage(Stage):
         self._robot = RobotOdomReader(params.odom)
         return outs
 
+    def _new_tracker(self) -> GraphTracker:
+        p = self.params
+        assert self.graph is not None
+        return GraphTracker(self.graph, self.transitions, p.pf_params(), rng=np.random.default_rng(p.seed),
+                            monitor=p.monitor, floors=p.floors, baro=p.baro)
+
     def inputs(self) -> list[Port]:
         wifi = (Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)
                 if self.params.wifi_update == "scan" else Port("wifi/fix", POSE_T, Qos.RELIABLE))
         return [motion_port(self.params.motion_source),
                 wifi,
-                Port("initialpose", POSE_T, Qos.RELIABLE, stream=False)]
+                Port("initialpose", POSE_T, Qos.RELIABLE, stream=False),
+                Port("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR)]
 
     def outputs(self) -> list[Port]:
         return [Port("pf/pose", POSE_T, Qos.LATCHED),
@@ -289,7 +309,7 @@ class PfStage(Stage):
         fix = fix_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("wifi/fix", fix.xy)
-        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, fix.cov))
+        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, fix.cov, fix.z, fix.z_var))
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
         if self.graph is not None and self.field is None:
@@ -314,13 +334,21 @@ class PfStage(Stage):
         last = self._last_odom_ns
         return outs + self._apply_pending(lambda s: s <= horizon or s < last)
 
+    def _on_baro(self, msg, recv_ns: int) -> list[Output]:
+        ps = pressure_from_msg(msg)
+        outs = self._start(ps.stamp_ns)
+        self.tracker.baro(ps.stamp_ns, ps.pressure_pa)
+        return outs
+
     def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:
         ps = pose_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
         outs = self._start(ps.stamp_ns)
         cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
-        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov, inflate=False))   # as given
+        floor = self.tracker.fix_floor(float(msg.pose.pose.position.z), 0.0)       # z: the floor's height
+        return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov, inflate=False,   # as given
+                                                          floor=None if floor is None else floor[0]))
 
     def global_localization(self, stamp_ns: int) -> list[Output]:
         """Spread the particles over the whole graph (the ``~/global_localization`` service)."""
@@ -343,7 +371,8 @@ class PfStage(Stage):
         while self._pending and due(self._pending[0][0]):
             stamp, _, payload = self._pending.pop(0)
             if isinstance(payload, tuple):
-                est = self.tracker.fix(stamp, payload[0], payload[1], use_speed_model=speed)
+                est = self.tracker.fix(stamp, payload[0], payload[1], use_speed_model=speed, z=payload[2],
+                                       z_var=payload[3])
             else:
                 assert self.field is not None
                 est = self.tracker.scan(stamp, self.field, payload, use_speed_model=speed)
@@ -355,7 +384,7 @@ class PfStage(Stage):
     def _publish(self, est: Estimate) -> list[Output]:
         fid = self.params.frame_id
         outs: list[Output] = [("pf/pose", pose_to_msg(est.stamp_ns, est.xy, est.yaw, est.cov, frame_id=fid,
-                                                        yaw_var=0.1))]
+                                                        yaw_var=0.1, z=est.z, z_var=est.z_var))]
         self._n_pose += 1
         every = self.params.particles_every
         p = self.tracker.pf.p
@@ -385,9 +414,10 @@ class PfStage(Stage):
         stamps = np.array([e.stamp_ns for e in ests], np.int64)
         xy = np.array([e.xy for e in ests])
         yaw = np.array([e.yaw if np.isfinite(e.yaw) else 0.0 for e in ests])
+        z = np.array([e.z for e in ests])
         order = np.argsort(stamps, kind="stable")
         return [("pf/path", path_to_msg(stamps[order], xy[order], yaw[order], frame_id=self.params.frame_id,
-                                        stamp_ns=int(stamps.max())))]
+                                        stamp_ns=int(stamps.max()), z=z[order]))]
 
     def finish(self) -> list[Output]:
         outs = self._apply_pending(lambda s: True)
@@ -419,4 +449,12 @@ class PfStage(Stage):
                      kf_reinitialisations=str(mon.reinits), kf_restarts=str(mon.kf_restarts),
                      kf_deviance=f"{mon.last_deviance:.1f}",
                      kf_disagreeing="true" if mon.disagree_since_ns is not None else "false")
+            if pf.floors.n_floors > 1:
+                k, _, _ = pf.estimate_floor()
+                d.update(floor=f"{self.graph.floors[k].id} ({self.graph.floors[k].name}, z={pf.floors.fz[k]:g} m)")
+            det = self.tracker.baro_det.s
+            if det.last_ns is not None:
+                d.update(baro_floor_changes=str(det.changes), baro_spikes=str(det.spikes),
+                         baro_in_transit="true" if det.in_transit else "false",
+                         baro_particles_moved=str(self.tracker.baro_moved))
         return d

@@ -2,13 +2,16 @@
 
 Geometry is in the map frame (ENU metres, x east, y north, z up; floor ``k`` at height
 ``floor_z[k]``). The graph is arrays, as the rest of the package keeps it: ``node_xyz (M, 3)``,
-``node_floor (M,)``, ``node_kind (M,)`` (``corridor``, ``junction``, ``door``, ``room``, ``stairs``),
+``node_floor (M,)``, ``node_kind (M,)`` (``corridor``, ``junction``, ``door``, ``room``, ``stairs``,
+``lift``: a lift car's stop on its floor, joined to the stops above and below by vertical links),
 ``link_nodes (L, 2)`` and ``link_len_m (L,)`` (3-D length: stairs are longer than their plan).
 
 The shipped sample building (:func:`sample_building`, file ``indoor_loc/data/sample_building.geojson``)
 is a two-storey office: a 40 m east-west corridor per floor with five rooms on each side, doors
 into every room, and an east stairwell joining the floors. :func:`make_sample_building` builds it
 from a handful of numbers; the GeoJSON file is what the package loads (a test keeps both equal).
+:func:`make_tower_building` is the same office three storeys high with a lift at the corridor's
+west end beside the east stairwell (the multi-floor development building).
 
 GeoJSON layout (RFC 7946 structure, but coordinates are local map metres, not WGS 84 — declared in
 the top-level ``"indoor_loc"`` member): one Feature per wall (LineString, ``kind: wall``), room
@@ -32,7 +35,7 @@ from indoor_loc.errors import MapError
 GEOJSON_FORMAT = "indoor_loc.building"
 GEOJSON_VERSION = 1
 SAMPLE_FILE = "sample_building.geojson"
-NODE_KINDS = ("corridor", "junction", "door", "room", "stairs")
+NODE_KINDS = ("corridor", "junction", "door", "room", "stairs", "lift")
 
 
 @dataclass(frozen=True)
@@ -191,8 +194,14 @@ def _cluster(name: str, xyz, floor: int, mac_prefix: str, *, bands=("2.4", "5"),
     return ApCluster(name, tuple(float(v) for v in xyz), floor, tuple(bssids), tuple(names), tuple(freqs), **events)
 
 
-def make_sample_building() -> Building:
-    """The shipped two-storey office (see module doc), built from its dimensions."""
+def make_tower_building() -> Building:
+    """The office three storeys high with the east stairwell and a west lift (see module doc)."""
+    return make_sample_building(n_floors=3, lift=True)
+
+
+def make_sample_building(*, n_floors: int = 2, lift: bool = False) -> Building:
+    """The shipped two-storey office (see module doc), built from its dimensions; ``n_floors``
+    storeys and a ``lift`` at the west end of the corridor for the multi-floor variant."""
     length, depth, corridor_y, half_w = 40.0, 20.0, 10.0, 1.2
     room_w, floor_h, door_w = 8.0, 3.5, 1.0
     room_xc = np.arange(room_w / 2, length, room_w)                    # 4, 12, 20, 28, 36
@@ -207,14 +216,22 @@ def make_sample_building() -> Building:
         floors.append(f)
         return len(nodes) - 1
 
-    for f in range(2):
+    lift_x = (-3.0, 0.0)                                                # lift car x0, x1 (corridor width)
+    for f in range(n_floors):
         def wall(x0, y0, x1, y1, floor=f):
             walls.append(((x0, y0), (x1, y1)))
             wall_floor.append(floor)
         # outer shell, with the opening into the stairwell at the corridor's east end
         wall(0, 0, length, 0)
         wall(0, depth, length, depth)
-        wall(0, 0, 0, depth)
+        if lift:                                     # the lift opens onto the corridor's west end
+            wall(0, 0, 0, ys)
+            wall(0, yn, 0, depth)
+            wall(lift_x[0], ys, lift_x[1], ys)
+            wall(lift_x[0], ys, lift_x[0], yn)
+            wall(lift_x[0], yn, lift_x[1], yn)
+        else:
+            wall(0, 0, 0, depth)
         wall(length, 0, length, ys)
         wall(length, yn, length, depth)
         sx0, sx1, sy0, sy1 = stair
@@ -248,11 +265,15 @@ def make_sample_building() -> Building:
                 links += [(j, d), (d, r)]
         east = node(length, corridor_y, f, "corridor")
         links.append((prev, east))
-        landing = node(length + 1.0, sy0 + 1.0 if f == 0 else sy1 - 1.0, f, "stairs")
+        landing = node(length + 1.0, sy0 + 1.0 if f % 2 == 0 else sy1 - 1.0, f, "stairs")
         links.append((east, landing))
-    # the flight joins the two landings (6 m of plan, 3.5 m up)
-    landings = [i for i, k in enumerate(kinds) if k == "stairs"]
-    links.append((landings[0], landings[1]))
+        if lift:
+            car = node(0.5 * (lift_x[0] + lift_x[1]), corridor_y, f, "lift")
+            links.append((west, car))
+    # each flight joins two landings (6 m of plan, 3.5 m up); the lift joins its stops
+    for kind in ("stairs", "lift"):
+        stops = [i for i, k in enumerate(kinds) if k == kind]
+        links += list(zip(stops[:-1], stops[1:]))
 
     aps = (
         _cluster("F0-AP1", (4.0, 4.0, 2.5), 0, "00:1a:2b:00:00"),
@@ -266,13 +287,19 @@ def make_sample_building() -> Building:
         _cluster("printer", (16.0, 8.0, 1.0), 0, "a4:5e:60:00:00", bands=("2.4",), ssids=("DIRECT-printer",),
                  channel24=6),
     )
-    # indoor magnetic disturbances (steel: the stairwell, a server cabinet, a row of lockers)
+    if n_floors > 2:
+        aps += (_cluster("F2-AP1", (8.0, 4.0, 9.5), 2, "00:1a:2b:02:00", channel24=1, channel5=36),
+                _cluster("F2-AP2", (32.0, 16.0, 9.5), 2, "00:1a:2b:02:01", channel24=11, channel5=100))
+    # indoor magnetic disturbances (steel: the stairwell, a server cabinet, a row of lockers, the lift)
     ut = 1e-6
     dist = np.array([[42.0, 10.0, 0, 15 * ut, -10 * ut, 8 * ut, 2.5],
                      [42.0, 10.0, 1, 15 * ut, -10 * ut, 8 * ut, 2.5],
                      [12.0, 9.0, 0, -20 * ut, 5 * ut, -10 * ut, 1.5],
-                     [28.0, 11.0, 1, 8 * ut, 18 * ut, 5 * ut, 1.5]])
-    return Building("sample_office", np.array([0.0, floor_h]), np.array(walls, float), np.array(wall_floor),
+                     [28.0, 11.0, 1, 8 * ut, 18 * ut, 5 * ut, 1.5]]
+                    + [[42.0, 10.0, f, 15 * ut, -10 * ut, 8 * ut, 2.5] for f in range(2, n_floors)]
+                    + ([[-1.5, 10.0, f, -25 * ut, 10 * ut, 20 * ut, 2.0] for f in range(n_floors)] if lift else []))
+    name = "sample_office" if n_floors == 2 and not lift else f"office_{n_floors}_floors"
+    return Building(name, floor_h * np.arange(n_floors), np.array(walls, float), np.array(wall_floor),
                     tuple(rooms), np.array(nodes, float), np.array(floors), tuple(kinds),
                     np.array(links, dtype=np.int64), aps, dist)
 

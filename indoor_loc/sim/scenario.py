@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from indoor_loc.errors import ConfigError
+from indoor_loc.sim.baro import BaroData, BaroSimParams, simulate_pressure
 from indoor_loc.sim.building import Building
 from indoor_loc.sim.rf import RfParams, RssField, ScannerParams, read_rss
 from indoor_loc.sim.walker import ImuData, ImuParams, Motion, Plan, WalkerParams, make_plan, sample_motion, \
@@ -45,6 +46,8 @@ class SimConfig:
     start_floor: int | None = 0       # walkers start on this floor (None: anywhere)
     robots: int = 0                   # differential-drive robots (names robot1, ...; indoor_loc/sim/robot.py)
     robot: "RobotParams" = field(default_factory=lambda: _robot_params())
+    change_floors: bool = False       # destinations on every floor (True) or on the start floor only
+    baro: BaroSimParams | None = None  # a barometer in every phone (None: none)
 
     def validate(self) -> None:
         if not 0 <= self.robots <= 8:
@@ -70,6 +73,7 @@ class SimWalker:
     imu: ImuData
     scans: list[WifiScan]           # stamps relative to the run start
     scan_xy: np.ndarray             # (S, 2) true device position at each scan stamp, m
+    baro: BaroData | None = None    # barometer samples (SimConfig.baro), stamps relative to the run start
 
     @property
     def name(self) -> str:
@@ -164,11 +168,20 @@ def simulate(building: Building, config: SimConfig | None = None) -> SimRun:
                           cadence_hz=float(np.clip(rng.normal(*cfg.cadence_hz), 1.45, 2.15)),
                           device_pitch_deg=float(rng.normal(0.0, 5.0)))
         floors = None if cfg.start_floor is None else (cfg.start_floor,)
-        plan = make_plan(building, wp, cfg.duration_s, rng, floors=floors)
+        if cfg.change_floors:
+            kinds = np.array(building.node_kind)
+            cand = np.flatnonzero(np.isin(kinds, ("room", "junction", "corridor")))
+            if floors is not None:
+                cand = cand[np.isin(building.node_floor[cand], floors)]
+            plan = make_plan(building, wp, cfg.duration_s, rng, start_node=int(rng.choice(cand)))
+        else:
+            plan = make_plan(building, wp, cfg.duration_s, rng, floors=floors)
         motion = sample_motion(plan, wp, cfg.imu.rate_hz, cfg.duration_s, building.floor_z)
         imu = synthesize_imu(motion, building, cfg.imu, rng)
         scans, scan_xy = scans_along(fld, motion, rng, sc, cfg.duration_s, frac, wp.name)
-        walkers.append(SimWalker(wp, plan, motion, imu, scans, scan_xy))
+        baro = None if cfg.baro is None else simulate_pressure(motion.t_ns * 1e-9, motion.xyz[:, 2], cfg.duration_s,
+                                                               cfg.baro, rng)
+        walkers.append(SimWalker(wp, plan, motion, imu, scans, scan_xy, baro))
     robots = []
     if cfg.robots:          # their own random streams: adding robots changes nothing of the walkers
         from indoor_loc.sim.robot import ROBOT_NAMES, simulate_robot, with_name

@@ -45,6 +45,9 @@ class WalkerParams:
     start_still_s: tuple[float, float] = (1.0, 2.0)   # standing still before the first step, uniform range, s
     uturn_prob: float = 0.2           # probability per leg of turning round part-way along a link
     stair_speed_factor: float = 0.55  # along-link speed on stairs relative to level walking
+    lift_speed_m_s: float = 1.0       # vertical speed of a lift car, m/s
+    lift_wait_s: tuple[float, float] = (3.0, 10.0)   # wait for the car (doors included), uniform range, s
+    lift_exit_s: tuple[float, float] = (1.0, 2.5)    # doors opening at the arrival, uniform range, s
     hand_height_m: float = 1.1        # device height above the floor, m
     bob_m: float = 0.03               # vertical gait displacement amplitude, m
     surge_m: float = 0.015            # forward gait displacement amplitude, m
@@ -148,6 +151,12 @@ def make_plan(building: Building, params: WalkerParams, duration_s: float, rng: 
             d = pb - pa
             plan_len = float(np.linalg.norm(d[:2]))
             stairs = abs(d[2]) > 0.5
+            if stairs and plan_len < 0.5:            # a lift: wait, ride standing, get out
+                stop(float(rng.uniform(*params.lift_wait_s)))
+                add(abs(float(d[2])) / params.lift_speed_m_s, pb, head[-1], False)
+                stop(float(rng.uniform(*params.lift_exit_s)))
+                seq.append(b)
+                continue
             direction = float(np.arctan2(d[1], d[0])) if plan_len > 1e-6 else head[-1]
             face(direction)
             length = float(np.linalg.norm(d))

@@ -7,6 +7,8 @@ stamp (bag time starts at :data:`~indoor_loc.sim.scenario.T0_NS`):
   no orientation (REP 145), at ``imu.rate_hz``;
 - ``imu/mag`` (sensor_msgs/MagneticField, tesla) at ``imu.mag_rate_hz`` on its own time grid;
 - ``wifi/scan`` (schema wifi_scan.v1, source ``sim``, per-AP ``age_ms``);
+- ``baro/pressure`` (sensor_msgs/FluidPressure, Pa, frame ``<walker>/imu_link``) when the run
+  simulates a barometer (``SimConfig.baro``);
 - ``ground_truth`` (nav_msgs/Path, latched, written once at the start): the device's true plan
   position and walking heading at ``truth_hz``; ``ground_truth/route`` (MarkerArray, latched):
   the graph links the walker walked, as LINE_LIST;
@@ -40,6 +42,10 @@ from indoor_loc.sim.robot_write import robot_message, robot_node_params, robot_s
 LATCHED = [qos_dict(reliability="reliable", durability="transient_local", depth=1)]
 GRAPH_TOPIC = "/map/graph"
 TRUTH_HZ = 5.0
+
+
+#: Stream kind of a barometer (robot_write's robots use 3 and 4).
+BARO = 5
 
 
 def building_markers(building: Building, stamp_ns: int):
@@ -93,10 +99,13 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
     from msg_adapters.imu import imu_to_msg, mag_to_msg
     from msg_adapters.markers import graph_markers
     from msg_adapters.path import path_to_msg
+    from msg_adapters.pressure import pressure_to_msg
     from msg_adapters.wifi_scan import scan_to_msg
     from indoor_loc.wifi.types import WifiScan
 
     b = run.building
+    baro = run.config.baro
+    pressure_var_pa2 = 0.0 if baro is None else (baro.noise_hpa * 100.0) ** 2
     with BagWriter(path) as bag:
         bag.add_topic(GRAPH_TOPIC, "visualization_msgs/msg/MarkerArray", qos_profiles=LATCHED)
         bag.write(GRAPH_TOPIC, building_markers(b, t0_ns), t0_ns)
@@ -118,6 +127,9 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
                 streams.append((w.imu.mag_t_ns + t0_ns, 1, w, join_ns(ns, "imu/mag"), frame))
             streams.append((np.array([s.stamp_ns for s in w.scans], np.int64) + t0_ns, 2, w,
                             join_ns(ns, "wifi/scan"), frame))
+            baro = getattr(w, "baro", None)
+            if baro is not None:
+                streams.append((baro.t_ns + t0_ns, BARO, w, join_ns(ns, "baro/pressure"), frame))
         streams += [st for st in robot_streams(run.robots, t0_ns) if robot_imu or st[1] != 4]
         # merge every stream in stamp order (ties: IMU, magnetometer, scans; then walker order)
         keys = np.concatenate([s[0] for s in streams])
@@ -133,6 +145,8 @@ def write_bag(run: SimRun, path: str | Path, *, t0_ns: int = T0_NS, progress=Non
                 msg = imu_to_msg(t, frame, w.imu.acc[i], w.imu.gyro[i])
             elif kind == 1:
                 msg = mag_to_msg(t, frame, w.imu.mag_t[i])
+            elif kind == BARO:
+                msg = pressure_to_msg(t, frame, float(w.baro.pressure_pa[i]), pressure_var_pa2)
             elif kind >= 3:
                 msg = robot_message(kind, w, i, t)
             else:
@@ -161,6 +175,22 @@ def write_truth_csv(w: SimWalker, path: Path, t0_ns: int = T0_NS) -> None:
 
 def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
     """The params.yaml of a simulated run: every node, ``/**/node_name`` keys (any namespace)."""
+    if multi_floor(run):
+        # floors: the powed method detects the floor of every fix (the map's scans carry their floor's height)
+        flat = node_params_flat(run, radiomap_dir, graph_file)
+        backend = {**flat["/**/backend_node"]["ros__parameters"], "wifi_source": "fix"}   # the fixes carry the floors
+        return {**flat, "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "powed"}},
+                "/**/backend_node": {"ros__parameters": backend}}
+    return node_params_flat(run, radiomap_dir, graph_file)
+
+
+def multi_floor(run: SimRun) -> bool:
+    """A run whose walkers change floors: its radio map carries the floors and the fixes detect them."""
+    return bool(run.config.change_floors) and run.building.n_floors > 1
+
+
+def node_params_flat(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
+    """:func:`node_params` of a run on one floor."""
     mean_step = float(run.config.step_length_m[0])
     return {
         "/**/imu_node": {"ros__parameters": {
@@ -182,7 +212,12 @@ def write_run(run: SimRun, out_dir: str | Path, *, progress=None) -> dict[str, P
     """Write everything (see module doc); returns the paths by role."""
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    rm = add_fingerprints(empty_radiomap(), run.survey_xy, run.survey_scans, source="survey")
+    if multi_floor(run):
+        fz = run.building.floor_z
+        rm = add_fingerprints(empty_radiomap(), run.survey_xy, run.survey_scans, source="survey",
+                              z_m=fz[run.survey_floor], floors={f"F{k}": float(z) for k, z in enumerate(fz)})
+    else:
+        rm = add_fingerprints(empty_radiomap(), run.survey_xy, run.survey_scans, source="survey")
     rm_dir = save_radiomap(rm, out / "radiomap", created_by="indoor-loc sim")
     geo = save_building(run.building, out / "building.geojson")
     plans = save_floor_plans(run.building, out / "floor_plans")

@@ -1,0 +1,1 @@
+"""The barometer: pressure -> relative height, floor-change events, floors as a discrete state."""

@@ -1,0 +1,247 @@
+"""The floor as a discrete state (pure numpy): a hidden Markov model over the building's floors,
+fed by the WiFi fixes' floors and the barometer's floor changes, filtered online and smoothed.
+
+States: the floors, by height ``z_f`` (m). Evidence:
+
+- a **fix** on floor ``k`` (``Fix.z`` = its height, ``Fix.z_var`` = the floor detector's variance):
+  ``P(fix says k | floor j) = 1 − w`` for ``j = k`` and ``w / (F − 1)`` otherwise, with the
+  floor-detection confidence ``w = clip(z_var / Δz², fix_wrong_min, 1 − 1/F)`` (Δz the smallest
+  storey: a detector sure of its floor has ``z_var = 0``, one split between two floors ``Δz²/4``);
+- a **barometer floor change** (:class:`~indoor_loc.baro.detector.FloorChange`, ``dh_m``): the
+  transition ``P(j → k) ∝ exp(−(dh − (z_k − z_j))² / 2σ²)``, mixed with ``event_miss`` of staying
+  — the discrete form of the Δz barometer factor between consecutive poses of seed 003's smoother;
+- between them, time: the floor changes by an adjacent storey at ``change_rate_per_s`` (no
+  barometer; a continuous-time chain, ``T = expm(Q Δt)``), or at ``baro_quiet_rate_per_s`` while a
+  barometer is reporting and says nothing (it sees every transit, so a change it did not report is
+  nearly impossible).
+
+The **reported floor** changes only on evidence: when another floor's probability exceeds
+``switch_prob`` (three consistent fixes from a confident WiFi floor detector, or one barometer
+change). :meth:`FloorFilter.smoothed` runs the forward-backward recursion over the history (the
+paths of ``pdr_kf`` and ``backend_node``).
+
+Floors are learnt from the evidence when not given: a fix at a height no floor has (farther than
+``new_floor_m``) adds a floor; so does a barometer floor change leading from the reported floor to a
+height no floor has (at the reported floor's height + ``dh``, replaced by the first fix's height
+near it). Heights are metres in the map frame.
+"""
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import expm
+
+from indoor_loc import params as P
+from indoor_loc.baro.detector import FloorChange
+
+
+@dataclass(frozen=True)
+class FloorFilterParams:
+    """Floor estimation from WiFi fixes and barometer floor changes."""
+    fix_wrong_min: float = P.field(0.05, "smallest probability that a fix's floor is wrong (a sure detector is "
+                                         "still wrong sometimes)")
+    switch_prob: float = P.field(0.9, "the reported floor changes when another floor is more probable than this")
+    change_rate_per_s: float = P.field(0.01, "without a barometer: rate of moving to an adjacent floor (1/s)")
+    baro_quiet_rate_per_s: float = P.field(1e-4, "with a barometer reporting and no floor change: rate of a floor "
+                                                 "change it missed (1/s)")
+    baro_timeout_s: float = P.field(10.0, "the barometer counts as reporting while samples arrive within this (s)")
+    event_sigma_m: float = P.field(1.2, "standard deviation of a barometer floor change's dh against the storeys "
+                                        "(m): sensor noise, drift during the transit, storeys of unequal height")
+    event_miss: float = P.field(0.02, "probability that a barometer floor change is not one (the floor stays)")
+    new_floor_m: float = P.field(1.0, "a fix this far (m) from every known floor height adds a floor")
+    history_max: int = P.field(20000, "entries kept for smoothing (the newest)")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        P.require(0 < self.fix_wrong_min < 0.5, n, "fix_wrong_min", "in (0, 0.5)", self.fix_wrong_min)
+        P.require(0.5 <= self.switch_prob < 1, n, "switch_prob", "in [0.5, 1)", self.switch_prob)
+        for name in ("change_rate_per_s", "baro_quiet_rate_per_s"):
+            P.require(0 <= getattr(self, name) < 1, n, name, "in [0, 1)", getattr(self, name))
+        P.require(self.baro_timeout_s > 0, n, "baro_timeout_s", "> 0", self.baro_timeout_s)
+        P.require(self.event_sigma_m > 0, n, "event_sigma_m", "> 0", self.event_sigma_m)
+        P.require(0 <= self.event_miss < 1, n, "event_miss", "in [0, 1)", self.event_miss)
+        P.require(self.new_floor_m > 0, n, "new_floor_m", "> 0", self.new_floor_m)
+        P.require(self.history_max >= 1, n, "history_max", ">= 1", self.history_max)
+
+
+class FloorFilter:
+    """Online floor HMM (see the module docstring). Feed :meth:`fix`, :meth:`baro_sample` and
+    :meth:`baro_event` in stamp order; read :attr:`floor` (index into :attr:`floor_z`), :meth:`z`."""
+
+    def __init__(self, floor_z=(), params: FloorFilterParams | None = None) -> None:
+        self.params = params or FloorFilterParams()
+        self.params.validate()
+        self.floor_z = np.sort(np.asarray(floor_z, float).reshape(-1))
+        self.learnt = np.zeros(len(self.floor_z), bool)      # floors placed by the barometer, not a fix or the map
+        self.p = np.full(len(self.floor_z), 1.0 / max(len(self.floor_z), 1))
+        self.floor: int | None = None
+        self.last_ns: int | None = None
+        self.baro_ns: int | None = None
+        self.changes = 0
+        #: (stamp_ns, transition (F, F) from the previous entry, filtered p (F,))
+        self.history: list[tuple[int, np.ndarray, np.ndarray]] = []
+
+    # -- floors --------------------------------------------------------------------------------
+    @property
+    def n_floors(self) -> int:
+        return len(self.floor_z)
+
+    def _storey(self) -> float:
+        return float(np.min(np.diff(self.floor_z))) if self.n_floors > 1 else 3.0
+
+    def nearest(self, z: float) -> int | None:
+        """Index of the floor at height ``z`` (None when none is within ``new_floor_m``)."""
+        if not self.n_floors:
+            return None
+        k = int(np.argmin(np.abs(self.floor_z - z)))
+        return k if abs(self.floor_z[k] - z) <= self.params.new_floor_m else None
+
+    def add_floor(self, z: float) -> int:
+        """A new floor at height ``z`` (m), with a small prior; returns its index."""
+        k = int(np.searchsorted(self.floor_z, z))
+        self.floor_z = np.insert(self.floor_z, k, float(z))
+        self.learnt = np.insert(self.learnt, k, False)
+        prior = 1e-3 if len(self.p) else 1.0
+        self.p = np.insert(self.p * (1.0 - prior if len(self.p) else 1.0), k, prior)
+        self.p /= self.p.sum()
+        if self.floor is not None and self.floor >= k:
+            self.floor += 1
+        self.history = [(t, np.insert(np.insert(T, k, 0.0, axis=0), k, 0.0, axis=1) if T.size else T,
+                         np.insert(a, k, 0.0)) for t, T, a in self.history]
+        for _t, T, _ in self.history:
+            if T.size:
+                T[k, k] = 1.0
+        return k
+
+    # -- time ----------------------------------------------------------------------------------
+    def baro_live(self, stamp_ns: int) -> bool:
+        return self.baro_ns is not None and stamp_ns - self.baro_ns <= int(self.params.baro_timeout_s * 1e9)
+
+    def _diffusion(self, stamp_ns: int) -> np.ndarray:
+        f = self.n_floors
+        dt = 0.0 if self.last_ns is None else max(stamp_ns - self.last_ns, 0) * 1e-9
+        rate = self.params.baro_quiet_rate_per_s if self.baro_live(stamp_ns) else self.params.change_rate_per_s
+        Q = rate * (np.eye(f, k=1) + np.eye(f, k=-1))      # generator: to each adjacent floor at ``rate``
+        Q[np.diag_indices(f)] = -Q.sum(axis=1)
+        T = expm(Q * dt)                                    # over a long gap, two storeys are possible too
+        return np.clip(T, 0.0, None) / np.clip(T, 0.0, None).sum(axis=1, keepdims=True)
+
+    def _step(self, stamp_ns: int, T: np.ndarray, lik: np.ndarray | None) -> None:
+        T = self._diffusion(stamp_ns) @ T
+        p = self.p @ T
+        if lik is not None:
+            p = p * lik
+        s = p.sum()
+        self.p = p / s if s > 0 else np.full(self.n_floors, 1.0 / self.n_floors)
+        self.last_ns = stamp_ns if self.last_ns is None else max(self.last_ns, stamp_ns)
+        self.history.append((stamp_ns, T, self.p.copy()))
+        if len(self.history) > self.params.history_max:
+            del self.history[:len(self.history) - self.params.history_max]
+        self._decide()
+
+    def _decide(self) -> None:
+        k = int(np.argmax(self.p))
+        if self.floor is None:
+            if self.p[k] >= 0.5:
+                self.floor = k
+        elif k != self.floor and self.p[k] > self.params.switch_prob:
+            self.floor = k
+            self.changes += 1
+
+    # -- evidence ------------------------------------------------------------------------------
+    def fix(self, stamp_ns: int, z: float, z_var: float = 0.0) -> bool:
+        """A WiFi fix's floor (height ``z`` m, variance ``z_var`` m²). Returns False when the fix
+        carries no usable floor (non-finite)."""
+        if not (np.isfinite(z) and np.isfinite(z_var)):
+            return False
+        k = self.nearest(z)
+        if k is None:
+            k = self.add_floor(z)
+        elif self.learnt[k]:                      # a floor the barometer placed: the map's height now
+            self.floor_z[k], self.learnt[k] = float(z), False
+        f = self.n_floors
+        if f == 1:
+            self._step(stamp_ns, np.eye(1), None)
+            return True
+        w = float(np.clip(max(z_var, 0.0) / self._storey() ** 2, self.params.fix_wrong_min, 1.0 - 1.0 / f))
+        lik = np.full(f, w / (f - 1))
+        lik[k] = 1.0 - w
+        self._step(stamp_ns, np.eye(f), lik)
+        return True
+
+    def baro_sample(self, stamp_ns: int) -> None:
+        """A barometer sample arrived (the barometer is reporting)."""
+        self.baro_ns = stamp_ns
+
+    def event_transition(self, dh_m: float) -> np.ndarray:
+        """(F, F) transition of a barometer floor change of ``dh_m`` (see the module docstring)."""
+        pp = self.params
+        dz = self.floor_z[None, :] - self.floor_z[:, None]
+        g = np.exp(-0.5 * ((dh_m - dz) / pp.event_sigma_m) ** 2)
+        np.fill_diagonal(g, 0.0)
+        s = g.sum(axis=1, keepdims=True)
+        T = np.where(s > 1e-12, g / np.maximum(s, 1e-300), 0.0)
+        stay = np.where(s[:, 0] > 1e-12, pp.event_miss, 1.0)       # nowhere to go: stay
+        T = T * (1.0 - stay)[:, None]
+        T[np.diag_indices_from(T)] += stay
+        # a change nowhere near a storey of this building is likely not one
+        plaus = float(np.exp(-0.5 * (np.min(np.abs(np.abs(dz[dz != 0]) - abs(dh_m))) / pp.event_sigma_m) ** 2)) \
+            if self.n_floors > 1 else 0.0
+        return plaus * T + (1.0 - plaus) * np.eye(self.n_floors)
+
+    def baro_event(self, ev: FloorChange) -> None:
+        """A barometer floor change, applied at its detection stamp."""
+        self.baro_ns = ev.detect_ns
+        if self.floor is not None and self.nearest(self.floor_z[self.floor] + ev.dh_m) is None \
+                and abs(ev.dh_m) > 2 * self.params.new_floor_m:
+            k = self.add_floor(float(self.floor_z[self.floor] + ev.dh_m))
+            self.learnt[k] = True
+        if self.n_floors < 2:
+            return
+        self._step(ev.detect_ns, self.event_transition(ev.dh_m), None)
+
+    # -- outputs -------------------------------------------------------------------------------
+    def z(self) -> tuple[float, float]:
+        """Height (m) of the reported floor and its variance (m², from the floor probabilities);
+        (0, 0) before any evidence."""
+        if self.floor is None:
+            return 0.0, 0.0
+        zf = float(self.floor_z[self.floor])
+        return zf, float(self.p @ (self.floor_z - zf) ** 2)
+
+    def smoothed(self) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-backward over the history: stamps (T,) int ns and smoothed probabilities (T, F)."""
+        h = self.history
+        if not h:
+            return np.zeros(0, np.int64), np.zeros((0, self.n_floors))
+        g = np.empty((len(h), self.n_floors))
+        g[-1] = h[-1][2]
+        for t in range(len(h) - 2, -1, -1):
+            a, T = h[t][2], h[t + 1][1]
+            pred = a @ T
+            ratio = np.divide(g[t + 1], pred, out=np.zeros_like(pred), where=pred > 1e-300)
+            v = a * (T @ ratio)
+            g[t] = v / v.sum() if v.sum() > 0 else a
+        return np.array([e[0] for e in h], np.int64), g
+
+    def z_at(self, stamps_ns, *, smooth: bool = True) -> np.ndarray:
+        """Height (m) of the most probable floor at each stamp (the newest history entry at or before
+        it; the first entry's before the history), smoothed or filtered; 0 without evidence."""
+        st = np.asarray(stamps_ns, np.int64).reshape(-1)
+        if not self.history or self.floor is None:
+            return np.zeros(len(st))
+        if smooth:
+            t, g = self.smoothed()
+        else:
+            t = np.array([e[0] for e in self.history], np.int64)
+            g = np.array([e[2] for e in self.history])
+        idx = np.clip(np.searchsorted(t, st, side="right") - 1, 0, len(t) - 1)
+        return self.floor_z[np.argmax(g[idx], axis=1)]
+
+    def forget_before(self, stamp_ns: int) -> None:
+        """Drop history entries older than ``stamp_ns`` (keeping the one in force at it)."""
+        k = bisect.bisect_right([e[0] for e in self.history], stamp_ns) - 1
+        if k > 0:
+            del self.history[:k]

@@ -1,0 +1,62 @@
+"""One user's floor from the barometer and the WiFi fixes (pure): the floor-change detector and the
+floor HMM together, as ``pdr_kf_node`` and ``backend_node`` use them.
+
+Feed :meth:`FloorTrack.baro` every pressure sample and :meth:`FloorTrack.fix` every fix (in stamp
+order per kind; the HMM takes evidence at ``max(stamp, newest)`` so its history stays ordered). The
+floor heights come from ``floors_m`` when given, else from the fixes (each new fix height is a
+floor). Outputs: :meth:`z` (the filtered floor's height and variance, for a pose published now) and
+:meth:`z_at` (smoothed, for a path).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from indoor_loc.baro.detector import BaroParams, FloorChange, FloorChangeDetector
+from indoor_loc.baro.floors import FloorFilter, FloorFilterParams
+
+
+class FloorTrack:
+    def __init__(self, baro: BaroParams | None = None, floors: FloorFilterParams | None = None,
+                 floors_m=()) -> None:
+        self.detector = FloorChangeDetector(baro)
+        self.filter = FloorFilter(floors_m, floors)
+        self.baro_samples = 0
+        self.events: list[FloorChange] = []
+
+    def _at(self, stamp_ns: int) -> int:
+        last = self.filter.last_ns
+        return stamp_ns if last is None else max(stamp_ns, last)
+
+    def baro(self, stamp_ns: int, pressure_pa: float) -> list[FloorChange]:
+        """A pressure sample (Pa): the detector runs; its floor changes move the floor HMM."""
+        self.baro_samples += 1
+        events = self.detector.update(stamp_ns, pressure_pa)
+        self.filter.baro_sample(stamp_ns)
+        for ev in events:
+            self.filter.baro_event(ev._replace(detect_ns=self._at(ev.detect_ns)))
+        self.events += events
+        return events
+
+    def fix(self, stamp_ns: int, z: float, z_var: float) -> bool:
+        """A fix's floor: height ``z`` (m) with variance ``z_var`` (m²)."""
+        return self.filter.fix(self._at(stamp_ns), z, z_var)
+
+    def z(self) -> tuple[float, float]:
+        """The filtered floor's height (m) and variance (m²); (0, 0) before any evidence."""
+        return self.filter.z()
+
+    def z_at(self, stamps_ns) -> np.ndarray:
+        """Smoothed floor heights (m) at ``stamps_ns``."""
+        return self.filter.z_at(stamps_ns)
+
+    def diagnostics(self) -> dict[str, str]:
+        f = self.filter
+        d: dict[str, str] = {}
+        if f.floor is not None and f.n_floors > 1:
+            d["floor_z_m"] = f"{f.floor_z[f.floor]:g}"
+            d["floor_changes"] = str(f.changes)
+        if self.baro_samples:
+            s = self.detector.s
+            d.update(baro_floor_changes=str(s.changes), baro_spikes=str(s.spikes),
+                     baro_in_transit="true" if s.in_transit else "false")
+        return d

@@ -1,0 +1,195 @@
+"""Floors for the graph particle filter (pure numpy): where a particle is in height, the floor of a
+WiFi fix as a likelihood, and the barometer's floor changes as a gate on vertical transitions.
+
+A particle on link ``l`` at ``pos`` metres from end 0 is at the height interpolated between its
+ends' floors (a vertical link climbs along its walking length) and *on* the floor of its nearer end.
+
+**Fix floor.** A fix carries its floor's height ``z`` with the floor detector's variance ``z_var``:
+``P(fix floor k | particle floor j) = 1 − w`` for ``j = k``, ``w / (F − 1)`` otherwise, with
+``w = clip(z_var / Δz², fix_floor_wrong_min, 1 − 1/F)`` (Δz the smallest storey): a fix on
+another floor is evidence against a particle, as strong as the detector is sure.
+
+**Barometer gate.** Every particle carries ``floor_ref``, the floor it should be on if the
+barometer is right: its own floor when it is created, shifted by each barometer floor change
+(:class:`~indoor_loc.baro.detector.FloorChange`, ``dh_m`` → the floor whose height is nearest
+``z(floor_ref) + dh_m``). While the barometer holds still (no transit in progress), at most once a
+``baro_check_s`` a particle off its ``floor_ref`` is weighed by ``baro_floor_wrong``: the particles
+that took the stairs while the barometer stayed level die out, and those that did not follow a
+transit the barometer saw die out. At a floor change the particles that cannot follow it by
+walking (a lift: the PDR sees no steps) and are within ``shaft_reach_m`` of a lift or stairwell
+(a connected set of vertical links, a *shaft*) are moved to the shaft's stop on their new floor,
+leaving on a level link; when almost no weight is left on the right floor the rest are projected
+onto that floor's links where they stand (plan position kept).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from indoor_loc import params as P
+from indoor_loc.graph.model import BuildingGraph
+
+if TYPE_CHECKING:
+    from indoor_loc.pf.filter import GraphParticleFilter
+
+
+class FloorGeometry:
+    """The graph's floors as arrays: floor heights ``fz (F,)`` m, the shafts' stops ``shaft_stop
+    (C, F)`` (node index, -1 where a shaft has no stop on a floor) and per node a level link to
+    leave it by (``exit_link``, ``exit_end``: the link's end at the node; -1 if none)."""
+
+    def __init__(self, g: BuildingGraph) -> None:
+        self.g = g
+        self.fz = np.array([f.height_m for f in g.floors], float)
+        self.n_floors = len(self.fz)
+        gaps = np.diff(np.sort(self.fz))
+        self.storey_m = float(gaps[gaps > 0].min()) if np.any(gaps > 0) else 3.0
+        vert = np.flatnonzero(g.link_vertical)
+        m = g.n_nodes
+        if len(vert):
+            adj = coo_matrix((np.ones(len(vert)), (g.link_nodes[vert, 0], g.link_nodes[vert, 1])), shape=(m, m))
+            _, label = connected_components(adj, directed=False)
+            on = np.unique(g.link_nodes[vert].reshape(-1))
+            comps = np.unique(label[on])
+            self.shaft_stop = np.full((len(comps), self.n_floors), -1, np.int64)
+            for c, lab in enumerate(comps):
+                for node in on[label[on] == lab]:
+                    self.shaft_stop[c, g.node_floor[node]] = node
+        else:
+            self.shaft_stop = np.zeros((0, self.n_floors), np.int64)
+        self.exit_link = np.full(m, -1, np.int64)
+        self.exit_end = np.zeros(m, np.int8)
+        for node in range(m):
+            for k in range(g.adj_ptr[node], g.adj_ptr[node + 1]):
+                if not g.link_vertical[g.adj_link[k]]:
+                    self.exit_link[node], self.exit_end[node] = g.adj_link[k], g.adj_end[k]
+                    break
+
+    # -- where particles are ------------------------------------------------------------------
+    def floor_of(self, link: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """(N,) floor index of particles: the floor of the nearer end of their link."""
+        g = self.g
+        far = pos > 0.5 * g.link_len[link]
+        return g.node_floor[g.link_nodes[link, far.astype(np.intp)]].astype(np.int64)
+
+    def z_of(self, link: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """(N,) height (m) of particles along their link."""
+        g = self.g
+        za, zb = g.node_xyz[g.link_nodes[link, 0], 2], g.node_xyz[g.link_nodes[link, 1], 2]
+        t = np.divide(pos, g.link_len[link], out=np.zeros_like(pos, dtype=float), where=g.link_len[link] > 0)
+        return za + t * (zb - za)
+
+    def floor_at_height(self, z: float | np.ndarray) -> np.ndarray:
+        """Index of the floor nearest each height."""
+        return np.argmin(np.abs(np.asarray(z, float)[..., None] - self.fz), axis=-1)
+
+    def fix_floor(self, z: float, z_var: float, wrong_min: float) -> tuple[int, float] | None:
+        """The floor of a fix (index) and the probability ``w`` it is wrong; None when the fix's
+        height is farther than a quarter storey from every floor (a fix that does not know floors)."""
+        if self.n_floors < 2 or not (np.isfinite(z) and np.isfinite(z_var)):
+            return None
+        k = int(self.floor_at_height(z))
+        if abs(self.fz[k] - z) > 0.25 * self.storey_m:
+            return None
+        w = float(np.clip(max(z_var, 0.0) / self.storey_m ** 2, wrong_min, 1.0 - 1.0 / self.n_floors))
+        return k, w
+
+    def fix_log_likelihood(self, particle_floor: np.ndarray, floor: int, wrong: float) -> np.ndarray:
+        """(N,) log P(fix floor | particle floor) (see the module docstring)."""
+        return np.where(particle_floor == floor, np.log1p(-wrong), np.log(wrong / (self.n_floors - 1)))
+
+    def shifted(self, floor_ref: np.ndarray, dh_m: float) -> np.ndarray:
+        """The floors ``dh_m`` metres from ``floor_ref`` (nearest floor heights)."""
+        return self.floor_at_height(self.fz[floor_ref] + dh_m).astype(floor_ref.dtype)
+
+    def through_shafts(self, xy: np.ndarray, floor: np.ndarray, target: np.ndarray, reach_m: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """Particles at ``xy`` (N, 2) on ``floor`` that can reach ``target`` through a shaft within
+        ``reach_m`` of them: (mask (N,), the target stop node (N,), -1 where none)."""
+        g = self.g
+        node = np.full(len(xy), -1, np.int64)
+        best = np.full(len(xy), np.inf)
+        for stops in self.shaft_stop:
+            src, dst = stops[floor], stops[target]
+            ok = (src >= 0) & (dst >= 0) & (floor != target)
+            d = np.where(ok, np.hypot(*(xy - g.node_xyz[np.maximum(src, 0), :2]).T), np.inf)
+            better = (d <= reach_m) & (d < best)
+            node[better], best[better] = dst[better], d[better]
+        return node >= 0, node
+
+
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PfFloorParams:
+    """Floors in the particle filter (see the module docstring)."""
+    fix_floor: bool = P.field(True, "weigh particles by the WiFi fix's floor (pose z) when the graph has several "
+                                    "floors; false when the radio map has none (its fixes all say z = 0)")
+    fix_floor_wrong_min: float = P.field(0.05, "smallest probability that a fix's floor is wrong")
+    baro_floor_wrong: float = P.field(0.05, "weight of a particle off the floor the barometer expects, per check")
+    baro_check_s: float = P.field(1.0, "the barometer gate weighs the particles at most this often (s)")
+    shaft_reach_m: float = P.field(8.0, "at a barometer floor change, particles this close to a lift or stairwell "
+                                        "(plan distance, m) that are not on the new floor move to its stop there")
+    reset_weight: float = P.field(1e-3, "when less weight than this is on the floors the barometer expects, the "
+                                        "others are projected onto those floors")
+    baro_timeout_s: float = P.field(10.0, "the barometer counts as reporting while samples arrive within this (s): "
+                                          "then the particles redrawn around a fix go on the filter's floor, not "
+                                          "the fix's (floor changes are the barometer's)")
+    floor_reinit_fixes: int = P.field(5, "this many consecutive confident fixes (probability of a wrong floor < "
+                                         "0.25) on another floor than the filter's re-initialise it on theirs "
+                                         "(the start was on the wrong floor, or a change was missed)")
+
+    def validate(self) -> None:
+        n = type(self).__name__
+        for name in ("fix_floor_wrong_min", "baro_floor_wrong", "reset_weight"):
+            P.require(0 < getattr(self, name) < 1, n, name, "in (0, 1)", getattr(self, name))
+        P.require(self.baro_check_s >= 0, n, "baro_check_s", ">= 0", self.baro_check_s)
+        P.require(self.shaft_reach_m >= 0, n, "shaft_reach_m", ">= 0", self.shaft_reach_m)
+        P.require(self.baro_timeout_s > 0, n, "baro_timeout_s", "> 0", self.baro_timeout_s)
+        P.require(self.floor_reinit_fixes >= 1, n, "floor_reinit_fixes", ">= 1", self.floor_reinit_fixes)
+
+
+def baro_floor_change(pf: "GraphParticleFilter", dh_m: float, params: PfFloorParams) -> int:
+    """A barometer floor change of ``dh_m``: every particle's ``floor_ref`` moves by it, and the
+    particles off their new ``floor_ref`` that a shaft within ``shaft_reach_m`` can take there are
+    moved to its stop on that floor, leaving along a level link. Returns how many moved."""
+    p, fg = pf.p, pf.floors
+    assert p is not None
+    own = fg.floor_of(p.link, p.pos)
+    ref = np.where(p.floor_ref < 0, own, p.floor_ref).astype(np.int64)
+    target = fg.shifted(ref, dh_m)
+    p.floor_ref = target.astype(np.int16)
+    ok, node = fg.through_shafts(pf.xy(), own, target, params.shaft_reach_m)
+    move = np.flatnonzero(ok & (fg.exit_link[np.maximum(node, 0)] >= 0))
+    if len(move):
+        link = fg.exit_link[node[move]]
+        end = fg.exit_end[node[move]]
+        p.link[move] = link
+        p.pos[move] = np.where(end == 0, 0.0, pf.g.link_len[link])
+        p.direction[move] = np.where(end == 0, 1, -1).astype(np.int8)
+    return int(len(move))
+
+
+def baro_check(pf: "GraphParticleFilter", params: PfFloorParams) -> float:
+    """The barometer holds still: particles off their ``floor_ref`` are weighed by
+    ``baro_floor_wrong``; when less than ``reset_weight`` is on the expected floors, the others are
+    first projected onto them. Returns the weight that was on the expected floors."""
+    p, fg = pf.p, pf.floors
+    assert p is not None
+    own = fg.floor_of(p.link, p.pos)
+    unset = p.floor_ref < 0
+    p.floor_ref[unset] = own[unset]
+    match = own == p.floor_ref
+    w_match = float(p.weights[match].sum())
+    if w_match < params.reset_weight:
+        xy = pf.xy()
+        for f in np.unique(p.floor_ref[~match]):
+            idx = np.flatnonzero(~match & (p.floor_ref == f))
+            if int(f) in pf.ix_floor:
+                p.link[idx], p.pos[idx] = pf.ix_floor[int(f)].project(xy[idx])
+        match = fg.floor_of(p.link, p.pos) == p.floor_ref
+    pf.update_log_likelihood(np.where(match, 0.0, np.log(params.baro_floor_wrong)))
+    return w_match
