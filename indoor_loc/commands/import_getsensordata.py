@@ -9,8 +9,9 @@ LOG: logfiles (``.txt``, ``.txt.gz``, ``.log``) or directories of them. Writes:
   points on different floors); BLE readings of the ``--ble-window-s`` before each WiFi scan join it as
   entries ``ble:<beacon id>`` (:mod:`indoor_loc.wifi.ble`). Survey logs: ``--survey`` (log names), else
   every log with two or more ``POSI`` points;
-- ``OUT_DIR/map_origin.yaml`` — the map frame: ENU at ``--origin LAT,LON`` (default: the first ``POSI``
-  point of the first log that has one), floor id × ``--storey-height-m`` = z;
+- ``OUT_DIR/map_origin.yaml`` — the map frame: ENU at ``--origin LAT,LON`` (default: the
+  ``map_origin.yaml`` beside the logs, as ``indoor-loc bag to-getsensordata`` writes it, else the first
+  ``POSI`` point of the first log that has one), floor id × ``--storey-height-m`` = z;
 - ``OUT_DIR/params.yaml`` — every node (imu_node, wifi_fix_node with the radio map and ``ble.enabled`` when
   the map holds beacons, pdr_kf_node, backend_node); ``OUT_DIR/import_report.md`` — per-log counts,
   clocks and what was odd.
@@ -41,8 +42,8 @@ def add_arguments(sub) -> None:
     p.add_argument("paths", nargs="+", type=Path, metavar="LOG... OUT_DIR",
                    help="logfiles or directories of them, then the output directory (created)")
     p.add_argument("--origin", default="", help="map origin LAT,LON in degrees (default: the first POSI point)")
-    p.add_argument("--storey-height-m", type=float, default=STOREY_HEIGHT_M,
-                   help=f"z = floor id x this, m (default {STOREY_HEIGHT_M:g})")
+    p.add_argument("--storey-height-m", type=float, default=None,
+                   help=f"z = floor id x this, m (default: map_origin.yaml beside the logs, else {STOREY_HEIGHT_M:g})")
     p.add_argument("--survey", default="", help="comma-separated log names that build the radio map "
                                                 "(default: every log with two or more POSI points)")
     p.add_argument("--ble-window-s", type=float, default=BLE_WINDOW_S,
@@ -65,6 +66,22 @@ def find_logs(paths: list[Path]) -> list[Path]:
     if not out:
         raise ConfigError(f"no logfiles ({', '.join(_SUFFIXES)}) in {', '.join(map(str, paths))}")
     return out
+
+
+def _origin_beside(inputs: list[Path]) -> dict:
+    """``map_origin.yaml`` in the directory of the first LOG (as ``indoor-loc bag to-getsensordata``
+    writes it), or {} when there is none or it is unreadable."""
+    first = inputs[0] if inputs else None
+    if first is None:
+        return {}
+    f = (first if first.is_dir() else first.parent) / "map_origin.yaml"
+    try:
+        d = yaml.safe_load(f.read_text()) if f.is_file() else None
+        if isinstance(d, dict) and {"latitude_deg", "longitude_deg"} <= set(d):
+            return {**d, "_file": str(f)}
+    except (OSError, yaml.YAMLError):
+        pass
+    return {}
 
 
 def parse_origin(text: str) -> tuple[float, float] | None:
@@ -91,8 +108,11 @@ def import_getsensordata(args: argparse.Namespace) -> int:
     if len(args.paths) < 2:
         raise ConfigError("expected LOG... OUT_DIR (at least one log and the output directory)")
     *inputs, out = args.paths
-    if not (args.storey_height_m > 0 and math.isfinite(args.storey_height_m)):
-        raise ConfigError(f"--storey-height-m: expected > 0, got {args.storey_height_m}")
+    beside = _origin_beside(inputs)
+    h = args.storey_height_m if args.storey_height_m is not None else \
+        float(beside.get("storey_height_m", STOREY_HEIGHT_M)) if beside else STOREY_HEIGHT_M
+    if not (h > 0 and math.isfinite(h)):
+        raise ConfigError(f"--storey-height-m: expected > 0, got {h}")
     if not 0 < args.ble_window_s <= 600:
         raise ConfigError(f"--ble-window-s: expected in (0, 600], got {args.ble_window_s}")
     logs = find_logs(inputs)
@@ -111,6 +131,10 @@ def import_getsensordata(args: argparse.Namespace) -> int:
     check_outputs([*bags, out / "radiomap", out / "params.yaml", out / "map_origin.yaml", out / "import_report.md"],
                   overwrite=args.overwrite, what="import getsensordata")
     origin = parse_origin(args.origin)
+    origin_note = "--origin"
+    if origin is None and beside:
+        origin = (float(beside["latitude_deg"]), float(beside["longitude_deg"]))
+        origin_note = f"{beside['_file']}"
     parsed = []
     skipped: list[str] = []
     for p in logs:
@@ -125,10 +149,7 @@ def import_getsensordata(args: argparse.Namespace) -> int:
         origin = (float(first.posi.lat[0]), float(first.posi.lon[0])) if first is not None else (0.0, 0.0)
         origin_note = ("the first POSI point of " + first.path.name) if first is not None else \
             "no log has POSI points: (0, 0), positions are meaningless"
-    else:
-        origin_note = "--origin"
     out.mkdir(parents=True, exist_ok=True)
-    h = args.storey_height_m
     rm = empty_radiomap()
     rows = []
     for log in parsed:
