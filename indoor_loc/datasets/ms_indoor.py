@@ -305,7 +305,8 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
     if unknown:
         oddities.append("rows not used: " + ", ".join(f"{t} {counts[t]}" for t in unknown))
     return Trace(trace_id=trace_id_of(path), path=path, header=header, sensors=sensors, waypoint_t=wt,
-                 waypoint_xy=wxy, scans=scans, beacons=beacons, ble=beacon_scans(beacon_rows, trace_id_of(path)), row_counts=counts, oddities=oddities,
+                 waypoint_xy=wxy, scans=scans, beacons=beacons, ble=beacon_scans(beacon_rows, trace_id_of(path)),
+                 row_counts=counts, oddities=oddities,
                  dropped=dropped, **sers)
 
 
