@@ -1,4 +1,5 @@
-"""``indoor-loc bench ble``: WiFi fixes with and without the BLE beacons, per floor of ms_site2.
+"""``indoor-loc bench ble``: WiFi fixes with and without the BLE beacons, per floor of ms_site2
+(``python -m indoor_loc.bench.ble_ms --window-s S`` for another window).
 
 Data: the Microsoft Indoor Location Competition 2.0 sample, site 2 (:mod:`indoor_loc.datasets.ms_indoor`),
 its ``TYPE_BEACON`` rows as BLE scans (:mod:`indoor_loc.datasets.ms_indoor_ble`). Per floor, the documented
@@ -66,6 +67,12 @@ def _stats(ok: np.ndarray, e: np.ndarray) -> str:
         return "  (no fix)"
     x = e[ok]
     return f"{ok.sum():>4}/{len(ok):<4} {x.mean():6.2f} {np.median(x):6.2f} {np.percentile(x, 95):6.2f}"
+
+
+def run(args: argparse.Namespace) -> int:
+    """``indoor-loc bench ble`` (the shared bench options: ``--data``, ``--floors``; the window is 5 s)."""
+    return main(argparse.Namespace(data=args.data, floors=getattr(args, "floors", ""),
+                                   window_s=getattr(args, "window_s", 5.0)))
 
 
 def main(args: argparse.Namespace) -> int:
