@@ -172,3 +172,20 @@ def test_ble_scan_reaches_wifi_fix_node_live(tmp_path, ros_domain):
                                               for x in diags), 30), peer.output()
     finally:
         peer.stop()
+
+
+def test_ms_import_puts_beacons_in_the_map_only_when_asked(tmp_path):
+    import yaml
+    from indoor_loc.commands.import_ms_indoor import import_ms_indoor
+    from indoor_loc.wifi.radiomap import load_radiomap
+    from test_ms_indoor import _args
+    walks = "5f0000000000000000000001,5f0000000000000000000002"
+    assert import_ms_indoor(_args(tmp_path / "plain", survey_walks=walks)) == 0
+    assert import_ms_indoor(_args(tmp_path / "ble", survey_walks=walks, ble_window_s=5.0)) == 0
+    plain, ble = (load_radiomap(tmp_path / d / "radiomap") for d in ("plain", "ble"))
+    assert not any(b.startswith("ble:") for b in plain.bssids)
+    assert set(ble.bssids) - set(plain.bssids) == {"ble:fda50693-a4e2-4fb1-afcf-c6eb07647825-10073-61418"}
+    params = yaml.safe_load((tmp_path / "ble" / "params.yaml").read_text())["/**/wifi_fix_node"]["ros__parameters"]
+    assert params["ble"] == {"enabled": True, "window_s": 5.0}
+    assert "ble" not in yaml.safe_load((tmp_path / "plain" / "params.yaml").read_text())["/**/wifi_fix_node"][
+        "ros__parameters"]
