@@ -284,3 +284,39 @@ def test_round_trip_from_the_simulator(tmp_path):
     rows = truth[np.searchsorted(truth[:, 0], stamps)]
     np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y] for p in gt.poses], rows[:, 1:3], atol=1e-3)
     assert yaml.safe_load((out / "map_origin.yaml").read_text())["from"].endswith("map_origin.yaml")
+
+
+_JUNK = ["", "nan", "inf", "-inf", "1e308", "-1e308", "abc", "0", "-5", "1,5", "20:22:00:00:00:50", "99999999999"]
+
+
+def test_any_corrupted_log_imports_without_a_crash(tmp_path):
+    """Fields replaced by junk, lines cut short or run together: every record is parsed or dropped and
+    counted, and the bag is written (no crash, never a value outside the contract)."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from indoor_loc.datasets.getsensordata_bags import write_log_bag
+    base = _lines()
+
+    @settings(max_examples=15, deadline=None)
+    @given(st.lists(st.tuples(st.integers(0, len(base) - 1), st.integers(0, 12), st.sampled_from(_JUNK),
+                              st.sampled_from(["field", "cut", "join"])), min_size=1, max_size=25))
+    def check(edits):
+        lines = list(base)
+        for i, k, junk, how in edits:
+            f = lines[i].split(";")
+            if how == "field":
+                f[k % len(f)] = junk
+                lines[i] = ";".join(f)
+            elif how == "cut":
+                lines[i] = ";".join(f[: k % len(f)])
+            else:
+                lines[i] = lines[i] + lines[(i + 1) % len(lines)]
+        path = _write(tmp_path / "fuzz.txt", lines)
+        log = read_log(path)
+        n_lines = sum(1 for x in path.read_text().splitlines() if x.strip() and not x.startswith("%"))
+        assert sum(log.counts.values()) == n_lines
+        for s in log.sensors.values():
+            assert np.all(np.isfinite(s.stamp_s)) and np.all(np.isfinite(s.values))
+        write_log_bag(log, tmp_path / "fuzz.mcap", origin=(41.45, -8.29), storey_height_m=4.0)
+    check()

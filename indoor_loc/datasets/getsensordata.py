@@ -63,6 +63,8 @@ KNOWN_UNUSED = ("GNSS", "LIGH", "PROX", "HUMI", "TEMP", "SOUN", "BLUE", "RFID", 
 #: a sensor whose read delays (App - Sensor - offset) exceed this at the 99th percentile has no
 #: usable constant offset: it is stamped on the app clock, s
 MAX_READ_DELAY_S = 0.5
+#: AppTimestamps outside [0, this] s are not a log's (115 days): such a record is dropped (``app_time_range``)
+MAX_APP_S = 1e7
 #: the bag time of AppTimestamp 0 when the header gives no creation date (2020-01-01T00:00:00Z), ns
 DEFAULT_T0_NS = 1_577_836_800_000_000_000
 _BSSID_RE = re.compile(r"^[0-9a-f]{2}([:-][0-9a-f]{2}){5}$")
@@ -231,7 +233,7 @@ def read_log(path: str | Path, *, t0_ns: int | None = None) -> GsdLog:
                 seen.add(line)
                 try:
                     _record(typ, f, raw, wifi, ble, posi, unknown, dropped, commas)
-                except (ValueError, IndexError):
+                except (ValueError, IndexError, OverflowError):
                     dropped[f"malformed_{typ.lower() or 'line'}"] += 1
     except (OSError, EOFError, zlib.error, UnicodeError) as err:
         raise DatasetError(f"cannot read GetSensorData log {path}: {err}") from err
@@ -256,12 +258,17 @@ def read_log(path: str | Path, *, t0_ns: int | None = None) -> GsdLog:
 def _record(typ: str, f: list[str], raw, wifi, ble, posi, unknown, dropped, commas) -> None:
     """Parse one record into the collections (ValueError/IndexError: malformed, counted by the caller)."""
     n = SENSOR_TYPES.get(typ)
+    if typ in SENSOR_TYPES or typ in ("WIFI", "BLE4", "POSI"):
+        app = _num(f[1], commas)
+        if not 0.0 <= app <= MAX_APP_S:          # NaN fails too
+            dropped["app_time_range"] += 1
+            return
     if n is not None:
         vals = [x for x in f[1:] if x.strip() != ""]       # MAGN's header shows a doubled ';'
         app, sensor = _num(vals[0], commas), _num(vals[1], commas)
         v = [_num(x, commas) for x in vals[2:2 + n]]
         acc = int(_num(vals[2 + n], commas)) if len(vals) > 2 + n else -1
-        if len(v) != n or not all(math.isfinite(x) for x in (app, sensor, *v)):
+        if len(v) != n or not all(math.isfinite(x) and abs(x) < 1e12 for x in (app, sensor, *v)):
             raise ValueError(typ)
         raw[typ].append((app, sensor, v, acc))
     elif typ == "WIFI":
