@@ -320,3 +320,50 @@ def test_any_corrupted_log_imports_without_a_crash(tmp_path):
             assert np.all(np.isfinite(s.stamp_s)) and np.all(np.isfinite(s.values))
         write_log_bag(log, tmp_path / "fuzz.mcap", origin=(41.45, -8.29), storey_height_m=4.0)
     check()
+
+
+def test_a_floor_plan_image_with_reference_points_lands_in_the_map_frame(tmp_path):
+    """A plan drawn 20° off the map axes at 5 cm/px, given by three reference points: aligned with the map
+    frame (its walls where the map says) and, as the only floor, the building graph for tll_pf."""
+    from PIL import Image
+
+    from indoor_loc.commands.import_getsensordata import import_getsensordata
+    from indoor_loc.datasets.plan_georef import PlanRef
+    from indoor_loc.graph.io import load_graph
+
+    h, w = 520, 460
+    true = PlanRef(0.05, math.radians(20.0), np.array([-2.0, -9.0]), h, 0.0)
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    xy = true.to_map(np.column_stack([u.ravel(), v.ravel()]))
+    inside = (np.abs(xy[:, 0]) < 3.0) & (xy[:, 1] > -3.0) & (xy[:, 1] < 14.0)     # a 6 m wide corridor
+    wall = (np.abs(xy[:, 0]) < 3.3) & (xy[:, 1] > -3.3) & (xy[:, 1] < 14.3) & ~inside
+    img = np.full(h * w, 255, np.uint8)
+    img[wall] = 0
+    plans = tmp_path / "plans"
+    plans.mkdir()
+    Image.fromarray(img.reshape(h, w)).save(plans / "f1.png")
+    ref_px = np.array([[10.0, 20.0], [400.0, 60.0], [200.0, 500.0]])
+    lat, lon = enu_to_geodetic(true.to_map(ref_px), 41.4530, -8.2893)
+    (plans / "plans.yaml").write_text(yaml.safe_dump([{"floor": 1, "image": "f1.png", "points": [
+        [float(a), float(b), float(c), float(d)] for (a, b), c, d in zip(ref_px, lat, lon)]}]))
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    _write(logs / "walk.txt", _lines())
+    out = tmp_path / "out"
+    import_getsensordata(argparse.Namespace(paths=[logs, out], origin="", storey_height_m=None, survey="",
+                                            ble_window_s=5.0, floor_plans=plans / "plans.yaml", overwrite=False))
+    meta = yaml.safe_load((out / "floors" / "floor1" / "map.yaml").read_text())
+    assert meta["resolution"] == pytest.approx(0.05) and meta["z_m"] == 4.0
+    al = np.asarray(Image.open(out / "floors" / "floor1" / meta["image"]))
+    ox, oy = meta["origin"][:2]
+
+    def grey_at(x, y):
+        return al[int(al.shape[0] - (y - oy) / 0.05), int((x - ox) / 0.05)]
+    assert grey_at(3.15, 5.0) == 0 and grey_at(-3.15, 10.0) == 0 and grey_at(0.0, 14.15) == 0   # the walls
+    assert grey_at(0.0, 5.0) == 255 and grey_at(2.0, 0.0) == 255
+    g = load_graph(out / "graph.yaml")
+    assert np.all(np.abs(g.node_xyz[:, 0]) < 3.0) and np.all((g.node_xyz[:, 1] > -3.0) & (g.node_xyz[:, 1] < 14.0))
+    assert g.node_xyz[:, 1].max() - g.node_xyz[:, 1].min() > 8.0          # the corridor's medial axis
+    params = yaml.safe_load((out / "params.yaml").read_text())
+    assert params["/**/tll_pf"]["ros__parameters"]["graph_file"] == str(out / "graph.yaml")
+    assert "| 1 | f1.png | 3 | 0.0500 | 20.00 | 0.00 |" in (out / "import_report.md").read_text()

@@ -12,6 +12,10 @@ LOG: logfiles (``.txt``, ``.txt.gz``, ``.log``) or directories of them. Writes:
 - ``OUT_DIR/map_origin.yaml`` — the map frame: ENU at ``--origin LAT,LON`` (default: the
   ``map_origin.yaml`` beside the logs, as ``indoor-loc bag to-getsensordata`` writes it, else the first
   ``POSI`` point of the first log that has one), floor id × ``--storey-height-m`` = z;
+- with ``--floor-plans PLANS.yaml`` (floor plans given as images with reference points, pixel -> latitude,
+  longitude: :mod:`indoor_loc.datasets.plan_georef`): ``OUT_DIR/floors/floor<id>/plan.png`` + ``map.yaml``
+  (nav2 keys; the image resampled onto the map axes) and, with one floor, ``OUT_DIR/graph.yaml`` (its
+  skeleton graph seeded at the radio map's scan positions) for ``tll_pf``;
 - ``OUT_DIR/params.yaml`` — every node (imu_node, wifi_fix_node with the radio map and ``ble.enabled`` when
   the map holds beacons, pdr_kf_node, backend_node); ``OUT_DIR/import_report.md`` — per-log counts,
   clocks and what was odd.
@@ -48,8 +52,14 @@ def add_arguments(sub) -> None:
                                                 "(default: every log with two or more POSI points)")
     p.add_argument("--ble-window-s", type=float, default=BLE_WINDOW_S,
                    help=f"BLE readings this long before a WiFi scan join its fingerprint, s (default {BLE_WINDOW_S:g})")
+    p.add_argument("--floor-plans", type=Path, default=None,
+                   help="YAML list of floor plans given as images with reference points: {floor: ID, image: FILE "
+                        "(relative to the YAML), points: [[u, v, lat, lon], ...]} (u, v: pixel column and row from "
+                        "the top-left; two or more points); written to OUT_DIR/floors/, and with one floor the "
+                        "building graph for tll_pf")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace bags, radiomap/, params.yaml, map_origin.yaml and import_report.md already in OUT_DIR")
+                   help="replace bags, radiomap/, floors/, graph.yaml, params.yaml, map_origin.yaml and "
+                        "import_report.md already in OUT_DIR")
     p.set_defaults(func=import_getsensordata)
 
 
@@ -128,7 +138,9 @@ def import_getsensordata(args: argparse.Namespace) -> int:
     if bad:
         raise ConfigError(f"--survey: no log(s) {sorted(bad)}; the logs are {names}")
     bags = [out / f"{ns.strip('/')}.mcap" for ns in nss]
-    check_outputs([*bags, out / "radiomap", out / "params.yaml", out / "map_origin.yaml", out / "import_report.md"],
+    plans_spec = _read_plan_spec(args.floor_plans) if getattr(args, "floor_plans", None) else []
+    check_outputs([*bags, out / "radiomap", out / "params.yaml", out / "map_origin.yaml", out / "import_report.md",
+                   *([out / "floors", out / "graph.yaml"] if plans_spec else [])],
                   overwrite=args.overwrite, what="import getsensordata")
     origin = parse_origin(args.origin)
     origin_note = "--origin"
@@ -192,6 +204,7 @@ def import_getsensordata(args: argparse.Namespace) -> int:
         "# z = floor id x storey_height_m\n"
         + yaml.safe_dump({"frame_id": "map", "latitude_deg": origin[0], "longitude_deg": origin[1],
                           "storey_height_m": h, "from": origin_note}, sort_keys=False))
+    plan_rows, graph_file = write_floor_plans(plans_spec, origin, h, out, rm) if plans_spec else ([], None)
     has_ahrs = all("AHRS" in lg.sensors for lg in parsed)
     params: dict = {"imu_node": {"heading_source": "orientation" if has_ahrs else "auto"}, "pdr_kf_node": {}}
     if rm.n_scans:
@@ -200,12 +213,14 @@ def import_getsensordata(args: argparse.Namespace) -> int:
             wifi["ble"] = {"enabled": True, "window_s": float(args.ble_window_s)}
         params["wifi_fix_node"] = wifi
         params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
+    if graph_file is not None:
+        params["tll_pf"] = {"graph_file": str(graph_file)}
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import getsensordata`. Map frame: ENU at map_origin.yaml, z = floor id x "
         f"{h:g} m.\nimu_node: heading from the logged AHRS rotation vector (magnetic north) when every log has "
         "one, else its own filter.\nNo building graph is imported (tll_pf needs one: `indoor-loc map`).\n"
         "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<log> --params-file).")))
-    report = _report(parsed, rows, rm, n_ble, origin, origin_note, h, skipped)
+    report = _report(parsed, rows, rm, n_ble, origin, origin_note, h, skipped) + _plans_note(plan_rows)
     (out / "import_report.md").write_text(report)
     print(_table(rows))
     if rm.n_scans:
@@ -218,6 +233,87 @@ def import_getsensordata(args: argparse.Namespace) -> int:
     if skipped:
         print(f"SKIPPED {len(skipped)} unreadable log(s): " + "; ".join(skipped))
     return 0
+
+
+def _read_plan_spec(path: Path) -> list[dict]:
+    """The ``--floor-plans`` YAML as a checked list of {floor, image (Path), points (N, 4)} (ConfigError)."""
+    try:
+        spec = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"--floor-plans {path}: cannot read it: {err}") from err
+    if not isinstance(spec, list) or not spec:
+        raise ConfigError(f"--floor-plans {path}: expected a YAML list of {{floor, image, points}}")
+    out = []
+    for i, e in enumerate(spec):
+        try:
+            pts = np.asarray(e["points"], float)
+            floor, image = int(e["floor"]), Path(path).parent / str(e["image"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise ConfigError(f"--floor-plans {path}: entry {i}: expected floor (int), image and points "
+                              f"[[u, v, lat, lon], ...]: {err}") from err
+        if pts.ndim != 2 or pts.shape[1] != 4 or len(pts) < 2 or not np.all(np.isfinite(pts)):
+            raise ConfigError(f"--floor-plans {path}: entry {i}: points must be two or more [u, v, lat, lon]")
+        if not image.is_file():
+            raise ConfigError(f"--floor-plans {path}: entry {i}: image {image} does not exist")
+        out.append({"floor": floor, "image": image, "points": pts})
+    if len({e["floor"] for e in out}) != len(out):
+        raise ConfigError(f"--floor-plans {path}: a floor is given twice")
+    return out
+
+
+def write_floor_plans(spec: list[dict], origin: tuple[float, float], h: float, out: Path, rm) -> tuple[list[dict], Path | None]:
+    """Each plan aligned with the map frame into ``OUT/floors/floor<id>/`` (``plan.png`` + nav2 ``map.yaml``
+    with the floor and its z); with one floor, its skeleton graph (seeded at the radio map's scan positions)
+    as ``OUT/graph.yaml``. Returns a report row per plan and the graph file (None: none)."""
+    from PIL import Image
+
+    from indoor_loc.datasets.geodesy import geodetic_to_enu
+    from indoor_loc.datasets.plan_georef import align_plan, fit_plan_ref
+    from indoor_loc.errors import MapError
+    from indoor_loc.graph.from_image import read_plan
+    rows, aligned = [], []
+    for e in spec:
+        grey = read_plan(e["image"])
+        pts = e["points"]
+        ref = fit_plan_ref(pts[:, :2], geodetic_to_enu(pts[:, 2], pts[:, 3], *origin), grey.shape[0])
+        img, lo, res = align_plan(grey, ref)
+        d = out / "floors" / _floor_name(e["floor"])
+        d.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(img).save(d / "plan.png")
+        meta = {"image": "plan.png", "resolution": float(res), "origin": [float(lo[0]), float(lo[1]), 0.0], "negate": 0,
+                "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary", "floor": int(e["floor"]),
+                "z_m": float(e["floor"] * h), "frame_id": "map", "source": str(e["image"])}
+        (d / "map.yaml").write_text("# floor plan in the map frame (nav2 map_server keys + floor and height)\n"
+                                    + yaml.safe_dump(meta, sort_keys=False))
+        rows.append({"floor": e["floor"], "image": e["image"].name, "points": len(pts), "m_per_px": res,
+                     "rotation_deg": math.degrees(ref.theta_rad), "rms_m": ref.rms_m, "dir": d})
+        aligned.append((img, lo, res, e["floor"]))
+    graph_file = None
+    if len(aligned) == 1 and rm.n_scans:
+        from indoor_loc.graph.from_image import PlanParams, skeleton_graph
+        from indoor_loc.graph.io import save_graph
+        img, lo, res, floor = aligned[0]
+        pp = PlanParams(px_per_m=1.0 / res, origin_x_m=float(lo[0]), origin_y_m=float(lo[1]))
+        try:
+            g = skeleton_graph(img, pp, seeds_xy=np.asarray(rm.positions, float))
+            graph_file = save_graph(g, out / "graph.yaml", source={
+                "tool": "indoor-loc import getsensordata", "image": rows[0]["image"], "px_per_m": pp.px_per_m,
+                "origin_m": [pp.origin_x_m, pp.origin_y_m], "seeds": "radio map scan positions"})
+        except MapError as err:
+            rows[0]["graph"] = f"no graph: {err}"
+    return rows, graph_file
+
+
+def _plans_note(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    lines = ["", "## Floor plans", "", "Aligned with the map frame from their reference points (least-squares "
+             "similarity; RMS = the residual at the points).", "",
+             "| floor | image | points | m/px | rotation deg | RMS m | written |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['floor']} | {r['image']} | {r['points']} | {r['m_per_px']:.4f} | {r['rotation_deg']:.2f} | "
+                     f"{r['rms_m']:.2f} | `{r['dir'].name}/`{'; ' + r['graph'] if 'graph' in r else ''} |")
+    return "\n".join(lines) + "\n"
 
 
 def _floor_name(floor_id: int) -> str:
