@@ -16,6 +16,7 @@ from msg_adapters.pose import fix_to_msg, pose_array_from_msg, pose_array_to_msg
 from msg_adapters.time import stamp_from_ns, stamp_to_ns
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.measurements import Fix
+from indoor_loc.wifi.ble import BleScan
 from indoor_loc.wifi.types import WifiScan
 
 NAMESPACE = "/alice"
@@ -39,6 +40,9 @@ V = {
     "path_yaw": _rng.uniform(-3, 3, size=50),
     "nodes": np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 8.0], [0.0, 8.0]]), "links": np.array([[0, 1], [1, 2], [2, 3]]),
     "wifi_map": _rng.uniform(0, 40, size=(30, 2)),
+    "ble": BleScan(stamp_ns=T0 + 14, beacon_id=("00000000-0000-beac-2022-000000005938-1-2", "abcdef012345"),
+                   rssi_dbm=np.array([-70.5, -88.0]), tx_power_dbm=np.array([-59.0, np.nan]),
+                   name=("20:22:b0:00:51:42", "20:22:b0:00:51:43"), frame_id="alice/ble_link", source="test"),
 }
 
 
@@ -51,7 +55,8 @@ CANONICAL_BY_TYPE = {
     "rosgraph_msgs/msg/Clock": "/clock",
 }
 _OWN = {"imu/data_raw", "imu/mag", "imu/data", "wifi/scan", "pdr/odom", "wifi/fix", "pf/pose", "pf/particles",
-        "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json"}
+        "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json",
+        "baro/pressure", "ble/scan"}
 SCAN_JSON = '{"bssid": "aa:bb:cc:dd:ee:01", "rssi": -61, "ssid": "café"}'
 
 
@@ -99,6 +104,12 @@ def build(topic: str):
     if topic == "wifi/scan_json":
         from std_msgs.msg import String
         return String(data=SCAN_JSON)
+    if topic == "baro/pressure":
+        from msg_adapters.fluid_pressure import pressure_to_msg
+        return pressure_to_msg(T0 + 13, "alice/imu_link", 101325.125, 0.25)
+    if topic == "ble/scan":
+        from msg_adapters.ble_scan import ble_to_msg
+        return ble_to_msg(V["ble"])
     raise KeyError(f"no test message for contract topic {topic!r}")
 
 
@@ -162,6 +173,14 @@ def check(topic: str, msg) -> None:
         assert stamp_to_ns(msg.clock) == T0 + 12
     elif topic == "wifi/scan_json":
         assert msg.data == SCAN_JSON
+    elif topic == "baro/pressure":
+        from msg_adapters.fluid_pressure import pressure_from_msg
+        assert pressure_from_msg(msg) == (T0 + 13, 101325.125, 0.25) and msg.header.frame_id == "alice/imu_link"
+    elif topic == "ble/scan":
+        from msg_adapters.ble_scan import ble_from_msg
+        b, e = ble_from_msg(msg), V["ble"]
+        assert (b.stamp_ns, b.beacon_id, b.name, b.frame_id) == (e.stamp_ns, e.beacon_id, e.name, e.frame_id)
+        assert np.array_equal(b.rssi_dbm, e.rssi_dbm) and np.array_equal(b.tx_power_dbm, e.tx_power_dbm, equal_nan=True)
     else:
         raise KeyError(topic)
 
