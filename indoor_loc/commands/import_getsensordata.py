@@ -43,8 +43,8 @@ def add_arguments(sub) -> None:
     p = sub.add_parser("getsensordata", help="GetSensorData logfiles (IPIN competition smartphone tracks)",
                        description="Import GetSensorData logs into MCAP bags (one per log), a WiFi + BLE radio "
                                    "map from the logs' reference points, params.yaml and an import report")
-    p.add_argument("paths", nargs="+", type=Path, metavar="LOG... OUT_DIR",
-                   help="logfiles or directories of them, then the output directory (created)")
+    p.add_argument("logs", nargs="+", type=Path, metavar="LOG", help="logfiles or directories of them")
+    p.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="output directory (created)")
     p.add_argument("--origin", default="", help="map origin LAT,LON in degrees (default: the first POSI point)")
     p.add_argument("--storey-height-m", type=float, default=None,
                    help=f"z = floor id x this, m (default: map_origin.yaml beside the logs, else {STOREY_HEIGHT_M:g})")
@@ -115,9 +115,10 @@ def import_getsensordata(args: argparse.Namespace) -> int:
     from indoor_loc.wifi.methods import recommended_params
     from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
 
-    if len(args.paths) < 2:
+    paths = list(getattr(args, "paths", None) or [*args.logs, args.out_dir])
+    if len(paths) < 2:
         raise ConfigError("expected LOG... OUT_DIR (at least one log and the output directory)")
-    *inputs, out = args.paths
+    *inputs, out = paths
     beside = _origin_beside(inputs)
     h = args.storey_height_m if args.storey_height_m is not None else \
         float(beside.get("storey_height_m", STOREY_HEIGHT_M)) if beside else STOREY_HEIGHT_M
