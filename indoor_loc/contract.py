@@ -30,6 +30,7 @@ class Topic:
 
 
 SCHEMA_WIFI_SCAN = "wifi_scan.v1"
+SCHEMA_BLE_SCAN = "ble_scan.v1"
 
 TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("imu/data_raw", "sensor_msgs/msg/Imu", Qos.SENSOR, "<user>/imu_link",
@@ -79,6 +80,13 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("map/graph", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map", "Building link graph"),
     Topic("backend/wifi_map", "visualization_msgs/msg/MarkerArray", Qos.LATCHED, "map",
           "WiFi map scan positions (fixed survey + grown from users)"),
+    Topic("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR, "<user>/imu_link",
+          "Barometer (REP 145): fluid_pressure in Pa, variance in Pa^2 (0 = unknown)"),
+    Topic("ble/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, "<user>/ble_link",
+          "BLE beacons heard at one instant, schema ble_scan.v1 = the wifi/scan layout: status[0] name='scan' "
+          "(schema, ap_count, source); then one status per beacon: name=beacon id (iBeacon "
+          "'<uuid>-<major>-<minor>', Eddystone '<namespace>-<instance>' or its instance, else the MAC; lower "
+          "case), message=MAC or label, values rssi_dbm, frequency_mhz (0 = unknown)[, age_ms][, tx_power_dbm]"),
     Topic("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, "",
           "Per-node health about once a second: input rates, last stamps, rejected messages by reason"),
     Topic("/clock", "rosgraph_msgs/msg/Clock", Qos.RELIABLE, "", "Bag time from the player (use_sim_time)"),
@@ -90,8 +98,6 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("/tf", "tf2_msgs/msg/TFMessage", Qos.RELIABLE, "map -> <user>/odom",
           "The map -> odom corrections of the nodes with publish_tf (tll_pf by default), stamped "
           "transform_tolerance s ahead as nav2_amcl does; tf2_msgs is built into the venv by make venv"),
-    Topic("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR, "<user>/imu_link",
-          "Barometer (REP 145): fluid_pressure in Pa, variance Pa^2 (0 = unknown)"),
 ]}
 
 #: A robot's own odometry, the estimators' motion input with ``motion_source: odom`` (issue 24).
@@ -197,6 +203,8 @@ BOUNDS: dict[str, Bound] = {b.name: b for b in [
           "4 km down); a value in hPa or kPa is a unit mistake"),
     Bound("pressure_variance", 0.0, 1e8, "Pa^2", "baro/pressure: variance",
           "a standard deviation of 100 hPa says nothing; a variance cannot be negative", "bad_covariance"),
+    Bound("tx_power_dbm", -100.0, 20.0, "dBm", "ble/scan: tx_power_dbm (the advertised power at 1 m)",
+          "BLE transmitters radiate -40..+20 dBm; their 1 m calibration is about -100..0 dBm"),
     Bound("scan_aps", 1.0, 5000.0, "APs", "wifi/scan, wifi/scan_raw: access points in one scan",
           "a receiver hears at most a few hundred BSSIDs even in a dense mall; 100 000 would cost the "
           "node seconds per scan", "too_many_aps"),

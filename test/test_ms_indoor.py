@@ -96,7 +96,7 @@ def test_import_writes_bags_map_plans_params_and_round_trips(tmp_path):
         by.setdefault(m.topic, []).append(m)
     assert {t: len(v) for t, v in by.items()} == {
         f"{ns}/ground_truth": 1, f"{ns}/imu/data_raw": 50, f"{ns}/imu/mag": 50, f"{ns}/imu/data": 50,
-        f"{ns}/wifi/scan": 3}
+        f"{ns}/wifi/scan": 3, f"{ns}/ble/scan": 1}
     stamps = [m.stamp_ns for m in msgs]
     assert stamps == sorted(stamps)
     tr = read_trace(F1)

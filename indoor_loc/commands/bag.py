@@ -1,5 +1,6 @@
 """``indoor-loc bag info FILE...`` and ``indoor-loc bag recover IN OUT`` (an existing OUT is refused
-unless ``--overwrite``)."""
+unless ``--overwrite``); ``indoor-loc bag to-getsensordata BAG OUT_DIR``
+(:mod:`indoor_loc.commands.to_getsensordata`)."""
 from __future__ import annotations
 
 import argparse
@@ -21,6 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rec.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
     rec.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
                      help="output chunk compression (default zstd)")
+    from indoor_loc.commands.to_getsensordata import add_arguments as add_to_gsd
+    add_to_gsd(sub)
 
 
 def _fmt_time(ns: int) -> str:
@@ -101,4 +104,7 @@ def main(args: argparse.Namespace) -> int:
         return info(list(args.bags))
     if args.bag_command == "recover":
         return recover_cmd(args)
+    if args.bag_command == "to-getsensordata":
+        from indoor_loc.commands.to_getsensordata import main as to_gsd
+        return to_gsd(args)
     raise BagError(f"unknown bag action {args.bag_command!r}")

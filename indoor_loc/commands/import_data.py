@@ -1,6 +1,7 @@
 """``indoor-loc import DATASET ...``: convert a dataset into MCAP bags + params.yaml.
 
-One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`); each
+One subparser per dataset (``putmc``; ``ms-indoor``: :mod:`indoor_loc.commands.import_ms_indoor`;
+``getsensordata``: :mod:`indoor_loc.commands.import_getsensordata`); each
 adds its own arguments and a ``func``.
 
 ``indoor-loc import putmc DATASET_DIR OUT_DIR [--walks 1,2,7] [--keep-stale]`` writes
@@ -43,6 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.set_defaults(func=import_putmc)
     from indoor_loc.commands import import_ms_indoor
     import_ms_indoor.add_arguments(sub)
+    from indoor_loc.commands import import_getsensordata
+    import_getsensordata.add_arguments(sub)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -69,6 +69,10 @@ def add_arguments(sub) -> None:
     p.add_argument("--floor-levels", default="",
                    help="storey index per floor, NAME=LEVEL,... (0 = ground, e.g. G=0,M=0.5,P1=-2); default: "
                         "from the floor names' conventions (the import report says which rule set each)")
+    p.add_argument("--ble-window-s", type=float, default=0.0,
+                   help="> 0: the BLE readings of this many seconds before each survey scan join its fingerprint as "
+                        "'ble:<id>' entries and wifi_fix_node takes ble/scan (ble.enabled); default 0: WiFi only (on "
+                        "ms_site2 BLE changed no floor's error: `indoor-loc bench ble`)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace bags, radiomap/, params.yaml, split.yaml and import_report.md already in OUT_DIR")
     p.set_defaults(func=import_ms_indoor)
@@ -95,6 +99,10 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
 
     if not (args.storey_height_m > 0):
         raise ConfigError(f"--storey-height-m: expected > 0, got {args.storey_height_m}")
+    from indoor_loc.wifi.ble import merge_scans
+    ble_window = float(getattr(args, "ble_window_s", 0.0) or 0.0)
+    if not 0 <= ble_window <= 600:
+        raise ConfigError(f"--ble-window-s: expected in [0, 600], got {ble_window}")
     site = read_site(args.dataset_dir, levels=parse_floor_levels(getattr(args, "floor_levels", "") or ""),
                      metadata=getattr(args, "metadata", None))
     floors = site.floors
@@ -168,6 +176,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                                     f"[0, {fl.width_m:.1f}] × [0, {fl.height_m:.1f}] m")
             if tid in survey:
                 sc, xy = scans_with_truth(tr)
+                if sc and ble_window > 0:
+                    sc = merge_scans(sc, tr.ble, ble_window)
                 if sc:
                     rm = add_fingerprints(rm, xy, sc, source=f"{fl.name}/{tid}", z_m=floor_z[fl.name],
                                           floors={fl.name: floor_z[fl.name]})
@@ -206,6 +216,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     params: dict = {"imu_node": imu_params}
     if rm.n_scans:
         params["wifi_fix_node"] = {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}
+        if ble_window > 0 and any(b.startswith("ble:") for b in rm.bssids):
+            params["wifi_fix_node"]["ble"] = {"enabled": True, "window_s": ble_window}
         # the back-end on the front end's fixes (see FIX_GRAPH_PARAMS); without this it has no survey
         params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
     (out / "params.yaml").write_text(params_file_text(params, header=(
@@ -324,7 +336,8 @@ def _report(src, rows, oddities, rm, floor_z, storey) -> str:
              "metres, x right, y up, origin at the plan's bottom-left; ground_truth = the waypoints (linear in "
              "between), z = floor height. WiFi: readings with last_seen before the scan time are cached results, "
              "age_ms = scan time − last_seen; a BSSID listed twice in a scan keeps its most recent reading. Rows "
-             "not used: Bluetooth (TYPE_BLUE/BLU4), iBeacons, TYPE_DIST*, accuracy changes.", "",
+             "not used: Bluetooth (TYPE_BLUE/BLU4), TYPE_DIST*, accuracy changes; iBeacons (TYPE_BEACON) go to "
+             "ble/scan.", "",
              (f"Radio map: `radiomap/`, {rm.n_scans} scans, {rm.n_aps} APs (survey walks in `split.yaml`)."
               if rm.n_scans else f"Radio map: **none** — {NO_MAP}"), "",
              "## Walks", "", _table(rows), "", f"## Oddities ({len(oddities)})", ""]

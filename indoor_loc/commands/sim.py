@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--imu-hz", type=float, default=100.0, help="IMU rate, Hz (default 100)")
     parser.add_argument("--mag-hz", type=float, default=50.0, help="magnetometer rate, Hz (default 50)")
     parser.add_argument("--scan-period", type=float, default=4.0, help="WiFi scan period, s (default 4)")
+    parser.add_argument("--format", choices=("mcap", "getsensordata"), default="mcap",
+                        help="getsensordata: also write OUT_DIR/getsensordata/<walker>.txt, GetSensorData logfiles of "
+                             "the run (indoor-loc bag to-getsensordata; default: only the bag)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the outputs of an earlier run in OUT_DIR (refused otherwise)")
 
@@ -80,7 +83,12 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out_dir)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"OUT_DIR {out} exists and is not a directory")
-    check_outputs([out / name for name in OUTPUTS], overwrite=args.overwrite, what=f"sim into {out}")
+    gsd = getattr(args, "format", "mcap") == "getsensordata"
+    check_outputs([out / name for name in OUTPUTS + (("getsensordata",) if gsd else ())], overwrite=args.overwrite,
+                  what=f"sim into {out}")
     cfg = config_from_args(args)
-    generate(args.out_dir, cfg, args.building)
+    paths = generate(args.out_dir, cfg, args.building)
+    if gsd:
+        from indoor_loc.commands.to_getsensordata import convert_sim
+        convert_sim(paths, out / "getsensordata")
     return 0

@@ -15,6 +15,7 @@ time**:
 ``TYPE_WAYPOINT``               x y m: the surveyed position at that instant (linear in between)
 ``TYPE_WIFI``                   ssid bssid rssi_dbm frequency_mhz last_seen_unix_ms
 ``TYPE_BEACON``                 iBeacon: uuid major minor tx_power rssi distance mac [time]
+                                (``Trace.ble``: :mod:`indoor_loc.datasets.ms_indoor_ble`)
 ==============================  ==============================================================
 
 Other row types (Bluetooth ``TYPE_BLUE``/``TYPE_BLU4``, ``TYPE_DIST1``…) are counted, not used.
@@ -41,7 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.datasets.ms_indoor_ble import beacon_row, beacon_scans
 from indoor_loc.errors import ConfigError, DatasetError, MapError
+from indoor_loc.wifi.ble import BleScan
 from indoor_loc.wifi.types import WifiScan
 
 
@@ -93,6 +96,8 @@ class Trace:
     waypoint_xy: np.ndarray
     scans: list[WifiScan]
     beacons: int = 0
+    #: the ``TYPE_BEACON`` rows as BLE scans (:mod:`indoor_loc.datasets.ms_indoor_ble`)
+    ble: list[BleScan] = field(default_factory=list)
     row_counts: Counter = field(default_factory=Counter)
     oddities: list[str] = field(default_factory=list)
     dropped: Counter = field(default_factory=Counter)
@@ -170,6 +175,7 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
     dropped: Counter = Counter()
     oddities: list[str] = []
     beacons = run_on = no_freq = no_seen = 0
+    beacon_rows: list = []
     try:
         fh = _open_text(path)
         with fh:
@@ -242,6 +248,11 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
                         wp.append((t, x, y))
                     elif typ == "TYPE_BEACON":
                         beacons += 1
+                        row = beacon_row(t, f)
+                        if isinstance(row, str):
+                            dropped[row] += 1
+                        else:
+                            beacon_rows.append(row)
     except (OSError, EOFError, zlib.error) as err:          # (gzip.BadGzipFile is an OSError)
         raise DatasetError(f"cannot read trace {path}: {err}") from err
     if not counts:
@@ -294,7 +305,8 @@ def read_trace(path: str | Path, *, imu: bool = True) -> Trace:
     if unknown:
         oddities.append("rows not used: " + ", ".join(f"{t} {counts[t]}" for t in unknown))
     return Trace(trace_id=trace_id_of(path), path=path, header=header, sensors=sensors, waypoint_t=wt,
-                 waypoint_xy=wxy, scans=scans, beacons=beacons, row_counts=counts, oddities=oddities,
+                 waypoint_xy=wxy, scans=scans, beacons=beacons, ble=beacon_scans(beacon_rows, trace_id_of(path)),
+                 row_counts=counts, oddities=oddities,
                  dropped=dropped, **sers)
 
 

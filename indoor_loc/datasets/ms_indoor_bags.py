@@ -12,6 +12,8 @@ a ROS name cannot start with a digit), log time = header stamp = the trace's Uni
   orientation_covariance = diag(σ_rp², σ_rp², σ_yaw²) with σ_rp = 2°, σ_yaw = 10° (Android reports
   no figure in these files).
 - ``wifi/scan`` (schema ``wifi_scan.v1``, frame ``<ns>/wifi_link``): one per scan with ``age_ms``.
+- ``ble/scan`` (schema ``ble_scan.v1``, frame ``<ns>/ble_link``): one per ``TYPE_BEACON`` time
+  (:mod:`indoor_loc.datasets.ms_indoor_ble`), ``tx_power_dbm`` the advertised power at 1 m.
 - ``ground_truth`` (nav_msgs/Path, frame ``map``, latched, written once at the first stamp): the
   waypoints, stamped, z = the floor's height (positions between waypoints are linear in time); not
   written for a walk with fewer than two waypoints (no span to interpolate over).
@@ -30,6 +32,7 @@ from indoor_loc.contract import join_ns
 from indoor_loc.datasets.ms_indoor import Trace
 from msg_adapters.imu import imu_to_msg, mag_to_msg
 from msg_adapters.path import path_to_msg
+from msg_adapters.ble_scan import ble_to_msg
 from msg_adapters.wifi_scan import scan_to_msg
 
 ROLL_PITCH_STD_RAD = math.radians(2.0)
@@ -55,7 +58,7 @@ def _causal(t_query: np.ndarray, t_ref: np.ndarray) -> np.ndarray:
 def trace_bag_counts(trace: Trace) -> dict[str, int]:
     """Messages per relative topic that :func:`write_trace_bag` writes."""
     return {"imu/data_raw": len(trace.acc), "imu/mag": len(trace.mag), "imu/data": len(trace.rotvec),
-            "wifi/scan": len(trace.scans), "ground_truth": int(len(trace.waypoint_t) > 1)}
+            "wifi/scan": len(trace.scans), "ble/scan": len(trace.ble), "ground_truth": int(len(trace.waypoint_t) > 1)}
 
 
 def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: str | None = None
@@ -66,7 +69,7 @@ def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: 
     name = ns.strip("/")
     imu_frame, wifi_frame = f"{name}/imu_link", f"{name}/wifi_link"
     t_raw, t_mag, t_imu = join_ns(ns, "imu/data_raw"), join_ns(ns, "imu/mag"), join_ns(ns, "imu/data")
-    t_wifi, t_gt = join_ns(ns, "wifi/scan"), join_ns(ns, "ground_truth")
+    t_wifi, t_gt, t_ble = join_ns(ns, "wifi/scan"), join_ns(ns, "ground_truth"), join_ns(ns, "ble/scan")
     acc, gyro, mag, rv = trace.acc, trace.gyro, trace.mag, trace.rotvec
     g_of_a = _causal(acc.t_ns, gyro.t_ns)
     a_of_r = _causal(rv.t_ns, acc.t_ns)
@@ -74,7 +77,8 @@ def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: 
     quat = trace.quaternions_xyzw() if len(rv) else np.zeros((0, 4))
     ori_cov = np.diag([ROLL_PITCH_STD_RAD ** 2, ROLL_PITCH_STD_RAD ** 2, YAW_STD_RAD ** 2])
     # (stamp, kind order, kind, index): one merged stream in stamp order
-    events = [(acc.t_ns, 0), (mag.t_ns, 1), (rv.t_ns, 2), (np.array([s.stamp_ns for s in trace.scans], np.int64), 3)]
+    events = [(acc.t_ns, 0), (mag.t_ns, 1), (rv.t_ns, 2), (np.array([s.stamp_ns for s in trace.scans], np.int64), 3),
+              (np.array([s.stamp_ns for s in trace.ble], np.int64), 4)]
     stamps = np.concatenate([e[0] for e in events]) if events else np.zeros(0, np.int64)
     kinds = np.concatenate([np.full(len(e[0]), e[1], np.int8) for e in events])
     idx = np.concatenate([np.arange(len(e[0])) for e in events])
@@ -100,9 +104,11 @@ def write_trace_bag(trace: Trace, path: str | Path, *, z_m: float = 0.0, floor: 
                 jg = g_of_r[i]
                 bag.write(t_imu, imu_to_msg(t, imu_frame, acc.values[ja, :3],
                                             gyro.values[jg, :3] if jg >= 0 else None, quat[i], ori_cov), t)
-            else:
+            elif k == 3:
                 scan = trace.scans[i]
                 bag.write(t_wifi, scan_to_msg(_with_frame(scan, wifi_frame, "ms_indoor")), t)
+            else:
+                bag.write(t_ble, ble_to_msg(_with_frame(trace.ble[i], f"{name}/ble_link", "ms_indoor")), t)
         return dict(bag.topic_counts())
 
 

@@ -20,6 +20,11 @@ floor; ``wifi/fix`` then carries ``pose.position.z`` = the floor's height from t
 ``floors: {name: z_m}`` and ``covariance[14]`` its variance; diagnostics give ``last_floor``.
 On a single-floor map z is 0.
 
+BLE (``ble.enabled``): the node also takes ``ble/scan`` (schema ``ble_scan.v1``) and adds the beacons heard in
+the last ``ble.window_s`` before each WiFi scan to it as entries ``ble:<beacon id>`` (:mod:`indoor_loc.wifi.ble`),
+so a radio map holding those keys (the importers build them from the survey the same way) locates the scan on
+WiFi and BLE together; diagnostics give ``ble.*``. A jump back in time forgets the readings.
+
 Floor plans: ``floor_plans`` names the directory of per-floor plans ``indoor-loc import ms-indoor``
 writes (``OUT_DIR/floors``); with ``powed.field_weight`` > 0 the powed method's extrapolating radio map
 then extends only over each floor's walkable area (:mod:`indoor_loc.wifi.walkable`). A missing or
@@ -73,9 +78,11 @@ from indoor_loc.params import field, group, require, validate_groups
 from indoor_loc.contract import Qos
 from indoor_loc.errors import InvalidMessageError
 from msg_adapters.pose import fix_to_msg
+from msg_adapters.ble_scan import ble_from_msg
 from msg_adapters.wifi_scan import scan_from_msg
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import TimeParams
+from indoor_loc.wifi.ble import BleParams, BleWindow
 from indoor_loc.wifi.coverage import CoverageParams
 from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner, plan_files
 from indoor_loc.wifi.map_check import MapCheck, MapCheckParams, MapCheckState
@@ -116,6 +123,8 @@ class WifiFixParams:
     powed: PowedKnnParams = group(PowedKnnParams, "powed k-NN (indoor_loc/wifi/powed_knn.py; powed.k, "
                                                   "powed.age_tau_ms, ...)")
     time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
+    ble: BleParams = group(BleParams, "BLE beacons as a second RF source (indoor_loc/wifi/ble.py; ble.enabled, "
+                                      "ble.window_s): ble/scan readings join the WiFi scans as 'ble:<id>' entries")
     map_check: MapCheckParams = group(MapCheckParams, "whether the scans still fit the radio map: a WARN when most "
                                                       "are declined or they match it far worse than its own scans "
                                                       "(indoor_loc/wifi/map_check.py; map_check.*)")
@@ -202,6 +211,11 @@ class WifiFixStage(Stage):
         if self.radio_map is not None and params.map_check.enabled:
             self._new_map_check(self.radio_map)
         self.on("wifi/scan", self._on_scan)
+        #: BLE readings of the last ble.window_s (ble.enabled), joined to each WiFi scan
+        self.ble_window = BleWindow(params.ble.window_s)
+        self.ble_merged = 0             # WiFi scans that got at least one beacon
+        if params.ble.enabled:
+            self.on("ble/scan", self._on_ble)
 
     def for_user(self, namespace: str) -> WifiFixStage:
         """A stage for another user sharing this one's radio map, floor plans, fitted positioner and the
@@ -216,7 +230,18 @@ class WifiFixStage(Stage):
         return other
 
     def inputs(self) -> list[Port]:
-        return [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, required=True)]
+        ports = [Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, required=True)]
+        if self.params.ble.enabled:     # beacons may be absent where the user is: an occasional input
+            ports.append(Port("ble/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE, stream=False))
+        return ports
+
+    def reset_user(self, user: str) -> list[Output]:
+        self.ble_window.clear()         # readings of the old pass must not join the new pass's scans
+        return []
+
+    def _on_ble(self, msg, recv_ns: int) -> list[Output]:
+        self.ble_window.add(ble_from_msg(msg))          # InvalidMessageError -> counted by reason
+        return []
 
     def outputs(self) -> list[Port]:
         return [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
@@ -311,6 +336,10 @@ class WifiFixStage(Stage):
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
         scan = scan_from_msg(msg)          # InvalidMessageError -> counted by reason
+        if self.params.ble.enabled:
+            n = len(scan)
+            scan = self.ble_window.merge(scan)
+            self.ble_merged += len(scan) > n
         if self.positioner is None and self.fitting is None:
             if self.fit_error:
                 raise InvalidMessageError("fit_failed", self.fit_error)
@@ -393,6 +422,9 @@ class WifiFixStage(Stage):
             out["fit.queued"] = str(len(self.pending))
         elif self.located_late:
             out["fit.located_late"] = str(self.located_late)
+        if self.params.ble.enabled:
+            out["ble.beacons_in_window"] = str(len(self.ble_window.readings))
+            out["ble.scans_with_beacons"] = str(self.ble_merged)
         if self.fixes:
             out["last_fix_sigma_m"] = f"{self.last_sigma_m:.2f}"
         if self.map_check is not None and self.map_check.radio_map is self.radio_map:

@@ -17,6 +17,7 @@ from msg_adapters.tf import tf_message, transform_from_msg, transform_to_msg
 from msg_adapters.time import stamp_from_ns, stamp_to_ns
 from msg_adapters.wifi_scan import scan_from_msg, scan_to_msg
 from indoor_loc.measurements import Fix
+from indoor_loc.wifi.ble import BleScan
 from indoor_loc.wifi.types import WifiScan
 
 NAMESPACE = "/alice"
@@ -40,6 +41,9 @@ V = {
     "path_yaw": _rng.uniform(-3, 3, size=50),
     "nodes": np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 8.0], [0.0, 8.0]]), "links": np.array([[0, 1], [1, 2], [2, 3]]),
     "wifi_map": _rng.uniform(0, 40, size=(30, 2)),
+    "ble": BleScan(stamp_ns=T0 + 14, beacon_id=("00000000-0000-beac-2022-000000005938-1-2", "abcdef012345"),
+                   rssi_dbm=np.array([-70.5, -88.0]), tx_power_dbm=np.array([-59.0, np.nan]),
+                   name=("20:22:b0:00:51:42", "20:22:b0:00:51:43"), frame_id="alice/ble_link", source="test"),
 }
 
 
@@ -53,7 +57,7 @@ CANONICAL_BY_TYPE = {
 }
 _OWN = {"imu/data_raw", "imu/mag", "imu/data", "wifi/scan", "pdr/odom", "wifi/fix", "pf/pose", "pf/particles",
         "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json",
-        "pf/map_odom", "/tf"}
+        "pf/map_odom", "/tf", "baro/pressure", "ble/scan"}
 SCAN_JSON = '{"bssid": "aa:bb:cc:dd:ee:01", "rssi": -61, "ssid": "café"}'
 
 
@@ -105,6 +109,12 @@ def build(topic: str):
         return transform_to_msg(T0 + 13, "map", "alice/odom", 3.25, -7.5, 0.6)
     if topic == "/tf":
         return tf_message([transform_to_msg(T0 + 13, "map", "alice/odom", 3.25, -7.5, 0.6)], 500_000_000)
+    if topic == "baro/pressure":
+        from msg_adapters.pressure import pressure_to_msg
+        return pressure_to_msg(T0 + 13, "alice/imu_link", 101325.125, 0.25)
+    if topic == "ble/scan":
+        from msg_adapters.ble_scan import ble_to_msg
+        return ble_to_msg(V["ble"])
     raise KeyError(f"no test message for contract topic {topic!r}")
 
 
@@ -174,6 +184,14 @@ def check(topic: str, msg) -> None:
         assert (stamp, parent, child, x, y) == (T0 + 13 + (500_000_000 if topic == "/tf" else 0), "map", "alice/odom",
                                                 3.25, -7.5)
         assert abs(yaw - 0.6) < 1e-12
+    elif topic == "baro/pressure":
+        from msg_adapters.pressure import pressure_from_msg
+        assert pressure_from_msg(msg) == (T0 + 13, 101325.125, 0.25, "alice/imu_link")
+    elif topic == "ble/scan":
+        from msg_adapters.ble_scan import ble_from_msg
+        b, e = ble_from_msg(msg), V["ble"]
+        assert (b.stamp_ns, b.beacon_id, b.name, b.frame_id) == (e.stamp_ns, e.beacon_id, e.name, e.frame_id)
+        assert np.array_equal(b.rssi_dbm, e.rssi_dbm) and np.array_equal(b.tx_power_dbm, e.tx_power_dbm, equal_nan=True)
     else:
         raise KeyError(topic)
 
