@@ -22,7 +22,9 @@ there), each walk's run to ``WORK/runs/<key>/<floor>/<walk>.mcap`` with its timi
 ``key`` hashes the effective params file and the nodes — ``--set node.key=value`` (repeatable)
 overrides a parameter of every namespace's node, so variants never mix. A finished walk is never
 run again; two benches on one work directory only duplicate work (every file is written to a
-temporary name and renamed). ``--floors B1,F7`` and ``--walks-per-floor N`` (the first N test walks
+temporary name and renamed). A variant that sets only parameters of ``pdr_kf_node``, ``tll_pf`` or
+``backend_node`` replays the base run's ``pdr/odom`` and ``wifi/fix`` (and the walk's scans) through
+those three nodes alone, so it costs their time only. ``--floors B1,F7`` and ``--walks-per-floor N`` (the first N test walks
 of each floor) make the subsets for development.
 """
 from __future__ import annotations
@@ -46,6 +48,9 @@ ESTIMATORS: tuple[tuple[str, str], ...] = (
     ("pf/path", "smoothed"), ("backend/{user}/pose", "causal"), ("backend/{user}/path", "smoothed"))
 WKNN = "plain WKNN"
 NODES = "imu,wifi,pdr_kf,pf,backend"
+#: the estimators after the front end: a variant that changes only these (``--set`` on their nodes)
+#: replays the base run's pdr/odom and wifi/fix through them instead of the whole walk
+BACK_NODES = {"pdr_kf_node": "pdr_kf", "tll_pf": "pf", "backend_node": "backend"}
 #: plain WKNN (the ms_site2 WiFi bench's baseline)
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
 #: floors the fusion choices were made on (the rest are checked once)
@@ -112,14 +117,15 @@ def ensure_import(site: Path, work: Path) -> Path:
     return out
 
 
-def run_walk(bag: Path, out: Path, params: Path, nodes: str) -> dict[str, float]:
+def run_walk(bags: list[Path], out: Path, params: Path, nodes: str,
+             copy: tuple[str, ...] = ("ground_truth",)) -> dict[str, float]:
     """One ``indoor-loc run`` of one walk (cached with its timing in ``<out>.json``)."""
     from indoor_loc.pipeline.offline import run_offline
     meta = out.with_suffix(".json")
     if out.exists() and meta.exists():
         return dict(json.loads(meta.read_text()))
     out.parent.mkdir(parents=True, exist_ok=True)
-    s = run_offline([bag], out, nodes=nodes.split(","), params=params, progress=False, overwrite=True)
+    s = run_offline(bags, out, nodes=nodes.split(","), params=params, progress=False, overwrite=True, copy=copy)
     t = {"wall_s": s.wall_s, "cpu_s": s.cpu_s, "walk_s": s.bag_span_s}
     _atomic_write(meta, json.dumps(t))
     return t
@@ -284,7 +290,10 @@ def run(args: argparse.Namespace) -> int:
         work = Path("out/bench_fusion") / site.name
     work.mkdir(parents=True, exist_ok=True)
     imp = ensure_import(site, work)
-    params, key = effective_params(imp, list(getattr(args, "set", None) or []), work)
+    sets = list(getattr(args, "set", None) or [])
+    params, key = effective_params(imp, sets, work)
+    base_params, base_key = effective_params(imp, [], work)
+    back_only = bool(sets) and all(_set_value(x)[0] in BACK_NODES for x in sets)
     split = yaml.safe_load((imp / "split.yaml").read_text())
     floors = [f.strip() for f in (getattr(args, "floors", "") or "").split(",") if f.strip()] or list(split)
     per_floor = int(getattr(args, "walks_per_floor", 0) or 0)
@@ -295,14 +304,23 @@ def run(args: argparse.Namespace) -> int:
         for k, walk in enumerate(walks):
             bag = imp / floor / f"{walk}.mcap"
             out = work / "runs" / key / floor / f"{walk}.mcap"
-            timing = run_walk(bag, out, params, NODES)
+            if back_only:       # the front end is the base run's: replay its pdr/odom and wifi/fix
+                base = work / "runs" / base_key / floor / f"{walk}.mcap"
+                run_walk([bag], base, base_params, NODES)
+                timing = run_walk([bag, base], out, params, ",".join(BACK_NODES.values()),
+                                  copy=("wifi/fix",))
+            else:
+                timing = run_walk([bag], out, params, NODES)
             scores.setdefault(floor, []).append(score_walk(floor, walk, bag, out, timing, wknn_track(bag, pos)))
             print(f"\r{floor}: {k + 1}/{len(walks)} walks", end="", file=sys.stderr, flush=True)
         print(file=sys.stderr)
     report: dict[str, Any] = {"site": str(site), "params": str(params), "sets": list(getattr(args, "set", None) or []),
                               "floors": {}}
-    print(f"# bench fusion: {site} (params {params}; developed on {', '.join(DEVELOPED_ON)}, "
-          f"the other floors checked once)\n")
+    print(f"# bench fusion: {site} (params {params}{', ' + ' '.join(sets) if sets else ''}; developed on "
+          f"{', '.join(DEVELOPED_ON)}, the other floors checked once)\n")
+    if back_only:
+        print("(variant of the back-end nodes only: the base run's pdr/odom and wifi/fix replayed through "
+              f"{', '.join(BACK_NODES)}; the times below are theirs alone)\n")
     for floor, sc in scores.items():
         role = "developed on" if floor in DEVELOPED_ON else "held out"
         text, d = table(sc, f"{floor} ({role})")
