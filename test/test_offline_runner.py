@@ -1,6 +1,7 @@
 """`indoor-loc run` as a user meets it: stages resolved by topics (any --nodes order), ticks that
 follow the data across long gaps, stage exceptions in tick/finish counted not fatal, outputs that
-never clobber inputs or existing files, a node with nothing to do is an error, bag time per user."""
+never clobber inputs or existing files, a node with nothing to do is warned about (an error only when no
+requested node can run), bag time per user."""
 from __future__ import annotations
 
 import sys
@@ -114,6 +115,19 @@ def test_a_node_with_nothing_to_do_is_an_error(tmp_path, capsys):
     assert "(e.g. wifi,wifi_scan,pdr_kf)" in err          # pdr/odom has no producer here; wifi/fix does
     assert cli_main(["run", str(bag), "--nodes", "pf", "--out", str(tmp_path / "o.mcap")]) == 2
     assert "(e.g. wifi,wifi_scan,pf)" in capsys.readouterr().err        # the hint names pf's producers
+
+
+def test_an_idle_node_beside_working_ones_is_a_warning(tmp_path, capsys):
+    # a walk without IMU (or, as on a real site, without WiFi scans): the nodes that can run do
+    bag, params = _scan_bag(tmp_path, [2 * S, 3 * S])
+    out = tmp_path / "o.mcap"
+    s = run_offline([bag], out, nodes=["wifi_scan", "wifi", "imu", "pdr_kf"], params=params, progress=False)
+    err = capsys.readouterr().err
+    assert "warning: nothing to do for node(s) imu" in err and "imu/data_raw" in err
+    assert s.idle == ["imu"] and ("indoor-loc run", s.notices[0][1]) == s.notices[0]
+    assert Counter(m.topic for m in read_bag([out]))["/alice/wifi/fix"] == 2
+    assert cli_main(["run", str(bag), "--nodes", "imu,wifi_scan,wifi", "--params", str(params),
+                     "--out", str(tmp_path / "o2.mcap")]) == 0
 
 
 def test_a_stage_missing_its_radio_map_says_so_at_start(tmp_path, capsys):

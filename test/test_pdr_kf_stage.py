@@ -15,9 +15,9 @@ from indoor_loc.measurements import Fix
 STEP = 0.65
 
 
-def _walk(rng: np.random.Generator, n: int = 120):
+def _walk(rng: np.random.Generator, n: int = 120, yaw_offset: float = 1.0):
     """A walk of 2-step intervals around a 20 x 10 m rectangle; PDR in an odom frame rotated by
-    an unknown 1 rad and with noisy heading; WiFi fixes (sigma 2 m) every 3rd interval."""
+    an unknown 1 rad (``yaw_offset``) and with noisy heading; WiFi fixes (sigma 2 m) every 3rd interval."""
     t = np.arange(n) * 1_000_000_000 + 5_000_000_000
     true_xy = [np.array([2.0, 2.0])]
     yaw = 0.0
@@ -28,7 +28,7 @@ def _walk(rng: np.random.Generator, n: int = 120):
         yaws.append(yaw)
         true_xy.append(true_xy[-1] + 2 * STEP * np.array([math.cos(yaw), math.sin(yaw)]))
     true_xy = np.array(true_xy[1:])
-    odom_yaw = np.array(yaws) + 1.0 + np.cumsum(rng.normal(0, 0.01, n))
+    odom_yaw = np.array(yaws) + yaw_offset + np.cumsum(rng.normal(0, 0.01, n))
     ox = oy = 0.0
     odoms, fixes = [], []
     for i in range(n):
@@ -265,3 +265,18 @@ def test_pose_heading_from_the_step_vector(rng):
             d = abs((p.yaw - true_yaw[i - 1] + math.pi) % (2 * math.pi) - math.pi)
             err += d > 3 * math.sqrt(var) + 0.35                    # turns make the one-step lag differ
     assert known > len(poses) // 2 and err <= 0.1 * known, (known, err, len(poses))
+
+
+def test_a_calibrated_odom_heading_starts_the_filter_on_course(rng):
+    # odometry whose yaw is the map heading (an importer calibrated the phone's offset): with
+    # heading_prior_std_rad the causal filter walks the right way from its first fix; without, its
+    # step vector starts at zero and only the fixes turn it
+    t, true_xy, odoms, fixes = _walk(rng, n=15, yaw_offset=0.0)
+    err = {}
+    for sd in (0.0, 0.3):
+        stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0, "heading_prior_std_rad": sd}))
+        poses, _ = _run(stage, odoms, fixes)
+        est = [(p.stamp_ns, p.xy) for p in map(pose_from_msg, poses)]
+        idx = np.searchsorted(t, [s for s, _ in est], side="right") - 1
+        err[sd] = float(np.mean([np.linalg.norm(xy - true_xy[i]) for (_, xy), i in zip(est, idx)]))
+    assert err[0.3] < 0.85 * err[0.0], err

@@ -20,6 +20,7 @@ BENCHES = {
     "robot": "indoor_loc.bench.robot",
     "floors": "indoor_loc.bench.floors",
     "ble": "indoor_loc.bench.ble_ms",
+    "fusion": "indoor_loc.bench.fusion",
 }
 
 
@@ -40,17 +41,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live", action="store_true", help="backend: also replay all walks live over DDS "
                                                             "through backend_node at 1x and 10x")
     parser.add_argument("--dataset", default="", help="dataset of the benchmark when it has several "
-                                                      "(wifi: putmc (default) or ms_site2)")
+                                                      "(wifi: putmc (default) or ms_site2; fusion: ms_site2)")
     parser.add_argument("--site", type=Path, help="wifi: a site directory of the Microsoft Indoor Location "
                                                   "Competition 2.0 format (<floor>/path_data_files/...): the "
                                                   "ms_site2 tables on its floors")
     parser.add_argument("--floors", default="", help="wifi --site/ms_site2, ble: comma-separated floor names (default all)")
+    parser.add_argument("--floors", default="", help="wifi --site/ms_site2, fusion: comma-separated floor names (default all)")
     parser.add_argument("--floor-levels", default="", help="wifi --site/ms_site2: storey index per floor, "
                                                            "NAME=LEVEL,... (default: from the floor names)")
     parser.add_argument("--metadata", type=Path, help="wifi --site: the floors' plan files as <floor>/... when "
                                                       "the site's floor directories hold only traces")
     parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
-    parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay")
+    parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay; fusion: "
+                             "the same, WORK/<site> (default out/bench_fusion)")
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
     parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")
@@ -81,6 +84,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                               "their run, default 1800 s; --quick: 1 robot x 600 s)")
     parser.add_argument("--kidnap-duration", type=float, default=-1.0, help="robot: the kidnapped robots' run, "
                                                                             "carried at its half, s (default 600; 0 = skip)")
+    parser.add_argument("--set", action="append", default=[], metavar="NODE.KEY=VALUE",
+                        help="fusion: override a parameter of the import's params.yaml for every namespace's node "
+                             "(repeatable; e.g. tll_pf.n_particles=500); each variant is cached apart")
+    parser.add_argument("--walks-per-floor", type=int, default=0,
+                        help="fusion: only the first N test walks of each floor (a development subset)")
+    parser.add_argument("--per-walk", action="store_true", help="fusion: also print every walk's mean errors")
     parser.add_argument("--sensor-qos", choices=("reliable", "best_effort"), default="reliable",
                         help="live: reliability of the nodes' sensor inputs (default reliable, as for a replay)")
 

@@ -41,6 +41,7 @@ import yaml
 from indoor_loc.backend.graph import FIX_GRAPH_PARAMS
 from indoor_loc.errors import ConfigError, DatasetError
 from indoor_loc.output_paths import check_outputs
+from indoor_loc.pipeline.imu_stage import ImuStageParams
 from indoor_loc.params import params_file_text
 from indoor_loc.wifi.methods import recommended_params
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, save_radiomap
@@ -134,6 +135,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     floor_rows: list[dict] = []
     skipped: list[str] = []
     heading: dict[str, list] = {}
+    seeds: dict[str, list] = {}                       # floor -> survey waypoints (where the graph must reach)
     floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
     for fl in floors:
         ids = all_ids[fl.name]
@@ -175,6 +177,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                     oddities.append(f"{tid}: {off} of {len(wx)} waypoints outside the floor's extent "
                                     f"[0, {fl.width_m:.1f}] × [0, {fl.height_m:.1f}] m")
             if tid in survey:
+                if len(tr.waypoint_xy):
+                    seeds.setdefault(fl.name, []).append(tr.waypoint_xy[:, :2])
                 sc, xy = scans_with_truth(tr)
                 if sc and ble_window > 0:
                     sc = merge_scans(sc, tr.ble, ble_window)
@@ -213,7 +217,15 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     # the floor plans bound powed k-NN's extrapolating radio map (a site without any GeoJSON plan: none)
     plans = out / "floors"
     has_plan = any((plans / f.name / "geojson_map.json").exists() for f in floors)
-    params: dict = {"imu_node": imu_params}
+    params: dict = {"imu_node": imu_params,
+                    # the PDR Kalman filter counts steps as distance / the imu_node's step length
+                    "pdr_kf_node": {"step_length_m": ImuStageParams().step_length_m}}
+    graphs = _floor_graphs(floors, plans, seeds, floor_z, oddities)
+    walk_keys = _pf_walk_keys(rows, graphs)
+    if len(graphs) == 1 or (graphs and not walk_keys):
+        params["tll_pf"] = {"graph_file": str(next(iter(graphs.values()))), **PF_MALL_PARAMS}
+    elif graphs:
+        params["tll_pf"] = dict(PF_MALL_PARAMS)
     if rm.n_scans:
         params["wifi_fix_node"] = {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}
         if ble_window > 0 and any(b.startswith("ble:") for b in rm.bssids):
@@ -225,7 +237,9 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
         "heading_offset_rad: walking direction in the map frame minus the phone's yaw, from the waypoints\n"
         "(import_report.md, 'Heading check'); absent when the walks show no constant offset.\n"
-        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file).")))
+        "Keys /**/<node> reach the node in any namespace (ros2 run ... -r __ns:=/<floor>_<id> --params-file);\n"
+        "/<floor>_<id>/tll_pf keys give each imported walk its floor's graph (floors/<floor>/graph.yaml)."))
+        + _walk_keys_text(walk_keys))
     heading_note = _heading_note(heading)
     (out / "import_report.md").write_text(_report(src, rows, oddities, rm, floor_z, args.storey_height_m)
                                           + "\n" + _floors_note(floor_rows, site.ignored, dropped, site.metadata)
@@ -245,6 +259,53 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     if skipped:
         print(f"SKIPPED {len(skipped)} unreadable walk(s): {', '.join(skipped)} (see the report)")
     return 0
+
+
+#: ``tll_pf`` on a mall's imported site: the smoother takes a redrawn particle's predecessor from
+#: the filter's weights (``mixture``), as the fixes are broad and sometimes far off (docs/backend.md,
+#: "On a mall").
+PF_MALL_PARAMS = {"smooth_redrawn": "mixture"}
+
+
+def _floor_graphs(floors, plans: Path, seeds: dict[str, list], floor_z: dict[str, float],
+                  oddities: list[str]) -> dict[str, Path]:
+    """``floors/<floor>/graph.yaml`` for every floor whose GeoJSON plan was copied: the plan's
+    skeleton (:func:`indoor_loc.graph.floor_plan.floor_plan_graph`) reaching the survey waypoints.
+    A plan that gives no graph is named in the report; that floor's walks then get no tll_pf graph."""
+    from indoor_loc.errors import MapError
+    from indoor_loc.graph.floor_plan import floor_plan_graph
+    from indoor_loc.graph.io import save_graph
+    out: dict[str, Path] = {}
+    for fl in floors:
+        gj = plans / fl.name / "geojson_map.json"
+        if not gj.exists():
+            continue
+        pts = np.vstack(seeds[fl.name]) if seeds.get(fl.name) else None
+        try:
+            g = floor_plan_graph(gj, extent_m=(fl.width_m, fl.height_m), floor=fl.name, z_m=floor_z[fl.name],
+                                 seeds_xy=pts)
+        except MapError as err:
+            oddities.append(f"floor {fl.name}: no link graph from its plan: {err}")
+            continue
+        out[fl.name] = save_graph(g, plans / fl.name / "graph.yaml", source={
+            "tool": "indoor-loc import ms-indoor", "geojson": "geojson_map.json", "floor": fl.name,
+            "extent_m": [fl.width_m, fl.height_m], "seeds": "survey waypoints"})
+        print(f"graph {fl.name}: {out[fl.name]} ({g.n_nodes} nodes, {g.n_links} links, {g.link_len.sum():.0f} m)")
+    return out
+
+
+def _pf_walk_keys(rows: list[dict], graphs: dict[str, Path]) -> dict[str, dict]:
+    """``/<floor>_<id>/tll_pf`` -> its floor's graph, for every walk written on a floor with a graph
+    (a site of several floors: one ``/**/tll_pf`` graph cannot fit them all)."""
+    if len(graphs) < 2:
+        return {}
+    return {f"{r['ns']}/tll_pf": {"graph_file": str(graphs[r["floor"]])} for r in rows if r["floor"] in graphs}
+
+
+def _walk_keys_text(keys: dict[str, dict]) -> str:
+    if not keys:
+        return ""
+    return yaml.safe_dump({k: {"ros__parameters": v} for k, v in keys.items()}, sort_keys=False)
 
 
 def _heading_offset(heading: dict[str, list]) -> float | None:

@@ -19,6 +19,7 @@ Joseph-form covariance update.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
@@ -184,10 +185,11 @@ class LinearPdrKf(PositionFilter):
     ``update(fix)`` per WiFi fix; ``state`` can be saved (``state.copy()``) and restored."""
 
     def __init__(self, params: LinearPdrParams | None = None, *, xy0: np.ndarray | None = None,
-                 pos_cov0: np.ndarray | None = None, stamp_ns: int = 0) -> None:
+                 pos_cov0: np.ndarray | None = None, stamp_ns: int = 0,
+                 heading: tuple[float, float] | None = None) -> None:
         self.params = params or LinearPdrParams()
         self.params.validate()
-        self.state = initial_state(self.params, xy0=xy0, pos_cov0=pos_cov0, stamp_ns=stamp_ns)
+        self.state = initial_state(self.params, xy0=xy0, pos_cov0=pos_cov0, stamp_ns=stamp_ns, heading=heading)
         self.last_F = np.eye(4)
 
 
@@ -218,15 +220,27 @@ class LinearPdrKf(PositionFilter):
 
 
 def initial_state(p: LinearPdrParams, *, xy0: np.ndarray | None = None, pos_cov0: np.ndarray | None = None,
-                  stamp_ns: int = 0) -> KfState:
+                  stamp_ns: int = 0, heading: tuple[float, float] | None = None) -> KfState:
     """Initial state: position ``xy0`` (default 0 with ``init_pos_var_m2``), step vector 0 with
-    ``init_step_var_m2`` per axis (no initial heading)."""
+    ``init_step_var_m2`` per axis (no initial heading) — or, with ``heading = (ψ, σψ)`` (rad, map
+    frame: the odometry's yaw when it is known to be map-aligned), the step vector
+    ``s (cos ψ, sin ψ)`` with variance ``(s σψ)²`` across it and ``sigma_ds_m² + (0.2 s)²`` along it
+    (first order in σψ; ``s`` = ``step_length_m``)."""
     x = np.zeros(4)
     Pm = np.diag([p.init_pos_var_m2, p.init_pos_var_m2, p.init_step_var_m2, p.init_step_var_m2])
     if xy0 is not None:
         x[:2] = np.asarray(xy0, float).reshape(2)
     if pos_cov0 is not None:
         Pm[:2, :2] = np.asarray(pos_cov0, float).reshape(2, 2)
+    if heading is not None:
+        psi, sd = float(heading[0]), float(heading[1])
+        if not (np.isfinite(psi) and np.isfinite(sd) and sd > 0):
+            raise InvalidInputError("bad_heading", f"initial heading: expected finite yaw and std > 0, got {heading}")
+        s = p.step_length_m
+        u = np.array([math.cos(psi), math.sin(psi)])
+        n = np.array([-u[1], u[0]])
+        x[2:4] = s * u
+        Pm[2:4, 2:4] = (p.sigma_ds_m ** 2 + (0.2 * s) ** 2) * np.outer(u, u) + (s * sd) ** 2 * np.outer(n, n)
     return KfState(x=x, P=Pm, stamp_ns=int(stamp_ns))
 
 

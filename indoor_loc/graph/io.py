@@ -120,7 +120,7 @@ def graph_to_dict(g: BuildingGraph, *, source: Mapping[str, Any] | None = None) 
     """The document :func:`graph_from_dict` reads back (round trip exact to the float repr)."""
     ids = g.node_ids
     floor_ids = np.array([f.id for f in g.floors])[g.node_floor]
-    multi = len(g.floors) > 1 or g.floors[0].id != 0 or g.floors[0].height_m != 0.0
+    multi = len(g.floors) > 1 or g.floors[0] != Floor(0, "0", 0.0)      # a named floor keeps its name
     nodes = [[int(i), float(x), float(y)] + ([int(f)] if multi else [])
              for i, (x, y), f in zip(ids, g.node_xyz[:, :2], floor_ids)]
     hor = [[int(ids[a]), int(ids[b])] for (a, b), v in zip(g.link_nodes, g.link_vertical) if not v]

@@ -82,6 +82,8 @@ class RunSummary:
     order: str = "merged"
     #: the stages' notices in the order said: (node, e.g. ``/backend_node``, text)
     notices: list[tuple[str, str]] = field(default_factory=list)
+    #: requested nodes that had nothing to do (no input topic in any namespace), warned about
+    idle: list[str] = field(default_factory=list)
 
 
 def with_producers(nodes: list[str], idle: list[str], available: set[str]) -> list[str]:
@@ -225,7 +227,8 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     Ticks (timers, ``/diagnostics``) run once a second of bag time while data flows; across a gap
     in the data (recordings made days apart) they resume with the data instead of running once per
     second of the gap. A stage whose ``tick``/``finish`` raises counts ``internal_error`` and the
-    run goes on. A requested node that no namespace can feed is a ConfigError (nothing to do).
+    run goes on. A requested node that no namespace can feed is warned about (stderr and
+    :attr:`RunSummary.idle`) while the others run; a ConfigError only when no requested node can run.
     ``batch=False`` hands every message to its stages one by one, as live (same output).
     """
     import time
@@ -263,12 +266,17 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     multi = build_multi_user_stages(nodes, params_file)
     running = {s.NODE_NAME for lst in stages.values() for s in lst} | {s.NODE_NAME for s in multi}
     idle = [n for n in nodes if stage_class(n).NODE_NAME not in running]
+    idle_notice = ""
     if idle:
-        raise ConfigError(
-            "nothing to do for node(s) " + ", ".join(f"{n} (needs one of {inputs_of[n]})" for n in idle)
-            + f": no namespace of the input has these topics, and no other node given produces them "
-              f"(inputs: {sorted(topics)[:8]}{' ...' if len(topics) > 8 else ''}); add the producing "
-              f"nodes to --nodes (e.g. {','.join(with_producers(nodes, idle, set(topics)))})")
+        text = ("nothing to do for node(s) " + ", ".join(f"{n} (needs one of {inputs_of[n]})" for n in idle)
+                + f": no namespace of the input has these topics, and no other node given produces them "
+                  f"(inputs: {sorted(topics)[:8]}{' ...' if len(topics) > 8 else ''})")
+        if not running:                  # no requested node has anything to do: the run is pointless
+            raise ConfigError(f"{text}; add the producing nodes to --nodes "
+                              f"(e.g. {','.join(with_producers(nodes, idle, set(topics)))})")
+        # the others run (a walk without WiFi scans still gets its PDR): say so, once, and go on
+        idle_notice = f"{text}; the other nodes run without them"
+        print(f"indoor-loc run: warning: {idle_notice}", file=sys.stderr)
     for ns, st in [(ns, st) for ns, lst in stages.items() for st in lst] + [("", st) for st in multi]:
         standing = st.extra_diagnostics().get("error")
         if standing:   # a required input (radio map, graph) is missing: say so once, as a live node does
@@ -287,6 +295,9 @@ def run_offline(bags: list[Path], out: Path, *, nodes: list[str], params: Path |
     copy = set(copy)
     total = sum(c for _, c in topics.values())
     summary = RunSummary()
+    summary.idle = list(idle)
+    if idle_notice:
+        summary.notices.append(("indoor-loc run", idle_notice))
     last_ns = None
 
     bar = None

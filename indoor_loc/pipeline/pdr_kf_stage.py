@@ -59,6 +59,9 @@ class PdrKfStageParams:
     kf_step_length_m: float = field(0.7, "footstep length s in the heading-noise model (m)")
     sigma_dtheta_rad: float = field(0.2, "heading-change noise per footstep (rad); 0.2 measured best on PUTMC (0.1 and 0.3 also tried)")
     sigma_ds_m: float = field(0.07, "step-vector length change noise per footstep (m)")
+    heading_prior_std_rad: float = field(0.0, "trust pdr/odom's yaw as the map-frame heading at each (re)start, with "
+                                              "this std (rad; an importer that calibrated the phone's heading offset "
+                                              "sets it); 0 = no initial heading (the paper's filter)")
     gate_prob: float = field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
     max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
     max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
@@ -95,6 +98,7 @@ class PdrKfStageParams:
         require(self.odom_hold_s >= 0, n, "odom_hold_s", ">= 0", self.odom_hold_s)
         require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
         require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
+        require(self.heading_prior_std_rad >= 0, n, "heading_prior_std_rad", ">= 0", self.heading_prior_std_rad)
         self.kf_params().validate()
         self.floors.validate()
         self.baro.validate()
@@ -159,6 +163,7 @@ class PdrKfStage(Stage):
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
         self._held: deque[tuple[int, Any, Any]] = deque()  # (stamp, odom, interval) held for odom_hold_s
         self._last_odom_ns: int | None = None             # stamp of the last odom applied
+        self._last_yaw: float | None = None                 # yaw of the last odom applied (map frame if calibrated)
         self._seq = 0
         self._last_smooth_ns: int | None = None
         self.floor = FloorTrack(params.baro, params.floors)
@@ -219,6 +224,7 @@ class PdrKfStage(Stage):
     def _apply_odom(self, od, interval) -> list[Output]:
         outs = self._apply_pending(lambda s: s < od.stamp_ns)   # fixes inside the interval just closed
         self._last_odom_ns = od.stamp_ns
+        self._last_yaw = od.yaw
         if interval is None or self.kf is None:
             return outs
         self.kf.predict(interval.steps, interval.dtheta, stamp_ns=od.stamp_ns)
@@ -297,7 +303,10 @@ class PdrKfStage(Stage):
         """(Re)start the filter at a fix: the previous segment becomes final, a new one begins."""
         if self._epochs:
             self._smooth_window(finalize_before=None)
-        self.kf = LinearPdrKf(self.params.kf_params(), xy0=fix.xy, pos_cov0=fix.cov, stamp_ns=fix.stamp_ns)
+        sd = self.params.heading_prior_std_rad
+        heading = (self._last_yaw, sd) if sd > 0 and self._last_yaw is not None else None
+        self.kf = LinearPdrKf(self.params.kf_params(), xy0=fix.xy, pos_cov0=fix.cov, stamp_ns=fix.stamp_ns,
+                              heading=heading)
         st = self.kf.state
         self._prior = (st.x.copy(), st.P.copy())
         self._epochs = [[fix.stamp_ns, 0.0, 0.0, None, st.x.copy(), None]]
