@@ -235,7 +235,7 @@ class PfStage(Stage):
         self._last_path_ns = None
         self._n_pose = 0
         self._odom_guard = OdomJumpGuard()
-        self._robot = RobotOdomReader(params.odom)
+        self._robot = RobotOdomReader(self.params.odom)
         return outs
 
     def _new_tracker(self) -> GraphTracker:
