@@ -189,3 +189,52 @@ def test_ms_import_puts_beacons_in_the_map_only_when_asked(tmp_path):
     assert params["ble"] == {"enabled": True, "window_s": 5.0}
     assert "ble" not in yaml.safe_load((tmp_path / "plain" / "params.yaml").read_text())["/**/wifi_fix_node"][
         "ros__parameters"]
+
+
+def test_any_message_on_ble_scan_leaves_the_stage_sound(tmp_path):
+    """Hostile ble/scan messages (the wifi/scan mutations: absurd values, random ids and summaries, empty
+    and 10 000-entry scans; and tx_power_dbm) between valid ones: no internal error, finite fixes, and the
+    valid stream's fixes exactly when every hostile message was refused."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from indoor_loc.bench.hostile import hostile_float, restamp, scan_mutation
+    from msg_adapters.pose import pose_from_msg
+    d = save_radiomap(_two_place_map(), tmp_path / "rm")
+    params = params_from_dict(WifiFixParams, {"radiomap": str(d), "method": "wknn", "ble": {"enabled": True},
+                                              "wknn": {"k": 1, "shared_threshold": 0.9}, "map_check": {"enabled": False}})
+    valid = [(9 * S, "ble/scan", ble_to_msg(_ble(9 * S, ["b2"], [-58.0], [-59.0]))), (10 * S, "wifi/scan", _query(10 * S)),
+             (11 * S, "ble/scan", ble_to_msg(_ble(11 * S, ["b1"], [-58.0]))), (15 * S, "wifi/scan", _query(15 * S)),
+             (19 * S, "ble/scan", ble_to_msg(_ble(19 * S, ["b2"], [-58.0]))), (20 * S, "wifi/scan", _query(20 * S))]
+    base = valid[0][2]
+
+    def run(stream):
+        st_ = WifiFixStage(params)
+        outs = [o for t, topic, m in stream for _, o in st_.process(topic, m, t)]
+        return st_, [pose_from_msg(o).xy.tolist() for o in outs]
+    clean_stage, clean = run(valid)
+    assert clean == [[10.0, 0.0], [0.0, 0.0], [10.0, 0.0]] and not clean_stage.diag.rejected
+
+    @st.composite
+    def tx_power(draw):
+        from diagnostic_msgs.msg import KeyValue
+        import copy
+        m = copy.deepcopy(base)
+        m.status[1].values = [kv for kv in m.status[1].values if kv.key != "tx_power_dbm"] + [
+            KeyValue(key="tx_power_dbm", value=draw(hostile_float.map(repr)))]
+        return m
+
+    @settings(max_examples=40, deadline=None)
+    @given(st.lists(st.tuples(st.integers(0, len(valid) - 1), st.one_of(scan_mutation(base, 10_000), tx_power())),
+                    min_size=1, max_size=4))
+    def check(hostile):
+        stream = list(valid)
+        for at, msg in sorted(hostile, key=lambda h: -h[0]):
+            t = valid[at][0] + 1
+            stream.insert(at + 1, (t, "ble/scan", restamp(msg, t)))
+        stage, got = run(stream)
+        assert stage.diag.rejected["internal_error"] == 0, stage.diag.last_error
+        assert all(math.isfinite(v) for xy in got for v in xy)
+        if sum(stage.diag.rejected.values()) == len(hostile):
+            assert got == clean
+    check()

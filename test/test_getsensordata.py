@@ -133,6 +133,19 @@ def test_missing_sensor_posi_less_log_and_its_import(tmp_path):
         main(args)
 
 
+def test_values_outside_the_contract_are_counted_not_fatal(tmp_path):
+    from indoor_loc.datasets.getsensordata_bags import write_log_bag
+    lines = ["ACCE;0.1;1000.1;0;0;9.8;3", "PRES;0.1;1000.1;1013.0;3",
+             "PRES;0.2;1000.2;1.013;3", "WIFI;0.5;1000.5;a;aa:bb:cc:00:00:01;2412;-50",
+             "WIFI;0.5;99999999.0;a;aa:bb:cc:00:00:02;2412;-60"]
+    log = read_log(_write(tmp_path / "odd.txt", lines))
+    scans, _ = wifi_scans(log)
+    assert math.isnan(scans[0].age_ms[list(scans[0].bssid).index("aa:bb:cc:00:00:01")])   # another clock: unknown
+    counts = write_log_bag(log, tmp_path / "odd.mcap", origin=(41.45, -8.29), storey_height_m=4.0)
+    assert counts == {"/odd/imu/data_raw": 1, "/odd/baro/pressure": 1, "/odd/wifi/scan": 1}
+    assert "1 messages not written, outside the message contract (baro/pressure: out_of_range)" in log.oddities
+
+
 def test_a_sensor_clock_that_jumps_is_stamped_on_the_app_clock(tmp_path):
     lines = [f"ACCE;{0.02 * k:.4f};{1000 + 0.02 * k + (5.0 if k >= 50 else 0.0):.4f};0;0;9.8;3" for k in range(100)]
     log = read_log(_write(tmp_path / "jump.txt", lines))

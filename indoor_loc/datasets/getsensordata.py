@@ -31,7 +31,8 @@ SensorTimestamp keep the first.
 
 WiFi: a scan is the ``WIFI`` lines sharing one AppTimestamp, stamped there. The SensorTimestamp of each
 line is that AP's own result time (it can differ within a scan): ``age_ms`` = the scan's newest result
-time minus the AP's (a lower bound of its age; 0 where all are equal). A BSSID twice in one scan keeps
+time minus the AP's (a lower bound of its age; 0 where all are equal; unknown beyond an hour, the
+contract's bound: a result time of another clock). A BSSID twice in one scan keeps
 its newest result. BLE: the ``BLE4`` lines sharing one AppTimestamp form one BLE scan; beacon ids are
 ``<uuid>-<major>-<minor>`` (iBeacon, lower case), the instance id (Eddystone) or else the MAC; a tx
 power of 0 is "not given" (no beacon radiates a 0 dBm at 1 m calibration).
@@ -52,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from indoor_loc.contract import BOUNDS
 from indoor_loc.errors import DatasetError
 from indoor_loc.wifi.ble import BleScan
 from indoor_loc.wifi.types import WifiScan
@@ -438,9 +440,11 @@ def wifi_scans(log: GsdLog, *, source: str = "getsensordata") -> tuple[list[Wifi
         aps = by_t[app]
         bs = tuple(aps)
         sen = np.array([aps[b][0] for b in bs], float)
+        age = np.round((sen.max() - sen) * 1e3, 3)
+        age[~(age <= BOUNDS["age"].hi)] = np.nan          # a result time of another clock: age unknown
         out.append(WifiScan(stamp_ns=int(log.ns(app)), bssid=bs, rssi_dbm=np.array([aps[b][3] for b in bs], float),
                             freq_mhz=np.array([aps[b][2] for b in bs], float), ssid=tuple(aps[b][1] for b in bs),
-                            age_ms=np.round((sen.max() - sen) * 1e3, 3), source=source))
+                            age_ms=age, source=source))
     return out, dup
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
@@ -32,6 +33,7 @@ from indoor_loc.bag.schemas import qos_dict
 from indoor_loc.contract import join_ns
 from indoor_loc.datasets.geodesy import geodetic_to_enu
 from indoor_loc.datasets.getsensordata import GsdLog, ble_scans, rotation_quaternions, wifi_scans
+from indoor_loc.errors import InvalidMessageError
 from indoor_loc.wifi.ble import BleScan
 from indoor_loc.wifi.types import WifiScan
 
@@ -136,28 +138,42 @@ def write_log_bag(log: GsdLog, path: str | Path, *, origin: tuple[float, float],
                 ps.pose.position.z = float(zz)
             bag.add_topic(topics["ground_truth"], "nav_msgs/msg/Path", qos_profiles=LATCHED)
             bag.write(topics["ground_truth"], msg, t0)
-        for o in order.tolist():
-            k, i, t = int(kinds[o]), int(idx[o]), int(stamps[o])
+
+        def message(k: int, i: int, t: int):
+            """The message of stream ``k``'s sample ``i`` (InvalidMessageError: outside the contract)."""
             if k == 0:
                 assert acc is not None
                 j = g_of_a[i]
-                bag.write(topics["imu/data_raw"], imu_to_msg(t, imu_frame, acc.values[i],
-                                                             gyr.values[j] if (gyr is not None and j >= 0) else None), t)
-            elif k == 1:
+                return imu_to_msg(t, imu_frame, acc.values[i], gyr.values[j] if (gyr is not None and j >= 0) else None)
+            if k == 1:
                 assert mag is not None
-                bag.write(topics["imu/mag"], mag_to_msg(t, imu_frame, mag.values[i] * 1e-6), t)
-            elif k == 2:
+                return mag_to_msg(t, imu_frame, mag.values[i] * 1e-6)
+            if k == 2:
                 ja, jg = a_of_r[i], g_of_r[i]
                 if ja < 0 or acc is None:
-                    continue            # no acceleration yet: an Imu message needs one
-                bag.write(topics["imu/data"], imu_to_msg(t, imu_frame, acc.values[ja],
-                                                         gyr.values[jg] if (gyr is not None and jg >= 0) else None,
-                                                         quat[i], ori_cov), t)
-            elif k == 3:
+                    return None             # no acceleration yet: an Imu message needs one
+                return imu_to_msg(t, imu_frame, acc.values[ja], gyr.values[jg] if (gyr is not None and jg >= 0)
+                                  else None, quat[i], ori_cov)
+            if k == 3:
                 assert pres is not None
-                bag.write(topics["baro/pressure"], pressure_to_msg(t, imu_frame, pres.values[i, 0] * 100.0), t)
-            elif k == 4:
-                bag.write(topics["wifi/scan"], scan_to_msg(replace(scans[i], frame_id=wifi_frame)), t)
-            else:
-                bag.write(topics["ble/scan"], ble_to_msg(replace(bles[i], frame_id=ble_frame)), t)
+                return pressure_to_msg(t, imu_frame, pres.values[i, 0] * 100.0)
+            if k == 4:
+                return scan_to_msg(replace(scans[i], frame_id=wifi_frame))
+            return ble_to_msg(replace(bles[i], frame_id=ble_frame))
+
+        rejected: Counter = Counter()
+        for o in order.tolist():
+            k, i, t = int(kinds[o]), int(idx[o]), int(stamps[o])
+            try:
+                msg = message(k, i, t)
+            except InvalidMessageError as err:        # a value outside the contract: counted, not fatal
+                rejected[f"{_KIND_TOPIC[k]}: {err.reason}"] += 1
+                continue
+            if msg is not None:
+                bag.write(topics[_KIND_TOPIC[k]], msg, t)
+        for what, n in sorted(rejected.items()):
+            log.oddities.append(f"{n} messages not written, outside the message contract ({what})")
         return dict(bag.topic_counts())
+
+
+_KIND_TOPIC = ("imu/data_raw", "imu/mag", "imu/data", "baro/pressure", "wifi/scan", "ble/scan")
