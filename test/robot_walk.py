@@ -35,9 +35,7 @@ class RobotWalk:
         inv = (-(math.cos(ODOM_IN_MAP[2]) * ODOM_IN_MAP[0] + math.sin(ODOM_IN_MAP[2]) * ODOM_IN_MAP[1]),
                math.sin(ODOM_IN_MAP[2]) * ODOM_IN_MAP[0] - math.cos(ODOM_IN_MAP[2]) * ODOM_IN_MAP[1],
                -ODOM_IN_MAP[2])
-        x = y = 0.0
-        p0 = compose(inv, (self.xy[0, 0], self.xy[0, 1], self.yaw[0]))
-        x, y, h = p0
+        x, y, _ = compose(inv, (self.xy[0, 0], self.xy[0, 1], self.yaw[0]))   # the start in the odom frame
         prev = self.xy[0]
         for i in range(30, len(self.t_ns), 30):
             d = self.xy[i] - prev
