@@ -27,6 +27,7 @@ namespace (``/alice/pdr/odom``).
 from __future__ import annotations
 
 import heapq
+import struct
 from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -41,7 +42,7 @@ from indoor_loc.nodes.qos import qos_profile, subscription_qos
 from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.multi_user import MultiUserStage, multi_user, shard_of
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
-from msg_adapters.diagnostics import stage_diagnostics, with_inputs
+from msg_adapters.diagnostics import stage_diagnostics, status_names_cdr, with_inputs
 
 
 #: How often the users' inputs are taken (s, wall clock): each poll takes what every user's inputs
@@ -79,7 +80,10 @@ class MultiUserStageNode(StageNode):
         self._me = {(self.get_name(), self.get_namespace()), (self.get_name() + "_io", self.get_namespace())}
         self._suffix = "/" + self.stage.NODE_NAME
         self._own_outputs = {p.topic for p in self.stage.template.outputs()}
-        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos_profile(Qos.RELIABLE))
+        p = self.stage.params
+        if p.shard_count > 1 or p.user_pattern != "*" or self._fixed_users:   # others may serve some users
+            self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
+                                     qos_profile(Qos.RELIABLE), raw=True)
 
     # -- users -----------------------------------------------------------------------------------------
     def _follow(self, user: str) -> None:
@@ -238,10 +242,13 @@ class MultiUserStageNode(StageNode):
             self._log_rejections()
 
     # -- the other shards -----------------------------------------------------------------------------
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+    def _on_diagnostics(self, data: bytes) -> None:
         now = self._monotonic()
-        for st in msg.status:
-            name = st.name
+        try:
+            names = status_names_cdr(data)
+        except (ValueError, struct.error, UnicodeDecodeError):
+            return                                   # not ours to judge: its publisher's problem
+        for name in names:
             if name.endswith(self._suffix):
                 user = user_of_namespace(name[: -len(self._suffix)])
                 if user:
