@@ -49,7 +49,7 @@ from msg_adapters.diagnostics import stage_diagnostics, status_names_cdr, with_i
 #: queued since the last one and hands each user's runs to its stage.
 POLL_PERIOD_S = 0.05
 #: At most this many messages are taken from one input per poll (the rest wait for the next).
-TAKE_PER_INPUT = 1000
+TAKE_PER_INPUT = 250
 
 
 class MultiUserStageNode(StageNode):
@@ -325,8 +325,12 @@ class _Waiting:
         return {"initialised": "false (no message yet)"}
 
 
-def multi_user_factory(stage_cls: type[Stage]) -> tuple[type[Stage], Callable[[], StageNode]]:
-    """``run_stage_node``'s stage class (for ``--help``) and node factory under ``--multi-user``."""
+def multi_user_factory(stage_cls: type[Stage]) -> tuple[type[Stage], Callable[[], StageNode] | None]:
+    """``run_stage_node``'s stage class (for ``--help``) and node factory under ``--multi-user`` (a stage
+    that is multi-user already, the back-end, is run as it is)."""
+    if stage_cls.MULTI_USER:
+        return stage_cls, None
+
     def make() -> MultiUserStageNode:
         return MultiUserStageNode(stage_cls)
     return multi_user(stage_cls), make
