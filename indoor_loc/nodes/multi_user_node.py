@@ -27,6 +27,8 @@ namespace (``/alice/pdr/odom``).
 from __future__ import annotations
 
 import heapq
+import struct
+import time
 from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -38,17 +40,18 @@ from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.nodes.liveness import LEFT, STALLED
 from indoor_loc.nodes.qos import qos_profile, subscription_qos
-from indoor_loc.nodes.stage_node import StageNode
+from indoor_loc.nodes.process import ACK_RESERVE_S
+from indoor_loc.nodes.stage_node import FINISH_ACK_TIMEOUT_S, StageNode
 from indoor_loc.pipeline.multi_user import MultiUserStage, multi_user, shard_of
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
-from msg_adapters.diagnostics import stage_diagnostics, with_inputs
+from msg_adapters.diagnostics import stage_diagnostics, status_names_cdr, with_inputs
 
 
 #: How often the users' inputs are taken (s, wall clock): each poll takes what every user's inputs
 #: queued since the last one and hands each user's runs to its stage.
 POLL_PERIOD_S = 0.05
 #: At most this many messages are taken from one input per poll (the rest wait for the next).
-TAKE_PER_INPUT = 1000
+TAKE_PER_INPUT = 250
 
 
 class MultiUserStageNode(StageNode):
@@ -79,7 +82,10 @@ class MultiUserStageNode(StageNode):
         self._me = {(self.get_name(), self.get_namespace()), (self.get_name() + "_io", self.get_namespace())}
         self._suffix = "/" + self.stage.NODE_NAME
         self._own_outputs = {p.topic for p in self.stage.template.outputs()}
-        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, qos_profile(Qos.RELIABLE))
+        p = self.stage.params
+        if p.shard_count > 1 or p.user_pattern != "*" or self._fixed_users:   # others may serve some users
+            self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
+                                     qos_profile(Qos.RELIABLE), raw=True)
 
     # -- users -----------------------------------------------------------------------------------------
     def _follow(self, user: str) -> None:
@@ -237,11 +243,42 @@ class MultiUserStageNode(StageNode):
             self._user_runs(w.user, {w.topic: [booked]})
             self._log_rejections()
 
+    # -- the stop ----------------------------------------------------------------------------------------
+    def shutdown(self) -> None:
+        """End of input for every user, one user after another, each user's outputs published as soon
+        as they are made, so the users finished before the stop's deadline keep their end-of-input
+        outputs (``tll_pf``'s smoothed path takes about a second of CPU per user and minute of its
+        window: the one stop bound does not cover hundreds of users; users leaving before the stop are
+        finished as they leave, without a deadline). A user whose finish would not end before the
+        deadline (judged by the longest one so far) is skipped and named in a WARN."""
+        deadline = self.stop_deadline if self.stop_deadline is not None else time.monotonic() + FINISH_ACK_TIMEOUT_S
+        longest = 0.0
+        skipped = []
+        for user in sorted(self.stage.users):
+            if time.monotonic() + longest > deadline - ACK_RESERVE_S:
+                skipped.append(user)
+                continue
+            t0 = time.monotonic()
+            self._publish(self.stage.run_finish_user(user))
+            self._log_rejections()
+            longest = max(longest, time.monotonic() - t0)
+        if skipped:
+            self.get_logger().warning(
+                f"stopping: no time left before the stop deadline for the end-of-input outputs of {len(skipped)} "
+                f"user(s): {', '.join(skipped[:20])}{' ...' if len(skipped) > 20 else ''} (their outputs so far "
+                f"stand; users that leave before the stop are finished without a deadline)")
+            for user in skipped:
+                self.stage.users.pop(user, None)
+        super().shutdown()
+
     # -- the other shards -----------------------------------------------------------------------------
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+    def _on_diagnostics(self, data: bytes) -> None:
         now = self._monotonic()
-        for st in msg.status:
-            name = st.name
+        try:
+            names = status_names_cdr(data)
+        except (ValueError, struct.error, UnicodeDecodeError):
+            return                                   # not ours to judge: its publisher's problem
+        for name in names:
             if name.endswith(self._suffix):
                 user = user_of_namespace(name[: -len(self._suffix)])
                 if user:
@@ -318,8 +355,12 @@ class _Waiting:
         return {"initialised": "false (no message yet)"}
 
 
-def multi_user_factory(stage_cls: type[Stage]) -> tuple[type[Stage], Callable[[], StageNode]]:
-    """``run_stage_node``'s stage class (for ``--help``) and node factory under ``--multi-user``."""
+def multi_user_factory(stage_cls: type[Stage]) -> tuple[type[Stage], Callable[[], StageNode] | None]:
+    """``run_stage_node``'s stage class (for ``--help``) and node factory under ``--multi-user`` (a stage
+    that is multi-user already, the back-end, is run as it is)."""
+    if stage_cls.MULTI_USER:
+        return stage_cls, None
+
     def make() -> MultiUserStageNode:
         return MultiUserStageNode(stage_cls)
     return multi_user(stage_cls), make

@@ -31,6 +31,7 @@ import time
 import zlib
 from typing import Any, Callable
 
+from indoor_loc.errors import ConfigError
 from indoor_loc.params import field, require
 from indoor_loc.pipeline.stage import Output, Port, Stage, StageDiagnostics, namespace_of_user
 
@@ -92,6 +93,10 @@ class MultiUserStage(Stage):
         #: the shared instance: maps, models and the ports; never given a message
         self.template: Stage = self.INNER(params, namespace=namespace)
         self.notices.extend(self.template.take_notices())
+        if not self.template.inputs():
+            raise ConfigError(f"{self.NODE_NAME}: with these parameters the stage takes no topic input (e.g. "
+                              f"wifi_scan_node with source: iw scans this machine's interface): nothing to serve "
+                              f"users from; run it per user instead of --multi-user")
         self.users: dict[str, Stage] = {}
         self.users_left = 0
         for port in self.template.inputs():
