@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from indoor_loc.commands.import_ms_indoor import MIN_HEADING_STD_RAD, heading_prior_std
+from indoor_loc.commands.import_ms_indoor import (BACKEND_CALIBRATED_HEADING, KF_CALIBRATED_HEADING,
+                                                  MIN_HEADING_STD_RAD, heading_prior_std)
 
 SITE = Path(__file__).parent / "data" / "ms_site"
 WALKS = {"B1": "5f0000000000000000000002", "F1": "5f0000000000000000000001"}
@@ -44,8 +45,9 @@ def test_every_floor_gets_its_graph_and_every_walk_its_floors(imported):
     # the survey walks walk exactly along the calibrated heading: the priors' floor, on every estimator
     sd = MIN_HEADING_STD_RAD
     assert params["/**/tll_pf"]["ros__parameters"] == {"smooth_redrawn": "mixture", "yaw_offset_sigma_rad": sd}
-    assert params["/**/pdr_kf_node"]["ros__parameters"]["heading_prior_std_rad"] == sd
-    assert params["/**/backend_node"]["ros__parameters"]["gauge_std_rad"] == sd
+    kf, be = params["/**/pdr_kf_node"]["ros__parameters"], params["/**/backend_node"]["ros__parameters"]
+    assert kf["heading_prior_std_rad"] == sd and kf["sigma_dtheta_rad"] == KF_CALIBRATED_HEADING["sigma_dtheta_rad"]
+    assert be["gauge_std_rad"] == sd and be["pdr_info"] == BACKEND_CALIBRATED_HEADING["pdr_info"]
     for floor, z in (("B1", -5.0), ("F1", 0.0)):
         key = f"/{floor.lower()}_{WALKS[floor]}/tll_pf"
         graph_file = Path(params[key]["ros__parameters"]["graph_file"])

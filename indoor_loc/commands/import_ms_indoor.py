@@ -222,7 +222,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     graphs = _floor_graphs(floors, plans, seeds, floor_z, oddities)
     prior_sd = heading_prior_std(survey_heading) if offset is not None else None
     if prior_sd is not None:   # the odometry's yaw is the map heading up to this: every estimator starts on it
-        params["pdr_kf_node"]["heading_prior_std_rad"] = prior_sd
+        params["pdr_kf_node"].update({"heading_prior_std_rad": prior_sd, **KF_CALIBRATED_HEADING})
     walk_keys = _pf_walk_keys(rows, graphs)
     pf_heading = {"yaw_offset_sigma_rad": prior_sd} if prior_sd is not None else {}
     if len(graphs) == 1 or (graphs and not walk_keys):
@@ -234,7 +234,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         # the back-end on the front end's fixes (see FIX_GRAPH_PARAMS); without this it has no survey
         params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
         if prior_sd is not None:
-            params["backend_node"]["gauge_std_rad"] = prior_sd
+            params["backend_node"].update({"gauge_std_rad": prior_sd, **BACKEND_CALIBRATED_HEADING})
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
@@ -310,6 +310,13 @@ def _walk_keys_text(keys: dict[str, dict]) -> str:
         return ""
     return yaml.safe_dump({k: {"ros__parameters": v} for k, v in keys.items()}, sort_keys=False)
 
+
+#: With a calibrated absolute heading (the rotation vector's yaw + the site's offset) the heading
+#: changes of pdr/odom drift far less than a gyro-only heading (PUTMC's, where the defaults were set):
+#: the Kalman filter's heading random walk per footstep and the back-end's heading information per
+#: PDR edge say so. Chosen on ms_site2's B1 and F7 (bench fusion; F3 and F8 checked once).
+KF_CALIBRATED_HEADING = {"sigma_dtheta_rad": 0.05}
+BACKEND_CALIBRATED_HEADING = {"pdr_info": [1.0, 1.0, 100.0]}
 
 #: The smallest heading prior std the importer writes (rad, ≈ 3°): a phone's rotation-vector yaw is
 #: never better, however well a few survey walks agree.
