@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 import yaml
 
+from indoor_loc.commands.import_ms_indoor import (BACKEND_CALIBRATED_HEADING, KF_CALIBRATED_HEADING,
+                                                  MIN_HEADING_STD_RAD, heading_prior_std)
+
 SITE = Path(__file__).parent / "data" / "ms_site"
 WALKS = {"B1": "5f0000000000000000000002", "F1": "5f0000000000000000000001"}
 
@@ -26,12 +29,25 @@ def imported(tmp_path_factory):
     return out
 
 
+def test_heading_prior_std_is_the_circular_spread_of_the_survey_offsets():
+    rng = np.random.default_rng(3)
+    parts = [rng.normal(1.5, 0.3, 400), rng.normal(1.5, 0.3, 200), np.zeros(0)]
+    assert heading_prior_std(parts) == pytest.approx(0.3, abs=0.03)
+    assert heading_prior_std([np.zeros(0)]) is None
+    assert heading_prior_std([np.full(5, 2.0)]) == MIN_HEADING_STD_RAD
+
+
 def test_every_floor_gets_its_graph_and_every_walk_its_floors(imported):
     from indoor_loc.graph.io import load_graph
     from indoor_loc.pipeline.imu_stage import ImuStageParams
     params = yaml.safe_load((imported / "params.yaml").read_text())
     assert params["/**/pdr_kf_node"]["ros__parameters"]["step_length_m"] == ImuStageParams().step_length_m
-    assert params["/**/tll_pf"]["ros__parameters"] == {"smooth_redrawn": "mixture"}
+    # the survey walks walk exactly along the calibrated heading: the priors' floor, on every estimator
+    sd = MIN_HEADING_STD_RAD
+    assert params["/**/tll_pf"]["ros__parameters"] == {"smooth_redrawn": "mixture", "yaw_offset_sigma_rad": sd}
+    kf, be = params["/**/pdr_kf_node"]["ros__parameters"], params["/**/backend_node"]["ros__parameters"]
+    assert kf["heading_prior_std_rad"] == sd and kf["sigma_dtheta_rad"] == KF_CALIBRATED_HEADING["sigma_dtheta_rad"]
+    assert be["gauge_std_rad"] == sd and be["pdr_info"] == BACKEND_CALIBRATED_HEADING["pdr_info"]
     for floor, z in (("B1", -5.0), ("F1", 0.0)):
         key = f"/{floor.lower()}_{WALKS[floor]}/tll_pf"
         graph_file = Path(params[key]["ros__parameters"]["graph_file"])

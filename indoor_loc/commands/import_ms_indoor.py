@@ -16,7 +16,14 @@ or unique id prefixes; default all):
 - ``OUT_DIR/split.yaml`` — survey and test walks per floor; ``OUT_DIR/params.yaml`` — every node
   (imu_node heading from the rotation vector; wifi_fix_node with the radio map, the
   recommended method and, where GeoJSON plans exist, ``floor_plans`` = ``OUT_DIR/floors`` with powed
-  k-NN's path-loss field turned on; backend_node on the front end's fixes);
+  k-NN's path-loss field turned on; backend_node on the front end's fixes; pdr_kf_node's step
+  length; tll_pf on its walk's floor graph, one ``/<floor>_<id>/tll_pf`` key per walk on a site of
+  several floors; and, when the heading offset is set, the spread of the survey walks' offsets as
+  every estimator's initial-heading prior: ``pdr_kf_node.heading_prior_std_rad``,
+  ``tll_pf.yaw_offset_sigma_rad``, ``backend_node.gauge_std_rad``);
+- ``OUT_DIR/floors/<floor>/graph.yaml`` — the floor's link graph from its GeoJSON plan
+  (:mod:`indoor_loc.graph.floor_plan`: the skeleton of the walkable space reaching the survey
+  waypoints, at the floor's height);
   ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
 
 Floor heights: ``z = storey index × --storey-height-m`` (default 5 m). The index comes from the floor's
@@ -136,6 +143,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
     skipped: list[str] = []
     heading: dict[str, list] = {}
     seeds: dict[str, list] = {}                       # floor -> survey waypoints (where the graph must reach)
+    survey_heading: list[np.ndarray] = []             # (walking direction - phone yaw) on the survey walks
     floor_z = {f.name: f.z_m(args.storey_height_m) for f in floors}
     for fl in floors:
         ids = all_ids[fl.name]
@@ -177,6 +185,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                     oddities.append(f"{tid}: {off} of {len(wx)} waypoints outside the floor's extent "
                                     f"[0, {fl.width_m:.1f}] × [0, {fl.height_m:.1f}] m")
             if tid in survey:
+                survey_heading.append(heading_offsets(tr))
                 if len(tr.waypoint_xy):
                     seeds.setdefault(fl.name, []).append(tr.waypoint_xy[:, :2])
                 sc, xy = scans_with_truth(tr)
@@ -221,17 +230,23 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
                     # the PDR Kalman filter counts steps as distance / the imu_node's step length
                     "pdr_kf_node": {"step_length_m": ImuStageParams().step_length_m}}
     graphs = _floor_graphs(floors, plans, seeds, floor_z, oddities)
+    prior_sd = heading_prior_std(survey_heading) if offset is not None else None
+    if prior_sd is not None:   # the odometry's yaw is the map heading up to this: every estimator starts on it
+        params["pdr_kf_node"].update({"heading_prior_std_rad": prior_sd, **KF_CALIBRATED_HEADING})
     walk_keys = _pf_walk_keys(rows, graphs)
+    pf_heading = {"yaw_offset_sigma_rad": prior_sd} if prior_sd is not None else {}
     if len(graphs) == 1 or (graphs and not walk_keys):
-        params["tll_pf"] = {"graph_file": str(next(iter(graphs.values()))), **PF_MALL_PARAMS}
+        params["tll_pf"] = {"graph_file": str(next(iter(graphs.values()))), **PF_MALL_PARAMS, **pf_heading}
     elif graphs:
-        params["tll_pf"] = dict(PF_MALL_PARAMS)
+        params["tll_pf"] = {**PF_MALL_PARAMS, **pf_heading}
     if rm.n_scans:
         params["wifi_fix_node"] = {"radiomap": str(rm_dir), **recommended_params(rm, str(plans) if has_plan else "")}
         if ble_window > 0 and any(b.startswith("ble:") for b in rm.bssids):
             params["wifi_fix_node"]["ble"] = {"enabled": True, "window_s": ble_window}
         # the back-end on the front end's fixes (see FIX_GRAPH_PARAMS); without this it has no survey
         params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
+        if prior_sd is not None:
+            params["backend_node"].update({"gauge_std_rad": prior_sd, **BACKEND_CALIBRATED_HEADING})
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
@@ -306,6 +321,30 @@ def _walk_keys_text(keys: dict[str, dict]) -> str:
     if not keys:
         return ""
     return yaml.safe_dump({k: {"ros__parameters": v} for k, v in keys.items()}, sort_keys=False)
+
+
+#: With a calibrated absolute heading (the rotation vector's yaw + the site's offset) the heading
+#: changes of pdr/odom drift far less than a gyro-only heading (PUTMC's, where the defaults were set):
+#: the Kalman filter's heading random walk per footstep and the back-end's heading information per
+#: PDR edge say so. Chosen on ms_site2's B1 and F7 (bench fusion; F3 and F8 checked once).
+KF_CALIBRATED_HEADING = {"sigma_dtheta_rad": 0.05}
+BACKEND_CALIBRATED_HEADING = {"pdr_info": [1.0, 1.0, 100.0]}
+
+#: The smallest heading prior std the importer writes (rad, ≈ 3°): a phone's rotation-vector yaw is
+#: never better, however well a few survey walks agree.
+MIN_HEADING_STD_RAD = 0.05
+
+
+def heading_prior_std(parts: list[np.ndarray]) -> float | None:
+    """How far the calibrated odometry heading may be off the walking direction, rad: the circular
+    standard deviation ``sqrt(-2 ln R)`` of (walking direction − phone yaw) over the **survey** walks'
+    waypoint pairs (R their resultant length; no test walk's truth enters), at least
+    :data:`MIN_HEADING_STD_RAD`. None without pairs."""
+    d = np.concatenate([x for x in parts if len(x)]) if any(len(x) for x in parts) else np.zeros(0)
+    if len(d) == 0:
+        return None
+    r = float(abs(np.mean(np.exp(1j * d))))
+    return round(max(float(np.sqrt(-2.0 * np.log(min(max(r, 1e-9), 1.0)))), MIN_HEADING_STD_RAD), 2)
 
 
 def _heading_offset(heading: dict[str, list]) -> float | None:
