@@ -20,10 +20,6 @@ _SIZES = {"boolean": 1, "octet": 1, "char": 1, "uint8": 1, "int8": 1, "wchar": 2
 _HEADER = 4
 
 
-class _Unwalkable(Exception):
-    pass
-
-
 @lru_cache(maxsize=None)
 def _fields(cls: type) -> tuple[Any, ...]:
     return tuple(cls.SLOT_TYPES)
@@ -47,7 +43,7 @@ class _Walker:
 
     def take(self, n: int) -> bytes:
         if self.pos + n > len(self.data):
-            raise _Unwalkable("beyond the data")
+            raise ValueError("beyond the data")
         chunk = self.data[self.pos:self.pos + n]
         self.out[self.pos:self.pos + n] = chunk
         self.pos += n
@@ -63,7 +59,7 @@ class _Walker:
         if isinstance(t, d.BasicType):
             size = _SIZES.get(t.typename)
             if size is None:
-                raise _Unwalkable(t.typename)
+                raise ValueError(t.typename)
             self.align(size)
             self.take(size)
         elif isinstance(t, d.AbstractString):
@@ -77,7 +73,7 @@ class _Walker:
         elif isinstance(t, d.AbstractSequence):
             self.items(t.value_type, self.length())
         else:
-            raise _Unwalkable(type(t).__name__)
+            raise ValueError(type(t).__name__)
 
     def items(self, t: Any, n: int) -> None:
         from rosidl_parser import definition as d
@@ -107,6 +103,6 @@ def zero_padding(data: bytes, msg_class: type) -> bytes:
         if data[1] == 0:               # big endian: lengths read the other way
             return data
         walker.message(msg_class)
-    except (_Unwalkable, struct.error, ImportError, AttributeError):
+    except (ValueError, struct.error, ImportError, AttributeError):
         return data
     return bytes(walker.out)

@@ -45,8 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--site", type=Path, help="wifi: a site directory of the Microsoft Indoor Location "
                                                   "Competition 2.0 format (<floor>/path_data_files/...): the "
                                                   "ms_site2 tables on its floors")
-    parser.add_argument("--floors", default="", help="wifi --site/ms_site2, ble: comma-separated floor names (default all)")
-    parser.add_argument("--floors", default="", help="wifi --site/ms_site2, fusion: comma-separated floor names (default all)")
+    parser.add_argument("--floors", default="", help="wifi --site/ms_site2, ble, fusion: comma-separated floor names "
+                                                     "(default all)")
     parser.add_argument("--floor-levels", default="", help="wifi --site/ms_site2: storey index per floor, "
                                                            "NAME=LEVEL,... (default: from the floor names)")
     parser.add_argument("--metadata", type=Path, help="wifi --site: the floors' plan files as <floor>/... when "
