@@ -191,14 +191,14 @@ def test_a_stream_replayed_gives_the_same_outputs_twice(world, streams, case, cl
             stage = build_stage(world, name, {**overrides, "time": {"jump_confirm": max(fewest, 1)}})
     user = USER if stage.MULTI_USER else None
     span = clean[-1][0] - clean[0][0] + SEC
-    at_reset: list = []                              # outputs of the reset (the old pass's end), kept alive
-    real_reset = stage.reset_user
+    at_reset: list = []                              # outputs of the jump's reset (the old pass's end), kept alive
+    real_reset = stage._reset_and_restart            # (an initialpose in the stream resets too: not counted)
 
-    def reset_user(u):
-        outs = real_reset(u)
+    def reset_and_restart(u):
+        outs, held = real_reset(u)
         at_reset.extend(m for _, m in outs)
-        return outs
-    stage.reset_user = reset_user
+        return outs, held
+    stage._reset_and_restart = reset_and_restart
     passes: list[list] = [[], []]
     for k in (0, 1):
         if k == 1 and clock == "sim_time":
