@@ -5,8 +5,12 @@ from indoor_loc.nodes.process import run_stage_node
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage
 
 
+#: parameter values that change the node's topics, named in its ``--help``
+PORT_PARAMS = {"motion_source": ("odom",)}
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(PdrKfStage, args)
+    return run_stage_node(PdrKfStage, args, port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":
