@@ -236,7 +236,7 @@ def run_bench(robots: int, duration_s: float, kidnap_s: float, seed: int, work: 
         pooled["wifi/fix (robot)"].append((sn, scan_errors(est.get((r.name, "wifi/fix")), sn, sxy)))
         wn, wxy = _scan_truth(w)
         # the part of the robot's path the walker covered (its plan is the robot's, time-scaled)
-        same = sn <= w.motion.t_ns[-1] * (r.params.speed_mps / (w.params.step_length_m * w.params.cadence_hz))
+        same = sn <= w.motion.t_ns[-1] * (w.params.step_length_m * w.params.cadence_hz / r.params.speed_mps)
         for top, node in ESTIMATORS:
             e = scan_errors(est.get((r.name, top)), sn, sxy)
             pooled[f"{node} + robot odometry"].append((sn, e))
