@@ -41,7 +41,7 @@ ESTIMATORS = [("WiFi only, WKNN", "wifi/fix"),
               ("particle filter (TLL), smoothed", "pf/path"),
               ("multi-user back-end", "backend/{user}/path")]
 #: Inputs played from the simulated bag: not recorded again (the sim bag has them).
-INPUT_TOPICS_RE = r"(/imu/data_raw|/imu/mag|/wifi/scan|^/clock|^/rosout|^/parameter_events)$"
+INPUT_TOPICS_RE = r"(/imu/data_raw|/imu/mag|/wifi/scan|^/robot\d+/odom|^/robot\d+/imu|^/clock|^/rosout|^/parameter_events)$"
 PER_WALKER_NODES = [("imu", "imu_node"), ("wifi", "wifi_fix_node"), ("pdr_kf", "pdr_kf_node")]
 #: Node modules that later builds add; the demo starts them when present.
 OPTIONAL_PER_WALKER = [("pf", "tll_pf_node")]
@@ -51,6 +51,8 @@ OPTIONAL_SHARED = [("backend", "backend_node")]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory (default out/demo)")
     parser.add_argument("--walkers", type=int, default=3, help="simulated walkers (default 3)")
+    parser.add_argument("--robots", type=int, default=0, help="simulated differential-drive robots among them, their "
+                                                              "estimators on their own wheel odometry (default 0)")
     parser.add_argument("--duration", type=float, default=60.0, help="simulated run length, s (default 60)")
     parser.add_argument("--seed", type=int, default=7, help="simulation seed (default 7)")
     parser.add_argument("--rate", type=float, default=1.0, help="playback rate (default 1.0 = real time)")
@@ -81,15 +83,18 @@ def _simulate(out: Path, args: argparse.Namespace) -> dict[str, Path]:
     from indoor_loc.sim.scenario import SimConfig
 
     try:
-        cfg = SimConfig(walkers=args.walkers, duration_s=args.duration, seed=args.seed)
+        cfg = SimConfig(walkers=args.walkers, duration_s=args.duration, seed=args.seed,
+                        robots=getattr(args, "robots", 0))
         cfg.validate()
     except ValueError as err:
         raise ConfigError(str(err)) from err
     sim_dir = out / "sim"
     print(f"== 1/4 simulate {cfg.walkers} walkers x {cfg.duration_s:g} s in the sample building -> {sim_dir}")
     paths = generate(sim_dir, cfg)
-    names = [w["name"] for w in yaml.safe_load(paths["scenario"].read_text())["walkers"]]
-    return {"bag": paths["bag"], "params": paths["params"], "dir": sim_dir, "walkers": names}
+    scenario = yaml.safe_load(paths["scenario"].read_text())
+    robots = [r["name"] for r in scenario.get("robots", [])]
+    names = [w["name"] for w in scenario["walkers"]] + robots
+    return {"bag": paths["bag"], "params": paths["params"], "dir": sim_dir, "walkers": names, "robots": robots}
 
 
 def _module_exists(name: str) -> bool:
@@ -113,6 +118,8 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
                           "use_sim_time": False}]
     for w in walkers:
         for label, mod in PER_WALKER_NODES + [n for n in OPTIONAL_PER_WALKER if _module_exists(n[1])]:
+            if label == "imu" and w in sim.get("robots", ()):
+                continue                # a robot's own odometry is its motion input: no stepometer
             nodes.append({"name": f"{label}_{w}", "module": f"indoor_loc.nodes.{mod}", "namespace": f"/{w}",
                           "params_files": [params], "params": dict(replay)})
     scan_consumers = ["wifi_fix_node"]

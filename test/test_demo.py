@@ -148,3 +148,18 @@ def test_demo_with_the_view_delivers_every_input_to_its_node(ros_domain, tmp_pat
             if ln.startswith(("[imu_", "[wifi_")) and "publisher's #" in ln]
     assert not late, late
     assert not _processes_mentioning(str(out)), "processes left behind"
+
+
+def test_demo_robots_run_their_estimators_without_a_stepometer(tmp_path):
+    """``indoor-loc demo --robots``: a robot's namespace gets the WiFi node and the estimators (on its
+    own odometry, params.yaml), no imu_node; its odometry is an input, not recorded again."""
+    import re
+
+    from indoor_loc.demo import INPUT_TOPICS_RE, bringup_config
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**/imu_node:\n  ros__parameters:\n    step_length_m: 0.7\n")
+    sim = {"params": params, "bag": tmp_path / "sim.mcap", "dir": tmp_path, "robots": ["robot1"]}
+    names = {n["name"] for n in bringup_config(["alice", "robot1"], sim, tmp_path, rate=1.0, foxglove=None)["nodes"]}
+    assert {"imu_alice", "wifi_robot1", "pdr_kf_robot1"} <= names and "imu_robot1" not in names
+    assert re.search(INPUT_TOPICS_RE, "/robot1/odom") and not re.search(INPUT_TOPICS_RE, "/alice/pdr/odom")

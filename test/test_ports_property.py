@@ -85,6 +85,7 @@ def valid_streams(world) -> dict[str, list[tuple[int, Any]]]:
         if topic == "wifi/scan" or stamp - t0 <= IMU_S * SEC:
             out[topic].append((stamp, msg))
     out["pdr/odom"] += [(_stamp(m), m) for t, m in imu.run_finish() if t == "pdr/odom"]
+    out["odom"] = list(out["pdr/odom"])     # a robot's odometry (motion_source odom): the same valid poses
     for stamp, msg in out["wifi/scan"]:
         out["wifi/scan_raw"].append((stamp, msg))
         out["wifi/scan_json"].append((stamp, scan_to_json_msg(scan_from_msg(msg))))

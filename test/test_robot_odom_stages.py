@@ -98,3 +98,19 @@ def test_backend_with_robot_odometry(robot_world):
     g = st.graph
     info = g.pdr.view("sqrt_info")
     assert len(info) > 50 and not np.allclose(info, np.sqrt(g.params.pdr_info))   # the odometry's own information
+
+
+def test_backend_any_takes_each_users_first_motion_topic(robot_world):
+    from indoor_loc.pipeline.backend_stage import BackendParams, BackendStage
+    from msg_adapters.odom import odom_to_msg
+    st = BackendStage(params_from_dict(BackendParams, {"radiomap": str(robot_world["radiomap"]),
+                                                       "motion_source": "any", "window_poses": 0}))
+    assert {p.topic: p.required for p in st.inputs()}.items() >= {"pdr/odom": False, "odom": False}.items()
+    ev = [e for e in robot_world["events"] if e[2] == "odom"][:200]
+    for t, _, topic, msg in ev:
+        st.process(topic, msg, t, "robot1")
+    t = ev[-1][0] + 1
+    st.process("pdr/odom", odom_to_msg(t, "a/odom", "a/base", 0.0, 0.0, 0.0, np.zeros((3, 3)), 1.0, 0.0), t, "robot1")
+    st.process("pdr/odom", odom_to_msg(t, "a/odom", "a/base", 0.0, 0.0, 0.0, np.zeros((3, 3)), 1.0, 0.0), t, "walker")
+    assert st.diag.rejected == {"wrong_motion_source": 1}
+    assert st.inputs_by_user["robot1"].motion == "odom" and st.inputs_by_user["walker"].motion == "pdr/odom"

@@ -16,7 +16,7 @@ from indoor_loc.pipeline.backend_stage import BackendStage
 
 
 #: parameter values that change the node's topics, named in its ``--help``
-PORT_PARAMS = {"wifi_source": ("fix",)}
+PORT_PARAMS = {"wifi_source": ("fix",), "motion_source": ("odom",)}   # (any: both motion topics)
 
 
 class BackendNode(SetPoseMixin, TfBroadcastMixin, StageNode):

@@ -13,13 +13,17 @@ from indoor_loc.nodes.tf_out import TfBroadcastMixin
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage
 
 
+#: parameter values that change the node's topics, named in its ``--help``
+PORT_PARAMS = {"motion_source": ("odom",)}
+
+
 class PdrKfNode(SetPoseMixin, TfBroadcastMixin, StageNode):
     def __init__(self) -> None:
         super().__init__(PdrKfStage)
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_stage_node(PdrKfStage, args, node_factory=node_factory(PdrKfNode, args))
+    return run_stage_node(PdrKfStage, args, node_factory=node_factory(PdrKfNode, args), port_params=PORT_PARAMS)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from indoor_loc.pipeline.pf_stage import PfStage
 
 
 #: parameter values that change the node's topics, named in its ``--help``
-PORT_PARAMS = {"wifi_update": ("scan",)}
+PORT_PARAMS = {"wifi_update": ("scan",), "motion_source": ("odom",)}
 
 
 class TllPfNode(SetPoseMixin, TfBroadcastMixin, StageNode):

@@ -122,7 +122,8 @@ class BackendParams(GraphParams):
     time: TimeParams = group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py); "
                                          "a jump back starts the user afresh, its track so far kept as a finished "
                                          "user's")
-    motion_source: str = pfield("pdr", MOTION_DOC + "; every user of the node alike")
+    motion_source: str = pfield("pdr", MOTION_DOC + "; any = each user's from the first of the two it "
+                                "publishes (walkers and robots on one back-end)")
     odom: OdomIncrementParams = group(OdomIncrementParams, ODOM_GROUP_DOC)
     floors: FloorFilterParams = group(FloorFilterParams, "each user's floor from the fixes' floors and the "
                                                          "barometer (floors.switch_prob, ...)")
@@ -131,7 +132,8 @@ class BackendParams(GraphParams):
     def validate(self) -> None:
         n = type(self).__name__
         self.time.validate()
-        validate_source(n, self.motion_source)
+        if self.motion_source != "any":
+            validate_source(n, self.motion_source)
         self.odom.validate()
         self.floors.validate()
         self.baro.validate()
@@ -172,6 +174,7 @@ class _UserInput:
     floor: FloorTrack | None = None                    # the user's floor (created by the stage, with its params)
     odom_guard: OdomJumpGuard = field(default_factory=OdomJumpGuard)   # odom_jump against the last accepted
     robot: RobotOdomReader | None = None               # motion_source odom: the user's increments
+    motion: str | None = None                          # motion_source any: the user's motion topic
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -229,7 +232,10 @@ class BackendStage(Stage):
         self.on("initialpose", self._on_initialpose)
 
     def inputs(self) -> list[Port]:
-        return [motion_port(self.params.motion_source),
+        ms = self.params.motion_source
+        motion = ([motion_port(ms)] if ms != "any" else        # any: neither alone is required
+                  [dataclasses.replace(motion_port(s), required=False) for s in ("pdr", "odom")])
+        return motion + [
                 Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE),
                 Port("baro/pressure", "sensor_msgs/msg/FluidPressure", Qos.SENSOR)] + (
                 [Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE)]
@@ -298,8 +304,7 @@ class BackendStage(Stage):
     def _on_robot_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
         """A robot's odometry (``motion_source: odom``): its increments, once they close, enter the
         reorder buffer as the user's hops; each message moves the user's clock."""
-        require_source(self.params.motion_source, "odom")
-        b = self._buffer(user)
+        b = self._motion(user, "odom")
         if b.robot is None:
             b.robot = RobotOdomReader(self.params.odom)
         od = b.robot.check(msg)
@@ -313,6 +318,21 @@ class BackendStage(Stage):
         b.newest_odom_ns = od.stamp_ns if b.newest_odom_ns is None else max(b.newest_odom_ns, od.stamp_ns)
         return self._release(user)
 
+    def _motion(self, user: str, topic: str) -> _UserInput:
+        """The user's buffer, once the motion topic is the one it takes (``wrong_motion_source`` else):
+        the node's ``motion_source``, or with ``any`` the first of the two the user sent."""
+        ms = self.params.motion_source
+        if ms != "any":
+            require_source(ms, topic)
+            return self._buffer(user)
+        b = self._buffer(user)
+        if b.motion is None:
+            b.motion = topic
+        elif b.motion != topic:
+            raise InvalidMessageError("wrong_motion_source", f"{user}: {topic} received, but this user's motion "
+                                                             f"is {b.motion} (motion_source any: the first one)")
+        return b
+
     def _flush_robot(self, user: str) -> None:
         """A scan or fix of a robot: its odometry up to now closes first (so the scan's pose has it)."""
         b = self.inputs_by_user.get(user)
@@ -325,7 +345,7 @@ class BackendStage(Stage):
                 self._push(user, inc.t_end_ns, 0, inc)
 
     def _on_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
-        require_source(self.params.motion_source, "pdr/odom")
+        self._motion(user, "pdr/odom")
         od = odom_from_msg(msg)
         if user in self.inputs_by_user:
             self.inputs_by_user[user].odom_guard.check(od)      # odom_jump, before anything moves

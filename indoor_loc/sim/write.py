@@ -204,7 +204,9 @@ def node_params_flat(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
         # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
-                                                 "path_period_s": 10.0}},
+                                                 "path_period_s": 10.0,
+                                                 # walkers and robots: each user's own motion topic
+                                                 **({"motion_source": "any"} if run.robots else {})}},
     } | robot_node_params(run.robots)
 
 
