@@ -55,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                               "estimators on their own wheel odometry (default 0)")
     parser.add_argument("--duration", type=float, default=60.0, help="simulated run length, s (default 60)")
     parser.add_argument("--seed", type=int, default=7, help="simulation seed (default 7)")
+    parser.add_argument("--floors", type=int, choices=(2, 3), default=2,
+                        help="3: the three-floor office with stairs and a lift, walkers changing floors, phones "
+                             "with a barometer (docs/floors.md); default 2: the sample building")
     parser.add_argument("--rate", type=float, default=1.0, help="playback rate (default 1.0 = real time)")
     parser.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                         help="also serve the live view over the Foxglove WebSocket protocol (default port 8765)")
@@ -80,17 +83,21 @@ def main(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------ simulation
 def _simulate(out: Path, args: argparse.Namespace) -> dict[str, Path]:
     from indoor_loc.commands.sim import generate
+    from indoor_loc.sim.baro import BaroSimParams
+    from indoor_loc.sim.building import make_tower_building
     from indoor_loc.sim.scenario import SimConfig
 
     try:
+        floors3 = getattr(args, "floors", 2) == 3
         cfg = SimConfig(walkers=args.walkers, duration_s=args.duration, seed=args.seed,
-                        robots=getattr(args, "robots", 0))
+                        robots=getattr(args, "robots", 0), change_floors=floors3,
+                        baro=BaroSimParams() if floors3 else None)
         cfg.validate()
     except ValueError as err:
         raise ConfigError(str(err)) from err
     sim_dir = out / "sim"
     print(f"== 1/4 simulate {cfg.walkers} walkers x {cfg.duration_s:g} s in the sample building -> {sim_dir}")
-    paths = generate(sim_dir, cfg)
+    paths = generate(sim_dir, cfg, building=make_tower_building() if floors3 else None)
     scenario = yaml.safe_load(paths["scenario"].read_text())
     robots = [r["name"] for r in scenario.get("robots", [])]
     names = [w["name"] for w in scenario["walkers"]] + robots

@@ -280,3 +280,41 @@ def test_a_calibrated_odom_heading_starts_the_filter_on_course(rng):
         idx = np.searchsorted(t, [s for s, _ in est], side="right") - 1
         err[sd] = float(np.mean([np.linalg.norm(xy - true_xy[i]) for (_, xy), i in zip(est, idx)]))
     assert err[0.3] < 0.85 * err[0.0], err
+
+
+def test_the_floor_follows_the_barometer_and_not_a_lone_fix(rng):
+    """pdr_kf/pose z: the floor of consistent fixes; one fix on another floor does not move it, a
+    lift ride in baro/pressure does (pose z = the floor's height), and the path's z follows."""
+    from indoor_loc.baro.height import pressure_at_height_pa
+    from msg_adapters.pressure import pressure_to_msg
+    t, true_xy, odoms, fixes = _walk(rng, 60)
+    ride = (30, 34)                                   # interval indices of a 3.5 m lift ride
+    floor_of = {i: 0.0 for i in fixes}
+    floor_of[9] = 3.5                                 # one wrong-floor fix before the ride
+    for i in fixes:
+        if i > ride[1] + 6:
+            floor_of[i] = 3.5
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+    zs, sec = [], 1_000_000_000
+    baro = []
+    for k in range(0, 600):                           # 10 Hz over the 60 s
+        ts = int(t[0]) + k * sec // 10
+        h = 1.1 + 3.5 * float(np.clip((ts - t[ride[0]]) / (t[ride[1]] - t[ride[0]]), 0, 1))
+        baro.append((ts, pressure_to_msg(ts, "u/imu_link", float(pressure_at_height_pa(h, 101000.0)) + rng.normal(0, 4))))
+    b = 0
+    for i, od in enumerate(odoms):
+        while b < len(baro) and baro[b][0] <= t[i]:
+            stage.process("baro/pressure", baro[b][1], 0)
+            b += 1
+        msgs = stage.process("pdr/odom", od, 0)
+        if i in fixes:
+            f = fix_from_msg(fixes[i])
+            msgs += stage.process("wifi/fix", fix_to_msg(Fix(f.stamp_ns, f.xy, f.cov, z=floor_of[i])), 0)
+        zs += [(i, m.pose.pose.position.z) for topic, m in msgs if topic == "pdr_kf/pose"]
+    assert stage.diag.rejected == {} or not any(stage.diag.rejected.values())
+    z = dict(zs)
+    assert all(v == 0.0 for i, v in z.items() if i < ride[0]), z            # the lone fix at 3.5 m did not move it
+    assert all(v == 3.5 for i, v in z.items() if i > ride[1] + 6), z        # the ride did (a few s of detection)
+    path = [m for topic, m in stage.finish() if topic == "pdr_kf/path"][-1]
+    pz = np.array([p.pose.position.z for p in path.poses])
+    assert pz[0] == 0.0 and pz[-1] == 3.5

@@ -51,6 +51,8 @@ class FloorFilterParams:
                                         "(m): sensor noise, drift during the transit, storeys of unequal height")
     event_miss: float = P.field(0.02, "probability that a barometer floor change is not one (the floor stays)")
     new_floor_m: float = P.field(1.0, "a fix this far (m) from every known floor height adds a floor")
+    min_storey_m: float = P.field(2.5, "a barometer floor change adds a floor only this far (m) from every known "
+                                       "floor (a partly seen transit must not invent a floor between two)")
     history_max: int = P.field(20000, "entries kept for smoothing (the newest)")
 
     def validate(self) -> None:
@@ -63,6 +65,7 @@ class FloorFilterParams:
         P.require(self.event_sigma_m > 0, n, "event_sigma_m", "> 0", self.event_sigma_m)
         P.require(0 <= self.event_miss < 1, n, "event_miss", "in [0, 1)", self.event_miss)
         P.require(self.new_floor_m > 0, n, "new_floor_m", "> 0", self.new_floor_m)
+        P.require(self.min_storey_m > 0, n, "min_storey_m", "> 0", self.min_storey_m)
         P.require(self.history_max >= 1, n, "history_max", ">= 1", self.history_max)
 
 
@@ -194,8 +197,8 @@ class FloorFilter:
     def baro_event(self, ev: FloorChange) -> None:
         """A barometer floor change, applied at its detection stamp."""
         self.baro_ns = ev.detect_ns
-        if self.floor is not None and self.nearest(self.floor_z[self.floor] + ev.dh_m) is None \
-                and abs(ev.dh_m) > 2 * self.params.new_floor_m:
+        target = self.floor_z[self.floor] + ev.dh_m if self.floor is not None else None
+        if target is not None and np.min(np.abs(self.floor_z - target)) >= self.params.min_storey_m:
             k = self.add_floor(float(self.floor_z[self.floor] + ev.dh_m))
             self.learnt[k] = True
         if self.n_floors < 2:

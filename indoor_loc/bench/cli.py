@@ -36,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "50, one graph run per configuration instead of best of 3, fresh processes for 2 configurations "
         "x 1 run instead of all 5 x 3, --live at 10x only; pf: one run, the PDR and 10 s WiFi-only rows; "
         "throughput: walks 1-3 instead of 1-12; live: users 1,2, rates 2,5, 30 s (each unless given); "
-        "chaos: 40 s of walking, 100 hostile messages per port"))
+        "chaos: 40 s of walking, 100 hostile messages per port; floors: 180 s walks and 10 min of drift "
+        "instead of 600 s and 30 min"))
     parser.add_argument("--json", type=Path, help="also write the figures as JSON here")
     parser.add_argument("--live", action="store_true", help="backend: also replay all walks live over DDS "
                                                             "through backend_node at 1x and 10x")
@@ -53,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                       "the site's floor directories hold only traces")
     parser.add_argument("--runs", type=int, default=3, help="pf: Monte Carlo runs (seeds 0..runs-1)")
     parser.add_argument("--work", type=Path, default=Path("out/bench_pf"), help="pf: cache for the import and the replay; fusion: "
-                             "the same, WORK/<site> (default out/bench_fusion)")
+                             "the same, WORK/<site> (default out/bench_fusion); floors: out/bench_floors")
     parser.add_argument("--particles", type=int, default=1000, help="pf: particles per filter")
     parser.add_argument("--walks", default="all", help="pf: comma-separated walk numbers (default all 24)")
     parser.add_argument("--no-perf", action="store_true", help="pf: skip the performance section")

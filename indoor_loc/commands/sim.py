@@ -30,6 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=("mcap", "getsensordata"), default="mcap",
                         help="getsensordata: also write OUT_DIR/getsensordata/<walker>.txt, GetSensorData logfiles of "
                              "the run (indoor-loc bag to-getsensordata; default: only the bag)")
+    parser.add_argument("--floors", type=int, choices=(2, 3), default=2,
+                        help="3: the three-floor office with stairs and a lift, walkers changing floors, a radio "
+                             "map with the floors and powed fixes that detect them (default 2: the sample building, "
+                             "walkers on the ground floor)")
+    parser.add_argument("--baro", action="store_true", help="simulate a phone barometer (baro/pressure, with weather "
+                                                            "drift, door spikes, noise; indoor_loc/sim/baro.py)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the outputs of an earlier run in OUT_DIR (refused otherwise)")
 
@@ -40,6 +46,7 @@ OUTPUTS = ("sim.mcap", "radiomap", "building.geojson", "graph.yaml", "floor_plan
 
 
 def config_from_args(args: argparse.Namespace):
+    from indoor_loc.sim.baro import BaroSimParams
     from indoor_loc.sim.rf import ScannerParams
     from indoor_loc.sim.scenario import SimConfig
     from indoor_loc.sim.walker import ImuParams
@@ -47,20 +54,24 @@ def config_from_args(args: argparse.Namespace):
         cfg = SimConfig(walkers=args.walkers, duration_s=args.duration, seed=args.seed,
                         robots=getattr(args, "robots", 0),
                         imu=dataclasses.replace(ImuParams(), rate_hz=args.imu_hz, mag_rate_hz=args.mag_hz),
-                        scanner=dataclasses.replace(ScannerParams(), period_s=args.scan_period))
+                        scanner=dataclasses.replace(ScannerParams(), period_s=args.scan_period),
+                        change_floors=getattr(args, "floors", 2) == 3,
+                        baro=BaroSimParams() if getattr(args, "baro", False) else None)
         cfg.validate()
     except ValueError as err:
         raise ConfigError(str(err)) from err
     return cfg
 
 
-def generate(out_dir: Path, cfg, building_path: Path | None = None, *, quiet: bool = False) -> dict[str, Path]:
+def generate(out_dir: Path, cfg, building_path: Path | None = None, *, quiet: bool = False,
+             building=None) -> dict[str, Path]:
     from indoor_loc.sim.building import load_building, sample_building
     from indoor_loc.sim.scenario import simulate
     from indoor_loc.sim.write import write_run
 
     t0 = time.perf_counter()
-    building = sample_building() if building_path is None else load_building(building_path)
+    if building is None:
+        building = sample_building() if building_path is None else load_building(building_path)
     run = simulate(building, cfg)
     paths = write_run(run, out_dir)
     if not quiet:
@@ -87,7 +98,13 @@ def main(args: argparse.Namespace) -> int:
     check_outputs([out / name for name in OUTPUTS + (("getsensordata",) if gsd else ())], overwrite=args.overwrite,
                   what=f"sim into {out}")
     cfg = config_from_args(args)
-    paths = generate(args.out_dir, cfg, args.building)
+    building = None
+    if getattr(args, "floors", 2) == 3:
+        if args.building is not None:
+            raise ConfigError("--floors 3 simulates the three-floor office: it cannot be given with --building")
+        from indoor_loc.sim.building import make_tower_building
+        building = make_tower_building()
+    paths = generate(args.out_dir, cfg, args.building, building=building)
     if gsd:
         from indoor_loc.commands.to_getsensordata import convert_sim
         convert_sim(paths, out / "getsensordata")

@@ -12,6 +12,7 @@ from msg_adapters.imu import imu_from_msg, imu_to_msg, mag_from_msg, mag_to_msg
 from msg_adapters.markers import graph_markers, marker_points, points_markers
 from msg_adapters.odom import odom_from_msg, odom_to_msg
 from msg_adapters.path import path_from_msg, path_to_msg
+from msg_adapters.pressure import pressure_from_msg, pressure_to_msg
 from msg_adapters.pose import fix_to_msg, pose_array_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from msg_adapters.tf import tf_message, transform_from_msg, transform_to_msg
 from msg_adapters.time import stamp_from_ns, stamp_to_ns
@@ -54,6 +55,7 @@ CANONICAL_BY_TYPE = {
     "geometry_msgs/msg/PoseArray": "pf/particles", "nav_msgs/msg/Path": "ground_truth",
     "visualization_msgs/msg/MarkerArray": "backend/wifi_map", "diagnostic_msgs/msg/DiagnosticArray": "/diagnostics",
     "rosgraph_msgs/msg/Clock": "/clock", "geometry_msgs/msg/TransformStamped": "pf/map_odom",
+    "sensor_msgs/msg/FluidPressure": "baro/pressure",
 }
 _OWN = {"imu/data_raw", "imu/mag", "imu/data", "wifi/scan", "pdr/odom", "wifi/fix", "pf/pose", "pf/particles",
         "ground_truth", "map/graph", "backend/wifi_map", "/diagnostics", "/clock", "wifi/scan_json",
@@ -75,6 +77,8 @@ def build(topic: str):
         return imu_to_msg(T0 + 1, "alice/imu_link", V["acc"], V["gyro"])
     if topic == "imu/mag":
         return mag_to_msg(T0 + 2, "alice/imu_link", V["mag"])
+    if topic == "baro/pressure":
+        return pressure_to_msg(T0 + 9, "alice/imu_link", 98765.43, 6.25)
     if topic == "imu/data":
         return imu_to_msg(T0 + 3, "alice/imu_link", V["acc"], V["gyro"], QUAT, V["ocov"])
     if topic == "wifi/scan":
@@ -132,6 +136,8 @@ def check(topic: str, msg) -> None:
     elif topic == "imu/mag":
         stamp, f = mag_from_msg(msg)
         assert stamp == T0 + 2 and np.array_equal(f, V["mag"])
+    elif topic == "baro/pressure":
+        assert pressure_from_msg(msg) == (T0 + 9, 98765.43, 6.25, "alice/imu_link")
     elif topic == "wifi/scan":
         s, e = scan_from_msg(msg), V["scan"]
         assert (s.stamp_ns, s.bssid, s.ssid) == (e.stamp_ns, e.bssid, e.ssid)

@@ -1,0 +1,74 @@
+"""Floors live over DDS: tll_pf in a namespace on the three-floor graph, fed pdr/odom, one wifi/fix
+and baro/pressure; a lift ride the barometer sees moves pf/pose z to the floor above."""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from helpers_dds import Peer, child_env, ros_node, spin_until
+from indoor_loc.baro.height import pressure_at_height_pa
+from indoor_loc.contract import Qos
+from indoor_loc.graph import save_graph
+from indoor_loc.measurements import Fix
+from indoor_loc.nodes.base import qos_profile
+from indoor_loc.sim.building import building_graph, make_tower_building
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.pose import fix_to_msg
+from msg_adapters.pressure import pressure_to_msg
+
+SEC = 1_000_000_000
+
+
+def _stream(t0: int) -> list[tuple[int, str, object]]:
+    """A walker at the west end of floor 0 walks into the lift (2.5 m west), rides one storey up
+    (3.5 m in 3.5 s from 8 s) and stands; the barometer at 10 Hz, PDR hops every 0.32 s."""
+    rng = np.random.default_rng(5)
+    out: list[tuple[int, str, object]] = [(t0, "fix", fix_to_msg(Fix(t0, np.array([1.0, 10.0]), np.eye(2) * 0.5)))]
+    for k in range(1, 90):
+        t = t0 + k * 320_000_000
+        x = 1.0 - min(2.5, 0.32 * k * 1.2)
+        out.append((t, "odom", odom_to_msg(t, "alice/odom", "alice/base_link", x - 1.0, 0.0, np.pi, np.eye(3) * 0.01,
+                                           1.2 if x > -1.5 else 0.0, 0.0)))
+    for k in range(0, 290):
+        t = t0 + k * 100_000_000
+        h = 1.1 + float(np.clip((k / 10 - 8.0) / 3.5, 0.0, 1.0)) * 3.5
+        p = float(pressure_at_height_pa(h, 101325.0)) + rng.normal(0.0, 4.0)
+        out.append((t, "baro", pressure_to_msg(t, "alice/imu_link", round(p, 0), 64.0)))
+    return sorted(out, key=lambda r: r[0])
+
+
+@pytest.mark.timeout(240)      # above the sum of the condition deadlines, not an expected duration
+def test_a_lift_ride_seen_by_the_barometer_moves_pf_pose_z_up_a_floor(ros_domain, tmp_path):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import FluidPressure
+
+    gf = save_graph(building_graph(make_tower_building()), tmp_path / "tower.graph.yaml")
+    proc = Peer([sys.executable, "-m", "indoor_loc.nodes.tll_pf_node", "--ros-args", "-r", "__ns:=/alice",
+                 "-p", f"graph_file:={gf}", "-p", "n_particles:=300", "-p", "monitor.enabled:=false"], env=child_env())
+    try:
+        with ros_node("probe") as (node, ex):
+            poses: list = []
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/pf/pose", poses.append,
+                                     QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                                                durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            pubs = {"odom": node.create_publisher(Odometry, "/alice/pdr/odom", qos_profile(Qos.RELIABLE)),
+                    "fix": node.create_publisher(PoseWithCovarianceStamped, "/alice/wifi/fix", qos_profile(Qos.RELIABLE)),
+                    "baro": node.create_publisher(FluidPressure, "/alice/baro/pressure", qos_profile(Qos.RELIABLE))}
+            assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60), proc.output()
+            t0 = 10 * SEC
+            for _, kind, msg in _stream(t0):
+                pubs[kind].publish(msg)
+                spin_until(ex, lambda: False, 0.002)
+            assert spin_until(ex, lambda: len(poses) >= 60, 60), proc.output()
+            spin_until(ex, lambda: False, 1.0)
+            stamp = np.array([p.header.stamp.sec * SEC + p.header.stamp.nanosec for p in poses])
+            z = np.array([p.pose.pose.position.z for p in poses])
+            assert np.all(z[stamp < t0 + 8 * SEC] == 0.0), z             # floor 0 before the ride
+            assert z[-1] == pytest.approx(3.5), (z, proc.output())        # floor 1 after it
+            assert np.all(z[stamp > t0 + 20 * SEC] == pytest.approx(3.5))
+    finally:
+        proc.stop()
