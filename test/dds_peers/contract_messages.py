@@ -113,9 +113,6 @@ def build(topic: str):
         return transform_to_msg(T0 + 13, "map", "alice/odom", 3.25, -7.5, 0.6)
     if topic == "/tf":
         return tf_message([transform_to_msg(T0 + 13, "map", "alice/odom", 3.25, -7.5, 0.6)], 500_000_000)
-    if topic == "baro/pressure":
-        from msg_adapters.pressure import pressure_to_msg
-        return pressure_to_msg(T0 + 13, "alice/imu_link", 101325.125, 0.25)
     if topic == "ble/scan":
         from msg_adapters.ble_scan import ble_to_msg
         return ble_to_msg(V["ble"])
@@ -190,9 +187,6 @@ def check(topic: str, msg) -> None:
         assert (stamp, parent, child, x, y) == (T0 + 13 + (500_000_000 if topic == "/tf" else 0), "map", "alice/odom",
                                                 3.25, -7.5)
         assert abs(yaw - 0.6) < 1e-12
-    elif topic == "baro/pressure":
-        from msg_adapters.pressure import pressure_from_msg
-        assert pressure_from_msg(msg) == (T0 + 13, 101325.125, 0.25, "alice/imu_link")
     elif topic == "ble/scan":
         from msg_adapters.ble_scan import ble_from_msg
         b, e = ble_from_msg(msg), V["ble"]
