@@ -31,8 +31,12 @@ def pressure_from_msg(msg: FluidPressure) -> PressureSample:
 
 
 def pressure_to_msg(stamp_ns: int, frame_id: str, pressure_pa: float, variance_pa2: float = 0.0) -> FluidPressure:
-    """A FluidPressure message: pressure (Pa) and its variance (Pa², 0 = unknown)."""
+    """A FluidPressure message: pressure (Pa) and its variance (Pa², 0 = unknown), validated as on
+    input (``BOUNDS["pressure"]``, ``BOUNDS["pressure_variance"]``), so no writer makes one a node refuses."""
     require_finite("fluid_pressure", float(pressure_pa))
+    require_finite("variance", float(variance_pa2))
+    check("fluid_pressure", float(pressure_pa), "pressure")
+    check("variance", float(variance_pa2), "pressure_variance")
     msg = FluidPressure()
     msg.header.stamp = stamp_from_ns(stamp_ns)
     msg.header.frame_id = frame_id

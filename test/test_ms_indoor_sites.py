@@ -410,7 +410,7 @@ def test_a_site_without_any_waypoint_is_imported_without_a_map(tmp_path, capsys)
     assert sorted(p.name for p in (out / "F2").glob("*.mcap")) == [f"{wid(0, 0)}.mcap", f"{wid(0, 1)}.mcap"]
     assert not (out / "radiomap").exists()
     params = yaml.safe_load((out / "params.yaml").read_text())
-    assert list(params) == ["/**/imu_node"]
+    assert sorted(params) == ["/**/imu_node", "/**/pdr_kf_node"]      # no radio map: no WiFi, pf or back-end
     split = yaml.safe_load((out / "split.yaml").read_text())
     assert split["F2"] == {"z_m": 5.0, "survey": [], "test": [], "no_truth": [wid(0, 0), wid(0, 1)]}
     assert "Radio map: **none**" in (out / "import_report.md").read_text()

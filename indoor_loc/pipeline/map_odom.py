@@ -147,7 +147,7 @@ class MapOdom:
 
     def motion(self, user: str, msg: Any) -> None:
         """An accepted motion message (already validated by the stage's handler)."""
-        od = odom_from_msg(msg)
+        od = odom_from_msg(msg, unknown_cov=True)     # a robot driver's -1: the stage took it
         self._user(user).track.add(od.stamp_ns, (od.x, od.y, od.yaw), od.frame_id)
 
     def corrections(self, user: str, outs: list[tuple[str, Any]]) -> list[tuple[str, Any]]:
