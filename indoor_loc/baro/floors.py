@@ -40,8 +40,9 @@ from indoor_loc.baro.detector import FloorChange
 @dataclass(frozen=True)
 class FloorFilterParams:
     """Floor estimation from WiFi fixes and barometer floor changes."""
-    fix_wrong_min: float = P.field(0.05, "smallest probability that a fix's floor is wrong (a sure detector is "
-                                         "still wrong sometimes)")
+    fix_wrong_min: float = P.field(0.1, "smallest probability that a fix's floor is wrong (a sure detector is "
+                                        "still wrong sometimes: the powed detector on simulated multi-floor walks, "
+                                        "transits included, about 1 in 8)")
     switch_prob: float = P.field(0.9, "the reported floor changes when another floor is more probable than this")
     change_rate_per_s: float = P.field(0.01, "without a barometer: rate of moving to an adjacent floor (1/s)")
     baro_quiet_rate_per_s: float = P.field(1e-4, "with a barometer reporting and no floor change: rate of a floor "

@@ -38,7 +38,8 @@ ESTIMATORS = ("wifi/fix", "pdr_kf/pose", "pf/pose", "backend/{user}/pose")
 def simulate_world(out: Path, *, walkers: int, duration_s: float, seed: int, change_floors: bool,
                    start_floor: int = 0) -> dict:
     """Simulate and write a world with a barometer; returns write_run's paths plus ``baro`` (a bag of
-    the barometer topics only) and ``floor_z``."""
+    the barometer topics only), ``floor_z`` and the run. A world already written and replayed in
+    ``out`` (same seed, same code) is simulated again for the scoring but not rewritten."""
     from indoor_loc.bag import BagWriter
     from indoor_loc.bag.reader import bag_topics, read_raw
     from indoor_loc.sim.baro import BaroSimParams
@@ -51,6 +52,9 @@ def simulate_world(out: Path, *, walkers: int, duration_s: float, seed: int, cha
     cfg = SimConfig(walkers=walkers, duration_s=duration_s, seed=seed, change_floors=change_floors,
                     start_floor=start_floor, baro=BaroSimParams(), imu=ImuParams(rate_hz=50.0, mag_rate_hz=25.0))
     run = simulate(b, cfg)
+    if (out / "baro.mcap").exists() and (out / "front.mcap").exists():     # written and replayed before: reuse
+        return {"bag": out / "sim.mcap", "params": out / "params.yaml", "truth": out / "truth",
+                "baro": out / "baro.mcap", "floor_z": b.floor_z, "run": run}
     paths = write_run(run, out)
     baro_topics = [t for t in bag_topics(paths["bag"]) if t.endswith("/baro/pressure")]
     with BagWriter(out / "baro.mcap") as bag:

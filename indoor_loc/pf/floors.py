@@ -128,7 +128,8 @@ class PfFloorParams:
     """Floors in the particle filter (see the module docstring)."""
     fix_floor: bool = P.field(True, "weigh particles by the WiFi fix's floor (pose z) when the graph has several "
                                     "floors; false when the radio map has none (its fixes all say z = 0)")
-    fix_floor_wrong_min: float = P.field(0.05, "smallest probability that a fix's floor is wrong")
+    fix_floor_wrong_min: float = P.field(0.1, "smallest probability that a fix's floor is wrong (the powed "
+                                              "detector on simulated multi-floor walks: about 1 in 8)")
     baro_floor_wrong: float = P.field(0.05, "weight of a particle off the floor the barometer expects, per check")
     baro_check_s: float = P.field(1.0, "the barometer gate weighs the particles at most this often (s)")
     shaft_reach_m: float = P.field(8.0, "at a barometer floor change, particles this close to a lift or stairwell "

@@ -185,8 +185,9 @@ def node_params(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
 
 
 def multi_floor(run: SimRun) -> bool:
-    """A run whose walkers change floors: its radio map carries the floors and the fixes detect them."""
-    return bool(run.config.change_floors) and run.building.n_floors > 1
+    """A run whose walkers change floors, or any run in a building of more than two floors (the tower:
+    a walker staying on floor 1 too): its radio map carries the floors and the fixes detect them."""
+    return run.building.n_floors > 1 and (bool(run.config.change_floors) or run.building.n_floors > 2)
 
 
 def node_params_flat(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
