@@ -25,9 +25,10 @@ $(TF2): $(STAMP) indoor_loc/tools/build_tf2_msgs.py indoor_loc/data/tf2_msgs/msg
 
 venv: $(STAMP) $(TF2)
 
-# the main job on the shipped sample building: simulated walkers, every node live over DDS (no datasets needed)
+# the main job on the shipped sample building: simulated walkers and a robot, every node live over DDS
+# (no datasets needed)
 demo: $(STAMP) $(TF2)
-	$(VENV)/bin/indoor-loc demo --out $(OUT)/demo
+	$(VENV)/bin/indoor-loc demo --robots 1 --out $(OUT)/demo
 
 # the same pipeline on the real PUTMC dataset (needs $(DATA)/putmc), replayed offline
 demo-putmc: $(STAMP) $(TF2)
