@@ -148,10 +148,16 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
     # imu_node): the demo's sixteen processes starting on a 2-core machine took 20 s where one CPU in
     # three was free and over 60 s at a load average of 20, so the bound is 180 s (a loss is then
     # counted and printed with the scores)
+    consumers = ["imu/data_raw=imu_node", "imu/mag=imu_node", "wifi/scan=" + ",".join(scan_consumers)]
+    robot_args: list[str] = []
+    if sim.get("robots"):
+        # a robot's wheel odometry feeds its estimators (and the back-end); its gyro (imu) has no consumer
+        # in the demo, so the player does not wait for one
+        consumers.append("odom=" + ",".join(["pdr_kf_node", "tll_pf"] + scan_consumers[1:]))
+        robot_args = ["--min-subscribers", "imu=0"]
     nodes.append({"name": "player", "module": "indoor_loc.nodes.player_node",
                   "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "180",
-                           "--consumers", "imu/data_raw=imu_node", "imu/mag=imu_node",
-                           "wifi/scan=" + ",".join(scan_consumers), "--delay", "1.0"],
+                           "--consumers", *consumers, *robot_args, "--delay", "1.0"],
                   "use_sim_time": False})
     return {"env": env, "use_sim_time": True, "stop_timeout_s": 10.0, "nodes": nodes}
 
