@@ -148,7 +148,9 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
     # imu_node): the demo's sixteen processes starting on a 2-core machine took 20 s where one CPU in
     # three was free and over 60 s at a load average of 20, so the bound is 180 s (a loss is then
     # counted and printed with the scores)
-    consumers = ["imu/data_raw=imu_node", "imu/mag=imu_node", "wifi/scan=" + ",".join(scan_consumers)]
+    consumers = ["imu/data_raw=imu_node", "imu/mag=imu_node", "wifi/scan=" + ",".join(scan_consumers),
+                 # ground truth and the building graph: the recorder is their consumer (for the scores)
+                 "ground_truth=/recorder", "ground_truth/route=/recorder", "/map/graph=/recorder"]
     robot_args: list[str] = []
     if sim.get("robots"):
         # a robot's wheel odometry feeds its estimators (and the back-end); its gyro (imu) has no consumer

@@ -91,6 +91,9 @@ def run(options: argparse.Namespace, ros_args: list[str] | None = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:  # noqa: BLE001 - a signal at start-up shuts the context down under spin(): a stop
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
