@@ -223,14 +223,20 @@ class InputsMixin(StuckGuard):
         if items is not None:
             self._publish([(t, m) for _, t, m in self.stage.process_batch(topic, items, recv)])
             return
+        self._process_each(inp, topic, run, label=topic)
+
+    def _process_each(self, inp: Any, topic: str, run: list[tuple[int, bytes]], *, label: str,
+                      user: str | None = None) -> None:
+        """A run's messages decoded and handled one by one (a run the bulk decoder did not take); one
+        that does not decode is counted (``undecodable``, ``label`` naming its input), never raised."""
         for recv_ns, data in run:
             try:
                 msg = deserialize_message(data, inp.cls)
             except Exception as err:  # noqa: BLE001 - a node never dies on a message
                 self.stage.diag.now_ns = recv_ns
-                self.stage._reject("undecodable", f"{topic}: {len(data)} bytes: {type(err).__name__}: {err}")
+                self.stage._reject("undecodable", f"{label}: {len(data)} bytes: {type(err).__name__}: {err}")
                 continue
-            self._publish(self.stage.process(topic, msg, recv_ns))
+            self._publish(self.stage.process(topic, msg, recv_ns, user))
 
     # -- liveness and stuck subscriptions -------------------------------------------------------------------
     def _watch_inputs(self, now_ns: int) -> None:

@@ -34,7 +34,6 @@ from typing import Any, Callable
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
-from rclpy.serialization import deserialize_message
 
 from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
@@ -227,14 +226,7 @@ class MultiUserStageNode(StageNode):
                 self._publish([(t, m) for _, t, m in
                                self.stage.process_user_batch(user, topic, items, [r for r, _ in run])])
                 return
-        for recv_ns, data in run:
-            try:
-                msg = deserialize_message(data, inp.cls)
-            except Exception as err:  # noqa: BLE001 - a node never dies on a message
-                self.stage.diag.now_ns = recv_ns
-                self.stage._reject("undecodable", f"{inp.resolved}: {len(data)} bytes: {type(err).__name__}: {err}")
-                continue
-            self._publish(self.stage.process(topic, msg, recv_ns, user))
+        self._process_each(inp, topic, run, label=inp.resolved, user=user)
 
     def _deliver(self, w: Any, data: bytes, info: Any, *, probe: bool = False) -> None:
         """A message the stuck-subscription guard hands on (its probe's): as one run of its user."""
