@@ -129,24 +129,10 @@ class MultiUserStageNode(StageNode):
         for user in list(self._others):
             if user not in publishing:
                 del self._others[user]          # gone (or never ours to watch)
-        timeout = float(self.stage.params.user_timeout_s)
-        for user in list(self.user_subs):
-            if user in publishing:
-                self._user_seen[user] = now
-                self._finished_users.discard(user)
-                continue
-            if user in self._finished_users or now - self._user_seen[user] < timeout:
-                continue
-            self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
-            self._poll(only=user)               # what it sent before leaving, still queued, comes first
-            self._finished_users.add(user)
-            self._publish(self.stage.run_finish_user(user))
-            self._log_rejections()
-            if not self._fixed_users:
-                for inp in self.user_subs.pop(user):
-                    self._close_input(inp)
-                self._user_seen.pop(user, None)
-                self._finished_users.discard(user)
+        self._users_leaving(now, lambda user: user in publishing)
+
+    def _before_user_finishes(self, user: str) -> None:
+        self._poll(only=user)               # what it sent before leaving, still queued, comes first
 
     # -- the users' inputs and outputs on the io node -------------------------------------------------
     def _io_node(self) -> Node:

@@ -328,16 +328,23 @@ class StageNode(InputsMixin, Node):
                         user = user_of_namespace(ns)
                         if user and self.count_publishers(name) > 0:
                             self._follow(user)
+        self._users_leaving(now, lambda user: any(
+            self.count_publishers(join_ns(namespace_of_user(user), p.topic)) > 0 for p in self.stage.inputs()))
+
+    def _users_leaving(self, now: float, publishing: Callable[[str], bool]) -> None:
+        """Users whose input publishers have all been gone for the stage's ``user_timeout_s``: their
+        end-of-input outputs published (:meth:`_before_user_finishes` first) and, for a discovered
+        user, its subscriptions closed (followed again if it comes back)."""
         timeout = float(getattr(self.stage.params, "user_timeout_s", 10.0))
         for user in list(self.user_subs):
-            ns = namespace_of_user(user)
-            if any(self.count_publishers(join_ns(ns, p.topic)) > 0 for p in self.stage.inputs()):
+            if publishing(user):
                 self._user_seen[user] = now
                 self._finished_users.discard(user)
                 continue
             if user in self._finished_users or now - self._user_seen[user] < timeout:
                 continue
             self.get_logger().info(f"user {user!r} left (no publishers for {timeout:g} s)")
+            self._before_user_finishes(user)
             self._finished_users.add(user)
             self._publish(self.stage.run_finish_user(user))
             self._log_rejections()
@@ -345,6 +352,10 @@ class StageNode(InputsMixin, Node):
                 for inp in self.user_subs.pop(user):
                     self._close_input(inp)
                 self._user_seen.pop(user, None)
+                self._finished_users.discard(user)
+
+    def _before_user_finishes(self, user: str) -> None:
+        """Called as a user leaves, before its end-of-input outputs (a node that queues input drains it)."""
 
     def _publisher(self, topic: str):
         pub = self._pubs.get(topic)
