@@ -23,6 +23,7 @@ import argparse
 import dataclasses
 import importlib.util
 import os
+import re
 import signal
 import sys
 import threading
@@ -46,6 +47,12 @@ PER_WALKER_NODES = [("imu", "imu_node"), ("wifi", "wifi_fix_node"), ("pdr_kf", "
 #: Node modules that later builds add; the demo starts them when present.
 OPTIONAL_PER_WALKER = [("pf", "tll_pf_node")]
 OPTIONAL_SHARED = [("backend", "backend_node")]
+#: The demo's multi-user nodes: a user whose inputs have had no publisher this long has left (s)
+USER_TIMEOUT_S = 3.0
+#: Once the bag is played, the demo waits at most this long (s) for the multi-user nodes to finish their users
+USERS_FINISH_WAIT_S = 90.0
+#: A multi-user node's log line saying it has finished a user (``indoor_loc.nodes.multi_user_node``)
+_FINISHED = re.compile(r"^\[(\w+)\] \[INFO\] .*: user '([^']+)' finished: ")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=1.0, help="playback rate (default 1.0 = real time)")
     parser.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                         help="also serve the live view over the Foxglove WebSocket protocol (default port 8765)")
+    parser.add_argument("--per-user", action="store_true",
+                        help="run every stage as one process per walker (default: one --multi-user process per "
+                             "stage serving every walker; docs/scaling.md)")
     parser.add_argument("--verbose", action="store_true", help="print every node's log lines (always in OUT/nodes.log)")
     parser.add_argument("--dataset", choices=("sim", "putmc"), default="sim",
                         help="'sim' (default): the shipped sample building, live over DDS; 'putmc': the real "
@@ -109,9 +119,11 @@ def _module_exists(name: str) -> bool:
 
 
 def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, foxglove: int | None,
-                   dds_env: dict[str, str] | None = None) -> dict:
+                   dds_env: dict[str, str] | None = None, per_user: bool = False) -> dict:
     """The bring-up mapping (same schema as ``indoor-loc up``) of the live demo. ``dds_env``: the
-    ``ROS_DOMAIN_ID`` / ``ROS_AUTOMATIC_DISCOVERY_RANGE`` chosen by :mod:`indoor_loc.dds_isolation`."""
+    ``ROS_DOMAIN_ID`` / ``ROS_AUTOMATIC_DISCOVERY_RANGE`` chosen by :mod:`indoor_loc.dds_isolation`.
+    ``per_user``: one process per stage and walker (else one ``--multi-user`` process per stage serves
+    every walker: :func:`stage_nodes`)."""
     env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST"),
            **(dds_env or {}), "RCUTILS_COLORIZED_OUTPUT": "0"}
     # a replay: reliable sensor inputs, so the player's stream is never dropped in DDS (docs/nodes.md)
@@ -123,13 +135,10 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
                           # wall clock: its graph polling must run before the player's /clock starts
                           # (log time = wall-clock reception; every message keeps its bag-time stamp)
                           "use_sim_time": False}]
-    for w in walkers:
-        for label, mod in PER_WALKER_NODES + [n for n in OPTIONAL_PER_WALKER if _module_exists(n[1])]:
-            if label == "imu" and w in sim.get("robots", ()):
-                continue                # a robot's own odometry is its motion input: no stepometer
-            nodes.append({"name": f"{label}_{w}", "module": f"indoor_loc.nodes.{mod}", "namespace": f"/{w}",
-                          "params_files": [params], "params": dict(replay)})
-    scan_consumers = ["wifi_fix_node"]
+    nodes += stage_nodes(walkers, list(sim.get("robots", ())), params, replay, per_user)
+    # the name of the node holding a stage's subscriptions (a multi-user node's users' are on <name>_io)
+    sub = (lambda mod: mod) if per_user else (lambda mod: f"{mod}_io")
+    scan_consumers = [sub("wifi_fix_node")]
     for label, mod in OPTIONAL_SHARED:
         if _module_exists(mod):
             nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "params_files": [params],
@@ -148,13 +157,14 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
     # imu_node): the demo's sixteen processes starting on a 2-core machine took 20 s where one CPU in
     # three was free and over 60 s at a load average of 20, so the bound is 180 s (a loss is then
     # counted and printed with the scores)
-    consumers = ["imu/data_raw=imu_node", "imu/mag=imu_node", "wifi/scan=" + ",".join(scan_consumers),
+    consumers = [f"imu/data_raw={sub('imu_node')}", f"imu/mag={sub('imu_node')}", "wifi/scan=" + ",".join(scan_consumers),
                  # ground truth and the building graph: the recorder is their consumer (for the scores)
                  "ground_truth=/recorder", "ground_truth/route=/recorder", "/map/graph=/recorder"]
     robot_args: list[str] = []
     if sim.get("robots"):
         # a robot's wheel odometry feeds its estimators (and the back-end); its gyro (imu) has no consumer
         # in the demo, so the player does not wait for one
+        # (the robots' estimators run per robot: see stage_nodes)
         consumers.append("odom=" + ",".join(["pdr_kf_node", "tll_pf"] + scan_consumers[1:]))
         robot_args = ["--min-subscribers", "imu=0"]
     nodes.append({"name": "player", "module": "indoor_loc.nodes.player_node",
@@ -164,19 +174,58 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
     return {"env": env, "use_sim_time": True, "stop_timeout_s": 10.0, "nodes": nodes}
 
 
+def stage_nodes(walkers: list[str], robots: list[str], params: str, replay: dict, per_user: bool) -> list[dict]:
+    """The stage nodes of the demo's users. Default: one ``--multi-user`` process per stage
+    (``imu``, ``wifi``, ``pdr_kf``, ``pf``) serving its ``users`` (docs/scaling.md): the walkers, and for
+    ``wifi_fix_node`` the robots as well. A robot's ``pdr_kf_node`` and ``tll_pf`` run per robot: they
+    take its wheel odometry (``motion_source: odom``, its params.yaml entry) where the walkers' take
+    ``pdr/odom``, and a multi-user node subscribes every user to the same inputs with the same
+    parameters. ``per_user``: every stage one process per user (the layout of a robot or a few phones)."""
+    stages = PER_WALKER_NODES + [n for n in OPTIONAL_PER_WALKER if _module_exists(n[1])]
+    nodes: list[dict] = []
+    if not per_user:
+        phones = [w for w in walkers if w not in robots]
+        for label, mod in stages:
+            users = [w for w in walkers if label == "wifi" or w in phones]
+            if users:
+                nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "args": ["--multi-user"],
+                              "params_files": [params],
+                              "params": {**replay, "users": users, "user_timeout_s": USER_TIMEOUT_S}})
+    for w in walkers:
+        for label, mod in stages:
+            if label == "imu" and w in robots:
+                continue                # a robot's own odometry is its motion input: no stepometer
+            if per_user or (w in robots and label != "wifi"):
+                nodes.append({"name": f"{label}_{w}", "module": f"indoor_loc.nodes.{mod}", "namespace": f"/{w}",
+                              "params_files": [params], "params": dict(replay)})
+    return nodes
+
+
+def users_to_finish(cfg_map: dict) -> frozenset[tuple[str, str]]:
+    """(node label, user) of every user of the bring-up's multi-user nodes: the demo waits for them
+    to be finished (:func:`_supervise`)."""
+    return frozenset((n["name"], u) for n in cfg_map["nodes"] if "--multi-user" in n.get("args", ())
+                     for u in n["params"]["users"])
+
+
 class _Console:
     """Bring-up output: every line to OUT/nodes.log; to the terminal only the supervisor's lines,
-    warnings and errors (or everything with --verbose)."""
+    warnings and errors (or everything with --verbose). Notes the users a multi-user node has
+    finished (``finished``: (node label, user))."""
 
     def __init__(self, log_path: Path, verbose: bool) -> None:
         self._log = open(log_path, "w", encoding="utf-8")
         self.verbose = verbose
         self._lock = threading.Lock()
+        self.finished: set[tuple[str, str]] = set()
 
     def write(self, text: str) -> int:
         with self._lock:
             self._log.write(text)
             for line in text.splitlines():
+                done = _FINISHED.match(line)
+                if done:
+                    self.finished.add((done[1], done[2]))
                 if self.verbose or line.startswith("[up]") or "ERROR" in line or "Traceback" in line \
                         or "WARN" in line:
                     sys.stdout.write("   " + line + "\n")
@@ -190,10 +239,14 @@ class _Console:
         self._log.close()
 
 
-def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event, state: dict) -> None:
-    """Progress while the player runs; when it has finished, stop the nodes in dependency order
-    (the bring-up's ``stop_order`` waves: the estimators from sources to sinks, so each one's final
-    outputs reach the nodes after it, the recorder last)."""
+def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event, state: dict,
+               console: _Console | None = None, users: frozenset[tuple[str, str]] = frozenset()) -> None:
+    """Progress while the player runs; when it has finished, let the multi-user nodes' ``users``
+    leave (their inputs' publishers gone for ``user_timeout_s``, from the front ends to the
+    estimators: each finishes its users, the particle filter smoothing their paths, without the stop's
+    deadline; at most :data:`USERS_FINISH_WAIT_S`), then stop the nodes in dependency order (the
+    bring-up's ``stop_order`` waves: the estimators from sources to sinks, so each one's final outputs
+    reach the nodes after it, the recorder last)."""
     player = next(c for c in bup.children if c.spec.name == "player")
     t_start = time.monotonic()
     next_report = t_start + 10.0
@@ -210,6 +263,15 @@ def _supervise(bup, duration_s: float, rate: float, stop_event: threading.Event,
         return                          # interrupted (Ctrl-C) or a node died: the bring-up stops everything
     state["played"] = player.last_rc == 0
     time.sleep(1.5)          # let the last messages drain through the nodes
+    if console is not None and users:
+        print(f"   ... the bag has been played: waiting for the multi-user nodes to finish their users (each "
+              f"leaves {USER_TIMEOUT_S:g} s after its inputs' publishers)", flush=True)
+        until = time.monotonic() + USERS_FINISH_WAIT_S
+        while not users <= console.finished and time.monotonic() < until and not stop_event.is_set() \
+                and bup._stop_requested is None:
+            time.sleep(0.2)
+        if stop_event.is_set() or bup._stop_requested is not None:
+            return
     bup.request_stop(signal.SIGINT)
 
 
@@ -229,7 +291,8 @@ def run_sim_demo(args: argparse.Namespace) -> int:
             stale.unlink()
     from indoor_loc.dds_isolation import isolated_env
     dds_env, dds_said = isolated_env(os.environ)
-    cfg_map = bringup_config(walkers, sim, out, rate=args.rate, foxglove=args.foxglove, dds_env=dds_env)
+    cfg_map = bringup_config(walkers, sim, out, rate=args.rate, foxglove=args.foxglove, dds_env=dds_env,
+                             per_user=getattr(args, "per_user", False))
     (out / "bringup.yaml").write_text(
         f"# The demo's bring-up; `indoor-loc up {out / 'bringup.yaml'}` runs the same processes. The player\n"
         "# is not `required`: when the bag ends the nodes keep running until Ctrl-C (`indoor-loc demo` itself\n"
@@ -252,8 +315,8 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     bup = Bringup(config, out=console, hint_ctrl_c=False)      # the demo stops the nodes itself
     stop_event = threading.Event()
     state = {"played": False}
-    watcher = threading.Thread(target=_supervise, args=(bup, args.duration, args.rate, stop_event, state),
-                               daemon=True)
+    watcher = threading.Thread(target=_supervise, args=(bup, args.duration, args.rate, stop_event, state, console,
+                                                        users_to_finish(cfg_map)), daemon=True)
     watcher.start()
     try:
         status = bup.run()

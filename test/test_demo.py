@@ -104,19 +104,22 @@ def test_demo_bringup_stops_in_dependency_order(tmp_path):
     params = tmp_path / "params.yaml"
     params.write_text("/**/imu_node:\n  ros__parameters:\n    step_length_m: 0.7\n")
     sim = {"params": params, "bag": tmp_path / "sim.mcap", "dir": tmp_path}
-    cfg = parse_config(bringup_config(["alice", "bob"], sim, tmp_path, rate=1.0, foxglove=8765), tmp_path)
-    order = {n.name: n.stop_order for n in cfg.nodes}
-    assert order["player"] == 0 and order["recorder"] == 9 and order["view"] == 9
-    # the particle filter and the back-end are in the bring-up whenever this build has their nodes
     has_pf, has_backend = _module_exists("tll_pf_node"), _module_exists("backend_node")
-    for w in ("alice", "bob"):
-        assert 0 < order[f"imu_{w}"] < order[f"wifi_{w}"] < order[f"pdr_kf_{w}"]
-        assert (f"pf_{w}" in order) == has_pf
-        if has_pf:
-            assert order[f"pf_{w}"] > order[f"wifi_{w}"]
-    assert ("backend" in order) == has_backend
-    if has_backend:
-        assert max(order[f"pdr_kf_{w}"] for w in ("alice", "bob")) < order["backend"] < order["recorder"]
+    for per_user in (True, False):        # one process per stage and walker, or one multi-user process per stage
+        cfg = parse_config(bringup_config(["alice", "bob"], sim, tmp_path, rate=1.0, foxglove=8765,
+                                          per_user=per_user), tmp_path)
+        order = {n.name: n.stop_order for n in cfg.nodes}
+        assert order["player"] == 0 and order["recorder"] == 9 and order["view"] == 9
+        # the particle filter and the back-end are in the bring-up whenever this build has their nodes
+        for w in ("alice", "bob") if per_user else ("",):
+            sfx = f"_{w}" if w else ""
+            assert 0 < order[f"imu{sfx}"] < order[f"wifi{sfx}"] < order[f"pdr_kf{sfx}"]
+            assert (f"pf{sfx}" in order) == has_pf
+            if has_pf:
+                assert order[f"pf{sfx}"] > order[f"wifi{sfx}"]
+        assert ("backend" in order) == has_backend
+        if has_backend:
+            assert max(v for k, v in order.items() if k.startswith("pdr_kf")) < order["backend"] < order["recorder"]
 
 
 def test_demo_with_the_view_delivers_every_input_to_its_node(ros_domain, tmp_path):
@@ -145,7 +148,7 @@ def test_demo_with_the_view_delivers_every_input_to_its_node(ros_domain, tmp_pat
         assert int(values["in.imu/data_raw.count"]) == played[f"/{w}/imu/data_raw"] > 1000, values
         assert "missed_at_start.imu/data_raw" not in values
     late = [ln for ln in (out / "nodes.log").read_text().splitlines()
-            if ln.startswith(("[imu_", "[wifi_")) and "publisher's #" in ln]
+            if ln.startswith(("[imu", "[wifi")) and "publisher's #" in ln]
     assert not late, late
     assert not _processes_mentioning(str(out)), "processes left behind"
 
@@ -160,6 +163,13 @@ def test_demo_robots_run_their_estimators_without_a_stepometer(tmp_path):
     params = tmp_path / "params.yaml"
     params.write_text("/**/imu_node:\n  ros__parameters:\n    step_length_m: 0.7\n")
     sim = {"params": params, "bag": tmp_path / "sim.mcap", "dir": tmp_path, "robots": ["robot1"]}
-    names = {n["name"] for n in bringup_config(["alice", "robot1"], sim, tmp_path, rate=1.0, foxglove=None)["nodes"]}
+    names = {n["name"] for n in bringup_config(["alice", "robot1"], sim, tmp_path, rate=1.0, foxglove=None,
+                                              per_user=True)["nodes"]}
     assert {"imu_alice", "wifi_robot1", "pdr_kf_robot1"} <= names and "imu_robot1" not in names
+    # multi-user (the default): the walkers share one process per stage; a robot's estimators, on its own
+    # odometry, stay per robot; its WiFi is served by the shared wifi_fix_node
+    nodes = {n["name"]: n for n in bringup_config(["alice", "robot1"], sim, tmp_path, rate=1.0, foxglove=None)["nodes"]}
+    assert {"imu", "wifi", "pdr_kf", "pdr_kf_robot1"} <= set(nodes) and not {"imu_robot1", "wifi_robot1"} & set(nodes)
+    assert nodes["imu"]["params"]["users"] == ["alice"] and nodes["pdr_kf"]["params"]["users"] == ["alice"]
+    assert nodes["wifi"]["params"]["users"] == ["alice", "robot1"] and "--multi-user" in nodes["wifi"]["args"]
     assert re.search(INPUT_TOPICS_RE, "/robot1/odom") and not re.search(INPUT_TOPICS_RE, "/alice/pdr/odom")

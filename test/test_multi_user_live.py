@@ -263,3 +263,63 @@ def test_two_shards_split_users_and_a_killed_shard_is_reported(ros_domain, sim):
     finally:
         for s in shards:
             s.stop()
+
+
+def test_each_users_status_carries_its_own_input_counters_to_the_last(ros_domain):
+    """A multi-user imu_node's per-user statuses carry what the per-user node's status carries: the
+    user's input counts, and its own messages lost / published before the subscription matched (one
+    user started publishing before the node was up, the other did not); and the node's last status,
+    sent as it stops right after the input (SIGINT, before any user left), still has every user's
+    counters (what `indoor-loc demo` reads to account for every played message)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Imu
+    from indoor_loc.pipeline.imu_stage import ImuStage
+    from msg_adapters.diagnostics import stage_diagnostics
+    from msg_adapters.time import stamp_from_ns
+
+    def imu(user: str) -> Imu:
+        m = Imu()
+        m.header.stamp = stamp_from_ns(time.time_ns())
+        m.header.frame_id = f"{user}/imu_link"
+        m.linear_acceleration.z = 9.81
+        m.orientation_covariance[0] = -1.0
+        return m
+
+    users = ("early", "prompt")
+    with ros_node("probe") as (node, ex):
+        diags = _diagnostics(node)
+        pubs = {u: node.create_publisher(Imu, f"/{u}/imu/data_raw",
+                                         QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)) for u in users}
+        sent: dict[str, list] = {u: [] for u in users}
+        for _ in range(30):                  # nobody listens yet: a replay started too early
+            pubs["early"].publish(imu("early"))
+        proc = Peer([sys.executable, "-m", "indoor_loc.nodes.imu_node", "--multi-user", "--ros-args",
+                     "-p", "sensor_reliability:=reliable", "-p", "users:=[early, prompt]"], env=child_env())
+        try:
+            assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60), \
+                proc.output()
+            spin_until(ex, lambda: False, 1.0)
+            for _ in range(40):
+                for u in users:
+                    sent[u].append(imu(u))
+                    pubs[u].publish(sent[u][-1])
+                spin_until(ex, lambda: False, 0.01)
+            assert spin_until(ex, lambda: all(p.wait_for_all_acked(rclpy_duration(0.0)) for p in pubs.values()), 30)
+            spin_until(ex, lambda: False, 0.5)
+            proc.signal(signal.SIGINT)           # stopped right after its input: no user has left
+            assert proc.wait(timeout=30) == 0, proc.output()[-3000:]
+            spin_until(ex, lambda: False, 1.0)
+        finally:
+            proc.stop()
+    for u in users:
+        own = ImuStage(ImuStage.PARAMS(), namespace=f"/{u}")       # the per-user node's stage, same messages
+        for m in sent[u]:
+            own.process("imu/data_raw", m, _ns(m))
+        own_keys = {kv.key for kv in stage_diagnostics(f"/{u}/imu_node", own, 0).status[0].values}
+        st = diags[f"/{u}/imu_node"].values
+        assert st.get("in.imu/data_raw.count") == "40", (u, st, proc.output()[-3000:])
+        assert own_keys <= set(st), (u, own_keys - set(st))
+    early, prompt = diags["/early/imu_node"].values, diags["/prompt/imu_node"].values
+    assert early["missed_at_start.imu/data_raw"] == "30" and early["lost.imu/data_raw"] == "30", early
+    assert "missed_at_start.imu/data_raw" not in prompt and prompt["lost.total"] == "0", prompt
+    assert diags["/imu_node"].values["lost.total"] == "30"       # the node's totals

@@ -85,7 +85,7 @@ class InputsMixin(StuckGuard):
         fast = self._batchable(port)
         # named as the stage counts it: ``imu/data_raw``, ``alice/pdr/odom`` (multi-user)
         watch = InputWatch(resolved.lstrip("/"), required=port.required, stream=port.stream,
-                           on_late_start=self._late_start(resolved, port.topic if user is None else resolved.lstrip("/")))
+                           on_late_start=self._late_start(resolved, port.topic, user))
         watch.publishers = lambda: self._publisher_gids(resolved)
         inp = Input(port, resolved, user, fast, watch)
         inp.callback = self._raw_callback(inp) if fast else self._message_callback(inp)
@@ -107,16 +107,16 @@ class InputsMixin(StuckGuard):
         (:meth:`Stage.batch_handles`) and a message type :func:`indoor_loc.bag.bulk.bulk_items` decodes."""
         return not self.stage.MULTI_USER and port.type in BULK_TYPES and self.stage.batch_handles(port.topic)
 
-    def _late_start(self, topic: str, key: str) -> Callable[[int], None]:
+    def _late_start(self, topic: str, key: str, user: str | None = None) -> Callable[[int], None]:
         """Said once when an input's first message is not its publisher's first: normal when a node
         joins a running driver (INFO), input missed in a replay (``sensor_reliability: reliable``:
         WARN, and counted as lost; start the player once every consumer has matched, see
         ``--consumers``). Either way ``missed_at_start.<topic>`` in ``/diagnostics`` has the count."""
         def said(n: int) -> None:
             replay = self.sensor_reliability == "reliable"
-            self.stage.diag.missed_at_start[key] += n
+            self.stage.count_missed_at_start(key, n, user)
             if replay:
-                self.stage.diag.count_lost(key, n, self.get_clock().now().nanoseconds)
+                self.stage.count_lost(key, n, self.get_clock().now().nanoseconds, user)
             (self.get_logger().warning if replay else self.get_logger().info)(
                 f"{self.resolve_topic_name(topic)}: the first message received is its publisher's #{n + 1}: {n} were "
                 f"published before this subscription matched" + ("; a replay started too early" if replay else ""))
@@ -136,7 +136,7 @@ class InputsMixin(StuckGuard):
         now_ns = self.get_clock().now().nanoseconds
         lost = inp.watch.message(info, now_ns)
         if lost:
-            self.stage.diag.count_lost(inp.topic, lost, now_ns)
+            self.stage.count_lost(inp.topic, lost, now_ns, inp.user)
             self.get_logger().warning(f"{inp.resolved}: {lost} message(s) lost before reaching this node "
                                       f"({sum(self.stage.diag.lost.values())} so far)", throttle_duration_sec=5.0)
         return now_ns
@@ -156,8 +156,8 @@ class InputsMixin(StuckGuard):
             try:
                 msg = deserialize_message(bytes(data), inp.cls)
             except Exception as err:  # noqa: BLE001 - a node never dies on a message
-                self.stage.diag.now_ns = now_ns
-                self.stage._reject("undecodable", f"{inp.resolved}: {len(data)} bytes: {type(err).__name__}: {err}")
+                self.stage.reject_input("undecodable", f"{inp.resolved}: {len(data)} bytes: {type(err).__name__}: {err}",
+                                        now_ns, inp.user)
                 self._log_rejections()
                 return
         self._publish(self.stage.process(inp.topic, msg, now_ns, inp.user))
@@ -233,8 +233,8 @@ class InputsMixin(StuckGuard):
             try:
                 msg = deserialize_message(data, inp.cls)
             except Exception as err:  # noqa: BLE001 - a node never dies on a message
-                self.stage.diag.now_ns = recv_ns
-                self.stage._reject("undecodable", f"{label}: {len(data)} bytes: {type(err).__name__}: {err}")
+                self.stage.reject_input("undecodable", f"{label}: {len(data)} bytes: {type(err).__name__}: {err}",
+                                        recv_ns, user)
                 continue
             self._publish(self.stage.process(topic, msg, recv_ns, user))
 
@@ -256,12 +256,11 @@ class InputsMixin(StuckGuard):
 
     def _refused(self, w: Any, refused_seq: int, held: int, now_ns: int) -> None:
         """The sample a stuck subscription waited for is ``undecodable``; those it held back are lost."""
-        diag = self.stage.diag
-        diag.now_ns = now_ns
-        self.stage._reject("undecodable", f"{w.resolved}: its publisher's message #{refused_seq} never arrived: DDS "
-                                          f"refused it (an empty sample) and the reliable subscription waited for it")
+        self.stage.reject_input("undecodable", f"{w.resolved}: its publisher's message #{refused_seq} never arrived: "
+                                f"DDS refused it (an empty sample) and the reliable subscription waited for it",
+                                now_ns, w.user)
         if held:
-            diag.count_lost(w.topic, held, now_ns)
+            self.stage.count_lost(w.topic, held, now_ns, w.user)
         self._log_rejections()
 
     def _subscribe_again(self, w: Any, qos: QoSProfile) -> Any:

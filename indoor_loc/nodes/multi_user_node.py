@@ -32,6 +32,7 @@ import time
 from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
@@ -39,9 +40,9 @@ from indoor_loc.bag.bulk import BULK_TYPES, bulk_items
 from indoor_loc.contract import Qos, join_ns, msg_class, namespace_of_topic
 from indoor_loc.nodes.liveness import LEFT, STALLED
 from indoor_loc.nodes.qos import qos_profile, subscription_qos
-from indoor_loc.nodes.process import ACK_RESERVE_S
+from indoor_loc.nodes.process import ACK_RESERVE_S, stop_time_ns
 from indoor_loc.nodes.stage_node import FINISH_ACK_TIMEOUT_S, StageNode
-from indoor_loc.pipeline.multi_user import MultiUserStage, multi_user, shard_of
+from indoor_loc.pipeline.multi_user import Ended, MultiUserStage, multi_user, shard_of
 from indoor_loc.pipeline.stage import Stage, namespace_of_user, user_of_namespace
 from msg_adapters.diagnostics import stage_diagnostics, status_names_cdr, with_inputs
 
@@ -51,6 +52,12 @@ from msg_adapters.diagnostics import stage_diagnostics, status_names_cdr, with_i
 POLL_PERIOD_S = 0.05
 #: At most this many messages are taken from one input per poll (the rest wait for the next).
 TAKE_PER_INPUT = 250
+#: On a stop, taking the input still queued ends this long (s) before the time kept for publishing
+#: the end-of-input outputs, which leaves it for finishing the users.
+DRAIN_RESERVE_S = 2.0
+#: The publishers of a user that left are destroyed once their subscribers have acknowledged every
+#: message, or at the latest this long after it left (s).
+CLOSE_WAIT_S = 5.0
 
 
 class MultiUserStageNode(StageNode):
@@ -74,6 +81,10 @@ class MultiUserStageNode(StageNode):
         self._heard: dict[str, float] = {}
         self._io: Node | None = None
         self.echoes_dropped = 0
+        #: user -> its inputs' last reports, kept when they are closed (it left) for its last status
+        self._closed_inputs: dict[str, list] = {}
+        #: publishers of users that left, to destroy once acknowledged: (monotonic deadline, publishers)
+        self._closing: list[tuple[float, list]] = []
         super().__init__(multi_user(stage_cls), **node_kwargs)
         self.stage: MultiUserStage
         self.stage.raw_outputs = True
@@ -89,6 +100,7 @@ class MultiUserStageNode(StageNode):
     # -- users -----------------------------------------------------------------------------------------
     def _follow(self, user: str) -> None:
         if user and user not in self.user_subs and self.stage.serves(user):
+            self._closed_inputs.pop(user, None)
             super()._follow(user)
 
     def _published_by_others(self, topic: str, rel: str) -> bool:
@@ -129,10 +141,42 @@ class MultiUserStageNode(StageNode):
         for user in list(self._others):
             if user not in publishing:
                 del self._others[user]          # gone (or never ours to watch)
+        ended = set(self.stage.ended)
         self._users_leaving(now, lambda user: user in publishing)
+        for user in sorted(set(self.stage.ended) - ended):
+            self.get_logger().info(f"user {user!r} finished: its end-of-input outputs are published; its output "
+                                   f"topics close once their subscribers have them")
+            self._close_outputs_later(user, now)
+        self._close_outputs(now)
+
+    # -- a user that left: its outputs close, as a per-user node's when it ends ------------------------
+    def _close_outputs_later(self, user: str, now: float) -> None:
+        """The publishers of a user that left: no longer used (a user coming back gets new ones),
+        destroyed once every subscriber has acknowledged what they sent (or after
+        :data:`CLOSE_WAIT_S`), so downstream multi-user nodes see the user leave too (its inputs there
+        have no publisher any more) and finish it in turn."""
+        pubs = [self._pubs.pop(t) for t in [p.topic.format(user=user) for p in self.stage.user_outputs()]
+                if t in self._pubs]
+        if pubs:
+            self._closing.append((now + CLOSE_WAIT_S, pubs))
+
+    def _close_outputs(self, now: float) -> None:
+        waiting = []
+        for until, pubs in self._closing:
+            if now < until and not all(p.wait_for_all_acked(Duration(nanoseconds=0)) for p in pubs):
+                waiting.append((until, pubs))
+                continue
+            for pub in pubs:
+                self._io_node().destroy_publisher(pub)
+        self._closing = waiting
 
     def _before_user_finishes(self, user: str) -> None:
-        self._poll(only=user)               # what it sent before leaving, still queued, comes first
+        # what it sent before leaving, still queued (a backlog: many polls' worth), comes first
+        while True:
+            before = self.taken
+            self._poll(only=user)
+            if self.taken == before:
+                break
 
     # -- the users' inputs and outputs on the io node -------------------------------------------------
     def _io_node(self) -> Node:
@@ -150,6 +194,13 @@ class MultiUserStageNode(StageNode):
         if not topic.startswith("/"):
             return super()._create_publisher(cls, topic, qos)
         return self._io_node().create_publisher(cls, topic, qos)
+
+    def _close_input(self, inp: Any) -> None:
+        if inp.user:
+            report = inp.watch.report(self.get_clock().now().nanoseconds)
+            state = LEFT if report.state == STALLED else report.state
+            self._closed_inputs.setdefault(inp.user, []).append(report._replace(topic=inp.topic, state=state))
+        super()._close_input(inp)
 
     def destroy_subscription(self, subscription: Any) -> bool:
         if self._io is not None and subscription in self._io.subscriptions:
@@ -230,6 +281,7 @@ class MultiUserStageNode(StageNode):
         finished as they leave, without a deadline). A user whose finish would not end before the
         deadline (judged by the longest one so far) is skipped and named in a WARN."""
         deadline = self.stop_deadline if self.stop_deadline is not None else time.monotonic() + FINISH_ACK_TIMEOUT_S
+        self._drain_polls(deadline - ACK_RESERVE_S - DRAIN_RESERVE_S)
         longest = 0.0
         skipped = []
         for user in sorted(self.stage.users):
@@ -245,9 +297,23 @@ class MultiUserStageNode(StageNode):
                 f"stopping: no time left before the stop deadline for the end-of-input outputs of {len(skipped)} "
                 f"user(s): {', '.join(skipped[:20])}{' ...' if len(skipped) > 20 else ''} (their outputs so far "
                 f"stand; users that leave before the stop are finished without a deadline)")
-            for user in skipped:
-                self.stage.users.pop(user, None)
+            for user in skipped:            # not finished; its counters stay for its last status
+                self.stage.ended[user] = Ended(self.stage.users.pop(user))
         super().shutdown()
+
+    def _drain_polls(self, until: float) -> int:
+        """Hand the users' stages what DDS delivered before the stop signal and is still queued (the
+        users' inputs are taken by the poll timer, which the process's drain may not have reached);
+        until none is left, a message received after the signal was taken, or ``until`` (monotonic
+        s). Returns how many were taken."""
+        start = self.taken
+        stop_ns = stop_time_ns()
+        while time.monotonic() < until and self.last_rx_ns <= stop_ns:
+            before = self.taken
+            self._poll()
+            if self.taken == before:
+                break
+        return self.taken - start
 
     # -- the other shards -----------------------------------------------------------------------------
     def _on_diagnostics(self, data: bytes) -> None:
@@ -308,12 +374,17 @@ class MultiUserStageNode(StageNode):
                     report = report._replace(state=LEFT)
                 by_user.setdefault(inp.user, []).append(report._replace(topic=inp.topic))
         fqn = self.get_fully_qualified_name()
-        for user in sorted(set(self.stage.users) | set(by_user)):
-            inner = self.stage.users.get(user)
+        for user in sorted(set(self.stage.users) | set(by_user) | set(self.stage.ended)):
+            # its stage, or the counters it ended with (finished: left, or the node stopping)
+            inner = self.stage.user_status_stage(user)
             if inner is None:           # followed, no message yet
                 inner = _Waiting(namespace_of_user(user))
+            reports = by_user.get(user)
+            if reports is None:         # its inputs are closed (it left): this is its last status
+                reports = self._closed_inputs.pop(user, [])
+                self.stage.ended.pop(user, None)
             one = with_inputs(stage_diagnostics(f"{namespace_of_user(user)}{self._suffix}", inner, now_ns),
-                              by_user.get(user, []), now_ns)
+                              reports, now_ns)
             one.status[0].values.append(KeyValue(key="served_by", value=fqn))
             one.status[0].values.append(KeyValue(key="busy_s", value=f"{self.stage.busy_s.get(user, 0.0):.3f}"))
             arr.status.append(one.status[0])

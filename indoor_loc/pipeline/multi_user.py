@@ -15,7 +15,8 @@ outputs are exactly those of a per-user node on the same messages. Outputs are p
 the user's namespace, the per-user node's topics (``/alice/pf/pose``), so consumers do not change.
 Rejections and notices are counted and said by the user's instance and, with the user's name, by
 the node (its log, its aggregate ``/diagnostics`` status); each user also has a status of its own
-(:meth:`MultiUserStage.user_status_stages`).
+(:meth:`MultiUserStage.user_status_stage`; a user that has finished keeps its
+last counters for its last status, as a per-user node's last status when it stops).
 
 Which users: the ``users`` list, or every namespace publishing one of the stage's inputs (the
 node discovers them), kept if the name matches ``user_pattern`` (a glob) and belongs to this
@@ -33,7 +34,7 @@ from typing import Any, Callable
 
 from indoor_loc.errors import ConfigError
 from indoor_loc.params import field, require
-from indoor_loc.pipeline.stage import Output, Port, Stage, StageDiagnostics, namespace_of_user
+from indoor_loc.pipeline.stage import Output, Port, Stage, namespace_of_user
 
 #: The parameters a multi-user node adds to its stage's (name, type, default, doc).
 MULTI_USER_FIELDS: tuple[tuple[str, type, Any, str], ...] = (
@@ -98,6 +99,9 @@ class MultiUserStage(Stage):
                               f"wifi_scan_node with source: iw scans this machine's interface): nothing to serve "
                               f"users from; run it per user instead of --multi-user")
         self.users: dict[str, Stage] = {}
+        #: users whose stage has finished (left, or the node stopping): their last counters, for their
+        #: last per-user status (:meth:`user_status_stage`); dropped once the node has said it
+        self.ended: dict[str, Ended] = {}
         self.users_left = 0
         for port in self.template.inputs():
             self.on(port.topic, self._unused)
@@ -128,6 +132,7 @@ class MultiUserStage(Stage):
         st = self.users.get(user)
         if st is None:
             st = self.users[user] = self.template.for_user(namespace_of_user(user))
+            self.ended.pop(user, None)              # back after leaving: afresh
             st.raw_outputs = self.raw_outputs
             st._reject = self._forwarding_reject(st, user)          # type: ignore[method-assign]
             st.notice = lambda text, user=user: self.notice(f"{user}: {text}")   # type: ignore[method-assign]
@@ -215,13 +220,33 @@ class MultiUserStage(Stage):
         if st is None:
             return []
         self.users_left += 1
-        return self._mapped(user, st.run_finish())
+        outs = self._mapped(user, st.run_finish())
+        self.ended[user] = Ended(st)
+        return outs
 
     def finish(self) -> list[Output]:
         outs: list[Output] = []
         for user, st in list(self.users.items()):
             outs += self._mapped(user, st.run_finish())
+            self.ended[user] = Ended(st)
         return outs
+
+    # -- what the driver sees of a user's input (counted on the node and on the user's own counters) -----
+    def count_lost(self, topic: str, n: int, now_ns: int, user: str | None = None) -> None:
+        super().count_lost(topic, n, now_ns)
+        if user:
+            self.user_stage(user).count_lost(topic, n, now_ns)
+
+    def count_missed_at_start(self, topic: str, n: int, user: str | None = None) -> None:
+        super().count_missed_at_start(topic, n)
+        if user:
+            self.user_stage(user).count_missed_at_start(topic, n)
+
+    def reject_input(self, reason: str, detail: str, now_ns: int, user: str | None = None) -> None:
+        if not user:
+            super().reject_input(reason, detail, now_ns)
+            return
+        self.user_stage(user).reject_input(reason, detail, now_ns)   # its _reject counts it here too
 
     def reset_user(self, user: str) -> list[Output]:
         st = self.users.get(user)
@@ -239,9 +264,23 @@ class MultiUserStage(Stage):
                 out[key] = standing[key]
         return out
 
-    def user_diagnostics(self, user: str) -> StageDiagnostics | None:
-        st = self.users.get(user)
-        return None if st is None else st.diag
+    def user_status_stage(self, user: str) -> "Stage | Ended | None":
+        """What a user's status is made of: its running stage, or the counters its stage ended with
+        (the same keys: a per-user node's last status), or None (followed, no message yet)."""
+        return self.users.get(user) or self.ended.get(user)
+
+
+class Ended:
+    """A finished user stage's counters and stage-specific values, as they were when it finished (its
+    state is dropped): what :func:`msg_adapters.diagnostics.stage_diagnostics` reads of a stage."""
+
+    def __init__(self, st: Stage) -> None:
+        self.namespace = st.namespace
+        self.diag = st.diag
+        self._extra = dict(st.extra_diagnostics())
+
+    def extra_diagnostics(self) -> dict[str, str]:
+        return self._extra
 
 
 def multi_user(stage_cls: type[Stage]) -> type[MultiUserStage]:

@@ -516,3 +516,20 @@ class Stage:
         self.diag.last_reject_ns = self.diag.now_ns
         if reason == "internal_error":
             self.diag.last_internal_ns = self.diag.now_ns
+
+    # -- what a driver sees of an input before the stage does (one entry for every kind of stage) ------
+    def count_lost(self, topic: str, n: int, now_ns: int, user: str | None = None) -> None:
+        """``n`` messages on input ``topic`` (of ``user``, multi-user stages) never reached the stage
+        (``lost.<topic>``). A multi-user stage books them on the user's own counters as well."""
+        self.diag.count_lost(topic, n, now_ns)
+
+    def count_missed_at_start(self, topic: str, n: int, user: str | None = None) -> None:
+        """``n`` messages on ``topic`` were published before the subscription matched
+        (``missed_at_start.<topic>``)."""
+        self.diag.missed_at_start[topic] += n
+
+    def reject_input(self, reason: str, detail: str, now_ns: int, user: str | None = None) -> None:
+        """A message the driver could not hand over (``undecodable``): counted as the stage's own
+        rejections are (and, multi-user, on the user's counters)."""
+        self.diag.now_ns = now_ns
+        self._reject(reason, detail)
