@@ -206,7 +206,7 @@ def _diagnostics(node):
 def test_two_shards_split_users_and_a_killed_shard_is_reported(ros_domain, sim):
     """Two imu_node shards: each user is served by exactly the shard its name hashes to (all users
     served, none twice), a user appearing mid-run is served too; once shard 1 is killed (SIGKILL), shard 0
-    reports shard 1's users as unserved."""
+    reports shard 1's users as unserved; shard 1 restarted serves them again and the report clears."""
     import numpy as np
     from sensor_msgs.msg import Imu
     from indoor_loc.contract import Qos
@@ -260,6 +260,19 @@ def test_two_shards_split_users_and_a_killed_shard_is_reported(ros_domain, sim):
             assert spin_until(ex, reported, 30), diags.get("/shard0/imu_node")
             st = diags["/shard0/imu_node"]
             assert st.level >= 1 and "unserved" in st.message and st.values["unserved.shards"] == "1"
+
+            # no shard takes them over (docs/scaling.md): the shard restarted serves them again, afresh
+            for u in lost:
+                del diags[f"/{u}/imu_node"]
+            shards.append(_node("imu_node", sim["params"], "-r", "__ns:=/shard1", "-p", "shard_count:=2",
+                                "-p", "shard_index:=1"))
+
+            def served_again() -> bool:
+                publish(0.2)
+                st = diags.get("/shard0/imu_node")
+                return all_served() and st is not None and st.values.get("unserved.count") == "0"
+            assert spin_until(ex, served_again, 60), (served_by(), diags.get("/shard0/imu_node"))
+            assert served_by() == {u: f"/shard{shard_of(u, 2)}/imu_node" for u in pubs}
     finally:
         for s in shards:
             s.stop()
@@ -323,3 +336,62 @@ def test_each_users_status_carries_its_own_input_counters_to_the_last(ros_domain
     assert early["missed_at_start.imu/data_raw"] == "30" and early["lost.imu/data_raw"] == "30", early
     assert "missed_at_start.imu/data_raw" not in prompt and prompt["lost.total"] == "0", prompt
     assert diags["/imu_node"].values["lost.total"] == "30"       # the node's totals
+
+
+def test_a_user_leaving_mid_run_is_finished_and_leaves_the_nodes_after_it(ros_domain, sim):
+    """imu_node, wifi_fix_node and pdr_kf_node multi-user, three users; alice's phone stops half-way
+    (its publishers go) while bob and carol walk on: imu_node and wifi_fix_node finish alice (her
+    end-of-input hops) and close her outputs, so pdr_kf_node sees her leave too and finishes her; bob
+    and carol are served to the end of their input."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.qos import qos_profile
+
+    msgs = _bag(sim, ("imu/data_raw", "imu/mag", "wifi/scan"))
+    t_first, t_last = msgs[0][2], msgs[-1][2]
+    cut = t_first + (t_last - t_first) // 2
+    nodes = [_node("imu_node", sim["params"]), _node("pdr_kf_node", sim["params"]),
+             _node("wifi_fix_node", sim["params"])]
+    try:
+        with ros_node("probe") as (node, ex):
+            diags = _diagnostics(node)
+            poses = _collect(node, {f"/{u}/pdr_kf/pose": PoseWithCovarianceStamped for u in USERS})
+            pubs = {}
+            for topic, msg, _ in msgs:
+                if topic not in pubs:
+                    pubs[topic] = node.create_publisher(type(msg), topic, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 60), \
+                "\n".join(n.output()[-2000:] for n in nodes)
+            spin_until(ex, lambda: False, 1.5)
+            t0, rate, gone = time.monotonic(), 2.0, False
+            for topic, msg, log_ns in msgs:
+                if log_ns >= cut and not gone:          # alice's phone stops: her publishers go
+                    spin_until(ex, lambda: all(p.wait_for_all_acked(rclpy_duration(0.0))
+                                               for t, p in pubs.items() if t.startswith("/alice/")), 10)
+                    for t in [t for t in pubs if t.startswith("/alice/")]:
+                        node.destroy_publisher(pubs.pop(t))
+                    gone = True
+                if topic.startswith("/alice/") and gone:
+                    continue
+                due = t0 + (log_ns - t_first) * 1e-9 / rate
+                while time.monotonic() < due:
+                    ex.spin_once(timeout_sec=max(0.0, min(0.01, due - time.monotonic())))
+                pubs[topic].publish(msg)
+            # bob and carol still publish (their publishers stay): alice alone has left, downstream too
+            assert nodes[0].wait_seen("user 'alice' finished", 30), nodes[0].output()[-3000:]
+            assert spin_until(ex, lambda: bool(nodes[1].wait_seen("user 'alice' finished", 0)), 30), \
+                nodes[1].output()[-3000:]
+            spin_until(ex, lambda: False, 2.0)
+            for n in nodes:
+                assert not n.wait_seen("user '(bob|carol)' left", 0), n.output()[-3000:]
+            played = {u: sum(1 for t, _, _ in msgs if t == f"/{u}/imu/data_raw") for u in ("bob", "carol")}
+            assert spin_until(ex, lambda: all(diags.get(f"/{u}/imu_node") is not None and
+                                              diags[f"/{u}/imu_node"].values.get("in.imu/data_raw.count") ==
+                                              str(played[u]) for u in played), 30), \
+                {u: diags[f"/{u}/imu_node"].values.get("in.imu/data_raw.count") for u in played}
+            for u in USERS:
+                assert len(poses[f"/{u}/pdr_kf/pose"]) > 3, u
+            assert max(_ns(m) for m in poses["/alice/pdr_kf/pose"]) <= cut < max(_ns(m) for m in poses["/bob/pdr_kf/pose"])
+    finally:
+        for n in nodes:
+            n.stop()

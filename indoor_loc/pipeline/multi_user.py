@@ -140,9 +140,13 @@ class MultiUserStage(Stage):
         return st
 
     def user_echoes(self, user: str, topic: str, stamp_ns: int) -> bool:
-        """:meth:`Stage.echoes` of the user's stage (False before its first message)."""
+        """:meth:`Stage.echoes` of the user's stage, or of the stage it finished with (False before its
+        first message)."""
         st = self.users.get(user)
-        return st is not None and st.echoes(topic, stamp_ns)
+        if st is None:                  # finished: its own outputs may still be coming back
+            ended = self.ended.get(user)
+            return ended is not None and ended.echoes(topic, stamp_ns)
+        return st.echoes(topic, stamp_ns)
 
     def _forwarding_reject(self, st: Stage, user: str) -> Callable[[str, str], None]:
         own = Stage._reject.__get__(st)
@@ -278,6 +282,13 @@ class Ended:
         self.namespace = st.namespace
         self.diag = st.diag
         self._extra = dict(st.extra_diagnostics())
+        # a stage taking its own output as an input (imu_node's imu/data) still knows its echoes, which
+        # may arrive after it finished; no other state is kept
+        own = {p.topic for p in st.outputs()} & {p.topic for p in st.inputs()}
+        self._echoes: Callable[[str, int], bool] | None = st.echoes if own else None
+
+    def echoes(self, topic: str, stamp_ns: int) -> bool:
+        return self._echoes is not None and self._echoes(topic, stamp_ns)
 
     def extra_diagnostics(self) -> dict[str, str]:
         return self._extra
