@@ -4,14 +4,18 @@ With no arguments:
 
 1. simulate a few walkers with phones in the sample building (``indoor-loc sim``) -> OUT/sim/
    (bag, radio map, building graph, truth, params.yaml; a few seconds, the same seed gives the same run);
-2. bring up every node as its own process over DDS (``indoor-loc up`` machinery), namespaced per
-   walker: ``imu_node`` (stepometer + AEKF heading -> pdr/odom, imu/data), ``wifi_fix_node`` (WKNN
-   -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman filter -> pdr_kf/pose, pdr_kf/path), the particle
-   filter and the multi-user back-end when this build has them, the recorder (every output topic
-   -> OUT/live.mcap) and the player (the simulated bag, with /clock, all nodes on sim time);
-3. when the bag has been played (or on Ctrl-C), stop the nodes in dependency order: the player,
-   then the estimators from sources to sinks (each one's final outputs reach the nodes after it), the
-   recorder last; score each estimator per walker against the ground truth; draw OUT/demo.png.
+2. bring up the nodes as processes over DDS (``indoor-loc up`` machinery), one ``--multi-user``
+   process per stage serving every walker under the walker's namespace (docs/scaling.md;
+   ``--per-user``: one process per stage and walker): ``imu_node`` (stepometer + AEKF heading ->
+   pdr/odom, imu/data), ``wifi_fix_node`` (WKNN -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman
+   filter -> pdr_kf/pose, pdr_kf/path), the particle filter and the multi-user back-end when this
+   build has them (a robot's estimators per robot, on its wheel odometry), the recorder (every output
+   topic -> OUT/live.mcap) and the player (the simulated bag, with /clock, all nodes on sim time);
+3. when the bag has been played, wait for the multi-user nodes to finish the walkers (they leave
+   once their inputs' publishers are gone), then (or on Ctrl-C) stop the nodes in dependency order:
+   the player, then the estimators from sources to sinks (each one's final outputs reach the nodes
+   after it), the recorder last; score each estimator per walker against the ground truth; draw
+   OUT/demo.png.
 
 ``--dataset putmc`` runs the real-data demo instead (PUTMC import, offline replay through the same
 stages, scores beside the published reference). ``--foxglove`` adds the live view
@@ -154,8 +158,8 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
                       "use_sim_time": True})
     # the player starts with the nodes and waits until the nodes that consume its topics have matched
     # (by name: the view and the recorder subscribe to everything, a count would be met without
-    # imu_node): the demo's sixteen processes starting on a 2-core machine took 20 s where one CPU in
-    # three was free and over 60 s at a load average of 20, so the bound is 180 s (a loss is then
+    # imu_node): the demo's sixteen processes (per user) starting on a 2-core machine took 20 s where one
+    # CPU in three was free and over 60 s at a load average of 20, so the bound is 180 s (a loss is then
     # counted and printed with the scores)
     consumers = [f"imu/data_raw={sub('imu_node')}", f"imu/mag={sub('imu_node')}", "wifi/scan=" + ",".join(scan_consumers),
                  # ground truth and the building graph: the recorder is their consumer (for the scores)
