@@ -1,14 +1,16 @@
-"""``indoor-loc demo`` end to end: simulated walkers, every node a separate process over DDS, the
+"""``indoor-loc demo`` end to end: simulated walkers, one multi-user process per stage over DDS, the
 recording opened with ``rosbags``, the score table, the picture; nothing left running (also on Ctrl-C)."""
 from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import signal
 import sys
 import time
 from pathlib import Path
 
+import yaml
 
 from helpers_dds import Peer, child_env
 
@@ -43,13 +45,21 @@ def test_demo_runs_every_node_live_and_scores_them(ros_domain, tmp_path):
     assert rc == 0, text
     assert "score each estimator" in text and "RTS-smoothed" in text
     # stopped in dependency order once the bag was played, by the demo itself (no Ctrl-C hint)
-    waves = [text.index(f"[up] stopping {first}") for first in ("imu_alice", "wifi_alice", "pdr_kf_alice", "recorder")]
+    waves = [text.index(f"[up] stopping {first}") for first in ("imu (", "wifi (", "pdr_kf", "recorder")]
     assert waves == sorted(waves) and "Ctrl-C stops them" not in text, text
+    # ... after the multi-user nodes had finished both walkers (they left once the bag was played)
+    log = (out / "nodes.log").read_text()
+    for node in ("imu", "wifi", "pdr_kf") + (("pf",) if importlib.util.find_spec("indoor_loc.nodes.tll_pf_node") else ()):
+        for w in ("alice", "bob"):
+            done = re.search(rf"^\[{node}\] \[INFO\] .*user '{w}' finished", log, re.M)
+            assert done and done.start() < log.index("[up] stopping imu ("), (node, w)
     assert (out / "demo.png").stat().st_size > 20_000
-    # every node ran as its own process in its namespace
-    bringup = (out / "bringup.yaml").read_text()
-    for name in ("imu_alice", "wifi_alice", "pdr_kf_alice", "imu_bob", "pdr_kf_bob", "recorder", "player"):
-        assert f"name: {name}" in bringup
+    # one multi-user process per stage served both walkers
+    cfg = yaml.safe_load((out / "bringup.yaml").read_text())
+    nodes = {n["name"]: n for n in cfg["nodes"]}
+    for name in ("imu", "wifi", "pdr_kf"):
+        assert "--multi-user" in nodes[name]["args"] and nodes[name]["params"]["users"] == ["alice", "bob"]
+    assert {"recorder", "player"} <= set(nodes) and not any(n.endswith(("_alice", "_bob")) for n in nodes)
     # the recording opens in rosbags and holds every output topic of every node
     with AnyReader([out / "live.mcap"]) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
