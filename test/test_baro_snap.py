@@ -84,3 +84,19 @@ def test_bad_snap_params_refused():
         FloorSnapParams(hysteresis=0.6).validate()
     with pytest.raises(ConfigError, match="max_vertical_speed_mps"):
         FloorSnapParams(max_vertical_speed_mps=0.0).validate()
+
+
+def test_the_newest_smoothed_pose_takes_the_snapped_floor_during_a_transit():
+    # the lift from floor 1 to floor 2 (arriving at 63.5 s); before the detector reports it, a pose
+    # stamped after the snap is on floor 2 in z_at (the back-end's newest pose) as in z()
+    rng = np.random.default_rng(2)
+    d = simulate_pressure(np.array([0, 60, 63.5, 140.0]), np.array([3.5, 3.5, 7.0, 7.0]) + 1.1, 140.0,
+                          BaroSimParams(spikes_per_min=0), rng)
+    tr = FloorTrack(floors_m=FLOORS)
+    tr.fix(0, 3.5, 0.0)
+    for t, p in zip(d.t_ns.tolist(), d.pressure_pa.tolist()):
+        tr.baro(int(t), p)
+        if t >= 64 * S:
+            break
+    assert tr.detector.in_transit and not tr.events and tr.z()[0] == 7.0
+    assert tr.z_at(np.array([50 * S, 64 * S])).tolist() == [3.5, 7.0]

@@ -24,6 +24,7 @@ class FloorTrack:
         self.detector = FloorChangeDetector(baro)
         self.filter = FloorFilter(floors_m, floors)
         self.snap = FloorSnap(snap)
+        self._snap_ns = 0                   # when the snapped floor last changed
         self.baro_samples = 0
         self.events: list[FloorChange] = []
 
@@ -39,7 +40,10 @@ class FloorTrack:
         for ev in events:
             self.filter.baro_event(ev._replace(detect_ns=self._at(ev.detect_ns)))
         self.events += events
+        before = self.snap.floor
         self.snap.update(self.detector, self.filter.floor_z, self.filter.floor, stamp_ns)
+        if self.snap.floor != before:
+            self._snap_ns = stamp_ns
         return events
 
     def floor_now(self) -> int | None:
@@ -62,16 +66,20 @@ class FloorTrack:
 
     def z_at(self, stamps_ns) -> np.ndarray:
         """Smoothed floor heights (m) at ``stamps_ns``: each barometer floor change takes effect at the
-        middle of its height ramp (between its start and end) rather than when it was reported."""
+        middle of its height ramp (between its start and end) rather than when it was reported; during
+        a transit, stamps since the floor was snapped are on the snapped floor (as :meth:`z`)."""
         st = np.asarray(stamps_ns, np.int64).reshape(-1)
         z = self.filter.z_at(st)
-        if not self.events or not len(st):
+        if not len(st):
             return z
         for ev in self.events:
             mid = ev.start_ns + (ev.end_ns - ev.start_ns) // 2
             sel = (st >= mid) & (st < ev.detect_ns)
             if sel.any():
                 z[sel] = self.filter.z_at([ev.detect_ns])[0]
+        k = self.snap.floor
+        if k is not None and k != self.filter.floor and k < self.filter.n_floors:
+            z[st >= self._snap_ns] = self.filter.floor_z[k]      # a transit in progress: the snapped floor
         return z
 
     def diagnostics(self) -> dict[str, str]:
