@@ -340,6 +340,10 @@ def run_sim_demo(args: argparse.Namespace) -> int:
     print("== 4/4 plot")
     png = plot_run(out / "demo.png", sim["dir"], trajs, rows)
     print(f"   {png}")
+    from indoor_loc.floors_plot import plot_floors      # walkers changing floors: floor over time (--floors 3)
+    floors_png = plot_floors(out / "demo_floors.png", live, sim["dir"], walkers)
+    if floors_png is not None:
+        print(f"   {floors_png}")
     print(f"files: recording {live}; simulated input {sim['bag']}; radio map {sim['dir'] / 'radiomap'}; "
           f"building {sim['dir'] / 'building.geojson'}; node logs {out / 'nodes.log'}; "
           f"bring-up {out / 'bringup.yaml'}")

@@ -16,14 +16,15 @@ States: the floors, by height ``z_f`` (m). Evidence:
   nearly impossible).
 
 The **reported floor** changes only on evidence: when another floor's probability exceeds
-``switch_prob`` (three consistent fixes from a confident WiFi floor detector, or one barometer
-change). :meth:`FloorFilter.smoothed` runs the forward-backward recursion over the history (the
-paths of ``pdr_kf`` and ``backend_node``).
+``switch_prob`` (three consistent fixes from a confident WiFi floor detector), or at a barometer
+change when another floor is the more probable (a floor known from a single fix is not sure enough
+for ``switch_prob`` after the change, but the change is decisive). :meth:`FloorFilter.smoothed`
+runs the forward-backward recursion over the history (the paths of ``pdr_kf`` and ``backend_node``).
 
-Floors are learnt from the evidence when not given: a fix at a height no floor has (farther than
-``new_floor_m``) adds a floor; so does a barometer floor change leading from the reported floor to a
-height no floor has (at the reported floor's height + ``dh``, replaced by the first fix's height
-near it). Heights are metres in the map frame.
+Floors are learnt from the evidence when not given (when given, from a map, only fixes add floors):
+a fix at a height no floor has (farther than ``new_floor_m``) adds a floor; so does a barometer
+floor change leading from the reported floor to a height no floor has (at the reported floor's
+height + ``dh``, replaced by the first fix's height near it). Heights are metres in the map frame.
 """
 from __future__ import annotations
 
@@ -78,6 +79,7 @@ class FloorFilter:
         self.params = params or FloorFilterParams()
         self.params.validate()
         self.floor_z = np.sort(np.asarray(floor_z, float).reshape(-1))
+        self.map_floors = len(self.floor_z) > 0              # floors from a map: the barometer adds none
         self.learnt = np.zeros(len(self.floor_z), bool)      # floors placed by the barometer, not a fix or the map
         self.p = np.full(len(self.floor_z), 1.0 / max(len(self.floor_z), 1))
         self.floor: int | None = None
@@ -145,12 +147,12 @@ class FloorFilter:
             del self.history[:len(self.history) - self.params.history_max]
         self._decide()
 
-    def _decide(self) -> None:
+    def _decide(self, switch_prob: float | None = None) -> None:
         k = int(np.argmax(self.p))
         if self.floor is None:
             if self.p[k] >= 0.5:
                 self.floor = k
-        elif k != self.floor and self.p[k] > self.params.switch_prob:
+        elif k != self.floor and self.p[k] > (self.params.switch_prob if switch_prob is None else switch_prob):
             self.floor = k
             self.changes += 1
 
@@ -199,12 +201,14 @@ class FloorFilter:
         """A barometer floor change, applied at its detection stamp."""
         self.baro_ns = ev.detect_ns
         target = self.floor_z[self.floor] + ev.dh_m if self.floor is not None else None
-        if target is not None and np.min(np.abs(self.floor_z - target)) >= self.params.min_storey_m:
+        if (target is not None and not self.map_floors
+                and np.min(np.abs(self.floor_z - target)) >= self.params.min_storey_m):
             k = self.add_floor(float(self.floor_z[self.floor] + ev.dh_m))
             self.learnt[k] = True
         if self.n_floors < 2:
             return
         self._step(ev.detect_ns, self.event_transition(ev.dh_m), None)
+        self._decide(switch_prob=0.5)             # a barometer change is decisive: the more probable floor
 
     # -- outputs -------------------------------------------------------------------------------
     def z(self) -> tuple[float, float]:

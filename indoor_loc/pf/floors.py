@@ -174,6 +174,27 @@ def baro_floor_change(pf: "GraphParticleFilter", dh_m: float, params: PfFloorPar
     return int(len(move))
 
 
+def baro_floor_to(pf: "GraphParticleFilter", floor: int, params: PfFloorParams) -> int:
+    """The barometer's floor track moved to ``floor`` (snapped during a transit or reported at its
+    end): every particle's ``floor_ref`` becomes it, and the particles off it that a shaft within
+    ``shaft_reach_m`` can take there are moved to its stop on that floor, leaving along a level link.
+    Returns how many moved."""
+    p, fg = pf.p, pf.floors
+    assert p is not None
+    own = fg.floor_of(p.link, p.pos)
+    target = np.full(len(own), int(floor), np.int64)
+    p.floor_ref = target.astype(np.int16)
+    ok, node = fg.through_shafts(pf.xy(), own, target, params.shaft_reach_m)
+    move = np.flatnonzero(ok & (fg.exit_link[np.maximum(node, 0)] >= 0))
+    if len(move):
+        link = fg.exit_link[node[move]]
+        end = fg.exit_end[node[move]]
+        p.link[move] = link
+        p.pos[move] = np.where(end == 0, 0.0, pf.g.link_len[link])
+        p.direction[move] = np.where(end == 0, 1, -1).astype(np.int8)
+    return int(len(move))
+
+
 def baro_check(pf: "GraphParticleFilter", params: PfFloorParams) -> float:
     """The barometer holds still: particles off their ``floor_ref`` are weighed by
     ``baro_floor_wrong``; when less than ``reset_weight`` is on the expected floors, the others are

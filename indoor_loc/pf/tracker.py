@@ -39,14 +39,16 @@ import numpy as np
 from scipy.stats import chi2
 
 from indoor_loc import params as P
-from indoor_loc.baro.detector import BaroParams, FloorChange, FloorChangeDetector
+from indoor_loc.baro.detector import BaroParams, FloorChange
+from indoor_loc.baro.floors import FloorFilterParams
+from indoor_loc.baro.track import FloorTrack
 from indoor_loc.fusion.linear_pdr import LinearPdrKf, LinearPdrParams
 from indoor_loc.measurements import Fix, wrap_angle
 
 from indoor_loc.graph.model import BuildingGraph
 from indoor_loc.graph.tll import Transitions
 from indoor_loc.pf.filter import GraphParticleFilter, PfParams, constrained_mean
-from indoor_loc.pf.floors import PfFloorParams, baro_check, baro_floor_change
+from indoor_loc.pf.floors import PfFloorParams, baro_check, baro_floor_to
 from indoor_loc.pf.wifi_field import EdgeFingerprintField
 from indoor_loc.wifi.types import WifiScan
 
@@ -119,7 +121,13 @@ class GraphTracker:
         self.pf = GraphParticleFilter(graph, transitions, params)
         self.floor_params = floors or PfFloorParams()
         self.floor_params.validate()
-        self.baro_det = FloorChangeDetector(baro)
+        # the user's floor from the barometer (snapped during a transit) and the fixes' floors (a slow
+        # prior): the floor the particles are expected on while the barometer reports
+        fp = self.floor_params
+        self.baro_track = FloorTrack(baro, FloorFilterParams(fix_wrong_min=fp.fix_floor_wrong_min),
+                                     floors_m=self.pf.floors.fz)
+        self.baro_det = self.baro_track.detector
+        self._baro_floor: int | None = None
         self._baro_check_ns: int | None = None
         self.baro_events: list[FloorChange] = []
         self.baro_moved = 0
@@ -249,6 +257,8 @@ class GraphTracker:
         """A WiFi position fix (map frame, covariance m²; ``z`` its floor's height, m, with variance
         ``z_var``, m²)."""
         floor = self.fix_floor(z, z_var)
+        if floor is not None:                       # the floor track's slow prior (its HMM)
+            self.baro_track.fix(stamp_ns, float(self.pf.floors.fz[floor[0]]), floor[1] * self.pf.floors.storey_m ** 2)
         if not self.pf.initialised:
             est = self.reset_at(stamp_ns, xy, cov, floor=None if floor is None else floor[0])
             self._kf_fix(stamp_ns, xy, cov, use_speed_model)
@@ -312,21 +322,30 @@ class GraphTracker:
         return self._after_update(stamp_ns, dt)
 
     def baro(self, stamp_ns: int, pressure_pa: float) -> list[FloorChange]:
-        """A barometer sample (Pa): the floor-change detector runs; on a multi-floor graph its floor
-        changes move the particles' expected floors (and the particles a shaft can take there), and
-        while it holds still the particles off those floors are weighed down (at most once a
-        ``baro_check_s``). Returns the floor changes it reported."""
-        events = self.baro_det.update(stamp_ns, pressure_pa)
+        """A barometer sample (Pa): the user's floor track runs (the floor-change detector, the floor
+        snapped to the barometric height during a transit, the floor HMM with the fixes' floors); on a
+        multi-floor graph a change of its floor moves the particles' expected floor (and the particles
+        a shaft can take there), and while the barometer holds still the particles off that floor are
+        weighed down (at most once a ``baro_check_s``). Returns the floor changes it reported."""
+        events = self.baro_track.baro(stamp_ns, pressure_pa)
         self._baro_ns = stamp_ns
         self.baro_events += events
         if not self.pf.initialised or self.pf.floors.n_floors < 2:
             return events
         fp = self.floor_params
-        for ev in events:
-            self.baro_moved += baro_floor_change(self.pf, ev.dh_m, fp)
+        k = self.baro_track.floor_now()
+        expected = None if k is None else int(self.pf.floors.floor_at_height(self.baro_track.filter.floor_z[k]))
+        if expected is not None and expected != self._baro_floor:
+            if self._baro_floor is not None:
+                self.baro_moved += baro_floor_to(self.pf, expected, fp)
+            else:
+                self.pf.p.floor_ref[:] = expected
+            self._baro_floor = expected
         if not self.baro_det.in_transit and self.baro_det.s.level_m is not None and (
                 self._baro_check_ns is None or stamp_ns - self._baro_check_ns >= int(fp.baro_check_s * 1e9)):
             self._baro_check_ns = stamp_ns
+            if self._baro_floor is not None:
+                self.pf.p.floor_ref[:] = self._baro_floor      # particles drawn since then included
             baro_check(self.pf, fp)
         return events
 
