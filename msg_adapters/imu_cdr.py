@@ -74,3 +74,26 @@ def imu_cdr(stamp_ns: int, frame_id: str, acc, gyro=None, quat_xyzw=None, orient
     head = _HEAD.pack(_ENCAPSULATION, sec, nsec, len(name)) + name
     pad = (-(len(head) - 4)) % 8
     return head + b"\x00" * pad + _DOUBLES.pack(*values)
+
+
+def imu_cdr_run(stamps_ns: list[int], frame_id: str, acc: np.ndarray, gyro: np.ndarray, quat_xyzw: np.ndarray,
+                orientation_cov: np.ndarray) -> list[bytes] | None:
+    """:func:`imu_cdr` of N samples that all carry a gyroscope and an orientation with one covariance:
+    ``acc``, ``gyro`` (N, 3), ``quat_xyzw`` (N, 4), ``orientation_cov`` (3, 3) for every sample. The
+    same bytes as ``imu_cdr`` per sample; None when any sample would be refused by it (the caller
+    then takes them one by one and gets its error)."""
+    c = _floats(orientation_cov)
+    if len(c) != 9 or c[0] == -1.0:
+        return None
+    name = frame_id.encode() + b"\x00"
+    pad = b"\x00" * ((-(_HEAD.size + len(name) - 4)) % 8)
+    head, pack, isfinite, tol = _HEAD.pack, _DOUBLES.pack, math.isfinite, QUAT_NORM_TOL
+    out = []
+    for ns, q, g, a in zip(stamps_ns, quat_xyzw.tolist(), gyro.tolist(), acc.tolist()):
+        values = q + c + g + list(_ZEROS9) + a + list(_ZEROS9)
+        if (not 0 <= ns <= MAX_STAMP_NS or len(values) != 37 or not all(map(isfinite, values))
+                or not abs(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0) <= tol):
+            return None
+        sec, nsec = divmod(ns, NS_PER_S)
+        out.append(head(_ENCAPSULATION, sec, nsec, len(name)) + name + pad + pack(*values))
+    return out

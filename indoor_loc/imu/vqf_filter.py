@@ -288,3 +288,37 @@ def vqf_batch(t_ns: ArrayLike, gyr: ArrayLike, acc: ArrayLike, mag_t_ns: ArrayLi
             assert mt is not None and mg is not None
             f.update_mag(int(mt[i]), mg[i])
     return out
+
+
+def update_imu_run(f: VqfFilter, stamps_ns: list[int], gyr: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """:meth:`VqfFilter.update_imu` for each of a run of samples of a running filter (initialised, no
+    sample waiting for the rate), with the same floating-point operations in the same order, so the
+    state and quaternions are those of the sample-by-sample calls; the checks those calls make
+    (finite values, increasing stamps after the last one) are the caller's, made on the whole run
+    before (:func:`indoor_loc.bag.bulk.imu_samples` and the run's stamps). Returns the quaternion
+    (w, x, y, z) after each sample, (N, 4)."""
+    f._ensure()
+    v = f._vqf
+    st = f._st
+    assert v is not None and st.stamp_ns is not None and st.first_imu is None
+    ts, max_dt = st.gyr_ts, f.params.max_dt_s
+    quat = v.getQuat9D if st.mag_seen else v.getQuat6D
+    bias = v.getBiasEstimate
+    upd_g, upd_a = v.updateGyr, v.updateAcc
+    contig = np.ascontiguousarray
+    g_all = np.asarray(gyr, dtype=float)
+    a_all = contig(acc, dtype=float)
+    out = np.empty((len(stamps_ns), 4))
+    prev = st.stamp_ns
+    for i, t_ns in enumerate(stamps_ns):
+        dt = (t_ns - prev) * 1e-9
+        b = np.asarray(bias()[0])
+        gs = b + (g_all[i] - b) * (dt / ts) if dt <= max_dt else b
+        upd_g(contig(gs))
+        upd_a(a_all[i])
+        prev = t_ns
+        out[i] = quat()
+    st.stamp_ns = prev
+    f._q = out[-1].copy()
+    st.vqf_state = None
+    return out

@@ -88,7 +88,8 @@ class MultiUserStageNode(StageNode):
         super().__init__(multi_user(stage_cls), **node_kwargs)
         self.stage: MultiUserStage
         self.stage.raw_outputs = True
-        self.create_timer(POLL_PERIOD_S, self._poll)
+        # a stage may poll less often (ImuStage: its runs, and so its cost per sample, grow with the period)
+        self.create_timer(getattr(stage_cls, "MULTI_USER_POLL_S", POLL_PERIOD_S), self._poll)
         self._me = {(self.get_name(), self.get_namespace()), (self.get_name() + "_io", self.get_namespace())}
         self._suffix = "/" + self.stage.NODE_NAME
         self._own_outputs = {p.topic for p in self.stage.template.outputs()}

@@ -179,13 +179,36 @@ def systematic_resample(weights: np.ndarray, rng: np.random.Generator, n: int | 
     return np.minimum(np.searchsorted(cum, u, side="right"), len(weights) - 1)
 
 
+def logsumexp_1d(a: np.ndarray) -> np.floating:
+    """``scipy.special.logsumexp(a)`` of a 1-D float64 array, bit for bit: SciPy's own algorithm (the
+    maxima taken out of the sum, ``log1p(s / m) + log(m) + max``) without its array-API dispatch,
+    which costs more than the sum for the particles' weights (called two or three times per input).
+    A non-finite maximum or result is left to SciPy's edge-case handling."""
+    a = np.asarray(a)
+    if a.ndim != 1 or a.dtype != np.float64 or not len(a):
+        return logsumexp(a)
+    a_max = np.max(a, axis=(0,), keepdims=True)
+    if not np.isfinite(a_max[0]):
+        return logsumexp(a)
+    mask = a == a_max
+    m = np.sum(mask.astype(a.dtype), axis=(0,), keepdims=True, dtype=a.dtype)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.exp(np.where(mask, -np.inf, a) - a_max)
+        s = np.sum(e, axis=(0,), keepdims=True, dtype=e.dtype)
+        s = np.where(s == 0, s, s / m)
+        out = np.log1p(s) + np.log(m) + a_max
+    if not np.isfinite(out[0]):
+        return logsumexp(a)
+    return out[0]
+
+
 def effective_sample_size(log_w: np.ndarray) -> float:
     """``N_eff = 1 / Σ W²`` of normalised log weights."""
-    return float(np.exp(-logsumexp(2.0 * log_w)))
+    return float(np.exp(-logsumexp_1d(2.0 * log_w)))
 
 
 def normalise_log(log_w: np.ndarray) -> np.ndarray:
-    return log_w - logsumexp(log_w)
+    return log_w - logsumexp_1d(log_w)
 
 
 def particle_xy(g: BuildingGraph, p: Particles) -> np.ndarray:
@@ -651,15 +674,16 @@ class GraphParticleFilter:
         return True
 
     # -- estimate ---------------------------------------------------------------------------------
-    def estimate(self) -> tuple[np.ndarray, np.ndarray, float]:
+    def estimate(self, xy: np.ndarray | None = None, floor: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
         """Constrained mean (2,), the particle cloud's weighted covariance (2, 2) and the
-        weighted circular mean of the direction of travel (rad)."""
+        weighted circular mean of the direction of travel (rad). ``xy`` (:meth:`xy`) and ``floor``
+        (:meth:`estimate_floor`'s) when the caller has them already for the particles as they are."""
         p = self.p
         assert p is not None
         w = p.weights
-        xy = self.xy()
+        xy = self.xy() if xy is None else xy
         if self.floors.n_floors > 1:               # the constrained mean on the most probable floor
-            fl, _, _ = self.estimate_floor()
+            fl = self.estimate_floor()[0] if floor is None else floor
             on = self.floors.floor_of(p.link, p.pos) == fl
             mean = w[on] @ xy[on] / w[on].sum()
             link, t, _ = self.g.project(mean[None, :], floor=fl)

@@ -424,14 +424,15 @@ class GraphTracker:
         step.z = self.pf.floors.z_of(p.link, p.pos) if self.pf.floors.n_floors > 1 else None
 
     def _record(self, stamp_ns: int, dist: float, heading: float, dt: float, update: bool = False) -> Estimate:
-        xy_mean, cov, yaw = self.pf.estimate()
+        xy = self.pf.xy()                   # once for the estimate and the history (the same particles)
         floor, z, z_var = self.pf.estimate_floor()
+        xy_mean, cov, yaw = self.pf.estimate(xy, floor)
         est = Estimate(stamp_ns, xy_mean, cov, yaw, z, z_var, floor)
         self.estimates.append(est)
         if self.keep_history:
             p = self.pf.p
             assert p is not None
-            self.history.append(_Step(stamp_ns, self.pf.xy(), p.log_w.copy(), p.scale.copy(),
+            self.history.append(_Step(stamp_ns, xy, p.log_w.copy(), p.scale.copy(),
                                       p.yaw_offset.copy(), dist, heading, dt,
                                       z=self.pf.floors.z_of(p.link, p.pos) if self.pf.floors.n_floors > 1 else None))
         return est

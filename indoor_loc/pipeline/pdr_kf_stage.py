@@ -40,6 +40,7 @@ from indoor_loc.baro.detector import BaroParams
 from indoor_loc.baro.floors import FloorFilterParams
 from indoor_loc.baro.track import FloorTrack
 from msg_adapters.path import path_to_msg
+from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
 from indoor_loc.pipeline.map_odom import MapOdomSpec
@@ -394,8 +395,9 @@ class PdrKfStage(Stage):
         stamps, xy, yaw = self.smoothed()
         if len(stamps) == 0:
             return []
-        return [("pdr_kf/path", path_to_msg(stamps, xy, yaw, frame_id=self.params.frame_id,
-                                            stamp_ns=int(stamps[-1]), z=self.floor.z_at(stamps)))]
+        encode = path_cdr if self.raw_outputs else path_to_msg      # the same message (msg_adapters/path_cdr.py)
+        return [("pdr_kf/path", encode(stamps, xy, yaw, frame_id=self.params.frame_id,
+                                       stamp_ns=int(stamps[-1]), z=self.floor.z_at(stamps)))]
 
     def finish(self) -> list[Output]:
         outs = self._release(lambda s: True)

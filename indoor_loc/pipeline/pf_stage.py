@@ -43,6 +43,7 @@ from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_tran
 from msg_adapters.markers import graph_markers
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
+from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from indoor_loc.baro.detector import BaroParams
 from indoor_loc.pf.filter import PfParams
@@ -416,8 +417,9 @@ class PfStage(Stage):
         yaw = np.array([e.yaw if np.isfinite(e.yaw) else 0.0 for e in ests])
         z = np.array([e.z for e in ests])
         order = np.argsort(stamps, kind="stable")
-        return [("pf/path", path_to_msg(stamps[order], xy[order], yaw[order], frame_id=self.params.frame_id,
-                                        stamp_ns=int(stamps.max()), z=z[order]))]
+        encode = path_cdr if self.raw_outputs else path_to_msg      # the same message (msg_adapters/path_cdr.py)
+        return [("pf/path", encode(stamps[order], xy[order], yaw[order], frame_id=self.params.frame_id,
+                                   stamp_ns=int(stamps.max()), z=z[order]))]
 
     def finish(self) -> list[Output]:
         outs = self._apply_pending(lambda s: True)
