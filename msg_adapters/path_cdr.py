@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from rclpy.serialization import serialize_message
+from nav_msgs.msg import Path
 
 from msg_adapters.path import path_to_msg
 from msg_adapters.time import MAX_STAMP_NS, NS_PER_S
@@ -24,9 +24,11 @@ from msg_adapters.time import MAX_STAMP_NS, NS_PER_S
 _ENCAPSULATION = b"\x00\x01\x00\x00"
 
 
-def path_cdr(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | None = None, z=0.0) -> bytes:
+def path_cdr(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | None = None, z=0.0) -> bytes | Path:
     """The CDR bytes of ``path_to_msg(stamps_ns, xy, yaw, frame_id, stamp_ns, z)`` (the same
-    ``InvalidMessageError`` for the same bad input: it is left to :func:`path_to_msg` to say)."""
+    ``InvalidMessageError`` for the same bad input: it is left to :func:`path_to_msg` to say). What the
+    packer does not take (stamps that are not integers, …) comes back as the ``Path`` message itself,
+    which a publisher takes as well as bytes (adapters do not serialise through rclpy)."""
     stamps = np.asarray(stamps_ns)
     n = stamps.shape[0] if stamps.ndim == 1 else -1
     pts = np.asarray(xy, dtype=np.float64)
@@ -42,8 +44,8 @@ def path_cdr(stamps_ns, xy, yaw=None, frame_id: str = "map", stamp_ns: int | Non
     last = int(t[-1]) if ok and n else 0
     head_ns = last if stamp_ns is None else int(stamp_ns)
     if not ok or not 0 <= head_ns <= MAX_STAMP_NS or (n and not (0 <= int(t.min()) and int(t.max()) <= MAX_STAMP_NS)):
-        # what this packer does not take: the message built and serialised (or path_to_msg's error)
-        return serialize_message(path_to_msg(stamps_ns, xy, yaw, frame_id, stamp_ns, z))
+        # what this packer does not take: the message itself (or path_to_msg's error)
+        return path_to_msg(stamps_ns, xy, yaw, frame_id, stamp_ns, z)
     name = frame_id.encode() + b"\x00"
     ln = len(name)
     out = bytearray(_ENCAPSULATION)
