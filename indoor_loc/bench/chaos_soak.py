@@ -65,6 +65,7 @@ def run_soak(args: argparse.Namespace) -> int:
                     now = time.monotonic()
                     if now >= next_sample:
                         samples.append(_sample(h, (ns + shift - world.t0_ns) / SEC / 3600, now - t0, sent))
+                        print(_progress(samples[-1], behind_s=now - at), flush=True)
                         next_sample += SAMPLE_S
                     if at > now:
                         time.sleep(at - now)
@@ -104,6 +105,15 @@ def _sample(h: Harness, sim_h: float, wall_s: float, sent: int) -> dict[str, Any
                                "p50_ms": float(v["process_ms.p50"]) if "process_ms.p50" in v else None,
                                "lost": int(v.get("lost.total", 0) or 0)}
     return out
+
+
+def _progress(s: dict[str, Any], *, behind_s: float) -> str:
+    """One line per sample while the soak runs: how far the replay is behind its schedule, and per node
+    its memory, messages taken and losses counted so far (a node falling behind shows as losses)."""
+    cells = [f"{k.rsplit('/', 2)[-2] or '/'}/{k.rsplit('/', 1)[-1]} {n['rss_kb'] / 1024 if n['rss_kb'] else 0:.0f}MB "
+             f"{n['taken']} in {n['lost']} lost" for k, n in s["nodes"].items()]
+    return (f"soak: {s['sim_h']:.3f} sim h, {s['wall_s']:.0f} s wall, {s['sent']} sent, replay "
+            f"{max(0.0, behind_s):.1f} s behind: " + "; ".join(cells))
 
 
 def _slope(x: list[float], y: list[float]) -> float | None:
