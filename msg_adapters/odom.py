@@ -119,8 +119,10 @@ class OdomJumpGuard:
     """Refuses an odometry pose implausibly far from the last one accepted on its stream
     (``"odom_jump"``): farther than ``BOUNDS["odom_jump"].hi`` m plus ``BOUNDS["odom_speed"].hi``
     m/s times the stamp difference. :meth:`check` changes nothing; the stage calls :meth:`accept`
-    once it has taken the pose, so a refused pose never becomes the reference. A restarted
-    odometry (back at its origin) is taken once the stamps allow the distance."""
+    once it has taken the pose, so a refused pose never becomes the reference. An upstream known to
+    have restarted (:meth:`restart`: a new publisher, its sequence numbers anew) starts a new
+    odometry frame: its first pose is taken whatever the distance; a restart nobody saw (back at its
+    origin) is taken once the stamps allow the distance."""
 
     def __init__(self) -> None:
         self.last: tuple[int, float, float] | None = None     # stamp_ns, x, y of the last accepted pose
@@ -139,6 +141,10 @@ class OdomJumpGuard:
     def accept(self, od: OdomPose) -> None:
         self.last = (od.stamp_ns, od.x, od.y)
 
+    def restart(self) -> None:
+        """The odometry's producer restarted: its next pose is the first of a new frame."""
+        self.last = None
+
 
 class PdrOdomReader:
     """The one ``pdr/odom`` decoder: messages -> :class:`~indoor_loc.measurements.PdrInterval`
@@ -153,6 +159,12 @@ class PdrOdomReader:
     @property
     def last_stamp_ns(self) -> int | None:
         return self.decoder.last_stamp_ns
+
+    def restart(self) -> None:
+        """The odometry's producer restarted (a new frame from its origin): the next pose closes no
+        interval (the hop across the restart is unknown) and is taken whatever its distance."""
+        self.guard.restart()
+        self.decoder.reset()
 
     def read(self, msg: Odometry) -> tuple[OdomPose, PdrInterval | None]:
         """Validate one message; returns it unpacked and the interval it closes (None for the first).

@@ -65,6 +65,8 @@ def run_soak(args: argparse.Namespace) -> int:
                     now = time.monotonic()
                     if now >= next_sample:
                         samples.append(_sample(h, (ns + shift - world.t0_ns) / SEC / 3600, now - t0, sent))
+                        print(_progress(samples[-1], behind_s=now - at), flush=True)
+                        _write_partial(args, result, samples, h, period_ns)
                         next_sample += SAMPLE_S
                     if at > now:
                         time.sleep(at - now)
@@ -80,6 +82,7 @@ def run_soak(args: argparse.Namespace) -> int:
                     r.proc.stop(timeout=10)
             h.close()
     result["samples"] = samples
+    result["complete"] = True
     result["nodes"] = summarise(samples, h, warmup_h=period_ns / SEC / 3600)
     print(format_soak(samples, result["nodes"]), flush=True)
     for key, s in result["nodes"].items():
@@ -104,6 +107,28 @@ def _sample(h: Harness, sim_h: float, wall_s: float, sent: int) -> dict[str, Any
                                "p50_ms": float(v["process_ms.p50"]) if "process_ms.p50" in v else None,
                                "lost": int(v.get("lost.total", 0) or 0)}
     return out
+
+
+def _write_partial(args: argparse.Namespace, result: dict[str, Any], samples: list[dict[str, Any]], h: Harness,
+                   period_ns: int) -> None:
+    """The figures so far to ``--json`` after every sample (``"complete": false``), so a soak stopped
+    early (or still running) has its samples and slopes up to now on disk."""
+    if not getattr(args, "json", None):
+        return
+    partial = dict(result, samples=samples, complete=False,
+                   nodes=summarise(samples, h, warmup_h=period_ns / SEC / 3600))
+    tmp = Path(str(args.json) + ".tmp")
+    tmp.write_text(json.dumps(partial, indent=1))
+    tmp.replace(args.json)
+
+
+def _progress(s: dict[str, Any], *, behind_s: float) -> str:
+    """One line per sample while the soak runs: how far the replay is behind its schedule, and per node
+    its memory, messages taken and losses counted so far (a node falling behind shows as losses)."""
+    cells = [f"{k} {(n['rss_kb'] or 0) / 1024:.0f} MB {n['cpu_s'] or 0:.0f} s CPU {n['taken']} in "
+             f"{n['lost']} lost p50 {n['p50_ms'] if n['p50_ms'] is not None else '-'} ms" for k, n in s["nodes"].items()]
+    return (f"soak: {s['sim_h']:.3f} sim h, {s['wall_s']:.0f} s wall, {s['sent']} sent, replay "
+            f"{max(0.0, behind_s):.1f} s behind: " + "; ".join(cells))
 
 
 def _slope(x: list[float], y: list[float]) -> float | None:

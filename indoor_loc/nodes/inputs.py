@@ -135,6 +135,9 @@ class InputsMixin(StuckGuard):
         self.last_rx_ns = int(info.get("received_timestamp") or 0) if isinstance(info, dict) else 0
         now_ns = self.get_clock().now().nanoseconds
         lost = inp.watch.message(info, now_ns)
+        if inp.watch.fresh:          # a restarted upstream's first message: the stage starts its stream afresh
+            self._publish(self.stage.run_upstream_restarted(inp.topic, inp.user))
+            self._log_rejections()
         if lost:
             self.stage.count_lost(inp.topic, lost, now_ns, inp.user)
             self.get_logger().warning(f"{inp.resolved}: {lost} message(s) lost before reaching this node "

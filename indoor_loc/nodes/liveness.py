@@ -150,6 +150,8 @@ class InputWatch:
         self._left = False               # a publisher left since the last one appeared
         self._expect_new = False         # a restart seen in the graph: its first message is still to come
         self._seq_restart = False        # a restart seen in the sequence numbers, not yet in the graph
+        #: the message just booked (:meth:`message`) is the first of a restarted publisher's stream
+        self.fresh = False
 
     # -- timing -------------------------------------------------------------------------------------
     def period_ns(self) -> float | None:
@@ -198,7 +200,9 @@ class InputWatch:
             self.gaps.last = seq
             self.last_ns = now_ns
             self._arrivals.append(now_ns)
+            self.fresh = False
             return 0
+        expected, restarts = self._expect_new, self.restarts
         publishers = publishers or self.publishers
         stopped = self._silent(now_ns)
         if seq and last is not None:
@@ -211,6 +215,7 @@ class InputWatch:
                     self.gaps.last = None
                     self._new_stream(now_ns)
         self._expect_new = False
+        self.fresh = expected or self.restarts > restarts
         self._arrive(now_ns, stopped)
         return self.gaps.gap(info, (lambda: len(publishers())) if publishers is not None else None)
 

@@ -41,6 +41,7 @@ from indoor_loc.contract import Qos
 from indoor_loc.errors import IndoorLocError
 from indoor_loc.nodes.help import node_usage, params_file_args
 from indoor_loc.nodes.qos import qos_profile
+from indoor_loc.nodes.responsive import Responsive
 from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.stage import Stage
 from msg_adapters.diagnostics import status_array
@@ -250,10 +251,12 @@ def spin_node(node: Node, taken: Callable[[], int] | None = None, *, finish_budg
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     services = ServicePoll(node)
+    responsive = Responsive(node)      # /diagnostics and parameter reads while a callback is long
     count = taken or (lambda: int(getattr(node, "taken", 0)))
     try:
         while node.context.ok() and not _STOP.is_set():
             executor.spin_once(timeout_sec=_SPIN_PERIOD_S)
+            responsive.beat()
             services.poll()
         if _STOP.is_set():
             n = drain(executor, node, count, poll=services.poll,
@@ -266,6 +269,7 @@ def spin_node(node: Node, taken: Callable[[], int] | None = None, *, finish_budg
                 node.get_logger().info(f"stopping: processed the {n} message(s) already received")
             raise KeyboardInterrupt("stop requested by a signal")
     finally:
+        responsive.stop()
         services.shutdown()
         executor.remove_node(node)
         executor.shutdown(timeout_sec=0.0)

@@ -145,6 +145,8 @@ class StageNode(InputsMixin, Node):
             # this node's subscriptions (``--consumers``) would wait for it in vain
             self.create_timer(DISCOVERY_PERIOD_S, self._discover_users, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", qos_profile(Qos.RELIABLE))
+        #: monotonic time of the last /diagnostics status (nodes/responsive.py publishes one when it is old)
+        self.diag_published_at = time.monotonic()
         self._last_rejected = 0
         self._watch_inputs(self.get_clock().now().nanoseconds)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._on_timer)
@@ -414,6 +416,16 @@ class StageNode(InputsMixin, Node):
         self._publish(self.stage.run_tick(now_ns))
         self._log_rejections()
         self._diag_pub.publish(self.diagnostics_msg(now_ns))
+        self.diag_published_at = time.monotonic()
+
+    def diagnostics_when_busy(self, now_ns: int) -> bool:
+        """The /diagnostics status from :class:`~indoor_loc.nodes.responsive.Responsive`'s thread while this
+        node's executor thread is busy with a long callback: the counters as they stand (the stage is
+        not entered). Returns whether one was published."""
+        msg = self.diagnostics_msg(now_ns)
+        self._diag_pub.publish(msg)
+        self.diag_published_at = time.monotonic()
+        return True
 
     def diagnostics_msg(self, now_ns: int) -> DiagnosticArray:
         arr = stage_diagnostics(self.get_fully_qualified_name(), self.stage, now_ns)

@@ -222,6 +222,11 @@ class GraphTracker:
         est = self._record(stamp_ns, dist, heading, dt)
         return self._check(stamp_ns) or est
 
+    def new_odom_frame(self) -> None:
+        """The odometry restarted (a new frame): the next sample walks nothing, the ones after it
+        walk their intervals as before."""
+        self._last_odom = None
+
     def increment(self, stamp_ns: int, distance_m: float, travel_rad: float, *, var_along: float,
                   var_yaw: float) -> Estimate | None:
         """A robot odometry increment ending at ``stamp_ns`` (:mod:`indoor_loc.odometry.increments`):

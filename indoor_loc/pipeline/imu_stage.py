@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,9 +125,6 @@ class ImuStage(Stage):
         self.base_frame = params.base_frame or (f"{ns}/base_link" if ns else "base_link")
         self._mag_bias = np.array([params.mag_bias_x, params.mag_bias_y, params.mag_bias_z])
         self.counts = {"mag_used": 0, "no_gyro": 0, "odom": 0}
-        # our imu/data stamps (echo detection; kept across a reset: echoes of the old pass still come)
-        self._published_stamps: deque = deque(maxlen=512)
-        self._published_set: set = set()
         self._fresh_state()
         self.on("imu/data_raw", self._on_raw)
         self.on("imu/mag", self._on_mag)
@@ -152,16 +148,6 @@ class ImuStage(Stage):
         self._last_raw_ns: int | None = None
         self._last_orient_ns: int | None = None
         self._external_orientation = params.heading_source == "orientation"
-
-    def stamp_of(self, topic: str, msg: Any) -> int | None:
-        """The node's own ``imu/data`` echoed back (it subscribes to the topic it publishes) is not
-        judged: the handler drops it."""
-        stamp = super().stamp_of(topic, msg)
-        return None if topic == "imu/data" and stamp in self._published_set else stamp
-
-    def echoes(self, topic: str, stamp_ns: int) -> bool:
-        """Our own ``imu/data`` coming back (recognised by its stamp, as :meth:`stamp_of` does)."""
-        return topic == "imu/data" and stamp_ns in self._published_set
 
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in time: the hops of the old pass still in the stepometer are published, then
@@ -257,18 +243,13 @@ class ImuStage(Stage):
             self.stepometer.add_heading(stamp, yaw)
             encode = imu_cdr if self.raw_outputs else imu_to_msg        # the same message (msg_adapters/imu_cdr.py)
             outs.append(("imu/data", encode(stamp, payload.frame_id, payload.acc, payload.gyro, q_xyzw, cov)))
-            if len(self._published_stamps) == self._published_stamps.maxlen:
-                self._published_set.discard(self._published_stamps[0])
-            self._published_stamps.append(stamp)
-            self._published_set.add(stamp)
         return outs
 
     def _on_orientation(self, msg, recv_ns: int) -> list[Output]:
         return self._orientation_sample(imu_from_msg(msg), recv_ns)
 
     def _orientation_sample(self, s: ImuSample, recv_ns: int) -> list[Output]:
-        if s.stamp_ns in self._published_set:
-            return []                                   # our own AEKF output coming back
+        # our own imu/data coming back never gets here: the time policy recognises it (Stage._judged)
         if self.params.heading_source == "aekf":
             return []
         if self._last_orient_ns is not None and s.stamp_ns <= self._last_orient_ns:
@@ -369,7 +350,7 @@ class ImuStage(Stage):
             return False
         if not self.time.passes_run("", "imu/data", t.tolist(), list(recv_ns), Order.STRICT):
             return False
-        return not self._published_set or not any(int(v) in self._published_set for v in t)
+        return not any(self.time.echo("", "imu/data", int(v)) for v in t)
 
     def _hops(self, hops: list[StepHop]) -> list[Output]:
         outs: list[Output] = []

@@ -176,6 +176,15 @@ class PdrKfStage(Stage):
         self._fresh_state()
         return outs
 
+    def upstream_restarted(self, topic: str, user: str) -> list[Output]:
+        """A restarted ``pdr/odom`` producer (``imu_node`` killed and started again) publishes from
+        its origin: its first pose starts a new odometry frame (no hop across the restart, no
+        ``odom_jump`` refusal of the poses after it)."""
+        if topic == "pdr/odom":
+            self._odom.restart()
+            self.notice("pdr/odom: its publisher restarted: a new odometry frame from its next pose")
+        return []
+
     def inputs(self) -> list[Port]:
         return [motion_port(self.params.motion_source),
                 Port("wifi/fix", "geometry_msgs/msg/PoseWithCovarianceStamped", Qos.RELIABLE),

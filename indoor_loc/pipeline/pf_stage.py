@@ -239,6 +239,16 @@ class PfStage(Stage):
         self._robot = RobotOdomReader(self.params.odom)
         return outs
 
+    def upstream_restarted(self, topic: str, user: str) -> list[Output]:
+        """A restarted ``pdr/odom`` producer (``imu_node`` killed and started again) publishes from
+        its origin: its first pose starts a new odometry frame (no walk across the restart, no
+        ``odom_jump`` refusal of the poses after it; the particles stay where they are)."""
+        if topic == "pdr/odom":
+            self._odom_guard.restart()
+            self.tracker.new_odom_frame()
+            self.notice("pdr/odom: its publisher restarted: a new odometry frame from its next pose")
+        return []
+
     def _new_tracker(self) -> GraphTracker:
         p = self.params
         assert self.graph is not None

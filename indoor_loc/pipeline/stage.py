@@ -27,6 +27,7 @@ and says each once — the node as a WARN in its log (``nodes/stage_node.py``), 
 from __future__ import annotations
 
 import functools
+import struct
 import time
 import traceback
 from collections import Counter, defaultdict, deque
@@ -130,6 +131,15 @@ def _item_stamp(item: Any) -> int:
     ``(stamp_ns, values)`` pair)."""
     stamp = getattr(item, "stamp_ns", None)
     return int(item[0] if stamp is None else stamp)
+
+
+def _cdr_header_ns(data: bytes | bytearray) -> int | None:
+    """``header.stamp`` (ns) of an output already serialised (little-endian CDR starting with a
+    ``std_msgs/Header``, ``Stage.raw_outputs``); None when it cannot be read."""
+    if len(data) < 12 or data[:2] != b"\x00\x01":
+        return None
+    sec, nsec = struct.unpack_from("<iI", data, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def user_of_namespace(namespace: str) -> str:
@@ -306,10 +316,10 @@ class Stage:
         return self.STAMP_ORDER.get(topic, Order.NONDECREASING)
 
     def echoes(self, topic: str, stamp_ns: int) -> bool:
-        """Whether a message on input ``topic`` stamped ``stamp_ns`` is this stage's own output coming
-        back (a node subscribing to a topic it publishes): its handler would drop it, so a driver may
-        drop it before decoding it. Default: never."""
-        return False
+        """Whether a message on input ``topic`` stamped ``stamp_ns`` is this (per-user) stage's own output
+        coming back (a node subscribing to a topic it publishes; :meth:`TimePolicy.echo`): the stage
+        drops it unjudged, so a driver may drop it before decoding it."""
+        return self.time.echo("", topic, stamp_ns)
 
     def for_user(self, namespace: str) -> "Stage":
         """A fresh instance of this per-user stage for the user of ``namespace`` (multi-user nodes,
@@ -322,6 +332,17 @@ class Stage:
         its state afresh as if no message had come (publish what ends with the old pass first, e.g. its
         path). Stages with state override it; the time policy's own state is reset by the caller."""
         return []
+
+    def upstream_restarted(self, topic: str, user: str) -> list[Output]:
+        """The publisher of input ``topic`` (of ``user``; ``""`` for a per-user stage) restarted: a new
+        process, its sequence numbers anew (the live driver sees it, ``nodes/liveness.py``), and the
+        next message on ``topic`` is its first. Stages that integrate a stream (odometry poses) start
+        it afresh here. Default: nothing."""
+        return []
+
+    def run_upstream_restarted(self, topic: str, user: str | None = None) -> list[Output]:
+        """:meth:`upstream_restarted` for drivers, guarded like :meth:`run_tick`."""
+        return self._guarded("upstream_restarted", lambda: self.upstream_restarted(topic, user or ""))
 
     def _handler_for(self, topic: str, user: str, batch: bool) -> Callable[[Any, int], list[Output]]:
         if batch:
@@ -336,6 +357,8 @@ class Stage:
         who = f"{user}/{topic}" if user else topic
         try:
             stamp = _item_stamp(item) if batch else self.stamp_of(topic, item)
+            if stamp is not None and self.time.echo(user, topic, stamp):
+                return []                   # our own output coming back (time_policy.py: echoes)
             verdict = Verdict.PASS if stamp is None else self.time.judge(
                 user, topic, stamp, recv_ns, self.stamp_order(topic))
         except InvalidInputError as err:
@@ -373,11 +396,21 @@ class Stage:
             return []
         if stamp is not None:
             self.time.accepted(user, topic, stamp)
+        self._remember_own(user, outs)
         if self.map_odom is not None:
             outs = self._with_map_odom(user, outs, item if not batch and topic in self.map_odom.spec.motion else None)
         for out_topic, _ in outs:
             self.diag.published[out_topic] += 1
         return outs
+
+    def _remember_own(self, user: str, outs: list[Output]) -> None:
+        """The stamps of outputs on a topic the stage also takes, so their echoes are recognised
+        (:meth:`TimePolicy.echo`)."""
+        for out_topic, msg in outs:
+            if out_topic in self._handlers:
+                stamp = _cdr_header_ns(msg) if isinstance(msg, (bytes, bytearray)) else header_ns(msg)
+                if stamp is not None:
+                    self.time.published(user, out_topic, stamp)
 
     def _with_map_odom(self, user: str, outs: list[Output], motion: Any = None) -> list[Output]:
         """``outs`` and the ``map -> odom`` correction of their newest pose (pipeline/map_odom.py);
@@ -502,6 +535,8 @@ class Stage:
         except Exception as err:  # noqa: BLE001 - a stage bug must not end the node or the run
             self._reject("internal_error", f"{what}(): {type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
             return []
+        if not self.MULTI_USER:
+            self._remember_own("", outs)
         if self.map_odom is not None and not self.MULTI_USER:
             outs = self._with_map_odom("", outs)
         if count:

@@ -42,11 +42,22 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   pass, still in flight (a fix that lags its scan): rejected (``before_jump``), so it cannot set the
   new pass's watermarks to the old stamps.
 
+- **echoes**: a node that subscribes to a topic it publishes (``imu_node``'s ``imu/data``) gets its
+  own messages back. The stage tells the policy the stamps it published there (:meth:`TimePolicy.published`)
+  and a message stamped like one of them is its own (:meth:`TimePolicy.echo`): dropped before it is
+  judged, so it never moves a watermark nor starts or confirms a jump. The stamps are kept per user
+  and topic up to :data:`OWN_MAX`, more than DDS can hold back (a subscription's queue plus a take):
+  a bounded window of the last few hundred, as there was, let the echoes of one large take (a node
+  catching up after a stall publishes thousands at once) come back unrecognised, far behind a
+  foreign message on the same topic — three in a row, in step: a "jump" that reset the node.
+
 The policy holds stamps and held messages only; it never looks inside a message. The driver
 (:class:`Stage`) asks :meth:`TimePolicy.judge` and acts on the :class:`Verdict`.
 """
 from __future__ import annotations
 
+from array import array
+from bisect import bisect_left, insort
 from dataclasses import dataclass, field as dc_field
 from enum import IntEnum
 from typing import Any
@@ -58,6 +69,10 @@ NS = 1_000_000_000
 #: At most this many messages of one user are held while a jump back waits for its confirmation;
 #: beyond, the oldest is rejected (``stale_stamp``).
 HELD_MAX = 1000
+#: Own output stamps remembered per user and topic to recognise their echoes (see the module doc): more
+#: than a reliable replay subscription's queue (nodes/qos.py SUB_DEPTH_REPLAY, 10 000) plus one take
+#: of the node's raw inputs (nodes/inputs.py TAKE_MAX, 2048) can hold back; 8 bytes each.
+OWN_MAX = 16384
 
 
 class Order(IntEnum):
@@ -117,6 +132,40 @@ class _Leap:
     last: int = 0                       # the latest held stamp
 
 
+class OwnStamps:
+    """The stamps a stage published on one topic, oldest first (a sorted ``array``; at most
+    :data:`OWN_MAX`, the oldest forgotten first): a message stamped like one of them is an echo."""
+    __slots__ = ("stamps", "start")
+
+    def __init__(self) -> None:
+        self.stamps = array("q")
+        self.start = 0                  # stamps[:start] are forgotten (dropped in one go now and then)
+
+    def add(self, stamp_ns: int) -> None:
+        st = self.stamps
+        if len(st) > self.start and stamp_ns <= st[-1]:
+            if stamp_ns == st[-1]:
+                return
+            insort(st, stamp_ns, lo=self.start)     # after a reset: an older pass published again
+        else:
+            st.append(stamp_ns)
+        if len(st) - self.start > OWN_MAX:
+            self.start += 1
+            if self.start >= OWN_MAX // 4:
+                del st[:self.start]
+                self.start = 0
+
+    def __contains__(self, stamp_ns: int) -> bool:
+        st = self.stamps
+        if len(st) <= self.start or not st[self.start] <= stamp_ns <= st[-1]:
+            return False
+        i = bisect_left(st, stamp_ns, self.start)
+        return i < len(st) and st[i] == stamp_ns
+
+    def __len__(self) -> int:
+        return len(self.stamps) - self.start
+
+
 @dataclass
 class _UserTime:
     marks: dict[str, int] = dc_field(default_factory=dict)    # topic -> newest accepted stamp (watermark)
@@ -128,6 +177,9 @@ class _UserTime:
     fence_ns: int | None = None         # after a jump: the old pass's newest stamp (see before_jump)
     jumps: int = 0
     leaps: dict[str, _Leap] = dc_field(default_factory=dict)   # topic -> its messages held for a leap ahead
+    #: topic -> the stamps the stage published there (echo recognition; kept across a reset: echoes of
+    #: the old pass still come)
+    own: dict[str, OwnStamps] = dc_field(default_factory=dict)
 
     def front(self) -> int | None:
         return max(self.marks.values()) if self.marks else None
@@ -150,6 +202,21 @@ class TimePolicy:
         if u is None:
             u = self.users[user] = _UserTime()
         return u
+
+    def published(self, user: str, topic: str, stamp_ns: int) -> None:
+        """The stage published a message stamped ``stamp_ns`` on ``topic``, which it also takes: its echo
+        will be recognised (:meth:`echo`)."""
+        u = self.user(user)
+        own = u.own.get(topic)
+        if own is None:
+            own = u.own[topic] = OwnStamps()
+        own.add(stamp_ns)
+
+    def echo(self, user: str, topic: str, stamp_ns: int) -> bool:
+        """Whether a message on ``topic`` stamped ``stamp_ns`` is the stage's own output coming back."""
+        u = self.users.get(user)
+        own = None if u is None else u.own.get(topic)
+        return own is not None and stamp_ns in own
 
     def judge(self, user: str, topic: str, stamp_ns: int, now_ns: int | None, order: Order) -> Verdict:
         """What to do with a message; raises :class:`InvalidInputError` for one to reject (nothing
