@@ -38,6 +38,7 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
+from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, floor_cov
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
 from msg_adapters.markers import graph_markers
@@ -90,6 +91,10 @@ class PfStageParams:
                                          "added (its calibration against measured errors)")
     fix_dof: float = P.field(6.0, "WiFi fix likelihood: 0 = Gaussian, > 0 = Student-t with this many degrees of freedom")
     inject_mass: float = P.field(0.15, "prior probability mass of the particles redrawn around each WiFi fix")
+    fix_sigma_min_m: float = P.field(FIX_SIGMA_MIN_M, "a wifi/fix is never taken as more precise than this std per "
+                                                      "direction (m; indoor_loc/fusion/position_trust.py)")
+    pose_sigma_min_m: float = P.field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
+                                                        "per direction (m; indoor_loc/fusion/position_trust.py)")
     max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
     particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
@@ -124,6 +129,8 @@ class PfStageParams:
         validate_source(n, self.motion_source)
         self.odom.validate()
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        P.require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
+        P.require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
         self.time.validate()
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
@@ -166,6 +173,7 @@ class PfStage(Stage):
         this one uses instead of loading them again (:meth:`for_user`)."""
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
+        self.floored = 0                    # fixes / poses claiming more precision than granted
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
         self.on("wifi/scan", self._on_scan)
@@ -309,7 +317,9 @@ class PfStage(Stage):
         fix = fix_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("wifi/fix", fix.xy)
-        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, fix.cov, fix.z, fix.z_var))
+        cov, floored = floor_cov(fix.cov, self.params.fix_sigma_min_m)
+        self.floored += int(floored)
+        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, cov, fix.z, fix.z_var))
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
         if self.graph is not None and self.field is None:
@@ -345,7 +355,8 @@ class PfStage(Stage):
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
         outs = self._start(ps.stamp_ns)
-        cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
+        cov, floored = floor_cov(ps.cov_xy, self.params.pose_sigma_min_m)   # (a zero covariance: the floor)
+        self.floored += int(floored)
         floor = self.tracker.fix_floor(float(msg.pose.pose.position.z), 0.0)       # z: the floor's height
         return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov, inflate=False,   # as given
                                                           floor=None if floor is None else floor[0]))
@@ -436,7 +447,8 @@ class PfStage(Stage):
              "wifi_update": self.params.wifi_update,
              "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
                            else "hit" if self.cache_hit else "computed"),
-             "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source}
+             "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source,
+             "precision_floored": str(self.floored)}
         if self.params.motion_source == "odom":
             d.update(self._robot.diagnostics())
         if pf.p is None:

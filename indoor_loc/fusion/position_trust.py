@@ -1,0 +1,41 @@
+"""How much an estimator believes a position it is told (``wifi/fix``, ``initialpose``): one rule
+shared by ``pdr_kf_node`` and ``tll_pf`` (docs/recovery.md).
+
+A message may be plausible -- inside every bound of :data:`indoor_loc.contract.BOUNDS` -- and still
+claim a precision no such measurement has: a fix with a covariance of 1e-6 m² collapses a Kalman
+filter's position covariance, so the true fixes after it hardly move the state (or fail its
+innovation gate), and an initial pose with such a covariance collapses a particle cloud to a point.
+An estimator therefore never takes a position as more precise than its source can be:
+
+- :data:`FIX_SIGMA_MIN_M` (1.0 m): no WiFi fix is better than about a metre. The 2.4 GHz wavelength
+  is 12 cm, but small-scale fading moves a received power by several dB within a wavelength, and
+  one dB of RSSI is of the order of a metre at the distances of indoor access points; fingerprinting
+  systems report median errors of 1.5-3 m at best. Our own matcher floors its fix covariance at the
+  same value (``cov_floor_m`` of :class:`indoor_loc.wifi.powed_knn.PowedKnnParams`), so fixes of
+  ``wifi_fix_node`` are never changed by it; only fixes claiming more are.
+- :data:`POSE_SIGMA_MIN_M` (0.5 m): an initial pose is given by a person clicking on a map or by
+  another localiser; RViz's *2D Pose Estimate* itself sends 0.5 m per axis (0.25 m²), the value
+  ``initialpose`` messages without a covariance get (:mod:`msg_adapters.initial_pose`).
+
+:func:`floor_cov` raises the smallest eigenvalues of a 2-D covariance to the floor (the ellipse's
+orientation and its larger axis kept).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Smallest standard deviation (m, any direction) an estimator grants a WiFi fix.
+FIX_SIGMA_MIN_M = 1.0
+#: Smallest standard deviation (m, any direction) an estimator grants an initial pose.
+POSE_SIGMA_MIN_M = 0.5
+
+
+def floor_cov(cov: np.ndarray, sigma_min_m: float) -> tuple[np.ndarray, bool]:
+    """``cov`` (2, 2) m² with every eigenvalue at least ``sigma_min_m²``; and whether it changed."""
+    c = np.asarray(cov, dtype=float).reshape(2, 2)
+    c = 0.5 * (c + c.T)
+    lo = float(sigma_min_m) ** 2
+    vals, vecs = np.linalg.eigh(c)
+    if vals.min() >= lo:
+        return c, False
+    return (vecs * np.maximum(vals, lo)) @ vecs.T, True

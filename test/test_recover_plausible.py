@@ -1,0 +1,87 @@
+"""Recovery from plausible but wrong positions (issue #23, docs/recovery.md): a ``wifi/fix`` or an
+``initialpose`` inside every contract bound but claiming a precision no such message has, or simply
+wrong, must not leave the estimators (``pdr_kf_node``, ``tll_pf``) stuck once true fixes follow.
+Seeded synthetic walks through the stages, as the other stage tests."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+
+from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, floor_cov
+from indoor_loc.measurements import Fix
+from indoor_loc.params import params_from_dict
+from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage, PdrKfStageParams
+from msg_adapters.odom import odom_to_msg
+from msg_adapters.pose import fix_to_msg, pose_from_msg
+from msg_adapters.time import stamp_from_ns
+
+SEC = 1_000_000_000
+STEP = 0.65
+
+
+def _walk(rng: np.random.Generator, n: int = 90):
+    """A walk of 2-step hops (one a second) along an L (30 m east, then north); PDR in an odom frame
+    turned by 1 rad; WiFi fixes (sigma 1.5 m, reported covariance 2.25 m²) every 4th hop."""
+    yaw = np.where(np.arange(n) < 23, 0.0, math.pi / 2)
+    true_xy = np.cumsum(2 * STEP * np.stack([np.cos(yaw), np.sin(yaw)], axis=1), axis=0) + 2.0
+    odom_yaw = yaw + 1.0 + np.cumsum(rng.normal(0, 0.01, n))
+    oxy = np.cumsum(2 * STEP * np.stack([np.cos(odom_yaw), np.sin(odom_yaw)], axis=1), axis=0)
+    t = np.arange(n) * SEC + 5 * SEC
+    odoms = [odom_to_msg(int(t[i]), "u/odom", "u/base_link", oxy[i, 0], oxy[i, 1], odom_yaw[i], np.eye(3) * 0.1,
+                         1.3, 0.0) for i in range(n)]
+    fixes = {i: fix_to_msg(Fix(int(t[i]) + 1000, true_xy[i] + rng.normal(0, 1.5, 2), np.eye(2) * 2.25))
+             for i in range(0, n, 4)}
+    return t, true_xy, odoms, fixes
+
+
+def _pose_msg(stamp_ns: int, xy, var: float) -> PoseWithCovarianceStamped:
+    m = PoseWithCovarianceStamped()
+    m.header.stamp = stamp_from_ns(stamp_ns)
+    m.header.frame_id = "map"
+    m.pose.pose.position.x, m.pose.pose.position.y = float(xy[0]), float(xy[1])
+    m.pose.pose.orientation.w = 1.0
+    cov = np.zeros(36)
+    cov[0] = cov[7] = var
+    cov[14] = cov[21] = cov[28] = cov[35] = 1.0
+    m.pose.covariance = cov
+    return m
+
+
+def _run_kf(stage, odoms, fixes, extra: dict[int, list[tuple[str, PoseWithCovarianceStamped]]]):
+    """Feed the walk; ``extra[i]``: messages after hop ``i`` (and its fix). Returns {hop: xy}."""
+    est = {}
+    for i, od in enumerate(odoms):
+        for topic, msg in stage.process("pdr/odom", od, 0):
+            if topic == "pdr_kf/pose":
+                est[i] = pose_from_msg(msg).xy
+        for topic, msg in ([("wifi/fix", fixes[i])] if i in fixes else []) + extra.get(i, []):
+            stage.process(topic, msg, 0)
+    return est
+
+
+def _err_after(est, true_xy, first: int, last: int) -> float:
+    return float(np.mean([np.linalg.norm(est[i] - true_xy[i]) for i in range(first, last) if i in est]))
+
+
+def test_floor_cov_keeps_the_ellipse_and_raises_the_small_axis():
+    c = np.array([[9.0, 0.0], [0.0, 1e-6]])
+    f, changed = floor_cov(c, FIX_SIGMA_MIN_M)
+    assert changed and np.allclose(f, np.diag([9.0, 1.0]))
+    g, changed = floor_cov(np.eye(2) * 2.25, FIX_SIGMA_MIN_M)
+    assert not changed and np.allclose(g, np.eye(2) * 2.25)        # a real fix is never changed
+
+
+def test_pdr_kf_fix_claiming_a_millimetre_is_taken_at_a_metre():
+    """A fix 3 m off claiming 1e-6 m² must not pin the filter: counted, and taken at 1 m² — the
+    true fixes after it still move the estimate."""
+    rng = np.random.default_rng(4)
+    t, true_xy, odoms, fixes = _walk(rng)
+    k = 40
+    bad = fix_to_msg(Fix(int(t[k]) + 2000, true_xy[k] + [3.0, 0.0], np.eye(2) * 1e-6))
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+    _run_kf(stage, odoms[:k + 1], fixes, {k: [("wifi/fix", bad)]})
+    stage.process("pdr/odom", odoms[k + 1], 0)           # the fix applied at its place in stamp order
+    assert stage.floored == 1
+    assert stage.kf is not None and min(np.linalg.eigvalsh(stage.kf.position_cov)) >= 1.0   # 0.48 when taken at 1e-6 m²
