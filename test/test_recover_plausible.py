@@ -124,3 +124,44 @@ def test_a_burst_of_fixes_an_hour_ahead_neither_silences_nor_resets_the_filter()
     assert stage.kf is not None and stage.restarts == 0
     assert stage.kf.state.n_updates == len(fixes) - 1          # every valid fix after the first applied
     assert stage.diag.rejected["stamp_leap"] == 12 * len(fixes)  # every wrong one counted
+
+
+def test_pdr_kf_refuses_an_initial_pose_older_than_its_newest_fix():
+    """A pose that reaches a busy node late, behind the fixes that followed it (the fault benchmark's
+    hostile initial poses, worked off seconds after the valid fixes), is superseded by them: refused
+    (``superseded_pose``), the filter untouched. Before: the filter restarted at it, at the present,
+    and no later fix came to correct it."""
+    rng = np.random.default_rng(6)
+    t, true_xy, odoms, fixes = _walk(rng)
+    k = 60
+    late = _pose_msg(int(t[k - 6]), true_xy[k - 6] + [20.0, 0.0], 0.25)       # older than the fix at k - 4
+    params = params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0})
+    clean = _run_kf(PdrKfStage(params), odoms, fixes, {})
+    stage = PdrKfStage(params)
+    hostile = _run_kf(stage, odoms, fixes, {k: [("initialpose", late)]})
+    assert stage.diag.rejected["superseded_pose"] == 1 and stage.initial_poses == 0
+    assert all(np.allclose(hostile[i], clean[i]) for i in clean)
+    now = _pose_msg(0, true_xy[-1], 0.25)                     # a command (stamp 0) is taken, for now
+    stage.process("initialpose", now, 0)
+    assert stage.initial_poses == 1
+
+
+def test_tll_pf_refuses_an_initial_pose_older_than_its_newest_fix(tmp_path):
+    from indoor_loc.graph import build_graph, save_graph
+    from indoor_loc.pipeline.pf_stage import PfStage, PfStageParams
+    xy = np.array([[2, 2], [40, 2], [40, 40]], float)
+    graph = save_graph(build_graph(range(3), xy, [(0, 1), (1, 2)]), tmp_path / "l.graph.yaml")
+    rng = np.random.default_rng(7)
+    t, true_xy, odoms, fixes = _walk(rng)
+    stage = PfStage(params_from_dict(PfStageParams, {"graph_file": str(graph), "n_particles": 300}))
+    k = 60
+    for i in range(k + 1):
+        stage.process("pdr/odom", odoms[i], 0)
+        if i in fixes:
+            stage.process("wifi/fix", fixes[i], 0)
+    before = stage.tracker.pf.xy().copy()
+    stage.process("initialpose", _pose_msg(int(t[k - 6]), true_xy[k - 6] + [0.0, 20.0], 0.25), 0)
+    assert stage.diag.rejected["superseded_pose"] == 1
+    assert np.array_equal(stage.tracker.pf.xy(), before)                     # the particles untouched
+    outs = stage.process("initialpose", _pose_msg(int(t[k]) + 2000, true_xy[k], 0.01), 0)
+    assert [tp for tp, _ in outs if tp == "pf/pose"] and stage.floored == 1   # current: taken, at 0.5 m

@@ -18,11 +18,14 @@ An estimator therefore never takes a position as more precise than its source ca
   ``initialpose`` messages without a covariance get (:mod:`msg_adapters.initial_pose`).
 
 :func:`floor_cov` raises the smallest eigenvalues of a 2-D covariance to the floor (the ellipse's
-orientation and its larger axis kept).
+orientation and its larger axis kept). :func:`check_pose_current` refuses an initial pose older than
+the newest fix (``superseded_pose``).
 """
 from __future__ import annotations
 
 import numpy as np
+
+from indoor_loc.errors import InvalidInputError
 
 #: Smallest standard deviation (m, any direction) an estimator grants a WiFi fix.
 FIX_SIGMA_MIN_M = 1.0
@@ -39,3 +42,14 @@ def floor_cov(cov: np.ndarray, sigma_min_m: float) -> tuple[np.ndarray, bool]:
     if vals.min() >= lo:
         return c, False
     return (vecs * np.maximum(vals, lo)) @ vecs.T, True
+
+
+def check_pose_current(stamp_ns: int, newest_fix_ns: int | None) -> None:
+    """Refuse an initial pose stamped before the newest fix the estimator has received
+    (``superseded_pose``): that fix is later evidence of where the user is, and restarting at the
+    older pose would throw it away and put a past position at the present (a pose that reaches a busy
+    node seconds late, behind the fixes that followed it). A pose stamped 0 is a command for now."""
+    if stamp_ns and newest_fix_ns is not None and stamp_ns < newest_fix_ns:
+        raise InvalidInputError("superseded_pose", f"initial pose stamped {stamp_ns} ns, "
+                                                   f"{(newest_fix_ns - stamp_ns) * 1e-9:.3f} s before the newest "
+                                                   "wifi/fix already received: superseded by it")

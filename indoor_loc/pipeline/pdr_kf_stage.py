@@ -47,7 +47,7 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
 from indoor_loc.fusion.odom_kf import odom_transition
-from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, floor_cov
+from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_pose_current, floor_cov
 from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
 from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
 from msg_adapters.robot_odom import RobotOdomReader
@@ -168,6 +168,7 @@ class PdrKfStage(Stage):
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
         self._final: deque[tuple[int, float, float, float]] = deque(maxlen=params.path_max_poses)
         self._rejected_in_row = 0
+        self._newest_fix_ns: int | None = None             # newest wifi/fix stamp received (superseded_pose)
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
         self._held: deque[tuple[int, Any, Any]] = deque()  # (stamp, odom, interval) held for odom_hold_s
         self._last_odom_ns: int | None = None             # stamp of the last odom applied
@@ -257,6 +258,7 @@ class PdrKfStage(Stage):
         if floored:
             self.floored += 1
             fix = replace(fix, cov=cov)
+        self._newest_fix_ns = max(fix.stamp_ns, self._newest_fix_ns or fix.stamp_ns)
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
         last_odom = self._last_odom_ns
@@ -269,6 +271,7 @@ class PdrKfStage(Stage):
         """Restart the filter at a pose with its covariance (as at a first fix; the segment before is
         final). Stamp 0 (a command) is taken as the newest hop's; fixes older than it are dropped."""
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
+        check_pose_current(fix.stamp_ns, self._newest_fix_ns)   # superseded_pose: nothing changed
         cov, floored = floor_cov(fix.cov, self.params.pose_sigma_min_m)
         self.floored += int(floored)
         stamp = fix.stamp_ns or (self._last_odom_ns or 0)

@@ -38,7 +38,7 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
-from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, floor_cov
+from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_pose_current, floor_cov
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
 from msg_adapters.markers import graph_markers
@@ -174,6 +174,7 @@ class PfStage(Stage):
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
         self.floored = 0                    # fixes / poses claiming more precision than granted
+        self._newest_fix_ns: int | None = None      # newest wifi/fix stamp received (superseded_pose)
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
         self.on("wifi/scan", self._on_scan)
@@ -239,6 +240,7 @@ class PfStage(Stage):
         outs = self.finish()
         self.tracker = self._new_tracker()          # its seed again: the same pass, the same output
         self._pending.clear()
+        self._newest_fix_ns = None
         self._last_odom_ns = None
         self._last_path_ns = None
         self._n_pose = 0
@@ -319,6 +321,7 @@ class PfStage(Stage):
             self.map_box.check("wifi/fix", fix.xy)
         cov, floored = floor_cov(fix.cov, self.params.fix_sigma_min_m)
         self.floored += int(floored)
+        self._newest_fix_ns = max(fix.stamp_ns, self._newest_fix_ns or fix.stamp_ns)
         return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, cov, fix.z, fix.z_var))
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
@@ -354,6 +357,7 @@ class PfStage(Stage):
         ps = pose_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
+        check_pose_current(ps.stamp_ns, self._newest_fix_ns)   # superseded_pose: nothing changed
         outs = self._start(ps.stamp_ns)
         cov, floored = floor_cov(ps.cov_xy, self.params.pose_sigma_min_m)   # (a zero covariance: the floor)
         self.floored += int(floored)
