@@ -165,3 +165,23 @@ def test_tll_pf_refuses_an_initial_pose_older_than_its_newest_fix(tmp_path):
     assert np.array_equal(stage.tracker.pf.xy(), before)                     # the particles untouched
     outs = stage.process("initialpose", _pose_msg(int(t[k]) + 2000, true_xy[k], 0.01), 0)
     assert [tp for tp, _ in outs if tp == "pf/pose"] and stage.floored == 1   # current: taken, at 0.5 m
+
+
+def test_pdr_kf_refuses_a_fix_that_comes_long_after_the_odometry_passed_it():
+    """A fix worked off late by a busy node (the fault benchmark's hostile fixes were handled up to
+    30 s after the valid stream) cannot go at its place in time; applied at the present it pulled the
+    estimate back to a past (or wrong) place and, after two such, restarted the filter there. Refused
+    (``fix_too_late``) when more than ``fix_late_max_s`` behind the newest odometry."""
+    rng = np.random.default_rng(8)
+    t, true_xy, odoms, fixes = _walk(rng)
+    k = 60
+    for i in (52, 56, 60):          # the WiFi queue stalled: the late fixes are the topic's newest
+        del fixes[i]
+    stale = [("wifi/fix", fix_to_msg(Fix(int(t[k - 8]) + 3000 + j, true_xy[k - 8] + [15.0, 0.0], np.eye(2) * 2.25)))
+             for j in range(2)]
+    params = params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0})
+    clean = _run_kf(PdrKfStage(params), odoms, fixes, {})
+    stage = PdrKfStage(params)
+    hostile = _run_kf(stage, odoms, fixes, {k: stale})
+    assert stage.diag.rejected["fix_too_late"] == 2 and stage.restarts == 0
+    assert all(np.allclose(hostile[i], clean[i]) for i in clean)

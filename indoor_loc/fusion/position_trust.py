@@ -19,7 +19,8 @@ An estimator therefore never takes a position as more precise than its source ca
 
 :func:`floor_cov` raises the smallest eigenvalues of a 2-D covariance to the floor (the ellipse's
 orientation and its larger axis kept). :func:`check_pose_current` refuses an initial pose older than
-the newest fix (``superseded_pose``).
+the newest fix (``superseded_pose``), :func:`check_fix_timely` a fix that comes too long after the
+odometry passed its stamp (``fix_too_late``).
 """
 from __future__ import annotations
 
@@ -53,3 +54,18 @@ def check_pose_current(stamp_ns: int, newest_fix_ns: int | None) -> None:
         raise InvalidInputError("superseded_pose", f"initial pose stamped {stamp_ns} ns, "
                                                    f"{(newest_fix_ns - stamp_ns) * 1e-9:.3f} s before the newest "
                                                    "wifi/fix already received: superseded by it")
+
+
+#: A fix stamped this long before the newest motion (odometry) an estimator applied is refused, s.
+FIX_LATE_MAX_S = 5.0
+
+
+def check_fix_timely(stamp_ns: int, newest_motion_ns: int | None, late_max_s: float) -> None:
+    """Refuse a fix stamped more than ``late_max_s`` before the newest odometry already applied
+    (``fix_too_late``): the estimator has walked on since, so the fix can no longer go at its place in
+    time, and applied at the present it would pull the estimate back to where the user was (a walker
+    covers 6 m in 5 s, several times a fix's error) -- a fix worked off late by a busy node, or
+    replayed. Fixes up to ``late_max_s`` behind are applied at once (``late_fixes``)."""
+    if newest_motion_ns is not None and stamp_ns < newest_motion_ns - int(late_max_s * 1e9):
+        raise InvalidInputError("fix_too_late", f"wifi/fix stamped {(newest_motion_ns - stamp_ns) * 1e-9:.3f} s before "
+                                                f"the newest odometry applied, more than {late_max_s:g} s")

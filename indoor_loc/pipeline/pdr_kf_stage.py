@@ -47,7 +47,8 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
 from indoor_loc.fusion.odom_kf import odom_transition
-from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_pose_current, floor_cov
+from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
+                                              check_pose_current, floor_cov)
 from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
 from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
 from msg_adapters.robot_odom import RobotOdomReader
@@ -64,6 +65,8 @@ class PdrKfStageParams:
                                               "this std (rad; an importer that calibrated the phone's heading offset "
                                               "sets it); 0 = no initial heading (the paper's filter)")
     gate_prob: float = field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
+    fix_late_max_s: float = field(FIX_LATE_MAX_S, "a wifi/fix stamped more than this before the newest pdr/odom "
+                                                  "applied is refused (fix_too_late; s, indoor_loc/fusion/position_trust.py)")
     fix_sigma_min_m: float = field(FIX_SIGMA_MIN_M, "a wifi/fix is never taken as more precise than this std per "
                                                     "direction (m; indoor_loc/fusion/position_trust.py)")
     pose_sigma_min_m: float = field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
@@ -105,6 +108,7 @@ class PdrKfStageParams:
         require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         require(self.heading_prior_std_rad >= 0, n, "heading_prior_std_rad", ">= 0", self.heading_prior_std_rad)
         require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
+        require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
         require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
         self.kf_params().validate()
         self.floors.validate()
@@ -254,6 +258,7 @@ class PdrKfStage(Stage):
         about half a window late), so each is applied at its place in stamp order; one older than
         the newest odom, or waiting longer than ``max_fix_delay_s``, is applied at once."""
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)   # bad_covariance, wrong_frame
+        check_fix_timely(fix.stamp_ns, self._last_odom_ns, self.params.fix_late_max_s)   # fix_too_late
         cov, floored = floor_cov(fix.cov, self.params.fix_sigma_min_m)
         if floored:
             self.floored += 1

@@ -38,7 +38,8 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
-from indoor_loc.fusion.position_trust import FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_pose_current, floor_cov
+from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
+                                              check_pose_current, floor_cov)
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
 from msg_adapters.markers import graph_markers
@@ -91,6 +92,8 @@ class PfStageParams:
                                          "added (its calibration against measured errors)")
     fix_dof: float = P.field(6.0, "WiFi fix likelihood: 0 = Gaussian, > 0 = Student-t with this many degrees of freedom")
     inject_mass: float = P.field(0.15, "prior probability mass of the particles redrawn around each WiFi fix")
+    fix_late_max_s: float = P.field(FIX_LATE_MAX_S, "a wifi/fix stamped more than this before the newest pdr/odom "
+                                                  "applied is refused (fix_too_late; s, indoor_loc/fusion/position_trust.py)")
     fix_sigma_min_m: float = P.field(FIX_SIGMA_MIN_M, "a wifi/fix is never taken as more precise than this std per "
                                                       "direction (m; indoor_loc/fusion/position_trust.py)")
     pose_sigma_min_m: float = P.field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
@@ -130,6 +133,7 @@ class PfStageParams:
         self.odom.validate()
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
         P.require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
+        P.require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
         P.require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
         self.time.validate()
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
@@ -319,6 +323,8 @@ class PfStage(Stage):
         fix = fix_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("wifi/fix", fix.xy)
+        if self.graph is not None:                                   # (else no_graph below)
+            check_fix_timely(fix.stamp_ns, self._last_odom_ns, self.params.fix_late_max_s)   # fix_too_late
         cov, floored = floor_cov(fix.cov, self.params.fix_sigma_min_m)
         self.floored += int(floored)
         self._newest_fix_ns = max(fix.stamp_ns, self._newest_fix_ns or fix.stamp_ns)
