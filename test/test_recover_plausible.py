@@ -141,6 +141,9 @@ def test_pdr_kf_refuses_an_initial_pose_older_than_its_newest_fix():
     hostile = _run_kf(stage, odoms, fixes, {k: [("initialpose", late)]})
     assert stage.diag.rejected["superseded_pose"] == 1 and stage.initial_poses == 0
     assert all(np.allclose(hostile[i], clean[i]) for i in clean)
+    ahead = _pose_msg(int(t[-1]) + 3600 * SEC, true_xy[-1] + [20.0, 0.0], 0.25)   # an hour ahead of the stream
+    stage.process("initialpose", ahead, 0)
+    assert stage.diag.rejected["pose_ahead"] == 1 and stage.initial_poses == 0
     now = _pose_msg(0, true_xy[-1], 0.25)                     # a command (stamp 0) is taken, for now
     stage.process("initialpose", now, 0)
     assert stage.initial_poses == 1

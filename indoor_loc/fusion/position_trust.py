@@ -45,15 +45,23 @@ def floor_cov(cov: np.ndarray, sigma_min_m: float) -> tuple[np.ndarray, bool]:
     return (vecs * np.maximum(vals, lo)) @ vecs.T, True
 
 
-def check_pose_current(stamp_ns: int, newest_fix_ns: int | None) -> None:
+def check_pose_current(stamp_ns: int, newest_fix_ns: int | None, newest_motion_ns: int | None = None,
+                       max_ahead_s: float = 10.0) -> None:
     """Refuse an initial pose stamped before the newest fix the estimator has received
     (``superseded_pose``): that fix is later evidence of where the user is, and restarting at the
     older pose would throw it away and put a past position at the present (a pose that reaches a busy
-    node seconds late, behind the fixes that followed it). A pose stamped 0 is a command for now."""
-    if stamp_ns and newest_fix_ns is not None and stamp_ns < newest_fix_ns:
+    node seconds late, behind the fixes that followed it) -- or stamped more than ``max_ahead_s``
+    after the newest odometry (``pose_ahead``): a pose from the stream's future, which the odometry
+    and the fixes to come would all precede. A pose stamped 0 is a command for now."""
+    if not stamp_ns:
+        return
+    if newest_fix_ns is not None and stamp_ns < newest_fix_ns:
         raise InvalidInputError("superseded_pose", f"initial pose stamped {stamp_ns} ns, "
                                                    f"{(newest_fix_ns - stamp_ns) * 1e-9:.3f} s before the newest "
                                                    "wifi/fix already received: superseded by it")
+    if newest_motion_ns is not None and stamp_ns > newest_motion_ns + int(max_ahead_s * 1e9):
+        raise InvalidInputError("pose_ahead", f"initial pose stamped {(stamp_ns - newest_motion_ns) * 1e-9:.3f} s "
+                                              f"after the newest odometry, more than {max_ahead_s:g} s")
 
 
 #: A fix stamped this long before the newest motion (odometry) an estimator applied is refused, s.
