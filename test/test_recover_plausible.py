@@ -188,3 +188,20 @@ def test_pdr_kf_refuses_a_fix_that_comes_long_after_the_odometry_passed_it():
     hostile = _run_kf(stage, odoms, fixes, {k: stale})
     assert stage.diag.rejected["fix_too_late"] == 2 and stage.restarts == 0
     assert all(np.allclose(hostile[i], clean[i]) for i in clean)
+
+
+def test_pdr_kf_scattered_wrong_fixes_do_not_restart_it():
+    """Two gated-out fixes in a row restart the filter at the latest (the PDR track left the truth) —
+    but only when they agree with each other: two plausible fixes 40 m apart, both far from the
+    track, are outliers, not a track gone wrong. Before: the filter restarted at the second one."""
+    rng = np.random.default_rng(9)
+    t, true_xy, odoms, fixes = _walk(rng)
+    k = 60
+    bad = [("wifi/fix", fix_to_msg(Fix(int(t[k]) + 2000 + j, true_xy[k] + off, np.eye(2) * 2.25)))
+           for j, off in enumerate(([25.0, 0.0], [-15.0, 30.0]))]
+    params = params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0})
+    clean = _run_kf(PdrKfStage(params), odoms, fixes, {})
+    stage = PdrKfStage(params)
+    hostile = _run_kf(stage, odoms, fixes, {k: bad})
+    assert stage.restarts == 0
+    assert _err_after(hostile, true_xy, k, len(odoms)) <= 1.05 * _err_after(clean, true_xy, k, len(odoms))

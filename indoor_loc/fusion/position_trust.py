@@ -77,3 +77,20 @@ def check_fix_timely(stamp_ns: int, newest_motion_ns: int | None, late_max_s: fl
     if newest_motion_ns is not None and stamp_ns < newest_motion_ns - int(late_max_s * 1e9):
         raise InvalidInputError("fix_too_late", f"wifi/fix stamped {(newest_motion_ns - stamp_ns) * 1e-9:.3f} s before "
                                                 f"the newest odometry applied, more than {late_max_s:g} s")
+
+
+#: Fastest a walker moves between two fixes, m/s (a brisk walk is 1.5-2 m/s; runners are not tracked).
+WALK_SPEED_MAX_MPS = 2.0
+
+
+def fixes_agree(a: tuple[int, np.ndarray, np.ndarray], b: tuple[int, np.ndarray, np.ndarray],
+                gate: float, speed_max_mps: float = WALK_SPEED_MAX_MPS) -> bool:
+    """Whether two fixes ``(stamp ns, xy (2,), cov (2, 2))`` can both be right: the squared Mahalanobis
+    distance between them, under both covariances plus the walk possible between their stamps
+    (``speed_max_mps`` times the interval, per axis), within ``gate``. A run of fixes refusing the
+    filter restarts it only when the fixes agree with each other -- the filter has left the truth --
+    and not when they are scattered (outliers, or hostile fixes far apart)."""
+    dt = abs(b[0] - a[0]) * 1e-9
+    S = np.asarray(a[2], float) + np.asarray(b[2], float) + (speed_max_mps * dt) ** 2 * np.eye(2)
+    d = np.asarray(b[1], float) - np.asarray(a[1], float)
+    return bool(d @ np.linalg.solve(S, d) <= gate)

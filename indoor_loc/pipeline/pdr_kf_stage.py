@@ -48,7 +48,7 @@ from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
 from indoor_loc.fusion.odom_kf import odom_transition
 from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
-                                              check_pose_current, floor_cov)
+                                              check_pose_current, fixes_agree, floor_cov)
 from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
 from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
 from msg_adapters.robot_odom import RobotOdomReader
@@ -172,6 +172,7 @@ class PdrKfStage(Stage):
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
         self._final: deque[tuple[int, float, float, float]] = deque(maxlen=params.path_max_poses)
         self._rejected_in_row = 0
+        self._last_rejected: tuple[int, np.ndarray, np.ndarray] | None = None   # the run's latest gated-out fix
         self._newest_fix_ns: int | None = None             # newest wifi/fix stamp received (superseded_pose)
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
         self._held: deque[tuple[int, Any, Any]] = deque()  # (stamp, odom, interval) held for odom_hold_s
@@ -312,10 +313,16 @@ class PdrKfStage(Stage):
             self._add_epoch(fix.stamp_ns, 0.0, 0.0)
         if self.kf.update(fix):
             self._rejected_in_row = 0
+            self._last_rejected = None
             self._epochs[-1][3] = fix
             self._epochs[-1][4] = self.kf.state.x.copy()
         else:
-            self._rejected_in_row += 1
+            # a run of gated-out fixes counts only while its fixes agree with each other (the filter
+            # left the truth); a fix far from the previous rejected one starts a new run (scattered
+            # outliers, hostile fixes) -- indoor_loc/fusion/position_trust.py
+            prev, self._last_rejected = self._last_rejected, (fix.stamp_ns, fix.xy, fix.cov)
+            agree = prev is not None and fixes_agree(prev, self._last_rejected, self.params.kf_params().gate_threshold)
+            self._rejected_in_row = self._rejected_in_row + 1 if agree or prev is None else 1
             limit = self.params.max_rejected_fixes
             if limit and self._rejected_in_row >= limit:
                 self.restarts += 1
@@ -335,6 +342,7 @@ class PdrKfStage(Stage):
         self._epochs = [[fix.stamp_ns, 0.0, 0.0, None, st.x.copy(), None]]
         self.n_epochs += 1
         self._rejected_in_row = 0
+        self._last_rejected = None
 
     def _pose_msg(self, stamp_ns: int):
         assert self.kf is not None
