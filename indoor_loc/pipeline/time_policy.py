@@ -29,11 +29,8 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
 - **leaps ahead**: a stamp more than ``leap_s`` after its source's watermark while the node's clock
   cannot vouch for it (it is not within ``max_future_s`` of the clock: a bag replayed without
   ``use_sim_time``, a device clock that is not the node's) is either a wrongly stamped message or
-  the source resuming after a pause (a source's first message: judged against the user's newest
-  stamp on any topic, and held the same way when it is more than ``leap_s`` behind it). It is held
-  (this source only) until ``jump_confirm`` messages of the source in a row, each after the previous
-  by less than ``leap_s`` and together spanning at least ``jump_s`` of the node's clock (a burst of
-  wrong copies sent at once cannot confirm itself), confirm the resume (they
+  the source resuming after a pause. It is held (this source only) until ``jump_confirm`` messages
+  of the source in a row, each after the previous by less than ``leap_s``, confirm the resume (they
   are handled in order, nothing reset) — or a message of the source in step with its watermark shows
   the held ones were wrongly stamped: each is rejected (``stamp_leap``), counted. Without this, one
   message stamped an hour ahead would move the watermark there and every valid message after it
@@ -118,7 +115,6 @@ class _Leap:
     """A source's messages held for a leap ahead (see the module doc)."""
     held: list[Held] = dc_field(default_factory=list)
     last: int = 0                       # the latest held stamp
-    first_now: int = 0                  # the node's clock at the run's first message (0: no clock)
 
 
 @dataclass
@@ -218,23 +214,15 @@ class TimePolicy:
         held = u.leaps.get(topic)
         if held is not None and stamp_ns > held.last and stamp_ns - held.last <= self.leap_ns:
             held.last = stamp_ns                     # continues the held run
-            # confirmed by jump_confirm messages that also span jump_s of the node's clock: a burst
-            # of wrongly stamped copies, all at once, cannot confirm itself before the source's next
-            # valid message refutes it; a source that resumed keeps flowing and is confirmed
-            spans = not now_ns or not held.first_now or now_ns - held.first_now >= self.jump_ns
-            return Verdict.RESUME if len(held.held) + 1 >= self.params.jump_confirm and spans else Verdict.LEAP
-        # a topic's first message is judged against the user's other topics, ahead and behind: a first
-        # wifi/fix stamped an hour ahead of (or at 0, decades behind) the user's odometry would
-        # otherwise set the topic's watermark there, and every valid fix after it would be held
-        ref = mark if mark is not None else u.front()
-        if ref is None or (stamp_ns <= ref + self.leap_ns and (mark is not None or stamp_ns >= ref - self.leap_ns)):
+            return Verdict.RESUME if len(held.held) + 1 >= self.params.jump_confirm else Verdict.LEAP
+        if mark is None or stamp_ns <= mark + self.leap_ns:
             return None
         if now_ns and abs(stamp_ns - now_ns) <= self.future_ns:
             return None                              # the node's clock vouches for it: a source back after a pause
         if held is not None:                         # ahead again but not continuing: the run starts anew
-            held.last, held.first_now = stamp_ns, now_ns or 0
+            held.last = stamp_ns
             return Verdict.LEAP if self.params.jump_confirm > 1 else Verdict.RESUME
-        u.leaps[topic] = _Leap(last=stamp_ns, first_now=now_ns or 0)
+        u.leaps[topic] = _Leap(last=stamp_ns)
         return Verdict.LEAP if self.params.jump_confirm > 1 else Verdict.RESUME
 
     def hold_leap(self, user: str, held: Held) -> Held | None:
