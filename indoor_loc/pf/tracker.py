@@ -42,6 +42,7 @@ from indoor_loc import params as P
 from indoor_loc.baro.detector import BaroParams, FloorChange
 from indoor_loc.baro.floors import FloorFilterParams
 from indoor_loc.baro.track import FloorTrack
+from indoor_loc.fusion.position_trust import fixes_agree
 from indoor_loc.fusion.linear_pdr import LinearPdrKf, LinearPdrParams
 from indoor_loc.measurements import Fix, wrap_angle
 
@@ -109,6 +110,7 @@ class MonitorState:
     disagree_since_ns: int | None = None
     last_deviance: float = float("nan")
     rejected_run: int = 0
+    last_rejected: tuple | None = None   # (stamp ns, xy, cov) of the run's latest gated-out fix
 
 
 class GraphTracker:
@@ -383,8 +385,13 @@ class GraphTracker:
             return
         if self.kf.update(Fix(stamp_ns=stamp_ns, xy=np.asarray(xy, float), cov=np.asarray(cov, float))):
             self.monitor.rejected_run = 0
+            self.monitor.last_rejected = None
             return
-        self.monitor.rejected_run += 1
+        # the run counts only while its fixes agree with each other (indoor_loc/fusion/position_trust.py)
+        prev = self.monitor.last_rejected
+        self.monitor.last_rejected = (stamp_ns, np.asarray(xy, float), np.asarray(cov, float))
+        agree = prev is None or fixes_agree(prev, self.monitor.last_rejected, self._gate)
+        self.monitor.rejected_run = self.monitor.rejected_run + 1 if agree else 1
         if self.monitor.rejected_run >= 2:
             self.monitor.kf_restarts += 1
             self._kf_start(stamp_ns, xy, cov)
@@ -394,6 +401,7 @@ class GraphTracker:
         self.kf = LinearPdrKf(LinearPdrParams(step_length_m=mp.step_length_m, sigma_dtheta_rad=mp.sigma_dtheta_rad),
                               xy0=np.asarray(xy, float), pos_cov0=np.asarray(cov, float), stamp_ns=stamp_ns)
         self.monitor.rejected_run = 0
+        self.monitor.last_rejected = None
         self.monitor.disagree_since_ns = None
 
     def _check(self, stamp_ns: int) -> Estimate | None:

@@ -48,6 +48,8 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
 from indoor_loc.fusion.odom_kf import odom_transition
+from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
+                                              check_pose_current, fixes_agree, floor_cov)
 from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
 from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
 from msg_adapters.robot_odom import RobotOdomReader
@@ -64,6 +66,12 @@ class PdrKfStageParams:
                                               "this std (rad; an importer that calibrated the phone's heading offset "
                                               "sets it); 0 = no initial heading (the paper's filter)")
     gate_prob: float = field(0.999, "chi-square (2 dof) probability of the WiFi innovation gate; 1.0 = no gate")
+    fix_late_max_s: float = field(FIX_LATE_MAX_S, "a wifi/fix stamped more than this before the newest pdr/odom "
+                                                  "applied is refused (fix_too_late; s, indoor_loc/fusion/position_trust.py)")
+    fix_sigma_min_m: float = field(FIX_SIGMA_MIN_M, "a wifi/fix is never taken as more precise than this std per "
+                                                    "direction (m; indoor_loc/fusion/position_trust.py)")
+    pose_sigma_min_m: float = field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
+                                                      "per direction (m; indoor_loc/fusion/position_trust.py)")
     max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
     max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
     odom_hold_s: float = field(0.0, "hold each pdr/odom hop this long (s of stamp time, on the odom stream) before "
@@ -100,6 +108,9 @@ class PdrKfStageParams:
         require(0.0 < self.gate_prob <= 1.0, n, "gate_prob", "in (0, 1]", self.gate_prob)
         require(self.max_rejected_fixes >= 0, n, "max_rejected_fixes", ">= 0", self.max_rejected_fixes)
         require(self.heading_prior_std_rad >= 0, n, "heading_prior_std_rad", ">= 0", self.heading_prior_std_rad)
+        require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
+        require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
+        require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
         self.kf_params().validate()
         self.floors.validate()
         self.baro.validate()
@@ -140,6 +151,7 @@ class PdrKfStage(Stage):
         self.restarts = 0
         self.late_fixes = 0                                # fixes that arrived after later hops were applied
         self.initial_poses = 0                             # restarts at an initialpose / set_pose
+        self.floored = 0                                   # fixes / poses claiming more precision than granted
         self._fresh_state()
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
@@ -161,6 +173,8 @@ class PdrKfStage(Stage):
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
         self._final: deque[tuple[int, float, float, float]] = deque(maxlen=params.path_max_poses)
         self._rejected_in_row = 0
+        self._last_rejected: tuple[int, np.ndarray, np.ndarray] | None = None   # the run's latest gated-out fix
+        self._newest_fix_ns: int | None = None             # newest wifi/fix stamp received (superseded_pose)
         self._pending: list[tuple[int, int, Fix]] = []   # (stamp, arrival seq, fix) waiting for PDR
         self._held: deque[tuple[int, Any, Any]] = deque()  # (stamp, odom, interval) held for odom_hold_s
         self._last_odom_ns: int | None = None             # stamp of the last odom applied
@@ -255,6 +269,12 @@ class PdrKfStage(Stage):
         about half a window late), so each is applied at its place in stamp order; one older than
         the newest odom, or waiting longer than ``max_fix_delay_s``, is applied at once."""
         fix = fix_from_msg(msg, frame_id=self.params.frame_id)   # bad_covariance, wrong_frame
+        check_fix_timely(fix.stamp_ns, self._last_odom_ns, self.params.fix_late_max_s)   # fix_too_late
+        cov, floored = floor_cov(fix.cov, self.params.fix_sigma_min_m)
+        if floored:
+            self.floored += 1
+            fix = replace(fix, cov=cov)
+        self._newest_fix_ns = max(fix.stamp_ns, self._newest_fix_ns or fix.stamp_ns)
         self._seq += 1
         bisect.insort(self._pending, (fix.stamp_ns, self._seq, fix))
         last_odom = self._last_odom_ns
@@ -267,10 +287,14 @@ class PdrKfStage(Stage):
         """Restart the filter at a pose with its covariance (as at a first fix; the segment before is
         final). Stamp 0 (a command) is taken as the newest hop's; fixes older than it are dropped."""
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
+        check_pose_current(fix.stamp_ns, self._newest_fix_ns, self._last_odom_ns,   # superseded_pose, pose_ahead
+                           self.params.time.max_future_s)
+        cov, floored = floor_cov(fix.cov, self.params.pose_sigma_min_m)
+        self.floored += int(floored)
         stamp = fix.stamp_ns or (self._last_odom_ns or 0)
         outs = self._release(lambda s: s <= stamp)              # hops before it belong to the old segment
         self._pending = [p for p in self._pending if p[0] > stamp]
-        self._start(replace(fix, stamp_ns=stamp))
+        self._start(replace(fix, stamp_ns=stamp, cov=cov))
         self.initial_poses += 1
         return outs + [("pdr_kf/pose", self._pose_msg(stamp))]
 
@@ -299,10 +323,16 @@ class PdrKfStage(Stage):
             self._add_epoch(fix.stamp_ns, 0.0, 0.0)
         if self.kf.update(fix):
             self._rejected_in_row = 0
+            self._last_rejected = None
             self._epochs[-1][3] = fix
             self._epochs[-1][4] = self.kf.state.x.copy()
         else:
-            self._rejected_in_row += 1
+            # a run of gated-out fixes counts only while its fixes agree with each other (the filter
+            # left the truth); a fix far from the previous rejected one starts a new run (scattered
+            # outliers, hostile fixes) -- indoor_loc/fusion/position_trust.py
+            prev, self._last_rejected = self._last_rejected, (fix.stamp_ns, fix.xy, fix.cov)
+            agree = prev is not None and fixes_agree(prev, self._last_rejected, self.params.kf_params().gate_threshold)
+            self._rejected_in_row = self._rejected_in_row + 1 if agree or prev is None else 1
             limit = self.params.max_rejected_fixes
             if limit and self._rejected_in_row >= limit:
                 self.restarts += 1
@@ -322,6 +352,7 @@ class PdrKfStage(Stage):
         self._epochs = [[fix.stamp_ns, 0.0, 0.0, None, st.x.copy(), None]]
         self.n_epochs += 1
         self._rejected_in_row = 0
+        self._last_rejected = None
 
     def _pose_msg(self, stamp_ns: int):
         assert self.kf is not None
@@ -421,6 +452,7 @@ class PdrKfStage(Stage):
                 "path_poses": str(len(self._final) + len(self._epochs)),
                 "fixes_used_in_segment": str(st.n_updates), "fixes_gated_out_in_segment": str(st.n_rejected),
                 "restarts": str(self.restarts), "late_fixes": str(self.late_fixes),
+                "precision_floored": str(self.floored),
                 "held_odom": str(len(self._held)), "motion_source": self.params.motion_source,
                 **(self._robot.diagnostics() if self.params.motion_source == "odom" else {}),
                 "position_sigma_m": f"{math.sqrt(max(np.linalg.eigvalsh(self.kf.position_cov))):.2f}",

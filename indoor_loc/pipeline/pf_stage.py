@@ -38,6 +38,8 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
+from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
+                                              check_pose_current, floor_cov)
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
 from msg_adapters.markers import graph_markers
@@ -91,6 +93,12 @@ class PfStageParams:
                                          "added (its calibration against measured errors)")
     fix_dof: float = P.field(6.0, "WiFi fix likelihood: 0 = Gaussian, > 0 = Student-t with this many degrees of freedom")
     inject_mass: float = P.field(0.15, "prior probability mass of the particles redrawn around each WiFi fix")
+    fix_late_max_s: float = P.field(FIX_LATE_MAX_S, "a wifi/fix stamped more than this before the newest pdr/odom "
+                                                  "applied is refused (fix_too_late; s, indoor_loc/fusion/position_trust.py)")
+    fix_sigma_min_m: float = P.field(FIX_SIGMA_MIN_M, "a wifi/fix is never taken as more precise than this std per "
+                                                      "direction (m; indoor_loc/fusion/position_trust.py)")
+    pose_sigma_min_m: float = P.field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
+                                                        "per direction (m; indoor_loc/fusion/position_trust.py)")
     max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
     particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
@@ -125,6 +133,9 @@ class PfStageParams:
         validate_source(n, self.motion_source)
         self.odom.validate()
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        P.require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
+        P.require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
+        P.require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
         self.time.validate()
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
@@ -167,6 +178,8 @@ class PfStage(Stage):
         this one uses instead of loading them again (:meth:`for_user`)."""
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
+        self.floored = 0                    # fixes / poses claiming more precision than granted
+        self._newest_fix_ns: int | None = None      # newest wifi/fix stamp received (superseded_pose)
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
         self.on("wifi/scan", self._on_scan)
@@ -232,6 +245,7 @@ class PfStage(Stage):
         outs = self.finish()
         self.tracker = self._new_tracker()          # its seed again: the same pass, the same output
         self._pending.clear()
+        self._newest_fix_ns = None
         self._last_odom_ns = None
         self._last_path_ns = None
         self._n_pose = 0
@@ -320,7 +334,12 @@ class PfStage(Stage):
         fix = fix_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("wifi/fix", fix.xy)
-        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, fix.cov, fix.z, fix.z_var))
+        if self.graph is not None:                                   # (else no_graph below)
+            check_fix_timely(fix.stamp_ns, self._last_odom_ns, self.params.fix_late_max_s)   # fix_too_late
+        cov, floored = floor_cov(fix.cov, self.params.fix_sigma_min_m)
+        self.floored += int(floored)
+        self._newest_fix_ns = max(fix.stamp_ns, self._newest_fix_ns or fix.stamp_ns)
+        return self._queue(fix.stamp_ns, "wifi/fix", (fix.xy, cov, fix.z, fix.z_var))
 
     def _on_scan(self, msg, recv_ns: int) -> list[Output]:
         if self.graph is not None and self.field is None:
@@ -355,8 +374,11 @@ class PfStage(Stage):
         ps = pose_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
+        check_pose_current(ps.stamp_ns, self._newest_fix_ns,                 # superseded_pose, pose_ahead
+                           self._last_odom_ns if self.graph is not None else None, self.params.time.max_future_s)
         outs = self._start(ps.stamp_ns)
-        cov = ps.cov_xy if np.all(np.linalg.eigvalsh(ps.cov_xy) > 0) else np.eye(2) * 0.25
+        cov, floored = floor_cov(ps.cov_xy, self.params.pose_sigma_min_m)   # (a zero covariance: the floor)
+        self.floored += int(floored)
         floor = self.tracker.fix_floor(float(msg.pose.pose.position.z), 0.0)       # z: the floor's height
         return outs + self._publish(self.tracker.reset_at(ps.stamp_ns, ps.xy, cov, inflate=False,   # as given
                                                           floor=None if floor is None else floor[0]))
@@ -448,7 +470,8 @@ class PfStage(Stage):
              "wifi_update": self.params.wifi_update,
              "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
                            else "hit" if self.cache_hit else "computed"),
-             "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source}
+             "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source,
+             "precision_floored": str(self.floored)}
         if self.params.motion_source == "odom":
             d.update(self._robot.diagnostics())
         if pf.p is None:
