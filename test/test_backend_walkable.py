@@ -52,7 +52,7 @@ def _empty(root: Path) -> Path:
     return d
 
 
-def _biased_walk(g: MultiUserGraph, bias_y: float, rng) -> tuple[np.ndarray, np.ndarray]:
+def _biased_walk(g: MultiUserGraph, bias_y: float, rng, *, whole: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """A user walking along the corridor's y = 3 m (a step of the prior's 0.65 m every 0.5 s), a fix every
     2 s biased by ``bias_y`` into the shop; returns its optimised (stamps, poses)."""
     g.set_floor("u", -5.0)
@@ -65,7 +65,8 @@ def _biased_walk(g: MultiUserGraph, bias_y: float, rng) -> tuple[np.ndarray, np.
         if k % 4 == 3:
             fx = np.array([x + rng.normal(0, 1.0), 3.0 + bias_y + rng.normal(0, 1.0)])
             g.add_fix("u", t, fx, np.eye(2) * 4.0)
-    g.optimize()
+    if whole:
+        g.optimize()
     st, xs = g.trajectory("u")
     return st, xs
 
@@ -95,3 +96,16 @@ def test_walkable_jacobian_matches_numerical_derivatives(tmp_path):
         d[c] = h
         np.testing.assert_allclose(J[:, c], (fun(z0 + d) - fun(z0 - d)) / (2 * h), atol=2e-4)
     assert len(fun(z0)) > 3 * g.pdr.n + 2 * g.wifi.n + 3 * g.gauge.n + g.poses.n - 1   # a row per pose
+
+
+def test_the_live_windows_take_the_walkable_factor_only_when_asked(tmp_path):
+    """walkable_live False (the default): the window optimisations at each fix (backend/<u>/pose) leave the
+    plan out, the whole-graph one (the paths) takes it; True: the windows take it too."""
+    field = load_walkable_fields(_floor(tmp_path))
+    last_y = {}
+    for live in (False, True):
+        g = MultiUserGraph(GraphParams(**{**FIX_GRAPH_PARAMS, "walkable_std_m": 0.5, "walkable_live": live,
+                                          "window_poses": 30}), None, field)
+        _, xs = _biased_walk(g, 6.0, np.random.default_rng(4), whole=False)
+        last_y[live] = float(np.abs(xs[:, 1] - 3.0).mean())
+    assert last_y[False] > 5.0 and last_y[True] < 4.0

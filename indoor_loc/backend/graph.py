@@ -130,6 +130,8 @@ class GraphParams:
     gauge_std_rad: float = pfield(3.0, "weak prior on each user's first heading, rad")
     walkable_std_m: float = pfield(0.0, "floor plan factor (needs the plans, backend_node.floor_plans): a pose "
                                         "outside the walkable area costs (distance to it / this)²; 0 = none")
+    walkable_live: bool = pfield(False, "the walkable factor in the live window optimisations too (backend/<u>/pose); "
+                                        "False = only in the whole-graph ones (the paths)")
     max_iterations: int = pfield(15, "solver iterations per whole-graph optimisation (paper: 15 LM iterations)")
     window_poses: int = pfield(30, "live: at each localised scan optimise the user's last this many poses "
                                    "(0 = never; batch use then calls optimize())")
@@ -640,11 +642,12 @@ class MultiUserGraph:
         tr = self.users[name]
         var = np.asarray(tr.poses[-self.params.window_poses:], np.int64)
         var = var[~self.poses.frozen[var]]
-        return self._solve(var, self.params.window_iterations)
+        return self._solve(var, self.params.window_iterations, walkable=self.params.walkable_live)
 
-    def _solve(self, var: np.ndarray, max_iter: int, deadline: float | None = None) -> SolveReport | None:
+    def _solve(self, var: np.ndarray, max_iter: int, deadline: float | None = None, *,
+               walkable: bool = True) -> SolveReport | None:
         t0 = time.perf_counter()
-        prob = self.problem(var)
+        prob = self.problem(var, walkable=walkable)
         if prob is None:
             return None
         fun, jac, z0, unpack, n_factors = prob
@@ -678,7 +681,7 @@ class MultiUserGraph:
         self.last_solve = rep
         return rep
 
-    def problem(self, var: np.ndarray):
+    def problem(self, var: np.ndarray, *, walkable: bool = True):
         """The least-squares problem over poses ``var`` (and their users' step lengths): (fun(z) ->
         whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths),
         number of factors), or None when no factor touches the variables."""
@@ -716,7 +719,7 @@ class MultiUserGraph:
             return None
         # walkable factors: the variable poses on a floor with a plan
         wk_pose = np.zeros(0, np.int64)
-        if self.walkable is not None:
+        if self.walkable is not None and walkable:
             zv = self.poses.z[var]
             wk_pose = var[np.array([self.walkable.floor_at(float(z)) is not None for z in zv], bool)] \
                 if len(var) else wk_pose
