@@ -29,6 +29,8 @@ def test_importer_params_give_the_back_end_its_map_and_fixes(tmp_path):
     params = yaml.safe_load((out / "params.yaml").read_text())["/**/backend_node"]["ros__parameters"]
     assert Path(params["radiomap"]) == out / "radiomap" and params["wifi_source"] == "fix"
     assert {k: params[k] for k in FIX_GRAPH_PARAMS} == FIX_GRAPH_PARAMS
+    # the site has GeoJSON plans: they are the back-end's walkable factor
+    assert Path(params["floor_plans"]) == out / "floors" and params["walkable_std_m"] > 0
     bag = out / "B1" / "5f0000000000000000000002.mcap"
     run_offline([bag], tmp_path / "run.mcap", nodes=["imu", "wifi", "backend"], params=out / "params.yaml",
                 progress=False)

@@ -238,3 +238,15 @@ def test_any_message_on_ble_scan_leaves_the_stage_sound(tmp_path):
         if sum(stage.diag.rejected.values()) == len(hostile):
             assert got == clean
     check()
+
+
+def test_ms_beacon_row_with_implausible_tx_power_keeps_the_beacon_tx_unknown():
+    """ms_site2 has beacons advertising +68 dBm: the row keeps its RSSI, its tx power is unknown (NaN),
+    so ble/scan's tx_power_dbm bound does not reject the whole scan at import."""
+    from indoor_loc.datasets.ms_indoor_ble import beacon_row
+    f = ["1574240200040", "TYPE_BEACON", "65d37bb4-8a7b-0bc4-5602-aae9e8ea68b2", "3902", "44406", "68", "-80",
+         "1.0", "aa:bb:cc:dd:ee:ff"]
+    t, bid, mac, rssi, tx = beacon_row(1574240200040, f)
+    assert rssi == -80 and math.isnan(tx)
+    f[5] = "-59"
+    assert beacon_row(1574240200040, f)[4] == -59

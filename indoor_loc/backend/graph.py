@@ -128,6 +128,10 @@ class GraphParams:
     min_scan_move_m: float = pfield(0.3, "a scan closer than this (PDR distance) to the last pose attaches to it, m")
     gauge_std_m: float = pfield(100.0, "weak prior on each user's first pose position, m (fixes the gauge only)")
     gauge_std_rad: float = pfield(3.0, "weak prior on each user's first heading, rad")
+    walkable_std_m: float = pfield(0.0, "floor plan factor (needs the plans, backend_node.floor_plans): a pose "
+                                        "outside the walkable area costs (distance to it / this)²; 0 = none")
+    walkable_live: bool = pfield(False, "the walkable factor in the live window optimisations too (backend/<u>/pose); "
+                                        "False = only in the whole-graph ones (the paths)")
     max_iterations: int = pfield(15, "solver iterations per whole-graph optimisation (paper: 15 LM iterations)")
     window_poses: int = pfield(30, "live: at each localised scan optimise the user's last this many poses "
                                    "(0 = never; batch use then calls optimize())")
@@ -158,6 +162,7 @@ class GraphParams:
         require(self.min_scan_move_m >= 0, n, "min_scan_move_m", ">= 0", self.min_scan_move_m)
         require(self.gauge_std_m > 0 and self.gauge_std_rad > 0, n, "gauge_std_m/gauge_std_rad", "> 0",
                   (self.gauge_std_m, self.gauge_std_rad))
+        require(self.walkable_std_m >= 0, n, "walkable_std_m", ">= 0", self.walkable_std_m)
         require(self.max_iterations >= 1, n, "max_iterations", ">= 1", self.max_iterations)
         require(self.window_poses >= 0, n, "window_poses", ">= 0", self.window_poses)
         require(self.window_iterations >= 1, n, "window_iterations", ">= 1", self.window_iterations)
@@ -200,6 +205,7 @@ class UserTrack:
     scans_localised: int = 0                          # scans WKNN localised (wifi_source fix: fixes taken)
     scans_unlocalised: int = 0                        # scans not localised (wifi_source fix: before any fix)
     scans_from_users: int = 0                         # hyperedges with >= 1 other user's scan
+    floor_z: float = math.nan                         # height of the user's floor (its newest fix's), m
 
 
 @dataclass(frozen=True)
@@ -316,9 +322,12 @@ class _Growing:
 class MultiUserGraph:
     """Poses of many users, their PDR and WKNN factors, the evolving WiFi map (see module docstring)."""
 
-    def __init__(self, params: GraphParams, survey: RadioMap | None = None) -> None:
+    def __init__(self, params: GraphParams, survey: RadioMap | None = None, walkable: Any = None) -> None:
         params.validate()
         self.params = params
+        #: the floor plans' distance field (:class:`indoor_loc.backend.walkable_term.WalkableField`); with
+        #: ``walkable_std_m`` > 0 every optimised pose on a floor with a plan gets the walkable factor
+        self.walkable = walkable if params.walkable_std_m > 0 else None
         self.k = int(params.wknn_params().k)
         self.map = EvolvingMap(params.wknn_params(), max_rows=params.max_map_rows)
         if survey is not None and survey.n_scans:
@@ -327,7 +336,8 @@ class MultiUserGraph:
         self.tracks: list[UserTrack] = []              # every track by index (a restarted user's earlier ones too)
         self.user_names: list[str] = []                # the user of each track
         self.step_len = np.zeros(0)
-        self.poses = _Growing(x=((3,), float), user=((), np.int64), stamp=((), np.int64), frozen=((), bool))
+        self.poses = _Growing(x=((3,), float), user=((), np.int64), stamp=((), np.int64), frozen=((), bool),
+                              z=((), float))
         self.pdr = _Growing(prev=((), np.int64), cur=((), np.int64), steps=((), float), dtheta=((), float),
                             sqrt_info=((3,), float))
         self.wifi = _Growing(pose=((), np.int64), refs=((self.k,), np.int64), w=((self.k,), float),
@@ -482,8 +492,13 @@ class MultiUserGraph:
         info = self.params.wifi_info * np.linalg.inv(np.asarray(cov, float))
         return np.linalg.cholesky(info).T
 
+    def set_floor(self, name: str, z: float) -> None:
+        """User ``name`` is on the floor at height ``z`` (m) from now on: its next poses take that floor's
+        plan in the walkable factor."""
+        (self.users.get(name) or self.user(name)).floor_z = float(z)
+
     def _add_pose(self, tr: UserTrack, stamp_ns: int, x: np.ndarray) -> int:
-        i = self.poses.append(x=x, user=tr.index, stamp=stamp_ns, frozen=False)
+        i = self.poses.append(x=x, user=tr.index, stamp=stamp_ns, frozen=False, z=tr.floor_z)
         tr.poses.append(i)
         return i
 
@@ -627,11 +642,12 @@ class MultiUserGraph:
         tr = self.users[name]
         var = np.asarray(tr.poses[-self.params.window_poses:], np.int64)
         var = var[~self.poses.frozen[var]]
-        return self._solve(var, self.params.window_iterations)
+        return self._solve(var, self.params.window_iterations, walkable=self.params.walkable_live)
 
-    def _solve(self, var: np.ndarray, max_iter: int, deadline: float | None = None) -> SolveReport | None:
+    def _solve(self, var: np.ndarray, max_iter: int, deadline: float | None = None, *,
+               walkable: bool = True) -> SolveReport | None:
         t0 = time.perf_counter()
-        prob = self.problem(var)
+        prob = self.problem(var, walkable=walkable)
         if prob is None:
             return None
         fun, jac, z0, unpack, n_factors = prob
@@ -665,7 +681,7 @@ class MultiUserGraph:
         self.last_solve = rep
         return rep
 
-    def problem(self, var: np.ndarray):
+    def problem(self, var: np.ndarray, *, walkable: bool = True):
         """The least-squares problem over poses ``var`` (and their users' step lengths): (fun(z) ->
         whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths),
         number of factors), or None when no factor touches the variables."""
@@ -701,9 +717,19 @@ class MultiUserGraph:
         n_p, n_w, n_g, n_u = len(pprev), len(wpose), len(gpose), len(var_users)
         if n_p + n_w + n_g == 0:
             return None
+        # walkable factors: the variable poses on a floor with a plan
+        wk_pose = np.zeros(0, np.int64)
+        if self.walkable is not None and walkable:
+            zv = self.poses.z[var]
+            wk_pose = var[np.array([self.walkable.floor_at(float(z)) is not None for z in zv], bool)] \
+                if len(var) else wk_pose
+        n_k = len(wk_pose)
+        wk_z = self.poses.z[wk_pose]
+        inv_wk = 1.0 / p.walkable_std_m if n_k else 0.0
         r_p, r_w, r_g = 0, 3 * n_p, 3 * n_p + 2 * n_w
         r_u = r_g + 3 * n_g
-        n_r = r_u + n_u
+        r_k = r_u + n_u
+        n_r = r_k + n_k
         fixed_xy = self.map.fixed_xy
         sqrt_g = np.array([1 / p.gauge_std_m, 1 / p.gauge_std_m, 1 / p.gauge_std_rad])
         # threshold in whitened units: robust_threshold_m at the paper's information, else in sigmas
@@ -738,6 +764,7 @@ class MultiUserGraph:
             parts.append(blk(rw, 2, col[rj], 2, refvar[:, j], nz_wifi))
         parts.append(blk(r_g + 3 * np.arange(n_g), 3, col[gpose], 3, np.ones(n_g, bool), np.eye(3, dtype=bool)))
         parts.append(blk(r_u + np.arange(n_u), 1, ucol[var_users], 1, np.ones(n_u, bool)))
+        parts.append(blk(r_k + np.arange(n_k), 1, col[wk_pose], 2, np.ones(n_k, bool)))
         rows = np.concatenate([q[0] for q in parts])
         cols = np.concatenate([q[1] for q in parts])
         keep = np.concatenate([q[2] for q in parts])
@@ -753,7 +780,7 @@ class MultiUserGraph:
         base_l = self.step_len.copy()
         # the closures below hold no reference to the graph (the last solve's jac outlives the
         # solve in _last_J; a graph -> jac -> graph cycle would only be freed by the cyclic GC)
-        sqrt_pdr, sqrt_step, n_nbr = psqrt, self._sqrt_step, self.k
+        sqrt_pdr, sqrt_step, n_nbr, walkable = psqrt, self._sqrt_step, self.k, self.walkable
 
         def unpack(z):
             Xc = base_x.copy()
@@ -799,7 +826,10 @@ class MultiUserGraph:
             eg = Xc[gpose] - gx
             eg[:, 2] = F.wrap(eg[:, 2])
             res[r_g:r_u] = (eg * sqrt_g).ravel()
-            res[r_u:] = (L[var_users] - p.step_prior_m) * sqrt_step
+            res[r_u:r_k] = (L[var_users] - p.step_prior_m) * sqrt_step
+            if n_k:
+                dk, gk = walkable.eval(Xc[wk_pose, :2], wk_z)
+                res[r_k:] = dk * inv_wk
             if not want_jac:
                 return res
             s = sqrt_pdr[:, :, None]
@@ -808,6 +838,8 @@ class MultiUserGraph:
                 vals.append(jwn[:, j].ravel())
             vals.append(np.broadcast_to(np.diag(sqrt_g), (n_g, 3, 3)).ravel())
             vals.append(np.full(n_u, sqrt_step))
+            if n_k:
+                vals.append((gk * inv_wk).ravel())
             v = np.concatenate(vals)[keep]
             return res, v
 
@@ -820,7 +852,7 @@ class MultiUserGraph:
             return sp.csr_matrix((data, csr_indices, csr_indptr), shape=(n_r, n_x))
 
         z0 = np.concatenate([X[var].ravel(), self.step_len[var_users]])
-        return fun, jac, z0, unpack, n_p + n_w + n_g + n_u
+        return fun, jac, z0, unpack, n_p + n_w + n_g + n_u + n_k
 
     def marginal_cov(self, pose: int) -> np.ndarray | None:
         """(3, 3) covariance of a pose from the last solve's information matrix JᵀJ (None if that

