@@ -84,6 +84,7 @@ def process_raw_run(stage: "ImuStage", items: Any, recv_ns: list[int]) -> list[t
         q_xyzw = quats[:, [1, 2, 3, 0]]
         data = _imu_data(stage, stamps, arrays.frame_id, acc, gyro, q_xyzw, cov)
         add_heading, add, update = step.add_heading, stage.headings.add, step.update
+        published = stage.time.published
         acc_rows = acc.tolist()
         for k, (t, (w, x, y, z)) in enumerate(zip(stamps, quats.tolist())):
             hops = update(t, acc_rows[k])       # before this sample's heading, as _raw_sample
@@ -92,7 +93,7 @@ def process_raw_run(stage: "ImuStage", items: Any, recv_ns: list[int]) -> list[t
             add_heading(t, yaw)
             msg = data[k]
             if msg is not None:
-                _remember(stage, t)
+                published("", "imu/data", t)   # its echo recognised (time_policy.py: echoes)
                 out.append((recv_ns[k], "imu/data", msg))
             if hops:
                 for o_topic, o_msg in stage._hops(hops):
@@ -110,15 +111,6 @@ def process_raw_run(stage: "ImuStage", items: Any, recv_ns: list[int]) -> list[t
     stats.last_ns = recv_ns[-1]
     diag.process_s.append((time.perf_counter() - t0) / n)       # one entry per run: its mean
     return out
-
-
-def _remember(stage: "ImuStage", stamp: int) -> None:
-    """One published ``imu/data`` stamp kept for echo detection (as ``ImuStage._run_events``)."""
-    published, pub_set = stage._published_stamps, stage._published_set
-    if len(published) == published.maxlen:
-        pub_set.discard(published[0])
-    published.append(stamp)
-    pub_set.add(stamp)
 
 
 def _imu_data(stage: "ImuStage", stamps: list[int], frame: str, acc: np.ndarray, gyro: np.ndarray,
