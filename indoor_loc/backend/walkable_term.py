@@ -21,14 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from indoor_loc.errors import ConfigError, MapError
+from indoor_loc.wifi.walkable import Z_TOLERANCE_M, floor_plan_files
 
 #: raster resolution of the distance field (m): finer than a mall's narrowest corridor (≈ 2 m)
 RESOLUTION_M = 0.5
-#: floor heights closer than this are the same floor (m)
-Z_TOLERANCE_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -113,30 +111,13 @@ class WalkableField:
 
 def load_walkable_fields(directory: str | Path, resolution_m: float = RESOLUTION_M) -> WalkableField:
     """The distance fields of the floor plans under ``directory`` (the importer's ``floors/``: one
-    directory per floor with ``map.yaml`` and ``geojson_map.json``, or one floor's directory).
-    ConfigError naming the path when there is no plan or one is unreadable."""
-    root = Path(directory).expanduser()
-    if not root.is_dir():
-        raise ConfigError(f"floor_plans: {root} is not a directory (expected the importer's floors/ directory)")
-    metas = [root / "map.yaml"] if (root / "map.yaml").is_file() else sorted(root.glob("*/map.yaml"))
+    directory per floor with ``map.yaml`` and ``geojson_map.json``, or one floor's directory; read by
+    :func:`indoor_loc.wifi.walkable.floor_plan_files`). ConfigError naming the path when there is no
+    plan or one is unreadable."""
     floors: dict[float, FloorDistance] = {}
-    for meta_path in metas:
-        gj = meta_path.parent / "geojson_map.json"
-        if not gj.is_file():
-            continue
+    for z, gj, size in floor_plan_files(directory):
         try:
-            meta = yaml.safe_load(meta_path.read_text()) or {}
-            z, w, h = (float(meta[k]) for k in ("z_m", "width_m", "height_m"))
-        except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as err:
-            raise ConfigError(f"floor_plans: {meta_path}: expected numbers z_m, width_m, height_m: {err}") from err
-        if not (math.isfinite(z) and math.isfinite(w) and math.isfinite(h) and w > 0 and h > 0):
-            raise ConfigError(f"floor_plans: {meta_path}: z_m finite and width_m, height_m > 0 expected")
-        if any(abs(z - z0) <= Z_TOLERANCE_M for z0 in floors):
-            raise ConfigError(f"floor_plans: {meta_path}: a second plan for the floor at z = {z:g} m")
-        try:
-            floors[z] = floor_distance(gj, (w, h), resolution_m)
+            floors[z] = floor_distance(gj, size, resolution_m)
         except MapError as err:
             raise ConfigError(f"floor_plans: {err}") from err
-    if not floors:
-        raise ConfigError(f"floor_plans: no floor plan (*/map.yaml with geojson_map.json) under {root}")
     return WalkableField(floors)

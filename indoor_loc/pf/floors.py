@@ -163,15 +163,7 @@ def baro_floor_change(pf: "GraphParticleFilter", dh_m: float, params: PfFloorPar
     ref = np.where(p.floor_ref < 0, own, p.floor_ref).astype(np.int64)
     target = fg.shifted(ref, dh_m)
     p.floor_ref = target.astype(np.int16)
-    ok, node = fg.through_shafts(pf.xy(), own, target, params.shaft_reach_m)
-    move = np.flatnonzero(ok & (fg.exit_link[np.maximum(node, 0)] >= 0))
-    if len(move):
-        link = fg.exit_link[node[move]]
-        end = fg.exit_end[node[move]]
-        p.link[move] = link
-        p.pos[move] = np.where(end == 0, 0.0, pf.g.link_len[link])
-        p.direction[move] = np.where(end == 0, 1, -1).astype(np.int8)
-    return int(len(move))
+    return _through_shafts(pf, own, target, params)
 
 
 def baro_floor_to(pf: "GraphParticleFilter", floor: int, params: PfFloorParams) -> int:
@@ -184,15 +176,7 @@ def baro_floor_to(pf: "GraphParticleFilter", floor: int, params: PfFloorParams) 
     own = fg.floor_of(p.link, p.pos)
     target = np.full(len(own), int(floor), np.int64)
     p.floor_ref = target.astype(np.int16)
-    ok, node = fg.through_shafts(pf.xy(), own, target, params.shaft_reach_m)
-    move = np.flatnonzero(ok & (fg.exit_link[np.maximum(node, 0)] >= 0))
-    if len(move):
-        link = fg.exit_link[node[move]]
-        end = fg.exit_end[node[move]]
-        p.link[move] = link
-        p.pos[move] = np.where(end == 0, 0.0, pf.g.link_len[link])
-        p.direction[move] = np.where(end == 0, 1, -1).astype(np.int8)
-    return int(len(move))
+    return _through_shafts(pf, own, target, params)
 
 
 def baro_check(pf: "GraphParticleFilter", params: PfFloorParams) -> float:
@@ -215,3 +199,19 @@ def baro_check(pf: "GraphParticleFilter", params: PfFloorParams) -> float:
         match = fg.floor_of(p.link, p.pos) == p.floor_ref
     pf.update_log_likelihood(np.where(match, 0.0, np.log(params.baro_floor_wrong)))
     return w_match
+
+
+def _through_shafts(pf: "GraphParticleFilter", own: np.ndarray, target: np.ndarray, params: PfFloorParams) -> int:
+    """The particles on floor ``own`` that a shaft within ``shaft_reach_m`` takes to floor ``target``
+    moved to its stop there, leaving along a level link; how many moved."""
+    p, fg = pf.p, pf.floors
+    assert p is not None
+    ok, node = fg.through_shafts(pf.xy(), own, target, params.shaft_reach_m)
+    move = np.flatnonzero(ok & (fg.exit_link[np.maximum(node, 0)] >= 0))
+    if len(move):
+        link = fg.exit_link[node[move]]
+        end = fg.exit_end[node[move]]
+        p.link[move] = link
+        p.pos[move] = np.where(end == 0, 0.0, pf.g.link_len[link])
+        p.direction[move] = np.where(end == 0, 1, -1).astype(np.int8)
+    return int(len(move))

@@ -71,18 +71,17 @@ def floors_walkable(plans: dict[float, Walkable]) -> Walkable:
     return walkable
 
 
-def load_floor_plans(directory: str | Path) -> tuple[Walkable, dict[float, str]]:
-    """The walkable area of the floor plans under ``directory`` in the importer's layout (each floor a
-    directory with ``map.yaml`` giving ``z_m``, ``width_m``, ``height_m`` and its ``geojson_map.json``)
-    and the plans used ({z_m: geojson path}). A floor directory without a GeoJSON plan is skipped.
-    Raises :class:`ConfigError` naming the path when the directory holds no plan or a plan is
-    unreadable, malformed, or two plans claim the same floor height."""
+def floor_plan_files(directory: str | Path) -> list[tuple[float, Path, tuple[float, float]]]:
+    """The floor plans under ``directory`` in the importer's layout (each floor a directory with
+    ``map.yaml`` giving ``z_m``, ``width_m``, ``height_m`` and its ``geojson_map.json``, or one floor's
+    directory): ``(z_m, geojson path, (width_m, height_m))`` per floor. A floor directory without a
+    GeoJSON plan is skipped. Raises :class:`ConfigError` naming the path when the directory holds no
+    plan, a ``map.yaml`` is unreadable or malformed, or two plans claim the same floor height."""
     root = Path(directory).expanduser()
     if not root.is_dir():
         raise ConfigError(f"floor_plans: {root} is not a directory (expected the importer's floors/ directory)")
     metas = [root / "map.yaml"] if (root / "map.yaml").is_file() else sorted(root.glob("*/map.yaml"))
-    plans: dict[float, Walkable] = {}
-    used: dict[float, str] = {}
+    found: list[tuple[float, Path, tuple[float, float]]] = []
     for meta_path in metas:
         gj = meta_path.parent / "geojson_map.json"
         if not gj.is_file():
@@ -96,15 +95,26 @@ def load_floor_plans(directory: str | Path) -> tuple[Walkable, dict[float, str]]
         if not (math.isfinite(z) and w > 0 and h > 0 and math.isfinite(w) and math.isfinite(h)):
             raise ConfigError(f"floor_plans: {meta_path}: z_m finite and width_m, height_m > 0 expected, "
                               f"got {z}, {w}, {h}")
-        if any(abs(z - z0) <= Z_TOLERANCE_M for z0 in plans):
+        if any(abs(z - z0) <= Z_TOLERANCE_M for z0, _, _ in found):
             raise ConfigError(f"floor_plans: {meta_path}: a second plan for the floor at z = {z:g} m")
+        found.append((z, gj, (w, h)))
+    if not found:
+        raise ConfigError(f"floor_plans: no floor plan (*/map.yaml with geojson_map.json) under {root}")
+    return found
+
+
+def load_floor_plans(directory: str | Path) -> tuple[Walkable, dict[float, str]]:
+    """The walkable area of the floor plans under ``directory`` (:func:`floor_plan_files`) and the
+    plans used ({z_m: geojson path}). Raises :class:`ConfigError` naming the path when the directory
+    holds no plan or a plan is unreadable, malformed, or two plans claim the same floor height."""
+    plans: dict[float, Walkable] = {}
+    used: dict[float, str] = {}
+    for z, gj, size in floor_plan_files(directory):
         try:
-            walk = plan_walkable(gj, (w, h))
+            walk = plan_walkable(gj, size)
         except MapError as err:
             raise ConfigError(f"floor_plans: {err}") from err
         assert walk is not None
         plans[z] = walk
         used[z] = str(gj)
-    if not plans:
-        raise ConfigError(f"floor_plans: no floor plan (*/map.yaml with geojson_map.json) under {root}")
     return floors_walkable(plans), used
