@@ -41,7 +41,7 @@ from indoor_loc.contract import Qos
 from indoor_loc.errors import IndoorLocError
 from indoor_loc.nodes.help import node_usage, params_file_args
 from indoor_loc.nodes.qos import qos_profile
-from indoor_loc.nodes.responsive import Responsive
+from indoor_loc.nodes.responsive import Responsive, ServicesView
 from indoor_loc.nodes.stage_node import StageNode
 from indoor_loc.pipeline.stage import Stage
 from msg_adapters.diagnostics import status_array
@@ -275,7 +275,7 @@ def spin_node(node: Node, taken: Callable[[], int] | None = None, *, finish_budg
         executor.shutdown(timeout_sec=0.0)
 
 
-class ServicePoll:
+class ServicePoll(ServicesView):
     """Answers a node's service requests between two callbacks, whatever else is queued.
 
     rclpy's executor takes one callback of every ready entity per wait, services last: behind a
@@ -292,20 +292,10 @@ class ServicePoll:
     POLL_PERIOD_S = 0.01
 
     def __init__(self, node: Node) -> None:
-        self.node = node
-        self.executor: Any = None                       # set by Executor.add_node
-        self.subscriptions: tuple = ()
-        self.timers: tuple = ()
-        self.clients: tuple = ()
-        self.guards: tuple = ()
-        self.waitables: tuple = ()
+        super().__init__(node)
         self._executor = SingleThreadedExecutor(context=node.context)
         self._executor.add_node(self)   # type: ignore[arg-type]
         self._next = 0.0
-
-    @property
-    def services(self) -> Any:
-        return self.node.services
 
     def poll(self) -> None:
         """Answer the requests that have come (none waited for)."""

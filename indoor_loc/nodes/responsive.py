@@ -42,8 +42,9 @@ BUSY_AFTER_S = 2.0
 POLL_S = 0.05
 
 
-class _ReadOnlyServices:
-    """A view of a node for an executor: its read-only parameter services and nothing else."""
+class ServicesView:
+    """What an rclpy executor takes as a node, showing it only ``node``'s services (:attr:`services`;
+    a subclass may show fewer): no subscriptions, timers, clients, guards or waitables."""
 
     def __init__(self, node: Node) -> None:
         self.node = node
@@ -53,6 +54,21 @@ class _ReadOnlyServices:
         self.clients: tuple = ()
         self.guards: tuple = ()
         self.waitables: tuple = ()
+
+    @property
+    def context(self) -> Any:
+        return self.node.context
+
+    @property
+    def services(self) -> Any:
+        return self.node.services
+
+
+class _ReadOnlyServices(ServicesView):
+    """A view of a node for an executor: its read-only parameter services and nothing else."""
+
+    def __init__(self, node: Node) -> None:
+        super().__init__(node)
         self._services = None
         # a callback group of their own: in the node's default one, shared with every subscription
         # and timer, the request waits until the long callback holding that group has ended
@@ -60,10 +76,6 @@ class _ReadOnlyServices:
         for srv in self.services:
             srv.callback_group = group
             group.add_entity(srv)
-
-    @property
-    def context(self) -> Any:
-        return self.node.context
 
     @property
     def services(self) -> Any:
