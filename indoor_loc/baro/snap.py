@@ -142,10 +142,3 @@ class FloorSnap:
             return False
         return sign * (det.s.height_m - past[-1]) >= self.params.min_vertical_speed_mps
 
-    def _climbing(self, det: FloorChangeDetector, stamp_ns: int, sign: int) -> bool:
-        """The smoothed height rose (``sign`` > 0; fell for < 0) by ``min_vertical_speed_mps`` over the
-        last second: a walker or a lift still on the way, not a pressure plateau near the threshold."""
-        past = [h for t, h in det.s.smooth if t <= stamp_ns - 10**9]
-        if not past:
-            return False
-        return sign * (det.s.height_m - past[-1]) >= self.params.min_vertical_speed_mps
