@@ -141,4 +141,3 @@ class FloorSnap:
         if not past:
             return False
         return sign * (det.s.height_m - past[-1]) >= self.params.min_vertical_speed_mps
-
