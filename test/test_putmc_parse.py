@@ -1,4 +1,4 @@
-"""PUTMC table parsing: the compiled reader gives the same arrays, bit for bit, as the line-by-line
+"""Numeric table parsing (PUTMC's sensor files): the compiled reader gives the same arrays, bit for bit, as the line-by-line
 reference parser, on hand-made edge cases and on real files, and the same errors on bad input."""
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 from conftest import dataset
 
 from indoor_loc.datasets import putmc as P
+from indoor_loc.datasets import text_table as T
 from indoor_loc.errors import DatasetError
 
 
@@ -22,8 +23,8 @@ def _outcome(fn):
 def _assert_same(tmp_path: Path, text: str, ncols: int) -> None:
     path = tmp_path / "table.map"
     path.write_bytes(text.encode("utf-8"))
-    fast = _outcome(lambda: P.read_table(path, ncols))
-    ref = _outcome(lambda: P.parse_table_lines(path.read_text(), ncols, path))
+    fast = _outcome(lambda: T.read_table(path, ncols))
+    ref = _outcome(lambda: T.parse_table_lines(path.read_text(), ncols, path))
     if isinstance(ref, str):
         assert fast == ref, repr(text)
         return
@@ -83,7 +84,7 @@ def test_random_numbers_round_trip_bit_for_bit(tmp_path):
     lines = [f"{ti} " + " ".join(fmts[(i + j) % 4].format(v) for j, v in enumerate(row.tolist()))
              for i, (ti, row) in enumerate(zip(t, x))]
     _assert_same(tmp_path, "\n".join(lines) + "\n", 6)
-    stamps, values = P.read_table(tmp_path / "table.map", 6)
+    stamps, values = T.read_table(tmp_path / "table.map", 6)
     assert stamps.tolist() == t.tolist()
     np.testing.assert_array_equal(values[::4, 0], x[::4, 0])      # the repr-formatted ones round-trip exactly
 
@@ -117,8 +118,8 @@ def test_decimal_fast_path_accepts_only_what_it_parses_exactly():
         if rng.random() < 0.6:              # one field spliced from fragments
             fields[int(rng.integers(0, len(fields)))] = "".join(rng.choice(_PIECES, int(rng.integers(1, 4))))
         text = "\n".join(" ".join(fields[i:i + 4]) for i in range(0, len(fields), 4)) + "\n"
-        fast = P._parse_table_fast(text.encode(), 4)
-        ref = _outcome(lambda t=text: P.parse_table_lines(t, 4))
+        fast = T._parse_table_fast(text.encode(), 4)
+        ref = _outcome(lambda t=text: T.parse_table_lines(t, 4))
         if fast is None:
             declined += 1
             continue
@@ -169,13 +170,13 @@ def test_one_point_per_value_path_matches_the_reference_parser():
             r, c = int(rng.integers(0, len(rows))), int(rng.integers(0, ncols))
             rows[r][c] = _mutate(rows[r][c], rng)
         text = "".join(" ".join(row) + "\n" for row in rows)
-        fast = P._parse_table_fast(text.encode(), ncols)
+        fast = T._parse_table_fast(text.encode(), ncols)
         if fast is None:
             assert mutated, f"{text!r}: a well-formed table declined"
             declined += 1
             continue
         taken += 1
-        ref = _outcome(lambda t=text, n=ncols: P.parse_table_lines(t, n))
+        ref = _outcome(lambda t=text, n=ncols: T.parse_table_lines(t, n))
         assert not isinstance(ref, str), f"{text!r}: fast path accepted what the reference refuses: {ref}"
         for a, b in zip(fast, ref):
             assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), repr(text)
@@ -189,7 +190,7 @@ def test_all_walks_take_the_fast_path_with_loadtxts_arrays():
     for n, folder in P.walk_folders(root).items():
         for name, ncols in (("acc.map", 4), ("orient.map", 6)):
             raw = (folder / name).read_bytes()
-            fast = P._parse_table_fast(raw, ncols)
+            fast = T._parse_table_fast(raw, ncols)
             assert fast is not None, folder / name
             if n % 3:
                 continue
@@ -203,13 +204,13 @@ def test_all_walks_take_the_fast_path_with_loadtxts_arrays():
 def test_well_formed_files_take_the_compiled_path(tmp_path, monkeypatch):
     path = tmp_path / "acc.map"
     path.write_text("1 0.9073181 2.792282 9.2113495\n2 0.93640137 2.8675385 9.338776\n")
-    expected = P.parse_table_lines(path.read_text(), 4, path)
+    expected = T.parse_table_lines(path.read_text(), 4, path)
 
     def refuse(*_args, **_kw):
         raise AssertionError("fell back to the line-by-line parser")
 
-    monkeypatch.setattr(P, "parse_table_lines", refuse)
-    stamps, values = P.read_table(path, 4)
+    monkeypatch.setattr(T, "parse_table_lines", refuse)
+    stamps, values = T.read_table(path, 4)
     assert stamps.tobytes() == expected[0].tobytes() and values.tobytes() == expected[1].tobytes()
 
 
@@ -242,5 +243,5 @@ def test_find_all_gives_numpys_offsets_on_either_side_of_few():
     want = np.flatnonzero(b == ord("E"))
     assert 300 < len(want) < 600
     for few in (0, 1, len(want) - 1, len(want), 10_000):
-        assert P._find_all(data, b, ord("E"), few).tolist() == want.tolist(), few
-    assert P._find_all(b"1 2\n", np.frombuffer(b"1 2\n", np.uint8), ord("E")).tolist() == []
+        assert T._find_all(data, b, ord("E"), few).tolist() == want.tolist(), few
+    assert T._find_all(b"1 2\n", np.frombuffer(b"1 2\n", np.uint8), ord("E")).tolist() == []
