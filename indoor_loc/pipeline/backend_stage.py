@@ -178,6 +178,8 @@ class _UserInput:
     odom_guard: OdomJumpGuard = field(default_factory=OdomJumpGuard)   # odom_jump against the last accepted
     robot: RobotOdomReader | None = None               # motion_source odom: the user's increments
     motion: str | None = None                          # motion_source any: the user's motion topic
+    new_frame: bool = False                            # its pdr/odom producer restarted: next pose is a frame's first
+    yaw_offset: float = 0.0                            # added to pdr/odom yaws so a new frame makes no turn, rad
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -188,6 +190,13 @@ class _UserInput:
         """A new buffer for the user starting afresh, keeping its counters."""
         return _UserInput(dropped_late=self.dropped_late, fixes_waited=self.fixes_waited,
                           max_fix_lag_ns=self.max_fix_lag_ns, scans_given_up=self.scans_given_up)
+
+
+@dataclass(frozen=True)
+class _FrameStart:
+    """The first ``pdr/odom`` pose of a restarted producer (a new odometry frame, from its origin): it
+    walks nothing -- the hop across the restart is unknown -- and the hops after it are measured from it."""
+    od: Any
 
 
 def _names(users: list[str], most: int = 10) -> str:
@@ -308,6 +317,18 @@ class BackendStage(Stage):
         self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
         return outs
 
+    def upstream_restarted(self, topic: str, user: str) -> list[Output]:
+        """A restarted ``pdr/odom`` producer of ``user`` (``imu_node`` killed and started again) publishes
+        from its origin: its first pose starts a new odometry frame -- taken whatever its distance from
+        the last one (no ``odom_jump``), walking nothing across the restart, and with no turn (the
+        user's heading goes on from the last hop's; the hops after it turn as the new frame does)."""
+        b = self.inputs_by_user.get(user)
+        if topic == "pdr/odom" and b is not None and b.odom_guard.last is not None:
+            b.odom_guard.restart()
+            b.new_frame = True
+            self.notice(f"{user}: pdr/odom: its publisher restarted: a new odometry frame from its next pose")
+        return []
+
     def _on_robot_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
         """A robot's odometry (``motion_source: odom``): its increments, once they close, enter the
         reorder buffer as the user's hops; each message moves the user's clock."""
@@ -356,8 +377,9 @@ class BackendStage(Stage):
         od = odom_from_msg(msg)
         if user in self.inputs_by_user:
             self.inputs_by_user[user].odom_guard.check(od)      # odom_jump, before anything moves
-        self._push(user, od.stamp_ns, 0, od)
         b = self._buffer(user)
+        self._push(user, od.stamp_ns, 0, _FrameStart(od) if b.new_frame else od)
+        b.new_frame = False
         b.odom_guard.accept(od)
         b.newest_odom_ns = od.stamp_ns if b.newest_odom_ns is None else max(b.newest_odom_ns, od.stamp_ns)
         return self._release(user)
@@ -478,6 +500,12 @@ class BackendStage(Stage):
             return self.graph.add_hop(user, od.t_start_ns, od.t_end_ns, steps, od.travel_rad,
                                       var=(od.var_along + od.cov[1, 1], od.var_yaw)) is not None
         prev = b.prev_odom
+        if isinstance(od, _FrameStart):        # a restarted producer's first pose: no hop, no turn
+            od = od.od
+            if prev is not None:
+                b.yaw_offset += prev.yaw - od.yaw
+            b.prev_odom = od
+            return False
         b.prev_odom = od
         d = math.hypot(od.x - (prev.x if prev else 0.0), od.y - (prev.y if prev else 0.0))
         steps = d / self.params.odom_step_length_m
