@@ -74,6 +74,7 @@ from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_MAP_ODOM, BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
+from indoor_loc.fusion.position_trust import POSE_INTERVAL_MIN_S, CommandRate
 from msg_adapters.markers import points_markers
 from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
@@ -104,6 +105,9 @@ class BackendParams(GraphParams):
                                   "floors/ directory (<floor>/map.yaml + geojson_map.json); a pose takes the plan "
                                   "of its user's newest fix's floor height; '' = none")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
+    pose_interval_min_s: float = pfield(POSE_INTERVAL_MIN_S, "an initialpose of a user received less than this after "
+                                        "its previous one is refused (pose_burst: faster than a person gives poses; "
+                                        "s of the node's clock, indoor_loc/fusion/position_trust.py)")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
     offline_order: str = pfield("merged", "indoor-loc run --order auto: 'sequential' plays bags one after "
@@ -147,6 +151,7 @@ class BackendParams(GraphParams):
         require(self.fix_wait_s >= 0, n, "fix_wait_s", ">= 0", self.fix_wait_s)
         require(self.time.jump_s > self.reorder_window_s, n, "time.jump_s",
                 "> reorder_window_s (a message late within the window is not a jump)", self.time.jump_s)
+        require(self.pose_interval_min_s >= 0, n, "pose_interval_min_s", ">= 0", self.pose_interval_min_s)
         require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
         require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         require(self.finish_budget_s >= 0, n, "finish_budget_s", ">= 0", self.finish_budget_s)
@@ -236,6 +241,7 @@ class BackendStage(Stage):
         self.map_box = MapBox.around(self._drawn_survey if survey is None else
                                      np.vstack([self._drawn_survey, survey.positions]))
         self.inputs_by_user: dict[str, _UserInput] = {}
+        self._pose_rates: dict[str, CommandRate] = {}      # user -> its initialpose rate bound (pose_burst)
         self._seq = 0
         #: what the end of input's time budget cut short (``finish.*`` in /diagnostics; empty before it)
         self.finish_report: dict[str, str] = {}
@@ -422,6 +428,10 @@ class BackendStage(Stage):
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
         if self.map_box is not None:
             self.map_box.check("initialpose", fix.xy)
+        rate = self._pose_rates.get(user)
+        if rate is None:
+            rate = self._pose_rates[user] = CommandRate(self.params.pose_interval_min_s)
+        rate.check(recv_ns)                                                  # pose_burst
         old = self.inputs_by_user.get(user)
         newest = max((s for s in (old.newest_odom_ns, old.newest_scan_ns, old.taken_ns) if s is not None),
                      default=0) if old is not None else 0
