@@ -93,3 +93,17 @@ def test_backend_obeys_a_person_not_a_burst_after_it():
     st.process("initialpose", _pose_msg(5 * SEC, [3.0, 4.0], 0.25), recv + 20 * MS, "other")
     assert st.diag.rejected["pose_burst"] == 40 and sum(st.diag.rejected.values()) == 40
     assert len(st.graph.users["rs"].poses) == 1
+
+
+def test_a_set_pose_request_is_not_held_to_the_rate_bound():
+    """``~/set_pose`` is answered (success or not), so a program calling it is told: it is obeyed
+    whatever the rate, and a topic pose right after it is judged from it."""
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {}))
+    recv = 100 * SEC
+    stage.process("initialpose", _pose_msg(0, [3.0, 4.0], 0.25), recv)
+    stage.set_pose_call = True
+    stage.process("initialpose", _pose_msg(0, [5.0, 4.0], 0.25), recv + 10 * MS)
+    stage.set_pose_call = False
+    assert stage.initial_poses == 2 and stage.diag.rejected["pose_burst"] == 0
+    stage.process("initialpose", _pose_msg(0, [7.0, 4.0], 0.25), recv + 20 * MS)
+    assert stage.initial_poses == 2 and stage.diag.rejected["pose_burst"] == 1

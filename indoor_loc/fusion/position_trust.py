@@ -108,16 +108,28 @@ class CommandRate:
     (the node's clock at reception) after the previous one received -- obeyed or not -- is refused,
     so a burst is refused as long as it lasts and a person's next click after a pause is obeyed.
     Checked before the pose touches anything (a refusal costs nothing: an estimator working off a
-    burst of poses one re-initialisation at a time falls seconds behind its inputs). A receive time
-    of 0 (no clock) or before the previous one (the clock went back) is never a burst."""
+    burst of poses one re-initialisation at a time falls seconds behind its inputs). ``~/set_pose``
+    requests are answered (``success``) and not bounded. A receive time
+    of 0 (no clock) or before the previous one (the clock went back) is never a burst; the stages
+    forget the previous pose when they reset a user for a jump in time (:meth:`reset`)."""
 
     def __init__(self, min_interval_s: float = POSE_INTERVAL_MIN_S) -> None:
         self.min_ns = int(min_interval_s * 1e9)
         self.last_ns: int | None = None         # the node's clock at the previous pose received
         self.refused = 0
 
-    def check(self, recv_ns: int) -> None:
+    def reset(self) -> None:
+        """A jump in time (a replay loop, the node's clock going back): the next pose is a first."""
+        self.last_ns = None
+
+    def check(self, recv_ns: int, answered: bool = False) -> None:
+        """Refuse a pose received at ``recv_ns`` within a burst (``pose_burst``). ``answered``: a pose
+        given through a request its caller gets an answer to (``~/set_pose``), a deliberate command
+        whatever its rate: never refused, and the next topic pose is judged from it."""
         if not recv_ns:
+            return
+        if answered:
+            self.last_ns = recv_ns
             return
         last, self.last_ns = self.last_ns, recv_ns
         if last is not None and 0 <= recv_ns - last < self.min_ns:

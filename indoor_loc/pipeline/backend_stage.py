@@ -321,6 +321,9 @@ class BackendStage(Stage):
             outs.append(self._path_output(user))
         self.graph.restart_user(user)
         self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
+        rate = self._pose_rates.get(user)
+        if rate is not None:
+            rate.reset()
         return outs
 
     def upstream_restarted(self, topic: str, user: str) -> list[Output]:
@@ -431,12 +434,14 @@ class BackendStage(Stage):
         rate = self._pose_rates.get(user)
         if rate is None:
             rate = self._pose_rates[user] = CommandRate(self.params.pose_interval_min_s)
-        rate.check(recv_ns)                                                  # pose_burst
+        rate.check(recv_ns, self.set_pose_call)   # pose_burst
         old = self.inputs_by_user.get(user)
         newest = max((s for s in (old.newest_odom_ns, old.newest_scan_ns, old.taken_ns) if s is not None),
                      default=0) if old is not None else 0
         stamp = fix.stamp_ns or newest
         outs = self.reset_user(user)
+        if recv_ns:                                    # (the reset forgets it: for a jump in time, not this pose)
+            rate.last_ns = recv_ns
         b = self._take_wifi(user, stamp, 1, dataclasses.replace(fix, stamp_ns=stamp))
         b.fix_known_ns = stamp
         return outs + self._release(user, everything=True)

@@ -157,7 +157,7 @@ class PdrKfStage(Stage):
         self.late_fixes = 0                                # fixes that arrived after later hops were applied
         self.initial_poses = 0                             # restarts at an initialpose / set_pose
         self.floored = 0                                   # fixes / poses claiming more precision than granted
-        self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst (kept across resets)
+        self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst
         self._fresh_state()
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
@@ -194,6 +194,7 @@ class PdrKfStage(Stage):
         then the filter waits for the new pass's first fix."""
         outs = self.finish()
         self._fresh_state()
+        self._pose_rate.reset()
         return outs
 
     def upstream_restarted(self, topic: str, user: str) -> list[Output]:
@@ -293,7 +294,7 @@ class PdrKfStage(Stage):
         """Restart the filter at a pose with its covariance (as at a first fix; the segment before is
         final). Stamp 0 (a command) is taken as the newest hop's; fixes older than it are dropped."""
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
-        self._pose_rate.check(recv_ns)                                                 # pose_burst
+        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst
         check_pose_current(fix.stamp_ns, self._newest_fix_ns, self._last_odom_ns,   # superseded_pose, pose_ahead
                            self.params.time.max_future_s)
         cov, floored = floor_cov(fix.cov, self.params.pose_sigma_min_m)

@@ -184,7 +184,7 @@ class PfStage(Stage):
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
         self.floored = 0                    # fixes / poses claiming more precision than granted
-        self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst (kept across resets)
+        self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst
         self._newest_fix_ns: int | None = None      # newest wifi/fix stamp received (superseded_pose)
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
@@ -257,6 +257,7 @@ class PfStage(Stage):
         self._n_pose = 0
         self._odom_guard = OdomJumpGuard()
         self._robot = RobotOdomReader(self.params.odom)
+        self._pose_rate.reset()
         return outs
 
     def upstream_restarted(self, topic: str, user: str) -> list[Output]:
@@ -380,7 +381,7 @@ class PfStage(Stage):
         ps = pose_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
-        self._pose_rate.check(recv_ns)                                       # pose_burst
+        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst
         check_pose_current(ps.stamp_ns, self._newest_fix_ns,                 # superseded_pose, pose_ahead
                            self._last_odom_ns if self.graph is not None else None, self.params.time.max_future_s)
         outs = self._start(ps.stamp_ns)
