@@ -106,3 +106,11 @@ def zero_padding(data: bytes, msg_class: type) -> bytes:
     except (ValueError, struct.error, ImportError, AttributeError):
         return data
     return bytes(walker.out)
+
+
+def canonical_cdr(msg: Any) -> bytes:
+    """``msg`` serialised with its padding zeroed: the same message gives the same bytes, whatever the
+    serialiser's buffer held (compare these, never :func:`rclpy.serialization.serialize_message`'s
+    own bytes, when two messages must be equal byte for byte)."""
+    from rclpy.serialization import serialize_message
+    return zero_padding(serialize_message(msg), type(msg))

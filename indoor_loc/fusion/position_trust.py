@@ -94,3 +94,46 @@ def fixes_agree(a: tuple[int, np.ndarray, np.ndarray], b: tuple[int, np.ndarray,
     S = np.asarray(a[2], float) + np.asarray(b[2], float) + (speed_max_mps * dt) ** 2 * np.eye(2)
     d = np.asarray(b[1], float) - np.asarray(a[1], float)
     return bool(d @ np.linalg.solve(S, d) <= gate)
+
+
+#: Shortest interval between two initial poses obeyed as a person's commands, s. RViz's *2D Pose
+#: Estimate* (and Foxglove's) is a press-drag-release gesture on the map -- the position, then the
+#: heading -- which takes a person about half a second at the quickest; poses coming faster are a
+#: program or a fault (a driver replaying its queue, a loop), not a person.
+POSE_INTERVAL_MIN_S = 0.5
+
+
+class CommandRate:
+    """The rate bound on initial poses (``pose_burst``): a pose received less than ``min_interval_s``
+    (the node's clock at reception) after the previous one received -- obeyed or not -- is refused,
+    so a burst is refused as long as it lasts and a person's next click after a pause is obeyed.
+    Checked before the pose touches anything (a refusal costs nothing: an estimator working off a
+    burst of poses one re-initialisation at a time falls seconds behind its inputs). ``~/set_pose``
+    requests are answered (``success``) and not bounded. A receive time
+    of 0 (no clock) or before the previous one (the clock went back) is never a burst; the stages
+    forget the previous pose when they reset a user for a jump in time (:meth:`reset`)."""
+
+    def __init__(self, min_interval_s: float = POSE_INTERVAL_MIN_S) -> None:
+        self.min_ns = int(min_interval_s * 1e9)
+        self.last_ns: int | None = None         # the node's clock at the previous pose received
+        self.refused = 0
+
+    def reset(self) -> None:
+        """A jump in time (a replay loop, the node's clock going back): the next pose is a first."""
+        self.last_ns = None
+
+    def check(self, recv_ns: int, answered: bool = False) -> None:
+        """Refuse a pose received at ``recv_ns`` within a burst (``pose_burst``). ``answered``: a pose
+        given through a request its caller gets an answer to (``~/set_pose``), a deliberate command
+        whatever its rate: never refused, and the next topic pose is judged from it."""
+        if not recv_ns:
+            return
+        if answered:
+            self.last_ns = recv_ns
+            return
+        last, self.last_ns = self.last_ns, recv_ns
+        if last is not None and 0 <= recv_ns - last < self.min_ns:
+            self.refused += 1
+            raise InvalidInputError("pose_burst", f"initial pose {(recv_ns - last) * 1e-9:.3f} s after the previous "
+                                                  f"one, less than {self.min_ns * 1e-9:g} s: faster than a person "
+                                                  "gives poses")

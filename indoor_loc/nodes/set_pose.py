@@ -68,10 +68,13 @@ class SetPoseMixin:
             return response
         before = sum(stage.diag.rejected.values())
         now = node.get_clock().now().nanoseconds
+        stage.set_pose_call = True                 # answered, so no rate bound (position_trust.CommandRate)
         try:
             node._publish(stage.process(INPUT, request.initial_pose, now, user))
         except Exception as err:  # noqa: BLE001 - a node never dies on a request
             stage._reject("internal_error", f"set_pose: {type(err).__name__}: {err}")
+        finally:
+            stage.set_pose_call = False
         node._log_rejections()
         response.success = sum(stage.diag.rejected.values()) == before
         if response.success:

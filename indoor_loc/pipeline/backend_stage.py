@@ -74,6 +74,7 @@ from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
 from indoor_loc.contract import BACKEND_MAP_ODOM, BACKEND_PATH, BACKEND_POSE, Qos
 from indoor_loc.errors import InvalidMessageError
+from indoor_loc.fusion.position_trust import POSE_INTERVAL_MIN_S, CommandRate
 from msg_adapters.markers import points_markers
 from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
@@ -104,6 +105,9 @@ class BackendParams(GraphParams):
                                   "floors/ directory (<floor>/map.yaml + geojson_map.json); a pose takes the plan "
                                   "of its user's newest fix's floor height; '' = none")
     users: list = pfield([], "live: user namespaces to follow; [] = discover them from the ROS graph")
+    pose_interval_min_s: float = pfield(POSE_INTERVAL_MIN_S, "an initialpose of a user received less than this after "
+                                        "its previous one is refused (pose_burst: faster than a person gives poses; "
+                                        "s of the node's clock, indoor_loc/fusion/position_trust.py)")
     user_timeout_s: float = pfield(10.0, "live: a user whose inputs have had no publisher for this long has "
                                          "left (its path is published), s")
     offline_order: str = pfield("merged", "indoor-loc run --order auto: 'sequential' plays bags one after "
@@ -147,6 +151,7 @@ class BackendParams(GraphParams):
         require(self.fix_wait_s >= 0, n, "fix_wait_s", ">= 0", self.fix_wait_s)
         require(self.time.jump_s > self.reorder_window_s, n, "time.jump_s",
                 "> reorder_window_s (a message late within the window is not a jump)", self.time.jump_s)
+        require(self.pose_interval_min_s >= 0, n, "pose_interval_min_s", ">= 0", self.pose_interval_min_s)
         require(self.user_timeout_s > 0, n, "user_timeout_s", "> 0", self.user_timeout_s)
         require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
         require(self.finish_budget_s >= 0, n, "finish_budget_s", ">= 0", self.finish_budget_s)
@@ -178,6 +183,8 @@ class _UserInput:
     odom_guard: OdomJumpGuard = field(default_factory=OdomJumpGuard)   # odom_jump against the last accepted
     robot: RobotOdomReader | None = None               # motion_source odom: the user's increments
     motion: str | None = None                          # motion_source any: the user's motion topic
+    new_frame: bool = False                            # its pdr/odom producer restarted: next pose is a frame's first
+    yaw_offset: float = 0.0                            # added to pdr/odom yaws so a new frame makes no turn, rad
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -188,6 +195,13 @@ class _UserInput:
         """A new buffer for the user starting afresh, keeping its counters."""
         return _UserInput(dropped_late=self.dropped_late, fixes_waited=self.fixes_waited,
                           max_fix_lag_ns=self.max_fix_lag_ns, scans_given_up=self.scans_given_up)
+
+
+@dataclass(frozen=True)
+class _FrameStart:
+    """The first ``pdr/odom`` pose of a restarted producer (a new odometry frame, from its origin): it
+    walks nothing -- the hop across the restart is unknown -- and the hops after it are measured from it."""
+    od: Any
 
 
 def _names(users: list[str], most: int = 10) -> str:
@@ -227,6 +241,7 @@ class BackendStage(Stage):
         self.map_box = MapBox.around(self._drawn_survey if survey is None else
                                      np.vstack([self._drawn_survey, survey.positions]))
         self.inputs_by_user: dict[str, _UserInput] = {}
+        self._pose_rates: dict[str, CommandRate] = {}      # user -> its initialpose rate bound (pose_burst)
         self._seq = 0
         #: what the end of input's time budget cut short (``finish.*`` in /diagnostics; empty before it)
         self.finish_report: dict[str, str] = {}
@@ -306,7 +321,22 @@ class BackendStage(Stage):
             outs.append(self._path_output(user))
         self.graph.restart_user(user)
         self.inputs_by_user[user] = self.inputs_by_user[user].afresh()
+        rate = self._pose_rates.get(user)
+        if rate is not None:
+            rate.reset()
         return outs
+
+    def upstream_restarted(self, topic: str, user: str) -> list[Output]:
+        """A restarted ``pdr/odom`` producer of ``user`` (``imu_node`` killed and started again) publishes
+        from its origin: its first pose starts a new odometry frame -- taken whatever its distance from
+        the last one (no ``odom_jump``), walking nothing across the restart, and with no turn (the
+        user's heading goes on from the last hop's; the hops after it turn as the new frame does)."""
+        b = self.inputs_by_user.get(user)
+        if topic == "pdr/odom" and b is not None and b.odom_guard.last is not None:
+            b.odom_guard.restart()
+            b.new_frame = True
+            self.notice(f"{user}: pdr/odom: its publisher restarted: a new odometry frame from its next pose")
+        return []
 
     def _on_robot_odom(self, msg, recv_ns: int, user: str) -> list[Output]:
         """A robot's odometry (``motion_source: odom``): its increments, once they close, enter the
@@ -356,8 +386,9 @@ class BackendStage(Stage):
         od = odom_from_msg(msg)
         if user in self.inputs_by_user:
             self.inputs_by_user[user].odom_guard.check(od)      # odom_jump, before anything moves
-        self._push(user, od.stamp_ns, 0, od)
         b = self._buffer(user)
+        self._push(user, od.stamp_ns, 0, _FrameStart(od) if b.new_frame else od)
+        b.new_frame = False
         b.odom_guard.accept(od)
         b.newest_odom_ns = od.stamp_ns if b.newest_odom_ns is None else max(b.newest_odom_ns, od.stamp_ns)
         return self._release(user)
@@ -400,11 +431,17 @@ class BackendStage(Stage):
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
         if self.map_box is not None:
             self.map_box.check("initialpose", fix.xy)
+        rate = self._pose_rates.get(user)
+        if rate is None:
+            rate = self._pose_rates[user] = CommandRate(self.params.pose_interval_min_s)
+        rate.check(recv_ns, self.set_pose_call)   # pose_burst
         old = self.inputs_by_user.get(user)
         newest = max((s for s in (old.newest_odom_ns, old.newest_scan_ns, old.taken_ns) if s is not None),
                      default=0) if old is not None else 0
         stamp = fix.stamp_ns or newest
         outs = self.reset_user(user)
+        if recv_ns:                                    # (the reset forgets it: for a jump in time, not this pose)
+            rate.last_ns = recv_ns
         b = self._take_wifi(user, stamp, 1, dataclasses.replace(fix, stamp_ns=stamp))
         b.fix_known_ns = stamp
         return outs + self._release(user, everything=True)
@@ -478,6 +515,12 @@ class BackendStage(Stage):
             return self.graph.add_hop(user, od.t_start_ns, od.t_end_ns, steps, od.travel_rad,
                                       var=(od.var_along + od.cov[1, 1], od.var_yaw)) is not None
         prev = b.prev_odom
+        if isinstance(od, _FrameStart):        # a restarted producer's first pose: no hop, no turn
+            od = od.od
+            if prev is not None:
+                b.yaw_offset += prev.yaw - od.yaw
+            b.prev_odom = od
+            return False
         b.prev_odom = od
         d = math.hypot(od.x - (prev.x if prev else 0.0), od.y - (prev.y if prev else 0.0))
         steps = d / self.params.odom_step_length_m

@@ -48,7 +48,8 @@ from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
 from indoor_loc.fusion.odom_kf import odom_transition
-from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
+from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_INTERVAL_MIN_S,
+                                              POSE_SIGMA_MIN_M, CommandRate, check_fix_timely,
                                               check_pose_current, fixes_agree, floor_cov)
 from indoor_loc.odometry.increments import OdomIncrement, OdomIncrementParams
 from indoor_loc.pipeline.motion_source import MOTION_DOC, ODOM_GROUP_DOC, motion_port, require_source, validate_source
@@ -72,6 +73,9 @@ class PdrKfStageParams:
                                                     "direction (m; indoor_loc/fusion/position_trust.py)")
     pose_sigma_min_m: float = field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
                                                       "per direction (m; indoor_loc/fusion/position_trust.py)")
+    pose_interval_min_s: float = field(POSE_INTERVAL_MIN_S, "an initialpose received less than this after the "
+                                       "previous one is refused (pose_burst: faster than a person gives "
+                                       "poses; s of the node's clock, indoor_loc/fusion/position_trust.py)")
     max_rejected_fixes: int = field(2, "restart the filter at a fix after this many consecutive gated-out fixes; 0 = never")
     max_fix_delay_s: float = field(5.0, "a WiFi fix waits at most this long (s of stamp time) for pdr/odom to reach its stamp")
     odom_hold_s: float = field(0.0, "hold each pdr/odom hop this long (s of stamp time, on the odom stream) before "
@@ -111,6 +115,7 @@ class PdrKfStageParams:
         require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
         require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
         require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
+        require(self.pose_interval_min_s >= 0, n, "pose_interval_min_s", ">= 0", self.pose_interval_min_s)
         self.kf_params().validate()
         self.floors.validate()
         self.baro.validate()
@@ -152,6 +157,7 @@ class PdrKfStage(Stage):
         self.late_fixes = 0                                # fixes that arrived after later hops were applied
         self.initial_poses = 0                             # restarts at an initialpose / set_pose
         self.floored = 0                                   # fixes / poses claiming more precision than granted
+        self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst
         self._fresh_state()
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
@@ -188,6 +194,7 @@ class PdrKfStage(Stage):
         then the filter waits for the new pass's first fix."""
         outs = self.finish()
         self._fresh_state()
+        self._pose_rate.reset()
         return outs
 
     def upstream_restarted(self, topic: str, user: str) -> list[Output]:
@@ -287,6 +294,7 @@ class PdrKfStage(Stage):
         """Restart the filter at a pose with its covariance (as at a first fix; the segment before is
         final). Stamp 0 (a command) is taken as the newest hop's; fixes older than it are dropped."""
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
+        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst
         check_pose_current(fix.stamp_ns, self._newest_fix_ns, self._last_odom_ns,   # superseded_pose, pose_ahead
                            self.params.time.max_future_s)
         cov, floored = floor_cov(fix.cov, self.params.pose_sigma_min_m)

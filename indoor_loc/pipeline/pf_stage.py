@@ -38,7 +38,8 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
-from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_SIGMA_MIN_M, check_fix_timely,
+from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_INTERVAL_MIN_S,
+                                              POSE_SIGMA_MIN_M, CommandRate, check_fix_timely,
                                               check_pose_current, floor_cov)
 from indoor_loc.graph.io import load_graph
 from indoor_loc.graph.tll import TransitionParams, cached_transitions, load_transitions
@@ -99,6 +100,9 @@ class PfStageParams:
                                                       "direction (m; indoor_loc/fusion/position_trust.py)")
     pose_sigma_min_m: float = P.field(POSE_SIGMA_MIN_M, "an initialpose is never taken as more precise than this std "
                                                         "per direction (m; indoor_loc/fusion/position_trust.py)")
+    pose_interval_min_s: float = P.field(POSE_INTERVAL_MIN_S, "an initialpose received less than this after the "
+                                         "previous one is refused (pose_burst: faster than a person gives "
+                                         "poses; s of the node's clock, indoor_loc/fusion/position_trust.py)")
     max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
     particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
@@ -136,6 +140,7 @@ class PfStageParams:
         P.require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
         P.require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
         P.require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
+        P.require(self.pose_interval_min_s >= 0, n, "pose_interval_min_s", ">= 0", self.pose_interval_min_s)
         self.time.validate()
         P.require(self.particles_every >= 0, n, "particles_every", ">= 0", self.particles_every)
         P.require(self.path_period_s >= 0, n, "path_period_s", ">= 0", self.path_period_s)
@@ -179,6 +184,7 @@ class PfStage(Stage):
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
         self.floored = 0                    # fixes / poses claiming more precision than granted
+        self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst
         self._newest_fix_ns: int | None = None      # newest wifi/fix stamp received (superseded_pose)
         self.on("pdr/odom", self._on_odom)
         self.on("wifi/fix", self._on_fix)
@@ -251,6 +257,7 @@ class PfStage(Stage):
         self._n_pose = 0
         self._odom_guard = OdomJumpGuard()
         self._robot = RobotOdomReader(self.params.odom)
+        self._pose_rate.reset()
         return outs
 
     def upstream_restarted(self, topic: str, user: str) -> list[Output]:
@@ -374,6 +381,7 @@ class PfStage(Stage):
         ps = pose_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
+        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst
         check_pose_current(ps.stamp_ns, self._newest_fix_ns,                 # superseded_pose, pose_ahead
                            self._last_odom_ns if self.graph is not None else None, self.params.time.max_future_s)
         outs = self._start(ps.stamp_ns)

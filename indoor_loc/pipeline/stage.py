@@ -167,6 +167,9 @@ class Stage:
     #: Set by a live driver that publishes ``bytes`` as they are (the multi-user node): a stage may
     #: then return an output already serialised (CDR) where building the message costs much more.
     raw_outputs: bool = False
+    #: True while the node handles a ``~/set_pose`` request (an acknowledged command: an initial pose
+    #: given so is not held to the initialpose topic's rate bound, fusion/position_trust.CommandRate).
+    set_pose_call: bool = False
     #: An estimator's ``map -> <user>/odom`` correction (pipeline/map_odom.py): motion topics, pose output,
     #: correction topic; None: the stage publishes none.
     MAP_ODOM: ClassVar[MapOdomSpec | None] = None
