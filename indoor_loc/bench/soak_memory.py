@@ -83,7 +83,7 @@ def front_feed(walkers: int = 2, duration: float = 300.0, seed: int = 7, *, work
         if tick_at is None:
             tick_at = m.stamp_ns + SEC
         while m.stamp_ns >= tick_at:
-            for n2, lst in stages.items():
+            for lst in stages.values():
                 for s in lst:
                     s.run_tick(tick_at)
             tick_at += SEC
