@@ -150,7 +150,11 @@ def summarise(samples: list[dict[str, Any]], h: Harness, *, warmup_h: float) -> 
         cost_t = [t for t, n in late if n["p50_ms"] is not None]
         cost = [1e3 * n["p50_ms"] for _, n in late if n["p50_ms"] is not None]
         cpu = [(t, n["cpu_s"]) for t, n in late]
-        s = {"rss_mb_start": rss[0] if rss else None, "rss_mb_end": rss[-1] if rss else None,
+        win_t, win_cost = cpu_per_1000(late)
+        s = {"cpu_per_1000_start": win_cost[0] if win_cost else None,
+             "cpu_per_1000_end": win_cost[-1] if win_cost else None,
+             "cpu_per_1000_per_h": _slope(win_t, win_cost),
+             "rss_mb_start": rss[0] if rss else None, "rss_mb_end": rss[-1] if rss else None,
              "rss_mb_per_h": _slope(rss_t, rss), "cost_us_start": cost[0] if cost else None,
              "cost_us_end": cost[-1] if cost else None, "cost_us_per_h": _slope(cost_t, cost),
              "cpu_s_per_h": _slope([t for t, _ in cpu], [c for _, c in cpu]),
@@ -166,31 +170,73 @@ def summarise(samples: list[dict[str, Any]], h: Harness, *, warmup_h: float) -> 
         if s["cost_us_start"] and s["cost_us_per_h"] is not None and s["cost_us_per_h"] * 8 > 0.25 * s["cost_us_start"]:
             s["broken"].append(f"per-message cost grows {s['cost_us_per_h']:+.1f} us per simulated hour "
                                f"(from {s['cost_us_start']:.0f} us)")
+        if (s["cpu_per_1000_start"] and s["cpu_per_1000_per_h"] is not None
+                and s["cpu_per_1000_per_h"] * 8 > 0.25 * s["cpu_per_1000_start"]):
+            s["broken"].append(f"CPU per message grows {s['cpu_per_1000_per_h']:+.3f} s per 1000 messages per "
+                               f"simulated hour (from {s['cpu_per_1000_start']:.3f})")
         out[key] = s
     return out
+
+
+def cpu_per_1000(rows: list[tuple[float, dict[str, Any]]]) -> tuple[list[float], list[float]]:
+    """Per window between two samples of one node: its midpoint (simulated h) and the node's CPU
+    seconds per 1000 messages it took in that window (windows in which it took none are skipped).
+    Unlike ``process_ms.p50`` (wall clock, inflated by a loaded machine) this counts what the node
+    really spent, its timers and middleware included."""
+    t: list[float] = []
+    cost: list[float] = []
+    for (ta, a), (tb, b) in zip(rows, rows[1:]):
+        if a["cpu_s"] is None or b["cpu_s"] is None or b["taken"] <= a["taken"]:
+            continue
+        t.append((ta + tb) / 2)
+        cost.append(1000.0 * (b["cpu_s"] - a["cpu_s"]) / (b["taken"] - a["taken"]))
+    return t, cost
+
+
+def _window_cost(prev: dict[str, Any] | None, cur: dict[str, Any] | None) -> str:
+    if prev is None or cur is None or prev["cpu_s"] is None or cur["cpu_s"] is None or cur["taken"] <= prev["taken"]:
+        return "–"
+    return f"{1000.0 * (cur['cpu_s'] - prev['cpu_s']) / (cur['taken'] - prev['taken']):.3f}"
 
 
 def format_soak(samples: list[dict[str, Any]], nodes: dict[str, Any]) -> str:
     keys = list(nodes)
     picks = samples if len(samples) <= 9 else [samples[int(round(i * (len(samples) - 1) / 8))] for i in range(9)]
-    lines = ["| simulated h | wall s | " + " | ".join(f"{k} RSS MB / CPU s / msgs" for k in keys) + " |",
-             "|---|---|" + "---|" * len(keys)]
+    lines = ["| simulated h | wall s | " + " | ".join(f"{k} RSS MB / CPU s / msgs / CPU s per 1000 msgs" for k in keys)
+             + " |", "|---|---|" + "---|" * len(keys)]
+    prev: dict[str, Any] | None = None
     for s in picks:
         cells = []
         for k in keys:
             n = s["nodes"].get(k)
+            # the cost column: CPU s per 1000 messages since the sample shown before
             cells.append("–" if n is None or n["rss_kb"] is None else
-                         f"{n['rss_kb'] / 1024:.0f} / {n['cpu_s']:.0f} / {n['taken']:,}")
+                         f"{n['rss_kb'] / 1024:.0f} / {n['cpu_s']:.0f} / {n['taken']:,} / "
+                         f"{_window_cost(prev['nodes'].get(k) if prev else None, n)}")
         lines.append(f"| {s['sim_h']:.2f} | {s['wall_s']:.0f} | " + " | ".join(cells) + " |")
-    lines += ["", "| node | RSS MB after warm-up → end | RSS slope MB/h | process_ms.p50 µs → end | "
-                  "its slope µs/h | CPU s per simulated h | deaths | hangs | lost (counted) |",
-              "|---|---|---|---|---|---|---|---|---|"]
+        prev = s
+    lines += ["", "| node | RSS MB after warm-up → end | RSS slope MB/h | CPU s per 1000 msgs, first → last window | "
+                  "its slope per h | process_ms.p50 µs → end | its slope µs/h | CPU s per simulated h | deaths | "
+                  "hangs | lost (counted) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def f(v: Any, spec: str) -> str:
         return "–" if v is None else format(v, spec)
     for k, s in nodes.items():
         lines.append(f"| {k} | {f(s['rss_mb_start'], '.0f')} → {f(s['rss_mb_end'], '.0f')} | "
-                     f"{f(s['rss_mb_per_h'], '+.2f')} | {f(s['cost_us_start'], '.0f')} → {f(s['cost_us_end'], '.0f')} | "
+                     f"{f(s['rss_mb_per_h'], '+.2f')} | {f(s['cpu_per_1000_start'], '.3f')} → "
+                     f"{f(s['cpu_per_1000_end'], '.3f')} | {f(s['cpu_per_1000_per_h'], '+.4f')} | "
+                     f"{f(s['cost_us_start'], '.0f')} → {f(s['cost_us_end'], '.0f')} | "
                      f"{f(s['cost_us_per_h'], '+.1f')} | {f(s['cpu_s_per_h'], '.0f')} | {s['deaths']} | {s['hangs']} | "
                      f"{s['lost']} |")
+    lines += ["", "Slopes per simulated hour (after warm-up; flat: RSS within 10 % and CPU per message within 25 % "
+                  "of its start over 8 h):"]
+    for k, s in nodes.items():
+        flat_rss = s["rss_mb_per_h"] is not None and bool(s["rss_mb_start"]) and \
+            abs(s["rss_mb_per_h"]) * 8 <= 0.10 * s["rss_mb_start"]
+        flat_cpu = s["cpu_per_1000_per_h"] is not None and bool(s["cpu_per_1000_start"]) and \
+            abs(s["cpu_per_1000_per_h"]) * 8 <= 0.25 * s["cpu_per_1000_start"]
+        lines.append(f"- {k}: RSS {f(s['rss_mb_per_h'], '+.2f')} MB/h ({'flat' if flat_rss else 'NOT flat'}), "
+                     f"CPU {f(s['cpu_per_1000_per_h'], '+.4f')} s per 1000 msgs per h "
+                     f"({'flat' if flat_cpu else 'NOT flat'})")
     return "\n".join(lines)

@@ -125,6 +125,9 @@ class StageNode(InputsMixin, Node):
         values = self._declare_params(stage_cls.PARAMS)
         params = params_from_dict(stage_cls.PARAMS, values)   # raises ConfigError -> start-up fails
         self.stage: Stage = stage_cls(params, namespace=self.get_namespace())
+        # outputs a stage can build already serialised go out as CDR (the same message): a long
+        # pf/path or pdr_kf/path costs 0.03 s instead of 0.4 s at 20 000 poses (docs/benchmarks/soak.md)
+        self.stage.raw_outputs = True
         self.add_on_set_parameters_callback(self._on_set_params)
         self._pubs = {p.topic: self._create_publisher(msg_class(p.type), p.topic, publisher_qos(p.qos))
                       for p in self.stage.outputs()}

@@ -44,6 +44,7 @@ from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
 from indoor_loc.pipeline.map_odom import MapOdomSpec
+from indoor_loc.pipeline.path_store import PathStore
 from indoor_loc.pipeline.stage import Output, Port, Stage
 from indoor_loc.pipeline.time_policy import Order, TimeParams
 from indoor_loc.fusion.linear_pdr import process_noise, transition_matrix
@@ -177,7 +178,7 @@ class PdrKfStage(Stage):
         # smoothed poses go to ``_final`` (stamp, x, y, yaw), bounded by path_max_poses.
         self._epochs: list[list] = []
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
-        self._final: deque[tuple[int, float, float, float]] = deque(maxlen=params.path_max_poses)
+        self._final = PathStore(params.path_max_poses)   # as arrays, 40 bytes a pose (pipeline/path_store.py)
         self._rejected_in_row = 0
         self._last_rejected: tuple[int, np.ndarray, np.ndarray] | None = None   # the run's latest gated-out fix
         self._newest_fix_ns: int | None = None             # newest wifi/fix stamp received (superseded_pose)
@@ -413,9 +414,8 @@ class PdrKfStage(Stage):
         stamps = np.array([e[0] for e in self._epochs], np.int64)
         k = len(stamps) if finalize_before is None else int(np.searchsorted(stamps, finalize_before))
         k = min(k, len(stamps) - 1) if finalize_before is not None else k   # keep >= 1 epoch as the window
-        for i in range(k):
-            self._final.append((int(stamps[i]), float(xs[i, 0]), float(xs[i, 1]),
-                                float(np.arctan2(xs[i, 3], xs[i, 2]))))
+        if k > 0:
+            self._final.extend(stamps[:k], xs[:k, :2], np.arctan2(xs[:k, 3], xs[:k, 2]), np.zeros(k))
         if k > 0:
             if track is not None:
                 self._prior = (track.x_filt[k - 1].copy(), track.P_filt[k - 1].copy())
@@ -430,14 +430,14 @@ class PdrKfStage(Stage):
         smoothed now: stamps (T,), xy (T, 2), heading (T,) rad (from the step vector)."""
         xs, stamps = self._smooth_window(finalize_before=-1) if self._epochs else (np.zeros((0, 4)),
                                                                                      np.zeros(0, np.int64))
-        fin = list(self._final)
+        f_st, f_xy, f_yaw, _ = self._final.arrays()
         keep = max(0, self.params.path_max_poses - len(stamps))
-        fin = fin[len(fin) - keep:] if keep < len(fin) else fin
+        cut = max(0, len(f_st) - keep)
+        f_st, f_xy, f_yaw = f_st[cut:], f_xy[cut:], f_yaw[cut:]
         xs, stamps = xs[-self.params.path_max_poses:], stamps[-self.params.path_max_poses:]
-        f = np.array(fin, float).reshape(-1, 4)
-        return (np.concatenate([np.array([r[0] for r in fin], np.int64), stamps]),
-                np.concatenate([f[:, 1:3], xs[:, :2]]),
-                np.concatenate([f[:, 3], np.arctan2(xs[:, 3], xs[:, 2])]))
+        return (np.concatenate([f_st, np.asarray(stamps, np.int64)]),
+                np.concatenate([f_xy, xs[:, :2]]),
+                np.concatenate([f_yaw, np.arctan2(xs[:, 3], xs[:, 2])]))
 
     def _smoothed(self) -> list[Output]:
         stamps, xy, yaw = self.smoothed()

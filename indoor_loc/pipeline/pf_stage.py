@@ -38,6 +38,7 @@ import numpy as np
 from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
+from indoor_loc.pipeline.path_store import PathStore
 from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_INTERVAL_MIN_S,
                                               POSE_SIGMA_MIN_M, CommandRate, check_fix_timely,
                                               check_pose_current, floor_cov)
@@ -66,6 +67,20 @@ from msg_adapters.robot_odom import RobotOdomReader
 
 POSE_T = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
+
+
+#: Estimates the tracker keeps as objects (the newest; one is replaced when a fix re-initialises at its stamp) ...
+ESTIMATES_KEPT = 8
+#: ... and how many more it gathers before they move to the stage's path arrays (amortised).
+ARCHIVE_EVERY = 256
+
+
+def _pose_arrays(ests: list[Estimate]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """stamps (K,), xy (K, 2), yaw (K,) (0 where not finite, as published), z (K,) of estimates."""
+    return (np.array([e.stamp_ns for e in ests], np.int64).reshape(-1),
+            np.array([e.xy for e in ests], float).reshape(-1, 2),
+            np.array([e.yaw if np.isfinite(e.yaw) else 0.0 for e in ests], float).reshape(-1),
+            np.array([e.z for e in ests], float).reshape(-1))
 
 @dataclass(frozen=True)
 class PfStageParams:
@@ -209,6 +224,8 @@ class PfStage(Stage):
         else:
             self._load(params)
         self.tracker = self._new_tracker()
+        #: estimates older than the tracker's newest few, as arrays (pipeline/path_store.py): the bound of pf/path
+        self._archive = PathStore(self.params.path_max_poses)
         self._seq = 0
         self._last_odom_ns: int | None = None
         self._graph_sent = False
@@ -250,6 +267,7 @@ class PfStage(Stage):
         filter waits for the new pass's first fix or initial pose (as at start-up)."""
         outs = self.finish()
         self.tracker = self._new_tracker()          # its seed again: the same pass, the same output
+        self._archive.clear()
         self._pending.clear()
         self._newest_fix_ns = None
         self._last_odom_ns = None
@@ -441,21 +459,35 @@ class PfStage(Stage):
         return outs
 
     def _bound_memory(self, stamp_ns: int) -> None:
-        """Keep the smoother's particles of the last ``smooth_window_s`` and the newest ``path_max_poses``
-        estimates; trimmed in steps of a quarter window, so the work per pose stays small."""
+        """Keep the smoother's particles of the last ``smooth_window_s`` (trimmed in steps of a quarter
+        window, so the work per pose stays small) and the newest ``path_max_poses`` estimates: all but
+        the tracker's newest :data:`ESTIMATES_KEPT` move, every :data:`ARCHIVE_EVERY`, to the arrays of
+        ``_archive`` (40 bytes a pose instead of ~460: memory stays flat while the path fills)."""
         window = int(self.params.smooth_window_s * 1e9)
         oldest = next((seg[0].stamp_ns for seg in self.tracker.segments + [self.tracker.history] if seg), None)
-        if (oldest is not None and stamp_ns - oldest > window + window // 4) or \
-                len(self.tracker.estimates) > self.params.path_max_poses * 5 // 4:
+        if oldest is not None and stamp_ns - oldest > window + window // 4:
             self.tracker.forget_before(stamp_ns - window, self.params.path_max_poses)
+        ests = self.tracker.estimates
+        if len(ests) >= ESTIMATES_KEPT + ARCHIVE_EVERY:
+            moved = ests[:len(ests) - ESTIMATES_KEPT]
+            self._archive.extend(*_pose_arrays(moved))
+            del ests[:len(moved)]
 
-    def _path(self, ests: list[Estimate]) -> list[Output]:
-        if not ests:
+    def _path(self, ests: list[Estimate], *, before_ns: int | None = None) -> list[Output]:
+        """``pf/path``: the archived estimates (those stamped before ``before_ns`` if given), then
+        ``ests``; the newest ``path_max_poses`` of them, in stamp order."""
+        a_st, a_xy, a_yaw, a_z = self._archive.arrays()
+        if before_ns is not None:
+            keep = a_st < before_ns
+            a_st, a_xy, a_yaw, a_z = a_st[keep], a_xy[keep], a_yaw[keep], a_z[keep]
+        e_st, e_xy, e_yaw, e_z = _pose_arrays(ests)
+        cap = self.params.path_max_poses
+        stamps = np.concatenate([a_st, e_st])[-cap:]
+        if not len(stamps):
             return []
-        stamps = np.array([e.stamp_ns for e in ests], np.int64)
-        xy = np.array([e.xy for e in ests])
-        yaw = np.array([e.yaw if np.isfinite(e.yaw) else 0.0 for e in ests])
-        z = np.array([e.z for e in ests])
+        xy = np.concatenate([a_xy, e_xy])[-cap:]
+        yaw = np.concatenate([a_yaw, e_yaw])[-cap:]
+        z = np.concatenate([a_z, e_z])[-cap:]
         order = np.argsort(stamps, kind="stable")
         encode = path_cdr if self.raw_outputs else path_to_msg      # the same message (msg_adapters/path_cdr.py)
         return [("pf/path", encode(stamps[order], xy[order], yaw[order], frame_id=self.params.frame_id,
@@ -467,8 +499,9 @@ class PfStage(Stage):
             smoothed = self.tracker.smooth(self.params.smooth_samples, redrawn=self.params.smooth_redrawn)
             first = min((e.stamp_ns for e in smoothed), default=None)
             older = [e for e in self.tracker.estimates if first is not None and e.stamp_ns < first]
-            return outs + self._path((older + smoothed)[-self.params.path_max_poses:])   # filtered before the window
-        return outs + self._path(self.tracker.estimates[-self.params.path_max_poses:])
+            # filtered before the window (archived ones too), then the smoothed window
+            return outs + self._path(older + smoothed, before_ns=first if first is not None else -1)
+        return outs + self._path(self.tracker.estimates)
 
     def extra_diagnostics(self) -> dict[str, str]:
         if self.graph is None:
