@@ -9,7 +9,7 @@ With no arguments:
    ``--per-user``: one process per stage and walker): ``imu_node`` (stepometer + AEKF heading ->
    pdr/odom, imu/data), ``wifi_fix_node`` (WKNN -> wifi/fix), ``pdr_kf_node`` (PDR + WiFi Kalman
    filter -> pdr_kf/pose, pdr_kf/path), the particle filter and the multi-user back-end when this
-   build has them (a robot's estimators per robot, on its wheel odometry), the recorder (every output
+   build has them (a robot's estimators on its wheel odometry: ``user_params``), the recorder (every output
    topic -> OUT/live.mcap) and the player (the simulated bag, with /clock, all nodes on sim time);
 3. when the bag has been played, wait for the multi-user nodes to finish the walkers (they leave
    once their inputs' publishers are gone), then (or on Ctrl-C) stop the nodes in dependency order:
@@ -168,8 +168,7 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
     if sim.get("robots"):
         # a robot's wheel odometry feeds its estimators (and the back-end); its gyro (imu) has no consumer
         # in the demo, so the player does not wait for one
-        # (the robots' estimators run per robot: see stage_nodes)
-        consumers.append("odom=" + ",".join(["pdr_kf_node", "tll_pf"] + scan_consumers[1:]))
+        consumers.append("odom=" + ",".join([sub("pdr_kf_node"), sub("tll_pf")] + scan_consumers[1:]))
         robot_args = ["--min-subscribers", "imu=0"]
     nodes.append({"name": "player", "module": "indoor_loc.nodes.player_node",
                   "args": [str(sim["bag"]), "--clock", "50", "--rate", str(rate), "--wait-for-subscribers", "180",
@@ -181,25 +180,29 @@ def bringup_config(walkers: list[str], sim: dict, out: Path, *, rate: float, fox
 def stage_nodes(walkers: list[str], robots: list[str], params: str, replay: dict, per_user: bool) -> list[dict]:
     """The stage nodes of the demo's users. Default: one ``--multi-user`` process per stage
     (``imu``, ``wifi``, ``pdr_kf``, ``pf``) serving its ``users`` (docs/scaling.md): the walkers, and for
-    ``wifi_fix_node`` the robots as well. A robot's ``pdr_kf_node`` and ``tll_pf`` run per robot: they
-    take its wheel odometry (``motion_source: odom``, its params.yaml entry) where the walkers' take
-    ``pdr/odom``, and a multi-user node subscribes every user to the same inputs with the same
-    parameters. ``per_user``: every stage one process per user (the layout of a robot or a few phones)."""
+    ``wifi_fix_node``, ``pdr_kf_node`` and ``tll_pf`` the robots as well: a robot's estimators take its
+    wheel odometry (``motion_source: odom``) where the walkers' take ``pdr/odom``, by the node's
+    ``user_params`` (docs/scaling.md). ``per_user``: every stage one process per user (the layout of a
+    robot or a few phones; a robot's from its params.yaml entry)."""
+    from indoor_loc.sim.robot_write import ROBOT_NODE_PARAMS
     stages = PER_WALKER_NODES + [n for n in OPTIONAL_PER_WALKER if _module_exists(n[1])]
     nodes: list[dict] = []
     if not per_user:
         phones = [w for w in walkers if w not in robots]
         for label, mod in stages:
-            users = [w for w in walkers if label == "wifi" or w in phones]
+            users = [w for w in walkers if label != "imu" or w in phones]
+            # the robots' own parameters (their per-user nodes' params.yaml entries) as user_params
+            own = {f"user_params.{r}.{k}": v for r in robots if label in ("pdr_kf", "pf")
+                   for k, v in ROBOT_NODE_PARAMS.items()}
             if users:
                 nodes.append({"name": label, "module": f"indoor_loc.nodes.{mod}", "args": ["--multi-user"],
                               "params_files": [params],
-                              "params": {**replay, "users": users, "user_timeout_s": USER_TIMEOUT_S}})
+                              "params": {**replay, "users": users, "user_timeout_s": USER_TIMEOUT_S, **own}})
     for w in walkers:
         for label, mod in stages:
             if label == "imu" and w in robots:
                 continue                # a robot's own odometry is its motion input: no stepometer
-            if per_user or (w in robots and label != "wifi"):
+            if per_user:
                 nodes.append({"name": f"{label}_{w}", "module": f"indoor_loc.nodes.{mod}", "namespace": f"/{w}",
                               "params_files": [params], "params": dict(replay)})
     return nodes

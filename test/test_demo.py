@@ -165,7 +165,8 @@ def test_demo_with_the_view_delivers_every_input_to_its_node(ros_domain, tmp_pat
 
 def test_demo_robots_run_their_estimators_without_a_stepometer(tmp_path):
     """``indoor-loc demo --robots``: a robot's namespace gets the WiFi node and the estimators (on its
-    own odometry, params.yaml), no imu_node; its odometry is an input, not recorded again."""
+    own odometry: params.yaml per user, user_params multi-user), no imu_node; its odometry is an input,
+    not recorded again."""
     import re
 
     from indoor_loc.demo import INPUT_TOPICS_RE, bringup_config
@@ -176,10 +177,14 @@ def test_demo_robots_run_their_estimators_without_a_stepometer(tmp_path):
     names = {n["name"] for n in bringup_config(["alice", "robot1"], sim, tmp_path, rate=1.0, foxglove=None,
                                               per_user=True)["nodes"]}
     assert {"imu_alice", "wifi_robot1", "pdr_kf_robot1"} <= names and "imu_robot1" not in names
-    # multi-user (the default): the walkers share one process per stage; a robot's estimators, on its own
-    # odometry, stay per robot; its WiFi is served by the shared wifi_fix_node
+    # multi-user (the default): walkers and robots share one process per stage; a robot's estimators take
+    # its own odometry by their user_params; no stepometer for it
     nodes = {n["name"]: n for n in bringup_config(["alice", "robot1"], sim, tmp_path, rate=1.0, foxglove=None)["nodes"]}
-    assert {"imu", "wifi", "pdr_kf", "pdr_kf_robot1"} <= set(nodes) and not {"imu_robot1", "wifi_robot1"} & set(nodes)
-    assert nodes["imu"]["params"]["users"] == ["alice"] and nodes["pdr_kf"]["params"]["users"] == ["alice"]
+    assert {"imu", "wifi", "pdr_kf"} <= set(nodes) and not {n for n in nodes if n.endswith("_robot1")}
+    assert nodes["imu"]["params"]["users"] == ["alice"] and nodes["pdr_kf"]["params"]["users"] == ["alice", "robot1"]
+    assert nodes["pdr_kf"]["params"]["user_params.robot1.motion_source"] == "odom"
+    assert not any(k.startswith("user_params") for k in nodes["imu"]["params"])
     assert nodes["wifi"]["params"]["users"] == ["alice", "robot1"] and "--multi-user" in nodes["wifi"]["args"]
+    player = nodes["player"]["args"]
+    assert "odom=pdr_kf_node_io,tll_pf_io" in " ".join(player)
     assert re.search(INPUT_TOPICS_RE, "/robot1/odom") and not re.search(INPUT_TOPICS_RE, "/alice/pdr/odom")

@@ -92,7 +92,8 @@ class MultiUserStageNode(StageNode):
         self.create_timer(getattr(stage_cls, "MULTI_USER_POLL_S", POLL_PERIOD_S), self._poll)
         self._me = {(self.get_name(), self.get_namespace()), (self.get_name() + "_io", self.get_namespace())}
         self._suffix = "/" + self.stage.NODE_NAME
-        self._own_outputs = {p.topic for p in self.stage.template.outputs()}
+        self._own_outputs_of: dict[str, None] = {}
+        self._own_outputs: set[str] = set()
         p = self.stage.params
         if p.shard_count > 1 or p.user_pattern != "*" or self._fixed_users:   # others may serve some users
             self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
@@ -100,35 +101,53 @@ class MultiUserStageNode(StageNode):
 
     # -- users -----------------------------------------------------------------------------------------
     def _follow(self, user: str) -> None:
-        if user and user not in self.user_subs and self.stage.serves(user):
-            self._closed_inputs.pop(user, None)
-            super()._follow(user)
+        """Subscribe to the user's inputs and open its outputs: its own stage's ports, which its
+        ``user_params`` overrides may change (a robot's ``odom`` for ``pdr/odom``)."""
+        if not user or user in self.user_subs or not self.stage.serves(user):
+            return
+        self._closed_inputs.pop(user, None)
+        ns = namespace_of_user(user)
+        self.user_subs[user] = [self._open_input(p, join_ns(ns, p.topic), user) for p in self.stage.user_inputs(user)]
+        for port in self.stage.user_outputs_of(user):       # ready (and matched) before the first output
+            self._publisher(port.topic)
+        self._user_seen[user] = self._monotonic()
+        self._finished_users.discard(user)
+        over = self.stage.user_params_text(user)
+        self.get_logger().info(f"following user {user!r}" + (f" (user_params: {over})" if over else ""))
 
     def _published_by_others(self, topic: str, rel: str) -> bool:
         """Whether a node other than this one publishes ``topic`` (one of the stage's inputs, ``rel``)."""
+        if len(self._own_outputs_of) != len(self.stage.templates):     # a template made since (user_params)
+            self._own_outputs_of = dict.fromkeys(self.stage.templates)
+            self._own_outputs = {p.topic for st in self.stage.templates.values() for p in st.outputs()}
         if rel not in self._own_outputs:
             return self.count_publishers(topic) > 0
         return any((i.node_name, i.node_namespace) not in self._me for i in self.get_publishers_info_by_topic(topic))
 
     def _users_publishing(self) -> set[str]:
         """The users in whose namespace another node publishes one of the stage's inputs."""
-        rels = [p.topic for p in self.stage.inputs()]
         found: set[str] = set()
         if self._fixed_users:
             for user in self._fixed_users:
                 name = user_of_namespace(user)
                 ns = namespace_of_user(name)
-                if any(self._published_by_others(join_ns(ns, rel), rel) for rel in rels):
+                if any(self._published_by_others(join_ns(ns, p.topic), p.topic) for p in self._inputs_of(name)):
                     found.add(name)
             return found
+        rels = [p.topic for p in self.stage.inputs()]       # every user's (per-user overrides included)
         for topic, _types in self.get_topic_names_and_types():
             for rel in rels:
                 ns = namespace_of_topic(topic, rel)
                 if ns:
                     user = user_of_namespace(ns)
-                    if user and user not in found and self._published_by_others(topic, rel):
+                    if user and user not in found and any(p.topic == rel for p in self._inputs_of(user)) \
+                            and self._published_by_others(topic, rel):
                         found.add(user)
         return found
+
+    def _inputs_of(self, user: str) -> list:
+        """The user's inputs if this shard serves it (its overrides resolved), else the node's."""
+        return self.stage.user_inputs(user) if self.stage.serves(user) else self.stage.template.inputs()
 
     def _discover_users(self) -> None:
         """Follow this shard's new users, notice users leaving, and watch the other shards' users."""
@@ -156,8 +175,7 @@ class MultiUserStageNode(StageNode):
         destroyed once every subscriber has acknowledged what they sent (or after
         :data:`CLOSE_WAIT_S`), so downstream multi-user nodes see the user leave too (its inputs there
         have no publisher any more) and finish it in turn."""
-        pubs = [self._pubs.pop(t) for t in [p.topic.format(user=user) for p in self.stage.user_outputs()]
-                if t in self._pubs]
+        pubs = [self._pubs.pop(t) for t in [p.topic for p in self.stage.user_outputs_of(user)] if t in self._pubs]
         if pubs:
             self._closing.append((now + CLOSE_WAIT_S, pubs))
 
@@ -258,7 +276,7 @@ class MultiUserStageNode(StageNode):
 
     def _user_run(self, user: str, topic: str, run: list[tuple[int, bytes]]) -> None:
         inp = self._inputs[join_ns(namespace_of_user(user), topic)]
-        if inp.port.type in BULK_TYPES and self.stage.batch_handles(topic):
+        if inp.port.type in BULK_TYPES and self.stage.batch_handles(topic, user):
             items = bulk_items(inp.port.type, [d for _, d in run])
             if items is not None:
                 self._publish([(t, m) for _, t, m in
@@ -387,6 +405,9 @@ class MultiUserStageNode(StageNode):
             one = with_inputs(stage_diagnostics(f"{namespace_of_user(user)}{self._suffix}", inner, now_ns),
                               reports, now_ns)
             one.status[0].values.append(KeyValue(key="served_by", value=fqn))
+            over = self.stage.user_params_text(user)
+            if over:
+                one.status[0].values.append(KeyValue(key="user_params", value=over))
             one.status[0].values.append(KeyValue(key="busy_s", value=f"{self.stage.busy_s.get(user, 0.0):.3f}"))
             arr.status.append(one.status[0])
         return arr

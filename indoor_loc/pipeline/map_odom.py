@@ -31,6 +31,7 @@ from typing import Any
 
 from indoor_loc.errors import InvalidInputError
 from msg_adapters.odom import odom_from_msg
+from msg_adapters.pose_cdr import PoseCdr
 from msg_adapters.tf import pose_yaw_var, transform_to_msg
 
 #: An estimate's yaw variance (rad²) from which its yaw is taken as unknown (pi² : a uniform heading).
@@ -135,6 +136,8 @@ class MapOdom:
         self.spec = spec
         self.users: dict[str, _UserCorrection] = {}
         self.published = 0
+        #: (message, its OdomPose) of the motion message being handled (:meth:`decoded`)
+        self._decoded: tuple[Any, Any] | None = None
 
     def _user(self, user: str) -> _UserCorrection:
         u = self.users.get(user)
@@ -145,9 +148,18 @@ class MapOdom:
     def reset(self, user: str) -> None:
         self.users.pop(user, None)
 
+    def decoded(self, msg: Any, od: Any) -> None:
+        """The stage's handler has decoded motion message ``msg`` into ``od`` (an ``OdomPose``):
+        :meth:`motion` takes its pose and frame from it instead of decoding the message again."""
+        self._decoded = (msg, od)
+
     def motion(self, user: str, msg: Any) -> None:
         """An accepted motion message (already validated by the stage's handler)."""
-        od = odom_from_msg(msg, unknown_cov=True)     # a robot driver's -1: the stage took it
+        done, self._decoded = self._decoded, None
+        if done is not None and done[0] is msg:
+            od = done[1]
+        else:
+            od = odom_from_msg(msg, unknown_cov=True)     # a robot driver's -1: the stage took it
         self._user(user).track.add(od.stamp_ns, (od.x, od.y, od.yaw), od.frame_id)
 
     def corrections(self, user: str, outs: list[tuple[str, Any]]) -> list[tuple[str, Any]]:
@@ -159,7 +171,8 @@ class MapOdom:
         for t, m in outs:
             if t == topic:
                 try:
-                    cands.append(pose_yaw_var(m))
+                    # an estimate packed to CDR (msg_adapters/pose_cdr.py) carries what it holds
+                    cands.append(m.estimate if isinstance(m, PoseCdr) else pose_yaw_var(m))
                 except InvalidInputError:
                     continue                          # the stage's own output: nothing to correct from
         u = self._user(user) if cands else self.users.get(user)

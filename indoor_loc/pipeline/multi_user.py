@@ -33,8 +33,10 @@ import zlib
 from typing import Any, Callable
 
 from indoor_loc.errors import ConfigError
-from indoor_loc.params import field, require
+from indoor_loc.params import field, flatten, require
 from indoor_loc.pipeline.stage import Output, Port, Stage, namespace_of_user
+from indoor_loc.pipeline.user_params import (USER_PARAMS, check_entries, describe, is_pattern, overrides_for,
+                                             overrides_key, with_overrides)
 
 #: The parameters a multi-user node adds to its stage's (name, type, default, doc).
 MULTI_USER_FIELDS: tuple[tuple[str, type, Any, str], ...] = (
@@ -45,6 +47,8 @@ MULTI_USER_FIELDS: tuple[tuple[str, type, Any, str], ...] = (
     ("user_timeout_s", float, 10.0, "multi-user: a user whose inputs have had no publisher for this long has "
                                     "left (its end-of-input outputs are published, its state dropped), s; also how "
                                     "long another shard's user may go unserved before it is reported"),
+    (USER_PARAMS, dict, {}, "multi-user: per-user parameter overrides, user name or glob -> parameters "
+                            "(user_params.robot1.motion_source: odom; docs/scaling.md)"),
 )
 
 
@@ -98,6 +102,18 @@ class MultiUserStage(Stage):
             raise ConfigError(f"{self.NODE_NAME}: with these parameters the stage takes no topic input (e.g. "
                               f"wifi_scan_node with source: iw scans this machine's interface): nothing to serve "
                               f"users from; run it per user instead of --multi-user")
+        #: the template of each distinct set of per-user overrides (``user_params``; "" = none: ``template``)
+        self.templates: dict[str, Stage] = {overrides_key({}): self.template}
+        #: users whose overrides together (several patterns) are not valid parameters: user -> why
+        self.refused: dict[str, str] = {}
+        #: user -> (its overrides' key, its overrides), resolved when it is first followed, until it leaves
+        self._user_key: dict[str, tuple[str, dict[str, Any]]] = {}
+        entries = getattr(params, USER_PARAMS, None) or {}
+        check_entries(params, frozenset(name for name, *_ in MULTI_USER_FIELDS))
+        for key in sorted(entries):         # every entry checked (and its template made) at start-up:
+            # a user's name as the user's own parameters, a pattern's alone
+            over = flatten(entries[key]) if is_pattern(key) else overrides_for(key, entries)
+            self._template_for(over, f"{USER_PARAMS}.{key}")
         self.users: dict[str, Stage] = {}
         #: users whose stage has finished (left, or the node stopping): their last counters, for their
         #: last per-user status (:meth:`user_status_stage`); dropped once the node has said it
@@ -112,26 +128,85 @@ class MultiUserStage(Stage):
     def _unused(msg: Any, recv_ns: int, user: str) -> list[Output]:
         raise AssertionError("MultiUserStage.process dispatches to the user's own stage")
 
+    # -- per-user parameters (indoor_loc/pipeline/user_params.py) -------------------------------------------
+    def _template_for(self, overrides: dict[str, Any], where: str) -> Stage:
+        key = overrides_key(overrides)
+        st = self.templates.get(key)
+        if st is None:
+            st = self.INNER(with_overrides(self.params, overrides, where), namespace=self.namespace)
+            self.notices.extend(st.take_notices())
+            if not st.inputs():
+                raise ConfigError(f"{self.NODE_NAME}: {where}: with these parameters the stage takes no topic input")
+            for port in st.inputs():
+                if not self.handles(port.topic):
+                    self.on(port.topic, self._unused)
+            self.templates[key] = st
+        return st
+
+    def user_overrides(self, user: str) -> dict[str, Any]:
+        """The user's parameter overrides (flat; ``{}``: the node's parameters), resolved once."""
+        got = self._user_key.get(user)
+        if got is None:
+            over = overrides_for(user, getattr(self.params, USER_PARAMS, None) or {})
+            got = self._user_key[user] = (overrides_key(over), over)
+            self._template_for(over, f"{USER_PARAMS} of user {user!r}")
+        return got[1]
+
+    def user_template(self, user: str) -> Stage:
+        """The template the user's stage is made from (its parameters, its ports)."""
+        self.user_overrides(user)
+        return self.templates[self._user_key[user][0]]
+
+    def user_params_text(self, user: str) -> str:
+        """The user's overrides as its status shows them (``""``: none)."""
+        return describe(self.user_overrides(user))
+
+    def user_inputs(self, user: str) -> list[Port]:
+        """The user's input ports (relative, as its own per-user node's)."""
+        return self.user_template(user).inputs()
+
+    def user_outputs_of(self, user: str) -> list[Port]:
+        """The user's output ports under its namespace (absolute: ``/alice/pf/pose``)."""
+        return [dataclasses.replace(p, topic=f"/{user}/{p.topic}") for p in self.user_template(user).outputs()]
+
     # -- ports --------------------------------------------------------------------------------------------
     def inputs(self) -> list[Port]:
-        return self.template.inputs()
+        """The inputs of every user's stage: the template's, then those only some users' overrides add."""
+        seen: dict[str, Port] = {}
+        for st in self.templates.values():
+            for p in st.inputs():
+                seen.setdefault(p.topic, p)
+        return list(seen.values())
 
     def outputs(self) -> list[Port]:
         return []
 
     def user_outputs(self) -> list[Port]:
         """The per-user node's outputs, under each user's namespace (absolute: ``/{user}/pf/pose``)."""
-        return [dataclasses.replace(p, topic="/{user}/" + p.topic) for p in self.template.outputs()]
+        seen: dict[str, Port] = {}
+        for st in self.templates.values():
+            for p in st.outputs():
+                seen.setdefault(p.topic, dataclasses.replace(p, topic="/{user}/" + p.topic))
+        return list(seen.values())
 
     def serves(self, user: str) -> bool:
-        return serves(self.params, user)
+        """This shard's user (pattern, shard), unless its overrides make no valid parameters (said once)."""
+        if not serves(self.params, user) or user in self.refused:
+            return False
+        try:
+            self.user_overrides(user)
+        except ConfigError as err:
+            self.refused[user] = str(err)
+            self.notice(f"user {user!r} is not served: its user_params entries together are not valid: {err}")
+            return False
+        return True
 
     # -- users --------------------------------------------------------------------------------------------
     def user_stage(self, user: str) -> Stage:
         """The user's own stage instance (made on first use, sharing the template's read-only parts)."""
         st = self.users.get(user)
         if st is None:
-            st = self.users[user] = self.template.for_user(namespace_of_user(user))
+            st = self.users[user] = self.user_template(user).for_user(namespace_of_user(user))
             self.ended.pop(user, None)              # back after leaving: afresh
             st.raw_outputs = self.raw_outputs
             st._reject = self._forwarding_reject(st, user)          # type: ignore[method-assign]
@@ -183,8 +258,8 @@ class MultiUserStage(Stage):
             self.diag.published[out_topic.split("/", 2)[2]] += 1
         return outs
 
-    def batch_handles(self, topic: str) -> bool:
-        return self.template.batch_handles(topic)
+    def batch_handles(self, topic: str, user: str | None = None) -> bool:
+        return (self.user_template(user) if user else self.template).batch_handles(topic)
 
     def process_user_batch(self, user: str, topic: str, items: list,
                            recv_ns: list[int]) -> list[tuple[int, str, Any]]:
@@ -226,6 +301,7 @@ class MultiUserStage(Stage):
         self.users_left += 1
         outs = self._mapped(user, st.run_finish())
         self.ended[user] = Ended(st)
+        self._user_key.pop(user, None)      # resolved again if it comes back
         return outs
 
     def finish(self) -> list[Output]:
@@ -266,6 +342,10 @@ class MultiUserStage(Stage):
         for key in ("error", "warning"):
             if standing.get(key):
                 out[key] = standing[key]
+        if self.refused:
+            out["users.refused"] = ",".join(sorted(self.refused))
+            out.setdefault("warning", f"{len(self.refused)} user(s) not served: their user_params are not valid "
+                                      f"together ({', '.join(sorted(self.refused)[:5])})")
         return out
 
     def user_status_stage(self, user: str) -> "Stage | Ended | None":

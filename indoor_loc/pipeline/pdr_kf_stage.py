@@ -43,6 +43,7 @@ from msg_adapters.path import path_to_msg
 from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.pose import YAW_VAR_UNKNOWN, fix_from_msg, pose_to_msg
+from msg_adapters.pose_cdr import pose_cdr
 from indoor_loc.pipeline.map_odom import MapOdomSpec
 from indoor_loc.pipeline.path_store import PathStore
 from indoor_loc.pipeline.stage import Output, Port, Stage
@@ -224,6 +225,8 @@ class PdrKfStage(Stage):
         increment closed before them), then its increment, when one closes, is a prediction."""
         require_source(self.params.motion_source, "odom")
         od = self._robot.check(msg)
+        if self.map_odom is not None:
+            self.map_odom.decoded(msg, od)
         outs = self._apply_pending(lambda s: s < od.stamp_ns)
         inc = self._robot.take(od)
         self._last_odom_ns = od.stamp_ns
@@ -241,6 +244,8 @@ class PdrKfStage(Stage):
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
         require_source(self.params.motion_source, "pdr/odom")
         od, interval = self._odom.read(msg)
+        if self.map_odom is not None:
+            self.map_odom.decoded(msg, od)
         self._held.append((od.stamp_ns, od, interval))
         hold_ns = int(self.params.odom_hold_s * 1e9)
         return self._release(lambda s: s <= od.stamp_ns - hold_ns)
@@ -367,8 +372,9 @@ class PdrKfStage(Stage):
         assert self.kf is not None
         yaw, yaw_var = step_heading(self.kf.state.x, self.kf.state.P)
         z, z_var = self.floor.z()
-        return pose_to_msg(stamp_ns, self.kf.position, yaw, self.kf.position_cov, frame_id=self.params.frame_id,
-                           yaw_var=yaw_var, z=z, z_var=z_var)
+        pose = pose_cdr if self.raw_outputs else pose_to_msg        # multi-user nodes: the CDR bytes
+        return pose(stamp_ns, self.kf.position, yaw, self.kf.position_cov, frame_id=self.params.frame_id,
+                    yaw_var=yaw_var, z=z, z_var=z_var)
 
     def _maybe_smooth(self, now_ns: int) -> list[Output]:
         period = self.params.smooth_period_s

@@ -49,6 +49,7 @@ from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
 from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
+from msg_adapters.pose_cdr import pose_cdr
 from indoor_loc.baro.detector import BaroParams
 from indoor_loc.pf.filter import PfParams
 from indoor_loc.pf.floors import PfFloorParams
@@ -327,6 +328,8 @@ class PfStage(Stage):
         increment closed before them), then its increment, when one closes, moves the particles."""
         require_source(self.params.motion_source, "odom")
         od = self._robot.check(msg)
+        if self.map_odom is not None:
+            self.map_odom.decoded(msg, od)
         outs = self._start(od.stamp_ns)
         outs += self._apply_pending(lambda s: s < od.stamp_ns)
         inc = self._robot.take(od)
@@ -343,6 +346,8 @@ class PfStage(Stage):
     def _on_odom(self, msg, recv_ns: int) -> list[Output]:
         require_source(self.params.motion_source, "pdr/odom")
         od = odom_from_msg(msg)
+        if self.map_odom is not None:
+            self.map_odom.decoded(msg, od)
         self._odom_guard.check(od)                     # odom_jump: refused before anything moves
         outs = self._start(od.stamp_ns)
         outs += self._apply_pending(lambda s: s < od.stamp_ns)
@@ -442,8 +447,9 @@ class PfStage(Stage):
     # ------------------------------------------------------------------------------------------
     def _publish(self, est: Estimate) -> list[Output]:
         fid = self.params.frame_id
-        outs: list[Output] = [("pf/pose", pose_to_msg(est.stamp_ns, est.xy, est.yaw, est.cov, frame_id=fid,
-                                                        yaw_var=0.1, z=est.z, z_var=est.z_var))]
+        pose = pose_cdr if self.raw_outputs else pose_to_msg        # multi-user nodes: the CDR bytes
+        outs: list[Output] = [("pf/pose", pose(est.stamp_ns, est.xy, est.yaw, est.cov, frame_id=fid,
+                                               yaw_var=0.1, z=est.z, z_var=est.z_var))]
         self._n_pose += 1
         every = self.params.particles_every
         p = self.tracker.pf.p
