@@ -130,6 +130,11 @@ class GraphParams:
     gauge_std_rad: float = pfield(3.0, "weak prior on each user's first heading, rad")
     walkable_std_m: float = pfield(0.0, "floor plan factor (needs the plans, backend_node.floor_plans): a pose "
                                         "outside the walkable area costs (distance to it / this)²; 0 = none")
+    fix_bias_std_m: float = pfield(0.0, "wifi_source 'fix': the fixes' error shared along a track (radio-map error "
+                                        "is spatially correlated: whole walks' fixes sit metres off together) as one "
+                                        "2-D bias per track, added to the pose in every fix factor, with a zero-mean "
+                                        "prior of this std, m; the plan (walkable_std_m) can then move a whole track "
+                                        "at the cost of the bias prior, not of every fix; 0 = none (independent fixes)")
     walkable_live: bool = pfield(False, "the walkable factor in the live window optimisations too (backend/<u>/pose); "
                                         "False = only in the whole-graph ones (the paths)")
     max_iterations: int = pfield(15, "solver iterations per whole-graph optimisation (paper: 15 LM iterations)")
@@ -163,6 +168,7 @@ class GraphParams:
         require(self.gauge_std_m > 0 and self.gauge_std_rad > 0, n, "gauge_std_m/gauge_std_rad", "> 0",
                   (self.gauge_std_m, self.gauge_std_rad))
         require(self.walkable_std_m >= 0, n, "walkable_std_m", ">= 0", self.walkable_std_m)
+        require(self.fix_bias_std_m >= 0, n, "fix_bias_std_m", ">= 0", self.fix_bias_std_m)
         require(self.max_iterations >= 1, n, "max_iterations", ">= 1", self.max_iterations)
         require(self.window_poses >= 0, n, "window_poses", ">= 0", self.window_poses)
         require(self.window_iterations >= 1, n, "window_iterations", ">= 1", self.window_iterations)
@@ -336,6 +342,8 @@ class MultiUserGraph:
         self.tracks: list[UserTrack] = []              # every track by index (a restarted user's earlier ones too)
         self.user_names: list[str] = []                # the user of each track
         self.step_len = np.zeros(0)
+        #: per track: the common error of its fixes (fix_bias_std_m > 0), m
+        self.fix_bias = np.zeros((0, 2))
         self.poses = _Growing(x=((3,), float), user=((), np.int64), stamp=((), np.int64), frozen=((), bool),
                               z=((), float))
         self.pdr = _Growing(prev=((), np.int64), cur=((), np.int64), steps=((), float), dtheta=((), float),
@@ -363,6 +371,7 @@ class MultiUserGraph:
             self.tracks.append(tr)
             self.user_names.append(name)
             self.step_len = np.append(self.step_len, self.params.step_prior_m)
+            self.fix_bias = np.vstack([self.fix_bias, np.zeros((1, 2))])
         return tr
 
     def _check_order(self, tr: UserTrack, stamp_ns: int, what: str) -> None:
@@ -670,10 +679,11 @@ class MultiUserGraph:
         except TimeoutError:
             completed = False
             z_end, cost, nfev = best.z, best.cost, best.nfev
-        Xc, L = unpack(z_end)
+        Xc, L, B = unpack(z_end)
         Xc[var, 2] = F.wrap(Xc[var, 2])
         self.poses.x[:self.poses.n] = Xc
         self.step_len = L
+        self.fix_bias = B
         col = np.full(self.poses.n, -1, np.int64)
         col[var] = 3 * np.arange(len(var))
         self._last_J = (prob[1], z_end.copy(), var, col)     # J at the optimum: evaluated by marginal_cov
@@ -683,7 +693,7 @@ class MultiUserGraph:
 
     def problem(self, var: np.ndarray, *, walkable: bool = True):
         """The least-squares problem over poses ``var`` (and their users' step lengths): (fun(z) ->
-        whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths),
+        whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths, fix biases),
         number of factors), or None when no factor touches the variables."""
         var = np.asarray(var, np.int64)
         if len(var) == 0:
@@ -696,7 +706,13 @@ class MultiUserGraph:
         var_users = np.unique(self.poses.user[var]) if p.estimate_step_length else np.zeros(0, np.int64)
         ucol = np.full(len(self.user_names), -1, np.int64)
         ucol[var_users] = 3 * len(var) + np.arange(len(var_users))
-        n_x = 3 * len(var) + len(var_users)
+        # fix-bias variables: the users of the variable poses (their fix factors share the bias)
+        bias_users = (np.unique(self.poses.user[var]) if p.fix_bias_std_m > 0 and p.wifi_source == "fix"
+                      else np.zeros(0, np.int64))
+        bcol = np.full(len(self.user_names), -1, np.int64)
+        bcol[bias_users] = 3 * len(var) + len(var_users) + 2 * np.arange(len(bias_users))
+        n_b = len(bias_users)
+        n_x = 3 * len(var) + len(var_users) + 2 * n_b
         isvar = col >= 0
 
         # factors touching a variable
@@ -711,6 +727,9 @@ class MultiUserGraph:
         refvar = np.where(wrefs >= 0, isvar[np.maximum(wrefs, 0)], False)
         sel_w = np.flatnonzero(isvar[wpose] | refvar.any(axis=1))
         wpose, wrefs, ww, refvar, wL = wpose[sel_w], wrefs[sel_w], ww[sel_w], refvar[sel_w], wL[sel_w]
+        # the fix factors (every reference a fixed point) of users with a bias variable
+        wbcol = np.where((wrefs < 0).all(axis=1), bcol[self.poses.user[wpose]], -1)
+        has_b = wbcol >= 0
         gpose, gx = self.gauge.view("pose"), self.gauge.view("x")
         sel_g = np.flatnonzero(isvar[gpose])
         gpose, gx = gpose[sel_g], gx[sel_g]
@@ -729,7 +748,8 @@ class MultiUserGraph:
         r_p, r_w, r_g = 0, 3 * n_p, 3 * n_p + 2 * n_w
         r_u = r_g + 3 * n_g
         r_k = r_u + n_u
-        n_r = r_k + n_k
+        r_b = r_k + n_k
+        n_r = r_b + 2 * n_b
         fixed_xy = self.map.fixed_xy
         sqrt_g = np.array([1 / p.gauge_std_m, 1 / p.gauge_std_m, 1 / p.gauge_std_rad])
         # threshold in whitened units: robust_threshold_m at the paper's information, else in sigmas
@@ -765,6 +785,8 @@ class MultiUserGraph:
         parts.append(blk(r_g + 3 * np.arange(n_g), 3, col[gpose], 3, np.ones(n_g, bool), np.eye(3, dtype=bool)))
         parts.append(blk(r_u + np.arange(n_u), 1, ucol[var_users], 1, np.ones(n_u, bool)))
         parts.append(blk(r_k + np.arange(n_k), 1, col[wk_pose], 2, np.ones(n_k, bool)))
+        parts.append(blk(rw, 2, wbcol, 2, has_b, nz_wifi))
+        parts.append(blk(r_b + 2 * np.arange(n_b), 2, bcol[bias_users], 2, np.ones(n_b, bool), np.eye(2, dtype=bool)))
         rows = np.concatenate([q[0] for q in parts])
         cols = np.concatenate([q[1] for q in parts])
         keep = np.concatenate([q[2] for q in parts])
@@ -778,6 +800,9 @@ class MultiUserGraph:
 
         base_x = X.copy()
         base_l = self.step_len.copy()
+        base_b = self.fix_bias.copy()
+        inv_b = 1.0 / p.fix_bias_std_m if n_b else 0.0
+        wuser = self.poses.user[wpose]
         # the closures below hold no reference to the graph (the last solve's jac outlives the
         # solve in _last_J; a graph -> jac -> graph cycle would only be freed by the cyclic GC)
         sqrt_pdr, sqrt_step, n_nbr, walkable = psqrt, self._sqrt_step, self.k, self.walkable
@@ -787,8 +812,11 @@ class MultiUserGraph:
             Xc[var] = z[:3 * len(var)].reshape(-1, 3)
             L = base_l.copy()
             if n_u:
-                L[var_users] = z[3 * len(var):]
-            return Xc, L
+                L[var_users] = z[3 * len(var):3 * len(var) + n_u]
+            B = base_b.copy()
+            if n_b:
+                B[bias_users] = z[3 * len(var) + n_u:].reshape(-1, 2)
+            return Xc, L, B
 
         # neighbour positions (n_w, k, 2): the fixed ones once, the poses' at each evaluation
         nbr_fixed = np.empty(wrefs.shape + (2,))
@@ -803,10 +831,12 @@ class MultiUserGraph:
             return out
 
         def evaluate(z, want_jac):
-            Xc, L = unpack(z)
+            Xc, L, B = unpack(z)
             res = np.empty(n_r)
             ep = F.pdr_error(Xc[pprev], Xc[pcur], L[puser], psteps, pdth, jacobians=want_jac)
-            ew = F.wifi_error(Xc[wpose, :2], nbr_xy(Xc), ww, jacobians=want_jac)
+            # a fix factor sees the pose plus its track's common fix error (d e / d bias = d e / d pose)
+            pw = Xc[wpose, :2] + B[wuser] * has_b[:, None] if n_b else Xc[wpose, :2]
+            ew = F.wifi_error(pw, nbr_xy(Xc), ww, jacobians=want_jac)
             if want_jac:
                 ep, (jp, jc, jl) = ep
                 ew, (jwp, jwn) = ew
@@ -829,7 +859,8 @@ class MultiUserGraph:
             res[r_u:r_k] = (L[var_users] - p.step_prior_m) * sqrt_step
             if n_k:
                 dk, gk = walkable.eval(Xc[wk_pose, :2], wk_z)
-                res[r_k:] = dk * inv_wk
+                res[r_k:r_b] = dk * inv_wk
+            res[r_b:] = (B[bias_users] * inv_b).ravel()
             if not want_jac:
                 return res
             s = sqrt_pdr[:, :, None]
@@ -840,6 +871,8 @@ class MultiUserGraph:
             vals.append(np.full(n_u, sqrt_step))
             if n_k:
                 vals.append((gk * inv_wk).ravel())
+            vals.append(jwp.ravel())
+            vals.append(np.broadcast_to(inv_b * np.eye(2), (n_b, 2, 2)).ravel())
             v = np.concatenate(vals)[keep]
             return res, v
 
@@ -851,8 +884,8 @@ class MultiUserGraph:
             data = np.bincount(slot, weights=v, minlength=len(lin))
             return sp.csr_matrix((data, csr_indices, csr_indptr), shape=(n_r, n_x))
 
-        z0 = np.concatenate([X[var].ravel(), self.step_len[var_users]])
-        return fun, jac, z0, unpack, n_p + n_w + n_g + n_u + n_k
+        z0 = np.concatenate([X[var].ravel(), self.step_len[var_users], self.fix_bias[bias_users].ravel()])
+        return fun, jac, z0, unpack, n_p + n_w + n_g + n_u + n_k + n_b
 
     def marginal_cov(self, pose: int) -> np.ndarray | None:
         """(3, 3) covariance of a pose from the last solve's information matrix JᵀJ (None if that
