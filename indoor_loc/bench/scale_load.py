@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.node import Node
 
     from indoor_loc.contract import Qos, msg_class
-    from indoor_loc.nodes.qos import qos_profile
+    from indoor_loc.nodes.qos import publisher_qos
 
     args = sys.argv[1:] if argv is None else argv
     bag = Path(args[0])
@@ -60,7 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     period = [w[-1][0] + 20_000_000 for w in walks]          # a looped walk goes on 20 ms after its last message
     rclpy.init()
     node = Node("scale_load")
-    qos = qos_profile(Qos.RELIABLE)
+    # as deep as the nodes' own reliable publishers (nodes/qos.py: 1000, 20 s at 50 Hz): the contract's 50
+    # (1 s) was overwritten before a node starved of CPU on a shared machine had acknowledged it, a loss
+    # of the generator's history rather than of the node
+    qos = publisher_qos(Qos.RELIABLE)
     pubs: dict[tuple[int, str], object] = {}
     heap: list[tuple[int, int, int, int]] = []               # (due ns, user, index in its walk, loop)
     joined: dict[int, int] = {}                              # user -> join wall ns

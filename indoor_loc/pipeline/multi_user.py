@@ -23,6 +23,10 @@ node discovers them), kept if the name matches ``user_pattern`` (a glob) and bel
 shard: :func:`shard_of` (a stable hash of the name) modulo ``shard_count`` equals ``shard_index``.
 A user whose input publishers have been gone ``user_timeout_s`` has left: its instance finishes
 (its end-of-input outputs are published) and is dropped; a user coming back starts afresh.
+
+A user may have parameters of its own (``user_params``: :mod:`indoor_loc.pipeline.user_params`), its
+ports included (a robot's ``odom`` for ``pdr/odom``): its instance is made from a template built with
+them, one template per distinct set of overrides.
 """
 from __future__ import annotations
 
