@@ -442,9 +442,9 @@ class Stage:
         """A leap ahead confirmed by ``last``: the held messages and ``last`` handled in order (the
         source resumed after a pause; nothing is reset)."""
         held = self.time.resume(user, last.topic) + [last]
-        # the source goes on from the first held message (also a topic's first messages, which leapt
-        # ahead of the user's other topics: they are judged against this mark now, not those)
-        self.time.user(user).marks[last.topic] = held[0].stamp_ns - 1
+        mark = self.time.user(user).marks.get(last.topic)
+        if mark is not None:           # the source goes on from the first held message
+            self.time.user(user).marks[last.topic] = held[0].stamp_ns - 1
         return self._replay_held(user, held, None, None)
 
     def _jump(self, user: str, first: Held) -> list[Output]:

@@ -34,11 +34,7 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   are handled in order, nothing reset) — or a message of the source in step with its watermark shows
   the held ones were wrongly stamped: each is rejected (``stamp_leap``), counted. Without this, one
   message stamped an hour ahead would move the watermark there and every valid message after it
-  would be refused. A topic's *first* message is judged so against the user's
-  other topics (their newest accepted stamp): a fix stamped an hour ahead that reaches a node before
-  the user's first valid fix (a wrong one published at once, the valid one behind the WiFi node's
-  latency) would otherwise set the topic's watermark an hour ahead, and every valid fix after it
-  would be held as a jump back that never confirms.
+  would be refused.
 - **the node's clock going back** (rclpy's clock-jump callback, :meth:`Stage.run_clock_jump`) by
   more than ``jump_s`` resets every user whose watermarks are ahead of the new clock, at once.
 - **after a jump**, a topic's first message stamped more than ``jump_s`` ahead of the user's new
@@ -286,8 +282,7 @@ class TimePolicy:
         if held is not None and stamp_ns > held.last and stamp_ns - held.last <= self.leap_ns:
             held.last = stamp_ns                     # continues the held run
             return Verdict.RESUME if len(held.held) + 1 >= self.params.jump_confirm else Verdict.LEAP
-        ref = mark if mark is not None else u.front()   # a topic's first message: against the user's others
-        if ref is None or stamp_ns <= ref + self.leap_ns:
+        if mark is None or stamp_ns <= mark + self.leap_ns:
             return None
         if now_ns and abs(stamp_ns - now_ns) <= self.future_ns:
             return None                              # the node's clock vouches for it: a source back after a pause
@@ -399,12 +394,9 @@ class TimePolicy:
         if u is not None and (u.held or u.fence_ns is not None or u.leaps):
             return False
         prev = None if u is None else u.marks.get(topic)
-        front = None if u is None or prev is not None else u.front()
         for t, now in zip(stamps, now_ns):
             if now and t > now + self.future_ns:
                 return False
-            if front is not None and t > front + self.leap_ns:
-                return False                             # a topic's first message leaping ahead of the user
             if prev is not None and t > prev + self.leap_ns:
                 return False
             if prev is not None and (t < prev or (t == prev and order == Order.STRICT)):
