@@ -530,7 +530,7 @@ class BackendStage(Stage):
             start = od.stamp_ns - (int(d / od.speed * 1e9) if od.speed > 1e-6 else 0)
         if prev is not None and od.stamp_ns == prev.stamp_ns:
             return False                       # a duplicate: nothing moved in zero time
-        return self.graph.add_hop(user, start, od.stamp_ns, steps, od.yaw) is not None
+        return self.graph.add_hop(user, start, od.stamp_ns, steps, od.yaw + b.yaw_offset) is not None
 
     # -- output ---------------------------------------------------------------------------------
     def _pose_output(self, user: str) -> Output:
