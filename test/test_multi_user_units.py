@@ -10,6 +10,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Imu
 
+from indoor_loc.bag.cdr_padding import canonical_cdr
 from indoor_loc.errors import ConfigError
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.imu_stage import ImuStage
@@ -37,10 +38,10 @@ def test_wrapper_gives_each_user_its_own_stage_outputs(rng):
     for i in range(600):                     # interleaved, as a node receives them
         for u, msgs in users.items():
             if i < len(msgs):
-                got += [(t, serialize_message(m)) for t, m in multi.process("imu/data_raw", msgs[i], 0, u)]
-                want += [(f"/{u}/{t}", serialize_message(m)) for t, m in single[u].process("imu/data_raw", msgs[i], 0)]
-    got += [(t, serialize_message(m)) for t, m in multi.finish_user("bob")]
-    want += [(f"/bob/{t}", serialize_message(m)) for t, m in single["bob"].run_finish()]
+                got += [(t, canonical_cdr(m)) for t, m in multi.process("imu/data_raw", msgs[i], 0, u)]
+                want += [(f"/{u}/{t}", canonical_cdr(m)) for t, m in single[u].process("imu/data_raw", msgs[i], 0)]
+    got += [(t, canonical_cdr(m)) for t, m in multi.finish_user("bob")]
+    want += [(f"/bob/{t}", canonical_cdr(m)) for t, m in single["bob"].run_finish()]
     assert sum(t.endswith("pdr/odom") for t, _ in want) > 10
     assert got == want
     assert sorted(multi.users) == ["alice"]                 # bob's state dropped when it left
