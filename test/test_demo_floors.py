@@ -26,6 +26,7 @@ def test_the_default_demo_has_walkers_changing_floors_and_draws_them(tmp_path):
     assert changed and min(s for _, s in changed) < args.duration - 10, changed   # seen for a while
     params = (sim["dir"] / "params.yaml").read_text()
     assert "heights_m" in params                          # the estimators know the building's floors
+    assert "&id" not in params and "*id" not in params    # no yaml alias: rcl refuses the whole file
     from indoor_loc.bag.reader import bag_topics
     assert any(t.endswith("/baro/pressure") for t in bag_topics(sim["bag"]))
     png = plot_floors(tmp_path / "demo_floors.png", sim["bag"], sim["dir"], sim["walkers"])
