@@ -705,3 +705,32 @@ def test_a_fix_of_the_old_pass_arriving_after_the_jump_does_not_cost_the_new_pas
     st0, outs0, _ = _run(first_pass + late)
     a, b = _final_path(outs0), _final_path(outs)
     assert np.array_equal(a[0], b[0]) and np.allclose(a[1], b[1], atol=1e-6)
+
+
+def test_a_floor_change_while_standing_in_a_lift_is_published_at_once():
+    """The building's floors given (floors.heights_m): the walk stops, the user rides the lift up a
+    storey (no step, no fix): backend/<user>/pose carries the newest pose to the barometer sample at
+    which the floor snapped (it used to wait for the next graph pose, seconds after arrival)."""
+    from indoor_loc.baro.height import pressure_at_height_pa
+    from msg_adapters.pressure import pressure_to_msg
+    walk, stream = _fix_stream(44)
+    cut = stream[len(stream) // 2][0]
+    stream = [e for e in stream if e[0] <= cut]
+    ride0 = cut + 5 * SEC                               # 3.5 m up in 3.5 s
+    rng = np.random.default_rng(3)
+    t0 = stream[0][0]
+    for k in range(int((ride0 + 15 * SEC - t0) / SEC * 10)):
+        ts = t0 + k * SEC // 10
+        h = 1.1 + 3.5 * float(np.clip((ts - ride0) / (3.5 * SEC), 0, 1))
+        p = float(pressure_at_height_pa(h, 101000.0)) + rng.normal(0, 4)
+        stream.append((ts, "baro/pressure", pressure_to_msg(ts, "bob/imu_link", p)))
+    stream.sort(key=lambda e: (e[0], e[1]))
+    from indoor_loc.baro.floors import FloorFilterParams
+    st = BackendStage(BackendParams(wknn=WKNN, **FIX_KW, floors=FloorFilterParams(heights_m=[0.0, 3.5])))
+    live = []
+    for _, topic, msg in stream:
+        live += [(m.header.stamp.sec * SEC + m.header.stamp.nanosec, m.pose.pose.position.z)
+                 for t, m in st.process(topic, msg, 0, "bob") if t == "backend/bob/pose"]
+    assert all(z == 0.0 for t, z in live if t < ride0)
+    up = [t for t, z in live if z == 3.5]
+    assert up and ride0 < up[0] <= ride0 + int(4.5 * SEC), [(t - ride0) / SEC for t, _ in live[-5:]]

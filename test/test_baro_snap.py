@@ -100,3 +100,29 @@ def test_the_newest_smoothed_pose_takes_the_snapped_floor_during_a_transit():
             break
     assert tr.detector.in_transit and not tr.events and tr.z()[0] == 7.0
     assert tr.z_at(np.array([50 * S, 64 * S])).tolist() == [3.5, 7.0]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_second_ride_soon_after_the_first_snaps_from_the_new_floor(seed):
+    # the lift from floor 0 to 1 (arrive 63.5 s), 9 s out and back in, then on to floor 2 (arrive
+    # 76 s): the first change is reported during the stop; the second ride's snap measures from the
+    # new floor's height (it used to start from a base still following the old floor's, metres low)
+    t_ns, z, tr = _track_run([0, 60, 63.5, 72.5, 76, 140], [0, 0, 3.5, 3.5, 7.0, 7.0], 140.0, seed,
+                             start_z=0.0, spikes_per_min=0)
+    assert _z_at(t_ns, z, 63.5) == 3.5 and _z_at(t_ns, z, 72.0) == 3.5
+    assert _z_at(t_ns, z, 76.3) == 7.0 and _z_at(t_ns, z, 139.0) == 7.0
+    assert tr.detector.s.changes == 2
+
+
+def test_stairs_with_a_pause_snap_on_arrival():
+    # stairs from floor 0: 2.1 m up, 7 s on a landing (the detector ends its transit as a small level
+    # shift: 2.1 m < min_change_m), the last 1.4 m in 2.5 s (arrive 73.5 s; within 0.3 m of the floor
+    # from 73 s). The snap is not over at the shift: it snaps at 0.7 storey on the last ramp (it used
+    # to wait for a new transit 1 m above the landing: after the walker arrived). A noise-free
+    # barometer, so the times are exact.
+    quiet = dict(spikes_per_min=0, noise_hpa=0.0, quantum_hpa=0.0, drift_hpa_per_h=0.0, wave_hpa=0.0)
+    t_ns, z, tr = _track_run([0, 60, 64, 71, 73.5, 140], [0, 0, 2.1, 2.1, 3.5, 3.5], 140.0, 0, start_z=0.0,
+                             **quiet)
+    assert tr.detector.s.level_shifts == 1 and tr.detector.s.changes == 1
+    assert _z_at(t_ns, z, 70.9) == 0.0
+    assert _z_at(t_ns, z, 73.0) == 3.5 and _z_at(t_ns, z, 139.0) == 3.5

@@ -22,14 +22,17 @@ from msg_adapters.pressure import pressure_to_msg
 SEC = 1_000_000_000
 
 
-def _stream(t0: int) -> list[tuple[int, str, object]]:
+def _stream(t0: int, still_in_lift: bool = False) -> list[tuple[int, str, object]]:
     """A walker at the west end of floor 0 walks into the lift (2.5 m west), rides one storey up
-    (3.5 m in 3.5 s from 8 s) and stands; the barometer at 10 Hz, PDR hops every 0.32 s."""
+    (3.5 m in 3.5 s from 8 s) and stands; the barometer at 10 Hz, PDR hops every 0.32 s
+    (``still_in_lift``: none once in the lift, as a step detector standing still)."""
     rng = np.random.default_rng(5)
     out: list[tuple[int, str, object]] = [(t0, "fix", fix_to_msg(Fix(t0, np.array([1.0, 10.0]), np.eye(2) * 0.5)))]
     for k in range(1, 90):
         t = t0 + k * 320_000_000
         x = 1.0 - min(2.5, 0.32 * k * 1.2)
+        if still_in_lift and 1.0 - 0.32 * (k - 1) * 1.2 <= -1.5:
+            break
         out.append((t, "odom", odom_to_msg(t, "alice/odom", "alice/base_link", x - 1.0, 0.0, np.pi, np.eye(3) * 0.01,
                                            1.2 if x > -1.5 else 0.0, 0.0)))
     for k in range(0, 290):
@@ -70,5 +73,42 @@ def test_a_lift_ride_seen_by_the_barometer_moves_pf_pose_z_up_a_floor(ros_domain
             assert np.all(z[stamp < t0 + 8 * SEC] == 0.0), z             # floor 0 before the ride
             assert z[-1] == pytest.approx(3.5), (z, proc.output())        # floor 1 after it
             assert np.all(z[stamp > t0 + 20 * SEC] == pytest.approx(3.5))
+    finally:
+        proc.stop()
+
+
+@pytest.mark.timeout(240)      # above the sum of the condition deadlines, not an expected duration
+def test_a_lift_ride_without_steps_is_published_when_the_floor_snaps(ros_domain, tmp_path):
+    """No pdr/odom and no fix once the walker is in the lift: pf/pose on the floor above is
+    published at the barometer sample at which the floor snapped (it used to wait for a step)."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import FluidPressure
+
+    gf = save_graph(building_graph(make_tower_building()), tmp_path / "tower.graph.yaml")
+    proc = Peer([sys.executable, "-m", "indoor_loc.nodes.tll_pf_node", "--ros-args", "-r", "__ns:=/alice",
+                 "-p", f"graph_file:={gf}", "-p", "n_particles:=300", "-p", "monitor.enabled:=false"], env=child_env())
+    try:
+        with ros_node("probe") as (node, ex):
+            poses: list = []
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/pf/pose", poses.append,
+                                     QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                                                durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            pubs = {"odom": node.create_publisher(Odometry, "/alice/pdr/odom", qos_profile(Qos.RELIABLE)),
+                    "fix": node.create_publisher(PoseWithCovarianceStamped, "/alice/wifi/fix", qos_profile(Qos.RELIABLE)),
+                    "baro": node.create_publisher(FluidPressure, "/alice/baro/pressure", qos_profile(Qos.RELIABLE))}
+            assert spin_until(ex, lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60), proc.output()
+            t0 = 10 * SEC
+            stream = _stream(t0, still_in_lift=True)
+            assert max(t for t, kind, _ in stream if kind == "odom") < t0 + 3 * SEC
+            for _, kind, msg in stream:
+                pubs[kind].publish(msg)
+                spin_until(ex, lambda: False, 0.002)
+            assert spin_until(ex, lambda: any(p.pose.pose.position.z > 3.0 for p in poses), 60), proc.output()
+            stamp = np.array([p.header.stamp.sec * SEC + p.header.stamp.nanosec for p in poses])
+            z = np.array([p.pose.pose.position.z for p in poses])
+            assert np.all(z[stamp < t0 + 8 * SEC] == 0.0), z
+            up = stamp[np.isclose(z, 3.5)]
+            assert t0 + 8 * SEC < up[0] <= t0 + 12 * SEC, (stamp - t0) / SEC   # the ride ends at 11.5 s
     finally:
         proc.stop()

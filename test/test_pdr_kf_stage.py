@@ -318,3 +318,32 @@ def test_the_floor_follows_the_barometer_and_not_a_lone_fix(rng):
     path = [m for topic, m in stage.finish() if topic == "pdr_kf/path"][-1]
     pz = np.array([p.pose.position.z for p in path.poses])
     assert pz[0] == 0.0 and pz[-1] == 3.5
+
+
+def test_a_floor_change_while_standing_in_a_lift_is_published_at_once(rng):
+    """No step and no fix during a lift ride and after it: the floor the barometer sees change is
+    published in a pdr_kf/pose stamped at the barometer sample (it used to wait for the next step
+    or fix, seconds after the walker arrived)."""
+    from indoor_loc.baro.height import pressure_at_height_pa
+    from msg_adapters.pressure import pressure_to_msg
+    t, true_xy, odoms, fixes = _walk(rng, 20)
+    stage = PdrKfStage(params_from_dict(PdrKfStageParams, {"smooth_period_s": 0.0}))
+    sec = 1_000_000_000
+    ride0 = int(t[-1]) + 5 * sec                        # 3.5 m up in 3.5 s, 5 s after the last step
+    events = [(int(t[i]), "pdr/odom", od) for i, od in enumerate(odoms)]
+    events += [(int(t[i]) + 1000, "wifi/fix", fixes[i]) for i in fixes]
+    f9 = fix_from_msg(fixes[9])                         # one fix on floor 1: its height is known
+    events[len(odoms) + 3] = (f9.stamp_ns, "wifi/fix", fix_to_msg(Fix(f9.stamp_ns, f9.xy, f9.cov, z=3.5)))
+    for k in range(int((ride0 - int(t[0])) / sec * 10) + 150):
+        ts = int(t[0]) + k * sec // 10
+        h = 1.1 + 3.5 * float(np.clip((ts - ride0) / (3.5 * sec), 0, 1))
+        p = float(pressure_at_height_pa(h, 101000.0)) + rng.normal(0, 4)
+        events.append((ts, "baro/pressure", pressure_to_msg(ts, "u/imu_link", p)))
+    poses = []
+    for _, topic, msg in sorted(events, key=lambda e: (e[0], e[1])):
+        poses += [m for tp, m in stage.process(topic, msg, 0) if tp == "pdr_kf/pose"]
+    st = np.array([m.header.stamp.sec * sec + m.header.stamp.nanosec for m in poses])
+    z = np.array([m.pose.pose.position.z for m in poses])
+    assert np.all(z[st < ride0] == 0.0)
+    up = st[z == 3.5]
+    assert len(up) and ride0 < up[0] <= ride0 + int(4.5 * sec), (st - ride0) / sec   # arrival at +3.5 s

@@ -56,6 +56,10 @@ class FloorFilterParams:
     min_storey_m: float = P.field(2.5, "a barometer floor change adds a floor only this far (m) from every known "
                                        "floor (a partly seen transit must not invent a floor between two)")
     history_max: int = P.field(20000, "entries kept for smoothing (the newest)")
+    heights_m: list[float] = P.field([], "the building's floor heights (m in map: the radio map manifest's or the "
+                                         "graph file's floors); empty: learnt from the fixes' heights. Known floors "
+                                         "let the barometer snap the floor during a transit to a floor no fix has "
+                                         "named yet")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -69,6 +73,9 @@ class FloorFilterParams:
         P.require(self.new_floor_m > 0, n, "new_floor_m", "> 0", self.new_floor_m)
         P.require(self.min_storey_m > 0, n, "min_storey_m", "> 0", self.min_storey_m)
         P.require(self.history_max >= 1, n, "history_max", ">= 1", self.history_max)
+        h = np.asarray(self.heights_m, float).reshape(-1)
+        P.require(bool(np.all(np.isfinite(h))) and len(np.unique(h)) == len(h), n, "heights_m",
+                  "distinct finite heights", self.heights_m)
 
 
 class FloorFilter:
@@ -79,6 +86,8 @@ class FloorFilter:
         self.params = params or FloorFilterParams()
         self.params.validate()
         self.floor_z = np.sort(np.asarray(floor_z, float).reshape(-1))
+        if not len(self.floor_z):
+            self.floor_z = np.sort(np.asarray(self.params.heights_m, float).reshape(-1))
         self.map_floors = len(self.floor_z) > 0              # floors from a map: the barometer adds none
         self.learnt = np.zeros(len(self.floor_z), bool)      # floors placed by the barometer, not a fix or the map
         self.p = np.full(len(self.floor_z), 1.0 / max(len(self.floor_z), 1))

@@ -72,6 +72,7 @@ class FloorSnap:
         self._transit_base: float | None = None   # base at the start of this transit
         self._shift_base: float | None = None     # base at the start of the last transit
         self._ramp_ns = 0
+        self._changes = 0                    # detector changes seen (a new one: the base is its new level)
         self.snaps = 0                       # floors snapped (diagnostics)
         self.steps = 0                       # transits taken for pressure steps
 
@@ -88,13 +89,23 @@ class FloorSnap:
         heights (ascending), ``base_floor`` the floor now believed (the transit's start floor when a
         transit opens). Returns :attr:`floor`."""
         s, dp = det.s, det.params
-        if not det.in_transit and s.level_m is not None and np.isfinite(s.height_m):
+        if s.changes != self._changes:
+            # a reported floor change: the new floor's height is the detector's new level (following it
+            # from the old floor's at base_tau_s left the base metres off for the next transit)
+            self._changes = s.changes
+            if s.level_m is not None and np.isfinite(s.level_m):
+                self.base, self._base_ns = float(s.level_m), stamp_ns
+        # a small level shift the next transit may still continue (stairs with a pause: the detector
+        # merges them within merge_s): the transit is not over for the snap either
+        pending = (not det.in_transit and not self.step and self._transit_base is not None
+                   and s.shift_from_m is not None and stamp_ns - s.shift_ns <= int(dp.merge_s * 1e9))
+        if not det.in_transit and not pending and s.level_m is not None and np.isfinite(s.height_m):
             # the height of the floor, following the weather faster than the detector's level
             a = 1.0 if self.base is None or self._base_ns is None else \
                 min(1.0, (stamp_ns - self._base_ns) * 1e-9 / self.params.base_tau_s)
             self.base = s.height_m if self.base is None else self.base + a * (s.height_m - self.base)
             self._base_ns = stamp_ns
-        if (not self.params.enabled or not det.in_transit or s.level_m is None or base_floor is None
+        if (not self.params.enabled or not (det.in_transit or pending) or s.level_m is None or base_floor is None
                 or len(floor_z) < 2 or self.base is None):
             self._reset()
             return None

@@ -26,6 +26,7 @@ class FloorTrack:
         self.snap = FloorSnap(snap)
         self._snap_ns = 0                   # when the snapped floor last changed
         self.baro_samples = 0
+        self.moved = False                  # the last barometer sample changed floor_now()
         self.events: list[FloorChange] = []
 
     def _at(self, stamp_ns: int) -> int:
@@ -35,6 +36,7 @@ class FloorTrack:
     def baro(self, stamp_ns: int, pressure_pa: float) -> list[FloorChange]:
         """A pressure sample (Pa): the detector runs; its floor changes move the floor HMM."""
         self.baro_samples += 1
+        was = self.floor_now()
         events = self.detector.update(stamp_ns, pressure_pa)
         self.filter.baro_sample(stamp_ns)
         for ev in events:
@@ -44,6 +46,9 @@ class FloorTrack:
         self.snap.update(self.detector, self.filter.floor_z, self.filter.floor, stamp_ns)
         if self.snap.floor != before:
             self._snap_ns = stamp_ns
+        # the floor now changed on this sample (snapped, or a reported change): an estimator that
+        # publishes its pose only on steps and fixes publishes it now too (a walker standing in a lift)
+        self.moved = self.floor_now() != was and was is not None
         return events
 
     def floor_now(self) -> int | None:

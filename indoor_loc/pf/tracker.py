@@ -41,6 +41,7 @@ from scipy.stats import chi2
 from indoor_loc import params as P
 from indoor_loc.baro.detector import BaroParams, FloorChange
 from indoor_loc.baro.floors import FloorFilterParams
+from indoor_loc.baro.snap import FloorSnapParams
 from indoor_loc.baro.track import FloorTrack
 from indoor_loc.fusion.position_trust import fixes_agree
 from indoor_loc.fusion.linear_pdr import LinearPdrKf, LinearPdrParams
@@ -119,7 +120,8 @@ class GraphTracker:
 
     def __init__(self, graph: BuildingGraph, transitions: Transitions, params: PfParams | None = None, *,
                  rng: np.random.Generator, keep_history: bool = True, monitor: MonitorParams | None = None,
-                 floors: PfFloorParams | None = None, baro: BaroParams | None = None) -> None:
+                 floors: PfFloorParams | None = None, baro: BaroParams | None = None,
+                 snap: FloorSnapParams | None = None) -> None:
         self.pf = GraphParticleFilter(graph, transitions, params)
         self.floor_params = floors or PfFloorParams()
         self.floor_params.validate()
@@ -127,7 +129,7 @@ class GraphTracker:
         # prior): the floor the particles are expected on while the barometer reports
         fp = self.floor_params
         self.baro_track = FloorTrack(baro, FloorFilterParams(fix_wrong_min=fp.fix_floor_wrong_min),
-                                     floors_m=self.pf.floors.fz)
+                                     floors_m=self.pf.floors.fz, snap=snap)
         self.baro_det = self.baro_track.detector
         self._baro_floor: int | None = None
         self._baro_check_ns: int | None = None
@@ -435,6 +437,14 @@ class GraphTracker:
         step.scale = p.scale.copy()
         step.yaw_offset = p.yaw_offset.copy()
         step.z = self.pf.floors.z_of(p.link, p.pos) if self.pf.floors.n_floors > 1 else None
+
+    def current(self, stamp_ns: int) -> Estimate:
+        """The estimate now from the particles as they are, recorded nowhere (a pose published
+        between steps: the floor changed by the barometer)."""
+        xy = self.pf.xy()
+        floor, z, z_var = self.pf.estimate_floor()
+        xy_mean, cov, yaw = self.pf.estimate(xy, floor)
+        return Estimate(stamp_ns, xy_mean, cov, yaw, z, z_var, floor)
 
     def _record(self, stamp_ns: int, dist: float, heading: float, dt: float, update: bool = False) -> Estimate:
         xy = self.pf.xy()                   # once for the estimate and the history (the same particles)

@@ -69,6 +69,7 @@ import numpy as np
 from indoor_loc.params import field as pfield, group, require
 from indoor_loc.baro.detector import BaroParams
 from indoor_loc.baro.floors import FloorFilterParams
+from indoor_loc.baro.snap import FloorSnapParams
 from indoor_loc.baro.track import FloorTrack
 from indoor_loc.backend.graph import GraphParams, MultiUserGraph
 from indoor_loc.backend.wifi_map import survey_positions
@@ -135,6 +136,8 @@ class BackendParams(GraphParams):
     floors: FloorFilterParams = group(FloorFilterParams, "each user's floor from the fixes' floors and the "
                                                          "barometer (floors.switch_prob, ...)")
     baro: BaroParams = group(BaroParams, "barometer floor-change detector for baro/pressure (baro.hold_s, ...)")
+    snap: FloorSnapParams = group(FloorSnapParams, "the floor snapped to the barometric height during "
+                                                          "a transit (snap.hysteresis, snap.enabled, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -144,6 +147,7 @@ class BackendParams(GraphParams):
         self.odom.validate()
         self.floors.validate()
         self.baro.validate()
+        self.snap.validate()
         require(self.offline_order in ORDERS, n, "offline_order", f"one of {ORDERS}", self.offline_order)
         require(self.odom_step_length_m > 0, n, "odom_step_length_m", "> 0", self.odom_step_length_m)
         require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
@@ -285,12 +289,18 @@ class BackendStage(Stage):
     def _floor(self, user: str) -> FloorTrack:
         b = self._buffer(user)
         if b.floor is None:
-            b.floor = FloorTrack(self.params.baro, self.params.floors)
+            b.floor = FloorTrack(self.params.baro, self.params.floors, snap=self.params.snap)
         return b.floor
 
     def _on_baro(self, msg, recv_ns: int, user: str) -> list[Output]:
         ps = pressure_from_msg(msg)
-        self._floor(user).baro(ps.stamp_ns, ps.pressure_pa)
+        floor = self._floor(user)
+        floor.baro(ps.stamp_ns, ps.pressure_pa)
+        tr = self.graph.users.get(user)
+        if floor.moved and tr is not None and tr.poses:
+            # the floor changed with no step or fix to add a graph pose (standing in a lift): the
+            # newest pose, now, on the new floor
+            return [self._pose_output(user, now_ns=ps.stamp_ns)]
         return []
 
     def _push(self, user: str, stamp: int, kind: int, payload: Any) -> None:
@@ -533,15 +543,18 @@ class BackendStage(Stage):
         return self.graph.add_hop(user, start, od.stamp_ns, steps, od.yaw + b.yaw_offset) is not None
 
     # -- output ---------------------------------------------------------------------------------
-    def _pose_output(self, user: str) -> Output:
+    def _pose_output(self, user: str, now_ns: int | None = None) -> Output:
         tr = self.graph.users[user]
         i = tr.poses[-1]
         x = self.graph.poses.x[i]
         cov = self.graph.marginal_cov(i)
         cov_xy, yaw_var = (cov[:2, :2], float(cov[2, 2])) if cov is not None else (np.eye(2) * 1e2, 1e2)
         stamp = int(self.graph.poses.stamp[i])
+        z = float(self._floor(user).z_at([stamp])[0])
+        if now_ns is not None and now_ns > stamp:      # the newest pose carried to now_ns: the floor now
+            stamp, z = now_ns, self._floor(user).z()[0]
         msg = pose_to_msg(stamp, x[:2], float(x[2]), cov_xy, frame_id=self.params.frame_id,
-                          yaw_var=yaw_var, z=float(self._floor(user).z_at([stamp])[0]))
+                          yaw_var=yaw_var, z=z)
         return (BACKEND_POSE.format(user=user), msg)
 
     def _path_output(self, user: str) -> Output:

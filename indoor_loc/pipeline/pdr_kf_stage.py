@@ -38,6 +38,7 @@ from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import PdrOdomReader
 from indoor_loc.baro.detector import BaroParams
 from indoor_loc.baro.floors import FloorFilterParams
+from indoor_loc.baro.snap import FloorSnapParams
 from indoor_loc.baro.track import FloorTrack
 from msg_adapters.path import path_to_msg
 from msg_adapters.path_cdr import path_cdr
@@ -98,6 +99,8 @@ class PdrKfStageParams:
     floors: FloorFilterParams = group(FloorFilterParams, "the floor from the fixes' floors and the barometer "
                                                          "(floors.switch_prob, ...)")
     baro: BaroParams = group(BaroParams, "barometer floor-change detector for baro/pressure (baro.hold_s, ...)")
+    snap: FloorSnapParams = group(FloorSnapParams, "the floor snapped to the barometric height during "
+                                                          "a transit (snap.hysteresis, snap.enabled, ...)")
 
     def validate(self) -> None:
         n = type(self).__name__
@@ -121,6 +124,7 @@ class PdrKfStageParams:
         self.kf_params().validate()
         self.floors.validate()
         self.baro.validate()
+        self.snap.validate()
 
     def kf_params(self) -> LinearPdrParams:
         gate = self.gate_prob < 1.0
@@ -189,7 +193,7 @@ class PdrKfStage(Stage):
         self._last_yaw: float | None = None                 # yaw of the last odom applied (map frame if calibrated)
         self._seq = 0
         self._last_smooth_ns: int | None = None
-        self.floor = FloorTrack(params.baro, params.floors)
+        self.floor = FloorTrack(params.baro, params.floors, snap=params.snap)
 
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in time: the old pass ends as at the end of input (its smoothed path published),
@@ -315,6 +319,9 @@ class PdrKfStage(Stage):
     def _on_baro(self, msg, recv_ns: int) -> list[Output]:
         ps = pressure_from_msg(msg)
         self.floor.baro(ps.stamp_ns, ps.pressure_pa)
+        if self.floor.moved and self.kf is not None and ps.stamp_ns > self.kf.state.stamp_ns:
+            # the floor changed with no step or fix to carry it (standing in a lift): the pose now
+            return [("pdr_kf/pose", self._pose_msg(ps.stamp_ns))]
         return []
 
     def _apply_pending(self, due) -> list[Output]:

@@ -51,6 +51,7 @@ from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pose import fix_from_msg, pose_array_to_msg, pose_from_msg, pose_to_msg
 from msg_adapters.pose_cdr import pose_cdr
 from indoor_loc.baro.detector import BaroParams
+from indoor_loc.baro.snap import FloorSnapParams
 from indoor_loc.pf.filter import PfParams
 from indoor_loc.pf.floors import PfFloorParams
 from indoor_loc.pf.tracker import Estimate, GraphTracker, MonitorParams
@@ -144,6 +145,8 @@ class PfStageParams:
     floors: PfFloorParams = P.group(PfFloorParams, "floors on a multi-floor graph: the fixes' floors and the "
                                                    "barometer gate (floors.fix_floor, floors.baro_floor_wrong, ...)")
     baro: BaroParams = P.group(BaroParams, "barometer floor-change detector for baro/pressure (baro.hold_s, ...)")
+    snap: FloorSnapParams = P.group(FloorSnapParams, "the floor snapped to the barometric height during "
+                                                          "a transit (snap.hysteresis, snap.enabled, ...)")
     time: TimeParams = P.group(TimeParams, "which stamps are taken, clock jumps (indoor_loc/pipeline/time_policy.py)")
     motion_source: str = P.field("pdr", MOTION_DOC)
     odom: OdomIncrementParams = P.group(OdomIncrementParams, ODOM_GROUP_DOC)
@@ -174,6 +177,7 @@ class PfStageParams:
         self.monitor.validate()
         self.floors.validate()
         self.baro.validate()
+        self.snap.validate()
 
     def transition_params(self) -> TransitionParams:
         return TransitionParams(rule=self.rule, l_max_m=self.l_max_m, p_min=self.p_min, p_max=self.p_max)
@@ -293,7 +297,7 @@ class PfStage(Stage):
         p = self.params
         assert self.graph is not None
         return GraphTracker(self.graph, self.transitions, p.pf_params(), rng=np.random.default_rng(p.seed),
-                            monitor=p.monitor, floors=p.floors, baro=p.baro)
+                            monitor=p.monitor, floors=p.floors, baro=p.baro, snap=p.snap)
 
     def inputs(self) -> list[Port]:
         wifi = (Port("wifi/scan", "diagnostic_msgs/msg/DiagnosticArray", Qos.RELIABLE)
@@ -398,6 +402,10 @@ class PfStage(Stage):
         ps = pressure_from_msg(msg)
         outs = self._start(ps.stamp_ns)
         self.tracker.baro(ps.stamp_ns, ps.pressure_pa)
+        last = self.tracker.estimates[-1].stamp_ns if self.tracker.estimates else None
+        if self.tracker.baro_track.moved and self.tracker.pf.initialised and last is not None and ps.stamp_ns > last:
+            # the floor changed with no step or fix to carry it (standing in a lift): the pose now
+            outs += self._publish(self.tracker.current(ps.stamp_ns))
         return outs
 
     def _on_initialpose(self, msg, recv_ns: int) -> list[Output]:

@@ -24,6 +24,8 @@ true step count), ``OUT/params.yaml`` configuring every node for this run
 """
 from __future__ import annotations
 
+import copy
+
 import csv
 from pathlib import Path
 
@@ -193,19 +195,26 @@ def multi_floor(run: SimRun) -> bool:
 def node_params_flat(run: SimRun, radiomap_dir: Path, graph_file: Path) -> dict:
     """:func:`node_params` of a run on one floor."""
     mean_step = float(run.config.step_length_m[0])
+    # a multi-floor building's floor heights (the radio map's floors) for the Kalman filter and the
+    # back-end (tll_pf has them from the graph): the barometer snaps to a floor no fix named yet
+    fz = [float(z) for z in run.building.floor_z]
+    floors = {"floors": {"heights_m": fz}} if len(fz) > 1 else {}
+
+    def floors_copy() -> dict:            # one mapping per node: yaml would alias a shared one (rcl refuses)
+        return copy.deepcopy(floors)
     return {
         "/**/imu_node": {"ros__parameters": {
             "heading_source": "aekf",         # imu/data_raw + imu/mag: the AEKF gives the heading
             "step_length_m": round(mean_step, 3),
             "heading_offset_rad": 0.0}},      # the device's x axis points forward (REP 103)
         "/**/wifi_fix_node": {"ros__parameters": {"radiomap": str(radiomap_dir), "method": "wknn"}},
-        "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3)}},
+        "/**/pdr_kf_node": {"ros__parameters": {"step_length_m": round(mean_step, 3), **floors_copy()}},
         # the particle filter on the building graph (its TLL table is cached beside graph.yaml)
         "/**/tll_pf": {"ros__parameters": {"graph_file": str(graph_file)}},
         # the multi-user back-end (one node for every walker): the same survey, imu_node's step length
         "/**/backend_node": {"ros__parameters": {"radiomap": str(radiomap_dir),
                                                  "odom_step_length_m": round(mean_step, 3),
-                                                 "path_period_s": 10.0,
+                                                 "path_period_s": 10.0, **floors_copy(),
                                                  # walkers and robots: each user's own motion topic
                                                  **({"motion_source": "any"} if run.robots else {})}},
     } | robot_node_params(run.robots)
