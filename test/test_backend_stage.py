@@ -734,3 +734,33 @@ def test_a_floor_change_while_standing_in_a_lift_is_published_at_once():
     assert all(z == 0.0 for t, z in live if t < ride0)
     up = [t for t, z in live if z == 3.5]
     assert up and ride0 < up[0] <= ride0 + int(4.5 * SEC), [(t - ride0) / SEC for t, _ in live[-5:]]
+
+
+def test_pose_stamps_never_go_back_when_the_barometer_runs_ahead_of_the_odometry():
+    """Stairs climbed mid-walk, the pressure arriving 2 s ahead of the lagging step odometry: the pose
+    published at the floor change is the newest; the hops that come after it with older stamps do
+    not publish a pose back in time (each backend/<user>/pose stamp is later than the one before)."""
+    from indoor_loc.baro.floors import FloorFilterParams
+    from indoor_loc.baro.height import pressure_at_height_pa
+    from msg_adapters.pressure import pressure_to_msg
+    walk, stream = _fix_stream(44)
+    t0, t_end = stream[0][0], stream[-1][0]
+    climb0 = (t0 + t_end) // 2                          # 3.5 m up in 8 s
+    rng = np.random.default_rng(4)
+    arrivals = [(t, topic, msg) for t, topic, msg in stream]
+    for k in range(int((t_end - t0) / SEC * 10)):
+        ts = t0 + k * SEC // 10
+        h = 1.1 + 3.5 * float(np.clip((ts - climb0) / (8 * SEC), 0, 1))
+        p = float(pressure_at_height_pa(h, 101000.0)) + rng.normal(0, 4)
+        arrivals.append((ts - 2 * SEC, "baro/pressure", pressure_to_msg(ts, "bob/imu_link", p)))
+    arrivals.sort(key=lambda e: (e[0], e[1]))
+    st = BackendStage(BackendParams(wknn=WKNN, **FIX_KW, floors=FloorFilterParams(heights_m=[0.0, 3.5])))
+    stamps, zs = [], []
+    for _, topic, msg in arrivals:
+        for t, m in st.process(topic, msg, 0, "bob"):
+            if t == "backend/bob/pose":
+                stamps.append(m.header.stamp.sec * SEC + m.header.stamp.nanosec)
+                zs.append(m.pose.pose.position.z)
+    assert 3.5 in zs and len(stamps) > 20                   # the climb was published, and the walk
+    assert all(b > a for a, b in zip(stamps, stamps[1:])), [
+        (a - t0) / SEC for a, b in zip(stamps, stamps[1:]) if b <= a]

@@ -189,6 +189,7 @@ class _UserInput:
     motion: str | None = None                          # motion_source any: the user's motion topic
     new_frame: bool = False                            # its pdr/odom producer restarted: next pose is a frame's first
     yaw_offset: float = 0.0                            # added to pdr/odom yaws so a new frame makes no turn, rad
+    pose_ns: int | None = None                         # stamp of the newest backend/<user>/pose published
 
     def clock_ns(self) -> int | None:
         """The user's clock: its newest odometry stamp, or for a user without odometry its newest scan
@@ -300,7 +301,7 @@ class BackendStage(Stage):
         if floor.moved and tr is not None and tr.poses:
             # the floor changed with no step or fix to add a graph pose (standing in a lift): the
             # newest pose, now, on the new floor
-            return [self._pose_output(user, now_ns=ps.stamp_ns)]
+            return self._pose_outputs(user, now_ns=ps.stamp_ns)
         return []
 
     def _push(self, user: str, stamp: int, kind: int, payload: Any) -> None:
@@ -492,7 +493,7 @@ class BackendStage(Stage):
         self._give_up(b, everything)
         outs: list[Output] = []
         if new_pose:
-            outs.append(self._pose_output(user))
+            outs += self._pose_outputs(user)
             if p.path_period_s and b.taken_ns is not None and (
                     b.last_path_ns is None or b.taken_ns - b.last_path_ns >= p.path_period_s * 1e9):
                 b.last_path_ns = b.taken_ns
@@ -543,19 +544,30 @@ class BackendStage(Stage):
         return self.graph.add_hop(user, start, od.stamp_ns, steps, od.yaw + b.yaw_offset) is not None
 
     # -- output ---------------------------------------------------------------------------------
-    def _pose_output(self, user: str, now_ns: int | None = None) -> Output:
+    def _pose_outputs(self, user: str, now_ns: int | None = None, refined: bool = False) -> list[Output]:
+        """The user's newest graph pose as ``backend/<user>/pose`` (``now_ns``: carried to that later
+        time, on the floor then). Stamps never go back: a pose a floor change already published at a
+        later time (a lift ride seen by the barometer before the hops that lead to it) is not published
+        again at an older stamp; the next pose past it is. ``refined`` (the final optimisation's
+        estimate): published again at the newest stamp already published."""
         tr = self.graph.users[user]
         i = tr.poses[-1]
-        x = self.graph.poses.x[i]
-        cov = self.graph.marginal_cov(i)
-        cov_xy, yaw_var = (cov[:2, :2], float(cov[2, 2])) if cov is not None else (np.eye(2) * 1e2, 1e2)
         stamp = int(self.graph.poses.stamp[i])
         z = float(self._floor(user).z_at([stamp])[0])
         if now_ns is not None and now_ns > stamp:      # the newest pose carried to now_ns: the floor now
             stamp, z = now_ns, self._floor(user).z()[0]
+        b = self._buffer(user)
+        if refined and b.pose_ns is not None and stamp <= b.pose_ns:
+            stamp, z = b.pose_ns, self._floor(user).z()[0]
+        elif b.pose_ns is not None and stamp <= b.pose_ns:
+            return []
+        b.pose_ns = stamp
+        x = self.graph.poses.x[i]
+        cov = self.graph.marginal_cov(i)
+        cov_xy, yaw_var = (cov[:2, :2], float(cov[2, 2])) if cov is not None else (np.eye(2) * 1e2, 1e2)
         msg = pose_to_msg(stamp, x[:2], float(x[2]), cov_xy, frame_id=self.params.frame_id,
                           yaw_var=yaw_var, z=z)
-        return (BACKEND_POSE.format(user=user), msg)
+        return [(BACKEND_POSE.format(user=user), msg)]
 
     def _path_output(self, user: str) -> Output:
         st, x = self.graph.trajectory(user)
@@ -620,7 +632,7 @@ class BackendStage(Stage):
         for u in users:
             if deadline is not None and time.monotonic() > deadline:
                 break
-            outs.append(self._pose_output(u))
+            outs += self._pose_outputs(u, refined=True)
             posed += 1
         # every track's newest pose: a user restarted by a jump back may not have a pose on its new track yet
         end = int(self.graph.poses.view("stamp").max())
