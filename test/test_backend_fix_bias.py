@@ -1,10 +1,8 @@
 """The back-end's per-track fix bias (``GraphParams.fix_bias_std_m``): the fixes of one track share a
 2-D error state with a zero-mean prior, so the floor plan can move a whole track whose fixes all sit
 metres off (one bias prior) instead of fighting every fix; its Jacobian; nothing changes without it
-or without the plan; the importer writes it with the plan."""
+or without the plan (the importer writing it: test_backend_ms_import.py)."""
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -31,6 +31,7 @@ def test_importer_params_give_the_back_end_its_map_and_fixes(tmp_path):
     assert {k: params[k] for k in FIX_GRAPH_PARAMS} == FIX_GRAPH_PARAMS
     # the site has GeoJSON plans: they are the back-end's walkable factor
     assert Path(params["floor_plans"]) == out / "floors" and params["walkable_std_m"] > 0
+    assert params["fix_bias_std_m"] > 0                 # whole walks' fixes sit off together: one bias each
     bag = out / "B1" / "5f0000000000000000000002.mcap"
     run_offline([bag], tmp_path / "run.mcap", nodes=["imu", "wifi", "backend"], params=out / "params.yaml",
                 progress=False)

@@ -78,8 +78,9 @@ def floor_report(name: str, stamp: dict, meas: dict, root: Path) -> list[str]:
     for f in (stamp, meas):
         pos = make_positioner("powed", {}).fit(f["map"])
         fixes = locate_walks(pos, f["scans"])
-        xy = np.array([np.asarray(x.xy, float)[:2] if x.ok else [np.nan, np.nan] for x in fixes])
-        means.append(float(np.nanmean(np.linalg.norm(xy - f["truth"], axis=1))))
+        xy = np.array([np.asarray(x.xy, float)[:2] if x.ok else [np.nan, np.nan] for x in fixes]).reshape(-1, 2)
+        e = np.linalg.norm(xy - np.asarray(f["truth"]).reshape(-1, 2), axis=1)
+        means.append(float(np.nanmean(e)) if np.isfinite(e).any() else float("nan"))
         if f is stamp:
             kept = (fixes, xy)
     fixes, xy = kept
@@ -99,8 +100,9 @@ def floor_report(name: str, stamp: dict, meas: dict, root: Path) -> list[str]:
     out.append(f"### {name}: {sum(len(v) for v in walks.values())} located test scans\n")
     out.append(f"mean error, map and truth at the scan stamps: {means[0]:.2f} m; at the readings' measurement "
                f"time: {means[1]:.2f} m")
-    al = np.array([a for v in walks.values() for _, a, _, _ in v])
-    out.append(f"mean along-track error: {np.nanmean(al):+.2f} m (negative = behind the walker)\n")
+    al = np.array([a for v in walks.values() for _, a, _, _ in v], float)
+    al_mean = float(np.nanmean(al)) if np.isfinite(al).any() else float("nan")
+    out.append(f"mean along-track error: {al_mean:+.2f} m (negative = behind the walker)\n")
     out.append("| walk | scans | fix bias (m) | along-track (m) | true device offset (dB) | online offset (dB) |")
     out.append("|---|---|---|---|---|---|")
     for tid, v in walks.items():
@@ -115,8 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m indoor_loc.bench.fix_causes", description=__doc__.split("\n")[0])
     ap.add_argument("--data", default="../shared/datasets")
     ap.add_argument("--floors", default="B1,F7")
+    ap.add_argument("--site", default="", help="a site directory of the format (default DATA/ms_site2)")
     a = ap.parse_args(argv)
-    root = Path(a.data) / "ms_site2"
+    root = Path(a.site) if a.site else Path(a.data) / "ms_site2"
     floors = [f for f in a.floors.split(",") if f]
     stamp, meas = _load(root, floors, False), _load(root, floors, True)
     for name in floors:

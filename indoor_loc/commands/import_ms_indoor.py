@@ -20,7 +20,8 @@ or unique id prefixes; default all):
   length; tll_pf on its walk's floor graph, one ``/<floor>_<id>/tll_pf`` key per walk on a site of
   several floors; and, when the heading offset is set, the spread of the survey walks' offsets as
   every estimator's initial-heading prior: ``pdr_kf_node.heading_prior_std_rad``,
-  ``tll_pf.yaw_offset_sigma_rad``, ``backend_node.gauge_std_rad``);
+  ``tll_pf.yaw_offset_sigma_rad``, ``backend_node.gauge_std_rad``; with the plans the back-end's
+  walkable factor and per-walk fix bias, ``backend_node.walkable_std_m``/``fix_bias_std_m``);
 - ``OUT_DIR/floors/<floor>/graph.yaml`` — the floor's link graph from its GeoJSON plan
   (:mod:`indoor_loc.graph.floor_plan`: the skeleton of the walkable space reaching the survey
   waypoints, at the floor's height);
@@ -336,8 +337,12 @@ KF_CALIBRATED_HEADING = {"sigma_dtheta_rad": 0.05}
 BACKEND_CALIBRATED_HEADING = {"pdr_info": [25.0, 25.0, 400.0]}
 #: The back-end's walkable factor where the site has floor plans: a pose 1 m outside the walkable area
 #: costs as much as a 1 σ PDR error (indoor_loc/backend/walkable_term.py). Chosen on ms_site2's B1
-#: (bench fusion, the first 16 test walks); F3, F7 and F8 checked once.
-BACKEND_WALKABLE = {"walkable_std_m": 1.0}
+#: (bench fusion, the first 16 test walks); F3, F7 and F8 checked once. With it, the fixes' error shared
+#: along a walk (``fix_bias_std_m``: one bias per track with this prior std, m): radio-map error is
+#: spatially correlated, so whole walks' fixes sit metres off together (docs/fusion.md, round 3); the
+#: plan can then move a whole track at the cost of one prior. Chosen on ms_site2's B1 and F7 (3 m against
+#: 1.5 and 8), F3 and F8 checked once.
+BACKEND_WALKABLE = {"walkable_std_m": 1.0, "fix_bias_std_m": 3.0}
 
 #: The smallest heading prior std the importer writes (rad, ≈ 3°): a phone's rotation-vector yaw is
 #: never better, however well a few survey walks agree.
