@@ -26,8 +26,11 @@ def _harness() -> SimpleNamespace:
 
 
 def test_cpu_per_1000_messages_per_window():
-    t, cost = cpu_per_1000([(s["sim_h"], s["nodes"]["/a/tll_pf"]) for s in _samples(0.1)])
+    rows = [(s["sim_h"], s["nodes"]["/a/tll_pf"]) for s in _samples(0.1)]
+    t, cost = cpu_per_1000(rows)
     assert len(t) == 16 and abs(cost[0] - 0.525) < 1e-9 and abs(cost[-1] - (0.5 + 0.1 * 7.75)) < 1e-9
+    t, cost = cpu_per_1000(rows, min_msgs=10_000)          # windows spanning two samples each
+    assert len(t) == 8 and abs(t[0] - 0.5) < 1e-9 and abs(cost[0] - (0.525 + 0.575) / 2) < 1e-9
 
 
 def test_a_growing_per_message_cost_is_reported_and_a_flat_one_is_not():
@@ -37,3 +40,4 @@ def test_a_growing_per_message_cost_is_reported_and_a_flat_one_is_not():
     assert any("CPU per message grows" in b for b in grows["broken"]) and not flat["broken"]
     report = format_soak(_samples(0.1), {"/a/tll_pf": grows})
     assert "CPU s per 1000 msgs" in report and "MB/h (flat), CPU +0.1000 s per 1000 msgs per h (NOT flat)" in report
+    assert abs(grows["cpu_per_1000_per_h_2nd_half"] - 0.1) < 1e-6 and abs(flat["rss_mb_per_h_2nd_half"]) < 1e-9

@@ -151,9 +151,15 @@ def summarise(samples: list[dict[str, Any]], h: Harness, *, warmup_h: float) -> 
         cost = [1e3 * n["p50_ms"] for _, n in late if n["p50_ms"] is not None]
         cpu = [(t, n["cpu_s"]) for t, n in late]
         win_t, win_cost = cpu_per_1000(late)
+        # the second half of the run after warm-up: whether what grew at first (a bounded window
+        # filling: the particle smoother's 600 s, a path's 20 000 poses, the back-end's graph) levelled off
+        mid = (late[0][0] + late[-1][0]) / 2 if late else 0.0
+        half_cost = [(t, c) for t, c in zip(win_t, win_cost) if t >= mid]
         s = {"cpu_per_1000_start": win_cost[0] if win_cost else None,
              "cpu_per_1000_end": win_cost[-1] if win_cost else None,
              "cpu_per_1000_per_h": _slope(win_t, win_cost),
+             "cpu_per_1000_per_h_2nd_half": _slope([t for t, _ in half_cost], [c for _, c in half_cost]),
+             "rss_mb_per_h_2nd_half": _slope([t for t in rss_t if t >= mid], [r for t, r in zip(rss_t, rss) if t >= mid]),
              "rss_mb_start": rss[0] if rss else None, "rss_mb_end": rss[-1] if rss else None,
              "rss_mb_per_h": _slope(rss_t, rss), "cost_us_start": cost[0] if cost else None,
              "cost_us_end": cost[-1] if cost else None, "cost_us_per_h": _slope(cost_t, cost),
@@ -178,18 +184,28 @@ def summarise(samples: list[dict[str, Any]], h: Harness, *, warmup_h: float) -> 
     return out
 
 
-def cpu_per_1000(rows: list[tuple[float, dict[str, Any]]]) -> tuple[list[float], list[float]]:
-    """Per window between two samples of one node: its midpoint (simulated h) and the node's CPU
-    seconds per 1000 messages it took in that window (windows in which it took none are skipped).
-    Unlike ``process_ms.p50`` (wall clock, inflated by a loaded machine) this counts what the node
-    really spent, its timers and middleware included."""
+#: A cost window spans consecutive samples until the node took at least this many messages in it (a
+#: node taking a scan every 4 s would otherwise give a handful per 20 s sample: noise, not a cost).
+WINDOW_MIN_MSGS = 200
+
+
+def cpu_per_1000(rows: list[tuple[float, dict[str, Any]]], min_msgs: int = WINDOW_MIN_MSGS
+                 ) -> tuple[list[float], list[float]]:
+    """Per window of one node (consecutive samples spanning at least ``min_msgs`` messages taken): its
+    midpoint (simulated h) and the node's CPU seconds per 1000 messages it took in it. Unlike
+    ``process_ms.p50`` (wall clock, inflated by a loaded machine) this counts what the node really
+    spent, its timers and middleware included."""
     t: list[float] = []
     cost: list[float] = []
-    for (ta, a), (tb, b) in zip(rows, rows[1:]):
-        if a["cpu_s"] is None or b["cpu_s"] is None or b["taken"] <= a["taken"]:
+    rows = [(h, n) for h, n in rows if n["cpu_s"] is not None]
+    start = 0
+    for k in range(1, len(rows)):
+        (ta, a), (tb, b) = rows[start], rows[k]
+        if b["taken"] - a["taken"] < min_msgs:
             continue
         t.append((ta + tb) / 2)
         cost.append(1000.0 * (b["cpu_s"] - a["cpu_s"]) / (b["taken"] - a["taken"]))
+        start = k
     return t, cost
 
 
@@ -238,5 +254,7 @@ def format_soak(samples: list[dict[str, Any]], nodes: dict[str, Any]) -> str:
             abs(s["cpu_per_1000_per_h"]) * 8 <= 0.25 * s["cpu_per_1000_start"]
         lines.append(f"- {k}: RSS {f(s['rss_mb_per_h'], '+.2f')} MB/h ({'flat' if flat_rss else 'NOT flat'}), "
                      f"CPU {f(s['cpu_per_1000_per_h'], '+.4f')} s per 1000 msgs per h "
-                     f"({'flat' if flat_cpu else 'NOT flat'})")
+                     f"({'flat' if flat_cpu else 'NOT flat'}); second half: RSS "
+                     f"{f(s.get('rss_mb_per_h_2nd_half'), '+.2f')} MB/h, CPU "
+                     f"{f(s.get('cpu_per_1000_per_h_2nd_half'), '+.4f')} s per 1000 msgs per h")
     return "\n".join(lines)

@@ -28,6 +28,7 @@ from indoor_loc.contract import join_ns, msg_class
 from indoor_loc.nodes.liveness import InputWatch, SequenceGaps
 from indoor_loc.nodes.stuck import StuckGuard, Watched
 from indoor_loc.pipeline.stage import Port, namespace_of_user
+from msg_adapters.time import header_ns
 
 #: Raw sensor inputs (the fast path): at most this many messages are taken from the subscriptions
 #: per callback, so one burst cannot hold up timers and other inputs for long.
@@ -70,6 +71,7 @@ class InputsMixin(StuckGuard):
     _inputs: dict[str, Input]
     _gaps: dict[str, SequenceGaps]
     _raw: dict[str, Input]
+    _pubs: dict[str, Any]            # the node's own output publishers, by (relative) topic
     get_clock: Callable[[], Any]
     get_logger: Callable[[], Any]
     resolve_topic_name: Callable[..., str]
@@ -124,7 +126,23 @@ class InputsMixin(StuckGuard):
 
     # -- booking every message -----------------------------------------------------------------------------
     def _publisher_gids(self, topic: str) -> frozenset[bytes]:
-        return frozenset(bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic))
+        """The topic's publishers in the graph, this node's own left out: on an input the node also
+        publishes (``imu_node``'s ``imu/data``) its own stream is no upstream (see :meth:`_own_echo`)."""
+        me = (self.get_name(), self.get_namespace())
+        return frozenset(bytes(i.endpoint_gid) for i in self.get_publishers_info_by_topic(topic)
+                         if (i.node_name, i.node_namespace) != me)
+
+    def _own_echo(self, inp: Input, data: Any) -> bool:
+        """Whether a message on ``inp`` is this node's own output coming back (an input topic it also
+        publishes, recognised by stamp as the stage does: ``Stage.echoes``). It is dropped before it is
+        booked: not taken, not in the input's liveness, and its publisher's sequence numbers (this
+        node's own, which the subscription sees only in part) never count as losses of the input.
+        Booked, a node's echoes were counted as input taken beside what was sent to it, and a stalled
+        echo stream read as hundreds of thousands lost (the soak's over-count, docs/benchmarks/soak.md)."""
+        if self.stage.MULTI_USER or inp.topic not in self._pubs:
+            return False
+        stamp = _cdr_stamp_ns(data) if isinstance(data, (bytes, bytearray)) else header_ns(data)
+        return bool(stamp) and self.stage.echoes(inp.topic, stamp)
 
     def _book(self, inp: Input, info: Any, *, probe: bool = False) -> int | None:
         """Count one message taken (liveness, sequence gaps, reception time); returns the node's
@@ -151,6 +169,8 @@ class InputsMixin(StuckGuard):
 
     def _on_message(self, inp: Input, data: Any, info: Any, *, probe: bool = False) -> None:
         """One message (CDR bytes, or a message already deserialised) for the stage."""
+        if self._own_echo(inp, data):
+            return
         now_ns = self._book(inp, info, probe=probe)
         if now_ns is None:
             return
@@ -183,7 +203,9 @@ class InputsMixin(StuckGuard):
 
     def _received(self, inp: Input, data: bytes, info: Any, *, probe: bool = False) -> Booked | None:
         """Book one raw message (:meth:`_book`); returns ``(header stamp ns, node-clock receive ns,
-        data)``, None for one already processed."""
+        data)``, None for one already processed or the node's own output coming back."""
+        if self._own_echo(inp, data):
+            return None
         now_ns = self._book(inp, info, probe=probe)
         return None if now_ns is None else (_cdr_stamp_ns(data), now_ns, data)
 
