@@ -304,9 +304,9 @@ class PdrKfStage(Stage):
         """Restart the filter at a pose with its covariance (as at a first fix; the segment before is
         final). Stamp 0 (a command) is taken as the newest hop's; fixes older than it are dropped."""
         fix = initial_pose_from_msg(msg, frame_id=self.params.frame_id)
-        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst
         check_pose_current(fix.stamp_ns, self._newest_fix_ns, self._last_odom_ns,   # superseded_pose, pose_ahead
                            self.params.time.max_future_s)
+        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst (a pose refused above is no command)
         cov, floored = floor_cov(fix.cov, self.params.pose_sigma_min_m)
         self.floored += int(floored)
         stamp = fix.stamp_ns or (self._last_odom_ns or 0)

@@ -412,9 +412,9 @@ class PfStage(Stage):
         ps = pose_from_msg(msg)
         if self.map_box is not None:
             self.map_box.check("initialpose", ps.xy)
-        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst
         check_pose_current(ps.stamp_ns, self._newest_fix_ns,                 # superseded_pose, pose_ahead
                            self._last_odom_ns if self.graph is not None else None, self.params.time.max_future_s)
+        self._pose_rate.check(recv_ns, self.set_pose_call)   # pose_burst (a pose refused above is no command)
         outs = self._start(ps.stamp_ns)
         cov, floored = floor_cov(ps.cov_xy, self.params.pose_sigma_min_m)   # (a zero covariance: the floor)
         self.floored += int(floored)
