@@ -473,8 +473,8 @@ class BackendStage(Stage):
         """The user's newest graph pose as ``backend/<user>/pose`` (``now_ns``: carried to that later
         time, on the floor then). Stamps never go back: a pose a floor change already published at a
         later time (a lift ride seen by the barometer before the hops that lead to it) is not published
-        again at an older stamp; the next pose past it is. ``refined`` (the final optimisation's
-        estimate): published again at the newest stamp already published."""
+        again at an older stamp; the next pose past it is (a pose corrected at the same stamp, by a fix
+        there, is). ``refined`` (the final optimisation's estimate): at the newest stamp published."""
         tr = self.graph.users[user]
         i = tr.poses[-1]
         stamp = int(self.graph.poses.stamp[i])
@@ -482,10 +482,10 @@ class BackendStage(Stage):
         if now_ns is not None and now_ns > stamp:      # the newest pose carried to now_ns: the floor now
             stamp, z = now_ns, self._floor(user).z()[0]
         b = self._buffer(user)
-        if refined and b.pose_ns is not None and stamp <= b.pose_ns:
+        if b.pose_ns is not None and stamp < b.pose_ns:
+            if not refined:
+                return []
             stamp, z = b.pose_ns, self._floor(user).z()[0]
-        elif b.pose_ns is not None and stamp <= b.pose_ns:
-            return []
         b.pose_ns = stamp
         x = self.graph.poses.x[i]
         cov = self.graph.marginal_cov(i)
