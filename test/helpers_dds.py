@@ -40,6 +40,24 @@ def ros_node(name: str, namespace: str = "", **node_kwargs) -> Iterator[tuple[No
         ctx.try_shutdown()
 
 
+def follow_diagnostics(mon: Node, name: str) -> tuple[list[dict[str, str]], Callable[[str], str]]:
+    """Follow ``/diagnostics`` for the status ``name`` (``/rs/pdr_kf_node``): every values mapping
+    received, in order, and ``value(key)`` of the newest ('' before any, or for a key it lacks)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from indoor_loc.contract import Qos
+    from indoor_loc.nodes.qos import qos_profile
+    from msg_adapters.diagnostics import diagnostics_from_msg
+    got: list[dict[str, str]] = []
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        d = diagnostics_from_msg(msg).get(name)
+        if d is not None:
+            got.append(d.values)
+    mon.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
+    return got, lambda key: got[-1].get(key, "") if got else ""
+
+
 def spin_until(ex: SingleThreadedExecutor, cond: Callable[[], bool], timeout: float) -> bool:
     """Spin ``ex`` until ``cond()`` is true or ``timeout`` s pass; returns ``cond()``."""
     deadline = time.monotonic() + timeout

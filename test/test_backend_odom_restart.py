@@ -10,15 +10,11 @@ import sys
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.serialization import serialize_message
 
-from helpers_dds import PEERS, Peer, child_env, python_peer, ros_node, spin_until
-from indoor_loc.contract import Qos
+from helpers_dds import PEERS, Peer, child_env, follow_diagnostics, python_peer, ros_node, spin_until
 from indoor_loc.measurements import Fix
-from indoor_loc.nodes.qos import qos_profile
 from indoor_loc.pipeline.backend_stage import BackendParams, BackendStage
-from msg_adapters.diagnostics import diagnostics_from_msg
 from msg_adapters.odom import odom_to_msg
 from msg_adapters.pose import fix_to_msg, pose_from_msg
 
@@ -107,16 +103,7 @@ def test_live_backend_node_takes_a_restarted_producers_odometry_at_once(ros_doma
     again = None
     try:
         with ros_node("monitor") as (mon, ex):
-            got: list = []
-
-            def on_diag(msg: DiagnosticArray) -> None:
-                d = diagnostics_from_msg(msg).get("/backend_node")
-                if d is not None:
-                    got.append(d.values)
-            mon.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
-
-            def value(key: str) -> str:
-                return got[-1].get(key, "") if got else ""
+            got, value = follow_diagnostics(mon, "/backend_node")
             assert spin_until(ex, lambda: value("in.rs/pdr/odom.count") == str(len(first)), 150), \
                 (got[-1:], node.output()[-2000:])
             assert sender.proc.wait(timeout=20) == 0

@@ -9,16 +9,12 @@ import sys
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.serialization import serialize_message
 
-from helpers_dds import PEERS, Peer, child_env, python_peer, ros_node, spin_until
-from indoor_loc.contract import Qos
+from helpers_dds import PEERS, Peer, child_env, follow_diagnostics, python_peer, ros_node, spin_until
 from indoor_loc.nodes.liveness import InputWatch
-from indoor_loc.nodes.qos import qos_profile
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.pdr_kf_stage import PdrKfStage, PdrKfStageParams
-from msg_adapters.diagnostics import diagnostics_from_msg
 from msg_adapters.odom import odom_to_msg
 
 sys.path.insert(0, str(PEERS))
@@ -79,16 +75,7 @@ def test_live_pdr_kf_node_takes_a_restarted_producers_odometry_at_once(ros_domai
     again = None
     try:
         with ros_node("monitor") as (mon, ex):
-            got: list = []
-
-            def on_diag(msg: DiagnosticArray) -> None:
-                d = diagnostics_from_msg(msg).get("/rs/pdr_kf_node")
-                if d is not None:
-                    got.append(d.values)
-            mon.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos_profile(Qos.RELIABLE))
-
-            def value(key: str) -> str:
-                return got[-1].get(key, "") if got else ""
+            got, value = follow_diagnostics(mon, "/rs/pdr_kf_node")
             assert spin_until(ex, lambda: value("in.pdr/odom.count") == str(len(first)), 150), \
                 (got[-1:], node.output()[-2000:])
             assert sender.proc.wait(timeout=20) == 0
