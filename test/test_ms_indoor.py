@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from indoor_loc.errors import ConfigError, DatasetError
-from indoor_loc.datasets.ms_indoor import (floor_level, read_trace, scans_with_truth, site_floors,
-                                           split_map_test)
+from indoor_loc.datasets.ms_indoor import read_trace, scans_with_truth, split_map_test
+from indoor_loc.datasets.ms_indoor_site import floor_level, site_floors
 
 SITE = Path(__file__).parent / "data" / "ms_site"
 F1 = SITE / "F1" / "path_data_files" / "5f0000000000000000000001.txt"

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from indoor_loc.datasets.ms_indoor import (floor_levels, parse_floor_levels, read_site, read_trace,
-                                           scans_with_truth)
+from indoor_loc.datasets.ms_indoor import read_trace, scans_with_truth
+from indoor_loc.datasets.ms_indoor_site import floor_levels, parse_floor_levels, read_site
 from indoor_loc.errors import ConfigError
 
 T0 = 1574240200000
@@ -171,7 +171,7 @@ def _walk(path: Path, floor: str, floor_ix: int, k: int, rng, *, waypoints: int 
 def test_geojson_extent_in_metres_and_malformed_plans(tmp_path):
     """A lon/lat plan's extent in metres (the 60 × 40 m outline); a plan of no usable coordinates,
     whatever its shape, is a MapError (read_site notes it), never another exception."""
-    from indoor_loc.datasets.ms_indoor import geojson_extent_m
+    from indoor_loc.datasets.ms_indoor_site import geojson_extent_m
     from indoor_loc.errors import MapError
     p = tmp_path / "geojson_map.json"
     p.write_text(json.dumps(_plan(True)))
@@ -503,7 +503,7 @@ def test_ms_site2_rewritten_with_the_quirks_reads_back_record_for_record(tmp_pat
 
     from conftest import dataset
     from ms_quirks import JUNK, rewrite
-    from indoor_loc.datasets.ms_indoor import list_traces
+    from indoor_loc.datasets.ms_indoor_site import list_traces
     src = dataset("ms_site2")
     joined = rewrite(src, tmp_path / "q", floors={"F8": "Roof top"}, stride=3)    # 8 walks, every quirk
     assert joined > 1000

@@ -7,7 +7,8 @@ import numpy as np
 
 from conftest import dataset
 from indoor_loc.bench.wifi_ms import PLAIN, errors
-from indoor_loc.datasets.ms_indoor import read_trace, scans_with_truth, site_floors, split_map_test
+from indoor_loc.datasets.ms_indoor import read_trace, scans_with_truth, split_map_test
+from indoor_loc.datasets.ms_indoor_site import site_floors
 from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 

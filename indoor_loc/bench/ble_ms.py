@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    from indoor_loc.datasets.ms_indoor import read_site
+    from indoor_loc.datasets.ms_indoor_site import read_site
     from indoor_loc.errors import ConfigError, MapError
     from indoor_loc.wifi.walkable import plan_walkable
     root = Path(args.data) / "ms_site2"

@@ -23,7 +23,7 @@ Tables, all methods on the same scans in one run:
 4. map sizes.
 Any site (``--site SITE_DIR``, the layout ``indoor-loc import ms-indoor`` reads): the same tables over the
 floors found there, the split over each floor's walks with two or more waypoints; floors' storey indices from
-their names (:func:`indoor_loc.datasets.ms_indoor.floor_levels`) or ``--floor-levels NAME=LEVEL,...``;
+their names (:func:`indoor_loc.datasets.ms_indoor_site.floor_levels`) or ``--floor-levels NAME=LEVEL,...``;
 ``--floors`` selects floors. Every floor of a site other than ms_site2 is held out. On ms_site2 the
 output is the ``--dataset ms_site2`` one.
 Baseline (the dataset README's): RMS of RSS differences over shared BSSIDs, candidates sharing more
@@ -135,11 +135,12 @@ def load_site(root: Path, *, levels: dict[str, float] | None = None, only: list[
     scans, truth (N, 2), level, z, walkable area, site id. The documented split runs over the floor's
     walks with two or more waypoints (a walk with fewer has no span of truth). A floor without survey scans is
     left out; one without test scans keeps only its map (it joins the pooled map of the floor detection).
-    ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor.floor_levels`),
-    ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor.read_site`);
+    ``levels`` override the floors' storey indices (:func:`indoor_loc.datasets.ms_indoor_site.floor_levels`),
+    ``only`` selects floors by name, ``metadata`` holds plan files (:func:`indoor_loc.datasets.ms_indoor_site.read_site`);
     what was left out or guessed is appended to ``notes``."""
-    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, read_site, scans_with_truth,
-                                               split_map_test, trace_id_of)
+    from indoor_loc.datasets.ms_indoor import (STOREY_HEIGHT_M, has_truth_span, scans_with_truth, split_map_test,
+                                               trace_id_of)
+    from indoor_loc.datasets.ms_indoor_site import read_site
     from indoor_loc.errors import ConfigError, MapError
     notes = [] if notes is None else notes
     site = read_site(root, levels=levels, metadata=metadata)
@@ -278,7 +279,7 @@ _COUNT = ("no", "one", "two", "three", "four", "five", "six", "seven", "eight", 
 
 
 def run(args) -> int:
-    from indoor_loc.datasets.ms_indoor import parse_floor_levels
+    from indoor_loc.datasets.ms_indoor_site import parse_floor_levels
     from indoor_loc.errors import ConfigError, DatasetError
     data = Path(getattr(args, "data", "../shared/datasets"))
     site_arg = getattr(args, "site", None)

@@ -28,7 +28,7 @@ or unique id prefixes; default all):
   ``OUT_DIR/import_report.md`` — per-walk counts and what was odd.
 
 Floor heights: ``z = storey index × --storey-height-m`` (default 5 m). The index comes from the floor's
-name (:func:`indoor_loc.datasets.ms_indoor.floor_levels`: B1 → −1, F1/1F/L1/G → 0, F3 → 2, M → 0.5,
+name (:func:`indoor_loc.datasets.ms_indoor_site.floor_levels`: B1 → −1, F1/1F/L1/G → 0, F3 → 2, M → 0.5,
 LG<n>, then B<n>, then P<n> stacking below ground), ``--floor-levels NAME=LEVEL,...`` overriding it; a
 name of no known convention gets the next index above the highest floor, named in the report's
 "Floors" table. Walks with fewer than two waypoints have no truth: they are written and positioned but take no
@@ -102,8 +102,9 @@ def _select(text: str, ids: list[str], what: str) -> list[str]:
 
 
 def import_ms_indoor(args: argparse.Namespace) -> int:
-    from indoor_loc.datasets.ms_indoor import (has_truth_span, heading_offsets, parse_floor_levels, read_site,
-                                               read_trace, scans_with_truth, split_map_test, trace_id_of)
+    from indoor_loc.datasets.ms_indoor import (has_truth_span, heading_offsets, read_trace, scans_with_truth,
+                                               split_map_test, trace_id_of)
+    from indoor_loc.datasets.ms_indoor_site import parse_floor_levels, read_site
     from indoor_loc.datasets.ms_indoor_bags import trace_bag_counts, walk_namespace, write_trace_bag
 
     if not (args.storey_height_m > 0):
