@@ -53,7 +53,7 @@ def test_summary_figures():
 def test_carpet_walk_holds_at_a_quarter_of_its_amplitude():
     """Pixel, in hand, carpet (development walk): the count holds when the |a| variation is scaled to
     25 % (a softer floor / smoother gait); the former 0.5 m/s² amplitude gate lost most of it."""
-    from indoor_loc.imu.stepometer import StepometerParams
+    from indoor_loc.imu.stepometer_types import StepometerParams
     w = load_dev_walk(dataset("oxford_steps/optimisation_dev") / "Pixel_Jamie_Carpet_InHand_3")
     mag = np.linalg.norm(w.acc, axis=1)
     g = mag.mean()

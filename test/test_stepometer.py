@@ -10,9 +10,10 @@ from conftest import dataset
 from indoor_loc.errors import ConfigError, InvalidInputError
 from indoor_loc.imu.pdr import HeadingHistory, Pdr, PdrParams, pdr_batch
 from indoor_loc.measurements import pdr_intervals
-from indoor_loc.imu.stepometer import (ACF_LAG_TOL, CANDIDATE_STEP_HZ, Stepometer, StepometerParams, _Design,
-                                       _filtfilt, _lowpass_design, amplitude_spectrum, analyse_windows, harmonic_score,
-                                       normalised_autocorr, power_spectrum, stepometer_batch, total_steps)
+from indoor_loc.imu.stepometer import Stepometer, filtfilt, lowpass_design, stepometer_batch, total_steps
+from indoor_loc.imu.step_spectrum import (ACF_LAG_TOL, CANDIDATE_STEP_HZ, WindowDesign, amplitude_spectrum,
+                                          analyse_windows, harmonic_score, normalised_autocorr, power_spectrum)
+from indoor_loc.imu.stepometer_types import StepometerParams
 from indoor_loc.params import params_from_dict
 
 G = 9.81
@@ -40,7 +41,7 @@ def walk_signal(rng, *, cadence_hz=1.8, rate_hz=100.0, duration_s=60.0, jitter=0
 # ---------------------------------------------------------------------------------------------
 def test_amplitude_spectrum_matches_plain_fft(rng):
     p = StepometerParams()
-    d = _Design.make(p, 100.0)
+    d = WindowDesign.make(p, 100.0)
     w = rng.normal(G, 1.0, size=(3, d.n_w))
     ours = amplitude_spectrum(w, d)
     for i in range(3):
@@ -58,7 +59,7 @@ def test_blocked_power_spectrum_and_fast_autocorr_equal_the_direct_formulation(r
     plain formulation gives (full-length |rfft|², autocorrelation zero-padded to exactly 2 n_w; the fast one
     holds the lags the analysis reads), on a
     number of windows that is not a multiple of the FFT block."""
-    d = _Design.make(StepometerParams(), rate_hz)
+    d = WindowDesign.make(StepometerParams(), rate_hz)
     n = 37
     t = np.arange(d.n_w) / rate_hz
     w = G + 2.0 * np.sin(2 * np.pi * 1.8 * t)[None, :] + rng.normal(0.0, 0.5, size=(n, d.n_w))
@@ -85,7 +86,7 @@ def test_blocked_power_spectrum_and_fast_autocorr_equal_the_direct_formulation(r
 
 def test_harmonic_score_matches_explicit_sum(rng):
     p = StepometerParams()
-    d = _Design.make(p, 100.0)
+    d = WindowDesign.make(p, 100.0)
     power = amplitude_spectrum(rng.normal(G, 1.0, size=(2, d.n_w)), d) ** 2
     score = harmonic_score(power, d)
     freqs = np.arange(power.shape[1]) * d.fs / d.n_fft
@@ -101,7 +102,7 @@ def test_refined_frequency_beats_the_plain_fft_bin(f_true, rng):
     """A pure step tone: the refined estimate is within 0.01 Hz; plain np.fft's largest bin of the
     same window is only good to half a bin (0.13 Hz at 3.84 s)."""
     p = StepometerParams()
-    d = _Design.make(p, 100.0)
+    d = WindowDesign.make(p, 100.0)
     t = np.arange(d.n_w) / 100.0
     x = G + 1.5 * np.sin(2 * np.pi * f_true * t + 0.7) + 0.02 * rng.standard_normal(d.n_w)
     est = analyse_windows(x[None, :], d, p)[0]
@@ -115,7 +116,7 @@ def test_refined_frequency_beats_the_plain_fft_bin(f_true, rng):
 def test_stride_dominated_spectrum_counts_the_cadence(rng):
     """Phone on one leg: the largest peak is the stride (f/2) and 3f/2; the step frequency is f."""
     p = StepometerParams()
-    d = _Design.make(p, 100.0)
+    d = WindowDesign.make(p, 100.0)
     t = np.arange(d.n_w) / 100.0
     f = 1.75
     x = (G + 3.0 * np.sin(np.pi * f * t) + 2.5 * np.sin(3 * np.pi * f * t + 0.4) + 1.0 * np.sin(2 * np.pi * f * t)
@@ -624,8 +625,8 @@ def test_filtfilt_with_cached_initial_conditions_is_scipys_sosfiltfilt(rate_hz, 
     """The bridged span's zero-phase low-pass: scipy's ``sosfiltfilt`` bit for bit, from the shortest
     signal it takes (one sample more than the odd extension) up."""
     from scipy.signal import sosfiltfilt
-    lp = _lowpass_design(4, min(3.0, 0.45 * rate_hz), rate_hz)
+    lp = lowpass_design(4, min(3.0, 0.45 * rate_hz), rate_hz)
     assert lp.pad == 15
     for n in (lp.pad + 1, lp.pad + 2, 64, 1000):
         x = rng.standard_normal(n) + 5.0
-        assert _filtfilt(lp, x).tobytes() == sosfiltfilt(lp.sos.copy(), x).tobytes()
+        assert filtfilt(lp, x).tobytes() == sosfiltfilt(lp.sos.copy(), x).tobytes()

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from indoor_loc.imu.stepometer import _ANALYSIS_BLOCK, Stepometer, StepometerParams, _Design, analyse_windows
+from indoor_loc.imu.stepometer import Stepometer
+from indoor_loc.imu.step_spectrum import _ANALYSIS_BLOCK, WindowDesign, analyse_windows
+from indoor_loc.imu.stepometer_types import StepometerParams
 from test_stepometer import walk_signal, walk_turn_walk
 
 
@@ -67,7 +69,7 @@ def _key(hops):
 def test_batched_window_analysis_equals_one_window_at_a_time(rng):
     """analyse_windows on a block of windows gives each row exactly what it gives alone (more rows
     than it analyses together, so a block boundary is crossed)."""
-    d = _Design.make(StepometerParams(), 100.0)
+    d = WindowDesign.make(StepometerParams(), 100.0)
     stamps, acc = walk_signal(rng, duration_s=30.0)
     mag = np.linalg.norm(acc, axis=1)
     wins = np.lib.stride_tricks.sliding_window_view(mag, d.n_w)[:: d.n_h]

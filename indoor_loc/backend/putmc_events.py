@@ -15,7 +15,8 @@ import numpy as np
 
 from indoor_loc.datasets.putmc import PUTMC_MAP_YAW_RAD, Walk, map_yaw
 from indoor_loc.backend.factors import wrap
-from indoor_loc.imu.stepometer import Stepometer, StepometerParams
+from indoor_loc.imu.stepometer import Stepometer
+from indoor_loc.imu.stepometer_types import StepometerParams
 from indoor_loc.wifi.types import WifiScan
 
 #: The back-end configuration ``indoor-loc import putmc`` writes (``backend_node`` in params.yaml): the

@@ -23,7 +23,8 @@ import numpy as np
 
 from indoor_loc.bench import broad
 from indoor_loc.bench.steps_baseline import peak_steps
-from indoor_loc.imu.stepometer import Stepometer, StepometerParams, stepometer_batch, total_steps
+from indoor_loc.imu.stepometer import Stepometer, stepometer_batch, total_steps
+from indoor_loc.imu.stepometer_types import StepometerParams
 
 PAPER_WINDOW = StepometerParams(window_s=1.28, hop_s=1.28, harmonics=1, min_autocorr=-1.0,
                                 min_std_m_s2=0.0, search_margin=1.0)

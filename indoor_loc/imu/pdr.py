@@ -21,7 +21,7 @@ end, the position advances by ``d_i = l_s n_i`` metres along the **mean heading 
   variance ``d_i² · min(σ_ψ², 1)`` rotated into x, y (hops treated as independent), so it grows with
   the distance walked and with the heading uncertainty.
 - step confidence: a hop the stepometer is unsure of (a moving but not periodic window, see
-  :class:`indoor_loc.imu.stepometer.StepHop`) carries a count standard deviation ``σ_n`` (steps);
+  :class:`indoor_loc.imu.stepometer_types.StepHop`) carries a count standard deviation ``σ_n`` (steps);
   it adds ``(step_length_m · σ_n)²`` to that hop's along-track variance (so the decoded interval's
   ``distance_var`` carries it), and ``twist.covariance[0]`` (variance of ``twist.linear.x``) is the
   hop's walking-speed variance ``((step_length_rel_std · d_i)² + (step_length_m · σ_n)²) / Δt²``

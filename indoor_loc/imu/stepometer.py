@@ -32,441 +32,22 @@ stride from the step harmonics; a 3.84 s window (768 samples at 200 Hz) with a 0
 """
 from __future__ import annotations
 
-import dataclasses
-import functools
 import math
-from dataclasses import dataclass, field as dc_field
-from typing import NamedTuple, Sequence
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from numpy.lib.stride_tricks import sliding_window_view
-from scipy.fft import next_fast_len
-from scipy.signal import butter, find_peaks, sosfilt, sosfilt_zi
-from scipy.sparse import csr_array
+from scipy.signal import find_peaks
 
 from indoor_loc.errors import InvalidInputError
-from indoor_loc.params import field, require
-
-#: Resolution of the candidate step-frequency grid before parabolic refinement, Hz.
-CANDIDATE_STEP_HZ = 0.005
-#: Half width of the stride-lag search for the periodicity check, relative to ``2/f``.
-ACF_LAG_TOL = 0.15
-
-
-@dataclass(frozen=True)
-class StepometerParams:
-    """Parameters of :class:`Stepometer` (seconds, Hz, m/s²)."""
-
-    window_s: float = field(3.84, "analysis window length, s (768 samples at 200 Hz; the paper's "
-                                  "256 samples at 200 Hz = 1.28 s)")
-    hop_s: float = field(0.32, "time between window evaluations = duration of one counted hop, s")
-    f_min_hz: float = field(1.3, "lowest step frequency counted as walking, Hz")
-    f_max_hz: float = field(2.45, "highest step frequency counted as walking, Hz (brisk walking and "
-                                    "short turning steps reach 2.3-2.4 Hz)")
-    harmonics: int = field(8, "stride harmonics k f/2, k = 1..H, summed in the harmonic spectrum "
-                              "(H = 8 reaches 4x the cadence); 1 = plain largest peak in the band")
-    odd_harmonic_weight: float = field(0.5, "weight of the odd stride harmonics (f/2, 3f/2, ...) "
-                                            "relative to the step harmonics, 0..1")
-    search_margin: float = field(1.05, "the harmonic-sum peak is searched over the band widened by "
-                                       "this factor on both ends; a peak outside the band = not walking")
-    min_autocorr: float = field(0.3, "minimum normalised autocorrelation at the stride lag 2/f "
-                                     "(±15 %) for walking, -1..1")
-    min_std_m_s2: float = field(0.2, "minimum standard deviation of |a| in the window for walking, m/s² "
-                                      "(a hand-held phone on a soft floor can stay below 0.5)")
-    min_fundamental_share: float = field(0.15, "minimum share of the harmonic sum in the stride and "
-                                               "step fundamentals (f/2, f) for walking, 0..1")
-    zero_pad: int = field(8, "FFT length >= zero_pad x window samples (power of two)")
-    grid_hz: float = field(0.0, "resampling rate, Hz; 0 = the median input rate of the first "
-                                "rate_samples samples")
-    rate_samples: int = field(32, "samples used to estimate the input rate when grid_hz = 0")
-    max_gap_s: float = field(1.0, "a larger gap between samples ends the current segment (its tail "
-                                  "is flushed) and starts a new one, s")
-    motion_window_s: float = field(1.0, "length of the span centred on a counted hop whose |a| standard "
-                                        "deviation decides moving vs still, s")
-    min_motion_std_m_s2: float = field(0.08, "minimum standard deviation of |a| over motion_window_s for "
-                                            "a hop to count as moving (below: still, 0 steps), m/s²")
-    coast_s: float = field(0.6, "after a clearly periodic walking run, the moving but not periodic hops "
-                                "that follow it without a break and start within this long of its end are "
-                                "counted at its last cadence (the last steps of a stop, which the windows "
-                                "already see as not periodic; longer values also coast through turns), s; "
-                                "0 = never")
-    coast_energy_ratio: float = field(0.65, "coasting also needs the hop's |a| standard deviation (over "
-                                            "motion_window_s) at least this fraction of the median over the "
-                                            "walking run's last window_s/2: the steps of a stop keep most of "
-                                            "the gait's energy, a still phone does not, 1")
-    turn_coast_s: float = field(0.0, "with a heading (add_heading), a moving but not periodic hop within "
-                                     "this long of the last walking window is counted at the last cadence "
-                                     "while the heading turns (a corridor turn), s; 0 = never")
-    turn_min_rad: float = field(0.5, "heading change over the window span of such a hop that makes it a turn, rad")
-    coast_confidence: float = field(0.5, "confidence of a hop counted while coasting or bridging, or of a "
-                                         "moving hop counted as 0 steps, 0..1")
-    bridge_s: float = field(8.0, "a moving but not periodic span after a periodic walking window (a corridor "
-                                 "turn, a bag bumping) is held back for up to this long: if the periodic gait "
-                                 "resumes it is counted step by step (confidence coast_confidence), else as 0 "
-                                 "steps; delays only those hops, s; 0 = never")
-    tentative_gap_s: float = field(1.0, "a walking run whose windows are only marginally periodic (autocorrelation "
-                                        "below bridge_min_autocorr) is held back until a clearly periodic window "
-                                        "(or bridge_s of it): if a still hop, or moving but not walking hops for "
-                                        "longer than this, end it first, it was handling the phone and counts "
-                                        "0 steps, s")
-    bridge_cutoff_hz: float = field(3.0, "low-pass cut-off of |a| for counting the steps of a bridged span one "
-                                         "by one, Hz")
-    bridge_prominence: float = field(1.0, "minimum prominence of a counted peak in a bridged span, relative to "
-                                          "the standard deviation of the low-passed |a| over the span, 1")
-    bridge_min_autocorr: float = field(0.5, "a bridge needs a clearly periodic gait on both sides: the largest "
-                                            "stride-lag autocorrelation of the walking run before it, and that "
-                                            "of the window that ends it, at least this, -1..1")
-
-    def validate(self) -> None:
-        n = type(self).__name__
-        require(self.window_s > 0, n, "window_s", "> 0", self.window_s)
-        require(0 < self.hop_s <= self.window_s, n, "hop_s", "in (0, window_s]", self.hop_s)
-        require(0 < self.f_min_hz < self.f_max_hz, n, "f_min_hz", "in (0, f_max_hz)", self.f_min_hz)
-        require(self.f_max_hz < 2 * self.f_min_hz, n, "f_max_hz",
-                "< 2 f_min_hz (the band must be narrower than an octave)", self.f_max_hz)
-        require(isinstance(self.harmonics, int) and 1 <= self.harmonics <= 32, n, "harmonics",
-                "an int in [1, 32]", self.harmonics)
-        require(0.0 <= self.odd_harmonic_weight <= 1.0, n, "odd_harmonic_weight", "in [0, 1]",
-                self.odd_harmonic_weight)
-        require(1.0 <= self.search_margin <= 1.18, n, "search_margin",
-                "in [1, 1.18] (wider would reach the octave of the band)", self.search_margin)
-        require(-1.0 <= self.min_autocorr <= 1.0, n, "min_autocorr", "in [-1, 1]", self.min_autocorr)
-        require(0.0 <= self.min_fundamental_share <= 1.0, n, "min_fundamental_share", "in [0, 1]",
-                self.min_fundamental_share)
-        require(self.min_std_m_s2 >= 0, n, "min_std_m_s2", ">= 0", self.min_std_m_s2)
-        require(isinstance(self.zero_pad, int) and 1 <= self.zero_pad <= 64, n, "zero_pad",
-                "an int in [1, 64]", self.zero_pad)
-        require(self.grid_hz == 0 or 10.0 <= self.grid_hz <= 2000.0, n, "grid_hz",
-                "0 (auto) or in [10, 2000]", self.grid_hz)
-        require(isinstance(self.rate_samples, int) and self.rate_samples >= 2, n, "rate_samples",
-                "an int >= 2", self.rate_samples)
-        require(self.max_gap_s > 0, n, "max_gap_s", "> 0", self.max_gap_s)
-        require(0 < self.motion_window_s <= self.window_s, n, "motion_window_s", "in (0, window_s]",
-                self.motion_window_s)
-        require(self.min_motion_std_m_s2 >= 0, n, "min_motion_std_m_s2", ">= 0", self.min_motion_std_m_s2)
-        require(self.coast_s >= 0, n, "coast_s", ">= 0", self.coast_s)
-        require(self.turn_coast_s >= 0, n, "turn_coast_s", ">= 0", self.turn_coast_s)
-        require(self.turn_min_rad > 0, n, "turn_min_rad", "> 0", self.turn_min_rad)
-        require(self.coast_energy_ratio >= 0, n, "coast_energy_ratio", ">= 0", self.coast_energy_ratio)
-        require(0.0 <= self.coast_confidence <= 1.0, n, "coast_confidence", "in [0, 1]", self.coast_confidence)
-        require(self.bridge_s >= 0, n, "bridge_s", ">= 0", self.bridge_s)
-        require(self.tentative_gap_s >= 0, n, "tentative_gap_s", ">= 0", self.tentative_gap_s)
-        require(self.bridge_cutoff_hz > 0, n, "bridge_cutoff_hz", "> 0", self.bridge_cutoff_hz)
-        require(self.bridge_prominence >= 0, n, "bridge_prominence", ">= 0", self.bridge_prominence)
-        require(-1.0 <= self.bridge_min_autocorr <= 1.0, n, "bridge_min_autocorr", "in [-1, 1]",
-                self.bridge_min_autocorr)
-
-
-class StepHop(NamedTuple):
-    """Steps counted over ``[t_start_ns, t_end_ns)``: ``steps`` = cadence x duration when
-    ``walking`` (else 0); ``freq_hz`` is the window's step frequency estimate (also when not walking).
-
-    ``confidence`` (0..1) says how sure the count is: 1 for a periodic walking window and for a
-    still hop (0 steps), ``coast_confidence`` for a moving hop whose window is not periodic (counted
-    at the last walking cadence while coasting, else 0 steps). ``steps_std`` = (1 − confidence) x
-    the steps the hop would hold at that cadence: the standard deviation of the count (steps)."""
-    t_start_ns: int
-    t_end_ns: int
-    steps: float
-    freq_hz: float
-    walking: bool
-    confidence: float = 1.0
-    steps_std: float = 0.0
-
-
-class WindowEstimate(NamedTuple):
-    """Spectral analysis of one window: refined step frequency (Hz), periodic-walking decision, the
-    stride-lag autocorrelation (1), the standard deviation of |a| over the window and over the
-    ``motion_window_s`` centred on the window's counted hop (m/s²)."""
-    freq_hz: float
-    walking: bool
-    autocorr: float
-    std_m_s2: float
-    motion_std_m_s2: float = 0.0
-
-
-# ----------------------------------------------------------------------------------------------
-# Spectral core (pure, vectorised over windows)
-# ----------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class _Design:
-    """Coefficients derived once per (params, grid rate)."""
-    fs: float
-    n_w: int
-    n_h: int
-    offset: int              # first grid index of the hop counted by window 0
-    n_fft: int
-    n_bins: int              # spectrum bins the analysis reads: [0, n_bins)
-    n_lags: int              # autocorrelation lags the analysis reads: [0, n_lags) (<= n_w)
-    n_acf: int               # FFT length of the linear autocorrelation (>= n_w + n_lags - 1, a fast size)
-    taper: np.ndarray        # (n_w,)
-    scale: float             # 2 / sum(taper): one-sided sinusoid amplitude
-    cand: np.ndarray         # (C,) candidate step frequencies, Hz
-    i0: np.ndarray           # (H, C) lower FFT bin of each harmonic of each candidate
-    frac: np.ndarray         # (H, C) interpolation fraction
-    weight: np.ndarray       # (H, 1)
-    harmonic_map: csr_array  # (C, n_bins): S = harmonic_map @ P, the weighted, interpolated harmonic bins
-    n_m: int                 # samples of the motion span (>= n_h)
-    m_lo: int                # motion span of the counted hop inside the window: [m_lo, m_hi)
-    m_hi: int
-
-    @staticmethod
-    def make(p: StepometerParams, fs: float) -> "_Design":
-        n_w = max(8, int(round(p.window_s * fs)))
-        n_h = max(1, min(n_w, int(round(p.hop_s * fs))))
-        offset = (n_w - n_h) // 2
-        n_fft = 1 << int(math.ceil(math.log2(n_w * p.zero_pad)))
-        taper = np.hanning(n_w + 2)[1:-1]
-        lo, hi = p.f_min_hz / p.search_margin, p.f_max_hz * p.search_margin
-        cand = np.arange(lo, hi + 0.5 * CANDIDATE_STEP_HZ, CANDIDATE_STEP_HZ)
-        k = np.arange(1, p.harmonics + 1)
-        if p.harmonics == 1:     # plain dominant peak inside the (widened) band
-            harm = cand[None, :]
-            weight = np.ones((1, 1))
-        else:
-            harm = k[:, None] * cand[None, :] / 2.0
-            weight = np.where(k % 2 == 1, p.odd_harmonic_weight, 1.0)[:, None]
-        idx = harm * n_fft / fs
-        idx = np.minimum(idx, n_fft // 2 - 1.000001)      # harmonics beyond Nyquist read the last bin
-        i0 = np.floor(idx).astype(np.int64)
-        n_m = min(n_w, max(n_h, int(round(p.motion_window_s * fs))))
-        m_lo = max(0, offset - (n_m - n_h) // 2)
-        m_hi = min(n_w, m_lo + n_m)
-        below = int(math.floor(cand[0] * n_fft / fs))
-        n_bins = min(n_fft // 2 + 1, max(int(i0.max()) + 2, below + 1))
-        # the longest stride lag the periodicity check reads: 2/f (+ ACF_LAG_TOL) at the lowest
-        # refined frequency, the first candidate (a hair lower for rounding)
-        n_lags = min(n_w, int(math.ceil(2.0 * fs / (cand[0] * (1.0 - 1e-9)) * (1.0 + ACF_LAG_TOL))) + 2)
-        n_acf = next_fast_len(n_w + n_lags - 1, real=True)
-        frac = idx - i0
-        c = np.broadcast_to(np.arange(len(cand)), i0.shape)
-        harmonic_map = csr_array((np.concatenate(((1.0 - frac) * weight, frac * weight), axis=None),
-                                  (np.concatenate((c, c), axis=None), np.concatenate((i0, i0 + 1), axis=None))),
-                                 shape=(len(cand), n_bins))
-        return _Design(fs, n_w, n_h, offset, n_fft, n_bins, n_lags, n_acf, taper, 2.0 / float(taper.sum()), cand, i0, frac,
-                       weight, harmonic_map, n_m, m_lo, m_hi)
-
-
-class _Lowpass(NamedTuple):
-    """A Butterworth low-pass designed once per (order, cutoff, rate): second-order sections, the
-    steady-state initial conditions of a unit step (``sosfilt_zi``) and the odd-extension length of
-    :func:`_filtfilt` (scipy's ``sosfiltfilt`` default: 3 x the number of taps)."""
-    sos: np.ndarray
-    zi: np.ndarray           # (n_sections, 2)
-    pad: int
-
-
-@functools.lru_cache(maxsize=64)
-def _lowpass_design(order: int, cutoff_hz: float, fs: float) -> _Lowpass:
-    sos = butter(order, cutoff_hz, fs=fs, output="sos")
-    ntaps = 2 * len(sos) + 1 - min(int((sos[:, 2] == 0).sum()), int((sos[:, 5] == 0).sum()))
-    zi = sosfilt_zi(sos)
-    sos.setflags(write=False)
-    zi.setflags(write=False)
-    return _Lowpass(sos, zi, 3 * ntaps)
-
-
-def _filtfilt(lp: _Lowpass, x: np.ndarray) -> np.ndarray:
-    """Zero-phase low-pass of a 1-D signal longer than ``lp.pad``: forward and backward through the
-    sections, odd extension of ``lp.pad`` samples at both ends, each pass starting in the steady
-    state of its first sample — what ``scipy.signal.sosfiltfilt(lp.sos, x)`` computes (the same
-    operations, bit for bit), with the design's initial conditions computed once, not per call."""
-    n = lp.pad
-    ext = np.concatenate((2.0 * x[0] - x[n:0:-1], x, 2.0 * x[-1] - x[-2: -n - 2: -1]))
-    sos = lp.sos.copy()
-    y, _ = sosfilt(sos, ext, zi=lp.zi * ext[0])
-    y, _ = sosfilt(sos, y[::-1], zi=lp.zi * y[-1])
-    return y[::-1][n: len(y) - n]
-
-
-def amplitude_spectrum(windows: np.ndarray, design: _Design) -> np.ndarray:
-    """Amplitude spectrum (m/s², one-sided sinusoid amplitude) of mean-removed, Hann-tapered,
-    zero-padded windows. ``windows`` (N, n_w) -> (N, n_fft//2 + 1); bin spacing fs/n_fft Hz."""
-    x = windows - windows.mean(axis=1, keepdims=True)
-    return np.sqrt(power_spectrum(x, design, design.n_fft // 2 + 1))
-
-
-#: Windows transformed per FFT call: the zero-padded spectra of a block stay in cache.
-_FFT_BLOCK = 16
-
-
-def power_spectrum(x: np.ndarray, design: _Design, n_bins: int | None = None) -> np.ndarray:
-    """Squared :func:`amplitude_spectrum` of already mean-removed windows ``x`` (N, n_w), bins
-    ``[0, n_bins)`` (default ``design.n_bins``, all the analysis reads), from the real and imaginary
-    parts (no square root): (N, n_bins). The tapered windows are written into a zeroed block of
-    ``n_fft`` columns (the FFT then pads nothing), a block of windows per FFT call, into buffers
-    allocated once per call."""
-    nb = design.n_bins if n_bins is None else n_bins
-    n = len(x)
-    power = np.empty((n, nb))
-    k = min(_FFT_BLOCK, n)
-    buf = np.zeros((k, design.n_fft))
-    spec = np.empty((k, design.n_fft // 2 + 1), dtype=complex)
-    im2 = np.empty((k, nb))
-    for i in range(0, n, _FFT_BLOCK):
-        m = min(_FFT_BLOCK, n - i)
-        np.multiply(x[i: i + m], design.taper, out=buf[:m, : design.n_w])
-        np.fft.rfft(buf[:m], axis=1, out=spec[:m])
-        blk = power[i: i + m]
-        np.square(spec[:m, :nb].real, out=blk)
-        blk += np.square(spec[:m, :nb].imag, out=im2[:m])
-    power *= design.scale ** 2
-    return power
-
-
-def normalised_autocorr(x: np.ndarray, design: _Design, lag_lo: int = 0, lag_hi: int | None = None) -> np.ndarray:
-    """Unbiased autocorrelation of mean-removed windows ``x`` (N, n_w) at lags ``lag_lo..lag_hi-1``
-    (default, and at most, 0..n_lags-1: the lags the analysis reads), normalised by lag 0 (all zero
-    for a constant window); Wiener-Khinchin, zero-padded to ``n_acf >= n_w + n_lags - 1`` so that
-    nothing wraps around onto these lags (a block of windows per call)."""
-    n_w = design.n_w
-    hi = design.n_lags if lag_hi is None else lag_hi
-    if not 0 <= lag_lo < hi <= design.n_lags:
-        raise InvalidInputError("lags", f"lags [{lag_lo}, {hi}) outside [0, {design.n_lags}): they would wrap around")
-    n = len(x)
-    full = np.empty((n, hi - lag_lo))
-    acf0 = np.empty((n, 1))
-    k = min(_FFT_BLOCK, n)
-    buf = np.zeros((k, design.n_acf))
-    spec = np.empty((k, design.n_acf // 2 + 1), dtype=complex)
-    psd = np.empty((k, design.n_acf // 2 + 1))
-    im2 = np.empty_like(psd)
-    blk = np.empty((k, design.n_acf))
-    for i in range(0, n, _FFT_BLOCK):
-        m = min(_FFT_BLOCK, n - i)
-        buf[:m, :n_w] = x[i: i + m]
-        np.fft.rfft(buf[:m], axis=1, out=spec[:m])
-        np.square(spec[:m].real, out=psd[:m])
-        psd[:m] += np.square(spec[:m].imag, out=im2[:m])
-        np.fft.irfft(psd[:m], design.n_acf, axis=1, out=blk[:m])
-        full[i: i + m] = blk[:m, lag_lo:hi]
-        acf0[i: i + m] = blk[:m, :1]
-    acf = full / (n_w - np.arange(lag_lo, hi))
-    acf0 /= n_w
-    return np.divide(acf, acf0, out=np.zeros_like(acf), where=acf0 > 0)
-
-
-def harmonic_score(power: np.ndarray, design: _Design) -> np.ndarray:
-    """Harmonic sum ``S(f) = Σ_k w_k P(k f/2)`` over the candidate grid: (N, >= n_bins) -> (N, C), as
-    one sparse product (each candidate reads two bins per harmonic, :attr:`_Design.harmonic_map`)."""
-    return np.ascontiguousarray((design.harmonic_map @ np.ascontiguousarray(power[:, : design.n_bins].T)).T)
-
-
-#: Windows analysed together: a block's arrays stay small enough to be reused, not mapped afresh.
-_ANALYSIS_BLOCK = 64
-
-
-def analyse_windows(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
-    """Step frequency and walking decision for each row of ``windows`` (N, n_w) of |a| in m/s²
-    (row by row: a block of rows gives each the estimate it gets alone)."""
-    windows = np.atleast_2d(np.asarray(windows, dtype=float))
-    out: list[WindowEstimate] = []
-    for i in range(0, len(windows), _ANALYSIS_BLOCK):
-        out += _analyse_block(windows[i: i + _ANALYSIS_BLOCK], design, p)
-    return out
-
-
-def _analyse_block(windows: np.ndarray, design: _Design, p: StepometerParams) -> list[WindowEstimate]:
-    n = len(windows)
-    x = windows - windows.mean(axis=1, keepdims=True)
-    power = power_spectrum(x, design)
-    score = harmonic_score(power, design)
-    c = len(design.cand)
-    j = np.argmax(score, axis=1)
-    # A maximum on the lower edge of the search range is the flank of a peak below it. When that peak is
-    # the stride of a fast gait (a swinging arm or a bag at 2.3-2.4 Hz puts most power at the stride,
-    # 1.2 Hz, just below the band), the cadence is the largest interior local maximum: take it, and
-    # let the band and periodicity tests judge it.
-    edge = np.flatnonzero(j == 0)
-    if len(edge):
-        s = score[edge]
-        interior = np.zeros_like(s, dtype=bool)
-        interior[:, 1:-1] = (s[:, 1:-1] >= s[:, :-2]) & (s[:, 1:-1] >= s[:, 2:])
-        j_int = np.argmax(np.where(interior, s, -np.inf), axis=1)
-        # Only when the strongest component below the search range sits at that maximum's stride f/2
-        # (within a bin of the unpadded window, 1/window_s): a slow sway elsewhere stays rejected.
-        below = int(np.floor(design.cand[0] * design.n_fft / design.fs))
-        f_pk = (np.argmax(power[edge, 1:below + 1], axis=1) + 1) * (design.fs / design.n_fft)
-        stride_ok = np.abs(design.cand[j_int] / 2.0 - f_pk) <= 1.0 / p.window_s
-        j[edge] = np.where(interior.any(axis=1) & stride_ok, j_int, 0)
-    j = np.clip(j, 1, c - 2)
-    r = np.arange(n)
-    a, b, cc = score[r, j - 1], score[r, j], score[r, j + 1]
-    den = a - 2.0 * b + cc
-    safe = np.where(den < 0, den, -1.0)
-    delta = np.where(den < 0, 0.5 * (a - cc) / safe, 0.0)
-    f = design.cand[j] + np.clip(delta, -1.0, 1.0) * CANDIDATE_STEP_HZ
-    in_band = (f >= p.f_min_hz) & (f <= p.f_max_hz)
-    # A gait puts a good share of its harmonic sum into the stride and step fundamentals (k = 1, 2);
-    # a machine vibration at 7 Hz fits "the 3rd step harmonic of 2.33 Hz" with nothing there.
-    if design.weight.shape[0] >= 2:
-        i0, fr = design.i0[:2, j], design.frac[:2, j]            # (2, N)
-        pw = power[r[None, :], i0] * (1.0 - fr) + power[r[None, :], i0 + 1] * fr
-        fund = (design.weight[:2, 0][:, None] * pw).sum(axis=0)
-        in_band &= fund >= p.min_fundamental_share * score[r, j]
-    # Periodicity: the normalised autocorrelation at the stride lag 2/f.
-    lag = 2.0 / np.maximum(f, 1e-6) * design.fs
-    lo = np.clip(np.floor(lag * (1 - ACF_LAG_TOL)).astype(np.int64), 1, design.n_lags - 1)
-    hi = np.clip(np.ceil(lag * (1 + ACF_LAG_TOL)).astype(np.int64) + 1, 2, design.n_lags)
-    lags = np.arange(int(lo.min()), int(hi.max()))          # only the lags some window reads
-    acf = normalised_autocorr(x, design, int(lags[0]), int(lags[-1]) + 1)
-    mask = (lags[None, :] >= lo[:, None]) & (lags[None, :] < hi[:, None])
-    ac = np.where(mask, acf, -np.inf).max(axis=1)
-    ac = np.where(np.isfinite(ac), ac, -1.0)
-    std = x.std(axis=1)
-    mstd = windows[:, design.m_lo: design.m_hi].std(axis=1)
-    walking = in_band & (ac >= p.min_autocorr) & (std >= p.min_std_m_s2) & (mstd >= p.min_motion_std_m_s2)
-    return list(map(WindowEstimate, f.tolist(), walking.tolist(), ac.tolist(), std.tolist(), mstd.tolist()))
+from indoor_loc.imu.step_lookahead import GridAhead, LookAhead, StepLookAhead
+from indoor_loc.imu.step_spectrum import WindowDesign, WindowEstimate, filtfilt, lowpass_design, magnitude
+from indoor_loc.imu.stepometer_types import StepHop, StepometerParams, StepometerState
 
 
 # ----------------------------------------------------------------------------------------------
 # Online estimator
 # ----------------------------------------------------------------------------------------------
-@dataclass
-class StepometerState:
-    """Everything :class:`Stepometer` needs to resume (save with :meth:`Stepometer.state`)."""
-    grid_hz: float = 0.0                 # resampling rate in force (0 = not yet known)
-    pending_t: list[int] = dc_field(default_factory=list)   # raw samples waiting for the rate estimate
-    pending_m: list[float] = dc_field(default_factory=list)
-    t0_ns: int | None = None             # stamp of grid index 0 of the current segment
-    n_grid: int = 0                      # grid samples produced in the current segment
-    last_t_ns: int | None = None         # last raw sample (for interpolation)
-    last_m: float = 0.0
-    buffer: list[float] = dc_field(default_factory=list)   # last grid samples of |a|, m/s²
-    buffer_start: int = 0                # grid index of buffer[0]
-    next_window: int = 0                 # index j of the next window to analyse
-    last_freq_hz: float = 0.0
-    last_walking: bool = False
-    walk_freq_hz: float = 0.0            # cadence of the last periodic walking window (0 = none yet)
-    walk_end: int | None = None          # grid index where the last periodic walking hop ended
-    walk_motion_recent: list[float] = dc_field(default_factory=list)
-    # ^ |a| std around each of the walking run's hops over its last window_s/2, m/s² (the gait's energy:
-    #   their median)
-    coast_end: int | None = None         # grid index where the last coasted hop ended
-    walk_autocorr: float = 0.0           # largest stride-lag autocorrelation of the current walking run
-    head_t: list[int] = dc_field(default_factory=list)      # recent headings (add_heading): stamps ns
-    head_yaw: list[float] = dc_field(default_factory=list)    # and unwrapped yaw, rad
-    held: list[tuple[int, int, float, float, bool, float, float]] = dc_field(default_factory=list)
-    # ^ hops held back while bridging: (lo, hi, freq_hz, count_hz, walking, confidence, steps_std) as
-    #   they are emitted if the gait does not resume
-    tentative: list[tuple[int, int, float, float, bool, float, float]] = dc_field(default_factory=list)
-    # ^ hops of a walking run (and segment head) not yet clearly periodic, as they are emitted if it
-    #   becomes so; walking ones count 0 steps if it ends first
-    count_freq_hz: float = 0.0           # cadence of the last hop counted (0 = last hop not counted)
-    count_confidence: float = 1.0
-    last_confidence: float = 1.0
-    total_steps: float = 0.0
-    walking_s: float = 0.0
-    samples: int = 0
-
-    def copy(self) -> "StepometerState":
-        return dataclasses.replace(self, pending_t=list(self.pending_t), pending_m=list(self.pending_m),
-                                   buffer=list(self.buffer), head_t=list(self.head_t),
-                                   head_yaw=list(self.head_yaw), held=list(self.held),
-                                   tentative=list(self.tentative),
-                                   walk_motion_recent=list(self.walk_motion_recent))
-
 
 def _median(values: list[float]) -> float:
     """Median of a short list (what ``np.median`` gives: the mean of the two middle values when even)."""
@@ -475,66 +56,7 @@ def _median(values: list[float]) -> float:
     return v[k] if len(v) % 2 else (v[k - 1] + v[k]) / 2.0
 
 
-def _magnitude(acc: ArrayLike) -> np.ndarray:
-    """|a| of (..., 3) samples: the arithmetic of :meth:`Stepometer.update`'s scalar path."""
-    a = np.asarray(acc, dtype=float)
-    x, y, z = a[..., 0], a[..., 1], a[..., 2]
-    return np.sqrt(x * x + y * y + z * z)
-
-
-class _LookAhead(NamedTuple):
-    """Windows analysed ahead of their samples (:meth:`Stepometer.prefetch`): segment (``t0_ns``,
-    ``grid_hz``), index of the first window, the grid samples from its start, the estimates."""
-    t0_ns: int
-    grid_hz: float
-    window: int
-    span: np.ndarray
-    estimates: list[WindowEstimate]
-
-
-class _GridAhead(NamedTuple):
-    """The grid values of a run's steady part computed ahead (:meth:`Stepometer.prefetch`): segment
-    (``t0_ns``, ``grid_hz``), the state before the run (``n_grid``, ``last_t_ns``, ``last_m``), the
-    samples (stamps, acc, |a|), the grid length after each sample and the grid values from ``n_grid``."""
-    t0_ns: int
-    grid_hz: float
-    n_grid: int
-    last_t_ns: int
-    last_m: float
-    t: np.ndarray
-    acc: np.ndarray
-    m: np.ndarray
-    reach: np.ndarray
-    grid: np.ndarray
-
-
-class QuietPlan:
-    """:meth:`Stepometer.quiet_plan`: the grid length after each sample of a run (``n_grid``, as
-    :meth:`Stepometer.quiet_count` computes it), so the count from sample ``i`` on is one lookup.
-    Used only while the stepometer's grid (t0, rate) is the one planned for and its last sample is
-    ``stamps[i - 1]``; otherwise :meth:`Stepometer.quiet_count` answers."""
-
-    def __init__(self, owner: Stepometer, stamps: np.ndarray, first: int, t0_ns: int, grid_hz: float,
-                 n_grid: np.ndarray) -> None:
-        self._owner, self._t, self._first = owner, stamps, first
-        self._t0_ns, self._grid_hz, self._n_grid = t0_ns, grid_hz, n_grid
-
-    def count(self, i: int) -> int | None:
-        """``quiet_count(stamps[i:])`` once ``stamps[:i]`` have been fed (``i`` = 0: before any)."""
-        if i == 0:
-            return self._first
-        o = self._owner
-        st = o._st
-        d = o._get_design()
-        if (d is None or i < 0 or i >= len(self._t) or st.t0_ns != self._t0_ns or st.grid_hz != self._grid_hz
-                or st.last_t_ns != int(self._t[i - 1]) or st.n_grid != int(self._n_grid[i - 1])):
-            return o.quiet_count(self._t[i:])
-        # n_grid is non-decreasing: the first sample from i on reaching the next window's end
-        k = int(np.searchsorted(self._n_grid, st.next_window * d.n_h + d.n_w, side="left"))
-        return max(k, i) - i
-
-
-class Stepometer:
+class Stepometer(StepLookAhead):
     """Online FFT stepometer. Feed samples with :meth:`update` (one) or :meth:`update_many` (a
     chunk); each returns the :class:`StepHop` s completed so far, in time order. :meth:`finish`
     flushes the tail at the end of the stream. ``state()``/``set_state()`` save and resume."""
@@ -543,9 +65,9 @@ class Stepometer:
         self.params = params if params is not None else StepometerParams()
         self.params.validate()
         self._st = StepometerState(grid_hz=float(self.params.grid_hz))
-        self._design: _Design | None = None
-        self._ahead: _LookAhead | None = None      # windows analysed ahead (prefetch); not state
-        self._grid_ahead: _GridAhead | None = None  # grid values computed ahead (prefetch); not state
+        self._design: WindowDesign | None = None
+        self._ahead: LookAhead | None = None      # windows analysed ahead (prefetch); not state
+        self._grid_ahead: GridAhead | None = None  # grid values computed ahead (prefetch); not state
         self._grid_now: np.ndarray | None = None    # the grid from buffer_start while analysing; not state
         #: walking hops over which the gait's energy is a median: the run's last half window
         self._n_recent = max(1, int(round(0.5 * self.params.window_s / self.params.hop_s)))
@@ -590,9 +112,9 @@ class Stepometer:
             return 0.5 * (self.params.window_s + self.params.hop_s)
         return (d.n_w - d.offset) / d.fs
 
-    def _get_design(self) -> _Design | None:
+    def _get_design(self) -> WindowDesign | None:
         if self._design is None and self._st.grid_hz > 0:
-            self._design = _Design.make(self.params, self._st.grid_hz)
+            self._design = WindowDesign.make(self.params, self._st.grid_hz)
         return self._design
 
     # -- input ------------------------------------------------------------------------------------
@@ -668,82 +190,7 @@ class Stepometer:
             raise InvalidInputError("shape", f"acc: expected 3 components, got {a.shape}")
         return self.update_many(np.array([t], dtype=np.int64), a[None, :])
 
-    # -- batch entry points (offline runs): the arithmetic of update()'s scalar path, vectorised ----
-    def quiet_count(self, stamps_ns: np.ndarray) -> int | None:
-        """How many leading samples of ``stamps_ns`` (int64, increasing) :meth:`update` would take
-        without completing an analysis window (``len`` if none completes one): the next sample is
-        the one that does. None unless running steadily (rate known, a segment open, no gap longer
-        than ``max_gap_s`` before or between the samples)."""
-        st = self._st
-        d = self._get_design()
-        if d is None or st.grid_hz <= 0 or st.t0_ns is None or st.last_t_ns is None or not len(stamps_ns):
-            return None
-        t = np.asarray(stamps_ns, dtype=np.int64)
-        prev = np.concatenate((np.array([st.last_t_ns], np.int64), t[:-1]))
-        if np.any(t < prev) or np.any((t - prev).astype(float) > self.params.max_gap_s * 1e9):
-            return None
-        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
-        n_grid = np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid)
-        ready = np.flatnonzero(n_grid >= st.next_window * d.n_h + d.n_w)
-        return int(ready[0]) if len(ready) else len(t)
-
-    def quiet_plan(self, stamps_ns: np.ndarray) -> QuietPlan | None:
-        """:meth:`quiet_count` for a run the caller then feeds from its start in cuts that each end
-        on the sample completing a window: ``plan.count(i)`` equals ``quiet_count(stamps_ns[i:])``
-        once ``stamps_ns[:i]`` have been fed, from one look at the whole run. None when
-        ``quiet_count(stamps_ns)`` is None."""
-        st = self._st
-        first = self.quiet_count(stamps_ns)
-        if first is None:
-            return None
-        assert st.t0_ns is not None
-        t = np.asarray(stamps_ns, dtype=np.int64)
-        k_end = np.floor((t - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
-        return QuietPlan(self, t, first, st.t0_ns, st.grid_hz,
-                         np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid))
-
-    def extend_steady(self, stamps_ns: np.ndarray, acc: np.ndarray) -> list[StepHop]:
-        """Samples of which at most the last completes a window (see :meth:`quiet_count`, which must
-        have allowed them): the same grid values, state and hops as :meth:`update` one by one —
-        the same floating-point operations in the same order, vectorised. ``acc`` (N, 3) finite."""
-        st = self._st
-        d = self._get_design()
-        assert d is not None and st.t0_ns is not None and st.last_t_ns is not None
-        t = np.asarray(stamps_ns, dtype=np.int64)
-        ahead = self._grid_from_ahead(t, acc)
-        if ahead is None:
-            m = _magnitude(acc)
-            new, last_m = self._steady_grid(t, m), float(m[-1])
-        else:
-            new, last_m = ahead
-        st.samples += len(t)
-        if len(new):
-            st.buffer.extend(new.tolist())
-            st.n_grid += len(new)
-        st.last_t_ns, st.last_m = int(t[-1]), last_m
-        if st.n_grid >= st.next_window * d.n_h + d.n_w:
-            return self._analyse_ready()
-        return []
-
-    def _grid_from_ahead(self, t: np.ndarray, acc: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """The grid values (and the last |a|) that :meth:`_steady_grid` gives for these samples, taken
-        from the look-ahead when it holds exactly these samples, in the same segment, following the
-        sample last taken (any cut gives the same grid values); else None."""
-        g = self._grid_ahead
-        st = self._st
-        if g is None or g.t0_ns != st.t0_ns or g.grid_hz != st.grid_hz or not len(t):
-            return None
-        o = int(np.searchsorted(g.t, t[0]))
-        end = o + len(t)
-        if end > len(g.t):
-            return None
-        prev = (g.last_t_ns, g.last_m, g.n_grid) if o == 0 else (int(g.t[o - 1]), float(g.m[o - 1]), int(g.reach[o - 1]))
-        if prev != (st.last_t_ns, st.last_m, st.n_grid):
-            return None
-        if not (np.array_equal(g.t[o:end], t) and np.array_equal(g.acc[o:end], acc)):
-            return None
-        return g.grid[st.n_grid - g.n_grid: int(g.reach[end - 1]) - g.n_grid], float(g.m[end - 1])
-
+    # -- chunks (offline runs; the look-ahead: indoor_loc.imu.step_lookahead) --------------------
     def _steady_grid(self, t: np.ndarray, m: np.ndarray) -> np.ndarray:
         """The grid values from ``n_grid`` on completed by the samples ``t`` (int64, non-decreasing,
         no gap) / ``m`` (|a|) that follow the last one taken: the arithmetic of :meth:`update`'s
@@ -766,60 +213,6 @@ class Stepometer:
         tk = st.t0_ns + np.round(k * (1e9 / st.grid_hz)).astype(np.int64)
         dt = (t[i] - t_prev).astype(float)
         return m_prev + (m[i] - m_prev) * ((tk - t_prev).astype(float) / dt)
-
-    def prefetch(self, stamps_ns: np.ndarray, acc: np.ndarray) -> int:
-        """Offline look-ahead: ``stamps_ns`` (N,) int64 / ``acc`` (N, 3) are the samples the caller is
-        about to feed (in the same order, by any calls). The analysis windows their steady leading
-        part completes are analysed now, all together (one vectorised call instead of one per window);
-        a later window analysis reuses such an estimate only when its window holds exactly the same
-        grid values, so the hops and state are those of feeding the samples without it. Changes
-        no state; returns the number of windows analysed ahead (0: nothing to gain)."""
-        st = self._st
-        d = self._get_design()
-        self._ahead = None
-        self._grid_ahead = None
-        if d is None or st.grid_hz <= 0 or st.t0_ns is None or st.last_t_ns is None:
-            return 0
-        t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-        a = np.asarray(acc, dtype=float)
-        if a.ndim != 2 or a.shape != (len(t), 3) or not len(t):
-            return 0
-        # the steady leading part: finite, no stamp going back, no gap longer than max_gap_s
-        prev = np.concatenate((np.array([st.last_t_ns], np.int64), t[:-1]))
-        bad = np.flatnonzero((t < prev) | ((t - prev).astype(float) > self.params.max_gap_s * 1e9)
-                             | ~np.isfinite(a).all(axis=1))
-        n = int(bad[0]) if len(bad) else len(t)
-        if n == 0:
-            return 0
-        n_grid = max(int(math.floor((int(t[n - 1]) - st.t0_ns) * 1e-9 * st.grid_hz + 1e-9)) + 1, st.n_grid)
-        n_win = (n_grid - d.n_w) // d.n_h + 1 - st.next_window if n_grid >= d.n_w else 0
-        if n_win < 2:           # one window or none: analysed when it completes, as without look-ahead
-            return 0
-        mags = _magnitude(a[:n])
-        new = self._steady_grid(t[:n], mags)
-        k_end = np.floor((t[:n] - st.t0_ns).astype(float) * 1e-9 * st.grid_hz + 1e-9).astype(np.int64)
-        self._grid_ahead = _GridAhead(st.t0_ns, st.grid_hz, st.n_grid, st.last_t_ns, st.last_m, t[:n], a[:n], mags,
-                                      np.maximum(np.maximum.accumulate(k_end + 1), st.n_grid), new)
-        first = st.next_window * d.n_h
-        span = np.concatenate((np.asarray(st.buffer[first - st.buffer_start:], dtype=float), new))
-        span = span[: (n_win - 1) * d.n_h + d.n_w]
-        wins = sliding_window_view(span, d.n_w)[:: d.n_h]
-        self._ahead = _LookAhead(st.t0_ns, st.grid_hz, st.next_window, span,
-                                 analyse_windows(wins, d, self.params))
-        return n_win
-
-    def _analysed(self, span: np.ndarray, d: _Design) -> list[WindowEstimate]:
-        """Estimates of the windows of ``span`` (grid samples from window ``next_window`` on): from the
-        look-ahead when it holds exactly these windows, else analysed now."""
-        st = self._st
-        ah = self._ahead
-        if ah is not None and ah.t0_ns == st.t0_ns and ah.grid_hz == st.grid_hz:
-            k = st.next_window - ah.window
-            n = (len(span) - d.n_w) // d.n_h + 1
-            lo = k * d.n_h
-            if 0 <= k and k + n <= len(ah.estimates) and np.array_equal(ah.span[lo: lo + len(span)], span):
-                return ah.estimates[k: k + n]
-        return analyse_windows(sliding_window_view(span, d.n_w)[:: d.n_h], d, self.params)
 
     def add_headings(self, stamps_ns: list[int], yaw_rad: list[float]) -> None:
         """:meth:`add_heading` for each sample in order (same values and state)."""
@@ -861,7 +254,7 @@ class Stepometer:
         if (prev is not None and t[0] < prev) or np.any(np.diff(t) < 0):
             raise InvalidInputError("non_monotonic_stamp",
                                       f"stamp {int(t[0])} goes backwards (previous {prev})")
-        m = _magnitude(a)
+        m = magnitude(a)
         st = self._st
         st.samples += len(t)
         if st.grid_hz <= 0:
@@ -1151,9 +544,9 @@ class Stepometer:
         b = min(st.n_grid, hi1 + pad)
         seg = self._grid_values(a, b)
         peaks = np.zeros(0, dtype=np.int64)
-        lp = _lowpass_design(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
+        lp = lowpass_design(4, min(p.bridge_cutoff_hz, 0.45 * st.grid_hz), st.grid_hz)
         if len(seg) > lp.pad:
-            y = _filtfilt(lp, seg - seg.mean())
+            y = filtfilt(lp, seg - seg.mean())
             f_hi = max(st.walk_freq_hz, freq_hz)
             dist = max(1, int(round(st.grid_hz / (1.5 * f_hi))))
             peaks, _ = find_peaks(y, distance=dist, prominence=p.bridge_prominence * float(y.std()))

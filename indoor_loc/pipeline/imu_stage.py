@@ -49,7 +49,8 @@ from indoor_loc.imu.aekf import Aekf, AekfParams
 from indoor_loc.imu.mag_sync import IMU, MagSync
 from indoor_loc.imu.pdr import UNKNOWN_YAW_VAR, HeadingHistory, Pdr, PdrParams
 from indoor_loc.imu.quaternion import yaw_xyzw
-from indoor_loc.imu.stepometer import StepHop, Stepometer, StepometerParams
+from indoor_loc.imu.stepometer import Stepometer
+from indoor_loc.imu.stepometer_types import StepHop, StepometerParams
 from indoor_loc.imu.vqf_filter import VqfFilter, VqfParams
 from msg_adapters.imu import ImuSample, imu_from_msg, imu_to_msg, mag_from_msg
 from msg_adapters.imu_cdr import imu_cdr
