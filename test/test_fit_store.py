@@ -13,7 +13,8 @@ import yaml
 from indoor_loc.params import params_from_dict
 from indoor_loc.pipeline.wifi_fix_stage import WifiFixParams, WifiFixStage
 from indoor_loc.wifi.fit_store import FitStore, fit_positioner, read_arrays, read_header, write_arrays
-from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.powed_knn_params import PowedKnnParams
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap, load_radiomap, save_radiomap
 from indoor_loc.wifi.types import WifiScan
 from indoor_loc.wifi.walkable import load_floor_plans

@@ -187,7 +187,8 @@ def test_imported_bags_replayed_through_wifi_give_the_core_fixes(tmp_path):
     from indoor_loc.bag import read_bag
     from indoor_loc.commands.import_ms_indoor import import_ms_indoor
     from indoor_loc.pipeline.offline import run_offline
-    from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
+    from indoor_loc.wifi.powed_knn import PowedKnn
+    from indoor_loc.wifi.powed_knn_params import PowedKnnParams
     from indoor_loc.wifi.radiomap import load_radiomap
     from indoor_loc.wifi.walkable import load_floor_plans
     out = tmp_path / "out"

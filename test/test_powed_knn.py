@@ -10,7 +10,9 @@ import pytest
 
 from indoor_loc.errors import ConfigError, MapError
 from indoor_loc.wifi.methods import FallbackPositioner, make_chain, make_positioner, recommended_params
-from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, age_weight, powed
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.powed_repr import age_weight, powed
+from indoor_loc.wifi.powed_knn_params import PowedKnnParams
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from grid_readings import assert_grid_equals

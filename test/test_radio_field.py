@@ -5,7 +5,9 @@ import dataclasses
 
 import numpy as np
 
-from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams, _sorensen, powed
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.powed_repr import sorensen, powed
+from indoor_loc.wifi.powed_knn_params import PowedKnnParams
 from indoor_loc.wifi.radio_field import detect_level, expected_powed, pathloss_prior, view_scale
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.wifi.types import WifiScan
@@ -237,7 +239,7 @@ def test_the_grid_interpolated_per_floor_equals_the_whole_grid():
     q = np.random.default_rng(2).uniform(0.01, 0.5, len(c))
     d = pos._dist_cols(c, q, view)
     vals = pos._views[view].values
-    expect = _sorensen(c, q, whole_rd[vals], whole_sums[vals], len(rows))
+    expect = sorensen(c, q, whole_rd[vals], whole_sums[vals], len(rows))
     np.testing.assert_array_equal(d[pos._n_map:], expect)
     assert np.all(d[:pos._n_map] == 1.0) and np.any(expect < 1.0)
 

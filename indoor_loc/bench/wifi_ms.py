@@ -61,7 +61,8 @@ from indoor_loc.bench.wifi import CHI2_2_50, CHI2_2_95, _jsonable
 from indoor_loc.wifi.methods import make_positioner
 from indoor_loc.wifi.radiomap import add_fingerprints, empty_radiomap
 from indoor_loc.measurements import Fix
-from indoor_loc.wifi.powed_knn import COV_QUANTITIES, MIN_BIN_SCANS, PowedKnn
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.powed_knn_params import COV_QUANTITIES, MIN_BIN_SCANS
 from indoor_loc.wifi.radio_field import PLAN_FIELD_WEIGHT
 from indoor_loc.wifi.types import RadioMap, WifiScan
 from indoor_loc.wifi.walkable import floors_walkable, plan_walkable

@@ -88,7 +88,8 @@ from indoor_loc.wifi.fit_store import FitStore, Log, fit_positioner, plan_files
 from indoor_loc.wifi.map_check import MapCheck, MapCheckParams, MapCheckState
 from indoor_loc.wifi.methods import METHODS, make_chain
 from indoor_loc.wifi.pathloss import PathLossParams
-from indoor_loc.wifi.powed_knn import PowedKnn, PowedKnnParams
+from indoor_loc.wifi.powed_knn import PowedKnn
+from indoor_loc.wifi.powed_knn_params import PowedKnnParams
 from indoor_loc.wifi.radio_field import Walkable
 from indoor_loc.wifi.radiomap import load_radiomap
 from indoor_loc.wifi.types import Positioner, RadioMap, WifiScan

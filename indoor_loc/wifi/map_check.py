@@ -49,7 +49,7 @@ from typing import NamedTuple
 import numpy as np
 
 from indoor_loc.params import field, require
-from indoor_loc.wifi.powed_knn import powed
+from indoor_loc.wifi.powed_repr import powed
 from indoor_loc.wifi.types import ApIndex, ApReadings, RadioMap, WifiScan
 
 #: fewest left-out fingerprints with a match that say whether the map agrees with itself

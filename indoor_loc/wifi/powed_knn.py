@@ -96,61 +96,6 @@ On ms_site2 (four floors, 954 test scans) this is right for 953; the nearest map
 right for 934–940 and a per-floor field ceiling (Σ_a min(x_a, C_f(a))) for 942 — both fail where a
 test walk enters a part of its floor the survey walks did not cover but the floor above did.
 
-Covariance: ``cov_scale`` × the weighted spread of the k neighbours + σ² I, σ calibrated on the map itself
-at ``fit`` time by leaving walks out: the map's sources (walks) are dealt into at most ``cov_folds`` folds
-and each map scan is positioned against the map without its fold's walks (the grid interpolated again
-without them). σ follows a *score* of each fix: with ``cov_quantities`` 'd1' (the default) the distance D₁
-of the best match (a poor best match means a scan the map does not explain, and its error tends to be
-larger); with several quantities the least-squares prediction of the log cross-validated error from them,
-fitted on the cross-validated scans of this map. The (score, error) pairs are sorted by the score into
-equal-count bins (at most ``cov_bins``, at least 40 scans each), and in each bin σ is set so that the
-``cov_quantile`` ellipse of an isotropic 2-D Gaussian holds that share of the bin's cross-validated errors:
-σ = q-quantile(error) / sqrt(−2 ln(1 − q)); σ is made non-decreasing in the score and interpolated between
-bin centres (constant beyond the end ones).
-Every fix carries the quantities that might rank its error in ``info["features"]``: D₁ and D₁ against the
-k-th match (``d_ratio``), the largest distance between the estimates it averages (``views_m``: ages weighted
-or ignored, against the map scans or the grid — hypotheses that disagree mean an ambiguous scan), the
-weight of its candidates beyond 5 m of it (``far``, a second mode), the weighted spread of each view's
-candidates (``spread_m``), the distance between the map scans' and the grid's estimates (``view_gap_m``),
-the grid's share on the survey (``survey_share``) and the APs matched (``n_aps``); the calibration keeps
-their rank correlation (Spearman) with the cross-validated errors (``calibration["spearman"]``). On
-ms_site2 none of them ranks the errors better than D₁ on every floor, and which one does best differs
-between the map's cross-validation and the test walks: on the test walks D₁ gives B1 0.19, F3 0.56, F7
-0.74, F8 0.37, while ``views_m`` gives B1 0.22 and F8 0.39 but F3 0.10, D₁ against the k-th match F3 0.62,
-the spread F8 0.56 (cross-validated on F8's map: −0.29 for ``views_m``, 0.16 for the spread). A σ on D₁ and
-``views_m`` (fitted per building) with the strata as factors (below), chosen on B1 and F7 with a third of
-their survey walks left out in turn, ranked the errors better there (Spearman of σ with the error B1 0.11 →
-0.25, F7 0.70 → 0.73) and on held-out F3 (0.34 → 0.42; F8 0.32 → 0.26), but F3's ellipses then held 37/68 %
-of its test truths (50/95 %) instead of 61/85 (F8 58/88 instead of 56/87) — so it is an option, not the
-default.
-Positioning errors are heavy-tailed (a scan matched to the wrong part of a
-mall is tens of metres off), so a σ fitted to the mean error — or a line in D₁ — leaves the 95 %
-ellipse far too small where the errors are large; calibrating the 95 % ellipse keeps the
-covariance honest where a downstream filter gates on it, at the price of a 50 % ellipse that holds
-more than half of the truths. The calibration follows each building's own accuracy instead of
-constants fitted to one building; a map with a single source (a pre-surveyed map) deals its scans
-into the folds instead (without a grid: leaves one scan out). Cross-validation cannot see what the
-survey never covered: a user walking where no survey walk went is positioned on the nearest
-surveyed stretch and its error exceeds the ellipse (on ms_site2 F3 most test scans are more than
-3 m from every map scan).
-
-**Recording time** (``cov_recent_s``): RSS drifts over minutes to days — people, doors, AP power control
-(Kaemarungsi & Krishnamurthy, "Properties of indoor received signal strength for WLAN location
-fingerprinting", MobiQuitous 2004; Mendoza-Silva et al., "Long-term WiFi fingerprinting dataset for
-research on robust indoor positioning", Data 3(1), 2018) — so a scan matched to map scans recorded minutes
-before it shares their transient state: it matches them better (a smaller D₁) than a scan from another
-session at the same distance from the survey, and D₁ alone says less about its error. The calibration
-therefore treats apart the cross-validated scans whose nearest matched map scan (in recording time) is
-within ``cov_recent_s`` of them and the rest, and a fix is calibrated by its own stratum (a stratum with
-fewer than 40 scans, or a map without recording times, uses all scans). With ``cov_strata`` 'tables' (the
-default) each stratum has its own table; with 'factor' σ is the one table over all scans times one factor
-per stratum, the factor whose ellipse holds that stratum's share of its scans' errors divided by the
-table's σ. Per-stratum tables are fitted on a few dozen scans a bin and their levels can swap between
-strata: on ms_site2 F7 with a third of the survey walks left out in turn, the tables' σ ranked the left-out
-walks' errors at −0.40, 0.52 and 0.54 (Spearman, per third) where one table ranks them at 0.60, 0.74 and
-0.51, and one table with factors at 0.51, 0.75, 0.77 (B1: 0.13, 0.19, 0.00; 0.43, 0.40, 0.04; 0.32, 0.34,
-0.03). A user positioned days after the survey gets the second stratum; a replay of the survey session's
-other walks mostly the first. The positions do not depend on the covariance.
 """
 from __future__ import annotations
 
@@ -160,205 +105,15 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
 
-from indoor_loc.params import field, require
 from indoor_loc.errors import MapError
 from indoor_loc.measurements import Fix
+from indoor_loc.wifi.powed_knn_cov import CovarianceCalibration, fix_features
+from indoor_loc.wifi.powed_knn_params import PowedKnnParams
+from indoor_loc.wifi.powed_repr import age_weight, powed, scaled_columns, smoothing_grid, sorensen
 from indoor_loc.wifi.radio_field import (FIELD_MIN_VALUE, Walkable, detect_level, fit_floor_models, prior_values,
                                          view_scale, walkable_mask, within_reach)
 from indoor_loc.wifi.types import ApIndex, ApReadings, Positioner, RadioMap, WifiScan
-
-AP_WEIGHTINGS = ("idf", "none")
-AGE_VIEWS = ("weighted", "both")
-SMOOTH_VIEWS = ("grid", "both")
-#: per-fix quantities the covariance calibration may rank the fixes by (PowedKnn fix info["features"])
-COV_QUANTITIES = ("d1", "views_m", "far", "spread_m", "view_gap_m", "d_ratio", "survey_share", "n_aps")
-COV_STRATA = ("factor", "tables")
-KERNEL_CUTOFF = 3.0                                   # the smoothing kernel is cut at this many bandwidths
-MIN_BIN_SCANS = 40                                    # cross-validated scans per bin of the covariance calibration
-
-
-@dataclass(frozen=True)
-class PowedKnnParams:
-    """Powed k-NN parameters (defaults chosen on ms_site2 B1/F7, see docs/benchmarks/wifi.md)."""
-    k: int = field(4, "number of nearest map scans averaged")
-    floor_dbm: float = field(-100.0, "RSS mapped to 0 in the positive representation; weaker readings are "
-                                       "treated as not heard (dBm)")
-    beta: float = field(math.e, "exponent of the powed representation")
-    age_tau_ms: float = field(5000.0, "readings weigh exp(-age_ms / age_tau_ms); 0 = ignore ages (ms)")
-    age_views: str = field("both", "'weighted': readings weigh by their age; 'both': the mean of that estimate "
-                                   "and the one with ages ignored (two hypotheses on what a cached reading is worth)")
-    ap_weighting: str = field("idf", "'idf' (sqrt(ln(1 + M / n_a)): APs heard everywhere weigh less) or 'none'")
-    epsilon: float = field(1e-4, "epsilon in the neighbour weight 1 / (D + epsilon)")
-    cov_scale: float = field(0.0, "factor on the weighted spread of the k neighbour positions added to the "
-                                    "covariance (0: the cross-validated sigma already holds it)")
-    cov_floor_m: float = field(1.0, "smallest isotropic standard deviation of the fix covariance (m)")
-    cov_calibration: bool = field(True, "calibrate sigma(best distance) on the map by leave-walks-out "
-                                          "cross-validation at fit time")
-    cov_calibration_scans: int = field(1000, "at most this many map scans (evenly spaced) are cross-validated "
-                                         "(bounds the fit time on large maps)")
-    cov_quantile: float = field(0.95, "the ellipse of this probability is calibrated on the cross-validated errors")
-    cov_folds: int = field(10, "the map's sources (walks) are dealt into at most this many folds, each left out in "
-                               "turn in the calibration")
-    cov_bins: int = field(5, "at most this many bins of the best-match distance in the calibration (each of at "
-                             "least 40 cross-validated scans)")
-    cov_recent_s: float = field(600.0, "fixes whose nearest matched map scan was recorded within this time of the scan "
-                                       "(the same survey session) get a sigma calibrated on such scans only, the "
-                                       "others one calibrated on the rest (s; 0 = one calibration for all)")
-    cov_strata: str = field("tables", "how the recording-time strata calibrate sigma: 'tables' (one table per stratum) "
-                                      "or 'factor' (one sigma table over all cross-validated scans, times a factor per "
-                                      "stratum that makes its ellipse hold its own scans)")
-    cov_quantities: str = field("d1", "comma-separated per-fix quantities sigma is calibrated on: 'd1' alone "
-                                              "bins the best-match distance; several are combined into the "
-                                              "least-squares prediction of the log cross-validated error (one of "
-                                              f"{', '.join(COV_QUANTITIES)})")
-    smooth_m: float = field(4.0, "bandwidth of the Gaussian kernel regression that interpolates the map's readings "
-                                 "over a grid of candidate positions per floor (m); 0 = match the map scans themselves")
-    smooth_grid_m: float = field(1.0, "spacing of the candidate grid (m)")
-    smooth_reach_m: float = field(2.0, "grid points farther than this from every map scan of their floor are no "
-                                       "candidates (m)")
-    smooth_views: str = field("both", "with smooth_m > 0: 'grid' (match the interpolated grid only) or 'both' (the "
-                                      "mean of the estimates against the map scans and against the grid)")
-    smooth_k: int = field(20, "number of nearest grid candidates averaged (k counts the map scans)")
-    field_weight: float = field(0.0, "weight of the per-AP path-loss prior in the interpolated grid, in survey "
-                                     "scans at the candidate (indoor_loc.wifi.radio_field; 0 = kernel regression "
-                                     "alone); with it the grid may reach farther (smooth_reach_m) and extrapolates")
-    field_survey_share: bool = field(True, "with field_weight > 0 and smooth_views 'both': the estimates against the map "
-                                           "scans weigh by the share of the grid estimates' weight on points within "
-                                           "smooth_reach_m of a map scan (where the grid puts the user beyond the survey, "
-                                           "the map scans cannot be there); False: every estimate weighs the same")
-    field_reach_m: float = field(10.0, "with field_weight > 0 and a walkable area (PowedKnn.walkable, from a floor plan) "
-                                       "the grid also covers the walkable points this far from the map scans (m)")
-    offset_gain: float = field(0.2, "online device RSS offset: after each fix the offset moves by this fraction "
-                                    "of the median residual against the neighbours (0 = off)")
-    offset_max_db: float = field(20.0, "bound on the device RSS offset (dB)")
-    offset_min_aps: int = field(5, "readings shared with every neighbour needed to update the offset")
-
-    def validate(self) -> None:
-        n = type(self).__name__
-        require(int(self.k) >= 1, n, "k", "an integer >= 1", self.k)
-        require(-120.0 <= self.floor_dbm < 0.0, n, "floor_dbm", "in [-120, 0) dBm", self.floor_dbm)
-        require(math.isfinite(self.beta) and self.beta > 0, n, "beta", "> 0", self.beta)
-        require(math.isfinite(self.age_tau_ms) and self.age_tau_ms >= 0, n, "age_tau_ms", ">= 0 ms",
-                  self.age_tau_ms)
-        require(self.age_views in AGE_VIEWS, n, "age_views", f"one of {list(AGE_VIEWS)}", self.age_views)
-        require(self.ap_weighting in AP_WEIGHTINGS, n, "ap_weighting", f"one of {list(AP_WEIGHTINGS)}",
-                  self.ap_weighting)
-        require(math.isfinite(self.epsilon) and self.epsilon > 0, n, "epsilon", "> 0", self.epsilon)
-        require(math.isfinite(self.offset_gain) and 0.0 <= self.offset_gain <= 1.0, n, "offset_gain", "in [0, 1]",
-                self.offset_gain)
-        require(math.isfinite(self.offset_max_db) and self.offset_max_db >= 0, n, "offset_max_db", ">= 0 dB",
-                self.offset_max_db)
-        require(int(self.offset_min_aps) >= 1, n, "offset_min_aps", "an integer >= 1", self.offset_min_aps)
-        require(int(self.cov_calibration_scans) >= 10, n, "cov_calibration_scans", "an integer >= 10",
-                self.cov_calibration_scans)
-        require(math.isfinite(self.cov_quantile) and 0.0 < self.cov_quantile < 1.0, n, "cov_quantile", "in (0, 1)",
-                self.cov_quantile)
-        require(math.isfinite(self.smooth_m) and self.smooth_m >= 0, n, "smooth_m", ">= 0 m", self.smooth_m)
-        require(math.isfinite(self.smooth_grid_m) and self.smooth_grid_m > 0, n, "smooth_grid_m", "> 0 m",
-                self.smooth_grid_m)
-        require(math.isfinite(self.smooth_reach_m) and self.smooth_reach_m >= 0, n, "smooth_reach_m", ">= 0 m",
-                self.smooth_reach_m)
-        require(self.smooth_views in SMOOTH_VIEWS, n, "smooth_views", f"one of {list(SMOOTH_VIEWS)}",
-                self.smooth_views)
-        require(int(self.smooth_k) >= 1, n, "smooth_k", "an integer >= 1", self.smooth_k)
-        require(math.isfinite(self.field_weight) and self.field_weight >= 0, n, "field_weight", ">= 0",
-                self.field_weight)
-        require(math.isfinite(self.field_reach_m) and self.field_reach_m >= 0, n, "field_reach_m", ">= 0 m",
-                self.field_reach_m)
-        require(self.smooth_m == 0 or self.smooth_grid_m <= 10 * self.smooth_m, n, "smooth_grid_m",
-                "at most 10 x smooth_m", self.smooth_grid_m)
-        require(int(self.cov_folds) >= 2, n, "cov_folds", "an integer >= 2", self.cov_folds)
-        require(int(self.cov_bins) >= 1, n, "cov_bins", "an integer >= 1", self.cov_bins)
-        require(math.isfinite(self.cov_recent_s) and self.cov_recent_s >= 0, n, "cov_recent_s", ">= 0 s",
-                self.cov_recent_s)
-        require(self.cov_strata in COV_STRATA, n, "cov_strata", f"one of {list(COV_STRATA)}", self.cov_strata)
-        names = cov_quantity_names(self.cov_quantities)
-        require(len(names) >= 1 and len(set(names)) == len(names) and all(q in COV_QUANTITIES for q in names), n,
-                "cov_quantities", f"distinct names among {list(COV_QUANTITIES)}, comma-separated", self.cov_quantities)
-        require(math.isfinite(self.cov_scale) and self.cov_scale >= 0, n, "cov_scale", ">= 0", self.cov_scale)
-        require(math.isfinite(self.cov_floor_m) and self.cov_floor_m > 0, n, "cov_floor_m",
-                  "> 0 (a fix covariance must be invertible)", self.cov_floor_m)
-
-
-def cov_quantity_names(text: str) -> list[str]:
-    """The names of a ``cov_quantities`` setting."""
-    return [t.strip() for t in str(text).split(",") if t.strip()]
-
-
-def cov_columns(names: list[str], q: dict[str, Any]) -> np.ndarray:
-    """(N, len(names)) the quantities ``q`` (name -> value or (N,) values) on the scale the calibration's
-    least-squares fit uses: distances in metres and AP counts by their logarithm (log(1 + m), log n), the rest as
-    they are (the best-match distance, shares and ratios in [0, 1]). ValueError when ``q`` lacks one of ``names``
-    (the score of a fix without it would be wrong, not merely less informed)."""
-    missing = [name for name in names if name not in q]
-    if missing:
-        raise ValueError(f"expected the per-fix quantities {names} (a fix's info['features']), got no {missing}")
-    cols = []
-    for name in names:
-        v = np.atleast_1d(np.asarray(q[name], float))
-        cols.append(np.log1p(np.maximum(v, 0.0)) if name.endswith("_m") else
-                    np.log(np.maximum(v, 1.0)) if name == "n_aps" else v)
-    return np.column_stack(cols)
-
-
-def powed(rssi_dbm: ArrayLike, floor_dbm: float, beta: float) -> np.ndarray:
-    """The powed representation of RSS values (dBm) -> [0, 1]; NaN -> 0."""
-    r = np.nan_to_num(np.asarray(rssi_dbm, float), nan=-np.inf)
-    return (np.clip(r - floor_dbm, 0.0, None) / -floor_dbm) ** beta
-
-
-def smoothing_grid(pos: np.ndarray, z: np.ndarray, step_m: float, reach_m: float, bandwidth_m: float
-                   ) -> tuple[np.ndarray, np.ndarray, Any, Any]:
-    """Candidate grid of a map: per floor height, the points of a square grid of spacing ``step_m`` lying
-    within ``reach_m`` of one of that floor's map scans. Returns (positions (C, 2), heights (C,),
-    Gaussian kernel weights (C, M) sparse, exp(-d^2 / 2 h^2) for the same floor's map scans within 3 h,
-    and a sparse (C, M) boolean of the map scans within ``reach_m``)."""
-    from scipy import sparse
-    from scipy.spatial import cKDTree
-    grids, heights = [], []
-    for zf in np.unique(z):
-        p = pos[z == zf]
-        lo = np.floor((p.min(axis=0) - reach_m) / step_m) * step_m
-        hi = p.max(axis=0) + reach_m
-        gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, step_m), np.arange(lo[1], hi[1] + 1e-9, step_m))
-        g = np.column_stack([gx.ravel(), gy.ravel()])
-        d, _ = cKDTree(p).query(g, distance_upper_bound=reach_m + 1e-9)
-        grids.append(g[np.isfinite(d)])
-        heights.append(np.full(int(np.isfinite(d).sum()), float(zf)))
-    g = np.vstack(grids)
-    gz = np.concatenate(heights)
-    sep = 1e6                                       # floors never within a kernel of each other
-    tree_g, tree_m = cKDTree(np.column_stack([g, gz * sep])), cKDTree(np.column_stack([pos, z * sep]))
-    shape = (len(g), len(pos))
-
-    def pairs(radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        coo = tree_g.sparse_distance_matrix(tree_m, radius, output_type="coo_matrix")
-        return coo.row, coo.col, coo.data
-    r, c, d = pairs(KERNEL_CUTOFF * bandwidth_m)
-    w = sparse.csr_matrix((np.exp(-0.5 * (d / bandwidth_m) ** 2), (r, c)), shape=shape)
-    r, c, _ = pairs(reach_m + 1e-9)
-    near = sparse.csr_matrix((np.ones(len(r), bool), (r, c)), shape=shape)
-    return g, gz, w, near
-
-
-def _scaled(m: Any, col_scale: np.ndarray, factor: float) -> Any:
-    """The CSR matrix ``m`` with column a multiplied by ``col_scale[a]``, then by ``factor`` (new values,
-    the index arrays shared)."""
-    from scipy import sparse
-    m = sparse.csr_matrix(m)
-    return sparse.csr_matrix((m.data * np.asarray(col_scale, float)[m.indices] * factor, m.indices, m.indptr),
-                             shape=m.shape)
-
-
-def age_weight(age_ms: ArrayLike | None, tau_ms: float) -> np.ndarray | float:
-    """exp(-age / tau) (1 for unknown ages or tau = 0)."""
-    if age_ms is None or tau_ms <= 0:
-        return 1.0
-    a = np.nan_to_num(np.asarray(age_ms, float), nan=0.0)
-    return np.exp(-np.maximum(a, 0.0) / tau_ms)
-
 
 @dataclass
 class _View:
@@ -371,7 +126,7 @@ class _View:
     twin: bool = False                               # ages ignored, and an aged view on the same candidates exists
 
 
-class PowedKnn(Positioner):
+class PowedKnn(CovarianceCalibration, Positioner):
     """Powed/Sørensen k-NN with ages, AP weights, an interpolated map and floor detection (see module
     docstring)."""
     name = "powed"
@@ -562,7 +317,7 @@ class PowedKnn(Positioner):
             if dr is not None:
                 g = g - dr
             if prior is not None:
-                g = g + _scaled(prior, self._prior_scale[j], lam)
+                g = g + scaled_columns(prior, self._prior_scale[j], lam)
             g.data *= np.repeat(inv, np.diff(g.indptr))
             g.data[g.data < 1e-12] = 0.0                 # what only the left-out scans heard (rounding residue)
             g.eliminate_zeros()
@@ -621,164 +376,6 @@ class PowedKnn(Positioner):
             prior = kept + fresh
         return prior
 
-    def _calibrate(self, source: list[str], map_z: np.ndarray) -> None:
-        """Leave-one-source-out errors of the map's own scans -> sigma per bin of the best-match distance.
-        With smoothing the grid is interpolated again without the left-out source's scans."""
-        from scipy import sparse
-        p = self.params
-        m = self._n_map
-        # leave walks (sources) out: the sources, in name order, are dealt into at most cov_folds folds;
-        # a map from one source (a survey) deals its scans instead. Without a grid and with few sources
-        # that is leave-one-source-out; a grid is interpolated again for every fold.
-        names = sorted(set(source))
-        if len(names) >= 2:
-            rank = {name: i for i, name in enumerate(names)}
-            src = np.array([rank[s] % int(p.cov_folds) for s in source])
-        elif self._kernel is None:
-            src = np.arange(m)
-        else:
-            src = np.arange(m) % min(m, int(p.cov_folds))
-        d1 = np.full(m, np.nan)
-        err = np.full(m, np.nan)
-        lag = np.full(m, np.inf)                  # s from each scan to its nearest matched map scan (recording time)
-        feats: dict[str, np.ndarray] = {}
-        assert self.radio_map is not None
-        stamps = np.asarray(self.radio_map.stamps_ns, np.int64)
-        rows = np.unique(np.linspace(0, m - 1, min(m, int(p.cov_calibration_scans))).round().astype(int))
-        views = [v for v in self._views if not v.twin]           # the map scans have no ages to ignore
-        if self._kernel is not None:                 # every fold starts from the kernel sums over all scans
-            self._kernel_sums = [sparse.csr_matrix(self._kernel @ sparse.csr_matrix(v)) for v in self._vals]
-        floors = np.unique(map_z)
-        for fold in np.unique(src[rows]):
-            keep = src != fold
-            off = self._off_survey(keep)
-            # candidates: the map scans, then every grid point (a floor's points out of reach of the kept scans
-            # are in no floor's part: their distance stays 1, no candidate)
-            n_c = len(self._pos)
-            pos_c, z_c = self._pos, self._z
-            allowed = np.concatenate([keep, np.ones(n_c - m, bool)])
-            for zf in floors:
-                # a scan is matched on its own floor only: the distances to the other floors' grid points
-                # are never read (they stay 1, no candidate)
-                on_floor = allowed & (z_c == zf)
-                todo = rows[(src[rows] == fold) & (map_z[rows] == zf)]
-                if len(todo) == 0:
-                    continue
-                if self._kernel is not None:             # this floor's grid without the fold's scans
-                    g_rd: list[Any] = []                 # (the previous floor's freed first)
-                    g_sums: list[Any] = []
-                    g_rd, g_sums, part = self._smoothed(keep, float(zf))
-                for i in todo:
-                    c = np.flatnonzero(self._vals[0][i] > 0)
-                    if len(c) == 0:
-                        continue
-                    ds = []
-                    for v in views:
-                        d = np.ones(n_c)
-                        if v.grid:
-                            d[m + part] = _sorensen(c, self._vals[v.values][i, c], g_rd[v.values],
-                                                    g_sums[v.values], len(part))
-                        else:
-                            rd, sm, _ = v.parts[0]
-                            d[:m] = _sorensen(c, self._vals[v.values][i, c], rd, sm, m)
-                        ds.append(d)
-                    est = self._estimate(ds, on_floor, pos_c, views, off)
-                    if est is None:
-                        continue
-                    d1[i] = est[3]
-                    err[i] = float(np.hypot(*(est[0] - self._pos[i])))
-                    lag[i] = self._lag_s(est[1], int(stamps[i]))
-                    for key, val in self._last_features.items():
-                        feats.setdefault(key, np.full(m, np.nan))[i] = val
-                    feats.setdefault("n_aps", np.full(m, np.nan))[i] = len(c)
-        self._kernel_sums = None
-        ok = np.isfinite(err)
-        if ok.sum() < 10:
-            return
-        d1, err, lag = d1[ok], err[ok], lag[ok]
-        self._cv_features = {key: val[ok] for key, val in feats.items()} | {"error_m": err, "lag_s": lag}
-        names = cov_quantity_names(p.cov_quantities)
-        if names != ["d1"]:
-            # the score: the least-squares prediction of the log error from the quantities (scans with all of them)
-            a = np.column_stack([np.ones(len(err)), cov_columns(names, self._cv_features)])
-            good = np.all(np.isfinite(a), axis=1)
-            if good.sum() >= 10:
-                self.cov_coef = np.linalg.lstsq(a[good], np.log(np.maximum(err[good], p.cov_floor_m)), rcond=None)[0]
-        score = self.cov_score(self._cv_features) if len(self.cov_coef) else d1
-        self.sigma_table = self._sigma_bins(score, err)
-        self.calibration = {"scans": int(len(err)), "mean_error_m": float(np.mean(err)),
-                            "quantile": p.cov_quantile, "quantities": names if len(self.cov_coef) else ["d1"],
-                            "coef": self.cov_coef.tolist(), "score": self.sigma_table[0].tolist(),
-                            "sigma_m": self.sigma_table[1].tolist(),
-                            "spearman": {key: _spearman(val, err) for key, val in self._cv_features.items()
-                                         if key in COV_QUANTITIES}}
-        recent = lag <= p.cov_recent_s
-        if p.cov_recent_s > 0 and np.ptp(stamps) > 0:     # a map with recording times (not a pre-surveyed one)
-            strata = (recent, ~recent)
-            if p.cov_strata == "tables":
-                self.sigma_tables = tuple(self._sigma_bins(score[s], err[s]) if s.sum() >= MIN_BIN_SCANS
-                                          else self.sigma_table for s in strata)
-                self.calibration.update(recent_sigma_m=self.sigma_tables[0][1].tolist(),
-                                        recent_score=self.sigma_tables[0][0].tolist(),
-                                        older_sigma_m=self.sigma_tables[1][1].tolist(),
-                                        older_score=self.sigma_tables[1][0].tolist())
-            else:
-                # one shape over all scans; per stratum, the factor whose ellipse holds its share of the stratum's
-                # errors (a stratum under MIN_BIN_SCANS keeps the shape)
-                shape = np.maximum(np.interp(score, *self.sigma_table), p.cov_floor_m)
-                scale = math.sqrt(-2.0 * math.log(1.0 - p.cov_quantile))
-                self.sigma_factors = tuple(float(np.quantile(err[s] / shape[s], p.cov_quantile)) / scale
-                                           if s.sum() >= MIN_BIN_SCANS else 1.0 for s in strata)
-                self.calibration.update(factors=list(self.sigma_factors))
-            self.calibration.update(recent_scans=int(recent.sum()), recent_mean_error_m=float(np.mean(err[recent]))
-                                    if recent.any() else float("nan"))
-
-    def _sigma_bins(self, d1: np.ndarray, err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cross-validated (score, error) -> (bin centres, sigma per bin): equal-count bins of the score (the
-        best-match distance or the predicted log error; at most ``cov_bins``, at least 40 scans each), per bin
-        the sigma whose ``cov_quantile`` ellipse holds that share of the bin's errors, made non-decreasing in
-        the score."""
-        p = self.params
-        order = np.argsort(d1, kind="stable")
-        bins = np.array_split(order, int(np.clip(len(order) // MIN_BIN_SCANS, 1, int(p.cov_bins))))
-        centres = np.array([float(np.mean(d1[b])) for b in bins])
-        scale = math.sqrt(-2.0 * math.log(1.0 - p.cov_quantile))
-        sig = np.maximum.accumulate(np.array([float(np.quantile(err[b], p.cov_quantile)) / scale for b in bins]))
-        return centres, np.maximum(sig, p.cov_floor_m)
-
-    def _lag_s(self, rows: np.ndarray, stamp_ns: int) -> float:
-        """Time (s) between a scan and the nearest in recording time of the map scans among the fix's
-        candidate ``rows`` (inf when the fix has none, e.g. grid points only)."""
-        assert self.radio_map is not None
-        r = rows[rows < self._n_map]
-        if len(r) == 0:
-            return math.inf
-        return float(np.min(np.abs(np.asarray(self.radio_map.stamps_ns, np.int64)[r] - int(stamp_ns)))) / 1e9
-
-    def cov_score(self, q: dict[str, Any]) -> np.ndarray:
-        """The calibration's score of fixes with quantities ``q`` (name -> value or (N,) values; fix
-        ``info["features"]``): the predicted log error, or the best-match distance when sigma is calibrated on it
-        alone."""
-        if not len(self.cov_coef):
-            return np.atleast_1d(np.asarray(q["d1"], float))
-        names = self.calibration.get("quantities") or cov_quantity_names(self.params.cov_quantities)
-        return self.cov_coef[0] + cov_columns(names, q) @ self.cov_coef[1:]
-
-    def sigma_m(self, d1: float, lag_s: float | None = None, features: dict[str, float] | None = None) -> float:
-        """Isotropic standard deviation of a fix whose best match is at distance ``d1``, m, with the other
-        quantities of the calibration's score in ``features`` (fix ``info["features"]``; needed, ValueError without
-        them, when ``cov_quantities`` names more than 'd1'); with ``lag_s`` (s from the scan to its nearest matched
-        map scan) that of its recording-time stratum."""
-        x = float(self.cov_score({**(features or {}), "d1": d1})[0]) if len(self.cov_coef) else d1
-        centres, sig = self.sigma_table
-        stratum = None if lag_s is None else 0 if lag_s <= self.params.cov_recent_s else 1
-        if stratum is not None and self.sigma_tables:
-            centres, sig = self.sigma_tables[stratum]
-        s = max(self.params.cov_floor_m, float(np.interp(x, centres, sig)))
-        if stratum is not None and self.sigma_factors:
-            s *= self.sigma_factors[stratum]
-        return max(self.params.cov_floor_m, s)
-
     # ------------------------------------------------------------------------------------------
     def distances(self, scan: WifiScan) -> tuple[np.ndarray, int, int]:
         """(D (M + C,) Sørensen distance of the first view to every candidate, usable readings, readings
@@ -821,7 +418,7 @@ class PowedKnn(Positioner):
         d = np.ones(len(self._pos))
         off = self._n_map if v.grid else 0
         for rd, sums, rows in v.parts:
-            d[off + rows] = _sorensen(c, q, rd, sums, len(rows))
+            d[off + rows] = sorensen(c, q, rd, sums, len(rows))
         return d
 
     def _estimate(self, ds: list[np.ndarray], allowed: np.ndarray, pos: np.ndarray | None = None,
@@ -859,7 +456,7 @@ class PowedKnn(Positioner):
             w = np.concatenate([x * f for (_, x, _, _), f in zip(parts, share)]) / share.sum()
         p_all = self._pos if pos is None else pos
         xy = w @ p_all[rows]
-        self._last_features = _features(xy, p_all, parts, float(share.min()))
+        self._last_features = fix_features(xy, p_all, parts, float(share.min()))
         return (xy, rows, w, float(parts[0][2][0]), np.concatenate([x for _, _, x, _ in parts]))
 
     def reset(self) -> None:
@@ -1075,53 +672,3 @@ class PowedKnn(Positioner):
         self.sigma_table, self.sigma_tables, self.calibration = sigma_table, tables, calibration
         self.sigma_factors, self.cov_coef = factors, coef
         return self
-
-
-def _sorensen(c: np.ndarray, q: np.ndarray, readings: ApReadings, sums: np.ndarray, m: int) -> np.ndarray:
-    """Sørensen distance (m,) of a query given as columns c (q,) and values q (q,) to the rows of
-    ``readings`` (their value sums ``sums`` (m,))."""
-    rows, map_vals, lens = readings.gather(c)
-    if len(rows) == 0:
-        return np.ones(m)
-    mins = np.minimum(np.repeat(q, lens), map_vals)
-    shared = np.bincount(rows, weights=mins, minlength=m)
-    d = 1.0 - 2.0 * shared / np.maximum(q.sum() + sums, 1e-300)
-    return np.clip(d, 0.0, 1.0)
-
-
-#: radius (m) around a fix beyond which its candidates' weight counts as a second hypothesis
-FAR_M = 5.0
-
-
-def _features(xy: np.ndarray, pos: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, Any]],
-              survey_share: float) -> dict[str, float]:
-    """Per-fix quantities that may say how far off a fix is: the best-match distance ``d1`` and its ratio to the
-    first view's k-th, the weighted spread (m) of each view's candidates about the view's own estimate,
-    averaged over views (``spread_m``), the distance between the estimates against the map scans and against
-    the grid (``view_gap_m``, 0 without a grid), the largest distance between two views' estimates
-    (``views_m``), the weight of the candidates farther than :data:`FAR_M` from the fix (``far``), and the
-    grid's share on the survey (``survey_share``, 1 without the field)."""
-    est, spread, far = [], [], 0.0
-    for rows, x, _, _ in parts:
-        p = pos[rows]
-        e = x @ p
-        est.append(e)
-        spread.append(math.sqrt(float(x @ np.sum((p - e) ** 2, axis=1))))
-        far += float(x @ (np.hypot(*(p - xy).T) > FAR_M)) / len(parts)
-    grid = [e for e, (_, _, _, v) in zip(est, parts) if v.grid]
-    scans = [e for e, (_, _, _, v) in zip(est, parts) if not v.grid]
-    gap = float(np.hypot(*(np.mean(grid, axis=0) - np.mean(scans, axis=0)))) if grid and scans else 0.0
-    e_all = np.array(est)
-    views = float(np.max(np.hypot(*(e_all[:, None] - e_all[None]).reshape(-1, 2).T)))
-    d = parts[0][2]
-    return {"d1": float(d[0]), "d_ratio": float(d[0] / max(float(d[-1]), 1e-12)), "spread_m": float(np.mean(spread)),
-            "view_gap_m": gap, "views_m": views, "far": far, "survey_share": survey_share}
-
-
-def _spearman(x: np.ndarray, y: np.ndarray) -> float:
-    """Spearman's rank correlation of x and y over the pairs where both are finite (NaN with fewer than 3)."""
-    from scipy.stats import spearmanr
-    ok = np.isfinite(x) & np.isfinite(y)
-    if ok.sum() < 3 or np.ptp(x[ok]) == 0 or np.ptp(y[ok]) == 0:
-        return float("nan")
-    return float(spearmanr(x[ok], y[ok]).statistic)
