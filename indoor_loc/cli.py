@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "radiomap": ("indoor_loc.commands.radiomap", "build / inspect WiFi radio maps"),
     "map": ("indoor_loc.commands.map", "building graphs: from a floor-plan image or GeoJSON, draw over the plan"),
     "wifi": ("indoor_loc.commands.wifi", "WiFi tools: scan the local interface, parse captured output"),
-    "bench": ("indoor_loc.bench.cli", "benchmarks: heading, imu, steps, wifi, pf, backend, throughput, live"),
+    "bench": ("indoor_loc.bench.cli", "benchmarks that print tables, side by side in one run (indoor-loc bench -h lists them)"),
     "contract": ("indoor_loc.commands.contract", "print the message contract as a Markdown table"),
     "view": ("indoor_loc.commands.view", "live view of a running system over the Foxglove WebSocket protocol (Foxglove, Lichtblick)"),
     "sim": ("indoor_loc.commands.sim", "simulate walkers in a building: bags, radio map, graph, params.yaml"),

@@ -1,5 +1,5 @@
-"""``indoor-loc bench {heading,imu,wifi,steps,backend,pf,throughput,live,chaos,scale,robot}``: benchmarks print tables,
-side by side with peers in one run."""
+"""``indoor-loc bench NAME`` (the names: :data:`BENCHES`): benchmarks print tables, side by side with peers
+in one run."""
 from __future__ import annotations
 
 import argparse
