@@ -137,9 +137,13 @@ def make_stage(kind: str, params_file: dict | None, namespaces: list[str]) -> di
     from indoor_loc.pipeline.registry import stage_class
     cls = stage_class(kind)
     if cls.MULTI_USER:
-        return {"": cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, "")))}
-    return {ns: cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, ns)), namespace=ns)
-            for ns in namespaces}
+        stages = {"": cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, "")))}
+    else:
+        stages = {ns: cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, ns)),
+                          namespace=ns) for ns in namespaces}
+    for s in stages.values():
+        s.raw_outputs = True           # as in every node (nodes/stage_node.py): outputs it can serialise go as CDR
+    return stages
 
 
 @dataclass
@@ -236,6 +240,9 @@ def _sizes(stages: dict[str, Any]) -> dict[str, int]:
             found.update(final_poses=len(s._final), window_epochs=len(s._epochs))
         if getattr(s, "map_odom", None) is not None:
             found.update(odom_track=sum(len(u.track.stamps) for u in s.map_odom.users.values()))
+        budget = getattr(s, "_budget", None)
+        if budget is not None:
+            found.update(smoother_kb=budget.held // 1024, smoother_trimmed=budget.trimmed_steps)
         found.update(process_s=len(s.diag.process_s))
         for k, v in found.items():
             out[k] = out.get(k, 0) + int(v)
