@@ -189,12 +189,12 @@ def soak_stage(kind: str, feed: Feed, params_file: dict | None, hours: float, *,
                 log(f"{kind}: {sim_h:.2f} sim h, traced {cur / 2**20:.2f} MB, {messages} msgs, "
                     f"{1e3 * cpu / max(messages, 1):.2f} ms/msg so far, sizes {samples[-1].sizes}")
                 next_sample_h += every_h
+            m = restamp(msg, t, pose[ns] if rel == "pdr/odom" else None)    # the feed's work, not the stage's
             c0 = time.process_time()
             while t >= tick_at:
                 for s in stages.values():
                     s.run_tick(tick_at)
                 tick_at += SEC
-            m = restamp(msg, t, pose[ns] if rel == "pdr/odom" else None)
             for s_ns, s in stages.items():
                 if s_ns in ("", ns) and s.handles(rel):
                     if s.MULTI_USER:
