@@ -186,8 +186,12 @@ def soak_stage(kind: str, feed: Feed, params_file: dict | None, hours: float, *,
                 samples.append(Sample(sim_h, cur / 2**20, messages, cpu, _sizes(stages)))
                 if trace:
                     snaps.append(tracemalloc.take_snapshot())
+                prev = samples[-2] if len(samples) > 1 else None
+                window = (f"{1e3 * (cpu - prev.cpu_s) / (messages - prev.messages):.2f}"
+                          if prev is not None and messages > prev.messages else "–")
                 log(f"{kind}: {sim_h:.2f} sim h, traced {cur / 2**20:.2f} MB, {messages} msgs, "
-                    f"{1e3 * cpu / max(messages, 1):.2f} ms/msg so far, sizes {samples[-1].sizes}")
+                    f"{1e3 * cpu / max(messages, 1):.2f} ms/msg so far, {window} ms/msg since the last sample, "
+                    f"sizes {samples[-1].sizes}")
                 next_sample_h += every_h
             m = restamp(msg, t, pose[ns] if rel == "pdr/odom" else None)    # the feed's work, not the stage's
             c0 = time.process_time()
