@@ -137,9 +137,13 @@ def make_stage(kind: str, params_file: dict | None, namespaces: list[str]) -> di
     from indoor_loc.pipeline.registry import stage_class
     cls = stage_class(kind)
     if cls.MULTI_USER:
-        return {"": cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, "")))}
-    return {ns: cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, ns)), namespace=ns)
-            for ns in namespaces}
+        stages = {"": cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, "")))}
+    else:
+        stages = {ns: cls(params_from_dict(cls.PARAMS, params_for_node(params_file or {}, cls.NODE_NAME, ns)),
+                          namespace=ns) for ns in namespaces}
+    for s in stages.values():
+        s.raw_outputs = True           # as in every node (nodes/stage_node.py): outputs it can serialise go as CDR
+    return stages
 
 
 @dataclass
@@ -182,15 +186,19 @@ def soak_stage(kind: str, feed: Feed, params_file: dict | None, hours: float, *,
                 samples.append(Sample(sim_h, cur / 2**20, messages, cpu, _sizes(stages)))
                 if trace:
                     snaps.append(tracemalloc.take_snapshot())
+                prev = samples[-2] if len(samples) > 1 else None
+                window = (f"{1e3 * (cpu - prev.cpu_s) / (messages - prev.messages):.2f}"
+                          if prev is not None and messages > prev.messages else "–")
                 log(f"{kind}: {sim_h:.2f} sim h, traced {cur / 2**20:.2f} MB, {messages} msgs, "
-                    f"{1e3 * cpu / max(messages, 1):.2f} ms/msg so far, sizes {samples[-1].sizes}")
+                    f"{1e3 * cpu / max(messages, 1):.2f} ms/msg so far, {window} ms/msg since the last sample, "
+                    f"sizes {samples[-1].sizes}")
                 next_sample_h += every_h
+            m = restamp(msg, t, pose[ns] if rel == "pdr/odom" else None)    # the feed's work, not the stage's
             c0 = time.process_time()
             while t >= tick_at:
                 for s in stages.values():
                     s.run_tick(tick_at)
                 tick_at += SEC
-            m = restamp(msg, t, pose[ns] if rel == "pdr/odom" else None)
             for s_ns, s in stages.items():
                 if s_ns in ("", ns) and s.handles(rel):
                     if s.MULTI_USER:
@@ -236,6 +244,9 @@ def _sizes(stages: dict[str, Any]) -> dict[str, int]:
             found.update(final_poses=len(s._final), window_epochs=len(s._epochs))
         if getattr(s, "map_odom", None) is not None:
             found.update(odom_track=sum(len(u.track.stamps) for u in s.map_odom.users.values()))
+        budget = getattr(s, "_budget", None)
+        if budget is not None:
+            found.update(smoother_kb=budget.held // 1024, smoother_trimmed=budget.trimmed_steps)
         found.update(process_s=len(s.diag.process_s))
         for k, v in found.items():
             out[k] = out.get(k, 0) + int(v)

@@ -76,6 +76,7 @@ from msg_adapters.markers import points_markers
 from msg_adapters.initial_pose import initial_pose_from_msg
 from msg_adapters.odom import OdomJumpGuard, odom_from_msg
 from msg_adapters.path import path_to_msg
+from msg_adapters.path_cdr import path_cdr
 from msg_adapters.pose import fix_from_msg, pose_to_msg
 from msg_adapters.pressure import pressure_from_msg
 from msg_adapters.wifi_scan import scan_from_msg
@@ -497,13 +498,16 @@ class BackendStage(Stage):
     def _path_output(self, user: str) -> Output:
         st, x = self.graph.trajectory(user)
         stamp = int(st[-1]) if len(st) else 0
-        msg = path_to_msg(st, x[:, :2], x[:, 2], frame_id=self.params.frame_id, stamp_ns=stamp)
         floor = self._floor(user)
         if len(st):
             floor.filter.forget_before(int(st[0]))     # older poses have left the graph
-        for ps, z in zip(msg.poses, floor.z_at(st).tolist()):   # each pose at its smoothed floor
-            ps.pose.position.z = z
-        return (BACKEND_PATH.format(user=user), msg)
+        z = floor.z_at(st)                             # each pose at its smoothed floor
+        # a node hands the path to DDS already serialised (the same message, msg_adapters/path_cdr.py):
+        # building one PoseStamped per pose made each periodic path cost ~15 us per pose, the
+        # back-end's per-message cost growing with its graph (docs/benchmarks/soak.md)
+        encode = path_cdr if self.raw_outputs else path_to_msg
+        return (BACKEND_PATH.format(user=user), encode(st, x[:, :2], x[:, 2], frame_id=self.params.frame_id,
+                                                       stamp_ns=stamp, z=z))
 
     def _map_output(self, stamp_ns: int) -> Output:
         xy = np.vstack([self._drawn_survey, self.graph.wifi_radio_map().positions])

@@ -54,6 +54,7 @@ from indoor_loc.baro.detector import BaroParams
 from indoor_loc.baro.snap import FloorSnapParams
 from indoor_loc.pf.filter import PfParams
 from indoor_loc.pf.floors import PfFloorParams
+from indoor_loc.pf.smoother_budget import SmootherBudget
 from indoor_loc.pf.tracker import Estimate, GraphTracker, MonitorParams
 from indoor_loc.pf.wifi_field import EdgeFingerprintField, ScanFieldParams
 from indoor_loc.wifi.radiomap import load_radiomap
@@ -129,6 +130,10 @@ class PfStageParams:
                                             "per 1000 particles and pose: 10 min of walking ≈ 90 MB), so memory "
                                             "stays bounded in long runs; the path before it stays filtered, s")
     path_max_poses: int = P.field(20000, "pf/path holds the newest this many poses (≈ 1.8 h of walking)")
+    smooth_max_mb: float = P.field(160.0, "the smoother's particles never hold more than this (MB), whatever the "
+                                          "input rate: past it the oldest steps go before smooth_window_s ends "
+                                          "(fast odometry, many particles); 0 = only smooth_window_s bounds them "
+                                          "(indoor_loc/pf/smoother_budget.py)")
     smooth_redrawn: str = P.field("chain", "smoother: predecessor of a particle redrawn around a WiFi fix (sensor "
                                            "resetting): chain = its nearest particles by the motion model (fixes "
                                            "trusted to correct a lagging filter, as on PUTMC); mixture = the filter's "
@@ -166,6 +171,7 @@ class PfStageParams:
         P.require(self.smooth_samples >= 1, n, "smooth_samples", ">= 1", self.smooth_samples)
         P.require(self.smooth_window_s > 0, n, "smooth_window_s", "> 0", self.smooth_window_s)
         P.require(self.path_max_poses >= 1, n, "path_max_poses", ">= 1", self.path_max_poses)
+        P.require(self.smooth_max_mb >= 0, n, "smooth_max_mb", ">= 0", self.smooth_max_mb)
         P.require(self.smooth_redrawn in ("chain", "mixture"), n, "smooth_redrawn", "chain or mixture",
                   self.smooth_redrawn)
         P.require(self.wifi_update in ("fix", "scan"), n, "wifi_update", "fix or scan", self.wifi_update)
@@ -231,6 +237,8 @@ class PfStage(Stage):
         self.tracker = self._new_tracker()
         #: estimates older than the tracker's newest few, as arrays (pipeline/path_store.py): the bound of pf/path
         self._archive = PathStore(self.params.path_max_poses)
+        #: the smoother's particles within smooth_max_mb, whatever the input rate (pf/smoother_budget.py)
+        self._budget = SmootherBudget(int(self.params.smooth_max_mb * 2**20))
         self._seq = 0
         self._last_odom_ns: int | None = None
         self._graph_sent = False
@@ -481,6 +489,7 @@ class PfStage(Stage):
         oldest = next((seg[0].stamp_ns for seg in self.tracker.segments + [self.tracker.history] if seg), None)
         if oldest is not None and stamp_ns - oldest > window + window // 4:
             self.tracker.forget_before(stamp_ns - window, self.params.path_max_poses)
+        self._budget.after_step(self.tracker, self.params.path_max_poses)
         ests = self.tracker.estimates
         if len(ests) >= ESTIMATES_KEPT + ARCHIVE_EVERY:
             moved = ests[:len(ests) - ESTIMATES_KEPT]
@@ -526,7 +535,9 @@ class PfStage(Stage):
              "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
                            else "hit" if self.cache_hit else "computed"),
              "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source,
-             "precision_floored": str(self.floored)}
+             "precision_floored": str(self.floored),
+             # the smoother's particles at the last check, and steps dropped for smooth_max_mb
+             "smoother_mb": f"{self._budget.held / 2**20:.1f}", "smoother_trimmed": str(self._budget.trimmed_steps)}
         if self.params.motion_source == "odom":
             d.update(self._robot.diagnostics())
         if pf.p is None:
