@@ -97,3 +97,22 @@ def imu_cdr_run(stamps_ns: list[int], frame_id: str, acc: np.ndarray, gyro: np.n
         sec, nsec = divmod(ns, NS_PER_S)
         out.append(head(_ENCAPSULATION, sec, nsec, len(name)) + name + pad + pack(*values))
     return out
+
+
+def imu_cdr_run_covs(stamps_ns: list[int], frame_id: str, acc: np.ndarray, gyro: np.ndarray,
+                     quat_xyzw: np.ndarray, orientation_covs: list) -> list[bytes] | None:
+    """:func:`imu_cdr_run` with a covariance per sample (the AEKF's grows between updates):
+    ``orientation_covs`` N rows of the 9 row-major entries. The same bytes as :func:`imu_cdr` per
+    sample; None when any sample would be refused by it."""
+    name = frame_id.encode() + b"\x00"
+    pad = b"\x00" * ((-(_HEAD.size + len(name) - 4)) % 8)
+    head, pack, isfinite, tol = _HEAD.pack, _DOUBLES.pack, math.isfinite, QUAT_NORM_TOL
+    out = []
+    for ns, q, c, g, a in zip(stamps_ns, quat_xyzw.tolist(), orientation_covs, gyro.tolist(), acc.tolist()):
+        values = q + list(c) + g + list(_ZEROS9) + a + list(_ZEROS9)
+        if (not 0 <= ns <= MAX_STAMP_NS or len(values) != 37 or c[0] == -1.0 or not all(map(isfinite, values))
+                or not abs(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0) <= tol):
+            return None
+        sec, nsec = divmod(ns, NS_PER_S)
+        out.append(head(_ENCAPSULATION, sec, nsec, len(name)) + name + pad + pack(*values))
+    return out

@@ -348,3 +348,34 @@ def test_magnetometer_at_its_own_stamps_equals_plain_matrix_oracle(rng):
         np.testing.assert_allclose(cov[k], co, atol=1e-12, rtol=1e-8, err_msg=f"sample {k}")
         k += 1
     assert k == len(d["t"])
+
+
+def test_update_imu_run_equals_update_imu_per_sample(rng):
+    """``Aekf.update_imu_run`` (imu_node's column path) gives, bit for bit, the quaternion, the orientation
+    covariance and the state of :meth:`Aekf.update_imu` one sample at a time, cut into runs of any length;
+    a run holding a bad sample raises and leaves the state as it was."""
+    t, g, a, _m, _ = _rotation(rng, n=600)
+    one, runs = Aekf(), Aekf()
+    want_q, want_c = [], []
+    for i in range(len(t)):
+        one.update_imu(int(t[i]), g[i], a[i])
+        want_q.append(tuple(one.quat_wxyz.tolist()))
+        want_c.append(tuple(one.orientation_cov.ravel().tolist()))
+    runs.update_imu(int(t[0]), g[0], a[0])              # initialised one by one, as the node does
+    got_q, got_c = [want_q[0]], [want_c[0]]
+    i = 1
+    for k in rng.choice([1, 2, 7, 10, 40], size=200):
+        if i >= len(t):
+            break
+        q, c = runs.update_imu_run([int(s) for s in t[i:i + k]], g[i:i + k], a[i:i + k])
+        got_q += [tuple(x) for x in q]
+        got_c += [tuple(x) for x in c]
+        i += int(k)
+    assert got_q == want_q and got_c == want_c
+    assert runs.state() == one.state()
+    before = runs.state()
+    bad = a[:3].copy() + 0.0
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError):
+        runs.update_imu_run([int(t[-1]) + k * 10_000_000 for k in (1, 2, 3)], g[:3], bad)
+    assert runs.state() == before

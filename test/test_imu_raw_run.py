@@ -37,11 +37,12 @@ def _bytes(outs):
     return [(t, m if isinstance(m, bytes) else canonical_cdr(m)) for t, m in outs]   # (padding bytes vary)
 
 
+@pytest.mark.parametrize("heading_source", ["auto", "aekf"])      # auto: VQF
 @pytest.mark.parametrize("raw_outputs", [True, False])
-def test_raw_runs_equal_one_sample_at_a_time(raw_outputs, monkeypatch):
+def test_raw_runs_equal_one_sample_at_a_time(raw_outputs, heading_source, monkeypatch):
     datas = _walk()
-    one = ImuStage(ImuStageParams(), namespace="/u1")
-    many = ImuStage(ImuStageParams(), namespace="/u1")
+    one = ImuStage(ImuStageParams(heading_source=heading_source), namespace="/u1")
+    many = ImuStage(ImuStageParams(heading_source=heading_source), namespace="/u1")
     one.raw_outputs = many.raw_outputs = raw_outputs
     want = []
     for d in datas:

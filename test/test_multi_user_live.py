@@ -145,6 +145,33 @@ def test_front_end_nodes_serve_three_users_as_their_own_nodes(ros_domain, sim):
             n.stop()
 
 
+def test_imu_node_without_magnetometer_serves_three_users_as_their_own_nodes(ros_domain, sim):
+    """imu_node (the simulator's heading_source: aekf) for three users whose phones have no magnetometer:
+    the steady runs go through the AEKF's column path (pipeline/imu_raw_run.py) in the multi-user node,
+    and every user's pdr/odom is still message for message its own per-user stage's, taken one
+    sample at a time (the headings of those hops come from the filter's orientations)."""
+    from nav_msgs.msg import Odometry
+    from indoor_loc.pipeline.imu_stage import ImuStage
+
+    msgs = _bag(sim, ("imu/data_raw",))
+    want = _oracle(ImuStage, sim["params"], msgs)
+    nodes = [_node("imu_node", sim["params"])]
+    try:
+        with ros_node("probe") as (node, ex):
+            topics = {f"/{u}/pdr/odom": Odometry for u in USERS}
+            got = _collect(node, topics)
+            _play(node, ex, msgs, nodes)
+            done = spin_until(ex, lambda: all(len(got[t]) >= len(want.get(t, [])) for t in topics)
+                              and all(n.wait_seen(f"user '{u}' left", 0) for n in nodes for u in USERS), 60)
+            assert done, str(({t: (len(got[t]), len(want.get(t, []))) for t in topics}, nodes[0].output()[-3000:]))
+            for t in topics:
+                assert len(want[t]) > 3, t
+                assert got[t] == want[t], t
+    finally:
+        for n in nodes:
+            n.stop()
+
+
 def test_fusion_nodes_serve_three_users_as_their_own_nodes(ros_domain, sim):
     """pdr_kf_node and tll_pf, one process each for three users, fed each user's pdr/odom and wifi/fix
     (from the users' own front-end stages): per user, pdr_kf/pose and pf/pose message for message as

@@ -81,6 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shards", default="", help="scale: processes per stage to try, e.g. 1,2 (default 1,2)")
     parser.add_argument("--warmup", type=float, default=0.0, help="scale: s after adding users before measuring (default 15)")
     parser.add_argument("--window", type=float, default=0.0, help="scale: s measured per step (default 25)")
+    parser.add_argument("--heading-source", default="", help="scale: imu_node's heading_source (default auto, i.e. "
+                                                             "VQF; aekf: the simulator's own)")
     parser.add_argument("--robots", type=int, default=2, help="robot: simulated robots (default 2; --duration: "
                                                               "their run, default 1800 s; --quick: 1 robot x 600 s)")
     parser.add_argument("--kidnap-duration", type=float, default=-1.0, help="robot: the kidnapped robots' run, "

@@ -22,7 +22,8 @@ process itself falling behind by as much). The machine's load average is printed
 Parameters: the simulator's (radio map, graph, step length) with ``tll_pf`` at ``particles_every: 0``
 (no ``pf/particles``: a 1000-pose message per user every few hops is for viewing one user) and
 ``smooth_window_s: 60`` (the smoother's particle history, ~9 MB per user; the default 600 s is ~90 MB
-per user after 10 minutes), every node ``user_timeout_s: 120`` and ``sensor_reliability: reliable``.
+per user after 10 minutes), every node ``user_timeout_s: 120`` and ``sensor_reliability: reliable``;
+``imu_node`` on its default heading (``auto``: VQF), or ``--heading-source aekf`` (the simulator's own).
 """
 from __future__ import annotations
 
@@ -161,8 +162,9 @@ class Monitor:
         self.ctx.try_shutdown()
 
 
-def _params(sim: dict[str, Path], work: Path) -> Path:
-    """The simulator's parameters for the multi-user nodes (see the module doc)."""
+def _params(sim: dict[str, Path], work: Path, heading_source: str = "") -> Path:
+    """The simulator's parameters for the multi-user nodes (see the module doc); ``heading_source`` for
+    ``imu_node`` ('' = its default, auto: VQF)."""
     from indoor_loc.params import load_params_file, params_file_text
     files = load_params_file(sim["params"])
     nodes: dict[str, dict[str, Any]] = {}
@@ -170,6 +172,8 @@ def _params(sim: dict[str, Path], work: Path) -> Path:
         name = key.rsplit("/", 1)[-1]
         nodes[name] = dict(values)
     nodes.setdefault("imu_node", {}).pop("heading_source", None)        # the default (auto: VQF)
+    if heading_source:
+        nodes["imu_node"]["heading_source"] = heading_source
     nodes.setdefault("tll_pf", {}).update(particles_every=0, smooth_window_s=60.0)
     for name in STAGES:
         nodes.setdefault(name, {}).update(user_timeout_s=120.0)
@@ -183,10 +187,10 @@ def _counts(values: dict[str, str], rels: tuple[str, ...]) -> int:
 
 
 def run_scale(sim: dict[str, Path], work: Path, env: dict[str, str], *, steps: list[int], shards: int,
-              warmup: float, window: float) -> list[Step]:
+              warmup: float, window: float, heading_source: str = "") -> list[Step]:
     """One stepped run (see the module doc); returns the steps measured."""
     py = sys.executable
-    params = _params(sim, work)
+    params = _params(sim, work, heading_source)
     procs: dict[str, list[Proc]] = {}
     for stage, (mod, _, _) in STAGES.items():
         procs[stage] = []
@@ -318,6 +322,7 @@ def run(args: argparse.Namespace) -> int:
     shard_counts = [int(s) for s in str(getattr(args, "shards", "") or "1,2").split(",")]
     warmup = float(getattr(args, "warmup", 0) or (10.0 if args.quick else 15.0))
     window = float(getattr(args, "window", 0) or (15.0 if args.quick else 25.0))
+    heading = str(getattr(args, "heading_source", "") or "")
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     env.setdefault("ROS_DOMAIN_ID", str(1 + (int(os.environ.get("INDOOR_LOC_DOMAIN_BASE", "1")) + 70) % 232))
     os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
@@ -327,13 +332,15 @@ def run(args: argparse.Namespace) -> int:
         work = Path(tmp)
         sim = generate(work / "sim", cfg, quiet=True)
         print(f"\n## Users served live over DDS, every stage multi-user ({imu_hz:g} Hz IMU + WiFi scans every 4 s per "
-              f"user; {os.cpu_count()} CPUs; window {window:g} s after {warmup:g} s warm-up per step)\n")
+              f"user; imu_node heading_source {heading or 'auto (VQF)'}; {os.cpu_count()} CPUs; window {window:g} s after "
+              f"{warmup:g} s warm-up per step)\n")
         print("| users | shards | stage | msgs/s handled | CPU (of one core) | CPU ms per msg | RSS MB | RSS MB per "
               "user (growth since idle) | latency p50 ms | p99 ms | backlog s | lost | rejected |")
         print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         summary = []
         for shards in shard_counts:
-            res = run_scale(sim, work, env, steps=steps, shards=shards, warmup=warmup, window=window)
+            res = run_scale(sim, work, env, steps=steps, shards=shards, warmup=warmup, window=window,
+                            heading_source=heading)
             held = [s.users for s in res if s.held()]
             summary.append((shards, max(held, default=0), res[-1].users if res and not res[-1].held() else None))
         print()

@@ -716,6 +716,19 @@ class Aekf:
         separately through :meth:`update_mag`."""
         self.update(stamp_ns, gyro, acc, None)
 
+    def update_imu_run(self, stamps_ns: list[int], gyro: np.ndarray, acc: np.ndarray
+                       ) -> tuple[list[Sequence[float]], list[Sequence[float]]]:
+        """:meth:`update_imu` for each of a run of samples at once: the same steps (:func:`_run`) on
+        the same floats, so the state is that of the sample-by-sample calls. ``gyro``, ``acc`` (N, 3).
+        Returns per sample the quaternion (w, x, y, z) and the 9 entries of :attr:`orientation_cov`
+        (row-major) after it. Raises InvalidInputError as :meth:`update_imu` would for the first bad
+        sample, the state then unchanged (the caller checks a run first and takes none of it)."""
+        out_q: list[Sequence[float]] = []
+        out_c: list[Sequence[float]] = []
+        _run(self._st, self._c, list(stamps_ns), np.asarray(gyro, dtype=float).tolist(),
+             np.asarray(acc, dtype=float).tolist(), None, out_q, out_c)
+        return out_q, out_c
+
     def update_mag(self, stamp_ns: int, mag: Sequence[float] | np.ndarray) -> None:
         """One magnetometer sample at its own stamp, applied there: the attitude is propagated to
         ``stamp_ns`` with the last gyroscope sample, updated, and the next IMU sample continues from
