@@ -36,7 +36,19 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   message stamped an hour ahead would move the watermark there and every valid message after it
   would be refused.
 - **the node's clock going back** (rclpy's clock-jump callback, :meth:`Stage.run_clock_jump`) by
-  more than ``jump_s`` resets every user whose watermarks are ahead of the new clock, at once.
+  more than ``jump_s`` resets every user whose watermarks are ahead of the new clock — once the old
+  *epoch* has drained, not at the callback. The messages published just before ``/clock`` went back
+  (a replay's last samples, queued in the node) reach the stage in any order with the callback, and
+  a user's topics in any order with each other; each source (topic) of the old pass stays *open*
+  until its first message of the new epoch (one publisher per topic delivers in order: nothing of
+  the old pass follows it). A message of an open source stamped more than ``jump_s`` ahead of the new
+  clock (and no more than ``max_future_s`` after the clock before the jump) is judged, and handled,
+  in the old pass (its watermark, the clock before the jump); a message of the new epoch is held
+  (``EPOCH_HOLD``) until every source of the old pass has moved on or the node's clock has run
+  ``jump_s`` past the jump; then the user is reset (``EPOCH``: ``time_jumps``) and the held messages
+  are handled as the new pass's first, in their order. So a pass's last outputs do not depend on
+  when the callback ran. A user with messages held for a jump back at the callback (the new pass
+  came before its clock) is reset at once, as before.
 - **after a jump**, a topic's first message stamped more than ``jump_s`` ahead of the user's new
   pass (its other topics, the node's clock) but not after the old pass's newest stamp is of the old
   pass, still in flight (a fix that lags its scan): rejected (``before_jump``), so it cannot set the
@@ -113,6 +125,9 @@ class Verdict(IntEnum):
     JUMP = 2        # a jump back confirmed by this message: reset the user, then :meth:`TimePolicy.restart`
     LEAP = 3        # a leap ahead: :meth:`TimePolicy.hold_leap` it
     RESUME = 4      # a leap confirmed by this message: :meth:`TimePolicy.resume` gives the held ones to handle
+    EPOCH = 5       # the old epoch drained after the node's clock went back: reset the user (said at the
+                    # jump), then :meth:`TimePolicy.restart`, then handle the held messages and this one
+    EPOCH_HOLD = 6  # of the new epoch while the old one drains: :meth:`TimePolicy.hold_epoch` it
 
 
 @dataclass
@@ -175,6 +190,12 @@ class _UserTime:
     cand_now: int = 0                   # the node's clock when it came (0: no clock)
     cand_count: int = 0                 # far-back messages of that source in a row
     fence_ns: int | None = None         # after a jump: the old pass's newest stamp (see before_jump)
+    #: after the node's clock went back, until the user's first message of the new epoch: the clock
+    #: before the jump (messages stamped in the old epoch are judged by it; see the module doc)
+    epoch_ns: int | None = None
+    epoch_at: int = 0                   # the node's clock just after the jump
+    epoch_open: set[str] = dc_field(default_factory=set)   # the old pass's sources not yet moved on
+    epoch_held: list[Held] = dc_field(default_factory=list)  # new-epoch messages held until it drains
     jumps: int = 0
     leaps: dict[str, _Leap] = dc_field(default_factory=dict)   # topic -> its messages held for a leap ahead
     #: topic -> the stamps the stage published there (echo recognition; kept across a reset: echoes of
@@ -223,11 +244,26 @@ class TimePolicy:
         changed). A ``PASS`` of the held run's source back in step drops the held messages first
         (:meth:`drop_held` gives them to the caller to count)."""
         u = self.users.get(user)
-        if u is not None and not u.held and u.fence_ns is None and not u.leaps:   # the common case, first
-            mark = u.marks.get(topic)
+        if u is not None and not u.held and u.fence_ns is None and not u.leaps and u.epoch_ns is None:
+            mark = u.marks.get(topic)                            # the common case, first
             if mark is not None and mark < stamp_ns <= mark + self.leap_ns and (
                     not now_ns or stamp_ns <= now_ns + self.future_ns):
                 return Verdict.PASS
+        if u is not None and u.epoch_ns is not None:
+            old = bool(now_ns) and int(now_ns or 0) + self.jump_ns < stamp_ns <= u.epoch_ns + self.future_ns
+            drained = bool(now_ns) and int(now_ns or 0) >= u.epoch_at + self.jump_ns
+            if old and topic in u.epoch_open and not drained:
+                now_ns = u.epoch_ns                              # stamped before the clock went back
+            elif old and not drained:                            # its source moved on: a straggler
+                raise InvalidInputError(
+                    "before_jump", f"{topic} stamp {stamp_ns} ns is of the pass before the node's clock went back, "
+                                   f"after the topic's first message of the new pass")
+            else:
+                u.epoch_open.discard(topic)                      # this source has moved on
+                if u.epoch_open and not drained:
+                    return Verdict.EPOCH_HOLD
+                u.epoch_ns = None                                # the old epoch has drained
+                return Verdict.EPOCH
         if order == Order.EXEMPT:
             return Verdict.PASS
         if now_ns and stamp_ns > now_ns + self.future_ns:
@@ -370,8 +406,11 @@ class TimePolicy:
         """After the user's state was reset for a jump back: watermarks cleared, the old pass fenced
         off, one more jump counted. Returns the held messages, to be handled as the new pass's first."""
         u = self.user(user)
-        held, front = u.held, u.front()
+        held, front = u.held + u.epoch_held, u.front()
+        if u.epoch_ns is not None or u.epoch_open:              # after the clock went back: its old pass too
+            front = max(front or 0, u.epoch_ns or 0)
         u.marks, u.held, u.cand_topic, u.cand_count, u.leaps = {}, [], None, 0, {}
+        u.epoch_ns, u.epoch_open, u.epoch_held = None, set(), []
         if front is not None:
             u.fence_ns = front if u.fence_ns is None else max(u.fence_ns, front)
         u.jumps += 1
@@ -391,7 +430,7 @@ class TimePolicy:
         if order == Order.EXEMPT:
             return True
         u = self.users.get(user)
-        if u is not None and (u.held or u.fence_ns is not None or u.leaps):
+        if u is not None and (u.held or u.fence_ns is not None or u.leaps or u.epoch_ns is not None):
             return False
         prev = None if u is None else u.marks.get(topic)
         for t, now in zip(stamps, now_ns):
@@ -404,7 +443,33 @@ class TimePolicy:
             prev = t
         return True
 
-    def clock_jump(self, now_ns: int) -> list[str]:
-        """The node's clock went back to ``now_ns``: the users whose watermarks are more than ``jump_s``
-        ahead of it (the caller resets each, then calls :meth:`restart`)."""
-        return [name for name, u in self.users.items() if (u.front() or 0) > now_ns + self.jump_ns]
+    def clock_jump(self, now_ns: int, back_ns: int = 0) -> list[str]:
+        """The node's clock went back by ``back_ns`` to ``now_ns``: the users whose watermarks are more
+        than ``jump_s`` ahead of it. Each with messages held (the new pass already begun) is for the
+        caller to reset at once (then :meth:`restart`); the others are reset at their first message
+        of the new epoch (``JUMP`` from :meth:`judge`), messages stamped before the jump judged by the
+        clock before it until then (the module doc)."""
+        users = [name for name, u in self.users.items() if (u.front() or 0) > now_ns + self.jump_ns]
+        for name in users:
+            u = self.users[name]
+            before = now_ns + max(0, back_ns)
+            u.epoch_ns = before if u.epoch_ns is None else max(u.epoch_ns, before)
+            u.epoch_at = now_ns
+            u.epoch_open |= set(u.marks)
+        return users
+
+    def deferred(self, user: str) -> bool:
+        """Whether the user's reset for a clock jump waits for the old epoch to drain."""
+        u = self.users.get(user)
+        return u is not None and u.epoch_ns is not None and not u.held
+
+    def hold_epoch(self, user: str, held: Held) -> Held | None:
+        """Hold a message of the new epoch; returns the oldest held one if the bound made room (reject it)."""
+        u = self.user(user)
+        u.epoch_held.append(held)
+        return u.epoch_held.pop(0) if len(u.epoch_held) > HELD_MAX else None
+
+    def epoch_pending(self, user: str) -> bool:
+        """Whether the user holds messages of a new epoch (its input ended: reset it and hand them on)."""
+        u = self.users.get(user)
+        return u is not None and bool(u.epoch_held)
