@@ -191,3 +191,54 @@ def test_scans_stamped_before_the_clock_went_back_are_located_in_their_own_pass(
         assert "Traceback" not in node_proc.output()
     finally:
         node_proc.stop()
+
+
+def test_a_stamp_far_back_is_no_clock_jump_when_the_clock_lags_the_stamps(ros_domain, tmp_path):
+    """``use_sim_time`` with the node's clock seconds behind the stamps it takes (``/clock`` taken late
+    by a busy node): one scan stamped 30 s back is a straggler (``stale_stamp``), not a jump the clock
+    confirms. Before, the watermark being ahead of the clock was taken as the clock having gone back:
+    the user was reset at once (``time_jumps`` 1) — the fault benchmark's all-ports trial on sim time
+    reset ``pdr_kf_node`` six times."""
+    from rosgraph_msgs.msg import Clock
+
+    from msg_adapters.time import stamp_from_ns
+    map_dir = save_radiomap(grid_map(), tmp_path / "rm")
+    node_proc = _node("wifi_fix_node", "-r", "__ns:=/alice", "-p", f"radiomap:={map_dir}", "-p", "use_sim_time:=true")
+    rng = np.random.default_rng(6)
+    try:
+        with ros_node("probe") as (node, ex):
+            fixes: list = []
+            diags: list = []
+            now = [100 * S]
+            clock = node.create_publisher(Clock, "/clock", qos_profile(Qos.RELIABLE))
+
+            def tick() -> None:
+                now[0] += 10_000_000                            # sim time at a fifth of the wall clock's pace
+                clock.publish(Clock(clock=stamp_from_ns(now[0])))
+            node.create_timer(0.05, tick)
+            pub = node.create_publisher(DiagnosticArray, "/alice/wifi/scan", qos_profile(Qos.RELIABLE))
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/wifi/fix", fixes.append,
+                                     qos_profile(Qos.RELIABLE))
+            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and
+                              _diag_of(diags, "/alice/wifi_fix_node") is not None, 60), node_proc.output()
+
+            def send(*stamps_s: float) -> None:
+                for t in stamps_s:
+                    pub.publish(scan_to_msg(scan_at(rng.uniform(0.5, 9.5, 2), int(t * S))))
+            base = now[0] / S
+            send(base + 4, base + 5, base + 6)                  # the stamps 4-6 s ahead of the node's clock
+            assert spin_until(ex, lambda: len(fixes) == 3, 30), node_proc.output()
+            send(base - 24)                                     # one stamped 30 s back
+            send(base + 7)                                      # and the stream goes on
+            assert spin_until(ex, lambda: len(fixes) == 4, 20), (len(fixes), node_proc.output()[-3000:])
+            assert fix_from_msg(fixes[-1]).stamp_ns == int((base + 7) * S)
+
+            def values() -> dict:
+                d = _diag_of(diags, "/alice/wifi_fix_node")
+                return dict(d.values) if d else {}
+            assert spin_until(ex, lambda: values().get("in.wifi/scan.count") == "5", 30), values()
+            assert values()["time_jumps"] == "0" and values()["rejected.stale_stamp"] == "1", values()
+        assert "Traceback" not in node_proc.output()
+    finally:
+        node_proc.stop()

@@ -13,19 +13,21 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   (``non_monotonic_stamp``), ``NONDECREASING`` ones (scans, fixes) an equal or later one
   (``stamp_backwards``), ``ANY`` passes (the stage reorders, e.g. the back-end's window). The
   watermark moves only when the stage's handler accepted the message (it did not raise).
-- **jumps back**: a stamp more than ``jump_s`` before its source's watermark is either a straggler
-  (a wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a
-  simulation restarted, a device clock reset). It is held, with every later message of the user
-  that far back, until the source decides: ``jump_confirm`` messages of the source in a row, each
-  in step with the one before (a strictly later stamp, advanced as much as the node's clock within
-  ``jump_s``: a replayed pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock agrees (the
-  source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in the
-  clock's future). A confirmed jump resets the user's state in the stage
-  (:meth:`Stage.reset_user`), counts ``time_jumps``, says it once (WARN), and the held messages
-  are handled as the new pass's first. A message of the source back in step with its watermark
-  shows the held ones were stragglers: each is rejected (``stale_stamp``), counted. Ordering
-  *across* a user's topics is never a jump (a user's first scan before its first odometry, fixes
-  that lag the odometry by the WiFi node's latency): each topic is a source of its own.
+- **jumps back**: a stamp more than ``jump_s`` before its source's watermark is either a straggler (a
+  wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a simulation
+  restarted, a device clock reset). It is held, with every later message of the user that far back,
+  until the source decides: ``jump_confirm`` messages of the source in a row, each in step with the one
+  before (a strictly later stamp, advanced as much as the node's clock within ``jump_s``: a replayed
+  pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock
+  agrees (the source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in
+  the clock's future, and the far-back stamp within ``jump_s`` of the clock: the new pass is its
+  present; a node's clock lagging the stamps it takes does not vouch for a lone stamp far back). A
+  confirmed jump resets the user's state in the stage (:meth:`Stage.reset_user`), counts ``time_jumps``,
+  says it once (WARN), and the held messages are handled as the new pass's first. A message of the
+  source back in step with its watermark shows the held ones were stragglers: each is rejected
+  (``stale_stamp``), counted. Ordering *across* a user's topics is never a jump (a user's first scan
+  before its first odometry, fixes that lag the odometry by the WiFi node's latency): each topic is a
+  source of its own.
 - **leaps ahead**: a stamp more than ``leap_s`` after its source's watermark while the node's clock
   cannot vouch for it (it is not within ``max_future_s`` of the clock: a bag replayed without
   ``use_sim_time``, a device clock that is not the node's) is either a wrongly stamped message or
@@ -284,7 +286,7 @@ class TimePolicy:
             if u.cand_topic is None or topic != u.cand_topic:
                 if u.cand_topic is None:
                     u.cand_topic, u.cand_last, u.cand_now, u.cand_count = topic, stamp_ns, now_ns or 0, 1
-                    return Verdict.JUMP if self._clock_agrees(mark, now_ns, u) else Verdict.HOLD
+                    return Verdict.JUMP if self._clock_agrees(mark, now_ns, stamp_ns) else Verdict.HOLD
                 return Verdict.HOLD                              # another topic of the same run
             in_step = self._in_step(u, stamp_ns, now_ns or 0)
             u.cand_last, u.cand_now = stamp_ns, now_ns or 0
@@ -292,7 +294,7 @@ class TimePolicy:
                 u.cand_count = 1                                 # not in step: the run starts again
                 return Verdict.HOLD
             u.cand_count += 1
-            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(mark, now_ns, u):
+            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(mark, now_ns, stamp_ns):
                 return Verdict.JUMP
             return Verdict.HOLD
         if u.held and topic != u.cand_topic:
@@ -361,9 +363,14 @@ class TimePolicy:
             return abs((stamp_ns - u.cand_last) - (now_ns - u.cand_now)) <= self.jump_ns
         return True
 
-    def _clock_agrees(self, mark: int, now_ns: int | None, u: _UserTime) -> bool:
-        """The node's clock confirms a jump back: the source's old pass is ahead of it by more than ``jump_s``."""
-        return bool(now_ns) and mark > int(now_ns or 0) + self.jump_ns
+    def _clock_agrees(self, mark: int, now_ns: int | None, stamp_ns: int) -> bool:
+        """The node's clock confirms a jump back: the source's old pass is ahead of it by more than
+        ``jump_s`` and the far-back stamp is within ``jump_s`` of it (the new pass is the clock's
+        present). A lone stamp far behind the clock is not vouched for: a node's clock can lag the
+        stamps it takes by seconds (``/clock`` taken late by a busy node), and a wrong stamp 30 s back
+        would then reset the user at once."""
+        now = int(now_ns or 0)
+        return bool(now) and mark > now + self.jump_ns and abs(stamp_ns - now) <= self.jump_ns
 
     def _check_fence(self, u: _UserTime, topic: str, stamp_ns: int, now_ns: int | None) -> None:
         """After a jump, the first message of a topic in the new pass: one stamped more than ``jump_s``
