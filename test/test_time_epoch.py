@@ -10,7 +10,7 @@ from test_contract_ports import build_stage, world  # noqa: F401  (world: the mo
 from test_ports_property import USER, _leaves, _valid_stream, valid_streams
 from test_time_policy import STAMPED
 from indoor_loc.errors import InvalidInputError
-from indoor_loc.pipeline.time_policy import Order, TimeParams, TimePolicy, Verdict
+from indoor_loc.pipeline.time_policy import Held, Order, TimeParams, TimePolicy, Verdict
 
 SEC = 1_000_000_000
 QUEUED = 5          # the stream's last messages, taken only after the clock-jump callback
@@ -104,3 +104,19 @@ def test_a_pass_ends_the_same_whether_its_last_messages_come_before_or_after_the
         assert [t for t, _ in again] == [t for t, _ in first]
     else:
         assert again == first
+
+
+def test_a_clock_lagging_the_stamps_confirms_no_jump_back_only_a_clock_gone_back_does():
+    p = TimePolicy(TimeParams())
+    for t in (106, 107, 108):                    # stamps 6-8 s ahead of a clock that lags them
+        assert p.judge("", "a", t * SEC, 100 * SEC, Order.STRICT) == Verdict.PASS
+        p.accepted("", "a", t * SEC)
+    assert p.judge("", "a", 100 * SEC, 100 * SEC, Order.STRICT) == Verdict.HOLD    # the clock's present
+    p.hold("", Held("a", None, 100 * SEC, 100 * SEC))
+    assert p.judge("", "a", 109 * SEC, 100 * SEC, Order.STRICT) == Verdict.PASS
+    assert p.in_step("", "a") and len(p.drop_held("")) == 1 and p.users[""].jumps == 0
+    q = TimePolicy(TimeParams())
+    for t in (128, 129, 130):                    # the clock with the stamps, then back (no callback yet)
+        q.judge("", "a", t * SEC, t * SEC, Order.STRICT)
+        q.accepted("", "a", t * SEC)
+    assert q.judge("", "a", 100 * SEC, 100 * SEC, Order.STRICT) == Verdict.JUMP

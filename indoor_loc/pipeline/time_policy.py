@@ -21,7 +21,7 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock
   agrees (the source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in
   the clock's future, and the far-back stamp within ``jump_s`` of the clock: the new pass is its
-  present; a node's clock lagging the stamps it takes does not vouch for a lone stamp far back). A
+  present, and the clock itself went back; a clock lagging the stamps it takes vouches for nothing). A
   confirmed jump resets the user's state in the stage (:meth:`Stage.reset_user`), counts ``time_jumps``,
   says it once (WARN), and the held messages are handled as the new pass's first. A message of the
   source back in step with its watermark shows the held ones were stragglers: each is rejected
@@ -195,6 +195,7 @@ class _UserTime:
     #: after the node's clock went back, until the user's first message of the new epoch: the clock
     #: before the jump (messages stamped in the old epoch are judged by it; see the module doc)
     epoch_ns: int | None = None
+    clock_max: int = 0                  # the latest node's clock a message of the user was judged at
     epoch_at: int = 0                   # the node's clock just after the jump
     epoch_open: set[str] = dc_field(default_factory=set)   # the old pass's sources not yet moved on
     epoch_held: list[Held] = dc_field(default_factory=list)  # new-epoch messages held until it drains
@@ -246,6 +247,8 @@ class TimePolicy:
         changed). A ``PASS`` of the held run's source back in step drops the held messages first
         (:meth:`drop_held` gives them to the caller to count)."""
         u = self.users.get(user)
+        if u is not None and now_ns and now_ns > u.clock_max:
+            u.clock_max = now_ns
         if u is not None and not u.held and u.fence_ns is None and not u.leaps and u.epoch_ns is None:
             mark = u.marks.get(topic)                            # the common case, first
             if mark is not None and mark < stamp_ns <= mark + self.leap_ns and (
@@ -274,6 +277,8 @@ class TimePolicy:
                                 f"node's clock ({now_ns * 1e-9:.3f} s), more than time.max_future_s "
                                 f"({self.params.max_future_s:g} s)")
         u = self.user(user)
+        if now_ns and now_ns > u.clock_max:
+            u.clock_max = now_ns
         if u.fence_ns is not None:
             self._check_fence(u, topic, stamp_ns, now_ns)
         mark = u.marks.get(topic)
@@ -286,7 +291,7 @@ class TimePolicy:
             if u.cand_topic is None or topic != u.cand_topic:
                 if u.cand_topic is None:
                     u.cand_topic, u.cand_last, u.cand_now, u.cand_count = topic, stamp_ns, now_ns or 0, 1
-                    return Verdict.JUMP if self._clock_agrees(mark, now_ns, stamp_ns) else Verdict.HOLD
+                    return Verdict.JUMP if self._clock_agrees(u, mark, now_ns, stamp_ns) else Verdict.HOLD
                 return Verdict.HOLD                              # another topic of the same run
             in_step = self._in_step(u, stamp_ns, now_ns or 0)
             u.cand_last, u.cand_now = stamp_ns, now_ns or 0
@@ -294,7 +299,7 @@ class TimePolicy:
                 u.cand_count = 1                                 # not in step: the run starts again
                 return Verdict.HOLD
             u.cand_count += 1
-            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(mark, now_ns, stamp_ns):
+            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(u, mark, now_ns, stamp_ns):
                 return Verdict.JUMP
             return Verdict.HOLD
         if u.held and topic != u.cand_topic:
@@ -363,14 +368,16 @@ class TimePolicy:
             return abs((stamp_ns - u.cand_last) - (now_ns - u.cand_now)) <= self.jump_ns
         return True
 
-    def _clock_agrees(self, mark: int, now_ns: int | None, stamp_ns: int) -> bool:
-        """The node's clock confirms a jump back: the source's old pass is ahead of it by more than
-        ``jump_s`` and the far-back stamp is within ``jump_s`` of it (the new pass is the clock's
-        present). A lone stamp far behind the clock is not vouched for: a node's clock can lag the
-        stamps it takes by seconds (``/clock`` taken late by a busy node), and a wrong stamp 30 s back
-        would then reset the user at once."""
+    def _clock_agrees(self, u: _UserTime, mark: int, now_ns: int | None, stamp_ns: int) -> bool:
+        """The node's clock confirms a jump back: the clock itself went back by more than ``jump_s``
+        (before the latest clock a message of the user was judged at), the source's old pass is ahead
+        of it by more than ``jump_s``, and the far-back stamp is within ``jump_s`` of it (the new pass
+        is the clock's present). A clock merely lagging the stamps it takes vouches for nothing: a
+        busy node takes ``/clock`` late, tens of seconds behind its data under load, and a wrong stamp
+        30 s back would then reset the user at once."""
         now = int(now_ns or 0)
-        return bool(now) and mark > now + self.jump_ns and abs(stamp_ns - now) <= self.jump_ns
+        return (bool(now) and now < u.clock_max - self.jump_ns and mark > now + self.jump_ns
+                and abs(stamp_ns - now) <= self.jump_ns)
 
     def _check_fence(self, u: _UserTime, topic: str, stamp_ns: int, now_ns: int | None) -> None:
         """After a jump, the first message of a topic in the new pass: one stamped more than ``jump_s``
@@ -417,7 +424,7 @@ class TimePolicy:
         if u.epoch_ns is not None or u.epoch_open:              # after the clock went back: its old pass too
             front = max(front or 0, u.epoch_ns or 0)
         u.marks, u.held, u.cand_topic, u.cand_count, u.leaps = {}, [], None, 0, {}
-        u.epoch_ns, u.epoch_open, u.epoch_held = None, set(), []
+        u.epoch_ns, u.epoch_open, u.epoch_held, u.clock_max = None, set(), [], 0
         if front is not None:
             u.fence_ns = front if u.fence_ns is None else max(u.fence_ns, front)
         u.jumps += 1
