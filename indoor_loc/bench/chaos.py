@@ -108,7 +108,11 @@ def run(args: argparse.Namespace) -> int:
         world = load_world(sim)
         log(f"\n## Fault benchmark: {walkers} walker(s) x {world.span_s:.0f} s simulated, replayed at {rate:g}x "
             f"over DDS (ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']}, {os.cpu_count()} CPUs)\n")
-        opts: dict[str, Any] = {"modules": modules, "log": log}
+        sim_time = (getattr(args, "clock", "sim") or "sim") == "sim"
+        result["clock"] = "sim" if sim_time else "wall"
+        log("nodes' clock: " + ("sim time, /clock published with the stream (live-like)" if sim_time else
+                                "wall clock, the bag stamped months before it (a replay without --clock)") + "\n")
+        opts: dict[str, Any] = {"modules": modules, "log": log, "sim_time": sim_time}
         clean = run_trial(world, "clean", env, rate, work, **opts)
         _say(clean, log, result)
         if "hostile" in faults:
@@ -165,7 +169,10 @@ def _say(t: Trial, log, result: dict[str, Any] | None = None) -> None:
             "nodes": {k: {"settled": r.settled, "deaths": r.deaths, "diag_gaps_s": [g for _, g in r.diag_gaps],
                           "max_diag_gap_s": r.max_diag_gap_s, "probes": r.probes,
                           "probes_unanswered": r.probes_unanswered, "probe_max_s": r.probe_max_s}
-                      for k, r in t.nodes.items()}}
+                      for k, r in t.nodes.items()},
+            # the scored pose outputs (stamp ns, x, y), for a look at what a node did when
+            "outputs": {topic: [r[:3] for r in rows] for topic, rows in t.outputs.items()
+                        if not topic.endswith("/imu/data")}}
 
 
 def _modules(names: str) -> tuple[str, ...]:

@@ -206,9 +206,12 @@ def schedule(stream: list[tuple[int, str, bytes]], t0_ns: int, rate: float,
 
 def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: Path, *,
               plan: Plan | None = None, kill: str = "", kill_at: float = 0.25, recorder_kill_at: float = 0.0,
-              loop: bool = False, modules: tuple[str, ...] = tuple(NODE_MODULES),
+              loop: bool = False, sim_time: bool = False, modules: tuple[str, ...] = tuple(NODE_MODULES),
               log: Callable[[str], None] = print) -> Trial:
-    """One trial (see the module docstring of :mod:`indoor_loc.bench.chaos`)."""
+    """One trial (see the module docstring of :mod:`indoor_loc.bench.chaos`). ``sim_time`` (implied by
+    ``loop``): the nodes on ``use_sim_time`` and the bench publishing ``/clock`` with the stream, so the
+    nodes' clock is the stream's present, as in a live deployment (``--clock sim``)."""
+    sim_time = sim_time or loop
     import os
     import signal
     import sys
@@ -216,11 +219,11 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
     from indoor_loc.bench.live import Proc
     trial = Trial(name, rate, killed=kill)
     topics = {t for _, t, _ in world.stream} | ({t for _, t, _, _ in plan.events} if plan is not None else set())
-    h = Harness(world.walkers, world.sim["params"], env, use_sim_time=loop, topics=topics, modules=modules, log=log)
+    h = Harness(world.walkers, world.sim["params"], env, use_sim_time=sim_time, topics=topics, modules=modules, log=log)
     rec: Proc | None = None
     rec_out = work / f"{name}.mcap"
     try:
-        if loop:
+        if sim_time:
             h.idle_clock(world.t0_ns - 600 * SEC, rate=1.0)
         if recorder_kill_at:
             rec = Proc([sys.executable, "-m", "indoor_loc.nodes.recorder_node", "-a", "-o", str(rec_out),
@@ -248,7 +251,7 @@ def run_trial(world: World, name: str, env: dict[str, str], rate: float, work: P
                 trial.recorder["at_s"] = time.monotonic() - trial.wall0
                 os.kill(rec.proc.pid, signal.SIGKILL)
             actions.append((recorder_kill_at * span_wall, kill_recorder))
-        clock = clock_ticks(world, rate) if loop else None
+        clock = clock_ticks(world, rate) if sim_time else None
         trial.wall0 = time.monotonic()
         trial.play_s = h.play(sched, clock, actions)
         trial.marks["end_pass1"] = time.monotonic()

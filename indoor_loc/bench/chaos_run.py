@@ -94,6 +94,7 @@ class Harness:
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self.lock = threading.Lock()
+        self._clock_lock = threading.Lock()     # idle /clock ticks (the spin thread) against the playback's
         self.nodes: dict[str, NodeRecord] = {}
         self.pubs: dict[str, Any] = {}
         self.outputs: dict[str, list[tuple[int, float, float, float]]] = {}   # topic -> (stamp, x, y, wall)
@@ -195,11 +196,13 @@ class Harness:
                 from rosgraph_msgs.msg import Clock
 
                 from msg_adapters.time import stamp_from_ns
-                if self._last_tick:
-                    self._clock_ns += int((now - self._last_tick) * self._clock_rate * 1e9)
-                self._last_tick = now
-                if self.clock_pub is not None:
-                    self.clock_pub.publish(Clock(clock=stamp_from_ns(self._clock_ns)))
+                with self._clock_lock:      # never an idle tick after the playback's first: /clock going back
+                    if not self._playing and self._clock_ns is not None:
+                        if self._last_tick:
+                            self._clock_ns += int((now - self._last_tick) * self._clock_rate * 1e9)
+                        self._last_tick = now
+                        if self.clock_pub is not None:
+                            self.clock_pub.publish(Clock(clock=stamp_from_ns(self._clock_ns)))
             if now - last_probe >= PROBE_PERIOD_S:
                 last_probe = now
                 self._probe(now)
@@ -374,7 +377,8 @@ class Harness:
         clock = rate_clock or []
         actions = sorted(on_time or [], key=lambda a: a[0])
         ci = ai = 0
-        self._playing = True
+        with self._clock_lock:
+            self._playing = True
         t0 = time.monotonic()
         for t, topic, data in schedule:
             while ai < len(actions) and actions[ai][0] <= t:

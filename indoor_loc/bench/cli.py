@@ -75,6 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ports", default="", help="chaos: hostile messages only on these input ports, e.g. "
                                                     "initialpose,wifi/fix (default all seven)")
     parser.add_argument("--kill-nodes", default="", help="chaos: nodes to kill, e.g. imu_node,tll_pf (default all)")
+    parser.add_argument("--clock", choices=("sim", "wall"), default="sim",
+                        help="chaos: the nodes' clock: sim (use_sim_time, the bench publishes /clock with the stream, "
+                             "as a live deployment whose stamps are the present; default) or wall (a replay without "
+                             "--clock: the bag's stamps months behind the nodes' clock, which cannot vouch for any)")
     parser.add_argument("--soak", type=float, default=0.0, help="chaos: soak instead: HOURS of simulated time at "
                                                                 "--rate, RSS and per-message cost over time")
     parser.add_argument("--imu-hz", type=float, default=0.0, help="scale: IMU rate of the simulated users (default 50)")

@@ -376,6 +376,14 @@ class Stage:
         if verdict == Verdict.JUMP:
             assert stamp is not None
             return self._jump(user, Held(topic, item, recv_ns, stamp, batch))
+        if verdict == Verdict.EPOCH_HOLD:  # of the new pass while the old one drains (time_policy.py)
+            dropped = self.time.hold_epoch(user, Held(topic, item, recv_ns, stamp or 0, batch))
+            if dropped is not None:
+                self._reject_held(user, [dropped])
+            return []
+        if verdict == Verdict.EPOCH:       # the clock went back before it (said then): the user's new pass
+            reset, held = self._reset_and_restart(user)
+            return reset + self._replay_held(user, held + [Held(topic, item, recv_ns, stamp or 0, batch)], None, None)
         if verdict == Verdict.LEAP:
             assert stamp is not None
             dropped = self.time.hold_leap(user, Held(topic, item, recv_ns, stamp, batch))
@@ -489,23 +497,33 @@ class Stage:
     def clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """The node's clock (``/clock`` under ``use_sim_time``) went back by ``back_ns`` to ``now_ns``:
         every user whose stamps are ahead of it starts afresh at once (:meth:`reset_user`), one notice."""
-        users = self.time.clock_jump(now_ns)
+        users = self.time.clock_jump(now_ns, back_ns)
         if not users:
             return []
         names = ", ".join(u or self.namespace or "/" for u in users)
         self.notice(f"the clock jumped back {back_ns * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s (a replay loop or a "
-                    f"restarted simulation): state reset for {names}")
+                    f"restarted simulation): state reset for {names} at the first message of the new pass "
+                    f"(messages stamped before the jump, still in flight, are the old pass's)")
         outs: list[Output] = []
         for user in users:
+            if self.time.deferred(user):
+                continue                    # reset by its first message of the new epoch (time_policy.py)
             reset, held = self._reset_and_restart(user)
             outs += reset + self._replay_held(user, held, None, None)
         return outs
 
-    def drop_held(self, user: str) -> None:
-        """End of a user's input with a jump back still unconfirmed: its held messages were stragglers."""
+    def drop_held(self, user: str) -> list[Output]:
+        """End of a user's input with a jump back still unconfirmed: its held messages were stragglers.
+        Messages of a new epoch held while the old one drained (the node's clock went back) are the
+        new pass's: the user is reset and they are handled (their outputs returned)."""
+        outs: list[Output] = []
+        if self.time.epoch_pending(user):
+            reset, held = self._reset_and_restart(user)
+            outs = reset + self._replay_held(user, held, None, None)
         if user in self.time.users and self.time.users[user].held:
             self._reject_held(user, self.time.drop_held(user))
         self._reject_leap(self.time.refuted_leap(user))
+        return outs
 
     def run_clock_jump(self, back_ns: int, now_ns: int) -> list[Output]:
         """:meth:`clock_jump` for drivers, guarded like :meth:`run_tick`."""
@@ -522,15 +540,16 @@ class Stage:
     def run_finish_user(self, user: str) -> list[Output]:
         """:meth:`finish_user` for drivers, guarded like :meth:`run_tick`; the user's messages held for
         an unconfirmed jump back were stragglers (counted, ``stale_stamp``)."""
-        self.drop_held(user)
-        return self._guarded("finish_user", lambda: self.finish_user(user))
+        outs = self.drop_held(user)
+        return outs + self._guarded("finish_user", lambda: self.finish_user(user))
 
     def run_finish(self) -> list[Output]:
         """:meth:`finish` for drivers, guarded like :meth:`run_tick`; messages still held for an
         unconfirmed jump back were stragglers (counted, ``stale_stamp``)."""
+        outs: list[Output] = []
         for user in list(self.time.users):
-            self.drop_held(user)
-        return self._guarded("finish", self.finish)
+            outs += self.drop_held(user)
+        return outs + self._guarded("finish", self.finish)
 
     def _guarded(self, what: str, fn: Callable[[], list[Output]], count: bool = True) -> list[Output]:
         try:

@@ -13,19 +13,21 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   (``non_monotonic_stamp``), ``NONDECREASING`` ones (scans, fixes) an equal or later one
   (``stamp_backwards``), ``ANY`` passes (the stage reorders, e.g. the back-end's window). The
   watermark moves only when the stage's handler accepted the message (it did not raise).
-- **jumps back**: a stamp more than ``jump_s`` before its source's watermark is either a straggler
-  (a wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a
-  simulation restarted, a device clock reset). It is held, with every later message of the user
-  that far back, until the source decides: ``jump_confirm`` messages of the source in a row, each
-  in step with the one before (a strictly later stamp, advanced as much as the node's clock within
-  ``jump_s``: a replayed pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock agrees (the
-  source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in the
-  clock's future). A confirmed jump resets the user's state in the stage
-  (:meth:`Stage.reset_user`), counts ``time_jumps``, says it once (WARN), and the held messages
-  are handled as the new pass's first. A message of the source back in step with its watermark
-  shows the held ones were stragglers: each is rejected (``stale_stamp``), counted. Ordering
-  *across* a user's topics is never a jump (a user's first scan before its first odometry, fixes
-  that lag the odometry by the WiFi node's latency): each topic is a source of its own.
+- **jumps back**: a stamp more than ``jump_s`` before its source's watermark is either a straggler (a
+  wrongly stamped or replayed message) or the first of a new pass (a bag played in a loop, a simulation
+  restarted, a device clock reset). It is held, with every later message of the user that far back,
+  until the source decides: ``jump_confirm`` messages of the source in a row, each in step with the one
+  before (a strictly later stamp, advanced as much as the node's clock within ``jump_s``: a replayed
+  pass moves with the clock, wrong stamps do not), confirm the jump — or at once when the node's clock
+  agrees (the source's watermark is more than ``jump_s`` ahead of the node's clock: the old pass is in
+  the clock's future, and the far-back stamp within ``jump_s`` of the clock: the new pass is its
+  present, and the clock itself went back; a clock lagging the stamps it takes vouches for nothing). A
+  confirmed jump resets the user's state in the stage (:meth:`Stage.reset_user`), counts ``time_jumps``,
+  says it once (WARN), and the held messages are handled as the new pass's first. A message of the
+  source back in step with its watermark shows the held ones were stragglers: each is rejected
+  (``stale_stamp``), counted. Ordering *across* a user's topics is never a jump (a user's first scan
+  before its first odometry, fixes that lag the odometry by the WiFi node's latency): each topic is a
+  source of its own.
 - **leaps ahead**: a stamp more than ``leap_s`` after its source's watermark while the node's clock
   cannot vouch for it (it is not within ``max_future_s`` of the clock: a bag replayed without
   ``use_sim_time``, a device clock that is not the node's) is either a wrongly stamped message or
@@ -36,7 +38,19 @@ before its handler sees it, with the parameters of the ``time`` group (:class:`T
   message stamped an hour ahead would move the watermark there and every valid message after it
   would be refused.
 - **the node's clock going back** (rclpy's clock-jump callback, :meth:`Stage.run_clock_jump`) by
-  more than ``jump_s`` resets every user whose watermarks are ahead of the new clock, at once.
+  more than ``jump_s`` resets every user whose watermarks are ahead of the new clock — once the old
+  *epoch* has drained, not at the callback. The messages published just before ``/clock`` went back
+  (a replay's last samples, queued in the node) reach the stage in any order with the callback, and
+  a user's topics in any order with each other; each source (topic) of the old pass stays *open*
+  until its first message of the new epoch (one publisher per topic delivers in order: nothing of
+  the old pass follows it). A message of an open source stamped more than ``jump_s`` ahead of the new
+  clock (and no more than ``max_future_s`` after the clock before the jump) is judged, and handled,
+  in the old pass (its watermark, the clock before the jump); a message of the new epoch is held
+  (``EPOCH_HOLD``) until every source of the old pass has moved on or the node's clock has run
+  ``jump_s`` past the jump; then the user is reset (``EPOCH``: ``time_jumps``) and the held messages
+  are handled as the new pass's first, in their order. So a pass's last outputs do not depend on
+  when the callback ran. A user with messages held for a jump back at the callback (the new pass
+  came before its clock) is reset at once, as before.
 - **after a jump**, a topic's first message stamped more than ``jump_s`` ahead of the user's new
   pass (its other topics, the node's clock) but not after the old pass's newest stamp is of the old
   pass, still in flight (a fix that lags its scan): rejected (``before_jump``), so it cannot set the
@@ -113,6 +127,9 @@ class Verdict(IntEnum):
     JUMP = 2        # a jump back confirmed by this message: reset the user, then :meth:`TimePolicy.restart`
     LEAP = 3        # a leap ahead: :meth:`TimePolicy.hold_leap` it
     RESUME = 4      # a leap confirmed by this message: :meth:`TimePolicy.resume` gives the held ones to handle
+    EPOCH = 5       # the old epoch drained after the node's clock went back: reset the user (said at the
+                    # jump), then :meth:`TimePolicy.restart`, then handle the held messages and this one
+    EPOCH_HOLD = 6  # of the new epoch while the old one drains: :meth:`TimePolicy.hold_epoch` it
 
 
 @dataclass
@@ -175,6 +192,13 @@ class _UserTime:
     cand_now: int = 0                   # the node's clock when it came (0: no clock)
     cand_count: int = 0                 # far-back messages of that source in a row
     fence_ns: int | None = None         # after a jump: the old pass's newest stamp (see before_jump)
+    #: after the node's clock went back, until the user's first message of the new epoch: the clock
+    #: before the jump (messages stamped in the old epoch are judged by it; see the module doc)
+    epoch_ns: int | None = None
+    clock_max: int = 0                  # the latest node's clock a message of the user was judged at
+    epoch_at: int = 0                   # the node's clock just after the jump
+    epoch_open: set[str] = dc_field(default_factory=set)   # the old pass's sources not yet moved on
+    epoch_held: list[Held] = dc_field(default_factory=list)  # new-epoch messages held until it drains
     jumps: int = 0
     leaps: dict[str, _Leap] = dc_field(default_factory=dict)   # topic -> its messages held for a leap ahead
     #: topic -> the stamps the stage published there (echo recognition; kept across a reset: echoes of
@@ -223,11 +247,28 @@ class TimePolicy:
         changed). A ``PASS`` of the held run's source back in step drops the held messages first
         (:meth:`drop_held` gives them to the caller to count)."""
         u = self.users.get(user)
-        if u is not None and not u.held and u.fence_ns is None and not u.leaps:   # the common case, first
-            mark = u.marks.get(topic)
+        if u is not None and now_ns and now_ns > u.clock_max:
+            u.clock_max = now_ns
+        if u is not None and not u.held and u.fence_ns is None and not u.leaps and u.epoch_ns is None:
+            mark = u.marks.get(topic)                            # the common case, first
             if mark is not None and mark < stamp_ns <= mark + self.leap_ns and (
                     not now_ns or stamp_ns <= now_ns + self.future_ns):
                 return Verdict.PASS
+        if u is not None and u.epoch_ns is not None:
+            old = bool(now_ns) and int(now_ns or 0) + self.jump_ns < stamp_ns <= u.epoch_ns + self.future_ns
+            drained = bool(now_ns) and int(now_ns or 0) >= u.epoch_at + self.jump_ns
+            if old and topic in u.epoch_open and not drained:
+                now_ns = u.epoch_ns                              # stamped before the clock went back
+            elif old and not drained:                            # its source moved on: a straggler
+                raise InvalidInputError(
+                    "before_jump", f"{topic} stamp {stamp_ns} ns is of the pass before the node's clock went back, "
+                                   f"after the topic's first message of the new pass")
+            else:
+                u.epoch_open.discard(topic)                      # this source has moved on
+                if u.epoch_open and not drained:
+                    return Verdict.EPOCH_HOLD
+                u.epoch_ns = None                                # the old epoch has drained
+                return Verdict.EPOCH
         if order == Order.EXEMPT:
             return Verdict.PASS
         if now_ns and stamp_ns > now_ns + self.future_ns:
@@ -236,6 +277,8 @@ class TimePolicy:
                                 f"node's clock ({now_ns * 1e-9:.3f} s), more than time.max_future_s "
                                 f"({self.params.max_future_s:g} s)")
         u = self.user(user)
+        if now_ns and now_ns > u.clock_max:
+            u.clock_max = now_ns
         if u.fence_ns is not None:
             self._check_fence(u, topic, stamp_ns, now_ns)
         mark = u.marks.get(topic)
@@ -248,7 +291,7 @@ class TimePolicy:
             if u.cand_topic is None or topic != u.cand_topic:
                 if u.cand_topic is None:
                     u.cand_topic, u.cand_last, u.cand_now, u.cand_count = topic, stamp_ns, now_ns or 0, 1
-                    return Verdict.JUMP if self._clock_agrees(mark, now_ns, u) else Verdict.HOLD
+                    return Verdict.JUMP if self._clock_agrees(u, mark, now_ns, stamp_ns) else Verdict.HOLD
                 return Verdict.HOLD                              # another topic of the same run
             in_step = self._in_step(u, stamp_ns, now_ns or 0)
             u.cand_last, u.cand_now = stamp_ns, now_ns or 0
@@ -256,7 +299,7 @@ class TimePolicy:
                 u.cand_count = 1                                 # not in step: the run starts again
                 return Verdict.HOLD
             u.cand_count += 1
-            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(mark, now_ns, u):
+            if u.cand_count >= self.params.jump_confirm or self._clock_agrees(u, mark, now_ns, stamp_ns):
                 return Verdict.JUMP
             return Verdict.HOLD
         if u.held and topic != u.cand_topic:
@@ -325,9 +368,16 @@ class TimePolicy:
             return abs((stamp_ns - u.cand_last) - (now_ns - u.cand_now)) <= self.jump_ns
         return True
 
-    def _clock_agrees(self, mark: int, now_ns: int | None, u: _UserTime) -> bool:
-        """The node's clock confirms a jump back: the source's old pass is ahead of it by more than ``jump_s``."""
-        return bool(now_ns) and mark > int(now_ns or 0) + self.jump_ns
+    def _clock_agrees(self, u: _UserTime, mark: int, now_ns: int | None, stamp_ns: int) -> bool:
+        """The node's clock confirms a jump back: the clock itself went back by more than ``jump_s``
+        (before the latest clock a message of the user was judged at), the source's old pass is ahead
+        of it by more than ``jump_s``, and the far-back stamp is within ``jump_s`` of it (the new pass
+        is the clock's present). A clock merely lagging the stamps it takes vouches for nothing: a
+        busy node takes ``/clock`` late, tens of seconds behind its data under load, and a wrong stamp
+        30 s back would then reset the user at once."""
+        now = int(now_ns or 0)
+        return (bool(now) and now < u.clock_max - self.jump_ns and mark > now + self.jump_ns
+                and abs(stamp_ns - now) <= self.jump_ns)
 
     def _check_fence(self, u: _UserTime, topic: str, stamp_ns: int, now_ns: int | None) -> None:
         """After a jump, the first message of a topic in the new pass: one stamped more than ``jump_s``
@@ -370,8 +420,11 @@ class TimePolicy:
         """After the user's state was reset for a jump back: watermarks cleared, the old pass fenced
         off, one more jump counted. Returns the held messages, to be handled as the new pass's first."""
         u = self.user(user)
-        held, front = u.held, u.front()
+        held, front = u.held + u.epoch_held, u.front()
+        if u.epoch_ns is not None or u.epoch_open:              # after the clock went back: its old pass too
+            front = max(front or 0, u.epoch_ns or 0)
         u.marks, u.held, u.cand_topic, u.cand_count, u.leaps = {}, [], None, 0, {}
+        u.epoch_ns, u.epoch_open, u.epoch_held, u.clock_max = None, set(), [], 0
         if front is not None:
             u.fence_ns = front if u.fence_ns is None else max(u.fence_ns, front)
         u.jumps += 1
@@ -391,7 +444,7 @@ class TimePolicy:
         if order == Order.EXEMPT:
             return True
         u = self.users.get(user)
-        if u is not None and (u.held or u.fence_ns is not None or u.leaps):
+        if u is not None and (u.held or u.fence_ns is not None or u.leaps or u.epoch_ns is not None):
             return False
         prev = None if u is None else u.marks.get(topic)
         for t, now in zip(stamps, now_ns):
@@ -404,7 +457,33 @@ class TimePolicy:
             prev = t
         return True
 
-    def clock_jump(self, now_ns: int) -> list[str]:
-        """The node's clock went back to ``now_ns``: the users whose watermarks are more than ``jump_s``
-        ahead of it (the caller resets each, then calls :meth:`restart`)."""
-        return [name for name, u in self.users.items() if (u.front() or 0) > now_ns + self.jump_ns]
+    def clock_jump(self, now_ns: int, back_ns: int = 0) -> list[str]:
+        """The node's clock went back by ``back_ns`` to ``now_ns``: the users whose watermarks are more
+        than ``jump_s`` ahead of it. Each with messages held (the new pass already begun) is for the
+        caller to reset at once (then :meth:`restart`); the others are reset at their first message
+        of the new epoch (``JUMP`` from :meth:`judge`), messages stamped before the jump judged by the
+        clock before it until then (the module doc)."""
+        users = [name for name, u in self.users.items() if (u.front() or 0) > now_ns + self.jump_ns]
+        for name in users:
+            u = self.users[name]
+            before = now_ns + max(0, back_ns)
+            u.epoch_ns = before if u.epoch_ns is None else max(u.epoch_ns, before)
+            u.epoch_at = now_ns
+            u.epoch_open |= set(u.marks)
+        return users
+
+    def deferred(self, user: str) -> bool:
+        """Whether the user's reset for a clock jump waits for the old epoch to drain."""
+        u = self.users.get(user)
+        return u is not None and u.epoch_ns is not None and not u.held
+
+    def hold_epoch(self, user: str, held: Held) -> Held | None:
+        """Hold a message of the new epoch; returns the oldest held one if the bound made room (reject it)."""
+        u = self.user(user)
+        u.epoch_held.append(held)
+        return u.epoch_held.pop(0) if len(u.epoch_held) > HELD_MAX else None
+
+    def epoch_pending(self, user: str) -> bool:
+        """Whether the user holds messages of a new epoch (its input ended: reset it and hand them on)."""
+        u = self.users.get(user)
+        return u is not None and bool(u.epoch_held)
