@@ -28,7 +28,7 @@ def test_importer_params_give_the_back_end_its_map_and_fixes(tmp_path):
     assert import_ms_indoor(args) == 0
     params = yaml.safe_load((out / "params.yaml").read_text())["/**/backend_node"]["ros__parameters"]
     assert Path(params["radiomap"]) == out / "radiomap" and params["wifi_source"] == "fix"
-    assert {k: params[k] for k in FIX_GRAPH_PARAMS} == {**FIX_GRAPH_PARAMS, "robust_kernel": "maxmix"}
+    assert {k: params[k] for k in FIX_GRAPH_PARAMS} == FIX_GRAPH_PARAMS
     # the site has GeoJSON plans: they are the back-end's walkable factor
     assert Path(params["floor_plans"]) == out / "floors" and params["walkable_std_m"] > 0
     assert params["fix_bias_std_m"] > 0                 # whole walks' fixes sit off together: one bias each

@@ -245,7 +245,7 @@ def import_ms_indoor(args: argparse.Namespace) -> int:
         if ble_window > 0 and any(b.startswith("ble:") for b in rm.bssids):
             params["wifi_fix_node"]["ble"] = {"enabled": True, "window_s": ble_window}
         # the back-end on the front end's fixes (see FIX_GRAPH_PARAMS); without this it has no survey
-        params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS, **BACKEND_FIX_KERNEL}
+        params["backend_node"] = {"radiomap": str(rm_dir), **FIX_GRAPH_PARAMS}
         if prior_sd is not None:
             params["backend_node"].update({"gauge_std_rad": prior_sd, **BACKEND_CALIBRATED_HEADING})
         if has_plan:           # the floor plans as the back-end's walkable factor
@@ -343,11 +343,6 @@ BACKEND_CALIBRATED_HEADING = {"pdr_info": [25.0, 25.0, 400.0]}
 #: plan can then move a whole track at the cost of one prior. Chosen on ms_site2's B1 and F7 (3 m against
 #: 1.5 and 8), F3 and F8 checked once.
 BACKEND_WALKABLE = {"walkable_std_m": 1.0, "fix_bias_std_m": 3.0}
-#: The back-end's kernel on the fixes: max-mixture (indoor_loc/backend/factors.py), solved from Huber's
-#: optimum. A stretch of fixes matched to a look-alike place is not one bias of the walk (the bias
-#: state cannot take it) and Huber's linear tail keeps pulling the track toward it however far it is;
-#: the mixture's broad component lets it go (docs/fusion.md, round 4). Chosen on ms_site2's B1 and F7.
-BACKEND_FIX_KERNEL = {"robust_kernel": "maxmix"}
 
 #: The smallest heading prior std the importer writes (rad, ≈ 3°): a phone's rotation-vector yaw is
 #: never better, however well a few survey walks agree.
