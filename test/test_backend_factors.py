@@ -78,7 +78,7 @@ def test_wifi_error_and_jacobians():
         np.testing.assert_allclose(jn[0, j], num[:, 2 + 2 * j: 4 + 2 * j], atol=1e-8)
 
 
-@pytest.mark.parametrize("kernel", ["huber", "cauchy"])
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "maxmix"])
 def test_robustify_cost_and_jacobian(kernel):
     c = 1.5
     rng = np.random.default_rng(7)

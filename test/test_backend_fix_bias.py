@@ -67,3 +67,26 @@ def test_fix_bias_jacobian_matches_numerical_derivatives(tmp_path, robust):
 def test_fix_bias_std_is_validated():
     with pytest.raises(ConfigError, match="fix_bias_std_m"):
         GraphParams(fix_bias_std_m=-1.0).validate()
+
+
+def test_the_live_pose_takes_the_plan_through_the_bias_with_walkable_live(tmp_path):
+    """Causal: the newest pose after each fix's window optimisation (what backend/<u>/pose publishes).
+    Fixes 6 m off into a shop along the whole walk: with the plan in the windows (walkable_live) and the
+    shared bias, the live poses enter the corridor; without the plan in the windows they follow the fixes."""
+    field = load_walkable_fields(_floor(tmp_path))
+    off = {}
+    for live in (False, True):
+        g = _graph(field, walkable_std_m=1.0, fix_bias_std_m=3.0, window_poses=30, walkable_live=live)
+        rng = np.random.default_rng(4)
+        g.set_floor("u", -5.0)
+        t, x, newest = 0, 2.0, []
+        for k in range(60):
+            t0, t = t, t + 500_000_000
+            x += 0.65
+            g.add_hop("u", t0, t, 1.0, 0.0)
+            if k % 4 == 3:
+                g.add_fix("u", t, np.array([x + rng.normal(0, 1.0), 9.0 + rng.normal(0, 1.0)]), np.eye(2) * 4.0)
+                newest.append(g.poses.x[g.users["u"].poses[-1], 1])
+        off[live] = float(np.abs(np.asarray(newest[3:]) - 3.0).mean())    # after the first few fixes
+    assert off[False] > 4.5                     # the live poses stay with the fixes, 6 m off
+    assert off[True] < off[False] - 2.0         # the plan moves the live track (and its bias) into the corridor

@@ -22,7 +22,12 @@ Multi-user Personal Indoor Localization System Employing Graph-based Optimizatio
 
 Robust kernels (the paper names wrong WKNN matches as its main failure mode) act on the whitened
 squared norm ``s = eᵀΩe`` of a hyperedge: Huber ``ρ(s) = s`` for ``s ≤ c²`` else ``2c√s − c²``;
-Cauchy ``ρ(s) = c² log(1 + s/c²)``. :func:`robustify` rescales the whitened error to
+Cauchy ``ρ(s) = c² log(1 + s/c²)``; max-mixture (Olson & Agarwal, "Inference on networks of mixtures
+for robust robot mapping", IJRR 2013) of the factor's own Gaussian and a broad one ``MAXMIX_SCALE``
+times wider, the component with the lower cost taken: ``ρ(s) = min(s, s/k² + c²(1 − 1/k²))`` (k =
+``MAXMIX_SCALE``; the constant, i.e. the components' weights, puts the switch at ``s = c²`` like
+Huber's threshold) — beyond the threshold a fix keeps 1/k² of its information (Huber's linear tail
+still pulls with c per σ of error, however far). :func:`robustify` rescales the whitened error to
 ``√(ρ(s)/s) e`` so its squared norm is exactly ``ρ(s)``, with the exact Jacobian of that rescaling.
 """
 from __future__ import annotations
@@ -37,7 +42,9 @@ WIFI_INFO = 10.0
 STEP_PRIOR_INFO = 200.0
 STEP_PRIOR_M = 0.65
 
-ROBUST_KERNELS = ("none", "huber", "cauchy")
+ROBUST_KERNELS = ("none", "huber", "cauchy", "maxmix")
+#: max-mixture kernel: the outlier component's standard deviation over the factor's own
+MAXMIX_SCALE = 10.0
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -133,6 +140,10 @@ def robust_rho(s: np.ndarray, kernel: str, c: float) -> tuple[np.ndarray, np.nda
     if kernel == "cauchy":
         c2 = c * c
         return c2 * np.log1p(s / c2), 1.0 / (1.0 + s / c2)
+    if kernel == "maxmix":
+        k2 = MAXMIX_SCALE * MAXMIX_SCALE
+        inl = s <= c * c
+        return np.where(inl, s, s / k2 + c * c * (1.0 - 1.0 / k2)), np.where(inl, 1.0, 1.0 / k2)
     raise ValueError(f"robust kernel: expected one of {ROBUST_KERNELS}, got {kernel!r}")
 
 

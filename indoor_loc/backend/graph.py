@@ -122,7 +122,8 @@ class GraphParams:
                                       "end as a position factor with its covariance (all WiFi factors then weighted "
                                       "by inverse covariance, as wifi_info_from_fix), scans matching only other "
                                       "users' scans (joint)")
-    robust_kernel: str = pfield("none", "kernel on WKNN hyperedges: 'none' (paper), 'huber' or 'cauchy'")
+    robust_kernel: str = pfield("none", "kernel on WKNN hyperedges and fixes: 'none' (paper), 'huber', 'cauchy' or "
+                                        "'maxmix' (max-mixture with a component 10x wider, see factors)")
     robust_threshold_m: float = pfield(2.0, "robust kernel threshold, m of WKNN error")
     pose_period_s: float = pfield(1.28, "a pose every this much stamp time, s (paper: 256 samples at 200 Hz)")
     min_scan_move_m: float = pfield(0.3, "a scan closer than this (PDR distance) to the last pose attaches to it, m")
@@ -655,8 +656,16 @@ class MultiUserGraph:
 
     def _solve(self, var: np.ndarray, max_iter: int, deadline: float | None = None, *,
                walkable: bool = True) -> SolveReport | None:
+        if self.params.robust_kernel == "maxmix":
+            # the max-mixture cost is not convex: a solve from poses that a stretch of wrong fixes placed
+            # stays with them. Huber's convex cost first, then the mixture from its optimum
+            self._solve_with(var, max_iter, deadline, walkable=walkable, kernel="huber")
+        return self._solve_with(var, max_iter, deadline, walkable=walkable, kernel=self.params.robust_kernel)
+
+    def _solve_with(self, var: np.ndarray, max_iter: int, deadline: float | None = None, *,
+                    walkable: bool = True, kernel: str) -> SolveReport | None:
         t0 = time.perf_counter()
-        prob = self.problem(var, walkable=walkable)
+        prob = self.problem(var, walkable=walkable, kernel=kernel)
         if prob is None:
             return None
         fun, jac, z0, unpack, n_factors = prob
@@ -691,14 +700,16 @@ class MultiUserGraph:
         self.last_solve = rep
         return rep
 
-    def problem(self, var: np.ndarray, *, walkable: bool = True):
+    def problem(self, var: np.ndarray, *, walkable: bool = True, kernel: str | None = None):
         """The least-squares problem over poses ``var`` (and their users' step lengths): (fun(z) ->
         whitened residuals, jac(z) -> sparse CSR Jacobian, z0, unpack(z) -> (poses, step lengths, fix biases),
-        number of factors), or None when no factor touches the variables."""
+        number of factors), or None when no factor touches the variables. ``kernel``: the robust kernel
+        instead of ``robust_kernel``."""
         var = np.asarray(var, np.int64)
         if len(var) == 0:
             return None
         p = self.params
+        kernel = p.robust_kernel if kernel is None else kernel
         n_pose = self.poses.n
         X = self.poses.view("x")
         col = np.full(n_pose, -1, np.int64)
@@ -772,7 +783,7 @@ class MultiUserGraph:
         nz_len = np.array([[1], [1], [0]], bool)                          # its J_len
         # whitened hyperedge blocks are L (and -w_j L): diagonal for a scalar information, upper
         # triangular for a fix's (Cholesky) one; a robust kernel's correction fills them
-        nz_wifi = (None if p.robust_kernel != "none" else
+        nz_wifi = (None if kernel != "none" else
                    np.triu(np.ones((2, 2), bool)) if p.info_from_fix else np.eye(2, dtype=bool))
         rp = r_p + 3 * np.arange(n_p)
         rw = r_w + 2 * np.arange(n_w)
@@ -848,10 +859,10 @@ class MultiUserGraph:
                 jwp = wL[:, :, 0, None] * jwp[:, None, 0, :] + wL[:, :, 1, None] * jwp[:, None, 1, :]
                 jwn = (wL[:, None, :, 0, None] * jwn[:, :, None, 0, :]
                        + wL[:, None, :, 1, None] * jwn[:, :, None, 1, :])
-                ewh, (jwp, jwn), _ = F.robustify(ewh, [jwp, jwn.transpose(0, 2, 1, 3)], p.robust_kernel, c_rob)
+                ewh, (jwp, jwn), _ = F.robustify(ewh, [jwp, jwn.transpose(0, 2, 1, 3)], kernel, c_rob)
                 jwn = jwn.transpose(0, 2, 1, 3)
             else:
-                ewh, _, _ = F.robustify(ewh, None, p.robust_kernel, c_rob)
+                ewh, _, _ = F.robustify(ewh, None, kernel, c_rob)
             res[r_w:r_g] = ewh.ravel()
             eg = Xc[gpose] - gx
             eg[:, 2] = F.wrap(eg[:, 2])
