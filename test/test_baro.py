@@ -95,6 +95,26 @@ def test_floor_filter_changes_on_evidence_only():
     assert z[0] == 3.5
 
 
+def test_a_two_storey_ride_measured_short_leaves_no_mass_on_the_start_floor():
+    """A descent of two storeys over a pause, reported as one change of 6.1 m (1.74 storeys of
+    3.5 m: the detector merges the flights), from floor 2 with a little mass on floor 1 (fixes during
+    the pause): the floor below both, not the start floor (the old plausibility mixing kept 22 % on
+    floor 2 and the next wrong fix nearly flipped the floor)."""
+    from indoor_loc.baro.detector import FloorChange
+    s = 10**9
+    f = FloorFilter([0.0, 3.5, 7.0])
+    f.fix(1 * s, 7.0)
+    f.baro_sample(2 * s)
+    f.p = np.array([0.0, 0.174, 0.826])
+    f.baro_event(FloorChange(2 * s, 14 * s, 18 * s, -6.08))
+    assert f.floor == 0 and f.p[0] > 0.85 and f.p[2] < 0.05, f.p
+    # a change of no storey stays where it was (nothing explains it better than staying)
+    g = FloorFilter([0.0, 3.5, 7.0])
+    g.fix(1 * s, 0.0)
+    g.baro_sample(2 * s)
+    g.baro_event(FloorChange(2 * s, 4 * s, 8 * s, 0.9))
+    assert g.floor == 0 and g.p[0] > 0.75, g.p
+
 def test_floor_filter_learns_floors_from_fixes():
     f = FloorFilter()
     for k in range(5):

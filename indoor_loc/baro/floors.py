@@ -8,7 +8,8 @@ States: the floors, by height ``z_f`` (m). Evidence:
   floor-detection confidence ``w = clip(z_var / Δz², fix_wrong_min, 1 − 1/F)`` (Δz the smallest
   storey: a detector sure of its floor has ``z_var = 0``, one split between two floors ``Δz²/4``);
 - a **barometer floor change** (:class:`~indoor_loc.baro.detector.FloorChange`, ``dh_m``): the
-  transition ``P(j → k) ∝ exp(−(dh − (z_k − z_j))² / 2σ²)``, mixed with ``event_miss`` of staying
+  transition ``P(j → k) ∝ exp(−(dh − (z_k − z_j))² / 2σ²)`` over every floor ``k`` (``k = j``, no
+  change, included), mixed with ``event_miss`` of staying
   — the discrete form of the Δz barometer factor between consecutive poses of seed 003's smoother;
 - between them, time: the floor changes by an adjacent storey at ``change_rate_per_s`` (no
   barometer; a continuous-time chain, ``T = expm(Q Δt)``), or at ``baro_quiet_rate_per_s`` while a
@@ -194,17 +195,17 @@ class FloorFilter:
         """(F, F) transition of a barometer floor change of ``dh_m`` (see the module docstring)."""
         pp = self.params
         dz = self.floor_z[None, :] - self.floor_z[:, None]
+        # every floor, the floor it starts from included (dz = 0), by how well it explains dh: a
+        # change of 1.7 storeys is two storeys or one, not "no change" (before, a change far from
+        # every storey was mixed with staying as a whole: a two-storey ride measured 6.1 m left a
+        # quarter of the mass on the start floor)
         g = np.exp(-0.5 * ((dh_m - dz) / pp.event_sigma_m) ** 2)
-        np.fill_diagonal(g, 0.0)
         s = g.sum(axis=1, keepdims=True)
         T = np.where(s > 1e-12, g / np.maximum(s, 1e-300), 0.0)
-        stay = np.where(s[:, 0] > 1e-12, pp.event_miss, 1.0)       # nowhere to go: stay
+        stay = np.where(s[:, 0] > 1e-12, pp.event_miss, 1.0)       # nowhere near: stay
         T = T * (1.0 - stay)[:, None]
         T[np.diag_indices_from(T)] += stay
-        # a change nowhere near a storey of this building is likely not one
-        plaus = float(np.exp(-0.5 * (np.min(np.abs(np.abs(dz[dz != 0]) - abs(dh_m))) / pp.event_sigma_m) ** 2)) \
-            if self.n_floors > 1 else 0.0
-        return plaus * T + (1.0 - plaus) * np.eye(self.n_floors)
+        return T
 
     def baro_event(self, ev: FloorChange) -> None:
         """A barometer floor change, applied at its detection stamp."""
