@@ -66,3 +66,25 @@ def test_pf_takes_pressure_ahead_of_odometry_in_stamp_order(tmp_path):
     assert np.abs(ordered[:, 1:3] - ahead[:, 1:3]).max() < 1e-6
     # only the odometry's first hops come late (a stream is known from its first message on)
     assert st.reorder_late <= 2 and ordered[-1, 3] == pytest.approx(3.5)
+
+
+def test_what_waits_for_a_stream_goes_when_both_stop(tmp_path):
+    """The last hops wait for the barometer to reach its stamp; when nothing more comes, the node's
+    clock releases it after reorder_window_s (a phone that stopped publishing)."""
+    from test_floors_live import _stream
+    gf = save_graph(building_graph(make_tower_building()), tmp_path / "tower.graph.yaml")
+    st = PfStage(params_from_dict(PfStageParams, {"graph_file": str(gf), "n_particles": 300,
+                                                  "monitor": {"enabled": False}}))
+    topic = {"odom": "pdr/odom", "fix": "wifi/fix", "baro": "baro/pressure"}
+    rows = [r for r in _stream(10 * SEC) if r[0] < 12 * SEC]
+    rows = [r for r in rows if r[1] != "baro" or r[0] < 11_500_000_000]   # the barometer stops first
+    last_hop = max(r[0] for r in rows if r[1] == "odom")
+    assert last_hop > 11_500_000_000
+    for t, kind, msg in rows:
+        st.process(topic[kind], msg, t)
+    waiting = len(st._order)
+    assert waiting >= 1 and st.tracker.estimates[-1].stamp_ns < last_hop        # the last hops wait
+    assert st.tick(last_hop + SEC // 2) == [] and len(st._order) == waiting       # within the window
+    outs = st.tick(last_hop + int(1.1 * SEC))
+    assert len(st._order) == 0 and any(n == "pf/pose" for n, _ in outs)
+    assert st.tracker.estimates[-1].stamp_ns == last_hop
