@@ -123,3 +123,34 @@ def test_floor_filter_learns_floors_from_fixes():
     for k in range(5, 10):
         f.fix(k * 10**9, 0.0, 0.1)
     assert f.floor_z.tolist() == [0.0, 4.0] and f.z()[0] == 0.0
+
+
+def test_a_fix_arriving_after_a_barometer_change_it_precedes_is_taken_before_it():
+    """The back-end takes fixes through its reorder window and the pressure at once: a fix on the
+    middle floor stamped just before a two-storey change reported from it used to count as evidence
+    for the floor after the change (and the next wrong fix moved the pose back up a floor). Taken in
+    arrival order it now gives what stamp order gives."""
+    from indoor_loc.baro.detector import FloorChange
+    from indoor_loc.baro.track import FloorTrack
+    s = 10**9
+    ev = FloorChange(107 * s, 118 * s, 122 * s, -6.08)
+
+    def feed(order):
+        tr = FloorTrack(floors_m=[0.0, 3.5, 7.0])
+        f = tr.filter
+        for kind, t, v in order:
+            f.baro_sample(t)
+            if kind == "fix":
+                tr.fix(t, v, 1.0)
+            else:
+                f.baro_event(v)
+        return f
+    fixes = [("fix", k * s, 7.0) for k in (90, 94, 98, 102)] + [("fix", k * s, 3.5) for k in (110, 114, 118, 121)]
+    after = [("fix", 125 * s, 3.5), ("fix", 129 * s, 0.0)]
+    ordered = feed(fixes + [("event", 122 * s, ev)] + after)
+    late = feed(fixes[:-1] + [("event", 122 * s, ev)] + [fixes[-1]] + after)   # the 121 s fix after the change
+    assert np.allclose(late.p, ordered.p) and late.floor == ordered.floor == 0
+    assert late.late_fixes == 1
+    assert [h[0] for h in late.history] == [h[0] for h in ordered.history]
+    assert np.array_equal(late.z_at(np.array([124 * s, 126 * s, 130 * s])),
+                          ordered.z_at(np.array([124 * s, 126 * s, 130 * s])))
