@@ -95,6 +95,26 @@ def test_floor_filter_changes_on_evidence_only():
     assert z[0] == 3.5
 
 
+def test_a_two_storey_ride_measured_short_leaves_no_mass_on_the_start_floor():
+    """A descent of two storeys over a pause, reported as one change of 6.1 m (1.74 storeys of
+    3.5 m: the detector merges the flights), from floor 2 with a little mass on floor 1 (fixes during
+    the pause): the floor below both, not the start floor (the old plausibility mixing kept 22 % on
+    floor 2 and the next wrong fix nearly flipped the floor)."""
+    from indoor_loc.baro.detector import FloorChange
+    s = 10**9
+    f = FloorFilter([0.0, 3.5, 7.0])
+    f.fix(1 * s, 7.0)
+    f.baro_sample(2 * s)
+    f.p = np.array([0.0, 0.174, 0.826])
+    f.baro_event(FloorChange(2 * s, 14 * s, 18 * s, -6.08))
+    assert f.floor == 0 and f.p[0] > 0.85 and f.p[2] < 0.05, f.p
+    # a change of no storey stays where it was (nothing explains it better than staying)
+    g = FloorFilter([0.0, 3.5, 7.0])
+    g.fix(1 * s, 0.0)
+    g.baro_sample(2 * s)
+    g.baro_event(FloorChange(2 * s, 4 * s, 8 * s, 0.9))
+    assert g.floor == 0 and g.p[0] > 0.75, g.p
+
 def test_floor_filter_learns_floors_from_fixes():
     f = FloorFilter()
     for k in range(5):
@@ -103,3 +123,34 @@ def test_floor_filter_learns_floors_from_fixes():
     for k in range(5, 10):
         f.fix(k * 10**9, 0.0, 0.1)
     assert f.floor_z.tolist() == [0.0, 4.0] and f.z()[0] == 0.0
+
+
+def test_a_fix_arriving_after_a_barometer_change_it_precedes_is_taken_before_it():
+    """The back-end takes fixes through its reorder window and the pressure at once: a fix on the
+    middle floor stamped just before a two-storey change reported from it used to count as evidence
+    for the floor after the change (and the next wrong fix moved the pose back up a floor). Taken in
+    arrival order it now gives what stamp order gives."""
+    from indoor_loc.baro.detector import FloorChange
+    from indoor_loc.baro.track import FloorTrack
+    s = 10**9
+    ev = FloorChange(107 * s, 118 * s, 122 * s, -6.08)
+
+    def feed(order):
+        tr = FloorTrack(floors_m=[0.0, 3.5, 7.0])
+        f = tr.filter
+        for kind, t, v in order:
+            f.baro_sample(t)
+            if kind == "fix":
+                tr.fix(t, v, 1.0)
+            else:
+                f.baro_event(v)
+        return f
+    fixes = [("fix", k * s, 7.0) for k in (90, 94, 98, 102)] + [("fix", k * s, 3.5) for k in (110, 114, 118, 121)]
+    after = [("fix", 125 * s, 3.5), ("fix", 129 * s, 0.0)]
+    ordered = feed(fixes + [("event", 122 * s, ev)] + after)
+    late = feed(fixes[:-1] + [("event", 122 * s, ev)] + [fixes[-1]] + after)   # the 121 s fix after the change
+    assert np.allclose(late.p, ordered.p) and late.floor == ordered.floor == 0
+    assert late.late_fixes == 1
+    assert [h[0] for h in late.history] == [h[0] for h in ordered.history]
+    assert np.array_equal(late.z_at(np.array([124 * s, 126 * s, 130 * s])),
+                          ordered.z_at(np.array([124 * s, 126 * s, 130 * s])))

@@ -116,3 +116,33 @@ def test_a_fix_on_another_floor_weighs_against_a_particle():
     assert ll[1] > ll[0] == ll[2]
     assert fg.fix_floor(3.5, 3.0, 0.05)[1] > 0.2          # an unsure floor detector weighs less
     assert fg.fix_floor(1.75, 0.0, 0.05) is None           # between floors: not a floor
+
+
+def _cloud_on_floor_0(seed: int = 0) -> GraphTracker:
+    """A filter whose cloud is on floor 0 around x = 25 m, more than shaft_reach_m from the stairwell
+    (x = 41 m) and the lift (x = -1.5 m)."""
+    tr = GraphTracker(G, TR, PfParams(n_particles=600), rng=np.random.default_rng(seed))
+    tr.pf.init_gaussian(np.array([25.0, 10.0]), np.eye(2) * 4.0, np.random.default_rng(seed), floor=0,
+                        inflate=False)
+    return tr
+
+
+def test_a_barometer_floor_change_redraws_the_cloud_far_from_every_shaft_at_the_shafts():
+    from indoor_loc.pf.floors import PfFloorParams, baro_floor_to
+    tr = _cloud_on_floor_0()
+    xy0 = tr.pf.xy()
+    assert np.hypot(xy0[:, 0] - 41.0, xy0[:, 1] - 7.0).min() > 10.0 and np.abs(xy0[:, 0] + 1.5).min() > 10.0
+    moved = baro_floor_to(tr.pf, 1, PfFloorParams())
+    assert moved == len(xy0)
+    k, z, _ = tr.pf.estimate_floor()
+    assert k == 1 and z == pytest.approx(3.5)
+    xy = tr.pf.xy()
+    # each particle went to its nearest shaft; the cloud's weight follows the distance of the jump
+    near_stairs = np.abs(xy[:, 0] - 41.0) < 3.0
+    assert near_stairs.any() and (~near_stairs).any()
+    w = tr.pf.p.weights
+    assert w[near_stairs].sum() > w[~near_stairs].sum()     # the cloud at x ~ 25 m is nearer the stairs
+    # off (shaft_reset_sigma_m 0, as before): the far particles stayed on floor 0
+    tr = _cloud_on_floor_0()
+    assert baro_floor_to(tr.pf, 1, PfFloorParams(shaft_reset_sigma_m=0.0)) == 0
+    assert tr.pf.estimate_floor()[0] == 0

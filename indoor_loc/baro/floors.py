@@ -8,7 +8,8 @@ States: the floors, by height ``z_f`` (m). Evidence:
   floor-detection confidence ``w = clip(z_var / Δz², fix_wrong_min, 1 − 1/F)`` (Δz the smallest
   storey: a detector sure of its floor has ``z_var = 0``, one split between two floors ``Δz²/4``);
 - a **barometer floor change** (:class:`~indoor_loc.baro.detector.FloorChange`, ``dh_m``): the
-  transition ``P(j → k) ∝ exp(−(dh − (z_k − z_j))² / 2σ²)``, mixed with ``event_miss`` of staying
+  transition ``P(j → k) ∝ exp(−(dh − (z_k − z_j))² / 2σ²)`` over every floor ``k`` (``k = j``, no
+  change, included), mixed with ``event_miss`` of staying
   — the discrete form of the Δz barometer factor between consecutive poses of seed 003's smoother;
 - between them, time: the floor changes by an adjacent storey at ``change_rate_per_s`` (no
   barometer; a continuous-time chain, ``T = expm(Q Δt)``), or at ``baro_quiet_rate_per_s`` while a
@@ -36,6 +37,10 @@ from scipy.linalg import expm
 
 from indoor_loc import params as P
 from indoor_loc.baro.detector import FloorChange
+
+
+#: a fix stamped this much (s) before the newest barometer change is no longer put back before it
+LATE_FIX_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -97,6 +102,13 @@ class FloorFilter:
         self.changes = 0
         #: (stamp_ns, transition (F, F) from the previous entry, filtered p (F,))
         self.history: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self._appended = 0                  # history entries ever appended
+        # a fix stamped before the newest barometer change but arriving after it (a node that takes
+        # fixes through a reorder window, pressure at once): the filter as it was just before that
+        # change, and the evidence taken since (the change included), to take them again in stamp order
+        self._pre_event: tuple | None = None
+        self._since: list[tuple] = []
+        self.late_fixes = 0                 # fixes put back before a barometer change they came after
 
     # -- floors --------------------------------------------------------------------------------
     @property
@@ -152,6 +164,7 @@ class FloorFilter:
         self.p = p / s if s > 0 else np.full(self.n_floors, 1.0 / self.n_floors)
         self.last_ns = stamp_ns if self.last_ns is None else max(self.last_ns, stamp_ns)
         self.history.append((stamp_ns, T, self.p.copy()))
+        self._appended += 1
         if len(self.history) > self.params.history_max:
             del self.history[:len(self.history) - self.params.history_max]
         self._decide()
@@ -168,9 +181,36 @@ class FloorFilter:
     # -- evidence ------------------------------------------------------------------------------
     def fix(self, stamp_ns: int, z: float, z_var: float = 0.0) -> bool:
         """A WiFi fix's floor (height ``z`` m, variance ``z_var`` m²). Returns False when the fix
-        carries no usable floor (non-finite)."""
+        carries no usable floor (non-finite). A fix stamped before the newest barometer change
+        (within ``LATE_FIX_S`` of it) is taken before it: the filter goes back to just before the
+        change and takes the evidence since in stamp order; an older one counts at the newest stamp."""
         if not (np.isfinite(z) and np.isfinite(z_var)):
             return False
+        pre = self._pre_event
+        if pre is not None and self.last_ns is not None and self.last_ns - pre[0] > LATE_FIX_S * 1e9:
+            pre = self._pre_event = None
+            self._since = []
+        if pre is not None and stamp_ns < pre[0] and pre[7] == self.n_floors and \
+                self._appended - pre[6] <= len(self.history):
+            self.late_fixes += 1
+            evidence = sorted(self._since + [(stamp_ns, 0, "fix", (z, z_var))], key=lambda e: (e[0], e[1]))
+            _, p, self.floor, self.last_ns, _, self.changes, appended, _ = pre
+            self.p = p.copy()
+            if self._appended > appended:
+                del self.history[len(self.history) - (self._appended - appended):]
+            self._appended = appended
+            for st, _, kind, args in evidence:
+                if kind == "fix":
+                    self._fix(st if self.last_ns is None else max(st, self.last_ns), *args)
+                else:
+                    self._event(args)
+            self._since = evidence
+            return True
+        if pre is not None:
+            self._since.append((stamp_ns, 0, "fix", (z, z_var)))
+        return self._fix(stamp_ns if self.last_ns is None else max(stamp_ns, self.last_ns), z, z_var)
+
+    def _fix(self, stamp_ns: int, z: float, z_var: float) -> bool:
         k = self.nearest(z)
         if k is None:
             k = self.add_floor(z)
@@ -194,21 +234,27 @@ class FloorFilter:
         """(F, F) transition of a barometer floor change of ``dh_m`` (see the module docstring)."""
         pp = self.params
         dz = self.floor_z[None, :] - self.floor_z[:, None]
+        # every floor, the floor it starts from included (dz = 0), by how well it explains dh: a
+        # change of 1.7 storeys is two storeys or one, not "no change" (before, a change far from
+        # every storey was mixed with staying as a whole: a two-storey ride measured 6.1 m left a
+        # quarter of the mass on the start floor)
         g = np.exp(-0.5 * ((dh_m - dz) / pp.event_sigma_m) ** 2)
-        np.fill_diagonal(g, 0.0)
         s = g.sum(axis=1, keepdims=True)
         T = np.where(s > 1e-12, g / np.maximum(s, 1e-300), 0.0)
-        stay = np.where(s[:, 0] > 1e-12, pp.event_miss, 1.0)       # nowhere to go: stay
+        stay = np.where(s[:, 0] > 1e-12, pp.event_miss, 1.0)       # nowhere near: stay
         T = T * (1.0 - stay)[:, None]
         T[np.diag_indices_from(T)] += stay
-        # a change nowhere near a storey of this building is likely not one
-        plaus = float(np.exp(-0.5 * (np.min(np.abs(np.abs(dz[dz != 0]) - abs(dh_m))) / pp.event_sigma_m) ** 2)) \
-            if self.n_floors > 1 else 0.0
-        return plaus * T + (1.0 - plaus) * np.eye(self.n_floors)
+        return T
 
     def baro_event(self, ev: FloorChange) -> None:
         """A barometer floor change, applied at its detection stamp."""
-        self.baro_ns = ev.detect_ns
+        self._pre_event = (ev.detect_ns, self.p.copy(), self.floor, self.last_ns, self.baro_ns, self.changes,
+                           self._appended, self.n_floors)
+        self._since = [(ev.detect_ns, 1, "event", ev)]
+        self._event(ev)
+
+    def _event(self, ev: FloorChange) -> None:
+        self.baro_ns = ev.detect_ns if self.baro_ns is None else max(self.baro_ns, ev.detect_ns)
         target = self.floor_z[self.floor] + ev.dh_m if self.floor is not None else None
         if (target is not None and not self.map_floors
                 and np.min(np.abs(self.floor_z - target)) >= self.params.min_storey_m):

@@ -59,7 +59,7 @@ class FloorTrack:
 
     def fix(self, stamp_ns: int, z: float, z_var: float) -> bool:
         """A fix's floor: height ``z`` (m) with variance ``z_var`` (m²)."""
-        return self.filter.fix(self._at(stamp_ns), z, z_var)
+        return self.filter.fix(stamp_ns, z, z_var)       # (a fix older than a barometer change goes before it)
 
     def z(self) -> tuple[float, float]:
         """The floor's height (m) and variance (m²) now (:meth:`floor_now`); (0, 0) before any evidence."""

@@ -70,7 +70,11 @@ def _stats(ok: np.ndarray, e: np.ndarray) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``indoor-loc bench ble`` (the shared bench options: ``--data``, ``--floors``; the window is 5 s)."""
+    """``indoor-loc bench ble`` (the shared bench options: ``--data``, ``--floors``; the window is 5 s);
+    ``--dataset sim``: the simulator's fixed beacons (:mod:`indoor_loc.bench.ble_sim`)."""
+    if getattr(args, "dataset", "") == "sim":
+        from indoor_loc.bench import ble_sim
+        return ble_sim.run(args)
     return main(argparse.Namespace(data=args.data, floors=getattr(args, "floors", ""),
                                    window_s=getattr(args, "window_s", 5.0)))
 

@@ -42,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live", action="store_true", help="backend: also replay all walks live over DDS "
                                                             "through backend_node at 1x and 10x")
     parser.add_argument("--dataset", default="", help="dataset of the benchmark when it has several "
-                                                      "(wifi: putmc (default) or ms_site2; fusion: ms_site2)")
+                                                      "(wifi: putmc (default) or ms_site2; fusion: ms_site2; "
+                                                      "ble: ms_site2 (default) or sim)")
     parser.add_argument("--site", type=Path, help="wifi: a site directory of the Microsoft Indoor Location "
                                                   "Competition 2.0 format (<floor>/path_data_files/...): the "
                                                   "ms_site2 tables on its floors")

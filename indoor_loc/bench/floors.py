@@ -208,5 +208,6 @@ def run(args: argparse.Namespace) -> int:
                 print(_row(f"`{e}` {label if e != 'wifi/fix' else '(WiFi floor detection only)'}", res[variant][e]))
         print()
     print(f"total {time.perf_counter() - t_start:.0f} s; ms_site2 has no pressure readings (WiFi floor detection "
-          "only: see `indoor-loc bench wifi --dataset ms_site2`)")
+          "only: see `indoor-loc bench wifi --dataset ms_site2`); BLE with and without, where beacons exist: "
+          "`indoor-loc bench ble --dataset sim` (fixed beacons in this office) and `indoor-loc bench ble` (ms_site2)")
     return 0

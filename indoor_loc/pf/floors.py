@@ -20,6 +20,13 @@ walking (a lift: the PDR sees no steps) and are within ``shaft_reach_m`` of a li
 (a connected set of vertical links, a *shaft*) are moved to the shaft's stop on their new floor,
 leaving on a level link; when almost no weight is left on the right floor the rest are projected
 onto that floor's links where they stand (plan position kept).
+
+**Sensor resetting from the barometer.** A floor change means the walker is at a lift or a
+stairwell now: a particle still off the new floor beyond ``shaft_reach_m`` of every shaft is
+evidence that the cloud is wrong in the plane, not that the walker stayed. Such particles are
+re-drawn at the nearest shaft's stop on the new floor, their weight multiplied by
+``exp(−½ ((d − shaft_reach_m) / shaft_reset_sigma_m)²)`` (``d`` the plan distance they jump): the
+cloud's mass is on the new floor at once, mostly at the shafts nearest where it was.
 """
 from __future__ import annotations
 
@@ -134,6 +141,10 @@ class PfFloorParams:
     baro_check_s: float = P.field(1.0, "the barometer gate weighs the particles at most this often (s)")
     shaft_reach_m: float = P.field(8.0, "at a barometer floor change, particles this close to a lift or stairwell "
                                         "(plan distance, m) that are not on the new floor move to its stop there")
+    shaft_reset_sigma_m: float = P.field(10.0, "at a barometer floor change, particles off the new floor beyond "
+                                               "shaft_reach_m of every shaft are re-drawn at the nearest shaft's "
+                                               "stop there, weighed by a Gaussian of the distance past "
+                                               "shaft_reach_m with this sigma (m); 0: they stay")
     reset_weight: float = P.field(1e-3, "when less weight than this is on the floors the barometer expects, the "
                                         "others are projected onto those floors")
     baro_timeout_s: float = P.field(10.0, "the barometer counts as reporting while samples arrive within this (s): "
@@ -149,6 +160,7 @@ class PfFloorParams:
             P.require(0 < getattr(self, name) < 1, n, name, "in (0, 1)", getattr(self, name))
         P.require(self.baro_check_s >= 0, n, "baro_check_s", ">= 0", self.baro_check_s)
         P.require(self.shaft_reach_m >= 0, n, "shaft_reach_m", ">= 0", self.shaft_reach_m)
+        P.require(self.shaft_reset_sigma_m >= 0, n, "shaft_reset_sigma_m", ">= 0", self.shaft_reset_sigma_m)
         P.require(self.baro_timeout_s > 0, n, "baro_timeout_s", "> 0", self.baro_timeout_s)
         P.require(self.floor_reinit_fixes >= 1, n, "floor_reinit_fixes", ">= 1", self.floor_reinit_fixes)
 
@@ -170,13 +182,43 @@ def baro_floor_to(pf: "GraphParticleFilter", floor: int, params: PfFloorParams) 
     """The barometer's floor track moved to ``floor`` (snapped during a transit or reported at its
     end): every particle's ``floor_ref`` becomes it, and the particles off it that a shaft within
     ``shaft_reach_m`` can take there are moved to its stop on that floor, leaving along a level link.
+    Particles still off it are re-drawn at the shafts' stops there (:func:`shaft_reset`).
     Returns how many moved."""
     p, fg = pf.p, pf.floors
     assert p is not None
     own = fg.floor_of(p.link, p.pos)
     target = np.full(len(own), int(floor), np.int64)
     p.floor_ref = target.astype(np.int16)
-    return _through_shafts(pf, own, target, params)
+    moved = _through_shafts(pf, own, target, params)
+    return moved + shaft_reset(pf, int(floor), params)
+
+
+def shaft_reset(pf: "GraphParticleFilter", floor: int, params: PfFloorParams) -> int:
+    """Sensor resetting at a barometer floor change to ``floor`` (module docstring): the particles
+    off it are re-drawn at the nearest shaft's stop on it, weighed by the plan distance of the jump
+    past ``shaft_reach_m``. Returns how many were re-drawn."""
+    p, fg = pf.p, pf.floors
+    assert p is not None
+    if params.shaft_reset_sigma_m <= 0:
+        return 0
+    off = np.flatnonzero(fg.floor_of(p.link, p.pos) != floor)
+    stops = fg.shaft_stop[:, floor] if len(fg.shaft_stop) else np.zeros(0, np.int64)
+    stops = stops[(stops >= 0) & (fg.exit_link[np.maximum(stops, 0)] >= 0)]
+    if not len(off) or not len(stops):
+        return 0
+    xy = pf.xy()[off]
+    d = np.hypot(xy[:, None, 0] - fg.g.node_xyz[stops, 0][None], xy[:, None, 1] - fg.g.node_xyz[stops, 1][None])
+    near = np.argmin(d, axis=1)
+    node = stops[near]
+    excess = np.maximum(d[np.arange(len(off)), near] - params.shaft_reach_m, 0.0)
+    link, end = fg.exit_link[node], fg.exit_end[node]
+    p.link[off] = link
+    p.pos[off] = np.where(end == 0, 0.0, pf.g.link_len[link])
+    p.direction[off] = np.where(end == 0, 1, -1).astype(np.int8)
+    log_l = np.zeros(len(p.link))
+    log_l[off] = -0.5 * (excess / params.shaft_reset_sigma_m) ** 2
+    pf.update_log_likelihood(log_l)
+    return int(len(off))
 
 
 def baro_check(pf: "GraphParticleFilter", params: PfFloorParams) -> float:

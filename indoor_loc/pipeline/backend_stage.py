@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
-import heapq
 import math
 import time
 from dataclasses import dataclass, field
@@ -89,20 +88,20 @@ from indoor_loc.odometry.increments import OdomIncrement
 from indoor_loc.pipeline.motion_source import motion_port, require_source
 from msg_adapters.robot_odom import RobotOdomReader
 from indoor_loc.pipeline.backend_params import BackendParams
+from indoor_loc.pipeline.reorder import ReorderBuffer
 
 NODE_NAME = "backend_node"
 
 
 @dataclass
-class _UserInput:
-    """Reorder buffer and odometry decoding state of one user."""
-    heap: list = field(default_factory=list)           # (stamp, kind, seq, payload); kind 0 odom, 1 fix, 2 scan
+class _UserInput(ReorderBuffer):
+    """Reorder buffer (the shared :class:`~indoor_loc.pipeline.reorder.ReorderBuffer`: rank = kind 0
+    odom, 1 fix, 2 scan; ``taken_ns`` the newest stamp taken into the graph) and odometry decoding
+    state of one user."""
     newest_odom_ns: int | None = None
     newest_scan_ns: int | None = None
-    taken_ns: int | None = None                        # newest stamp taken into the graph
     prev_odom: Any = None                              # last odometry sample taken (x, y, yaw, stamp)
     last_path_ns: int | None = None
-    dropped_late: int = 0
     # waiting for fixes (wifi_source fix)
     fix_known_ns: int | None = None                    # newest wifi/fix stamp received
     pending_scans: list = field(default_factory=list)  # sorted stamps of scans whose fix has not come
@@ -173,7 +172,6 @@ class BackendStage(Stage):
                                      np.vstack([self._drawn_survey, survey.positions]))
         self.inputs_by_user: dict[str, _UserInput] = {}
         self._pose_rates: dict[str, CommandRate] = {}      # user -> its initialpose rate bound (pose_burst)
-        self._seq = 0
         #: what the end of input's time budget cut short (``finish.*`` in /diagnostics; empty before it)
         self.finish_report: dict[str, str] = {}
         self.on("pdr/odom", self._on_odom)
@@ -232,14 +230,9 @@ class BackendStage(Stage):
 
     def _push(self, user: str, stamp: int, kind: int, payload: Any) -> None:
         b = self._buffer(user)
-        if b.taken_ns is not None and stamp < b.taken_ns:
-            b.dropped_late += 1
-            why = ("a fix whose scan was given up after fix_wait_s, a duplicate or out of stamp order"
-                   if kind == 1 and self.params.fix_wait_s > 0 else "later than reorder_window_s")
-            raise InvalidMessageError("too_late", f"{user}: stamp {stamp} older than the graph's newest "
-                                                  f"{b.taken_ns}: {why}")
-        self._seq += 1
-        heapq.heappush(b.heap, (stamp, kind, self._seq, payload))
+        why = ("a fix whose scan was given up after fix_wait_s, a duplicate or out of stamp order"
+               if kind == 1 and self.params.fix_wait_s > 0 else "later than reorder_window_s")
+        b.push(stamp, kind, payload, who=f"{user}: ", why=why)
 
     def reset_user(self, user: str) -> list[Output]:
         """A jump back in the user's time (the shared time policy): finish the user's track (everything
@@ -282,10 +275,7 @@ class BackendStage(Stage):
         if b.robot is None:
             b.robot = RobotOdomReader(self.params.odom)
         od = b.robot.check(msg)
-        if b.taken_ns is not None and od.stamp_ns < b.taken_ns:
-            b.dropped_late += 1
-            raise InvalidMessageError("too_late", f"{user}: stamp {od.stamp_ns} older than the graph's newest "
-                                                  f"{b.taken_ns}: later than reorder_window_s")
+        b.refuse_late(od.stamp_ns, f"{user}: ", "later than reorder_window_s")
         inc = b.robot.take(od)
         if inc is not None:
             self._push(user, inc.t_end_ns, 0, inc)
@@ -399,13 +389,12 @@ class BackendStage(Stage):
         barrier = self._fix_barrier(b, everything)
         new_pose = False
         while b.heap:
-            stamp, kind, _, payload = b.heap[0]
+            stamp, kind, payload = b.head()          # type: ignore[misc]
             if not (everything or stamp <= odom_mark or (kind >= 1 and stamp <= scan_mark)):
                 break
             if barrier is not None and (stamp, kind) >= (barrier, 1):
                 break                          # a scan's fix is still to come: it goes in before these
-            heapq.heappop(b.heap)
-            b.taken_ns = stamp
+            b.pop()
             if kind == 0:
                 new_pose |= self._take_odom(user, b, payload)
             elif kind == 1:

@@ -15,7 +15,10 @@ Link choices at nodes follow the ``rule`` table computed from the graph, or a le
 was made for this very graph file).
 
 Fixes (and scans) wait until PDR has reached their stamp (the stepometer publishes about half a window late),
-bounded by ``max_fix_delay_s``, so every fix is applied at its place in time. Stamps are judged by
+bounded by ``max_fix_delay_s``, so every fix is applied at its place in time; ``pdr/odom`` and
+``baro/pressure`` are taken in stamp order across the two topics (the shared reorder buffer,
+:mod:`indoor_loc.pipeline.reorder`, at most ``reorder_window_s``): a floor change is applied where
+the walker was when the pressure was read, whichever topic arrives first. Stamps are judged by
 the time policy every stage shares (:mod:`indoor_loc.pipeline.time_policy`); a confirmed jump back (a
 bag played in a loop, a restarted recording) resets the filter (:meth:`PfStage.reset_user`).
 
@@ -39,6 +42,7 @@ from indoor_loc import params as P
 from indoor_loc.contract import Qos
 from indoor_loc.errors import ConfigError, InvalidMessageError, MapError
 from indoor_loc.pipeline.path_store import PathStore
+from indoor_loc.pipeline.reorder import ReorderBuffer
 from indoor_loc.fusion.position_trust import (FIX_LATE_MAX_S, FIX_SIGMA_MIN_M, POSE_INTERVAL_MIN_S,
                                               POSE_SIGMA_MIN_M, CommandRate, check_fix_timely,
                                               check_pose_current, floor_cov)
@@ -122,6 +126,10 @@ class PfStageParams:
                                          "previous one is refused (pose_burst: faster than a person gives "
                                          "poses; s of the node's clock, indoor_loc/fusion/position_trust.py)")
     max_fix_delay_s: float = P.field(5.0, "a WiFi fix waits at most this long for pdr/odom to reach its stamp (s)")
+    reorder_window_s: float = P.field(1.0, "pdr/odom and baro/pressure are taken in stamp order across the two "
+                                           "topics: a message waits until the other stream has reached its stamp, "
+                                           "at most this long (s of stamp time, or of the node's clock when both "
+                                           "stop; indoor_loc/pipeline/reorder.py)")
     particles_every: int = P.field(5, "publish pf/particles every this many pose outputs; 0 = never")
     path_period_s: float = P.field(10.0, "republish the filtered pf/path at most this often (s of stamp time); 0 = only at the end")
     smooth: bool = P.field(True, "at the end of input publish the backward-simulation smoothed pf/path")
@@ -161,6 +169,7 @@ class PfStageParams:
         validate_source(n, self.motion_source)
         self.odom.validate()
         P.require(self.max_fix_delay_s >= 0, n, "max_fix_delay_s", ">= 0", self.max_fix_delay_s)
+        P.require(self.reorder_window_s >= 0, n, "reorder_window_s", ">= 0", self.reorder_window_s)
         P.require(self.fix_sigma_min_m > 0, n, "fix_sigma_min_m", "> 0", self.fix_sigma_min_m)
         P.require(self.fix_late_max_s > 0, n, "fix_late_max_s", "> 0", self.fix_late_max_s)
         P.require(self.pose_sigma_min_m > 0, n, "pose_sigma_min_m", "> 0", self.pose_sigma_min_m)
@@ -209,6 +218,10 @@ class PfStage(Stage):
         this one uses instead of loading them again (:meth:`for_user`)."""
         super().__init__(params, namespace=namespace)
         self._pending: list[tuple[int, int, Any]] = []
+        #: pdr/odom and baro/pressure in stamp order across the two topics (indoor_loc/pipeline/reorder.py)
+        self._order = ReorderBuffer()
+        self._order_recv_ns: int | None = None      # node clock at the newest message queued in it
+        self.reorder_late = 0                       # taken at once: older than a message of the other topic taken
         self.floored = 0                    # fixes / poses claiming more precision than granted
         self._pose_rate = CommandRate(params.pose_interval_min_s)   # pose_burst
         self._newest_fix_ns: int | None = None      # newest wifi/fix stamp received (superseded_pose)
@@ -282,6 +295,8 @@ class PfStage(Stage):
         self.tracker = self._new_tracker()          # its seed again: the same pass, the same output
         self._archive.clear()
         self._pending.clear()
+        self._order = ReorderBuffer()
+        self._order_recv_ns = None
         self._newest_fix_ns = None
         self._last_odom_ns = None
         self._last_path_ns = None
@@ -296,9 +311,11 @@ class PfStage(Stage):
         its origin: its first pose starts a new odometry frame (no walk across the restart, no
         ``odom_jump`` refusal of the poses after it; the particles stay where they are)."""
         if topic == "pdr/odom":
+            outs = self._drain_order()             # the old frame's hops first
             self._odom_guard.restart()
             self.tracker.new_odom_frame()
             self.notice("pdr/odom: its publisher restarted: a new odometry frame from its next pose")
+            return outs
         return []
 
     def _new_tracker(self) -> GraphTracker:
@@ -362,12 +379,39 @@ class PfStage(Stage):
             self.map_odom.decoded(msg, od)
         self._odom_guard.check(od)                     # odom_jump: refused before anything moves
         outs = self._start(od.stamp_ns)
-        outs += self._apply_pending(lambda s: s < od.stamp_ns)
+        self._odom_guard.accept(od)
+        return outs + self._in_order(od.stamp_ns, "pdr/odom", od, recv_ns)
+
+    def _take_odom(self, od) -> list[Output]:
+        outs = self._apply_pending(lambda s: s < od.stamp_ns)
         self._last_odom_ns = od.stamp_ns
         est = self.tracker.odom(od.stamp_ns, od.x, od.y, od.yaw)
-        self._odom_guard.accept(od)
         if est is not None:
             outs += self._publish(est)
+        return outs
+
+    def _in_order(self, stamp_ns: int, topic: str, payload, recv_ns: int) -> list[Output]:
+        """pdr/odom and baro/pressure through the reorder buffer: taken once the other stream (while it
+        flows) has reached their stamp. One older than a message already taken (the other stream more
+        than the window behind) is taken at once and counted (``reorder_late``)."""
+        self._order.note(topic, stamp_ns)          # (a stream's first message may come late: it flows now)
+        if self._order.late(stamp_ns):
+            self.reorder_late += 1
+            return self._take(topic, payload)
+        self._order.push(stamp_ns, 0 if topic == "baro/pressure" else 1, (topic, payload))
+        self._order_recv_ns = recv_ns
+        outs: list[Output] = []
+        for _, _, (t, item) in self._order.due(self._order.mark(int(self.params.reorder_window_s * 1e9))):
+            outs += self._take(t, item)
+        return outs
+
+    def _take(self, topic: str, payload) -> list[Output]:
+        return self._take_baro(payload) if topic == "baro/pressure" else self._take_odom(payload)
+
+    def _drain_order(self) -> list[Output]:
+        outs: list[Output] = []
+        for _, _, (t, item) in self._order.drain():
+            outs += self._take(t, item)
         return outs
 
     def _on_fix(self, msg, recv_ns: int) -> list[Output]:
@@ -409,6 +453,10 @@ class PfStage(Stage):
     def _on_baro(self, msg, recv_ns: int) -> list[Output]:
         ps = pressure_from_msg(msg)
         outs = self._start(ps.stamp_ns)
+        return outs + self._in_order(ps.stamp_ns, "baro/pressure", ps, recv_ns)
+
+    def _take_baro(self, ps) -> list[Output]:
+        outs: list[Output] = []
         self.tracker.baro(ps.stamp_ns, ps.pressure_pa)
         last = self.tracker.estimates[-1].stamp_ns if self.tracker.estimates else None
         if self.tracker.baro_track.moved and self.tracker.pf.initialised and last is not None and ps.stamp_ns > last:
@@ -438,11 +486,15 @@ class PfStage(Stage):
 
     def tick(self, now_ns: int) -> list[Output]:
         """Without PDR (yet): the fixes waiting longer than ``max_fix_delay_s`` of the node's clock go on
-        the speed model."""
+        the speed model. Messages in the reorder buffer go when nothing came for ``reorder_window_s``."""
+        outs: list[Output] = []
+        if len(self._order) and now_ns and self._order_recv_ns is not None and (
+                now_ns - self._order_recv_ns >= int(self.params.reorder_window_s * 1e9)):
+            outs += self._drain_order()           # both streams stopped: what waits for them goes now
         if self._last_odom_ns is not None or not self._pending or not now_ns:
-            return []
+            return outs
         horizon = now_ns - int(self.params.max_fix_delay_s * 1e9)
-        return self._apply_pending(lambda s: s <= horizon, speed=True)
+        return outs + self._apply_pending(lambda s: s <= horizon, speed=True)
 
     def _apply_pending(self, due, *, speed: bool = False) -> list[Output]:
         outs: list[Output] = []
@@ -517,7 +569,8 @@ class PfStage(Stage):
                                    stamp_ns=int(stamps.max()), z=z[order]))]
 
     def finish(self) -> list[Output]:
-        outs = self._apply_pending(lambda s: True)
+        outs = self._drain_order() if self.graph is not None else []
+        outs += self._apply_pending(lambda s: True)
         if self.params.smooth and self.tracker.initialised:
             smoothed = self.tracker.smooth(self.params.smooth_samples, redrawn=self.params.smooth_redrawn)
             first = min((e.stamp_ns for e in smoothed), default=None)
@@ -535,7 +588,8 @@ class PfStage(Stage):
              "tll_cache": ("loaded " + self.params.transitions_file if self.params.transitions_file
                            else "hit" if self.cache_hit else "computed"),
              "pending_fixes": str(len(self._pending)), "motion_source": self.params.motion_source,
-             "precision_floored": str(self.floored),
+             "precision_floored": str(self.floored), "reorder_buffered": str(len(self._order)),
+             "reorder_late": str(self.reorder_late),
              # the smoother's particles at the last check, and steps dropped for smooth_max_mb
              "smoother_mb": f"{self._budget.held / 2**20:.1f}", "smoother_trimmed": str(self._budget.trimmed_steps)}
         if self.params.motion_source == "odom":
