@@ -78,11 +78,15 @@ def test_a_pass_ends_the_same_whether_its_last_messages_come_before_or_after_the
         want += ref.process(topic, msg, stamp, user)
     stage = build_stage(world, *case)
     span = clean[-1][0] - clean[0][0] + SEC
+    # a stream of a few messages (the world's two scans, 4 s apart) has no last messages to queue that
+    # would leave its pass ahead of the clock gone back by more than jump_s: it is taken whole before
+    # the jump, and must still reset once in the new pass
+    queued = QUEUED if len(clean) > 2 * QUEUED else 0
     got: list = []
-    for stamp, topic, msg in clean[:-QUEUED]:
+    for stamp, topic, msg in clean[:len(clean) - queued]:
         got += stage.process(topic, msg, stamp, user)
     got += stage.run_clock_jump(span, clean[0][0])
-    for _stamp, topic, msg in clean[-QUEUED:]:                 # taken after the callback, the clock gone back
+    for _stamp, topic, msg in clean[len(clean) - queued:]:     # taken after the callback, the clock gone back
         got += stage.process(topic, msg, clean[0][0], user)
     assert sum(stage.diag.rejected.values()) == 0, stage.diag.rejected
     assert [(t, tuple(_leaves(m))) for t, m in got] == [(t, tuple(_leaves(m))) for t, m in want]
