@@ -74,6 +74,10 @@ class FloorSnap:
         self._ramp_ns = 0
         self._changes = 0                    # detector changes seen (a new one: the base is its new level)
         self.snaps = 0                       # floors snapped (diagnostics)
+        #: the walker's barometric height in ``map`` during a ramping transit (``z_anchor + h − h_base``,
+        #: m) and when its transit started (ns); None otherwise (level, or a pressure step)
+        self.height_z: float | None = None
+        self.ramp_ns = 0
         self.steps = 0                       # transits taken for pressure steps
 
     def _reset(self) -> None:
@@ -82,6 +86,7 @@ class FloorSnap:
         self.anchor = self.floor = None
         self.step = False
         self._transit_base = None
+        self.height_z = None
 
     def update(self, det: FloorChangeDetector, floor_z: np.ndarray, base_floor: int | None, stamp_ns: int
                ) -> int | None:
@@ -114,6 +119,7 @@ class FloorSnap:
                 return None
             self.anchor = self.floor = int(base_floor)
         if self.step:
+            self.height_z = None
             return self.floor
         if self._transit_base is None:
             self._transit_base, self._ramp_ns = self.base, s.leave_ns
@@ -123,6 +129,7 @@ class FloorSnap:
                 self._ramp_ns = s.shift_start_ns
         base, ramp_ns = self._transit_base, self._ramp_ns
         z = float(floor_z[self.anchor]) + (s.height_m - base)
+        self.height_z, self.ramp_ns = z, ramp_ns
         h = self.params.hysteresis
         while self.floor is not None:
             cur = self.floor
@@ -143,6 +150,8 @@ class FloorSnap:
                     break                           # a plateau near the snapping height: not yet
             self.floor = nb
             self.snaps += 1
+        if self.step:
+            self.height_z = None            # a pressure step: no height to weigh particles by
         return self.floor
 
     def _climbing(self, det: FloorChangeDetector, stamp_ns: int, sign: int) -> bool:
