@@ -121,3 +121,28 @@ def test_particles_walking_back_down_the_stairs_lose_weight_before_the_change_is
         p = tr.pf.p
         return float(p.weights[tr.pf.floors.floor_of(p.link, p.pos) == 1].sum())
     assert run(True) > 0.9 and run(False) < 0.6
+
+
+def _heights_seen(h: np.ndarray) -> list:
+    """FloorTrack fed heights ``h`` (m, 10 Hz) from floor 0: the snap's height_z at each sample."""
+    from indoor_loc.baro.track import FloorTrack
+    ft = FloorTrack(floors_m=[0.0, 3.5, 7.0])
+    ft.fix(0, 0.0, 0.01)
+    out = []
+    for k, hk in enumerate(h):
+        ft.baro(S + k * S // 10, float(pressure_at_height_pa(hk + 1.1, P0)))
+        out.append(ft.snap.height_z)
+    return out
+
+
+def test_a_door_spike_gives_no_height_a_walker_on_the_stairs_does():
+    # a door: the pressure steps by 1.6 m of height (0.19 hPa) within 0.3 s, holds 3 s, comes back
+    door = np.r_[np.zeros(100), np.linspace(0, 1.6, 4), np.full(30, 1.6), np.linspace(1.6, 0, 4), np.zeros(50)]
+    assert all(z is None for z in _heights_seen(door))
+    # stairs: 0.4 m/s up; the height is there once the floor is snapped (0.7 storey), to the top
+    stairs = np.r_[np.zeros(100), np.linspace(0, 3.5, 88), np.full(10, 3.5)]
+    seen = _heights_seen(stairs)
+    first = next(k for k, z in enumerate(seen) if z is not None)
+    assert 100 + 55 < first < 100 + 88                         # (2.45 m at 0.4 m/s: 6.1 s, plus the median)
+    assert all(z is not None for z in seen[first:])
+    assert seen[-1] == pytest.approx(3.5, abs=0.3)

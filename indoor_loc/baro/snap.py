@@ -74,8 +74,9 @@ class FloorSnap:
         self._ramp_ns = 0
         self._changes = 0                    # detector changes seen (a new one: the base is its new level)
         self.snaps = 0                       # floors snapped (diagnostics)
-        #: the walker's barometric height in ``map`` during a ramping transit (``z_anchor + h − h_base``,
-        #: m) and when its transit started (ns); None otherwise (level, or a pressure step)
+        #: the walker's barometric height in ``map`` during a transit (``z_anchor + h − h_base``, m) once
+        #: the floor has been snapped (the transit ramped like a walker or a lift), and when its transit
+        #: started (ns); None otherwise (level, before the snap, a door's pressure step or plateau)
         self.height_z: float | None = None
         self.ramp_ns = 0
         self.steps = 0                       # transits taken for pressure steps
@@ -129,7 +130,6 @@ class FloorSnap:
                 self._ramp_ns = s.shift_start_ns
         base, ramp_ns = self._transit_base, self._ramp_ns
         z = float(floor_z[self.anchor]) + (s.height_m - base)
-        self.height_z, self.ramp_ns = z, ramp_ns
         h = self.params.hysteresis
         while self.floor is not None:
             cur = self.floor
@@ -150,8 +150,10 @@ class FloorSnap:
                     break                           # a plateau near the snapping height: not yet
             self.floor = nb
             self.snaps += 1
-        if self.step:
-            self.height_z = None            # a pressure step: no height to weigh particles by
+        # the height is the walker's once the floor has been snapped (a ride: ramped, still moving, past
+        # 0.7 storey); before that a door's pressure step or plateau could pass for one
+        self.height_z = z if self.floor != self.anchor and not self.step else None
+        self.ramp_ns = ramp_ns
         return self.floor
 
     def _climbing(self, det: FloorChangeDetector, stamp_ns: int, sign: int) -> bool:

@@ -21,6 +21,13 @@ walking (a lift: the PDR sees no steps) and are within ``shaft_reach_m`` of a li
 leaving on a level link; when almost no weight is left on the right floor the rest are projected
 onto that floor's links where they stand (plan position kept).
 
+**Height likelihood during a transit.** Once the barometer's floor track has snapped the floor
+during a transit (:class:`~indoor_loc.baro.snap.FloorSnap`), the walker's barometric height in
+``map`` is known; a particle's height (its floor's, or along its stair or lift link) is weighed by
+a Gaussian around it (:func:`baro_height`, σ from the detector's parameters: :func:`baro_height_sigma`),
+never below ``baro_floor_wrong``: particles that walk a flight faster than the walker, or back down
+it after the arrival, lose weight before the detector ends the transit and the gate takes over.
+
 **Sensor resetting from the barometer.** A floor change means the walker is at a lift or a
 stairwell now: a particle still off the new floor beyond ``shaft_reach_m`` of every shaft is
 evidence that the cloud is wrong in the plane, not that the walker stayed. Such particles are
@@ -140,7 +147,8 @@ class PfFloorParams:
                                               "detector on simulated multi-floor walks: about 1 in 8)")
     baro_floor_wrong: float = P.field(0.05, "weight of a particle off the floor the barometer expects, per check")
     baro_check_s: float = P.field(1.0, "the barometer gate weighs the particles at most this often (s)")
-    baro_height: bool = P.field(True, "during a barometer transit (stairs, a lift, a pause between flights) weigh "
+    baro_height: bool = P.field(True, "once the floor is snapped during a barometer transit (stairs, a lift, a pause "
+                                      "between flights) weigh "
                                       "the particles' heights against the barometric height (Gaussian, the "
                                       "detector's noise, never below baro_floor_wrong); false: no barometer "
                                       "evidence until the transit ends")
