@@ -74,6 +74,11 @@ class FloorSnap:
         self._ramp_ns = 0
         self._changes = 0                    # detector changes seen (a new one: the base is its new level)
         self.snaps = 0                       # floors snapped (diagnostics)
+        #: the walker's barometric height in ``map`` during a transit (``z_anchor + h − h_base``, m) once
+        #: the floor has been snapped (the transit ramped like a walker or a lift), and when its transit
+        #: started (ns); None otherwise (level, before the snap, a door's pressure step or plateau)
+        self.height_z: float | None = None
+        self.ramp_ns = 0
         self.steps = 0                       # transits taken for pressure steps
 
     def _reset(self) -> None:
@@ -82,6 +87,7 @@ class FloorSnap:
         self.anchor = self.floor = None
         self.step = False
         self._transit_base = None
+        self.height_z = None
 
     def update(self, det: FloorChangeDetector, floor_z: np.ndarray, base_floor: int | None, stamp_ns: int
                ) -> int | None:
@@ -114,6 +120,7 @@ class FloorSnap:
                 return None
             self.anchor = self.floor = int(base_floor)
         if self.step:
+            self.height_z = None
             return self.floor
         if self._transit_base is None:
             self._transit_base, self._ramp_ns = self.base, s.leave_ns
@@ -143,6 +150,10 @@ class FloorSnap:
                     break                           # a plateau near the snapping height: not yet
             self.floor = nb
             self.snaps += 1
+        # the height is the walker's once the floor has been snapped (a ride: ramped, still moving, past
+        # 0.7 storey); before that a door's pressure step or plateau could pass for one
+        self.height_z = z if self.floor != self.anchor and not self.step else None
+        self.ramp_ns = ramp_ns
         return self.floor
 
     def _climbing(self, det: FloorChangeDetector, stamp_ns: int, sign: int) -> bool:

@@ -531,7 +531,8 @@ class GraphParticleFilter:
         ``reinit_mahalanobis2``) the filter has diverged: a ``reinit_fraction`` of the particles is
         redrawn around the fix. ``floor``: the fix's floor and the probability it is wrong
         (:meth:`FloorGeometry.fix_floor`): particles are weighed by it and redrawn on it (on
-        ``inject_floor`` when given, e.g. the floor a barometer vouches for). Returns True if re-initialised."""
+        ``inject_floor`` when given, e.g. the floor a barometer vouches for, both by sensor resetting
+        and by a re-initialisation). Returns True if re-initialised."""
         p, pp = self.p, self.params
         assert p is not None
         self.redrawn_log_q = None
@@ -545,7 +546,10 @@ class GraphParticleFilter:
             self.n_reinit += 1
             k = int(round(pp.reinit_fraction * n))
             idx = rng.choice(n, size=k, replace=False)
-            on = (floor[0] if floor is not None else self.estimate_floor()[0]) if self.floors.n_floors > 1 else None
+            on = None
+            if self.floors.n_floors > 1:        # the floor a barometer vouches for, else the fix's
+                on = inject_floor if inject_floor is not None else (
+                    floor[0] if floor is not None else self.estimate_floor()[0])
             link, t = self.sample_gaussian(mean, cov, k, rng, floor=on)
             fresh = self._new(link, t, rng)
             for f in fields(p):

@@ -21,6 +21,13 @@ walking (a lift: the PDR sees no steps) and are within ``shaft_reach_m`` of a li
 leaving on a level link; when almost no weight is left on the right floor the rest are projected
 onto that floor's links where they stand (plan position kept).
 
+**Height likelihood during a transit.** Once the barometer's floor track has snapped the floor
+during a transit (:class:`~indoor_loc.baro.snap.FloorSnap`), the walker's barometric height in
+``map`` is known; a particle's height (its floor's, or along its stair or lift link) is weighed by
+a Gaussian around it (:func:`baro_height`, σ from the detector's parameters: :func:`baro_height_sigma`),
+never below ``baro_floor_wrong``: particles that walk a flight faster than the walker, or back down
+it after the arrival, lose weight before the detector ends the transit and the gate takes over.
+
 **Sensor resetting from the barometer.** A floor change means the walker is at a lift or a
 stairwell now: a particle still off the new floor beyond ``shaft_reach_m`` of every shaft is
 evidence that the cloud is wrong in the plane, not that the walker stayed. Such particles are
@@ -41,6 +48,7 @@ from indoor_loc import params as P
 from indoor_loc.graph.model import BuildingGraph
 
 if TYPE_CHECKING:
+    from indoor_loc.baro.detector import FloorChangeDetector
     from indoor_loc.pf.filter import GraphParticleFilter
 
 
@@ -139,6 +147,11 @@ class PfFloorParams:
                                               "detector on simulated multi-floor walks: about 1 in 8)")
     baro_floor_wrong: float = P.field(0.05, "weight of a particle off the floor the barometer expects, per check")
     baro_check_s: float = P.field(1.0, "the barometer gate weighs the particles at most this often (s)")
+    baro_height: bool = P.field(True, "once the floor is snapped during a barometer transit (stairs, a lift, a pause "
+                                      "between flights) weigh "
+                                      "the particles' heights against the barometric height (Gaussian, the "
+                                      "detector's noise, never below baro_floor_wrong); false: no barometer "
+                                      "evidence until the transit ends")
     shaft_reach_m: float = P.field(8.0, "at a barometer floor change, particles this close to a lift or stairwell "
                                         "(plan distance, m) that are not on the new floor move to its stop there")
     shaft_reset_sigma_m: float = P.field(10.0, "at a barometer floor change, particles off the new floor beyond "
@@ -257,3 +270,34 @@ def _through_shafts(pf: "GraphParticleFilter", own: np.ndarray, target: np.ndarr
         p.pos[move] = np.where(end == 0, 0.0, pf.g.link_len[link])
         p.direction[move] = np.where(end == 0, 1, -1).astype(np.int8)
     return int(len(move))
+
+
+def baro_height_sigma(det: "FloorChangeDetector", since_ns: int) -> float:
+    """Standard deviation (m) of the barometric height in ``map`` during a transit, from the
+    detector's own parameters: the running median's noise (``1.25 σ / √n`` over the samples in its
+    window), the median's lag on a moving height (half the window times the vertical speed over the
+    last second) and the weather drift since the transit started at ``since_ns``."""
+    s, p = det.s, det.params
+    if s.last_ns is None or not np.isfinite(s.height_m):
+        return float("inf")
+    median = 1.25 * p.noise_m / np.sqrt(max(len(s.raw), 1))
+    past = [h for t, h in s.smooth if t <= s.last_ns - 10**9]
+    speed = abs(s.height_m - past[-1]) if past else 0.0          # m over the last second
+    lag = 0.5 * p.smooth_s * speed
+    drift = p.drift_m_per_s * max(s.last_ns - since_ns, 0) * 1e-9
+    return float(np.sqrt(median ** 2 + lag ** 2 + drift ** 2))
+
+
+def baro_height(pf: "GraphParticleFilter", z_m: float, sigma_m: float, params: PfFloorParams) -> np.ndarray:
+    """The barometer's height during a transit: each particle's height (its floor's, or along a
+    stair or lift link) weighed by ``exp(−½ ((z − z_m) / sigma_m)²)``, never below
+    ``baro_floor_wrong`` (the weight of a particle off the barometer's floor while it holds still:
+    the same evidence, continuous while the walker climbs). Returns the particles' log-likelihood."""
+    p, fg = pf.p, pf.floors
+    assert p is not None
+    if not (np.isfinite(z_m) and np.isfinite(sigma_m) and sigma_m > 0):
+        return np.zeros(len(p.link))
+    d = (fg.z_of(p.link, p.pos) - z_m) / sigma_m
+    log_l = np.maximum(-0.5 * d * d, np.log(params.baro_floor_wrong))
+    pf.update_log_likelihood(log_l)
+    return log_l

@@ -50,7 +50,7 @@ from indoor_loc.measurements import Fix, wrap_angle
 from indoor_loc.graph.model import BuildingGraph
 from indoor_loc.graph.tll import Transitions
 from indoor_loc.pf.filter import GraphParticleFilter, PfParams, constrained_mean
-from indoor_loc.pf.floors import PfFloorParams, baro_check, baro_floor_to
+from indoor_loc.pf.floors import PfFloorParams, baro_check, baro_floor_to, baro_height, baro_height_sigma
 from indoor_loc.pf.wifi_field import EdgeFingerprintField
 from indoor_loc.wifi.types import WifiScan
 
@@ -350,8 +350,13 @@ class GraphTracker:
             else:
                 self.pf.p.floor_ref[:] = expected
             self._baro_floor = expected
-        if not self.baro_det.in_transit and self.baro_det.s.level_m is not None and (
-                self._baro_check_ns is None or stamp_ns - self._baro_check_ns >= int(fp.baro_check_s * 1e9)):
+        due = self._baro_check_ns is None or stamp_ns - self._baro_check_ns >= int(fp.baro_check_s * 1e9)
+        snap = self.baro_track.snap
+        if due and fp.baro_height and snap.height_z is not None:
+            # a transit ramping (or a pause between flights): the particles' heights against the barometer's
+            self._baro_check_ns = stamp_ns
+            baro_height(self.pf, snap.height_z, baro_height_sigma(self.baro_det, snap.ramp_ns), fp)
+        elif due and not self.baro_det.in_transit and self.baro_det.s.level_m is not None:
             self._baro_check_ns = stamp_ns
             if self._baro_floor is not None:
                 self.pf.p.floor_ref[:] = self._baro_floor      # particles drawn since then included
@@ -539,3 +544,4 @@ class GraphTracker:
             out.append(Estimate(h[t].stamp_ns, self.g.point_at(link, tt)[0], d.T @ d / n_samples + 1e-6 * np.eye(2),
                                 np.nan, zk, float(np.mean((fg.fz[fl] - zk) ** 2)), k))
         return out
+
