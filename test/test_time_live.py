@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import pytest
@@ -38,6 +40,57 @@ def _diag_of(diags: list, name: str):
         if name in d:
             return d[name]
     return None
+
+class _SimClockWifiFix(NamedTuple):
+    proc: Peer
+    ex: Any
+    fixes: list
+    now: list          # [the sim clock, ns]: the test may set it back
+    send: Callable[..., None]
+    values: Callable[[], dict]
+
+
+@contextmanager
+def _wifi_fix_on_sim_clock(tmp_path, *, seed: int, tick_ns: int):
+    """``wifi_fix_node`` for /alice on ``use_sim_time`` with a probe publishing ``/clock`` (from 100 s,
+    ``tick_ns`` every 50 ms of the wall clock), scans stamped as asked (``send(*stamps_s)``), and
+    reading its fixes and its ``/diagnostics`` values; the node must not have raised."""
+    from rosgraph_msgs.msg import Clock
+
+    from msg_adapters.time import stamp_from_ns
+    map_dir = save_radiomap(grid_map(), tmp_path / "rm")
+    node_proc = _node("wifi_fix_node", "-r", "__ns:=/alice", "-p", f"radiomap:={map_dir}", "-p", "use_sim_time:=true")
+    rng = np.random.default_rng(seed)
+    try:
+        with ros_node("probe") as (node, ex):
+            fixes: list = []
+            diags: list = []
+            now = [100 * S]
+            clock = node.create_publisher(Clock, "/clock", qos_profile(Qos.RELIABLE))
+
+            def tick() -> None:
+                now[0] += tick_ns
+                clock.publish(Clock(clock=stamp_from_ns(now[0])))
+            node.create_timer(0.05, tick)
+            pub = node.create_publisher(DiagnosticArray, "/alice/wifi/scan", qos_profile(Qos.RELIABLE))
+            node.create_subscription(PoseWithCovarianceStamped, "/alice/wifi/fix", fixes.append,
+                                     qos_profile(Qos.RELIABLE))
+            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and
+                              _diag_of(diags, "/alice/wifi_fix_node") is not None, 60), node_proc.output()
+
+            def send(*stamps_s: float) -> None:
+                for t in stamps_s:
+                    pub.publish(scan_to_msg(scan_at(rng.uniform(0.5, 9.5, 2), int(t * S))))
+
+            def values() -> dict:
+                d = _diag_of(diags, "/alice/wifi_fix_node")
+                return dict(d.values) if d else {}
+            yield _SimClockWifiFix(node_proc, ex, fixes, now, send, values)
+        assert "Traceback" not in node_proc.output()
+    finally:
+        node_proc.stop()
+
 
 
 def test_one_scan_stamped_in_2036_does_not_silence_wifi_fix_node(ros_domain, tmp_path):
@@ -144,53 +197,21 @@ def test_scans_stamped_before_the_clock_went_back_are_located_in_their_own_pass(
     the clock before the jump), and the new pass resets the node once. Before, the reset came at the
     callback and such scans were refused as 80 s in the new clock's future (``future_stamp``), so the
     old pass's last fixes depended on when the node took them."""
-    from rosgraph_msgs.msg import Clock
-
-    from msg_adapters.time import stamp_from_ns
-    map_dir = save_radiomap(grid_map(), tmp_path / "rm")
-    node_proc = _node("wifi_fix_node", "-r", "__ns:=/alice", "-p", f"radiomap:={map_dir}", "-p", "use_sim_time:=true")
-    rng = np.random.default_rng(5)
-    try:
-        with ros_node("probe") as (node, ex):
-            fixes: list = []
-            diags: list = []
-            now = [100 * S]
-            clock = node.create_publisher(Clock, "/clock", qos_profile(Qos.RELIABLE))
-
-            def tick() -> None:                                 # sim time running at the wall clock's pace
-                now[0] += 50_000_000
-                clock.publish(Clock(clock=stamp_from_ns(now[0])))
-            node.create_timer(0.05, tick)
-            pub = node.create_publisher(DiagnosticArray, "/alice/wifi/scan", qos_profile(Qos.RELIABLE))
-            node.create_subscription(PoseWithCovarianceStamped, "/alice/wifi/fix", fixes.append,
-                                     qos_profile(Qos.RELIABLE))
-            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
-            assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and
-                              _diag_of(diags, "/alice/wifi_fix_node") is not None, 60), node_proc.output()
-
-            def send(*stamps_s: float) -> None:
-                for t in stamps_s:
-                    pub.publish(scan_to_msg(scan_at(rng.uniform(0.5, 9.5, 2), int(t * S))))
-            send(95, 96, 97, 98)
-            assert spin_until(ex, lambda: len(fixes) == 4, 30), node_proc.output()
-            now[0] = 10 * S                                     # the clock goes back 90 s
-            assert spin_until(ex, lambda: node_proc.wait_seen(r"clock jumped back", 0) is not None, 30), \
-                node_proc.output()[-3000:]
-            send(99, 99.5)                                      # published before the jump, taken after it
-            assert spin_until(ex, lambda: len(fixes) == 6, 20), (len(fixes), node_proc.output()[-3000:])
-            send(10.1, 10.2, 10.3)                              # the new pass
-            assert spin_until(ex, lambda: len(fixes) == 9, 20), (len(fixes), node_proc.output()[-3000:])
-            assert [fix_from_msg(f).stamp_ns for f in fixes] == [
-                int(t * S) for t in (95, 96, 97, 98, 99, 99.5, 10.1, 10.2, 10.3)]
-
-            def values() -> dict:
-                d = _diag_of(diags, "/alice/wifi_fix_node")
-                return dict(d.values) if d else {}
-            assert spin_until(ex, lambda: values().get("in.wifi/scan.count") == "9", 30), values()
-            assert values()["rejected.total"] == "0" and values()["time_jumps"] == "1", values()
-        assert "Traceback" not in node_proc.output()
-    finally:
-        node_proc.stop()
+    with _wifi_fix_on_sim_clock(tmp_path, seed=5, tick_ns=50_000_000) as w:   # sim time at the wall's pace
+        ex, fixes, now, send, values, node_proc = w.ex, w.fixes, w.now, w.send, w.values, w.proc
+        send(95, 96, 97, 98)
+        assert spin_until(ex, lambda: len(fixes) == 4, 30), node_proc.output()
+        now[0] = 10 * S                                     # the clock goes back 90 s
+        assert spin_until(ex, lambda: node_proc.wait_seen(r"clock jumped back", 0) is not None, 30), \
+            node_proc.output()[-3000:]
+        send(99, 99.5)                                      # published before the jump, taken after it
+        assert spin_until(ex, lambda: len(fixes) == 6, 20), (len(fixes), node_proc.output()[-3000:])
+        send(10.1, 10.2, 10.3)                              # the new pass
+        assert spin_until(ex, lambda: len(fixes) == 9, 20), (len(fixes), node_proc.output()[-3000:])
+        assert [fix_from_msg(f).stamp_ns for f in fixes] == [
+            int(t * S) for t in (95, 96, 97, 98, 99, 99.5, 10.1, 10.2, 10.3)]
+        assert spin_until(ex, lambda: values().get("in.wifi/scan.count") == "9", 30), values()
+        assert values()["rejected.total"] == "0" and values()["time_jumps"] == "1", values()
 
 
 def test_a_stamp_far_back_is_no_clock_jump_when_the_clock_lags_the_stamps(ros_domain, tmp_path):
@@ -200,46 +221,14 @@ def test_a_stamp_far_back_is_no_clock_jump_when_the_clock_lags_the_stamps(ros_do
     the clock (and the far-back stamp its present) was taken as the clock having gone back: the user
     was reset at once (``time_jumps`` 1) — the fault benchmark's all-ports trial on sim time reset
     ``imu_node`` 29 times, ``pdr_kf_node`` six."""
-    from rosgraph_msgs.msg import Clock
-
-    from msg_adapters.time import stamp_from_ns
-    map_dir = save_radiomap(grid_map(), tmp_path / "rm")
-    node_proc = _node("wifi_fix_node", "-r", "__ns:=/alice", "-p", f"radiomap:={map_dir}", "-p", "use_sim_time:=true")
-    rng = np.random.default_rng(6)
-    try:
-        with ros_node("probe") as (node, ex):
-            fixes: list = []
-            diags: list = []
-            now = [100 * S]
-            clock = node.create_publisher(Clock, "/clock", qos_profile(Qos.RELIABLE))
-
-            def tick() -> None:
-                now[0] += 10_000_000                            # sim time at a fifth of the wall clock's pace
-                clock.publish(Clock(clock=stamp_from_ns(now[0])))
-            node.create_timer(0.05, tick)
-            pub = node.create_publisher(DiagnosticArray, "/alice/wifi/scan", qos_profile(Qos.RELIABLE))
-            node.create_subscription(PoseWithCovarianceStamped, "/alice/wifi/fix", fixes.append,
-                                     qos_profile(Qos.RELIABLE))
-            node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, qos_profile(Qos.RELIABLE))
-            assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and
-                              _diag_of(diags, "/alice/wifi_fix_node") is not None, 60), node_proc.output()
-
-            def send(*stamps_s: float) -> None:
-                for t in stamps_s:
-                    pub.publish(scan_to_msg(scan_at(rng.uniform(0.5, 9.5, 2), int(t * S))))
-            base = now[0] / S
-            send(base + 4, base + 5, base + 6)                  # the stamps 4-6 s ahead of the node's clock
-            assert spin_until(ex, lambda: len(fixes) == 3, 30), node_proc.output()
-            send(base + 0.5)                                    # one stamped at the clock's present
-            send(base + 7)                                      # and the stream goes on
-            assert spin_until(ex, lambda: len(fixes) == 4, 20), (len(fixes), node_proc.output()[-3000:])
-            assert fix_from_msg(fixes[-1]).stamp_ns == int((base + 7) * S)
-
-            def values() -> dict:
-                d = _diag_of(diags, "/alice/wifi_fix_node")
-                return dict(d.values) if d else {}
-            assert spin_until(ex, lambda: values().get("in.wifi/scan.count") == "5", 30), values()
-            assert values()["time_jumps"] == "0" and values()["rejected.stale_stamp"] == "1", values()
-        assert "Traceback" not in node_proc.output()
-    finally:
-        node_proc.stop()
+    with _wifi_fix_on_sim_clock(tmp_path, seed=6, tick_ns=10_000_000) as w:   # sim time at a fifth of it
+        ex, fixes, now, send, values, node_proc = w.ex, w.fixes, w.now, w.send, w.values, w.proc
+        base = now[0] / S
+        send(base + 4, base + 5, base + 6)                  # the stamps 4-6 s ahead of the node's clock
+        assert spin_until(ex, lambda: len(fixes) == 3, 30), node_proc.output()
+        send(base + 0.5)                                    # one stamped at the clock's present
+        send(base + 7)                                      # and the stream goes on
+        assert spin_until(ex, lambda: len(fixes) == 4, 20), (len(fixes), node_proc.output()[-3000:])
+        assert fix_from_msg(fixes[-1]).stamp_ns == int((base + 7) * S)
+        assert spin_until(ex, lambda: values().get("in.wifi/scan.count") == "5", 30), values()
+        assert values()["time_jumps"] == "0" and values()["rejected.stale_stamp"] == "1", values()
